@@ -1,0 +1,3 @@
+from mosaic_cli.cli import main
+
+main()

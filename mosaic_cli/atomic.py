@@ -1,0 +1,57 @@
+"""Atomic output: write to a temporary file beside the target, then rename over it.
+
+A failed or interrupted run therefore never leaves a half-written file under the final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+from mosaic_cli.errors import BadInput
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Fail early, before any work, when ``path`` cannot be written."""
+    target = Path(path)
+    parent = target.parent if str(target.parent) else Path(".")
+    if target.is_dir():
+        raise BadInput(f"output {target} is a directory")
+    if not parent.is_dir():
+        raise BadInput(f"output folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise BadInput(f"output folder {parent} is not writable")
+    return target
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path with the target's suffix; rename it onto ``path`` on success.
+
+    The suffix is kept so that tools choosing a format by extension (ffmpeg, cv2.imwrite) work.
+    """
+    target = check_writable(path)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".part{target.suffix}", dir=target.parent or ".")
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_json(path: str | os.PathLike, data: Any) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data) + "\n")
+
+
+def write_bytes(path: str | os.PathLike, payload: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(payload)

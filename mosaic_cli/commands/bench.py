@@ -1,0 +1,1 @@
+"""``mosaic bench``: see the module docstring once implemented."""

@@ -1,0 +1,1 @@
+"""``mosaic evaluate``: see the module docstring once implemented."""

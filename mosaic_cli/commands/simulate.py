@@ -1,0 +1,1 @@
+"""``mosaic simulate``: see the module docstring once implemented."""

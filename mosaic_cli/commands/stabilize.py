@@ -1,0 +1,1 @@
+"""``mosaic stabilize``: see the module docstring once implemented."""

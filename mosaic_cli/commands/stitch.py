@@ -1,0 +1,1 @@
+"""``mosaic stitch``: see the module docstring once implemented."""

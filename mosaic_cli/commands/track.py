@@ -1,0 +1,50 @@
+"""``mosaic track VIDEO -o OUT.json``: the pairwise homographies themselves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mosaic_cli.atomic import check_writable
+from mosaic_cli.cli import app
+from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import make_estimator
+from mosaic_cli.progress import console
+from mosaic_cli.track import save_track, track_video
+
+
+@app.command()
+def track(
+    video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
+    out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
+    estimator: str = typer.Option("orb", "--estimator", "-e", help="orb, orb-ransac, identity, lstm or cnn."),
+    work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
+    weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
+    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Estimate the homography between every pair of consecutive frames.
+
+    pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
+    """
+    if max_frames is not None and max_frames < 2:
+        raise BadInput("--max-frames must be at least 2")
+    check_writable(out)
+    if out.suffix.lower() not in (".json", ".npy"):
+        raise BadInput(f"output {out} must end in .json or .npy")
+    est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
+    result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+    save_track(result, out)
+    if not quiet:
+        console.print(
+            f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
+            f"median confidence {float(_median(result.confidence)):.2f} -> {out}"
+        )
+
+
+def _median(values) -> float:
+    import numpy as np
+
+    return float(np.median(values)) if len(values) else 0.0

@@ -1,0 +1,1 @@
+"""``mosaic train``: see the module docstring once implemented."""

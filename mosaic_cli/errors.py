@@ -1,0 +1,25 @@
+"""User-facing errors: one clear line on stderr and a distinct exit code, never a traceback."""
+
+from __future__ import annotations
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+EXIT_INTERRUPTED = 130
+
+
+class MosaicError(Exception):
+    """An error the user can act on; the CLI prints its message as one line."""
+
+    exit_code = EXIT_FAILED
+
+
+class BadInput(MosaicError):
+    """The user's input (path, video, option value) is unusable."""
+
+    exit_code = EXIT_BAD_INPUT
+
+
+class ProcessingError(MosaicError):
+    """Valid input that the pipeline cannot turn into a result (e.g. a degenerate chain)."""
+
+    exit_code = EXIT_FAILED

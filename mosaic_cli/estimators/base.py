@@ -1,0 +1,118 @@
+"""The streaming estimator interface shared by every homography estimator.
+
+An estimator is stateful: ``reset`` starts a video, ``feed`` takes its frames in order and
+returns the pairwise estimates that are ready (zero or more: a batched estimator may hold
+frames back to run them together), ``finish`` returns the rest.  Estimate k always maps
+frame k to frame k+1 in full-resolution pixels (see :mod:`mosaic_cli.geometry`).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from mosaic_cli.geometry import to_resolution
+
+
+@dataclass(frozen=True)
+class PairEstimate:
+    """Homography frame t -> t+1 (3x3, full-resolution pixels) and a confidence in [0, 1]."""
+
+    H: np.ndarray
+    confidence: float
+
+    @staticmethod
+    def failed() -> "PairEstimate":
+        return PairEstimate(np.eye(3), 0.0)
+
+
+def to_gray(frame: np.ndarray) -> np.ndarray:
+    """(h, w) uint8 from an RGB (h, w, 3) or already-gray frame."""
+    return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+
+
+def working_size(size: tuple[int, int], work_width: int) -> tuple[int, int]:
+    """(w, h) of a frame of ``size`` resized to ``work_width`` (aspect kept, height rounded)."""
+    w, h = size
+    return (int(work_width), max(1, int(round(h * work_width / w))))
+
+
+class Estimator(ABC):
+    """Base class: subclasses implement ``_estimate(prev, cur)`` on working-resolution gray
+    frames, or override ``feed``/``finish`` to batch."""
+
+    name: str = "estimator"
+
+    def __init__(self, work_width: int = 320):
+        if work_width < 32:
+            raise ValueError("work_width must be at least 32 pixels")
+        self.work_width = int(work_width)
+        self.full_size: tuple[int, int] | None = None
+        self._prev: np.ndarray | None = None
+
+    @property
+    def input_width(self) -> int:
+        """The narrowest frames this estimator can use: readers may downscale to it for speed."""
+        return self.work_width
+
+    def reset(self, full_size: tuple[int, int]) -> None:
+        """Start a new video whose full-resolution frames are ``full_size`` (w, h)."""
+        self.full_size = (int(full_size[0]), int(full_size[1]))
+        self.work_size = working_size(self.full_size, self.work_width)
+        self._prev = None
+
+    def prepare(self, frame: np.ndarray) -> np.ndarray:
+        """Gray frame at the working resolution (from a frame at any resolution)."""
+        gray = to_gray(frame)
+        if (gray.shape[1], gray.shape[0]) != self.work_size:
+            gray = cv2.resize(gray, self.work_size, interpolation=cv2.INTER_AREA)
+        return gray
+
+    def feed(self, frame: np.ndarray) -> list[PairEstimate]:
+        if self.full_size is None:
+            raise RuntimeError("call reset(full_size) before feeding frames")
+        cur = self.prepare(frame)
+        prev, self._prev = self._prev, cur
+        if prev is None:
+            return []
+        H_work, confidence = self._estimate(prev, cur)
+        return [self._to_full(H_work, confidence)]
+
+    def finish(self) -> list[PairEstimate]:
+        return []
+
+    def _to_full(self, H_work: np.ndarray | None, confidence: float) -> PairEstimate:
+        if H_work is None or not np.all(np.isfinite(H_work)):
+            return PairEstimate.failed()
+        H = to_resolution(H_work, self.work_size, self.full_size)
+        if not np.all(np.isfinite(H)):
+            return PairEstimate.failed()
+        return PairEstimate(H, float(np.clip(confidence, 0.0, 1.0)))
+
+    @abstractmethod
+    def _estimate(self, prev: np.ndarray, cur: np.ndarray) -> tuple[np.ndarray | None, float]:
+        """Homography prev -> cur at working resolution and its confidence (None on failure)."""
+
+
+def estimate_stream(estimator: Estimator, frames: Iterable[np.ndarray], full_size: tuple[int, int]) -> Iterator[PairEstimate]:
+    """Run ``estimator`` over ``frames`` and yield pairwise estimates in order, streaming."""
+    estimator.reset(full_size)
+    for frame in frames:
+        yield from estimator.feed(frame)
+    yield from estimator.finish()
+
+
+class IdentityEstimator(Estimator):
+    """No motion at all: the paper's IDENTITY baseline."""
+
+    name = "identity"
+
+    def prepare(self, frame: np.ndarray) -> np.ndarray:
+        return frame
+
+    def _estimate(self, prev, cur):
+        return np.eye(3), 0.0

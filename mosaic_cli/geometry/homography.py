@@ -1,0 +1,168 @@
+"""Homography algebra: chaining, resolution changes, 4-corner parametrisation, errors, validity.
+
+All functions are pure and accept numpy arrays; leading batch dimensions are allowed where noted.
+See :mod:`mosaic_cli.geometry` for the pixel and direction conventions.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+__all__ = [
+    "normalize",
+    "project",
+    "chain",
+    "cumulative",
+    "resize_matrix",
+    "to_resolution",
+    "rect_corners",
+    "frame_corners",
+    "four_point_to_homography",
+    "homography_to_four_point",
+    "corner_error",
+    "is_valid",
+    "IDENTITY",
+]
+
+IDENTITY = np.eye(3)
+
+
+def normalize(H: np.ndarray) -> np.ndarray:
+    """Scale ``H`` (..., 3, 3) so that H[..., 2, 2] == 1."""
+    H = np.asarray(H, dtype=np.float64)
+    return H / H[..., 2:3, 2:3]
+
+
+def project(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map points (..., N, 2) through homographies (..., 3, 3); returns (..., N, 2)."""
+    H = np.asarray(H, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)
+    homog = np.concatenate([points, np.ones(points.shape[:-1] + (1,))], axis=-1)
+    mapped = homog @ np.swapaxes(H, -1, -2)
+    return mapped[..., :2] / mapped[..., 2:3]
+
+
+def chain(pairwise: Sequence[np.ndarray], t: int, s: int) -> np.ndarray:
+    """H_[t,s]: frame t -> frame s from ``pairwise[k]`` (frame k -> k+1). s < t gives the inverse chain."""
+    if s == t:
+        return np.eye(3)
+    if s < t:
+        return normalize(np.linalg.inv(chain(pairwise, s, t)))
+    H = np.eye(3)
+    for k in range(t, s):
+        H = np.asarray(pairwise[k], dtype=np.float64) @ H
+        H = H / H[2, 2]
+    return H
+
+
+def cumulative(pairwise: Sequence[np.ndarray]) -> np.ndarray:
+    """H_[0,t] for t = 0..N-1 as an (N, 3, 3) array, given N-1 pairwise matrices."""
+    out = np.empty((len(pairwise) + 1, 3, 3))
+    out[0] = np.eye(3)
+    for k, H in enumerate(pairwise):
+        out[k + 1] = normalize(np.asarray(H, dtype=np.float64) @ out[k])
+    return out
+
+
+def resize_matrix(src_size: tuple[float, float], dst_size: tuple[float, float]) -> np.ndarray:
+    """The matrix that maps pixel coordinates of an image of ``src_size`` (w, h) to the same
+    point in that image resized to ``dst_size``, with pixel-centre convention:
+    x_dst = (x_src + 0.5) * dst_w / src_w - 0.5 (as cv2.resize samples)."""
+    sx = dst_size[0] / src_size[0]
+    sy = dst_size[1] / src_size[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def to_resolution(H: np.ndarray, src_size: tuple[float, float], dst_size: tuple[float, float]) -> np.ndarray:
+    """Re-express a frame-to-frame homography (..., 3, 3) given for images of ``src_size``
+    as one for the same frames at ``dst_size``: H_dst = S @ H_src @ S^-1."""
+    S = resize_matrix(src_size, dst_size)
+    return normalize(S @ np.asarray(H, dtype=np.float64) @ np.linalg.inv(S))
+
+
+def rect_corners(x: float, y: float, w: float, h: float) -> np.ndarray:
+    """Corners of an axis-aligned rectangle, in the order TL, TR, BR, BL, as a (4, 2) array."""
+    return np.array([[x, y], [x + w, y], [x + w, y + h], [x, y + h]], dtype=np.float64)
+
+
+def frame_corners(w: float, h: float) -> np.ndarray:
+    """The outer corners of a w x h image (pixel-centre convention): TL, TR, BR, BL."""
+    return rect_corners(-0.5, -0.5, w, h)
+
+
+def four_point_to_homography(corners: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """DLT: the homography mapping ``corners`` (..., 4, 2) to ``corners + offsets``.
+
+    Solves the 8x8 linear system with h33 = 1, batched over leading dimensions.
+    """
+    src = np.asarray(corners, dtype=np.float64)
+    dst = src + np.asarray(offsets, dtype=np.float64)
+    src, dst = np.broadcast_arrays(src, dst)
+    batch = src.shape[:-2]
+    x, y = src[..., 0], src[..., 1]
+    u, v = dst[..., 0], dst[..., 1]
+    zeros, ones = np.zeros_like(x), np.ones_like(x)
+    rows_u = np.stack([x, y, ones, zeros, zeros, zeros, -u * x, -u * y], axis=-1)
+    rows_v = np.stack([zeros, zeros, zeros, x, y, ones, -v * x, -v * y], axis=-1)
+    A = np.concatenate([rows_u, rows_v], axis=-2)
+    b = np.concatenate([u, v], axis=-1)
+    h = np.linalg.solve(A, b[..., None])[..., 0]
+    H = np.concatenate([h, np.ones(batch + (1,))], axis=-1)
+    return H.reshape(batch + (3, 3))
+
+
+def homography_to_four_point(H: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Offsets (..., 4, 2) of ``corners`` under ``H``: project(H, corners) - corners."""
+    return project(H, corners) - np.asarray(corners, dtype=np.float64)
+
+
+def corner_error(H_est: np.ndarray, H_true: np.ndarray, size: tuple[float, float]) -> np.ndarray:
+    """Mean L2 distance (pixels) between the frame corners mapped by ``H_est`` and by ``H_true``.
+
+    ``size`` is the (w, h) of the source frame; batched over leading dimensions.
+    """
+    c = frame_corners(*size)
+    return np.linalg.norm(project(H_est, c) - project(H_true, c), axis=-1).mean(axis=-1)
+
+
+def is_valid(
+    H: np.ndarray,
+    size: tuple[float, float],
+    max_area_ratio: float = 4.0,
+    max_corner_shift: float | None = None,
+) -> bool:
+    """A plausible frame-to-frame homography: finite, keeps the frame in front of the camera
+    (positive projective depth at every corner), maps it to a convex, same-orientation
+    quadrilateral, and changes its area by less than ``max_area_ratio``.  With
+    ``max_corner_shift`` (pixels) the corners may not move further than that either."""
+    H = np.asarray(H, dtype=np.float64)
+    if H.shape != (3, 3) or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
+        return False
+    H = H / H[2, 2]
+    c = frame_corners(*size)
+    w_den = c @ H[2, :2] + H[2, 2]
+    if np.any(w_den <= 1e-6):
+        return False
+    q = project(H, c)
+    if not np.all(np.isfinite(q)):
+        return False
+    cross = _turns(q)
+    # Convex, and turning the same way as the source frame: a mirror image is no camera motion.
+    if not np.all(np.sign(cross) == np.sign(_turns(c))):
+        return False
+    area_src = float(size[0] * size[1])
+    area_dst = 0.5 * abs(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
+    if not (1.0 / max_area_ratio < area_dst / area_src < max_area_ratio):
+        return False
+    if max_corner_shift is not None and np.max(np.linalg.norm(q - c, axis=-1)) > max_corner_shift:
+        return False
+    return True
+
+
+def _turns(quad: np.ndarray) -> np.ndarray:
+    """z of the cross product of consecutive edges of a closed polygon (4, 2)."""
+    edges = np.roll(quad, -1, axis=0) - quad
+    nxt = np.roll(edges, -1, axis=0)
+    return edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]

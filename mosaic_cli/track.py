@@ -1,0 +1,107 @@
+"""Track: decode a video as a stream and estimate every pairwise homography (frame t -> t+1)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.atomic import atomic_path, write_json
+from mosaic_cli.estimators import Estimator, estimate_stream
+from mosaic_cli.progress import progress_task
+from mosaic_cli.video import VideoInfo, open_video
+
+TRACK_FORMAT_VERSION = 1
+
+
+@dataclass
+class TrackResult:
+    info: VideoInfo
+    estimator: str
+    pairwise: np.ndarray  # (N-1, 3, 3), frame t -> t+1, full-resolution pixels
+    confidence: np.ndarray  # (N-1,)
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def frames(self) -> int:
+        return len(self.pairwise) + 1
+
+    def to_json(self) -> dict:
+        return {
+            "version": TRACK_FORMAT_VERSION,
+            "frames": self.frames,
+            "size": list(self.info.source_size),
+            "fps": self.info.fps,
+            "estimator": self.estimator,
+            "direction": "t_to_t+1",
+            "pairwise": [[[float(v) for v in row] for row in H] for H in self.pairwise],
+            "confidence": [float(c) for c in self.confidence],
+            "meta": self.meta,
+        }
+
+
+def track_video(
+    path: str | Path,
+    estimator: Estimator,
+    max_frames: int | None = None,
+    show_progress: bool = True,
+) -> TrackResult:
+    """Estimate the pairwise homographies of a whole video, holding one or two frames at a time."""
+    pairwise: list[np.ndarray] = []
+    confidence: list[float] = []
+    with open_video(path, width=estimator.input_width, gray=True) as stream:
+        info = stream.info
+        total = info.frame_count if max_frames is None else min(max_frames, info.frame_count or max_frames)
+
+        def frames():
+            for k, frame in enumerate(stream):
+                if max_frames is not None and k >= max_frames:
+                    return
+                yield frame
+
+        start = time.perf_counter()
+        with progress_task(f"track ({estimator.name})", total, disable=not show_progress) as advance:
+            advance(1)  # the first frame yields no pair
+            for estimate in estimate_stream(estimator, frames(), info.source_size):
+                pairwise.append(estimate.H)
+                confidence.append(estimate.confidence)
+                advance(1)
+        elapsed = time.perf_counter() - start
+    n = len(pairwise) + 1
+    meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
+    return TrackResult(
+        info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta
+    )
+
+
+def save_track(result: TrackResult, out: str | Path) -> None:
+    """JSON (the documented format), or ``.npy`` with the (N-1, 3, 3) pairwise array."""
+    out = Path(out)
+    if out.suffix.lower() == ".npy":
+        with atomic_path(out) as tmp:
+            with open(tmp, "wb") as fh:
+                np.save(fh, result.pairwise)
+    else:
+        write_json(out, result.to_json())
+
+
+def load_track(path: str | Path) -> TrackResult:
+    """Read a ``mosaic track`` JSON file back."""
+    import json
+
+    from mosaic_cli.errors import BadInput
+
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+        pairwise = np.array(data["pairwise"], dtype=np.float64).reshape(-1, 3, 3)
+        size = tuple(int(v) for v in data["size"])
+    except FileNotFoundError:
+        raise BadInput(f"{p}: no such file") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise BadInput(f"{p}: not a mosaic track file ({exc.__class__.__name__})") from None
+    info = VideoInfo(str(p), size, size, float(data.get("fps", 30.0)), int(data.get("frames", len(pairwise) + 1)), 0.0)
+    conf = np.array(data.get("confidence", [1.0] * len(pairwise)), dtype=np.float64)
+    return TrackResult(info, data.get("estimator", "?"), pairwise, conf, data.get("meta", {}))

@@ -1,0 +1,202 @@
+"""Read a video file (anything ffmpeg decodes) or a folder of numbered images as a stream of
+RGB uint8 frames, (h, w, 3), one at a time."""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import imageio_ffmpeg
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
+DEFAULT_FOLDER_FPS = 30.0
+
+# imageio-ffmpeg warns on every downscaled read; the size change is what we asked for.
+logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What is known about a video before decoding it.
+
+    ``size`` is the (w, h) of the frames the reader yields (after rotation and any downscale);
+    ``source_size`` the (w, h) at full resolution after rotation, which is the resolution every
+    homography mosaic reports is expressed in.  ``frame_count`` is an estimate from the
+    container's duration (None when unknown)."""
+
+    path: str
+    size: tuple[int, int]
+    source_size: tuple[int, int]
+    fps: float
+    frame_count: int | None
+    duration: float
+    rotation: int = 0
+    audio_codec: str | None = None
+    is_image_folder: bool = False
+
+    @property
+    def has_audio(self) -> bool:
+        return self.audio_codec is not None
+
+
+def scaled_size(size: tuple[int, int], width: int | None) -> tuple[int, int]:
+    """(w, h) resized to ``width`` keeping the aspect ratio; height rounded to an even number
+    of pixels (ffmpeg and yuv420p like even sizes). ``None`` or a larger width keeps ``size``."""
+    w, h = size
+    if width is None or width >= w:
+        return (w, h)
+    return (int(width), max(2, int(round(h * width / w / 2.0)) * 2))
+
+
+class VideoStream:
+    """An iterable, closeable stream of frames; use as a context manager."""
+
+    def __init__(self, info: VideoInfo, frames: Iterator[np.ndarray], closer=None):
+        self.info = info
+        self._frames = frames
+        self._closer = closer
+        self.frames_read = 0
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for frame in self._frames:
+            self.frames_read += 1
+            yield frame
+        if self.frames_read == 0:
+            raise BadInput(f"{self.info.path}: no decodable frames")
+
+    def close(self) -> None:
+        if self._closer is not None:
+            self._closer()
+            self._closer = None
+
+    def __enter__(self) -> "VideoStream":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _natural_key(path: Path) -> list:
+    return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", path.name)]
+
+
+def _folder_images(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()), key=_natural_key)
+
+
+def _read_image_rgb(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise BadInput(f"{path}: not an image OpenCV can read")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _open_folder(folder: Path, width: int | None, fps: float | None, gray: bool) -> VideoStream:
+    files = _folder_images(folder)
+    if not files:
+        raise BadInput(f"{folder}: folder holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+    first = _read_image_rgb(files[0])
+    source_size = (first.shape[1], first.shape[0])
+    size = scaled_size(source_size, width)
+    rate = fps or DEFAULT_FOLDER_FPS
+    info = VideoInfo(str(folder), size, source_size, rate, len(files), len(files) / rate, is_image_folder=True)
+
+    def frames() -> Iterator[np.ndarray]:
+        for k, path in enumerate(files):
+            img = first if k == 0 else _read_image_rgb(path)
+            if (img.shape[1], img.shape[0]) != source_size:
+                raise BadInput(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from the first image's {source_size[0]}x{source_size[1]}")
+            if size != source_size:
+                img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+            yield cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if gray else img
+
+    return VideoStream(info, frames())
+
+
+def _rotation(header_meta: dict) -> int:
+    return int(header_meta.get("rotate", 0)) % 360
+
+
+def _ffmpeg_frames(path: str, size: tuple[int, int], source_size: tuple[int, int], gray: bool, start: int = 0):
+    output_params: list[str] = []
+    filters = []
+    if start:
+        filters.append(f"select=gte(n\\,{int(start)})")
+    if size != source_size:
+        filters.append(f"scale={size[0]}:{size[1]}:flags=area")
+    if filters:
+        output_params += ["-vf", ",".join(filters)]
+    if start:
+        output_params += ["-fps_mode", "passthrough"]
+    pix_fmt, bpp = ("gray", 8) if gray else ("rgb24", 24)
+    gen = imageio_ffmpeg.read_frames(path, pix_fmt=pix_fmt, bits_per_pixel=bpp, output_params=output_params)
+    next(gen)  # metadata, already known
+    shape = (size[1], size[0]) if gray else (size[1], size[0], 3)
+    return gen, shape
+
+
+def probe(path: str | Path) -> VideoInfo:
+    """Metadata of a video file or image folder, with user-facing errors for bad input."""
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(f"{p}: no such file or folder")
+    if p.is_dir():
+        with _open_folder(p, None, None, False) as stream:
+            return stream.info
+    if p.stat().st_size == 0:
+        raise BadInput(f"{p}: file is empty")
+    try:
+        gen = imageio_ffmpeg.read_frames(str(p))
+        meta = next(gen)
+        gen.close()
+    except (OSError, RuntimeError, IndexError, AttributeError, ValueError, StopIteration) as exc:
+        raise BadInput(f"{p}: not a video ffmpeg can read") from exc
+    size = tuple(int(v) for v in meta["size"])
+    fps = float(meta.get("fps") or 0.0) or DEFAULT_FOLDER_FPS
+    duration = float(meta.get("duration") or 0.0)
+    count = int(round(duration * fps)) if duration > 0 else None
+    return VideoInfo(str(p), size, size, fps, count, duration, _rotation(meta), meta.get("audio_codec"))
+
+
+def open_video(
+    path: str | Path,
+    width: int | None = None,
+    gray: bool = False,
+    fps: float | None = None,
+    start: int = 0,
+) -> VideoStream:
+    """Open ``path`` (a video file or a folder of numbered images) as a stream of frames.
+
+    ``width`` downscales inside the decoder (aspect kept); ``gray`` yields (h, w) uint8 frames
+    instead of RGB; ``fps`` overrides the frame rate of an image folder; ``start`` skips frames.
+    """
+    p = Path(path)
+    if p.is_dir():
+        stream = _open_folder(p, width, fps, gray)
+        if start:
+            stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
+        return stream
+    info = probe(p)
+    size = scaled_size(info.source_size, width)
+    info = replace(info, size=size)
+    try:
+        gen, shape = _ffmpeg_frames(str(p), size, info.source_size, gray, start)
+    except (OSError, RuntimeError, StopIteration) as exc:
+        raise BadInput(f"{p}: not a video ffmpeg can read") from exc
+
+    def frames() -> Iterator[np.ndarray]:
+        try:
+            for raw in gen:
+                yield np.frombuffer(raw, dtype=np.uint8).reshape(shape)
+        except RuntimeError:
+            # A truncated stream: ffmpeg delivered what it could decode; stop there.
+            return
+
+    return VideoStream(info, frames(), gen.close)

@@ -1,0 +1,114 @@
+"""Streaming H.264 writer (imageio-ffmpeg), atomic, optionally carrying a source's audio."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+import imageio_ffmpeg
+import numpy as np
+
+from mosaic_cli.atomic import check_writable
+from mosaic_cli.errors import BadInput, ProcessingError
+
+PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
+# Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
+MP4_AUDIO = {"aac", "mp3", "ac3", "eac3", "alac"}
+
+
+def even_size(size: tuple[int, int]) -> tuple[int, int]:
+    """yuv420p needs even dimensions: odd ones grow by one (the last row/column is repeated)."""
+    return (size[0] + size[0] % 2, size[1] + size[1] % 2)
+
+
+class VideoWriter:
+    """Write RGB uint8 frames (h, w, 3) to an H.264 yuv420p file.
+
+    The file appears under its final name only after :meth:`close` succeeds; :meth:`abort`
+    (or an exception inside a ``with`` block) removes the partial file.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        size: tuple[int, int],
+        fps: float,
+        crf: int = 18,
+        preset: str = "medium",
+        audio_from: str | os.PathLike | None = None,
+        audio_codec: str | None = None,
+    ):
+        if not 0 <= crf <= 51:
+            raise BadInput(f"--crf must be in 0..51, got {crf}")
+        if preset not in PRESETS:
+            raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+        if fps <= 0:
+            raise BadInput(f"frame rate must be positive, got {fps}")
+        self.path = check_writable(path)
+        self.size = (int(size[0]), int(size[1]))
+        self.out_size = even_size(self.size)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".part{self.path.suffix or '.mp4'}", dir=self.path.parent)
+        os.close(fd)
+        self._tmp = Path(tmp)
+        audio_kwargs = {}
+        if audio_from is not None:
+            codec = audio_codec or "aac"
+            suffix = self.path.suffix.lower()
+            if audio_codec is None and suffix in {".mkv"}:
+                codec = "copy"
+            audio_kwargs = {"audio_path": str(audio_from), "audio_codec": codec}
+        self._gen = imageio_ffmpeg.write_frames(
+            str(self._tmp),
+            self.out_size,
+            fps=fps,
+            codec="libx264",
+            pix_fmt_in="rgb24",
+            pix_fmt_out="yuv420p",
+            quality=None,
+            macro_block_size=1,
+            output_params=["-crf", str(crf), "-preset", preset, "-movflags", "+faststart"],
+            ffmpeg_log_level="error",
+            **audio_kwargs,
+        )
+        self._gen.send(None)
+        self.frames_written = 0
+
+    def write(self, frame: np.ndarray) -> None:
+        if frame.shape[:2] != (self.size[1], self.size[0]):
+            raise ProcessingError(f"frame of size {frame.shape[1]}x{frame.shape[0]} written to a {self.size[0]}x{self.size[1]} video")
+        if frame.ndim == 2:
+            frame = np.repeat(frame[:, :, None], 3, axis=2)
+        if self.out_size != self.size:
+            frame = np.pad(frame, ((0, self.out_size[1] - self.size[1]), (0, self.out_size[0] - self.size[0]), (0, 0)), mode="edge")
+        self._gen.send(np.ascontiguousarray(frame, dtype=np.uint8))
+        self.frames_written += 1
+
+    def close(self) -> Path:
+        """Finish encoding and move the file into place."""
+        try:
+            self._gen.close()
+        except Exception as exc:
+            self.abort()
+            raise ProcessingError(f"{self.path}: encoding failed ({str(exc).splitlines()[0]})") from exc
+        if self.frames_written == 0:
+            self.abort()
+            raise ProcessingError(f"{self.path}: no frames to write")
+        os.replace(self._tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        with contextlib.suppress(Exception):
+            self._gen.close()
+        with contextlib.suppress(FileNotFoundError):
+            self._tmp.unlink()
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
