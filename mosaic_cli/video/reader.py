@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import re
+import subprocess
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
@@ -29,7 +30,8 @@ class VideoInfo:
     ``size`` is the (w, h) of the frames the reader yields (after rotation and any downscale);
     ``source_size`` the (w, h) at full resolution after rotation, which is the resolution every
     homography mosaic reports is expressed in.  ``frame_count`` is an estimate from the
-    container's duration (None when unknown)."""
+    container's duration (None when unknown).  ``rotation`` is the clockwise turn (0, 90,
+    180, 270) the file asks for on display; frames are always yielded upright."""
 
     path: str
     size: tuple[int, int]
@@ -47,12 +49,13 @@ class VideoInfo:
 
 
 def scaled_size(size: tuple[int, int], width: int | None) -> tuple[int, int]:
-    """(w, h) resized to ``width`` keeping the aspect ratio; height rounded to an even number
-    of pixels (ffmpeg and yuv420p like even sizes). ``None`` or a larger width keeps ``size``."""
+    """(w, h) resized to ``width`` keeping the aspect ratio, height rounded to the nearest pixel
+    (the same rule as the estimators' working size, so frames need no second resize).
+    ``None`` or a larger width keeps ``size``."""
     w, h = size
     if width is None or width >= w:
         return (w, h)
-    return (int(width), max(2, int(round(h * width / w / 2.0)) * 2))
+    return (int(width), max(1, int(round(h * width / w))))
 
 
 class VideoStream:
@@ -120,8 +123,41 @@ def _open_folder(folder: Path, width: int | None, fps: float | None, gray: bool)
     return VideoStream(info, frames())
 
 
-def _rotation(header_meta: dict) -> int:
-    return int(header_meta.get("rotate", 0)) % 360
+TBR = re.compile(r"Stream #.*Video: .* ([0-9]+(?:\.[0-9]+)?) tbr")
+DISPLAY_MATRIX = re.compile(r"Display Matrix: rotation of (-?[0-9.]+) degrees")
+# What ffmpeg says when the data ends before the container says it should.
+DAMAGE_SIGNS = ("partial file", "ended prematurely", "invalid data", "invalid nal", "corrupt", "truncat", "error while decoding")
+
+
+@dataclass(frozen=True)
+class _TailCheck:
+    rotation: int  # clockwise degrees, like the old ``rotate`` tag phones write
+    damage: str | None  # ffmpeg's complaint when the last half second does not decode
+    tbr: float | None  # ffmpeg's guess of the stream's base frame rate
+
+
+def _check_tail(path: str, duration: float) -> _TailCheck:
+    """Decode one frame near the end (cheap: ffmpeg seeks there) to catch truncated files
+    before any long work, and read the display rotation from ffmpeg's stream header
+    (imageio-ffmpeg only knows the old ``rotate`` tag, which ffmpeg no longer prints)."""
+    seek = ["-sseof", "-0.5"] if duration > 0.5 else []
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", *seek, "-i", path,
+           "-map", "0:v:0", "-frames:v", "1", "-f", "rawvideo", "-pix_fmt", "gray", "-"]
+    try:
+        run = subprocess.run(cmd, capture_output=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return _TailCheck(0, None, None)
+    log = run.stderr.decode("utf-8", "replace")
+    match = DISPLAY_MATRIX.search(log)
+    # ffmpeg's display matrix angle is counter-clockwise; report the clockwise rotation.
+    rotation = int(round(-float(match.group(1)))) % 360 if match else 0
+    damage = None
+    if not run.stdout:
+        lines = [ln.strip() for ln in log.splitlines() if any(sign in ln.lower() for sign in DAMAGE_SIGNS)]
+        if lines:
+            damage = re.sub(r"^(\[[^]]*\] ?)+", "", lines[0])
+    tbr = TBR.search(log)
+    return _TailCheck(rotation, damage, float(tbr.group(1)) if tbr else None)
 
 
 def _ffmpeg_frames(path: str, size: tuple[int, int], source_size: tuple[int, int], gray: bool, start: int = 0):
@@ -158,11 +194,20 @@ def probe(path: str | Path) -> VideoInfo:
         gen.close()
     except (OSError, RuntimeError, IndexError, AttributeError, ValueError, StopIteration) as exc:
         raise BadInput(f"{p}: not a video ffmpeg can read") from exc
+    # ffmpeg applies the display rotation while decoding: "size" is already upright.
     size = tuple(int(v) for v in meta["size"])
-    fps = float(meta.get("fps") or 0.0) or DEFAULT_FOLDER_FPS
     duration = float(meta.get("duration") or 0.0)
+    tail = _check_tail(str(p), duration)
+    if tail.damage:
+        raise BadInput(f"{p}: truncated or damaged video ({tail.damage})")
+    fps = float(meta.get("fps") or 0.0)
+    if tail.tbr and not 0.5 < fps / tail.tbr < 2.0:
+        # An average rate far from the stream's base rate is a muxing artefact (h264 copied
+        # into avi reports 600 fps at 30 tbr); the base rate is the one to play at.
+        fps = tail.tbr
+    fps = fps or DEFAULT_FOLDER_FPS
     count = int(round(duration * fps)) if duration > 0 else None
-    return VideoInfo(str(p), size, size, fps, count, duration, _rotation(meta), meta.get("audio_codec"))
+    return VideoInfo(str(p), size, size, fps, count, duration, tail.rotation, meta.get("audio_codec"))
 
 
 def open_video(

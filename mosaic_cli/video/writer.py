@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -16,11 +18,23 @@ from mosaic_cli.errors import BadInput, ProcessingError
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 # Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
 MP4_AUDIO = {"aac", "mp3", "ac3", "eac3", "alac"}
+AUDIO_STREAM = re.compile(r"Stream #\S+.*?: Audio: (\w+)")
 
 
 def even_size(size: tuple[int, int]) -> tuple[int, int]:
     """yuv420p needs even dimensions: odd ones grow by one (the last row/column is repeated)."""
     return (size[0] + size[0] % 2, size[1] + size[1] % 2)
+
+
+def audio_stream_codec(path: str | os.PathLike) -> str | None:
+    """The codec of the first audio stream of ``path`` (None when it has none or is unreadable)."""
+    try:
+        run = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-i", str(path)],
+                             capture_output=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    match = AUDIO_STREAM.search(run.stderr.decode("utf-8", "replace"))
+    return match.group(1) if match else None
 
 
 class VideoWriter:
@@ -53,12 +67,12 @@ class VideoWriter:
         os.close(fd)
         self._tmp = Path(tmp)
         audio_kwargs = {}
-        if audio_from is not None:
-            codec = audio_codec or "aac"
-            suffix = self.path.suffix.lower()
-            if audio_codec is None and suffix in {".mkv"}:
-                codec = "copy"
-            audio_kwargs = {"audio_path": str(audio_from), "audio_codec": codec}
+        extra_params: list[str] = []
+        source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
+        if source_audio is not None:
+            audio_kwargs = {"audio_path": str(audio_from), "audio_codec": audio_codec or self._audio_codec_for(source_audio)}
+            # The video may be shorter than the source (a --max-frames run): end with it.
+            extra_params = ["-shortest"]
         self._gen = imageio_ffmpeg.write_frames(
             str(self._tmp),
             self.out_size,
@@ -68,12 +82,18 @@ class VideoWriter:
             pix_fmt_out="yuv420p",
             quality=None,
             macro_block_size=1,
-            output_params=["-crf", str(crf), "-preset", preset, "-movflags", "+faststart"],
+            output_params=["-crf", str(crf), "-preset", preset, "-movflags", "+faststart", *extra_params],
             ffmpeg_log_level="error",
             **audio_kwargs,
         )
         self._gen.send(None)
         self.frames_written = 0
+
+    def _audio_codec_for(self, source_codec: str) -> str:
+        """Copy the source's audio where the container takes it as it is, else AAC."""
+        if self.path.suffix.lower() == ".mkv" or source_codec in MP4_AUDIO:
+            return "copy"
+        return "aac"
 
     def write(self, frame: np.ndarray) -> None:
         if frame.shape[:2] != (self.size[1], self.size[0]):

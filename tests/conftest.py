@@ -1,0 +1,134 @@
+"""Shared fixtures: procedural textures, virtual camera flights with exact homographies, and
+tiny generated clips.  Everything here is made on the fly, so tests need no data files."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import cv2
+import imageio_ffmpeg
+import numpy as np
+import pytest
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
+
+
+def textured_image(width: int, height: int, seed: int = 0) -> np.ndarray:
+    """RGB uint8 texture with detail at every scale (multi-octave noise plus sharp-edged
+    blobs), so that feature detectors find well-spread corners, as on aerial ground."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((height, width, 3), np.float32)
+    for cell, weight in ((256, 0.9), (64, 0.7), (16, 0.5), (4, 0.35)):
+        coarse = rng.random((max(2, height // cell + 2), max(2, width // cell + 2), 3), dtype=np.float32)
+        img += weight * cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+    img = (img - img.min()) / (img.max() - img.min()) * 200.0
+    for _ in range(width * height // 4000):
+        color = tuple(float(c) for c in rng.integers(0, 255, 3))
+        x, y = int(rng.integers(0, width)), int(rng.integers(0, height))
+        size = int(rng.integers(3, 25))
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (x, y), (x + size, y + int(rng.integers(3, 25))), color, -1)
+        else:
+            cv2.circle(img, (x, y), size // 2, color, -1)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def camera_path(n_frames: int, frame_size: tuple[int, int], map_size: tuple[int, int], seed: int = 0,
+                step: float = 6.0) -> np.ndarray:
+    """(n, 3, 3) homographies frame pixel -> map pixel of a camera drifting over the map, with a
+    slow rotation, zoom and a touch of perspective: every frame stays inside the map."""
+    rng = np.random.default_rng(seed)
+    fw, fh = frame_size
+    mw, mh = map_size
+    centre = np.array([fw / 2 - 0.5, fh / 2 - 0.5])
+    heading = rng.uniform(0, 2 * np.pi)
+    pos = np.array([mw / 2, mh / 2]) - step * (n_frames - 1) / 2 * np.array([np.cos(heading), np.sin(heading)])
+    out = []
+    for t in range(n_frames):
+        angle = 0.01 * t + 0.2 * np.sin(seed + 1)
+        scale = 1.0 + 0.05 * np.sin(0.1 * t + seed)
+        tilt = 1.5e-5 * np.array([np.sin(0.07 * t), np.cos(0.05 * t)])
+        to_centre = np.array([[1, 0, -centre[0]], [0, 1, -centre[1]], [0, 0, 1.0]])
+        persp = np.array([[1, 0, 0], [0, 1, 0], [tilt[0], tilt[1], 1.0]])
+        c, s = np.cos(angle) * scale, np.sin(angle) * scale
+        rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        p = pos + step * t * np.array([np.cos(heading), np.sin(heading)])
+        place = np.array([[1, 0, p[0]], [0, 1, p[1]], [0, 0, 1.0]])
+        out.append(place @ rot @ persp @ to_centre)
+    return np.array(out)
+
+
+def render(map_img: np.ndarray, frame_to_map: np.ndarray, frame_size: tuple[int, int]) -> np.ndarray:
+    """The camera frame whose pixel p shows map pixel frame_to_map @ p (pixel centres)."""
+    return cv2.warpPerspective(map_img, frame_to_map, frame_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REFLECT)
+
+
+def true_pairwise(frame_to_map: np.ndarray) -> np.ndarray:
+    """Exact frame t -> t+1 homographies of a camera path."""
+    H = np.linalg.inv(frame_to_map[1:]) @ frame_to_map[:-1]
+    return H / H[:, 2:3, 2:3]
+
+
+def write_clip(path: Path, frames, fps: float = 30.0, codec: str = "libx264", pix_fmt: str = "yuv420p",
+               extra: list[str] | None = None) -> Path:
+    """Encode RGB frames with the bundled ffmpeg (any codec/container, for reader tests)."""
+    frames = list(frames)
+    h, w = frames[0].shape[:2]
+    cmd = [FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24",
+           "-s", f"{w}x{h}", "-r", str(fps), "-i", "-", "-c:v", codec, "-pix_fmt", pix_fmt]
+    if codec == "libx264":
+        cmd += ["-crf", "12", "-preset", "ultrafast"]
+    cmd += (extra or []) + [str(path)]
+    subprocess.run(cmd, input=b"".join(np.ascontiguousarray(f).tobytes() for f in frames), check=True)
+    return path
+
+
+def ffmpeg(*args: str) -> None:
+    subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", *args], check=True)
+
+
+class Flight:
+    """A rendered virtual-camera flight: frames and the exact pairwise homographies."""
+
+    def __init__(self, n_frames=12, frame_size=(320, 180), map_size=(1200, 900), seed=0, step=6.0):
+        self.frame_size = frame_size
+        self.map = textured_image(*map_size, seed=seed)
+        self.frame_to_map = camera_path(n_frames, frame_size, map_size, seed=seed, step=step * frame_size[0] / 320)
+        self.frames = [render(self.map, M, frame_size) for M in self.frame_to_map]
+        self.pairwise = true_pairwise(self.frame_to_map)
+
+
+@pytest.fixture(scope="session")
+def texture() -> np.ndarray:
+    """A 1600x1000 procedural RGB texture."""
+    return textured_image(1600, 1000, seed=1)
+
+
+@pytest.fixture(scope="session")
+def flight() -> Flight:
+    """12 frames at 320x180 over a procedural map, with exact ground truth."""
+    return Flight()
+
+
+@pytest.fixture(scope="session")
+def flight_clip(tmp_path_factory, flight) -> Path:
+    """The ``flight`` fixture encoded as a near-lossless H.264 mp4."""
+    return write_clip(tmp_path_factory.mktemp("clips") / "flight.mp4", flight.frames)
+
+
+@pytest.fixture(scope="session")
+def tiny_clip(tmp_path_factory, texture) -> Path:
+    """Eight 96x64 frames of a panning texture, H.264 mp4 at 10 fps."""
+    frames = [texture[100:164, 100 + 3 * k:196 + 3 * k] for k in range(8)]
+    return write_clip(tmp_path_factory.mktemp("clips") / "tiny.mp4", frames, fps=10)
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The real aerial imagery beside the repository; skips when it is absent (e.g. in a bare clone)."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip("../shared/data is not present")
+    return SHARED_DATA

@@ -1,0 +1,263 @@
+"""Streaming reader and writer on clips generated here with the bundled ffmpeg."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import ffmpeg, textured_image, write_clip
+from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.geometry import project, resize_matrix
+from mosaic_cli.video import VideoWriter, open_video, probe
+
+N_FRAMES = 10
+
+
+def moving_frames(width: int, height: int, n: int = N_FRAMES, seed: int = 5) -> list[np.ndarray]:
+    """Distinct frames (a texture panning 7 px per frame), so order mistakes show."""
+    tex = textured_image(width + 7 * n, height, seed=seed)
+    return [np.ascontiguousarray(tex[:, 7 * k:7 * k + width]) for k in range(n)]
+
+
+def read_all(path, **kwargs):
+    with open_video(path, **kwargs) as stream:
+        return stream.info, list(stream)
+
+
+def assert_same_sequence(decoded, source, tolerance):
+    """Same count, each decoded frame close to its own source frame and closer to it than to
+    its neighbours (so a dropped or repeated frame fails)."""
+    assert len(decoded) == len(source)
+    for k, frame in enumerate(decoded):
+        assert frame.shape == source[k].shape
+        err = np.abs(frame.astype(np.float32) - source[k]).mean()
+        assert err < tolerance, f"frame {k}: mean abs error {err:.2f}"
+        for j in (k - 1, k + 1):
+            if 0 <= j < len(source):
+                assert err < np.abs(frame.astype(np.float32) - source[j]).mean()
+
+
+@pytest.mark.parametrize(
+    "suffix, codec, pix_fmt, tolerance",
+    [
+        (".mp4", "libx264", "yuv420p", 6.0),
+        (".mov", "libx264", "yuv420p", 6.0),
+        (".mkv", "ffv1", "bgr0", 0.0),  # lossless
+        (".avi", "mpeg4", "yuv420p", 12.0),
+        (".mjpeg", "mjpeg", "yuvj444p", 8.0),  # raw MJPEG stream: no container, no duration
+    ],
+)
+def test_reader_decodes_every_container(tmp_path, suffix, codec, pix_fmt, tolerance):
+    source = moving_frames(160, 96)
+    extra = ["-q:v", "2"] if codec in ("mpeg4", "mjpeg") else []
+    clip = write_clip(tmp_path / f"clip{suffix}", source, fps=25, codec=codec, pix_fmt=pix_fmt, extra=extra)
+    info, frames = read_all(clip)
+    assert info.size == info.source_size == (160, 96)
+    assert info.fps == pytest.approx(25.0)
+    if suffix == ".mjpeg":
+        assert info.frame_count is None
+    else:
+        assert info.frame_count == N_FRAMES
+    if tolerance == 0.0:
+        assert all(np.array_equal(a, b) for a, b in zip(frames, source))
+        assert len(frames) == len(source)
+    else:
+        assert_same_sequence(frames, source, tolerance)
+
+
+def test_reader_odd_size_is_exact(tmp_path):
+    source = moving_frames(97, 61, n=4)
+    clip = write_clip(tmp_path / "odd.mkv", source, codec="ffv1", pix_fmt="bgr0")
+    info, frames = read_all(clip)
+    assert info.size == (97, 61)
+    assert len(frames) == 4 and all(np.array_equal(a, b) for a, b in zip(frames, source))
+
+
+def test_reader_gray_and_start(tmp_path):
+    source = moving_frames(96, 64, n=6)
+    clip = write_clip(tmp_path / "c.mkv", source, codec="ffv1", pix_fmt="bgr0")
+    _, gray = read_all(clip, gray=True)
+    assert gray[0].shape == (64, 96) and gray[0].dtype == np.uint8
+    # ffmpeg's gray is BT.601 luma like OpenCV's: allow rounding and range differences only
+    assert np.abs(gray[2].astype(int) - cv2.cvtColor(source[2], cv2.COLOR_RGB2GRAY)).mean() < 2.0
+    _, later = read_all(clip, start=3)
+    assert len(later) == 3 and np.array_equal(later[0], source[3])
+
+
+def test_reader_downscales_inside_ffmpeg_with_pixel_centres(tmp_path):
+    """A blob's centroid after ffmpeg's downscale lands where resize_matrix says."""
+    w, h = 640, 360
+    centres = [(101.0, 77.0), (400.5, 200.25), (555.0, 300.0)]
+    frames = []
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    for cx, cy in centres:
+        blob = 255 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 6.0**2))
+        frames.append(np.repeat(blob[:, :, None], 3, axis=2).astype(np.uint8))
+    clip = write_clip(tmp_path / "blob.mkv", frames, codec="ffv1", pix_fmt="bgr0")
+    info, small = read_all(clip, width=160, gray=True)
+    assert info.size == (160, 90) and info.source_size == (640, 360)
+    S = resize_matrix((w, h), info.size)
+    for frame, centre in zip(small, centres):
+        m = cv2.moments(frame.astype(np.float32))
+        found = np.array([m["m10"] / m["m00"], m["m01"] / m["m00"]])
+        expected = project(S, np.array([centre]))[0]
+        assert np.linalg.norm(found - expected) < 0.05
+
+
+def test_reader_downscale_matches_opencv_area(tmp_path):
+    source = moving_frames(320, 180, n=3)
+    clip = write_clip(tmp_path / "c.mkv", source, codec="ffv1", pix_fmt="bgr0")
+    _, small = read_all(clip, width=80)
+    for frame, full in zip(small, source):
+        ref = cv2.resize(full, (80, 45), interpolation=cv2.INTER_AREA)
+        assert np.abs(frame.astype(np.float32) - ref).mean() < 1.5
+
+
+@pytest.mark.parametrize("display_rotation, clockwise, k", [(-90, 90, -1), (90, 270, 1), (180, 180, 2)])
+def test_reader_applies_rotation_metadata(tmp_path, display_rotation, clockwise, k):
+    source = moving_frames(96, 64, n=3)
+    plain = write_clip(tmp_path / "plain.mkv", source, codec="ffv1", pix_fmt="bgr0")
+    rotated = tmp_path / "rotated.mkv"
+    ffmpeg("-display_rotation", str(display_rotation), "-i", str(plain), "-c", "copy", str(rotated))
+    info, frames = read_all(rotated)
+    assert info.rotation == clockwise
+    expected = [np.rot90(f, k) for f in source]
+    assert info.size == (expected[0].shape[1], expected[0].shape[0])
+    assert all(np.array_equal(a, b) for a, b in zip(frames, expected))
+    small_info, small = read_all(rotated, width=32)
+    assert small_info.size[0] == 32 and small[0].shape[1] == 32
+    assert small_info.source_size == info.size
+    assert probe(plain).rotation == 0
+
+
+def test_folder_of_numbered_images_in_natural_order(tmp_path):
+    source = moving_frames(64, 48, n=12)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, frame in enumerate(source):
+        cv2.imwrite(str(folder / f"frame_{k + 1}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    (folder / "notes.txt").write_text("not an image")
+    info, frames = read_all(folder)
+    assert info.is_image_folder and info.frame_count == 12 and info.fps == 30.0
+    assert all(np.array_equal(a, b) for a, b in zip(frames, source)) and len(frames) == 12
+    info, small = read_all(folder, width=32, fps=12.5, gray=True)
+    assert info.fps == 12.5 and small[0].shape == (24, 32)
+
+
+def test_folder_with_mixed_sizes_is_bad_input(tmp_path):
+    cv2.imwrite(str(tmp_path / "a_1.png"), np.zeros((10, 12, 3), np.uint8))
+    cv2.imwrite(str(tmp_path / "a_2.png"), np.zeros((11, 12, 3), np.uint8))
+    with pytest.raises(BadInput, match="differs"):
+        read_all(tmp_path)
+
+
+def test_probe_frame_count_and_fps_of_avi_with_copied_h264(tmp_path):
+    """h264 copied into avi reports an average rate of 600 fps; the base rate is the real one."""
+    mp4 = tmp_path / "c.mp4"
+    ffmpeg("-f", "lavfi", "-i", "testsrc2=size=64x48:rate=30", "-t", "2", "-c:v", "libx264", "-pix_fmt", "yuv420p", str(mp4))
+    avi = tmp_path / "c.avi"
+    ffmpeg("-i", str(mp4), "-c", "copy", str(avi))
+    info = probe(avi)
+    assert info.fps == pytest.approx(30.0) and info.frame_count == 60
+
+
+# ---------------------------------------------------------------- writer
+
+
+def test_writer_odd_size_round_trip(tmp_path):
+    source = moving_frames(97, 61, n=5)
+    out = tmp_path / "odd.mp4"
+    with VideoWriter(out, (97, 61), fps=24, crf=10, preset="ultrafast") as writer:
+        for frame in source:
+            writer.write(frame)
+    info, frames = read_all(out)
+    assert info.size == (98, 62) and info.fps == pytest.approx(24.0)
+    # the padding repeats the last row and column
+    assert np.abs(frames[2][:, 97].astype(int) - frames[2][:, 96]).mean() < 4
+    assert_same_sequence([f[:61, :97] for f in frames], source, 6.0)
+    assert [p.name for p in tmp_path.iterdir()] == ["odd.mp4"]
+
+
+def test_writer_crf_changes_quality(tmp_path):
+    source = moving_frames(128, 96, n=4)
+    sizes = {}
+    for crf in (5, 40):
+        out = tmp_path / f"crf{crf}.mp4"
+        with VideoWriter(out, (128, 96), fps=30, crf=crf, preset="ultrafast") as writer:
+            for frame in source:
+                writer.write(frame)
+        sizes[crf] = out.stat().st_size
+    assert sizes[5] > 2 * sizes[40]
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(crf=52), "crf"), (dict(crf=-1), "crf"), (dict(preset="warp"), "preset"), (dict(fps=0), "frame rate"),
+])
+def test_writer_rejects_bad_options_before_creating_anything(tmp_path, kwargs, message):
+    args = dict(path=tmp_path / "x.mp4", size=(64, 48), fps=30)
+    args.update(kwargs)
+    with pytest.raises(BadInput, match=message):
+        VideoWriter(**args)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_unwritable_destination(tmp_path):
+    with pytest.raises(BadInput, match="does not exist"):
+        VideoWriter(tmp_path / "missing" / "x.mp4", (64, 48), fps=30)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(BadInput):
+        VideoWriter(tmp_path / "file" / "x.mp4", (64, 48), fps=30)
+
+
+def test_writer_is_atomic(tmp_path):
+    out = tmp_path / "x.mp4"
+    with pytest.raises(ZeroDivisionError):
+        with VideoWriter(out, (64, 48), fps=30, preset="ultrafast") as writer:
+            writer.write(np.zeros((48, 64, 3), np.uint8))
+            assert not out.exists()
+            1 / 0
+    assert list(tmp_path.iterdir()) == []
+    writer = VideoWriter(out, (64, 48), fps=30)
+    with pytest.raises(ProcessingError, match="no frames"):
+        writer.close()
+    assert list(tmp_path.iterdir()) == []
+    with VideoWriter(out, (64, 48), fps=30) as writer:
+        with pytest.raises(ProcessingError, match="size"):
+            writer.write(np.zeros((10, 10, 3), np.uint8))
+        writer.write(np.zeros((48, 64), np.uint8))  # gray is accepted
+    assert out.exists()
+
+
+def test_writer_carries_audio_over(tmp_path):
+    source = tmp_path / "with_audio.mp4"
+    ffmpeg("-f", "lavfi", "-i", "testsrc2=size=128x72:rate=25", "-f", "lavfi", "-i", "sine=frequency=440",
+           "-t", "2", "-c:v", "libx264", "-pix_fmt", "yuv420p", "-c:a", "aac", str(source))
+    src_info = probe(source)
+    assert src_info.has_audio and src_info.audio_codec == "aac"
+    for suffix in (".mp4", ".mkv"):
+        out = tmp_path / f"out{suffix}"
+        with open_video(source) as stream, VideoWriter(out, stream.info.size, stream.info.fps, preset="ultrafast",
+                                                       audio_from=source) as writer:
+            for frame in stream:
+                writer.write(frame)
+        info = probe(out)
+        assert info.audio_codec == "aac" and info.frame_count == 50
+        assert info.duration == pytest.approx(2.0, abs=0.1)
+    # a source without audio gives a silent video rather than an error
+    silent = write_clip(tmp_path / "silent.mp4", moving_frames(64, 48, n=3))
+    out = tmp_path / "silent_out.mp4"
+    with VideoWriter(out, (64, 48), fps=30, audio_from=silent) as writer:
+        writer.write(np.zeros((48, 64, 3), np.uint8))
+    assert not probe(out).has_audio
+
+
+def test_writer_shorter_than_audio_ends_with_the_video(tmp_path):
+    source = tmp_path / "with_audio.mp4"
+    ffmpeg("-f", "lavfi", "-i", "testsrc2=size=128x72:rate=25", "-f", "lavfi", "-i", "sine",
+           "-t", "3", "-c:v", "libx264", "-pix_fmt", "yuv420p", str(source))
+    out = tmp_path / "short.mp4"
+    with VideoWriter(out, (128, 72), fps=25, preset="ultrafast", audio_from=source) as writer:
+        for _ in range(25):
+            writer.write(np.zeros((72, 128, 3), np.uint8))
+    assert probe(out).duration < 1.5
