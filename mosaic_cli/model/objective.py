@@ -1,0 +1,190 @@
+"""The training objective of each variant of the paper (Table 2):
+
+    Loss = L + lambda_p R_p + lambda_s R_s + lambda_t1 R_t1 + lambda_t2 R_t2
+
+=============  ====  ======  =========  ===================================
+variant        head  window  positions  terms
+=============  ====  ======  =========  ===================================
+base           cnn   2       1          L
+reg-p          cnn   2       2          L, R_p
+reg-s          cnn   2       1          L, R_s
+reg-t          cnn   16      1          L, R_t1, R_t2
+reg-all        cnn   16      2          L, R_p, R_s, R_t1, R_t2
+lstm           lstm  16      1          L
+lstm-reg-all   lstm  16      2          L, R_p, R_s, R_t1, R_t2
+=============  ====  ======  =========  ===================================
+
+A batch is ``{"frames": (B, K, 1, h, w) float in [-1, 1], "positions": (B, M, 2) long}``: K
+consecutive gray working frames and the top-left (x, y) of M patches, each fully inside the
+frame and used at the same place in every frame of the window.  The objective cuts the patch
+pairs itself, runs the net over the window (the LSTM starts from a zero state in each window),
+turns the offsets into homographies frame t -> t+1 with the DLT, and evaluates the terms of
+:mod:`.losses`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from mosaic_cli.model import losses
+from mosaic_cli.model.dlt import crop, offsets_to_homography, sample_patches
+from mosaic_cli.model.network import HomographyNet
+
+VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
+TERMS = ("photometric", "spatial", "scale", "temporal1", "temporal2")
+
+_VARIANT_TERMS = {
+    "base": ("photometric",),
+    "reg-p": ("photometric", "spatial"),
+    "reg-s": ("photometric", "scale"),
+    "reg-t": ("photometric", "temporal1", "temporal2"),
+    "reg-all": TERMS,
+    "lstm": ("photometric",),
+    "lstm-reg-all": TERMS,
+}
+PAPER_WINDOW = 16  # the paper's K
+
+
+@dataclass
+class LossWeights:
+    """Weights of the terms.  ``None`` is the paper's choice: lambda_p = lambda_s = lambda_t1 =
+    1/(9 N) and lambda_t2 = 1/N, N the number of compared pairs of the term.  Since the terms of
+    :mod:`.losses` are already means over their N pairs, that is 1/9 and 1."""
+
+    photometric: float = 1.0
+    spatial: float | None = None
+    scale: float | None = None
+    temporal1: float | None = None
+    temporal2: float | None = None
+
+    def resolved(self) -> dict[str, float]:
+        paper = {"photometric": 1.0, "spatial": 1 / 9, "scale": 1 / 9, "temporal1": 1 / 9, "temporal2": 1.0}
+        return {k: float(paper[k] if getattr(self, k) is None else getattr(self, k)) for k in TERMS}
+
+
+def frame_corners_tensor(width: int, height: int, device=None) -> Tensor:
+    """The 4 outer corners of a width x height frame (pixel centres on integers), TL TR BR BL."""
+    x0, y0, x1, y1 = -0.5, -0.5, width - 0.5, height - 0.5
+    return torch.tensor([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], device=device)
+
+
+class Objective:
+    """``objective(model, batch)`` -> every active term by name plus ``"total"``.
+
+    ``window`` (K frames) and ``positions`` (M patches per frame pair) default to the table in the
+    module docstring; ``photometric_norm`` is "l2" (the authors' code) or "l1" (the paper's text).
+    """
+
+    def __init__(
+        self,
+        variant: str,
+        weights: LossWeights | None = None,
+        patch: int = 128,
+        window: int | None = None,
+        positions: int | None = None,
+        photometric_norm: str = "l2",
+    ):
+        variant = variant.lower()
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown variant {variant!r}: choose one of {', '.join(VARIANTS)}")
+        if photometric_norm not in losses.PHOTOMETRIC_NORMS:
+            raise ValueError(f"photometric_norm must be one of {', '.join(losses.PHOTOMETRIC_NORMS)}")
+        self.variant = variant
+        self.terms = _VARIANT_TERMS[variant]
+        self.weights = (weights or LossWeights()).resolved()
+        self.patch = int(patch)
+        temporal = "temporal1" in self.terms or self.head == "lstm"
+        self.window = int(window) if window is not None else (PAPER_WINDOW if temporal else 2)
+        self.positions = int(positions) if positions is not None else (2 if "spatial" in self.terms else 1)
+        self.photometric_norm = photometric_norm
+        if self.window < 2:
+            raise ValueError("window must be at least 2 frames")
+        if "spatial" in self.terms and self.positions < 2:
+            raise ValueError(f"{variant} needs at least 2 patch positions per frame pair (R_p)")
+        if "scale" in self.terms and self.patch % 2:
+            raise ValueError("R_s needs an even patch size")
+
+    @property
+    def head(self) -> str:
+        """The network head this variant trains: "cnn" or "lstm"."""
+        return "lstm" if self.variant.startswith("lstm") else "cnn"
+
+    # ---------------------------------------------------------------------------------------
+
+    def __call__(self, model: HomographyNet, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        frames, positions = batch["frames"], batch["positions"].long()
+        B, K, _, h, w = frames.shape
+        P = self.patch
+        crops = self.cut_patches(frames, positions)  # (B, K, M, 1, P, P)
+        pairs = torch.cat([crops[:, :-1], crops[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
+        H = self.homographies(model, pairs, positions, P)  # (B, M, T, 3, 3)
+        corners = frame_corners_tensor(w, h, device=frames.device)
+
+        out: dict[str, Tensor] = {}
+        out["photometric"] = self.pair_photometric(frames, crops, H, positions)
+        if "spatial" in self.terms:
+            out["spatial"] = losses.spatial_consistency(H, corners)
+        if "scale" in self.terms:
+            H_children = self.child_homographies(model, pairs, positions)
+            out["scale"] = losses.scale_consistency(H, H_children, corners)
+        if "temporal1" in self.terms:
+            out["temporal1"] = losses.temporal_smoothness(H, corners)
+        if "temporal2" in self.terms:
+            out["temporal2"] = losses.chain_consistency(frames, H, positions, P, self.photometric_norm)
+        out["total"] = sum(self.weights[name] * value for name, value in out.items())
+        return out
+
+    # Stages -------------------------------------------------------------------------------
+
+    def cut_patches(self, frames: Tensor, positions: Tensor) -> Tensor:
+        """(B, K, C, h, w), (B, M, 2) -> the patches (B, K, M, C, P, P) of every frame."""
+        B, K = frames.shape[:2]
+        pos = positions[:, None].expand(B, K, *positions.shape[1:]).flatten(0, 1)
+        return crop(frames.flatten(0, 1), pos, self.patch).unflatten(0, (B, K))
+
+    @staticmethod
+    def homographies(model: HomographyNet, pairs: Tensor, positions: Tensor, patch: int, scale: float = 1.0) -> Tensor:
+        """Run the net on patch pairs (B, M, T, 2, p, p) cut at ``positions`` (B, M, 2) with side
+        ``patch`` in the frame (p = patch * scale: a resized patch's offsets are divided by
+        ``scale``) -> homographies (B, M, T, 3, 3), frame t -> t+1.  Each (b, m) is one sequence."""
+        B, M, T = pairs.shape[:3]
+        offsets, _ = model(pairs.flatten(0, 1))  # LSTM: zero state per sequence
+        offsets = offsets.unflatten(0, (B, M)) / scale
+        return offsets_to_homography(offsets, positions[:, :, None, :], patch)
+
+    def pair_photometric(self, frames: Tensor, crops: Tensor, H: Tensor, positions: Tensor) -> Tensor:
+        """L: every patch of frame t against frame t+1 sampled through H[t]."""
+        B, K = frames.shape[:2]
+        M = positions.shape[1]
+        T = K - 1
+        nxt = frames[:, 1:].flatten(0, 1)  # (B*T, C, h, w)
+        H_flat = H.transpose(1, 2).flatten(0, 1)  # (B*T, M, 3, 3)
+        pos = positions[:, None].expand(B, T, M, 2).flatten(0, 1)
+        warped, mask = sample_patches(nxt, H_flat, pos, self.patch)
+        target = crops[:, :-1].flatten(0, 1)  # (B*T, M, C, P, P)
+        return losses.photometric(target, warped, mask, self.photometric_norm)
+
+    def child_homographies(self, model: HomographyNet, pairs: Tensor, positions: Tensor) -> Tensor:
+        """The four quadrants (TL, TR, BR, BL) of every patch pair, resized x2 to the net's input
+        size -> their homographies (B, M, T, 4, 3, 3), frame t -> t+1."""
+        B, M, T, C, P, _ = pairs.shape
+        half = P // 2
+        quads = [(0, 0), (half, 0), (half, half), (0, half)]
+        children, child_pos = [], []
+        for qx, qy in quads:
+            child = pairs[..., qy : qy + half, qx : qx + half].flatten(0, 2)
+            # bilinear with pixel-centre alignment, as cv2.resize: offsets scale exactly by 2
+            child = F.interpolate(child, scale_factor=2, mode="bilinear", align_corners=False)
+            children.append(child.unflatten(0, (B, M, T)))
+            child_pos.append(positions + torch.tensor([qx, qy], device=positions.device))
+        stacked = torch.stack(children, dim=2).flatten(1, 2)  # (B, M*4, T, C, P, P)
+        pos = torch.stack(child_pos, dim=2).flatten(1, 2)  # (B, M*4, 2)
+        H = self.homographies(model, stacked, pos, half, scale=P / half)  # (B, M*4, T, 3, 3)
+        return H.unflatten(1, (M, 4)).transpose(2, 3)
+
+
+__all__ = ["VARIANTS", "TERMS", "PAPER_WINDOW", "LossWeights", "Objective", "frame_corners_tensor"]
