@@ -1,5 +1,11 @@
 """ORB features + robust homography fitting: the paper's classical baseline and mosaic's
-fallback.  Features of the previous frame are kept, so each frame is described once."""
+fallback.  Features of the previous frame are kept, so each frame is described once.
+
+Stages per frame pair: describe (ORB), match (ratio test), fit (USAC/RANSAC), refine
+(optional ECC alignment of the pixels, started from the feature fit), score (confidence
+from the inliers).  The defaults were chosen by measurement; see the README's Foundation
+section for the numbers and the commands that reproduce them.
+"""
 
 from __future__ import annotations
 
@@ -9,20 +15,37 @@ import cv2
 import numpy as np
 
 from mosaic_cli.estimators.base import Estimator
-from mosaic_cli.geometry import is_valid
+from mosaic_cli.geometry import is_valid, project, frame_corners
 
 ROBUST_METHODS = {"usac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+REFINERS = (None, "ecc")
 
 
 @dataclass
 class OrbConfig:
     n_features: int = 1000
     fast_threshold: int = 10  # lower than OpenCV's 20: aerial ground is often weakly textured
+    # Few, finely spaced pyramid levels: consecutive frames barely change scale, and keypoints
+    # found on coarse levels are localised too coarsely for sub-pixel homographies.
+    scale_factor: float = 1.2
+    n_levels: int = 3
     ratio: float = 0.8  # Lowe's ratio test
     method: str = "usac"
     reproj_threshold: float = 1.5  # pixels at working resolution
+    max_iters: int = 2000
     min_inliers: int = 12
     confident_inliers: int = 60  # inlier count at which confidence saturates
+    refine: str | None = "ecc"
+    ecc_iterations: int = 20
+    # An ECC result further than this (working pixels, at any corner) from the feature fit is
+    # taken for a divergence and dropped.
+    max_refine_shift: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.method not in ROBUST_METHODS:
+            raise ValueError(f"method must be one of {', '.join(ROBUST_METHODS)}, got {self.method!r}")
+        if self.refine not in REFINERS:
+            raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
 
 
 class OrbEstimator(Estimator):
@@ -31,10 +54,14 @@ class OrbEstimator(Estimator):
     def __init__(self, work_width: int = 320, config: OrbConfig | None = None):
         super().__init__(work_width)
         self.config = config or OrbConfig()
-        if self.config.method not in ROBUST_METHODS:
-            raise ValueError(f"method must be one of {', '.join(ROBUST_METHODS)}")
+        c = self.config
         self._orb = cv2.ORB_create(
-            nfeatures=self.config.n_features, fastThreshold=self.config.fast_threshold, edgeThreshold=15, patchSize=15
+            nfeatures=c.n_features,
+            scaleFactor=c.scale_factor,
+            nlevels=c.n_levels,
+            fastThreshold=c.fast_threshold,
+            edgeThreshold=15,
+            patchSize=15,
         )
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._prev_features = None
@@ -54,7 +81,10 @@ class OrbEstimator(Estimator):
         prev_pts, prev_desc = self._prev_features
         cur_pts, cur_desc = self._describe(cur)
         self._prev_features = (cur_pts, cur_desc)
-        return fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._matcher, self.config, self.work_size)
+        H, confidence = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._matcher, self.config, self.work_size)
+        if H is not None and self.config.refine == "ecc":
+            H = refine_ecc(prev, cur, H, self.config)
+        return H, confidence
 
 
 def fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, matcher, config: OrbConfig, size):
@@ -68,7 +98,10 @@ def fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, matcher, config: OrbC
         return None, 0.0
     src = prev_pts[[m.queryIdx for m in good]]
     dst = cur_pts[[m.trainIdx for m in good]]
-    H, mask = cv2.findHomography(src, dst, ROBUST_METHODS[c.method], c.reproj_threshold, maxIters=2000, confidence=0.999)
+    try:
+        H, mask = cv2.findHomography(src, dst, ROBUST_METHODS[c.method], c.reproj_threshold, maxIters=c.max_iters, confidence=0.999)
+    except cv2.error:  # degenerate point sets (all collinear, all equal)
+        return None, 0.0
     if H is None or mask is None:
         return None, 0.0
     inliers = int(mask.sum())
@@ -76,3 +109,26 @@ def fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, matcher, config: OrbC
         return None, 0.0
     confidence = min(1.0, inliers / c.confident_inliers) * np.sqrt(inliers / len(good))
     return H, confidence
+
+
+def refine_ecc(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, config: OrbConfig) -> np.ndarray:
+    """Polish the feature fit by aligning the pixels themselves (OpenCV's ECC, a Gauss-Newton
+    search on a correlation score): keypoints are only located to about a pixel, the image
+    gradients to a small fraction of one.  Returns ``H`` unchanged when ECC fails or wanders."""
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.ecc_iterations, 1e-4)
+    # ECC's warp maps template (cur) pixels to input (prev) pixels: the inverse of H.
+    warp = np.linalg.inv(H / H[2, 2]).astype(np.float32)
+    try:
+        _, warp = cv2.findTransformECC(cur, prev, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 3)
+    except cv2.error:
+        return H
+    refined = np.linalg.inv(warp.astype(np.float64))
+    if not np.all(np.isfinite(refined)):
+        return H
+    refined /= refined[2, 2]
+    size = (prev.shape[1], prev.shape[0])
+    corners = frame_corners(*size)
+    shift = np.linalg.norm(project(refined, corners) - project(H, corners), axis=-1).max()
+    if shift > config.max_refine_shift or not is_valid(refined, size, max_area_ratio=2.0):
+        return H
+    return refined
