@@ -1,0 +1,125 @@
+"""The ground truth of a simulated flight: its JSON format, reading and writing.
+
+``flight.gt.json`` sits next to ``flight.mp4``::
+
+    {"version": 1, "kind": "mosaic-ground-truth", "frames": N, "size": [w, h], "fps": f,
+     "profile": p, "seed": s, "map": name, "map_size": [W, H], "direction": "t_to_t+1",
+     "map_to_frame": [N 3x3], "smooth_map_to_frame": [N 3x3], "pairwise": [N-1 3x3]}
+
+``map_to_frame[t]`` maps map pixels to pixels of frame t; ``pairwise[t]`` maps frame t to
+frame t+1 (= map_to_frame[t+1] @ inv(map_to_frame[t])); ``smooth_map_to_frame`` is the path
+without the shake of the 'shaky' profile (equal to ``map_to_frame`` otherwise).  All pixel
+coordinates follow the OpenCV pixel-centre convention at full frame resolution.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.atomic import write_json
+from mosaic_cli.errors import BadInput
+from mosaic_cli.simulate.trajectory import FlightPlan, pairwise_from_absolute
+
+GT_VERSION = 1
+GT_KIND = "mosaic-ground-truth"
+
+
+@dataclass
+class GroundTruth:
+    map_to_frame: np.ndarray  # (N, 3, 3)
+    smooth_map_to_frame: np.ndarray  # (N, 3, 3)
+    pairwise: np.ndarray  # (N-1, 3, 3)
+    size: tuple[int, int]  # (w, h)
+    fps: float
+    profile: str
+    seed: int
+    map_name: str
+    map_size: tuple[int, int]
+
+    @property
+    def frames(self) -> int:
+        return len(self.map_to_frame)
+
+    @classmethod
+    def from_plan(cls, plan: FlightPlan, fps: float | None = None, map_name: str = "procedural") -> "GroundTruth":
+        return cls(
+            np.array(plan.map_to_frame, dtype=np.float64),
+            np.array(plan.smooth_map_to_frame, dtype=np.float64),
+            plan.pairwise,
+            (int(plan.size[0]), int(plan.size[1])),
+            float(plan.fps if fps is None else fps),
+            plan.profile,
+            int(plan.seed),
+            str(map_name),
+            (int(plan.map_size[0]), int(plan.map_size[1])),
+        )
+
+    def to_json(self) -> dict:
+        def mats(a):
+            return [[[float(v) for v in row] for row in m] for m in a]
+
+        return {
+            "version": GT_VERSION,
+            "kind": GT_KIND,
+            "frames": self.frames,
+            "size": list(self.size),
+            "fps": self.fps,
+            "profile": self.profile,
+            "seed": self.seed,
+            "map": self.map_name,
+            "map_size": list(self.map_size),
+            "direction": "t_to_t+1",
+            "map_to_frame": mats(self.map_to_frame),
+            "smooth_map_to_frame": mats(self.smooth_map_to_frame),
+            "pairwise": mats(self.pairwise),
+        }
+
+    def save(self, path: str | Path) -> None:
+        write_json(path, self.to_json())
+
+
+def ground_truth_path(video_path: str | Path) -> Path:
+    """flight.mp4 -> flight.gt.json (beside the video)."""
+    p = Path(video_path)
+    return p.with_name(p.stem + ".gt.json")
+
+
+def load_ground_truth(path: str | Path) -> GroundTruth:
+    """Read a ``.gt.json`` file (or, given a video, the ``.gt.json`` beside it)."""
+    p = Path(path)
+    if not p.name.endswith(".json"):
+        p = ground_truth_path(p)
+    if not p.exists():
+        raise BadInput(f"{p}: no such file")
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, ValueError) as exc:
+        raise BadInput(f"{p}: not a JSON file ({exc.__class__.__name__})") from None
+    if not isinstance(data, dict) or data.get("kind") != GT_KIND:
+        raise BadInput(f"{p}: not a mosaic ground-truth file (no \"kind\": \"{GT_KIND}\")")
+    if int(data.get("version", 0)) > GT_VERSION:
+        raise BadInput(f"{p}: ground-truth version {data.get('version')} is newer than this mosaic understands ({GT_VERSION})")
+    try:
+        M = np.array(data["map_to_frame"], dtype=np.float64).reshape(-1, 3, 3)
+        smooth = np.array(data.get("smooth_map_to_frame", data["map_to_frame"]), dtype=np.float64).reshape(-1, 3, 3)
+        if "pairwise" in data:
+            pairwise = np.array(data["pairwise"], dtype=np.float64).reshape(-1, 3, 3)
+        else:
+            pairwise = pairwise_from_absolute(M)
+        size = (int(data["size"][0]), int(data["size"][1]))
+        map_size = tuple(int(v) for v in data.get("map_size", (0, 0)))
+        gt = GroundTruth(
+            M, smooth, pairwise, size, float(data.get("fps", 30.0)), str(data.get("profile", "?")),
+            int(data.get("seed", 0)), str(data.get("map", "?")), (map_size[0], map_size[1]),
+        )
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise BadInput(f"{p}: malformed ground-truth file ({exc.__class__.__name__}: {exc})") from None
+    if len(M) < 2 or len(smooth) != len(M) or len(pairwise) != len(M) - 1:
+        raise BadInput(f"{p}: inconsistent ground truth ({len(M)} frames, {len(pairwise)} pairwise matrices)")
+    if not (np.all(np.isfinite(M)) and np.all(np.isfinite(pairwise))):
+        raise BadInput(f"{p}: ground truth holds non-finite numbers")
+    return gt

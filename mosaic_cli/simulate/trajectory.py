@@ -1,0 +1,339 @@
+"""Camera paths of simulated drone flights, one kind per profile, as exact homographies.
+
+The virtual camera is a pinhole looking (almost) straight down on the map plane.  With the
+map in pixels as world units, frame size (w, h), focal length f (frame pixels) and a camera
+above map point (X, Y) at altitude Z = f * s (s: map pixels per frame pixel at the nadir),
+
+    map_to_frame = K @ R @ [[1, 0, -X], [0, 1, -Y], [0, 0, Z]],   K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]
+
+where R = Rx(pitch) @ Ry(roll) @ Rz(heading) holds the heading and a slight tilt.  Every
+matrix is exact: the rendered pixels are produced from these very matrices.
+
+Motion speeds are in "1280x720-equivalent pixels per frame at the frame centre", the unit of
+the paper (a frame of width w moves ``speed * w / 1280`` of its own pixels per frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry import frame_corners, normalize, project
+
+REFERENCE_WIDTH = 1280.0
+MIN_GROUND_SAMPLE = 1.0 / 8.0  # at most 8x upsampling of the map
+FOOTPRINT_FRACTION = 0.6  # the footprint's bounding circle spans this much of the map's shorter side
+
+
+@dataclass(frozen=True)
+class Profile:
+    """What a flight of one kind looks like."""
+
+    name: str
+    description: str
+    speed: tuple[float, float]  # 1280x720-equivalent px/frame at the frame centre
+    path: str = "wander"  # "wander" (smooth random loop) or "lawnmower"
+    heading_deg: float = 12.0  # amplitude of slow heading changes
+    tilt_deg: float = 3.0  # constant tilt up to this, plus a slow +-1.5 degree sway
+    altitude_drift: float = 0.06  # relative amplitude of slow altitude changes
+    jitter_px: float = 0.0  # 3-8 Hz shake amplitude, 1280x720-equivalent px
+    jitter_deg: float = 0.0  # 3-8 Hz shake rotation amplitude
+    effects: bool = False  # exposure drift, sensor noise, motion blur (pixels only)
+
+
+PROFILES: dict[str, Profile] = {
+    p.name: p
+    for p in (
+        Profile("paper", "slow drone flight like the paper's videos: 1-2 px/frame, slow heading changes, altitude drift", (1.0, 2.0)),
+        Profile("survey", "lawnmower back-and-forth lines that revisit the ground, 4-7 px/frame", (4.0, 7.0), path="lawnmower", heading_deg=2.0),
+        Profile("fast", "fast flight, 10-20 px/frame", (10.0, 20.0), heading_deg=20.0),
+        Profile("shaky", "the paper path plus 3-8 Hz shake (a few px, small rotation)", (1.0, 2.0), jitter_px=3.0, jitter_deg=0.3),
+        Profile("hard", "the paper path with exposure drift, sensor noise and motion blur", (1.0, 2.0), effects=True),
+    )
+}
+
+
+@dataclass
+class FlightPlan:
+    """The exact geometry of one simulated flight (and the effects to render, if any)."""
+
+    map_to_frame: np.ndarray  # (N, 3, 3): map pixel -> frame pixel
+    smooth_map_to_frame: np.ndarray  # (N, 3, 3): the same path without shake
+    size: tuple[int, int]  # frame (w, h)
+    profile: str
+    seed: int
+    map_size: tuple[int, int] = (0, 0)  # (W, H) of the map flown over
+    fps: float = 30.0
+    effects: dict[str, np.ndarray] = field(default_factory=dict)  # per-frame arrays (hard profile)
+
+    @property
+    def frames(self) -> int:
+        return len(self.map_to_frame)
+
+    @property
+    def pairwise(self) -> np.ndarray:
+        """(N-1, 3, 3): frame t -> t+1 = map_to_frame[t+1] @ inv(map_to_frame[t])."""
+        return pairwise_from_absolute(self.map_to_frame)
+
+
+def pairwise_from_absolute(map_to_frame: np.ndarray) -> np.ndarray:
+    M = np.asarray(map_to_frame, dtype=np.float64)
+    if len(M) < 2:
+        return np.zeros((0, 3, 3))
+    return normalize(M[1:] @ np.linalg.inv(M[:-1]))
+
+
+def centre_motion(pairwise: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Displacement of the frame centre per pair, in 1280x720-equivalent pixels, (N-1,)."""
+    w, h = size
+    c = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
+    moved = project(pairwise, np.broadcast_to(c, (len(pairwise), 1, 2)))[:, 0]
+    return np.linalg.norm(moved - c, axis=1) * REFERENCE_WIDTH / w
+
+
+# ---------------------------------------------------------------------------------------------
+# smooth random signals
+
+
+def smooth_signal(rng: np.random.Generator, n: int, fps: float, periods: tuple[float, float], components: int = 4) -> np.ndarray:
+    """A smooth random signal of ``n`` samples in [-1, 1]: a sum of sinusoids whose periods
+    (seconds) lie in ``periods``, scaled so that its largest possible excursion is 1."""
+    t = np.arange(n) / fps
+    freqs = 1.0 / rng.uniform(periods[0], periods[1], components)
+    amps = rng.uniform(0.5, 1.0, components)
+    phases = rng.uniform(0, 2 * np.pi, components)
+    out = (amps[:, None] * np.sin(2 * np.pi * freqs[:, None] * t[None] + phases[:, None])).sum(0)
+    return out / amps.sum()
+
+
+def _rotation(pitch: float, roll: float, heading: float) -> np.ndarray:
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    cr, sr = np.cos(roll), np.sin(roll)
+    ch, sh = np.cos(heading), np.sin(heading)
+    Rx = np.array([[1, 0, 0], [0, cp, -sp], [0, sp, cp]])
+    Ry = np.array([[cr, 0, sr], [0, 1, 0], [-sr, 0, cr]])
+    Rz = np.array([[ch, -sh, 0], [sh, ch, 0], [0, 0, 1]])
+    return Rx @ Ry @ Rz
+
+
+def camera_homography(size, focal, X, Y, s, heading, pitch=0.0, roll=0.0) -> np.ndarray:
+    """map_to_frame of a camera above map point (X, Y) with ground sample ``s`` (see module doc)."""
+    w, h = size
+    K = np.array([[focal, 0, (w - 1) / 2.0], [0, focal, (h - 1) / 2.0], [0, 0, 1.0]])
+    T = np.array([[1.0, 0, -X], [0, 1.0, -Y], [0, 0, focal * s]])
+    return normalize(K @ _rotation(pitch, roll, heading) @ T)
+
+
+# ---------------------------------------------------------------------------------------------
+# paths of the point below the camera, in map pixels
+
+
+def _arc_sample(points: np.ndarray, distances: np.ndarray, closed: bool) -> np.ndarray:
+    """Positions at the given arc lengths along a dense polyline (wrapping if ``closed``)."""
+    if closed:
+        points = np.vstack([points, points[:1]])
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    total = cum[-1]
+    d = np.mod(distances, total) if closed else np.clip(distances, 0, total)
+    return np.stack([np.interp(d, cum, points[:, 0]), np.interp(d, cum, points[:, 1])], axis=1)
+
+
+def _wander_path(rng, box, distances) -> np.ndarray:
+    """A smooth closed loop filling ``box`` (x0, y0, x1, y1), followed from a random point."""
+    x0, y0, x1, y1 = box
+    u = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
+    pts = np.zeros((len(u), 2))
+    for axis in range(2):
+        comp = np.cos(u + rng.uniform(0, 2 * np.pi)) if axis == 0 else np.sin(u + rng.uniform(-0.6, 0.6))
+        for k, amp in ((2, rng.uniform(0, 0.2)), (3, rng.uniform(0, 0.1))):
+            comp = comp + amp * np.sin(k * u + rng.uniform(0, 2 * np.pi))
+        comp = comp / np.max(np.abs(comp))
+        lo, hi = (x0, x1) if axis == 0 else (y0, y1)
+        pts[:, axis] = (lo + hi) / 2 + (hi - lo) / 2 * comp
+    if rng.random() < 0.5:
+        pts = pts[::-1]
+    start = rng.uniform(0, 1) * np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))
+    return _arc_sample(pts, start + distances, closed=True)
+
+
+def _lawnmower_path(rng, box, distances, spacing: float) -> np.ndarray:
+    """Back-and-forth lines along x, ``spacing`` apart, joined by half-circle turns."""
+    x0, y0, x1, y1 = box
+    total = float(distances[-1]) if len(distances) else 0.0
+    r = spacing / 2
+    inner_x0, inner_x1 = x0 + r, x1 - r
+    if inner_x1 - inner_x0 < spacing:  # too narrow for turns: just lines
+        inner_x0, inner_x1 = x0, x1
+    # legs long enough for the flight to fly at least ~3.5 of them
+    leg = float(np.clip(total / 3.5 - np.pi * r, spacing, inner_x1 - inner_x0))
+    start_x = rng.uniform(inner_x0, inner_x1 - leg)
+    n_lines = max(1, int(np.floor((y1 - y0) / spacing)) + 1)
+    y_start = y0 + rng.uniform(0, max(0.0, (y1 - y0) - (n_lines - 1) * spacing))
+    legs_needed = int(np.ceil(total / (leg + np.pi * r))) + 2
+    pts: list[np.ndarray] = []
+    idx, step = 0, 1
+    for i in range(legs_needed):
+        y = y_start + idx * spacing
+        xs = np.linspace(start_x, start_x + leg, 64)
+        if i % 2:
+            xs = xs[::-1]
+        pts.append(np.stack([xs, np.full_like(xs, y)], 1))
+        if n_lines > 1:
+            if not 0 <= idx + step < n_lines:
+                step = -step
+            nxt = idx + step
+            side = 1.0 if i % 2 == 0 else -1.0
+            cx = xs[-1]
+            cy = y + (nxt - idx) * spacing / 2
+            ang = np.linspace(-np.pi / 2, np.pi / 2, 32) * (1 if nxt > idx else -1)
+            pts.append(np.stack([cx + side * r * np.cos(ang), cy + r * np.sin(ang)], 1)[1:-1])
+            idx = nxt
+        else:
+            pass  # one line only: fly back and forth on it
+    poly = np.vstack(pts)
+    return _arc_sample(poly, distances, closed=False)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def plan_flight(
+    map_size: tuple[int, int],
+    profile: str = "paper",
+    frames: int = 300,
+    size: tuple[int, int] = (1280, 720),
+    seed: int = 0,
+    fps: float = 30.0,
+) -> FlightPlan:
+    """Plan a flight of ``frames`` frames of ``size`` (w, h) over a map of ``map_size`` (W, H).
+
+    The footprint stays inside the map for the whole flight: the altitude is chosen from the
+    map size (``BadInput`` when the map is too small for the frame size)."""
+    if profile not in PROFILES:
+        raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
+    if frames < 2:
+        raise BadInput(f"a flight needs at least 2 frames, got {frames}")
+    if fps <= 0:
+        raise BadInput(f"frame rate must be positive, got {fps}")
+    prof = PROFILES[profile]
+    w, h = int(size[0]), int(size[1])
+    if w < 16 or h < 16:
+        raise BadInput(f"frame size must be at least 16x16, got {w}x{h}")
+    W, H = int(map_size[0]), int(map_size[1])
+    rng = np.random.default_rng([int(seed), 7919])
+    n = int(frames)
+    focal = float(w)
+
+    # Attitude: constant tilt of a few degrees plus slow sway; slow heading changes.
+    tilt_dir = rng.uniform(0, 2 * np.pi)
+    tilt0 = np.radians(rng.uniform(0.3, 1.0) * prof.tilt_deg)
+    sway = np.radians(1.5)
+    pitch = tilt0 * np.cos(tilt_dir) + sway * smooth_signal(rng, n, fps, (30, 90))
+    roll = tilt0 * np.sin(tilt_dir) + sway * smooth_signal(rng, n, fps, (30, 90))
+    heading0 = rng.uniform(-np.pi, np.pi) if prof.path == "wander" else rng.choice([0.0, np.pi])
+    heading = heading0 + np.radians(prof.heading_deg) * smooth_signal(rng, n, fps, (20, 60))
+    altitude = 1.0 + prof.altitude_drift * smooth_signal(rng, n, fps, (20, 60))
+
+    # Ground sample from the map size: the footprint's bounding circle at the highest altitude
+    # and largest tilt spans FOOTPRINT_FRACTION of the map's shorter side.
+    half_diag = 0.5 * np.hypot(w, h)
+    max_tilt = tilt0 + 2 * sway
+    radius_per_s = (half_diag * (1 + np.tan(max_tilt) * half_diag / focal) + focal * np.tan(max_tilt)) * (1 + prof.altitude_drift)
+    s0 = FOOTPRINT_FRACTION * min(W, H) / 2 / radius_per_s
+    if s0 < MIN_GROUND_SAMPLE:
+        need = int(np.ceil(2 * radius_per_s * MIN_GROUND_SAMPLE / FOOTPRINT_FRACTION))
+        raise BadInput(f"map of {W}x{H} px is too small for {w}x{h} frames: its shorter side needs at least {need} px")
+    s = s0 * altitude
+    margin = radius_per_s * s0 + 2.0
+    box = (margin, margin, W - 1 - margin, H - 1 - margin)
+
+    # Speed along the ground, from the profile's range at the frame centre.
+    lo, hi = prof.speed
+    speed_eq = lo + (hi - lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, (4, 15)))
+    step_map = speed_eq * w / REFERENCE_WIDTH * s
+    distances = np.concatenate([[0.0], np.cumsum(step_map[:-1])])
+    if prof.path == "lawnmower":
+        spacing = 0.5 * h * s0 * (1 - prof.altitude_drift)
+        spacing = min(spacing, max(1.0, (box[3] - box[1]) / 2)) if box[3] > box[1] else spacing
+        ground = _lawnmower_path(rng, box, distances, spacing)
+    else:
+        ground = _wander_path(rng, box, distances)
+
+    smooth = np.stack(
+        [camera_homography((w, h), focal, ground[t, 0], ground[t, 1], s[t], heading[t], pitch[t], roll[t]) for t in range(n)]
+    )
+    map_to_frame = smooth.copy()
+    if prof.jitter_px > 0 or prof.jitter_deg > 0:
+        amp = prof.jitter_px * w / REFERENCE_WIDTH
+        jx = amp * _shake(rng, n, fps)
+        jy = amp * _shake(rng, n, fps)
+        ja = np.radians(prof.jitter_deg) * _shake(rng, n, fps)
+        cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+        for t in range(n):
+            c, si = np.cos(ja[t]), np.sin(ja[t])
+            J = np.array([[c, -si, cx - c * cx + si * cy + jx[t]], [si, c, cy - si * cx - c * cy + jy[t]], [0, 0, 1.0]])
+            map_to_frame[t] = normalize(J @ smooth[t])
+
+    plan = FlightPlan(map_to_frame, smooth, (w, h), profile, int(seed), (W, H), float(fps))
+    if prof.effects:
+        plan.effects = _effects(rng, plan)
+    check_inside(plan)
+    return plan
+
+
+def _shake(rng, n: int, fps: float) -> np.ndarray:
+    """3-8 Hz shake in [-1, 1]: a few sinusoids with drifting amplitude."""
+    t = np.arange(n) / fps
+    out = np.zeros(n)
+    total = 0.0
+    for _ in range(3):
+        freq = rng.uniform(3.0, 8.0)
+        amp = rng.uniform(0.5, 1.0)
+        envelope = 0.75 + 0.25 * np.sin(2 * np.pi * t / rng.uniform(2, 6) + rng.uniform(0, 2 * np.pi))
+        out += amp * envelope * np.sin(2 * np.pi * freq * t + rng.uniform(0, 2 * np.pi))
+        total += amp
+    return out / total
+
+
+def _effects(rng, plan: FlightPlan) -> dict[str, np.ndarray]:
+    """Per-frame exposure gain, noise sigma and motion blur vector for the 'hard' profile."""
+    n, fps = plan.frames, plan.fps
+    w, h = plan.size
+    gain = np.exp(0.3 * smooth_signal(rng, n, fps, (3, 12)) + 0.02 * rng.standard_normal(n))
+    noise = 3.0 + 3.0 * (0.5 + 0.5 * smooth_signal(rng, n, fps, (2, 8)))
+    # blur along the image motion: the motion during the exposure plus episodes of shake blur
+    pw = plan.pairwise
+    c = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
+    motion = np.zeros((n, 2))
+    if len(pw):
+        moved = project(pw, np.broadcast_to(c, (len(pw), 1, 2)))[:, 0] - c
+        motion[1:] = moved
+        motion[0] = moved[0]
+    extra = np.clip(smooth_signal(rng, n, fps, (1, 5)), 0, None) * 6.0 * w / REFERENCE_WIDTH
+    norm = np.linalg.norm(motion, axis=1, keepdims=True)
+    direction = np.where(norm > 1e-9, motion / np.maximum(norm, 1e-9), np.array([[1.0, 0.0]]))
+    blur = motion * 0.8 + direction * extra[:, None]
+    return {"gain": gain, "noise_sigma": noise, "blur": blur}
+
+
+def footprints(plan: FlightPlan) -> np.ndarray:
+    """(N, 4, 2) map positions of the frame corners, for the shaken and the smooth path."""
+    c = frame_corners(*plan.size)
+    both = np.concatenate([plan.map_to_frame, plan.smooth_map_to_frame])
+    return project(np.linalg.inv(both), np.broadcast_to(c, (len(both), 4, 2)))
+
+
+def check_inside(plan: FlightPlan) -> None:
+    W, H = plan.map_size
+    corners = footprints(plan)
+    if not np.all(np.isfinite(corners)):
+        raise BadInput("the planned flight sees beyond the horizon (internal error)")
+    lo, hi = corners.min(axis=(0, 1)), corners.max(axis=(0, 1))
+    if lo[0] < -0.5 or lo[1] < -0.5 or hi[0] > W - 0.5 or hi[1] > H - 0.5:
+        raise BadInput(
+            f"map of {W}x{H} px is too small for this flight of {plan.size[0]}x{plan.size[1]} frames "
+            f"(footprint reaches {lo.round(1).tolist()}..{hi.round(1).tolist()})"
+        )
