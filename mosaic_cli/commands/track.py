@@ -13,6 +13,8 @@ from mosaic_cli.estimators import make_estimator
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
 
+MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
+
 
 @app.command()
 def track(
@@ -31,6 +33,8 @@ def track(
     """
     if max_frames is not None and max_frames < 2:
         raise BadInput("--max-frames must be at least 2")
+    if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:
+        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
     check_writable(out)
     if out.suffix.lower() not in (".json", ".npy"):
         raise BadInput(f"output {out} must end in .json or .npy")

@@ -1,0 +1,189 @@
+"""Every way a user can get ``mosaic track`` wrong: one line on stderr, exit 2 (bad input) or 1,
+no traceback unless --debug, and no output file (nor temporary file) left behind."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ffmpeg, write_clip
+from mosaic_cli.cli import main
+
+
+def run_cli(capsys, *args):
+    """(exit code, stderr) of ``mosaic *args`` run in this process."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(a) for a in args])
+    code = exit_info.value.code
+    return (0 if code is None else code), capsys.readouterr().err
+
+
+def assert_one_line_error(code, err, expected_code, *fragments):
+    assert code == expected_code, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mosaic: error: "), err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment.lower() in lines[0].lower(), lines[0]
+
+
+@pytest.fixture
+def workdir(tmp_path):
+    """A folder for inputs and a separate, initially empty, folder for outputs."""
+    (tmp_path / "in").mkdir()
+    (tmp_path / "out").mkdir()
+    return tmp_path
+
+
+def outputs(workdir):
+    return sorted(p.name for p in (workdir / "out").iterdir())
+
+
+def good_clip(path, n=20):
+    ffmpeg("-f", "lavfi", "-i", "testsrc2=size=320x180:rate=30", "-frames:v", str(n), "-c:v", "libx264",
+           "-pix_fmt", "yuv420p", "-movflags", "+faststart", str(path))
+    return path
+
+
+def make_bad_input(kind, folder):
+    path = folder / f"{kind}.mp4"
+    if kind == "missing":
+        return path, "no such file"
+    if kind == "empty":
+        path.write_bytes(b"")
+        return path, "empty"
+    if kind == "text":
+        path.write_text("this is not a video\n" * 50)
+        return path, "not a video"
+    if kind == "random bytes":
+        path.write_bytes(np.random.default_rng(0).integers(0, 256, 50_000, dtype=np.uint8).tobytes())
+        return path, "not a video"
+    if kind == "audio only":
+        path = folder / "audio.m4a"
+        ffmpeg("-f", "lavfi", "-i", "sine=duration=1", str(path))
+        return path, "not a video"
+    if kind in ("truncated", "truncated header"):
+        data = good_clip(folder / "whole.mp4", n=60).read_bytes()
+        path.write_bytes(data[: len(data) // 2] if kind == "truncated" else data[:3000])
+        return path, "truncated" if kind == "truncated" else "not a video"
+    if kind == "truncated mkv":
+        whole = folder / "whole.mkv"
+        ffmpeg("-i", str(good_clip(folder / "whole.mp4", n=60)), "-c", "copy", str(whole))
+        path = folder / "cut.mkv"
+        path.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+        return path, "truncated"
+    if kind == "folder without images":
+        path = folder / "frames"
+        path.mkdir()
+        (path / "readme.txt").write_text("x")
+        return path, "no images"
+    if kind == "folder of broken images":
+        path = folder / "frames"
+        path.mkdir()
+        (path / "f_1.png").write_text("not really a png")
+        (path / "f_2.png").write_text("not really a png")
+        return path, "not an image"
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize("kind", [
+    "missing", "empty", "text", "random bytes", "audio only", "truncated", "truncated header", "truncated mkv",
+    "folder without images", "folder of broken images",
+])
+def test_bad_video_is_one_line_exit_2_no_output(capsys, workdir, kind):
+    video, message = make_bad_input(kind, workdir / "in")
+    out = workdir / "out" / "t.json"
+    code, err = run_cli(capsys, "track", video, "-o", out, "-q")
+    assert_one_line_error(code, err, 2, message, video.name)
+    assert outputs(workdir) == []
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    return good_clip(tmp_path_factory.mktemp("ok") / "ok.mp4")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--work-width", "8"], "work-width"),
+    (["--work-width", "100000"], "work-width"),
+    (["--estimator", "sift"], "unknown estimator"),
+    (["--max-frames", "1"], "max-frames"),
+])
+def test_bad_option_values(capsys, workdir, clip, args, message):
+    code, err = run_cli(capsys, "track", clip, "-o", workdir / "out" / "t.json", "-q", *args)
+    assert_one_line_error(code, err, 2, message)
+    assert outputs(workdir) == []
+
+
+def test_option_of_the_wrong_type_is_a_usage_error(capsys, workdir, clip):
+    code, err = run_cli(capsys, "track", clip, "-o", workdir / "out" / "t.json", "--work-width", "wide")
+    assert code == 2 and "Traceback" not in err and "work-width" in err
+    assert outputs(workdir) == []
+
+
+@pytest.mark.parametrize("target, message", [
+    ("missing/t.json", "does not exist"),
+    ("a_file/t.json", "a_file"),
+    ("subdir", "directory"),
+    ("t.txt", ".json or .npy"),
+])
+def test_unwritable_output(capsys, workdir, clip, target, message):
+    (workdir / "out" / "a_file").write_text("")
+    (workdir / "out" / "subdir").mkdir()
+    before = outputs(workdir)
+    code, err = run_cli(capsys, "track", clip, "-o", workdir / "out" / target, "-q")
+    assert_one_line_error(code, err, 2, message)
+    assert outputs(workdir) == before
+
+
+def test_failure_midway_leaves_no_file_and_debug_shows_the_traceback(capsys, workdir, clip, monkeypatch):
+    from mosaic_cli.estimators.orb import OrbEstimator
+
+    def broken(self, prev, cur):
+        raise RuntimeError("estimator exploded")
+
+    monkeypatch.setattr(OrbEstimator, "_estimate", broken)
+    out = workdir / "out" / "t.json"
+    code, err = run_cli(capsys, "track", clip, "-o", out, "-q")
+    assert_one_line_error(code, err, 1, "estimator exploded", "--debug")
+    assert outputs(workdir) == []
+    with pytest.raises(RuntimeError, match="exploded"):
+        main(["--debug", "track", str(clip), "-o", str(out), "-q"])
+    assert outputs(workdir) == []
+
+
+def test_console_script_prints_no_traceback(workdir):
+    """The installed entry point, in a fresh process, as a user runs it."""
+    missing = workdir / "in" / "nothing.mp4"
+    run = subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(missing), "-o", str(workdir / "out" / "t.json")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    assert run.stderr.strip() == f"mosaic: error: {missing}: no such file or folder"
+    run = subprocess.run([sys.executable, "-m", "mosaic_cli", "--debug", "track", str(missing), "-o", str(workdir / "out" / "t.json")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0 and "Traceback" in run.stderr
+
+
+# ---------------------------------------------------------------- degenerate but valid
+
+
+def test_one_frame_video_gives_an_empty_track(capsys, workdir):
+    video = good_clip(workdir / "in" / "one.mp4", n=1)
+    out = workdir / "out" / "t.json"
+    code, _ = run_cli(capsys, "track", video, "-o", out, "-q")
+    data = json.loads(out.read_text())
+    assert code == 0 and data["frames"] == 1 and data["pairwise"] == [] and data["confidence"] == []
+
+
+def test_all_black_video_gives_identity_with_zero_confidence(capsys, workdir):
+    video = write_clip(workdir / "in" / "black.mp4", [np.zeros((180, 320, 3), np.uint8)] * 10)
+    out = workdir / "out" / "t.json"
+    code, _ = run_cli(capsys, "track", video, "-o", out, "-q")
+    data = json.loads(out.read_text())
+    assert code == 0 and data["frames"] == 10
+    assert np.array_equal(np.array(data["pairwise"]), np.broadcast_to(np.eye(3), (9, 3, 3)))
+    assert data["confidence"] == [0.0] * 9
