@@ -1,0 +1,85 @@
+"""Stage 3a, the canvas: which keyframe the panorama is drawn in, how large it is, and
+whether the placements are sane enough to draw at all."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.geometry import frame_corners, is_valid, normalize, project
+
+
+@dataclass
+class CanvasOptions:
+    reference: str = "middle"  # first | middle | a frame number
+    max_size: int | None = 8000  # longest side of the panorama, pixels; None: no limit
+    # A keyframe drawn larger/smaller than this (area ratio) against the reference is a sign
+    # of a degenerate chain, not of a real change of altitude.
+    max_area_ratio: float = 25.0
+
+
+@dataclass
+class Canvas:
+    size: tuple[int, int]  # (W, H)
+    to_canvas: np.ndarray  # reference frame source pixels -> panorama pixels
+    scale: float  # panorama pixels per reference-frame pixel
+
+    def frame_to_canvas(self, placement: np.ndarray) -> np.ndarray:
+        return normalize(self.to_canvas @ placement)
+
+
+def parse_reference(spec: str) -> str | int:
+    """'first', 'middle' or a frame number; BadInput for anything else."""
+    text = str(spec).strip().lower()
+    if text in ("first", "middle"):
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise BadInput(f"--reference must be first, middle or a frame number, got {spec!r}") from None
+    if value < 0:
+        raise BadInput(f"--reference frame must be 0 or more, got {value}")
+    return value
+
+
+def choose_reference(frame_indices: list[int], spec: str | int) -> int:
+    """Position (in ``frame_indices``) of the reference keyframe.  The middle one by default:
+    distortion grows with the distance from the reference, so the middle halves the worst."""
+    if spec == "first":
+        return 0
+    if spec == "middle":
+        return (len(frame_indices) - 1) // 2
+    if spec > frame_indices[-1] + 1 and spec > 0:
+        raise BadInput(f"--reference {spec} is past the last frame stitched ({frame_indices[-1]})")
+    return int(np.argmin(np.abs(np.asarray(frame_indices) - spec)))
+
+
+def plan_canvas(
+    placements: list[np.ndarray],
+    frame_indices: list[int],
+    size: tuple[int, int],
+    options: CanvasOptions,
+) -> Canvas:
+    """Bounding box of all placed frames, scaled down to ``max_size``; refuses degenerate
+    placements (a frame folded, behind the camera or blown up) with advice."""
+    for H, index in zip(placements, frame_indices):
+        if not is_valid(H, size, max_area_ratio=options.max_area_ratio):
+            raise ProcessingError(
+                f"the placement of frame {index} degenerates (folded, behind the camera, or more than "
+                f"{options.max_area_ratio:.0f}x larger or smaller than the reference frame), so the canvas "
+                f"would explode; the estimator lost track: try a --reference near that frame, a shorter part "
+                f"(--start/--max-frames), or another --estimator"
+            )
+    corners = np.concatenate([project(H, frame_corners(*size)) for H in placements])
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    extent = hi - lo
+    scale = 1.0
+    if options.max_size and extent.max() > options.max_size:
+        scale = options.max_size / float(extent.max())
+    W = max(1, int(np.ceil(extent[0] * scale - 1e-6)))
+    H = max(1, int(np.ceil(extent[1] * scale - 1e-6)))
+    # Outer frame edges sit at pixel -0.5; the canvas' first pixel centre at its edge + 0.5.
+    to_canvas = np.array([[scale, 0, -scale * lo[0] - 0.5], [0, scale, -scale * lo[1] - 0.5], [0, 0, 1.0]])
+    return Canvas((W, H), to_canvas, scale)

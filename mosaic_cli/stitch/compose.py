@@ -1,0 +1,184 @@
+"""Stage 3b, compositing with OpenCV's ``cv2.detail``: warp each keyframe within its own
+bounding box, compensate exposure and find seams on small copies, then blend (multi-band by
+default) at full size.  Uncovered canvas stays transparent (alpha 0)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry import normalize, project, rect_corners, resize_matrix
+
+BLENDS = ("multiband", "feather", "none")
+SEAMS = {
+    "dp": lambda: cv2.detail_DpSeamFinder("COLOR"),
+    "graphcut": lambda: cv2.detail_GraphCutSeamFinder("COST_COLOR"),
+    "voronoi": lambda: cv2.detail.SeamFinder_createDefault(cv2.detail.SeamFinder_VORONOI_SEAM),
+    "none": lambda: cv2.detail.SeamFinder_createDefault(cv2.detail.SeamFinder_NO),
+}
+EXPOSURES = {
+    "gain-blocks": cv2.detail.ExposureCompensator_GAIN_BLOCKS,
+    "gain": cv2.detail.ExposureCompensator_GAIN,
+    "none": cv2.detail.ExposureCompensator_NO,
+}
+
+
+@dataclass
+class ComposeOptions:
+    blend: str = "multiband"
+    blend_strength: float = 5.0  # blend width, percent of the canvas' geometric mean side
+    seam: str = "dp"
+    exposure: str = "gain-blocks"
+    # Seams and exposure gains are found on small copies: each keyframe about this size ...
+    seam_megapix: float = 0.05
+    # ... and all of them together no larger than this (bounds the memory for long flights).
+    seam_canvas_megapix: float = 2.0
+    max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
+
+    def validate(self) -> None:
+        if self.blend not in BLENDS:
+            raise BadInput(f"--blend must be one of {', '.join(BLENDS)}, got {self.blend!r}")
+        if self.seam not in SEAMS:
+            raise BadInput(f"--seam must be one of {', '.join(SEAMS)}, got {self.seam!r}")
+        if self.exposure not in EXPOSURES:
+            raise BadInput(f"--exposure must be one of {', '.join(EXPOSURES)}, got {self.exposure!r}")
+
+
+@dataclass
+class PlacedImage:
+    image: np.ndarray  # RGB uint8
+    to_canvas: np.ndarray  # image pixels -> canvas pixels
+
+
+@dataclass(frozen=True)
+class Roi:
+    x: int
+    y: int
+    w: int
+    h: int
+
+    @property
+    def corner(self) -> tuple[int, int]:
+        return (self.x, self.y)
+
+    def scaled(self, s: float) -> "Roi":
+        x0, y0 = int(np.floor(self.x * s)), int(np.floor(self.y * s))
+        x1, y1 = int(np.ceil((self.x + self.w) * s)), int(np.ceil((self.y + self.h) * s))
+        return Roi(x0, y0, max(1, x1 - x0), max(1, y1 - y0))
+
+
+def bounding_roi(H: np.ndarray, image_size: tuple[int, int], canvas_size: tuple[int, int]) -> Roi | None:
+    """The canvas pixels an image mapped by ``H`` can touch, clipped to the canvas."""
+    q = project(H, rect_corners(-0.5, -0.5, *image_size))
+    x0, y0 = np.floor(q.min(axis=0) + 0.5).astype(int)
+    x1, y1 = np.ceil(q.max(axis=0) - 0.5).astype(int)
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, canvas_size[0] - 1), min(y1, canvas_size[1] - 1)
+    if x1 < x0 or y1 < y0:
+        return None
+    return Roi(int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1))
+
+
+def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi) -> tuple[np.ndarray, np.ndarray]:
+    """The image and its coverage mask warped by ``H`` (image -> canvas) into ``roi`` only.
+    Shrinks the image first when the warp shrinks it, so that bilinear sampling does not alias."""
+    scale = _local_scale(H, image.shape[1], image.shape[0])
+    if scale < 0.8:
+        size = (max(2, round(image.shape[1] * scale)), max(2, round(image.shape[0] * scale)))
+        S = resize_matrix((image.shape[1], image.shape[0]), size)
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        H = H @ np.linalg.inv(S)
+    T = np.array([[1, 0, -roi.x], [0, 1, -roi.y], [0, 0, 1.0]]) @ H
+    warped = cv2.warpPerspective(image, T, (roi.w, roi.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    ones = np.full(image.shape[:2], 255, np.uint8)
+    mask = cv2.warpPerspective(ones, T, (roi.w, roi.h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+    return warped, mask
+
+
+def _local_scale(H: np.ndarray, w: int, h: int) -> float:
+    c = np.array([[w / 2, h / 2], [w / 2 + 1, h / 2], [w / 2, h / 2 + 1]])
+    q = project(H, c)
+    return float(np.sqrt(abs(np.cross(q[1] - q[0], q[2] - q[0]))))
+
+
+def compose(
+    placed: list[PlacedImage],
+    canvas_size: tuple[int, int],
+    options: ComposeOptions,
+    advance: Callable[..., None] = lambda *a, **k: None,
+) -> np.ndarray:
+    """The panorama as RGBA uint8 (H, W, 4)."""
+    W, H = canvas_size
+    rois = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size) for p in placed]
+    placed = [p for p, r in zip(placed, rois) if r is not None]
+    rois = [r for r in rois if r is not None]
+    seam_scale = _seam_scale([r.w * r.h for r in rois], W * H, options)
+    compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
+    advance(0, status="blending")
+    blender = _blender(options, W, H)
+    for k, (p, roi) in enumerate(zip(placed, rois)):
+        warped, mask = warp_into(p.image, p.to_canvas, roi)
+        warped = compensator.apply(k, roi.corner, warped, mask)
+        seam = cv2.resize(cv2.dilate(seam_masks[k], None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
+        blender.feed(warped.astype(np.int16), cv2.bitwise_and(seam, mask), roi.corner)
+        advance(1)
+    result, result_mask = blender.blend(None, None)
+    del blender
+    rgba = np.empty((H, W, 4), np.uint8)
+    rgba[..., :3] = np.clip(result[:H, :W], 0, 255)
+    del result
+    rgba[..., 3] = np.where(result_mask[:H, :W] > 0, 255, 0)
+    rgba[rgba[..., 3] == 0, :3] = 0
+    return rgba
+
+
+def _seam_scale(areas: list[int], canvas_area: int, options: ComposeOptions) -> float:
+    per_image = np.sqrt(options.seam_megapix * 1e6 / max(1.0, float(np.mean(areas))))
+    whole = np.sqrt(options.seam_canvas_megapix * 1e6 / max(1.0, float(np.sum(areas))))
+    return float(min(1.0, per_image, whole))
+
+
+def _exposure_compensator(name: str, areas: list[int], max_blocks: int):
+    """Gain blocks sized so that all images together have at most ``max_blocks`` blocks
+    (OpenCV solves one dense system over every block); plain gains when even that is too many."""
+    if name != "gain-blocks":
+        return cv2.detail.ExposureCompensator_createDefault(EXPOSURES[name])
+    per_image = min(48, max_blocks // max(1, len(areas)))
+    if per_image < 4:
+        return cv2.detail.ExposureCompensator_createDefault(EXPOSURES["gain"])
+    side = max(16, int(np.ceil(np.sqrt(float(np.mean(areas)) / per_image))))
+    return cv2.detail_BlocksGainCompensator(side, side)
+
+
+def _seams_and_exposure(placed, rois, seam_scale, options):
+    """Exposure gains and seam masks from small copies (bounded by ``seam_megapix``)."""
+    small_rois = [r.scaled(seam_scale) for r in rois]
+    S = resize_matrix((1.0, 1.0), (seam_scale, seam_scale))
+    images, masks = [], []
+    for p, roi in zip(placed, small_rois):
+        warped, mask = warp_into(p.image, normalize(S @ p.to_canvas), roi)
+        images.append(warped)
+        masks.append(mask)
+    corners = [r.corner for r in small_rois]
+    compensator = _exposure_compensator(options.exposure, [r.w * r.h for r in small_rois], options.max_exposure_blocks)
+    compensator.feed(corners=corners, images=images, masks=masks)
+    if len(placed) > 1:
+        found = SEAMS[options.seam]().find([i.astype(np.float32) for i in images], corners, masks)
+        masks = [m.get() if isinstance(m, cv2.UMat) else m for m in found]
+    return compensator, masks
+
+
+def _blender(options: ComposeOptions, W: int, H: int):
+    width = np.sqrt(W * H) * options.blend_strength / 100.0
+    if options.blend == "multiband" and width >= 1:
+        blender = cv2.detail.MultiBandBlender(0, max(1, int(np.log2(max(width, 2.0))) - 1))
+    elif options.blend == "feather" and width >= 1:
+        blender = cv2.detail.FeatherBlender(1.0 / width)
+    else:
+        blender = cv2.detail.Blender_createDefault(cv2.detail.Blender_NO)
+    blender.prepare((0, 0, W, H))
+    return blender

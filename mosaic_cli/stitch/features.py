@@ -1,0 +1,125 @@
+"""Keyframe features and direct registration of two keyframes (SIFT, ratio test, MAGSAC).
+
+Used to re-find the flight after the estimator loses it, to link consecutive keyframes
+directly (more accurate than chaining dozens of small pairwise estimates) and to close loops
+between keyframes that see the same ground minutes apart.  Points are kept in full-resolution
+source pixels, descriptors as uint8, so a keyframe's features cost ~150 KB.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
+
+
+@dataclass
+class FeatureOptions:
+    width: int = 640  # keyframes are described at this width (the source's if narrower)
+    n_features: int = 1500
+    ratio: float = 0.8  # Lowe's ratio test
+    reproj_threshold: float = 1.5  # pixels at the feature width
+    min_inliers: int = 20
+    min_inlier_ratio: float = 0.15
+    # A registered pair may change a frame's area by at most this factor (keyframes of one flight).
+    max_area_ratio: float = 4.0
+
+
+@dataclass
+class Features:
+    points: np.ndarray  # (n, 2) float32, source pixels
+    descriptors: np.ndarray  # (n, 128) uint8
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+@dataclass
+class PairMatch:
+    """A direct registration: ``H`` maps source pixels of frame a to frame b; the inlier
+    correspondences ``points_a[k] <-> points_b[k]`` are what the joint refinement uses."""
+
+    H: np.ndarray
+    points_a: np.ndarray
+    points_b: np.ndarray
+    inlier_ratio: float
+
+    @property
+    def inliers(self) -> int:
+        return len(self.points_a)
+
+
+class FeatureExtractor:
+    """SIFT on a gray copy of a frame at ``options.width``; frames may arrive at any resolution."""
+
+    def __init__(self, source_size: tuple[int, int], options: FeatureOptions | None = None):
+        self.options = options or FeatureOptions()
+        self.source_size = source_size
+        width = min(self.options.width, source_size[0])
+        self.size = (width, max(1, round(source_size[1] * width / source_size[0])))
+        self._sift = cv2.SIFT_create(nfeatures=self.options.n_features)
+        self._to_source = np.linalg.inv(resize_matrix(source_size, self.size))
+        # The matching threshold, re-expressed in source pixels.
+        self.threshold = self.options.reproj_threshold * source_size[0] / width
+
+    def __call__(self, frame: np.ndarray) -> Features:
+        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        if (gray.shape[1], gray.shape[0]) != self.size:
+            gray = cv2.resize(gray, self.size, interpolation=cv2.INTER_AREA)
+        keypoints, descriptors = self._sift.detectAndCompute(gray, None)
+        if not keypoints or descriptors is None:
+            return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
+        points = project(self._to_source, np.float64([k.pt for k in keypoints])).astype(np.float32)
+        return Features(points, np.clip(descriptors, 0, 255).astype(np.uint8))
+
+
+class FeatureMatcher:
+    """Registers two keyframes directly; ``None`` when the evidence is not convincing."""
+
+    def __init__(self, extractor: FeatureExtractor):
+        self.options = extractor.options
+        self.source_size = extractor.source_size
+        self.threshold = extractor.threshold
+        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
+
+    def match(
+        self,
+        a: Features,
+        b: Features,
+        prior: np.ndarray | None = None,
+        tolerance: float | None = None,
+    ) -> PairMatch | None:
+        """H: a -> b.  With a ``prior`` (a -> b) the result must agree with it to ``tolerance``
+        pixels at the frame corners: a wrong loop closure costs more than a missing one."""
+        o = self.options
+        if len(a) < o.min_inliers or len(b) < o.min_inliers:
+            return None
+        pairs = self._matcher.knnMatch(a.descriptors.astype(np.float32), b.descriptors.astype(np.float32), k=2)
+        good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < o.ratio * m[1].distance]
+        if len(good) < o.min_inliers:
+            return None
+        src = a.points[[m.queryIdx for m in good]]
+        dst = b.points[[m.trainIdx for m in good]]
+        H, mask = cv2.findHomography(src, dst, cv2.USAC_MAGSAC, self.threshold, maxIters=5000, confidence=0.999)
+        if H is None or mask is None:
+            return None
+        keep = mask.ravel().astype(bool)
+        inliers = int(keep.sum())
+        ratio = inliers / len(good)
+        if inliers < o.min_inliers or ratio < o.min_inlier_ratio:
+            return None
+        if not is_valid(H, self.source_size, max_area_ratio=o.max_area_ratio):
+            return None
+        H = H / H[2, 2]
+        if prior is not None and tolerance is not None and corner_distance(H, prior, self.source_size) > tolerance:
+            return None
+        return PairMatch(H, src[keep].astype(np.float64), dst[keep].astype(np.float64), ratio)
+
+
+def corner_distance(H1: np.ndarray, H2: np.ndarray, size: tuple[int, int]) -> float:
+    """The largest distance between the frame corners mapped by two homographies."""
+    c = frame_corners(*size)
+    return float(np.max(np.linalg.norm(project(H1, c) - project(H2, c), axis=-1)))

@@ -1,0 +1,339 @@
+"""Stage 1, the streaming pass: decode once, chain the estimator's pairwise homographies and
+keep the keyframes the panorama is made of.
+
+A frame becomes a keyframe when it covers enough new ground (its overlap with the last
+keyframe falls below ``new_ground``) and it is sharp and well exposed; blurred, black or
+over-exposed frames are passed over while a better one may still come.  Only keyframes that
+add ground not yet covered keep their pixels (at the scale the canvas will need); keyframes
+over ground already covered keep only their features, as anchors for drift control.  So the
+memory grows with the area flown over, not with the number of frames.
+
+Placements are "world" homographies: frame pixels -> pixels of the first keyframe's frame
+(the anchor), all in full-resolution source pixels.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import cv2
+import numpy as np
+
+from mosaic_cli.errors import ProcessingError
+from mosaic_cli.estimators import Estimator, PairEstimate
+from mosaic_cli.geometry import frame_corners, is_valid, normalize, project
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions
+
+
+@dataclass
+class KeyframeOptions:
+    new_ground: float = 0.6  # a keyframe is due once the overlap with the last one drops below this
+    force_overlap: float = 0.35  # ... and is taken (the sharpest candidate) at the latest here
+    sharpness_ratio: float = 0.6  # "sharp": Laplacian variance >= this x the running median
+    sharpness_window: int = 31  # frames in that running median
+    dark_level: float = 25.0  # mean gray below this: a black frame
+    bright_level: float = 235.0  # mean gray above this: over-exposed
+    max_clipped: float = 0.3  # ... or more than this fraction of pixels saturated
+    min_contrast: float = 4.0  # gray standard deviation below this: a blank frame
+    min_new_coverage: float = 0.1  # a keyframe keeps its pixels if it adds this much new ground
+    coverage_cells: int = 16  # coverage is tracked on cells 1/16 of a frame width wide
+    min_confidence: float = 0.0  # estimates at or below this confidence count as failures
+    max_lost_seconds: float = 2.0  # refuse when the flight cannot be re-found for this long
+    quality_width: int = 320
+    # The chained placement may make a frame this many times larger/smaller than the anchor.
+    max_scale_change: float = 10.0
+
+
+@dataclass(frozen=True)
+class FrameQuality:
+    sharpness: float  # variance of the Laplacian at quality_width
+    brightness: float
+    contrast: float
+    clipped: float  # fraction of saturated pixels
+
+    def well_exposed(self, o: KeyframeOptions) -> bool:
+        return (
+            o.dark_level <= self.brightness <= o.bright_level
+            and self.contrast >= o.min_contrast
+            and self.clipped <= o.max_clipped
+        )
+
+
+def measure_quality(gray: np.ndarray) -> FrameQuality:
+    mean, std = cv2.meanStdDev(gray)
+    sharpness = float(cv2.Laplacian(gray, cv2.CV_32F).var())
+    clipped = float(np.count_nonzero(gray >= 250)) / gray.size
+    return FrameQuality(sharpness, float(mean[0, 0]), float(std[0, 0]), clipped)
+
+
+@dataclass
+class Keyframe:
+    index: int  # frame number in the video
+    placement: np.ndarray  # frame -> world, source pixels (chained, before refinement)
+    features: Features
+    quality: FrameQuality
+    image: np.ndarray | None = None  # RGB at ``scale`` x source size; None: registration only
+    scale: float = 1.0
+
+    @property
+    def composited(self) -> bool:
+        return self.image is not None
+
+
+@dataclass
+class FlightScan:
+    keyframes: list[Keyframe]
+    source_size: tuple[int, int]
+    fps: float
+    frames: int  # frames read
+    first_index: int
+    failed_pairs: int = 0
+    relocalised: list[int] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def composited(self) -> list[Keyframe]:
+        return [k for k in self.keyframes if k.composited]
+
+
+class KeyframeStore:
+    """Holds keyframe pixels at the scale the canvas will need: the longest side of the area
+    flown so far must fit ``max_size`` (with a margin, as the final reference frame may be
+    larger than the anchor); images already held shrink when the area outgrows them."""
+
+    MARGIN = 1.5
+    SHRINK_BELOW = 0.8  # re-scale held images only when they are this much too large
+
+    def __init__(self, source_size: tuple[int, int], decode_scale: float, max_size: int | None):
+        self.source_size = source_size
+        self.decode_scale = decode_scale
+        self.max_size = max_size
+        self.scale = decode_scale
+        self._lo = np.array([np.inf, np.inf])
+        self._hi = -self._lo
+
+    def keep(self, keyframe: Keyframe, frame: np.ndarray, world_corners: np.ndarray) -> None:
+        self._lo = np.minimum(self._lo, world_corners.min(axis=0))
+        self._hi = np.maximum(self._hi, world_corners.max(axis=0))
+        if self.max_size:
+            extent = float(np.max(self._hi - self._lo))
+            self.scale = min(self.decode_scale, self.MARGIN * self.max_size / max(extent, 1.0))
+        keyframe.image, keyframe.scale = self._resized(frame, self.decode_scale, self.scale)
+
+    def shrink(self, keyframes: Iterable[Keyframe]) -> None:
+        for k in keyframes:
+            if k.image is not None and self.scale < self.SHRINK_BELOW * k.scale:
+                k.image, k.scale = self._resized(k.image, k.scale, self.scale)
+
+    def _resized(self, image: np.ndarray, have: float, want: float) -> tuple[np.ndarray, float]:
+        if want >= have * 0.999:
+            return image, have
+        w, h = self.source_size
+        size = (max(2, round(w * want)), max(2, round(h * want)))
+        return cv2.resize(image, size, interpolation=cv2.INTER_AREA), size[0] / w
+
+
+class CoverageMap:
+    """Which coarse world cells the composited keyframes already cover (a set: unbounded world)."""
+
+    def __init__(self, source_size: tuple[int, int], cells_per_width: int):
+        self.cell = source_size[0] / cells_per_width
+        self.covered: set[tuple[int, int]] = set()
+
+    def cells(self, world_corners: np.ndarray) -> set[tuple[int, int]]:
+        q = world_corners / self.cell
+        lo = np.floor(q.min(axis=0)).astype(int)
+        hi = np.ceil(q.max(axis=0)).astype(int)
+        grid = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), np.uint8)
+        cv2.fillConvexPoly(grid, np.round((q - lo) * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
+        ys, xs = np.nonzero(grid)
+        return set(zip((xs + lo[0]).tolist(), (ys + lo[1]).tolist()))
+
+    def new_fraction(self, cells: set) -> float:
+        return len(cells - self.covered) / max(1, len(cells))
+
+    def add(self, cells: set) -> None:
+        self.covered |= cells
+
+
+def overlap_fraction(H_frame_to_key: np.ndarray, size: tuple[int, int]) -> float:
+    """The fraction of a keyframe's area that a frame, mapped by ``H``, covers."""
+    quad = project(H_frame_to_key, frame_corners(*size)).astype(np.float32)
+    rect = frame_corners(*size).astype(np.float32)
+    area, _ = cv2.intersectConvexConvex(quad, rect)
+    return max(0.0, float(area)) / (size[0] * size[1])
+
+
+class FlightScanner:
+    """Consumes frames and their pairwise estimates in order and builds the keyframe list."""
+
+    def __init__(
+        self,
+        source_size: tuple[int, int],
+        decode_size: tuple[int, int],
+        fps: float,
+        first_index: int,
+        options: KeyframeOptions,
+        feature_options: FeatureOptions,
+        max_size: int | None,
+    ):
+        self.o = options
+        self.size = source_size
+        self.fps = fps
+        self.index = first_index - 1
+        self.first_index = first_index
+        self.extract = FeatureExtractor(source_size, feature_options)
+        self.matcher = FeatureMatcher(self.extract)
+        self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size)
+        self.coverage = CoverageMap(source_size, options.coverage_cells)
+        self.keyframes: list[Keyframe] = []
+        self.placement: np.ndarray | None = None  # of the current frame, None while lost
+        self.lost_since: int | None = None
+        self.failed_pairs = 0
+        self.relocalised: list[int] = []
+        self._sharpness: deque[float] = deque(maxlen=options.sharpness_window)
+        self._candidate: tuple | None = None  # (sharpness, index, frame, quality, placement)
+        self._quality_size = (options.quality_width, max(1, round(source_size[1] * options.quality_width / source_size[0])))
+        self._corners = frame_corners(*source_size)
+
+    # -- per frame -------------------------------------------------------------------
+    def first(self, frame: np.ndarray) -> None:
+        self.index += 1
+        self.placement = np.eye(3)
+        self._consider(frame, self._quality(frame))
+
+    def step(self, frame: np.ndarray, estimate: PairEstimate) -> None:
+        self.index += 1
+        quality = self._quality(frame)
+        self.placement = self._place(frame, estimate)
+        if self.placement is not None:
+            self._consider(frame, quality)
+
+    def finish(self) -> FlightScan:
+        if self._candidate is not None and (not self.keyframes or self._candidate[1] > self.keyframes[-1].index):
+            _, index, frame, quality, placement = self._candidate
+            self._add(index, frame, quality, placement)
+        self.store.shrink(self.keyframes)
+        return FlightScan(
+            self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
+            self.failed_pairs, self.relocalised,
+        )
+
+    # -- placement -------------------------------------------------------------------
+    def _place(self, frame: np.ndarray, estimate: PairEstimate) -> np.ndarray | None:
+        ok = estimate.confidence > self.o.min_confidence and is_valid(estimate.H, self.size, max_area_ratio=2.0)
+        if not ok:
+            self.failed_pairs += 1
+        if ok and self.placement is not None:
+            placement = normalize(self.placement @ np.linalg.inv(estimate.H))
+            self._check_chain(placement)
+            return placement
+        if not self.keyframes:
+            # Nothing placed yet: start the world afresh at this frame.
+            self._candidate = None
+            return np.eye(3)
+        return self._relocalise(frame)
+
+    def _relocalise(self, frame: np.ndarray) -> np.ndarray | None:
+        """Register the frame directly against the last keyframes (the estimator lost it)."""
+        if self.lost_since is None:
+            self.lost_since = self.index
+        features = self.extract(frame)
+        for key in reversed(self.keyframes[-3:]):
+            match = self.matcher.match(features, key.features)
+            if match is not None:
+                self.lost_since = None
+                self.relocalised.append(self.index)
+                return normalize(key.placement @ match.H)
+        if (self.index - self.lost_since) > self.o.max_lost_seconds * self.fps:
+            raise ProcessingError(
+                f"the flight cannot be followed past frame {self.lost_since} ({_timecode(self.lost_since, self.fps)}): "
+                f"the estimator fails there and no later frame re-registers with the panorama so far "
+                f"(a cut, or featureless ground); stitch the parts separately with --start/--max-frames"
+            )
+        return None
+
+    def _check_chain(self, placement: np.ndarray) -> None:
+        limit = self.o.max_scale_change**2
+        if not is_valid(placement, self.size, max_area_ratio=limit):
+            raise ProcessingError(
+                f"the chained homographies degenerate at frame {self.index} ({_timecode(self.index, self.fps)}): "
+                f"the frame would be mapped behind the camera, folded, or over {limit:.0f}x its size, so the "
+                f"canvas would explode; the estimator lost track there: stitch a shorter part "
+                f"(--start/--max-frames) or try another --estimator"
+            )
+
+    # -- keyframe choice -------------------------------------------------------------
+    def _quality(self, frame: np.ndarray) -> FrameQuality:
+        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        gray = cv2.resize(gray, self._quality_size, interpolation=cv2.INTER_AREA)
+        quality = measure_quality(gray)
+        if quality.well_exposed(self.o):
+            self._sharpness.append(quality.sharpness)
+        return quality
+
+    def _consider(self, frame: np.ndarray, quality: FrameQuality) -> None:
+        if not quality.well_exposed(self.o):
+            return
+        sharp = quality.sharpness >= self.o.sharpness_ratio * float(np.median(self._sharpness))
+        if not self.keyframes:
+            if sharp:
+                self._add(self.index, frame, quality, self.placement)
+            return
+        last = self.keyframes[-1]
+        overlap = overlap_fraction(np.linalg.inv(last.placement) @ self.placement, self.size)
+        if overlap >= self.o.new_ground:
+            return
+        if sharp:
+            self._add(self.index, frame, quality, self.placement)
+            return
+        if self._candidate is None or quality.sharpness > self._candidate[0]:
+            self._candidate = (quality.sharpness, self.index, frame, quality, self.placement)
+        if overlap < self.o.force_overlap:
+            _, index, frame, quality, placement = self._candidate
+            self._add(index, frame, quality, placement)
+
+    def _add(self, index: int, frame: np.ndarray, quality: FrameQuality, placement: np.ndarray) -> None:
+        self._candidate = None
+        keyframe = Keyframe(index, placement, self.extract(frame), quality)
+        world = project(placement, self._corners)
+        cells = self.coverage.cells(world)
+        if not self.keyframes or self.coverage.new_fraction(cells) >= self.o.min_new_coverage:
+            self.coverage.add(cells)
+            self.store.keep(keyframe, frame, world)
+            self.store.shrink(self.keyframes)
+        self.keyframes.append(keyframe)
+
+
+def _timecode(index: int, fps: float) -> str:
+    seconds = index / fps if fps > 0 else 0.0
+    return f"{int(seconds // 60):02d}:{seconds % 60:05.2f}"
+
+
+def scan_flight(
+    frames: Iterable[np.ndarray],
+    estimator: Estimator,
+    scanner: FlightScanner,
+    advance: Callable[..., None] = lambda *a, **k: None,
+) -> FlightScan:
+    """Feed every frame to the estimator once; each frame is judged when its estimate
+    (frame t-1 -> t) arrives, which for a batching estimator may be a few frames later."""
+    start = time.perf_counter()
+    estimator.reset(scanner.size)
+    waiting: deque[np.ndarray] = deque()
+    for k, frame in enumerate(frames):
+        if k == 0:
+            scanner.first(frame)
+        else:
+            waiting.append(frame)
+        for estimate in estimator.feed(frame):
+            scanner.step(waiting.popleft(), estimate)
+        advance(1, status=f"{len(scanner.keyframes)} keyframes")
+    for estimate in estimator.finish():
+        scanner.step(waiting.popleft(), estimate)
+    scan = scanner.finish()
+    scan.seconds = time.perf_counter() - start
+    return scan

@@ -1,0 +1,60 @@
+"""Stage 4, outputs: the panorama (PNG, JPEG or TIFF by extension; alpha where the format
+has it) and the transforms JSON, both written atomically."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mosaic_cli.atomic import atomic_path, check_writable, write_json
+from mosaic_cli.errors import BadInput, ProcessingError
+
+FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff"}
+JPEG_MAX_SIDE = 65500
+
+
+def check_outputs(out: str | Path, transforms: str | Path | None, max_size: int | None) -> str:
+    """Fail before any work on an output that cannot be written; returns the image format."""
+    out = Path(out)
+    fmt = FORMATS.get(out.suffix.lower())
+    if fmt is None:
+        raise BadInput(f"output {out} must end in .png, .jpg, .jpeg, .tif or .tiff")
+    check_writable(out)
+    if fmt == "jpeg" and (max_size is None or max_size > JPEG_MAX_SIDE):
+        raise BadInput(f"JPEG images are at most {JPEG_MAX_SIDE} pixels wide: give --max-size {JPEG_MAX_SIDE} or less")
+    if transforms is not None:
+        transforms = Path(transforms)
+        if transforms.suffix.lower() != ".json":
+            raise BadInput(f"--transforms {transforms} must end in .json")
+        check_writable(transforms)
+        if transforms.resolve() == out.resolve():
+            raise BadInput("--transforms must differ from the panorama output")
+    return fmt
+
+
+def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) -> None:
+    """PNG and TIFF keep the alpha channel (transparent where nothing was seen); JPEG has
+    none, so uncovered areas are black."""
+    fmt = FORMATS[Path(out).suffix.lower()]
+    if fmt == "jpeg":
+        image, params = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGR), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
+    else:
+        image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA)
+        params = [cv2.IMWRITE_PNG_COMPRESSION, 3] if fmt == "png" else []
+    with atomic_path(out) as tmp:
+        if not cv2.imwrite(str(tmp), image, params):
+            raise ProcessingError(f"{out}: OpenCV could not write the {fmt.upper()} image")
+
+
+def write_transforms(path: str | Path, canvas_size: tuple[int, int], frames: list[tuple[int, np.ndarray]]) -> None:
+    """``{"canvas_size": [W, H], "frames": [{"index": i, "H": 3x3}, ...]}``: each used frame's
+    homography, frame pixels (full resolution) -> panorama pixels."""
+    write_json(
+        path,
+        {
+            "canvas_size": [int(canvas_size[0]), int(canvas_size[1])],
+            "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H]} for i, H in frames],
+        },
+    )

@@ -1,0 +1,179 @@
+"""``stitch()``: a video in, a panorama out, in five stages.
+
+1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes
+2. register  link keyframes directly, close loops, refine all placements jointly (drift control)
+3. canvas    pick the reference keyframe, size the canvas (``max_size``), refuse degenerate chains
+4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending
+5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import Estimator
+from mosaic_cli.geometry import normalize, resize_matrix
+from mosaic_cli.progress import progress_task
+from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
+from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight
+from mosaic_cli.stitch.output import check_outputs, write_panorama, write_transforms
+from mosaic_cli.stitch.registration import (
+    RegistrationOptions,
+    RegistrationReport,
+    link_keyframes,
+    loop_candidates,
+    refine_placements,
+)
+from mosaic_cli.video import open_video, probe
+from mosaic_cli.video.reader import scaled_size
+
+
+@dataclass
+class StitchOptions:
+    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    canvas: CanvasOptions = field(default_factory=CanvasOptions)
+    compose: ComposeOptions = field(default_factory=ComposeOptions)
+    start: int = 0
+    max_frames: int | None = None
+
+
+@dataclass
+class StitchResult:
+    canvas_size: tuple[int, int]
+    transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per used frame
+    reference_frame: int
+    frames: int
+    keyframes: int
+    registration: RegistrationReport
+    seconds: dict[str, float]
+
+    @property
+    def frames_per_second(self) -> float:
+        return self.frames / max(sum(self.seconds.values()), 1e-9)
+
+
+def stitch(
+    video: str | Path,
+    out: str | Path,
+    estimator: Estimator,
+    options: StitchOptions | None = None,
+    transforms: str | Path | None = None,
+    show_progress: bool = True,
+) -> StitchResult:
+    options = options or StitchOptions()
+    reference = _check_inputs(video, out, transforms, options)
+    seconds: dict[str, float] = {}
+
+    clock = time.perf_counter()
+    scan = _scan(video, estimator, options, show_progress)
+    seconds["scan"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    indices = [k.index for k in scan.keyframes]
+    ref = choose_reference(indices, reference)
+    placements, report = _register(scan, ref, options, show_progress)
+    seconds["register"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    used = [k for k in range(len(scan.keyframes)) if scan.keyframes[k].composited]
+    canvas = plan_canvas([placements[k] for k in used], [indices[k] for k in used], scan.source_size, options.canvas)
+    frame_to_canvas = [canvas.frame_to_canvas(placements[k]) for k in used]
+    panorama = _compose(scan, used, frame_to_canvas, canvas.size, options.compose, show_progress)
+    seconds["compose"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    write_panorama(out, panorama)
+    del panorama
+    frames = [(indices[k], H) for k, H in zip(used, frame_to_canvas)]
+    if transforms is not None:
+        write_transforms(transforms, canvas.size, frames)
+    seconds["write"] = time.perf_counter() - clock
+    return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
+
+
+def _check_inputs(video, out, transforms, options: StitchOptions) -> str | int:
+    """Every check that can fail fast, before decoding a single frame."""
+    check_outputs(out, transforms, options.canvas.max_size)
+    reference = parse_reference(options.canvas.reference)
+    options.compose.validate()
+    if options.canvas.max_size is not None and options.canvas.max_size < 64:
+        raise BadInput(f"--max-size must be at least 64 pixels, got {options.canvas.max_size}")
+    if options.start < 0:
+        raise BadInput(f"--start must be 0 or more, got {options.start}")
+    if options.max_frames is not None and options.max_frames < 2:
+        raise BadInput("--max-frames must be at least 2")
+    if options.registration.max_loop_pairs < 0:
+        raise BadInput(f"--max-loop-pairs must be 0 or more, got {options.registration.max_loop_pairs}")
+    info = probe(video)
+    if info.frame_count is not None and options.start >= info.frame_count > 0:
+        raise BadInput(f"--start {options.start} is past the end of {video} ({info.frame_count} frames)")
+    if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
+        raise BadInput(f"--reference {reference} is past the end of {video} ({info.frame_count} frames)")
+    return reference
+
+
+def _scan(video, estimator: Estimator, options: StitchOptions, show_progress: bool) -> FlightScan:
+    info = probe(video)
+    # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
+    max_size = options.canvas.max_size
+    width = None
+    if max_size and max(info.source_size) > max_size:
+        width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
+    decode_size = scaled_size(info.source_size, width)
+    with open_video(video, width=width, start=options.start) as stream:
+        total = stream.info.frame_count
+        if total is not None:
+            total = max(0, total - options.start)
+            if options.max_frames is not None:
+                total = min(total, options.max_frames)
+        scanner = FlightScanner(
+            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size
+        )
+
+        def frames():
+            for k, frame in enumerate(stream):
+                if options.max_frames is not None and k >= options.max_frames:
+                    return
+                yield frame
+
+        with progress_task(f"scan ({estimator.name})", total, disable=not show_progress) as advance:
+            return scan_flight(frames(), estimator, scanner, advance)
+
+
+def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress: bool):
+    """Keyframe -> reference placements: jointly refined, or by the chain alone when off."""
+    keyframes = scan.keyframes
+    if not keyframes:
+        raise BadInput("no frame of the video is usable (all black, blank or over-exposed)")
+    chained = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
+    report = RegistrationReport()
+    if not options.registration.enabled or len(keyframes) < 2:
+        return chained, report
+    matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features))
+    candidates = loop_candidates(keyframes, scan.source_size, options.registration)
+    total = len(keyframes) - 1 + len(candidates)
+    with progress_task("register", total, unit="pairs/s", disable=not show_progress) as advance:
+        report = link_keyframes(keyframes, matcher, options.registration, candidates, advance)
+        advance(0, status=f"{report.loops} loops; refining")
+        placements = refine_placements(chained, report, ref, scan.source_size, options.registration)
+        advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
+    return placements, report
+
+
+def _compose(scan: FlightScan, used, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
+    placed = []
+    for k, H in zip(used, frame_to_canvas):
+        image = scan.keyframes[k].image
+        to_source = np.linalg.inv(resize_matrix(scan.source_size, (image.shape[1], image.shape[0])))
+        placed.append(PlacedImage(image, normalize(H @ to_source)))
+    with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", len(placed), unit="fr/s", disable=not show_progress) as advance:
+        return compose(placed, canvas_size, options, advance)

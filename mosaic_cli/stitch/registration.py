@@ -1,0 +1,288 @@
+"""Stage 2, drift control: register keyframes directly and place them all jointly.
+
+Chaining hundreds of pairwise estimates accumulates error: a long flight bends.  Here
+consecutive keyframes are registered directly (one SIFT match instead of dozens of chained
+estimates), keyframes that see the same ground again (loops, neighbouring survey lines) are
+registered as well, and one robust least-squares problem (scipy ``least_squares``, soft-L1
+loss over the inlier correspondences) places every keyframe in the reference keyframe's
+frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
+again, so one bad match cannot bend the panorama.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import scipy.sparse
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from mosaic_cli.geometry import frame_corners, normalize, project
+from mosaic_cli.stitch.features import FeatureMatcher, PairMatch
+from mosaic_cli.stitch.keyframes import Keyframe, overlap_fraction
+
+
+@dataclass
+class RegistrationOptions:
+    enabled: bool = True  # off: keyframes are placed by the estimator's chain alone
+    max_loop_pairs: int = 300  # bounds the cost: at most this many non-consecutive registrations
+    max_loops_per_keyframe: int = 6
+    min_loop_overlap: float = 0.25  # predicted overlap (fraction of a frame) worth a try
+    min_loop_gap: int = 2  # keyframes between the two of a loop pair, at least
+    # A direct registration must agree with the chained prediction this well (fraction of the
+    # frame diagonal at the corners); loops may have drifted further than neighbours.
+    sequential_tolerance: float = 0.25
+    loop_tolerance: float = 0.5
+    points_per_pair: int = 60  # inlier correspondences kept per pair
+    chain_weight: float = 0.3  # weight of a chained (estimator-only) link against a registered one
+    loss_scale: float = 1.5  # pixels: soft-L1 turns from quadratic to linear here
+    outlier_residual: float = 5.0  # pixels: median residual above which a loop pair is dropped
+    max_evaluations: int = 200
+
+
+@dataclass
+class Link:
+    """A constraint between keyframes a and b: ``points_a[k]`` in a is ``points_b[k]`` in b."""
+
+    a: int
+    b: int
+    points_a: np.ndarray
+    points_b: np.ndarray
+    kind: str  # "sequential" (registered), "chain" (estimator only), "loop"
+    weight: float = 1.0
+    residual: float = 0.0  # median after refinement, pixels
+
+
+@dataclass
+class RegistrationReport:
+    sequential: int = 0
+    chained: int = 0
+    loop_candidates: int = 0
+    loops: int = 0
+    loops_dropped: int = 0
+    residual_before: float = 0.0
+    residual_after: float = 0.0
+    links: list[Link] = field(default_factory=list)
+
+
+def chained(keyframes: list[Keyframe], a: int, b: int) -> np.ndarray:
+    """Keyframe a -> keyframe b by the estimator's chain."""
+    return normalize(np.linalg.inv(keyframes[b].placement) @ keyframes[a].placement)
+
+
+def link_keyframes(
+    keyframes: list[Keyframe],
+    matcher: FeatureMatcher,
+    options: RegistrationOptions,
+    candidates: list[tuple[int, int]] | None = None,
+    advance: Callable[..., None] = lambda *a, **k: None,
+) -> RegistrationReport:
+    """Sequential links between neighbours, then loop links between the ``candidates``
+    (default: :func:`loop_candidates`), keyframe pairs predicted to overlap."""
+    size = matcher.source_size
+    diagonal = float(np.hypot(*size))
+    report = RegistrationReport()
+    for a in range(len(keyframes) - 1):
+        prior = chained(keyframes, a, a + 1)
+        match = matcher.match(keyframes[a].features, keyframes[a + 1].features, prior, options.sequential_tolerance * diagonal)
+        if match is not None:
+            report.links.append(_from_match(a, a + 1, match, "sequential", options))
+            report.sequential += 1
+        else:
+            report.links.append(_from_homography(a, a + 1, prior, size, "chain", options.chain_weight))
+            report.chained += 1
+        advance(1)
+    if candidates is None:
+        candidates = loop_candidates(keyframes, size, options)
+    report.loop_candidates = len(candidates)
+    for a, b in candidates:
+        prior = chained(keyframes, a, b)
+        match = matcher.match(keyframes[a].features, keyframes[b].features, prior, options.loop_tolerance * diagonal)
+        if match is not None:
+            report.links.append(_from_match(a, b, match, "loop", options))
+            report.loops += 1
+        advance(1)
+    return report
+
+
+def loop_candidates(keyframes: list[Keyframe], size: tuple[int, int], options: RegistrationOptions) -> list[tuple[int, int]]:
+    """Non-neighbouring keyframe pairs predicted to overlap, best first, within the budget."""
+    if options.max_loop_pairs <= 0 or len(keyframes) < options.min_loop_gap + 1:
+        return []
+    centre = np.array([[size[0] / 2 - 0.5, size[1] / 2 - 0.5]])
+    centres = np.array([project(k.placement, centre)[0] for k in keyframes])
+    radius = float(max(np.hypot(*(np.ptp(project(k.placement, frame_corners(*size)), axis=0))) for k in keyframes))
+    scored = []
+    for a, b in cKDTree(centres).query_pairs(radius):
+        a, b = min(a, b), max(a, b)
+        if b - a < options.min_loop_gap:
+            continue
+        overlap = overlap_fraction(chained(keyframes, a, b), size)
+        if overlap >= options.min_loop_overlap:
+            scored.append((overlap, a, b))
+    # Most overlap first: those registrations are the most reliable; spread over keyframes.
+    scored.sort(key=lambda s: (-s[0], s[1], s[2]))
+    count = np.zeros(len(keyframes), int)
+    chosen = []
+    for _, a, b in scored:
+        if count[a] >= options.max_loops_per_keyframe or count[b] >= options.max_loops_per_keyframe:
+            continue
+        chosen.append((a, b))
+        count[a] += 1
+        count[b] += 1
+        if len(chosen) >= options.max_loop_pairs:
+            break
+    return chosen
+
+
+def _from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
+    n = match.inliers
+    if n > options.points_per_pair:
+        pick = np.random.default_rng(a * 100003 + b).choice(n, options.points_per_pair, replace=False)
+        return Link(a, b, match.points_a[pick], match.points_b[pick], kind)
+    return Link(a, b, match.points_a, match.points_b, kind)
+
+
+def _from_homography(a: int, b: int, H: np.ndarray, size: tuple[int, int], kind: str, weight: float) -> Link:
+    """A link known only as a homography: a 3x3 grid over frame a and its image in b."""
+    xs = np.linspace(0, size[0] - 1, 3)
+    ys = np.linspace(0, size[1] - 1, 3)
+    grid = np.array([(x, y) for y in ys for x in xs], dtype=np.float64)
+    return Link(a, b, grid, project(H, grid), kind, weight)
+
+
+# -- joint refinement ---------------------------------------------------------------------
+
+
+class _Problem:
+    """Each non-reference keyframe k is placed by G_k = G0_k N^-1 (I + D_k) N, where G0_k is
+    its initial placement, N normalises its pixels to about [-1, 1] and D_k (8 numbers, the
+    last entry fixed at 0) is the unknown: well scaled, and 0 at the start."""
+
+    def __init__(self, initial: list[np.ndarray], links: list[Link], reference: int, size: tuple[int, int]):
+        self.K = len(initial)
+        self.reference = reference
+        f = max(size) / 2.0
+        self.N = np.array([[1 / f, 0, -(size[0] / 2 - 0.5) / f], [0, 1 / f, -(size[1] / 2 - 0.5) / f], [0, 0, 1.0]])
+        self.M = np.array([G @ np.linalg.inv(self.N) for G in initial])
+        self.column = np.full(self.K, -1)
+        free = [k for k in range(self.K) if k != reference]
+        self.column[free] = np.arange(len(free)) * 8
+        self.n_params = 8 * len(free)
+        self.set_links(links)
+
+    def set_links(self, links: list[Link]) -> None:
+        self.links = links
+        counts = [len(l.points_a) for l in links]
+        self.owner = np.repeat(np.arange(len(links)), counts)
+        self.ia = np.repeat([l.a for l in links], counts)
+        self.ib = np.repeat([l.b for l in links], counts)
+        self.sqrt_w = np.sqrt(np.repeat([l.weight for l in links], counts))
+        self.pa = self._normalised(np.concatenate([l.points_a for l in links]))
+        self.pb = self._normalised(np.concatenate([l.points_b for l in links]))
+        n = len(self.ia)
+        rows = np.arange(2 * n).reshape(n, 2)
+        # Each residual row depends on the 8 parameters of a and of b (when not the reference).
+        self._jac_rows, self._jac_cols, self._jac_keep = [], [], []
+        for idx in (self.ia, self.ib):
+            col = self.column[idx]
+            keep = np.repeat(col >= 0, 16)
+            r = np.repeat(rows, 8, axis=1)  # (n, 16): row 2i for 8 params, then 2i+1
+            c = np.tile(col[:, None] + np.arange(8)[None, :], (1, 2))
+            self._jac_rows.append(r.ravel())
+            self._jac_cols.append(c.ravel())
+            self._jac_keep.append(keep)
+
+    def _normalised(self, points: np.ndarray) -> np.ndarray:
+        return np.concatenate([points, np.ones((len(points), 1))], axis=1) @ self.N.T
+
+    def _D(self, x: np.ndarray) -> np.ndarray:
+        D = np.zeros((self.K, 9))
+        free = self.column >= 0
+        D[free, :8] = x.reshape(-1, 8)
+        return D.reshape(self.K, 3, 3)
+
+    def placements(self, x: np.ndarray) -> np.ndarray:
+        G = self.M @ (np.eye(3) + self._D(x)) @ self.N
+        return G / G[:, 2:3, 2:3]
+
+    def _side(self, x: np.ndarray, idx: np.ndarray, p: np.ndarray):
+        A = self.M @ (np.eye(3) + self._D(x))  # (K, 3, 3)
+        u = np.einsum("nij,nj->ni", A[idx], p)
+        xy = u[:, :2] / u[:, 2:3]
+        return xy, u[:, 2], self.M[idx]
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        xa, _, _ = self._side(x, self.ia, self.pa)
+        xb, _, _ = self._side(x, self.ib, self.pb)
+        return ((xa - xb) * self.sqrt_w[:, None]).ravel()
+
+    def jacobian(self, x: np.ndarray) -> scipy.sparse.csr_matrix:
+        values = []
+        for sign, idx, p in ((1.0, self.ia, self.pa), (-1.0, self.ib, self.pb)):
+            xy, w, M = self._side(x, idx, p)
+            # d(xy)/d(A[r, c]) for A = M (I + D): d u / d D[r, c] = M[:, r] p[c].
+            J_u = np.stack([M[:, 0, :] - xy[:, :1] * M[:, 2, :], M[:, 1, :] - xy[:, 1:] * M[:, 2, :]], axis=1) / w[:, None, None]
+            J = np.einsum("nkr,nc->nkrc", J_u, p).reshape(len(idx), 2, 9)[:, :, :8]
+            values.append((sign * self.sqrt_w[:, None, None] * J).reshape(len(idx), 16).ravel())
+        keep = np.concatenate(self._jac_keep)
+        data = np.concatenate(values)[keep]
+        rows = np.concatenate(self._jac_rows)[keep]
+        cols = np.concatenate(self._jac_cols)[keep]
+        return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(2 * len(self.ia), self.n_params))
+
+    def link_residuals(self, x: np.ndarray) -> np.ndarray:
+        """Median distance (pixels, unweighted) per link."""
+        xa, _, _ = self._side(x, self.ia, self.pa)
+        xb, _, _ = self._side(x, self.ib, self.pb)
+        d = np.linalg.norm(xa - xb, axis=1)
+        return np.array([np.median(d[self.owner == k]) for k in range(len(self.links))])
+
+
+def refine_placements(
+    initial: list[np.ndarray],
+    report: RegistrationReport,
+    reference: int,
+    size: tuple[int, int],
+    options: RegistrationOptions,
+) -> list[np.ndarray]:
+    """Keyframe -> reference placements that agree best with all links (robustly)."""
+    if len(initial) < 2 or not report.links:
+        return initial
+    links = list(report.links)
+    problem = _Problem(initial, links, reference, size)
+    x = np.zeros(problem.n_params)
+    report.residual_before = float(np.median(problem.link_residuals(x)))
+    for _ in range(3):
+        x = _solve(problem, x, options)
+        residual = problem.link_residuals(x)
+        bad = [l for l, r in zip(links, residual) if l.kind == "loop" and r > options.outlier_residual]
+        if not bad:
+            break
+        report.loops_dropped += len(bad)
+        links = [l for l in links if not (l.kind == "loop" and any(l is b for b in bad))]
+        problem.set_links(links)
+    for link, r in zip(links, problem.link_residuals(x)):
+        link.residual = float(r)
+    report.links = links
+    report.residual_after = float(np.median([l.residual for l in links]))
+    return list(problem.placements(x))
+
+
+def _solve(problem: _Problem, x0: np.ndarray, options: RegistrationOptions) -> np.ndarray:
+    result = least_squares(
+        problem.residuals,
+        x0,
+        jac=problem.jacobian,
+        method="trf",
+        loss="soft_l1",
+        f_scale=options.loss_scale,
+        x_scale="jac",
+        tr_solver="lsmr",
+        max_nfev=options.max_evaluations,
+        xtol=1e-10,
+        ftol=1e-8,
+    )
+    return result.x
