@@ -1,0 +1,244 @@
+"""The learned estimator: streaming inference equals one plain forward pass, the patch
+homography reaches full resolution exactly, consensus, confidence, failures, and ``mosaic track
+--weights`` end to end.  Trained weights are not needed: a random net checks the plumbing
+exactly, and a phase-correlation "net" (OpenCV, independent of mosaic) checks the geometry."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from conftest import textured_image, write_clip
+from mosaic_cli.cli import main
+from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import estimate_stream, make_estimator
+from mosaic_cli.estimators import learned
+from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, default_weights, make_learned_estimator
+from mosaic_cli.geometry import four_point_to_homography, rect_corners, to_resolution
+from mosaic_cli.model import HomographyNet, NetConfig, save_weights
+
+FULL, WORK = (640, 360), (320, 180)
+STEP_FULL = (6, -4)  # content moves by this many full-resolution pixels per frame
+
+
+@pytest.fixture(scope="module")
+def panning():
+    """Eight 640x360 RGB frames: frame t+1 shows at x + STEP_FULL what frame t shows at x."""
+    tex = textured_image(760, 480, seed=11)
+    return [tex[60 - STEP_FULL[1] * t : 60 - STEP_FULL[1] * t + FULL[1], 60 - STEP_FULL[0] * t : 60 - STEP_FULL[0] * t + FULL[0]] for t in range(8)]
+
+
+def checkpoint(tmp_path, head="lstm", seed=0):
+    torch.manual_seed(seed)
+    model = HomographyNet(NetConfig(head=head))
+    path = tmp_path / f"{head}.safetensors"
+    save_weights(path, model, model.config, "lstm-reg-all" if head == "lstm" else "reg-all")
+    return path, model.eval()
+
+
+def run(estimator, frames, size=FULL):
+    estimates = list(estimate_stream(estimator, frames, size))
+    return np.array([e.H for e in estimates]), np.array([e.confidence for e in estimates])
+
+
+class PhaseNet(nn.Module):
+    """Stands in for a trained net: the offsets are the patch pair's shift by phase correlation."""
+
+    def __init__(self, bias=None):
+        super().__init__()
+        self.config = SimpleNamespace(patch=128, head="cnn")
+        self.head = "cnn"
+        self.bias = bias  # optional per-call offset added to the k-th patch: a deliberately wrong one
+        self.dummy = nn.Parameter(torch.zeros(1))
+
+    def features(self, pairs):
+        window = cv2.createHanningWindow((128, 128), cv2.CV_64F)
+        shifts = [cv2.phaseCorrelate(p[0].double().numpy(), p[1].double().numpy(), window)[0] for p in pairs]
+        return torch.tensor(shifts, dtype=torch.float32)
+
+    def step(self, features, state=None):
+        offsets = features[..., None, :].expand(*features.shape[:-1], 4, 2).clone()
+        if self.bias is not None:
+            offsets = offsets + self.bias(offsets)
+        return offsets, None
+
+
+def phase_estimator(**kw):
+    return LearnedEstimator(PhaseNet(kw.pop("bias", None)), {"variant": "phase", "work_size": WORK}, "cpu", LearnedConfig(**kw))
+
+
+# --- streaming inference is exact ------------------------------------------------------
+
+
+def reference_lstm(model, frames):
+    """The paper's test-time procedure written out plainly: centre 128 patch of the 320x180 gray
+    frame, one LSTM pass over the whole video, DLT (numpy), full resolution."""
+    gray = [cv2.resize(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), WORK, interpolation=cv2.INTER_AREA) for f in frames]
+    patches = [torch.tensor(g[26:154, 96:224], dtype=torch.float32) * (2 / 255) - 1 for g in gray]
+    pairs = torch.stack([torch.stack([a, b]) for a, b in zip(patches[:-1], patches[1:])])[None]
+    with torch.no_grad():
+        offsets, _ = model(pairs)
+    corners = rect_corners(95.5, 25.5, 128, 128)
+    H_work = four_point_to_homography(corners, offsets[0].double().numpy())
+    return to_resolution(H_work, WORK, FULL)
+
+
+@pytest.mark.parametrize("chunk", [1, 3, 16])
+def test_streaming_equals_one_pass_over_the_video(tmp_path, panning, chunk):
+    path, model = checkpoint(tmp_path)
+    estimator = make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(chunk=chunk))
+    assert estimator.name == "lstm-reg-all" and estimator.input_width == 320
+    H, conf = run(estimator, panning)
+    assert H.shape == (7, 3, 3) and np.all((conf >= 0) & (conf <= 1))
+    np.testing.assert_allclose(H, reference_lstm(model, panning), rtol=1e-4, atol=1e-4)
+    # a second video starts from a fresh state: same result again
+    H2, _ = run(estimator, panning)
+    np.testing.assert_allclose(H2, H, rtol=1e-6, atol=1e-6)
+
+
+def test_reset_every_restarts_the_lstm(tmp_path, panning):
+    path, model = checkpoint(tmp_path)
+    estimator = make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(chunk=5, reset_every=3))
+    H, _ = run(estimator, panning)
+    segments = [reference_lstm(model, panning[s : s + 4]) for s in (0, 3)] + [reference_lstm(model, panning[6:8])]
+    np.testing.assert_allclose(H, np.concatenate(segments), rtol=1e-4, atol=1e-4)
+    carried, _ = run(make_learned_estimator("lstm", weights=path, device="cpu"), panning)
+    assert not np.allclose(carried[3:], H[3:], atol=1e-7)
+
+
+# --- geometry, consensus, confidence, failures -------------------------------------------
+
+
+def translation(dx, dy):
+    return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
+
+
+@pytest.mark.parametrize("patches", [1, 5, 9])
+def test_patch_homography_reaches_full_resolution_exactly(panning, patches):
+    H, conf = run(phase_estimator(patches=patches, chunk=4), panning)
+    truth = translation(*STEP_FULL)
+    # the direction is frame t -> t+1, in full-resolution pixels
+    assert np.abs(H - truth).max() < 0.3, H[0]
+    assert conf.min() > 0.6
+
+
+def test_consensus_ignores_one_wrong_patch(panning):
+    def one_wrong(offsets):  # the second patch (top-left corner) is off by 15 px
+        wrong = torch.zeros_like(offsets)
+        wrong[1] = 15.0
+        return wrong
+
+    H, conf = run(phase_estimator(patches=5, bias=one_wrong), panning)
+    assert np.abs(H - translation(*STEP_FULL)).max() < 0.3
+    assert conf.min() > 0.6
+
+
+def test_confidence_tells_registered_from_not(panning):
+    _, good = run(phase_estimator(), panning)
+    _, none = run(phase_estimator(bias=lambda o: -o), panning)  # predicts no motion at all
+    assert good.min() > 0.6 and none.max() < 0.2
+    _, split = run(phase_estimator(patches=5, bias=lambda o: torch.randn_like(o) * 8), panning)
+    assert split.max() < 0.5  # patches that disagree lower the confidence
+
+
+@pytest.mark.parametrize("bad", [float("nan"), 300.0])
+def test_invalid_estimates_become_identity_with_zero_confidence(panning, bad):
+    def broken(offsets):
+        out = torch.zeros_like(offsets)
+        out[..., 0, :] = bad  # NaN, or the TL corner thrown across the frame (a folded quad)
+        return out
+
+    H, conf = run(phase_estimator(bias=broken), panning)
+    assert np.all(np.isfinite(H))
+    np.testing.assert_array_equal(H, np.broadcast_to(np.eye(3), H.shape))
+    assert np.all(conf == 0)
+
+
+def test_frames_smaller_than_the_patch_are_refused():
+    estimator = phase_estimator()
+    with pytest.raises(BadInput, match="smaller than"):
+        estimator.reset((1000, 300))  # 320x96 at the working width
+
+
+# --- selection, shipped weights, the command line ----------------------------------------
+
+
+def test_weights_select_the_estimator(tmp_path):
+    path, _ = checkpoint(tmp_path, head="cnn")
+    estimator = make_estimator("orb", weights=str(path), device="cpu")  # --weights wins over the default name
+    assert isinstance(estimator, LearnedEstimator) and estimator.model.head == "cnn" and estimator.name == "reg-all"
+    with pytest.raises(BadInput, match="holds a cnn"):
+        make_learned_estimator("lstm", weights=path)
+    with pytest.raises(BadInput, match="--device"):
+        make_learned_estimator("cnn", weights=path, device="tpu")
+    with pytest.raises(BadInput, match="patches"):
+        make_learned_estimator("cnn", weights=path, config=LearnedConfig(patches=4))
+
+
+def test_default_weights(tmp_path, monkeypatch):
+    monkeypatch.setattr(learned, "REPO_MODELS", tmp_path)
+    monkeypatch.setattr(learned.importlib.resources, "files", lambda package: tmp_path / "absent")
+    monkeypatch.setattr(learned, "Path", _only_under(tmp_path))
+    with pytest.raises(BadInput, match="no shipped weights for 'lstm' yet: pass --weights FILE"):
+        default_weights("lstm")
+    shipped, _ = checkpoint(tmp_path, head="lstm")
+    assert default_weights("lstm") == shipped
+    assert make_estimator("lstm", device="cpu").model.head == "lstm"
+
+
+def _only_under(root):
+    """A Path that pretends no file exists outside ``root`` (so installed weights do not leak in)."""
+    from pathlib import Path
+
+    class Confined(type(Path())):
+        def is_file(self):
+            return str(self).startswith(str(root)) and super().is_file()
+
+    return Confined
+
+
+def test_track_cli_with_weights(tmp_path, panning):
+    path, model = checkpoint(tmp_path)
+    clip = write_clip(tmp_path / "pan.mp4", panning, fps=10)
+    out = tmp_path / "track.json"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["track", str(clip), "-o", str(out), "--weights", str(path), "--device", "cpu", "-q"])
+    assert exit_info.value.code in (0, None)
+    data = json.loads(out.read_text())
+    assert data["estimator"] == "lstm-reg-all" and data["frames"] == 8 and data["direction"] == "t_to_t+1"
+    pairwise = np.array(data["pairwise"])
+    assert pairwise.shape == (7, 3, 3) and np.all(np.isfinite(pairwise))
+    # the same numbers as the estimator on the decoded frames
+    from mosaic_cli.video import open_video
+
+    with open_video(clip, width=320, gray=True) as stream:
+        frames = list(stream)
+    direct, _ = run(make_learned_estimator("lstm", weights=path, device="cpu"), frames, FULL)
+    np.testing.assert_allclose(pairwise, direct, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--weights", "{tmp}/missing.safetensors"], "no such weights file"),
+        (["--weights", "{clip}"], "not a safetensors checkpoint"),
+        (["--weights", "{ckpt}", "--device", "tpu"], "--device"),
+    ],
+)
+def test_track_cli_refuses_bad_weights(tmp_path, panning, capsys, args, message):
+    path, _ = checkpoint(tmp_path)
+    clip = write_clip(tmp_path / "pan.mp4", panning[:3], fps=10)
+    out = tmp_path / "track.json"
+    args = [a.format(tmp=tmp_path, clip=clip, ckpt=path) for a in args]
+    with pytest.raises(SystemExit) as exit_info:
+        main(["track", str(clip), "-o", str(out), *args, "-q"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
