@@ -264,7 +264,7 @@ def test_load_map_variants(tmp_path):
     cv2.imwrite(str(tmp_path / "ortho.png"), rgba)
     m = load_map(tmp_path / "ortho.png")
     assert 150 <= m.shape[0] <= 200 and 200 <= m.shape[1] <= 250
-    gray16 = (np.arange(100 * 100).reshape(100, 100) * 6).astype(np.uint16)
+    gray16 = (2000 + np.arange(100 * 100).reshape(100, 100) * 5).astype(np.uint16)
     cv2.imwrite(str(tmp_path / "g16.png"), gray16)
     assert load_map(tmp_path / "g16.png").shape == (100, 100, 3)
     (tmp_path / "junk.png").write_bytes(b"not an image")
@@ -315,3 +315,15 @@ def test_simulate_command_bad_map(tmp_path, capsys):
         main(["simulate", str(tiny), "-o", str(tmp_path / "f.mp4"), "-q"])
     assert exc.value.code == 2 and "too small" in capsys.readouterr().err
     assert not (tmp_path / "f.mp4").exists()
+
+
+def test_load_map_crops_opaque_white_fill(tmp_path):
+    # Orthomosaic previews often mark "no data" with opaque white, not transparency.
+    img = np.full((300, 400, 4), 255, np.uint8)
+    inner = procedural_map((240, 180), seed=3)
+    img[60:240, 100:340, :3] = cv2.cvtColor(inner, cv2.COLOR_RGB2BGR)
+    img[100:110, 200:210, :3] = 255  # a small white roof inside is real data
+    cv2.imwrite(str(tmp_path / "ortho.png"), img)
+    m = load_map(tmp_path / "ortho.png")
+    assert 170 <= m.shape[0] <= 180 and 225 <= m.shape[1] <= 240
+    assert not (m >= 250).all(axis=2).all(axis=0).any()  # no all-white column left

@@ -70,7 +70,11 @@ def procedural_map(size: tuple[int, int] = (4096, 4096), seed: int = 0) -> np.nd
     xx += warp * _noise(rng, (qh, qw), 40)
     yy += warp * _noise(rng, (qh, qw), 40)
     _, labels_q = cKDTree(seeds).query(np.stack([xx.ravel(), yy.ravel()], axis=1), workers=-1)
-    labels = cv2.resize(labels_q.reshape(qh, qw).astype(np.int32).astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST).astype(np.int32)
+    labels16 = cv2.resize(labels_q.reshape(qh, qw).astype(np.uint16), (W, H), interpolation=cv2.INTER_NEAREST)
+    for _ in range(2):  # round off the staircase of the upscaled cell borders
+        labels16 = cv2.medianBlur(labels16, 5)
+    labels = labels16.astype(np.int32)
+    del labels16
 
     base = _FIELD_COLOURS[rng.integers(0, len(_FIELD_COLOURS), n_fields)]
     base = base * rng.uniform(0.85, 1.15, size=(n_fields, 1)).astype(np.float32)
@@ -79,14 +83,20 @@ def procedural_map(size: tuple[int, int] = (4096, 4096), seed: int = 0) -> np.nd
     row_amp = np.where(rng.random(n_fields) < 0.55, rng.uniform(6, 18, n_fields), 0.0).astype(np.float32)
     tex_amp = rng.uniform(3, 14, n_fields).astype(np.float32)  # some fields are nearly flat
 
-    Y, X = np.mgrid[0:H, 0:W].astype(np.float32)
-    phase = (X * np.cos(theta)[labels] + Y * np.sin(theta)[labels]) / period[labels]
-    rows = np.sin(2 * np.pi * phase, dtype=np.float32) * row_amp[labels]
-    del X, Y, phase
-    img = base[labels].copy()
-    detail = _fractal(rng, (H, W), (48, 12, 4), 0.7) * tex_amp[labels]
-    img += (rows + detail)[..., None]
-    del rows, detail
+    xs = np.arange(W, dtype=np.float32)[None, :]
+    ys = np.arange(H, dtype=np.float32)[:, None]
+    k = (2 * np.pi / period).astype(np.float32)
+    rows = xs * (np.cos(theta) * k)[labels]
+    rows += ys * (np.sin(theta) * k)[labels]
+    np.sin(rows, out=rows)
+    rows *= row_amp[labels]
+    detail = _fractal(rng, (H, W), (48, 12, 4), 0.7)
+    detail *= tex_amp[labels]
+    rows += detail
+    del detail
+    img = base[labels]
+    img += rows[..., None]
+    del rows
     # field borders: thin darker hedges
     edges = cv2.morphologyEx(labels.astype(np.float32), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
     img[edges] *= 0.8
@@ -197,12 +207,33 @@ def _largest_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
     return best
 
 
-def valid_rectangle(alpha: np.ndarray, threshold: int = 250, max_side: int = 400) -> tuple[int, int, int, int]:
-    """The largest rectangle (x, y, w, h) in which ``alpha`` is opaque (>= threshold).
+def nodata_mask(rgb_or_bgr: np.ndarray, alpha: np.ndarray | None = None, alpha_threshold: int = 250, min_hole: int = 200) -> np.ndarray:
+    """True where an orthophoto holds no data: transparent pixels, and the flat white or black
+    fill that many orthomosaics carry outside their footprint (even when fully opaque):
+    white regions touching the border or larger than ``min_hole`` pixels, black regions
+    touching the border (border regions smaller than 0.05 % of the image are kept)."""
+    h, w = rgb_or_bgr.shape[:2]
+    invalid = np.zeros((h, w), bool) if alpha is None else alpha < alpha_threshold
+    colour = rgb_or_bgr[..., :3]
+    for fill, is_white in (((colour >= 250).all(axis=2)), True), (((colour <= 2).all(axis=2)), False):
+        if not fill.any():
+            continue
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(fill.astype(np.uint8), connectivity=8)
+        x, y, bw, bh, area = (stats[:, k] for k in range(5))
+        touches = ((x == 0) | (y == 0) | (x + bw == w) | (y + bh == h)) & (area >= max(16, h * w // 2000))
+        bad = touches | ((area >= min_hole) if is_white else np.zeros_like(touches))
+        bad[0] = False  # background of the component labelling
+        if bad.any():
+            invalid |= bad[labels]
+    return invalid
 
-    Searched on a conservative downscale (a coarse cell counts only when all of it is opaque)."""
-    H, W = alpha.shape
-    valid = (alpha >= threshold).astype(np.uint8)
+
+def valid_rectangle(valid: np.ndarray, max_side: int = 400) -> tuple[int, int, int, int]:
+    """The largest axis-aligned rectangle (x, y, w, h) inside the True pixels of ``valid``.
+
+    Searched on a conservative downscale (a coarse cell counts only when all of it is valid)."""
+    H, W = valid.shape
+    valid = valid.astype(np.uint8)
     if valid.all():
         return (0, 0, W, H)
     factor = max(1, int(np.ceil(max(H, W) / max_side)))
@@ -218,8 +249,9 @@ def valid_rectangle(alpha: np.ndarray, threshold: int = 250, max_side: int = 400
 def load_map(path: str | Path | None, seed: int = 0) -> np.ndarray:
     """An RGB uint8 map: the procedural one for ``None``, else the image at ``path``.
 
-    RGBA images (orthomosaics with a transparent outside) are cropped to their largest fully
-    opaque rectangle; 16-bit images are scaled to 8 bits; gray ones become RGB."""
+    Orthomosaics are cropped to their largest valid rectangle: opaque (alpha >= 250) and not
+    the flat white or black fill outside the footprint (see :func:`nodata_mask`); 16-bit
+    images are scaled to 8 bits; gray ones become RGB."""
     if path is None:
         return procedural_map(seed=seed)
     p = Path(path)
@@ -235,14 +267,13 @@ def load_map(path: str | Path | None, seed: int = 0) -> np.ndarray:
     elif img.dtype != np.uint8:
         img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
     if img.ndim == 2:
-        rgb = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-    elif img.shape[2] == 4:
-        x, y, w, h = valid_rectangle(img[:, :, 3])
-        if w < MIN_MAP_SIDE or h < MIN_MAP_SIDE:
-            raise BadInput(f"{p}: the opaque part of the image is too small to fly over ({w}x{h} px)")
-        rgb = cv2.cvtColor(img[y : y + h, x : x + w, :3], cv2.COLOR_BGR2RGB)
-    else:
-        rgb = cv2.cvtColor(img[:, :, :3], cv2.COLOR_BGR2RGB)
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    alpha = img[:, :, 3] if img.shape[2] == 4 else None
+    invalid = nodata_mask(img, alpha)
+    x, y, w, h = valid_rectangle(~invalid)
+    if w < MIN_MAP_SIDE or h < MIN_MAP_SIDE:
+        raise BadInput(f"{p}: the valid (opaque, non-fill) part of the image is too small to fly over ({w}x{h} px)")
+    rgb = cv2.cvtColor(img[y : y + h, x : x + w, :3], cv2.COLOR_BGR2RGB)
     if rgb.shape[0] < MIN_MAP_SIDE or rgb.shape[1] < MIN_MAP_SIDE:
         raise BadInput(f"{p}: map of {rgb.shape[1]}x{rgb.shape[0]} px is too small (at least {MIN_MAP_SIDE}x{MIN_MAP_SIDE})")
     return np.ascontiguousarray(rgb)

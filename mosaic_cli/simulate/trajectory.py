@@ -25,6 +25,8 @@ from mosaic_cli.geometry import frame_corners, normalize, project
 REFERENCE_WIDTH = 1280.0
 MIN_GROUND_SAMPLE = 1.0 / 8.0  # at most 8x upsampling of the map
 FOOTPRINT_FRACTION = 0.6  # the footprint's bounding circle spans this much of the map's shorter side
+SMALL_MAP_FRACTION = 0.8  # ... up to this much on small maps, to upsample them less
+SMALL_MAP_SAMPLE = 0.25  # "small": flying at FOOTPRINT_FRACTION would upsample more than 4x
 
 
 @dataclass(frozen=True)
@@ -243,8 +245,10 @@ def plan_flight(
     max_tilt = tilt0 + 2 * sway
     radius_per_s = (half_diag * (1 + np.tan(max_tilt) * half_diag / focal) + focal * np.tan(max_tilt)) * (1 + prof.altitude_drift)
     s0 = FOOTPRINT_FRACTION * min(W, H) / 2 / radius_per_s
+    if s0 < SMALL_MAP_SAMPLE:  # a small map: fly lower over more of it rather than blow it up
+        s0 = min(SMALL_MAP_SAMPLE, SMALL_MAP_FRACTION * min(W, H) / 2 / radius_per_s)
     if s0 < MIN_GROUND_SAMPLE:
-        need = int(np.ceil(2 * radius_per_s * MIN_GROUND_SAMPLE / FOOTPRINT_FRACTION))
+        need = int(np.ceil(2 * radius_per_s * MIN_GROUND_SAMPLE / SMALL_MAP_FRACTION))
         raise BadInput(f"map of {W}x{H} px is too small for {w}x{h} frames: its shorter side needs at least {need} px")
     s = s0 * altitude
     margin = radius_per_s * s0 + 2.0
