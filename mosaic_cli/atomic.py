@@ -28,6 +28,14 @@ def check_writable(path: str | os.PathLike) -> Path:
     return target
 
 
+def give_default_permissions(path: str | os.PathLike) -> None:
+    """mkstemp makes files readable by their owner only; give the mode a plain ``open`` would
+    (0666 less the umask), so outputs are as shareable as any other file the user writes."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path with the target's suffix; rename it onto ``path`` on success.
@@ -40,6 +48,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        give_default_permissions(tmp)
         os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -59,6 +59,15 @@ def test_track_npy_and_max_frames(tmp_path, hd_flight, hd_clip):
     errors = corner_error(pairwise, hd_flight.pairwise[:5], FULL)
     assert errors.max() < 1.0, errors
     assert sorted(p.name for p in tmp_path.iterdir()) == ["track.npy"]
+    assert out.stat().st_mode & 0o777 == 0o666 & ~current_umask()  # not mkstemp's 0600
+
+
+def current_umask() -> int:
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def test_identity_estimator_and_load_track(tmp_path, hd_clip):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import cv2
 import numpy as np
 import pytest
@@ -177,6 +179,9 @@ def test_writer_odd_size_round_trip(tmp_path):
     assert np.abs(frames[2][:, 97].astype(int) - frames[2][:, 96]).mean() < 4
     assert_same_sequence([f[:61, :97] for f in frames], source, 6.0)
     assert [p.name for p in tmp_path.iterdir()] == ["odd.mp4"]
+    mask = os.umask(0)
+    os.umask(mask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~mask  # not mkstemp's 0600
 
 
 def test_writer_crf_changes_quality(tmp_path):

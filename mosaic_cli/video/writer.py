@@ -12,7 +12,7 @@ from pathlib import Path
 import imageio_ffmpeg
 import numpy as np
 
-from mosaic_cli.atomic import check_writable
+from mosaic_cli.atomic import check_writable, give_default_permissions
 from mosaic_cli.errors import BadInput, ProcessingError
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
@@ -115,6 +115,7 @@ class VideoWriter:
         if self.frames_written == 0:
             self.abort()
             raise ProcessingError(f"{self.path}: no frames to write")
+        give_default_permissions(self._tmp)
         os.replace(self._tmp, self.path)
         return self.path
 
