@@ -25,9 +25,12 @@ def bench(
     json_out: Path | None = typer.Option(None, "--json", help="Write the full report as JSON."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (use with --json)."),
 ) -> None:
-    """Per estimator: decode / preprocess / estimate latency (p50, p95 ms per frame), frames per
-    second and accuracy (MACE, corner error, failure rate) on a simulated flight; GPU batch
-    throughput when a GPU is present.  With --video: latency only."""
+    """Time and score the estimators on a simulated flight (or a video).
+
+    Per estimator: decode / preprocess / estimate latency (p50, p95 ms per frame), frames per
+    second and accuracy (MACE, corner error, failure rate, 1280x720-equivalent px); GPU batch
+    throughput when a GPU is present.  With --video: latency only (scored too when the video
+    has a <stem>.gt.json beside it)."""
     from rich.console import Console
 
     from mosaic_cli.atomic import check_writable, write_json

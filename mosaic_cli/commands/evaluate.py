@@ -21,7 +21,9 @@ def evaluate_command(
     json_out: Path | None = typer.Option(None, "--json", help="Also write the metrics to this JSON file."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing (use with --json)."),
 ) -> None:
-    """MACE by the paper's protocol (landmarks every 30 frames, chained estimates), corner error
+    """Score pairwise homographies against ground truth or landmark annotations.
+
+    MACE by the paper's protocol (landmarks every 30 frames, chained estimates), corner error
     and failure rate (corner error > 10 px), all in 1280x720-equivalent pixels."""
     from rich.table import Table
 
