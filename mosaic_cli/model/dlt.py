@@ -52,6 +52,8 @@ def offsets_to_homography(offsets: Tensor, positions: Tensor, patch: int) -> Ten
     ``offsets`` (..., 4, 2): displacement of the patch corners (TL, TR, BR, BL) from frame t to t+1;
     ``positions`` (..., 2): top-left pixel (x, y) of the patch in frame t (broadcast against offsets).
     """
+    if offsets.dtype in (torch.float16, torch.bfloat16):
+        offsets = offsets.float()  # half precision cannot even hold the corners (223.5) exactly
     corners = patch_corners(positions, patch).to(offsets.dtype)
     return dlt(corners, corners + offsets)
 

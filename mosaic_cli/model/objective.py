@@ -118,10 +118,9 @@ class Objective:
     def __call__(self, model: HomographyNet, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         frames, positions = batch["frames"], batch["positions"].long()
         B, K, _, h, w = frames.shape
-        P = self.patch
         crops = self.cut_patches(frames, positions)  # (B, K, M, 1, P, P)
         pairs = torch.cat([crops[:, :-1], crops[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
-        H = self.homographies(model, pairs, positions, P)  # (B, M, T, 3, 3)
+        H, H_children = self.predict(model, pairs, positions)
         corners = frame_corners_tensor(w, h, device=frames.device)
 
         out: dict[str, Tensor] = {}
@@ -129,12 +128,11 @@ class Objective:
         if "spatial" in self.terms:
             out["spatial"] = losses.spatial_consistency(H, corners)
         if "scale" in self.terms:
-            H_children = self.child_homographies(model, pairs, positions)
             out["scale"] = losses.scale_consistency(H, H_children, corners)
         if "temporal1" in self.terms:
             out["temporal1"] = losses.temporal_smoothness(H, corners)
         if "temporal2" in self.terms:
-            out["temporal2"] = losses.chain_consistency(frames, H, positions, P, self.photometric_norm)
+            out["temporal2"] = losses.chain_consistency(frames, H, positions, self.patch, self.photometric_norm)
         out["total"] = sum(self.weights[name] * value for name, value in out.items())
         return out
 
@@ -146,15 +144,40 @@ class Objective:
         pos = positions[:, None].expand(B, K, *positions.shape[1:]).flatten(0, 1)
         return crop(frames.flatten(0, 1), pos, self.patch).unflatten(0, (B, K))
 
-    @staticmethod
-    def homographies(model: HomographyNet, pairs: Tensor, positions: Tensor, patch: int, scale: float = 1.0) -> Tensor:
-        """Run the net on patch pairs (B, M, T, 2, p, p) cut at ``positions`` (B, M, 2) with side
-        ``patch`` in the frame (p = patch * scale: a resized patch's offsets are divided by
-        ``scale``) -> homographies (B, M, T, 3, 3), frame t -> t+1.  Each (b, m) is one sequence."""
+    def predict(self, model: HomographyNet, pairs: Tensor, positions: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Homographies frame t -> t+1 of the patch pairs (B, M, T, 2, P, P) cut at ``positions``
+        (B, M, 2): (B, M, T, 3, 3), and with R_s those of their quadrants (B, M, T, 4, 3, 3), else
+        None.  One forward pass for all (one DDP-friendly call, one big batch); every (b, m) and
+        every quadrant is its own sequence, so the LSTM starts from zeros in each window."""
         B, M, T = pairs.shape[:3]
-        offsets, _ = model(pairs.flatten(0, 1))  # LSTM: zero state per sequence
-        offsets = offsets.unflatten(0, (B, M)) / scale
-        return offsets_to_homography(offsets, positions[:, :, None, :], patch)
+        inputs = [pairs.flatten(0, 1)]
+        if "scale" in self.terms:
+            children, child_positions = self.child_pairs(pairs, positions)
+            inputs.append(children.flatten(0, 1))
+        offsets, _ = model(torch.cat(inputs) if len(inputs) > 1 else inputs[0])
+        H = offsets_to_homography(offsets[: B * M].unflatten(0, (B, M)), positions[:, :, None, :], self.patch)
+        if len(inputs) == 1:
+            return H, None
+        child_offsets = offsets[B * M :].unflatten(0, (B, 4 * M)) / self.child_offset_scale
+        H_children = offsets_to_homography(child_offsets, child_positions[:, :, None, :], self.patch // 2)
+        return H, H_children.unflatten(1, (M, 4)).transpose(2, 3)
+
+    # A quadrant resized x2 (bilinear with pixel-centre alignment, as cv2.resize) is a similarity
+    # of scale 2 of the frame: its offsets are twice the frame's, exactly.
+    child_offset_scale = 2.0
+
+    def child_pairs(self, pairs: Tensor, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """The four quadrants (TL, TR, BR, BL) of every patch pair resized x2 to the net's input
+        size: (B, 4M, T, 2, P, P), ordered m-major, and their top-left pixels (B, 4M, 2)."""
+        B, M, T, C, P, _ = pairs.shape
+        half = P // 2
+        children, child_positions = [], []
+        for qx, qy in [(0, 0), (half, 0), (half, half), (0, half)]:
+            child = pairs[..., qy : qy + half, qx : qx + half].flatten(0, 2)
+            child = F.interpolate(child, scale_factor=2, mode="bilinear", align_corners=False)
+            children.append(child.unflatten(0, (B, M, T)))
+            child_positions.append(positions + torch.tensor([qx, qy], device=positions.device))
+        return torch.stack(children, dim=2).flatten(1, 2), torch.stack(child_positions, dim=2).flatten(1, 2)
 
     def pair_photometric(self, frames: Tensor, crops: Tensor, H: Tensor, positions: Tensor) -> Tensor:
         """L: every patch of frame t against frame t+1 sampled through H[t]."""
@@ -167,24 +190,6 @@ class Objective:
         warped, mask = sample_patches(nxt, H_flat, pos, self.patch)
         target = crops[:, :-1].flatten(0, 1)  # (B*T, M, C, P, P)
         return losses.photometric(target, warped, mask, self.photometric_norm)
-
-    def child_homographies(self, model: HomographyNet, pairs: Tensor, positions: Tensor) -> Tensor:
-        """The four quadrants (TL, TR, BR, BL) of every patch pair, resized x2 to the net's input
-        size -> their homographies (B, M, T, 4, 3, 3), frame t -> t+1."""
-        B, M, T, C, P, _ = pairs.shape
-        half = P // 2
-        quads = [(0, 0), (half, 0), (half, half), (0, half)]
-        children, child_pos = [], []
-        for qx, qy in quads:
-            child = pairs[..., qy : qy + half, qx : qx + half].flatten(0, 2)
-            # bilinear with pixel-centre alignment, as cv2.resize: offsets scale exactly by 2
-            child = F.interpolate(child, scale_factor=2, mode="bilinear", align_corners=False)
-            children.append(child.unflatten(0, (B, M, T)))
-            child_pos.append(positions + torch.tensor([qx, qy], device=positions.device))
-        stacked = torch.stack(children, dim=2).flatten(1, 2)  # (B, M*4, T, C, P, P)
-        pos = torch.stack(child_pos, dim=2).flatten(1, 2)  # (B, M*4, 2)
-        H = self.homographies(model, stacked, pos, half, scale=P / half)  # (B, M*4, T, 3, 3)
-        return H.unflatten(1, (M, 4)).transpose(2, 3)
 
 
 __all__ = ["VARIANTS", "TERMS", "PAPER_WINDOW", "LossWeights", "Objective", "frame_corners_tensor"]
