@@ -1,1 +1,50 @@
-"""``mosaic stabilize``: see the module docstring once implemented."""
+"""``mosaic stabilize IN OUT``: a steady copy of a shaky video, same frames, rate and audio."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mosaic_cli.cli import app
+from mosaic_cli.progress import console
+
+
+@app.command()
+def stabilize(
+    video: Path = typer.Argument(..., help="Input video file or folder of numbered images."),
+    out: Path = typer.Argument(..., help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio."),
+    smoothing: str = typer.Option("l1", "--smoothing", help="l1 (L1-optimal camera path) or gaussian."),
+    radius: int = typer.Option(30, "--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3)."),
+    model: str = typer.Option("similarity", "--model", help="Motion model of the correction: similarity, affine or homography."),
+    crop: str = typer.Option("auto", "--crop", help="auto (zoom just enough that no border shows) or the share of "
+                             "width and height to keep, 0.5..1 (borders may then show, filled as --border says)."),
+    border: str = typer.Option("black", "--border", help="Fill of uncovered areas: black, replicate or reflect."),
+    crf: int = typer.Option(18, "--crf", help="x264 quality, 0 (lossless) .. 51."),
+    preset: str = typer.Option("veryfast", "--preset", help="x264 preset (ultrafast .. veryslow)."),
+    warps: Path | None = typer.Option(None, "--warps", help="Write the per-frame warps (input -> output pixels) as JSON."),
+    compare: Path | None = typer.Option(None, "--compare", help="Also write input and output side by side to this video."),
+    estimator: str = typer.Option("orb", "--estimator", "-e", help="orb, orb-ransac, identity, lstm or cnn."),
+    work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
+    weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
+    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),
+) -> None:
+    """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
+
+    The output has the input's size, frame count and frame rate."""
+    from mosaic_cli.stabilize import StabilizeOptions
+    from mosaic_cli.stabilize import stabilize as run
+
+    options = StabilizeOptions(
+        estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
+        smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
+    )
+    result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
+    if not quiet:
+        s = result.seconds
+        console.print(
+            f"{result.frames} frames -> {out}: {result.frames / max(s['total'], 1e-9):.1f} fr/s "
+            f"(track {s['track']:.1f} s, path {s['plan']:.1f} s, render {s['render']:.1f} s); "
+            f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
+        )

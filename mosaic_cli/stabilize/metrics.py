@@ -1,0 +1,149 @@
+"""How good is a stabilisation?  Scores from exact warps, from ground truth, or from videos.
+
+* Cropping ratio and distortion (Liu et al., "Bundled camera paths", SIGGRAPH 2013): for each
+  frame, the warp input -> output; cropping is 1 / its scale (the share of the input's width
+  still shown), averaged over frames; distortion the ratio of the smaller to the larger
+  singular value of its linear part (1 = no anisotropic stretch), the worst frame.  The linear
+  part is the warp's Jacobian at the frame centre, which also covers homographies.
+* Residual jitter: the high-frequency part of the path of the frame corners, root mean
+  square in pixels.  The path's slow part (the flight itself) is removed by subtracting a
+  Gaussian low-pass (sigma ``HIGHPASS_SECONDS``); what is left is the shake a viewer sees.
+  ``ground_truth_jitter`` measures it against a simulated flight's known jitter-free path,
+  ``pairwise_jitter`` from the frame-to-frame homographies of any video (no ground truth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import convolve1d
+
+from mosaic_cli.geometry import frame_corners, normalize, project
+from mosaic_cli.stabilize.path import gaussian_weights, neighbour_mean
+
+HIGHPASS_SECONDS = 0.2  # sigma of the low-pass removed: about 0.8 Hz, below the 3-8 Hz of shake
+
+
+def warp_jacobian(warps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(N, 2, 2): the derivative of each warp (N, 3, 3) at the centre of a frame of ``size``."""
+    W = normalize(warps)
+    centre = np.array([(size[0] - 1) / 2.0, (size[1] - 1) / 2.0])
+    mapped = project(W, centre[None])[..., 0, :]  # (N, 2)
+    denom = W[..., 2, :2] @ centre + W[..., 2, 2]  # (N,)
+    # d/dx (A x + t) / (p.x + 1) = (A - y p^T) / (p.x + 1), y the mapped point.
+    return (W[..., :2, :2] - mapped[..., :, None] * W[..., 2, None, :2]) / denom[..., None, None]
+
+
+def cropping_ratio(warps: np.ndarray, size: tuple[int, int]) -> float:
+    """Liu et al.'s cropping ratio: the mean over frames of 1 / scale of the warp input -> output."""
+    J = warp_jacobian(warps, size)
+    return float(np.mean(1.0 / np.sqrt(np.abs(np.linalg.det(J)))))
+
+
+def distortion(warps: np.ndarray, size: tuple[int, int]) -> float:
+    """Liu et al.'s distortion score: the worst frame's ratio of singular values of the warp."""
+    s = np.linalg.svd(warp_jacobian(warps, size), compute_uv=False)
+    return float(np.min(s[..., 1] / s[..., 0]))
+
+
+def _trimmed_rms(residual: np.ndarray, trim: int) -> float:
+    """RMS length of (N, P, 2) residuals, leaving out ``trim`` frames at each end when the
+    clip is long enough (the low-pass is least trustworthy there)."""
+    if len(residual) > 4 * trim:
+        residual = residual[trim:len(residual) - trim]
+    return float(np.sqrt(np.mean(np.sum(residual ** 2, axis=-1))))
+
+
+def _highpass_sigma(fps: float, seconds: float) -> tuple[float, int]:
+    sigma = max(1.0, seconds * fps)
+    return sigma, int(np.ceil(3 * sigma))
+
+
+def pairwise_jitter(pairwise: np.ndarray, size: tuple[int, int], fps: float, seconds: float = HIGHPASS_SECONDS) -> float:
+    """Residual jitter (pixels) of a video from its frame-to-frame homographies (N-1, 3, 3),
+    frame t -> t+1: how far each frame's corners lie from the Gaussian mean of where its
+    neighbours' corners are, in the frame's own pixels."""
+    if len(pairwise) < 2:
+        return 0.0
+    sigma, radius = _highpass_sigma(fps, seconds)
+    corners = frame_corners(*size)
+    back = np.linalg.inv(normalize(pairwise))
+    mean = neighbour_mean(back, corners, gaussian_weights(radius, sigma))
+    return _trimmed_rms(corners - mean, radius)
+
+
+def ground_truth_jitter(map_to_frame: np.ndarray, smooth_map_to_frame: np.ndarray, size: tuple[int, int], fps: float,
+                        warps: np.ndarray | None = None, seconds: float = HIGHPASS_SECONDS) -> float:
+    """Residual jitter (pixels of the input) of the output path against the known smooth one.
+
+    With ``warps`` (input -> output, N x 3 x 3) it is the output's; without, the input's.
+    The output frame's outline is followed in the coordinates of the jitter-free camera
+    (map -> smooth frame), where the intended flight no longer moves it; what the high-pass
+    leaves of that outline's motion is shake the stabiliser did not remove (or added)."""
+    M = normalize(map_to_frame)
+    G = normalize(smooth_map_to_frame)
+    W = np.broadcast_to(np.eye(3), M.shape) if warps is None else normalize(warps)
+    outline = project(G @ np.linalg.inv(W @ M), frame_corners(*size))  # (N, 4, 2)
+    sigma, radius = _highpass_sigma(fps, seconds)
+    low = convolve1d(outline, gaussian_weights(radius, sigma), axis=0, mode="nearest")
+    return _trimmed_rms(outline - low, radius)
+
+
+@dataclass
+class VideoScores:
+    """Scores of one output video measured from the pixels alone."""
+
+    jitter: float  # residual jitter of the output, output pixels
+    cropping: float | None = None  # needs the input: features matched input -> output
+    distortion: float | None = None
+    matched_frames: int = 0
+
+
+def track_pairwise(video: str | Path, work_width: int = 640) -> tuple[np.ndarray, tuple[int, int], float]:
+    """Frame-to-frame homographies of a video with mosaic's ORB estimator (full-res pixels)."""
+    from mosaic_cli.estimators import OrbEstimator
+    from mosaic_cli.track import track_video
+
+    result = track_video(video, OrbEstimator(work_width), show_progress=False)
+    return result.pairwise, result.info.source_size, result.info.fps
+
+
+def matched_warps(input_video: str | Path, output_video: str | Path, work_width: int = 640,
+                  step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate the warp input frame t -> output frame t from the pixels (ORB + ECC), for every
+    ``step``-th frame; returns (frame indices, warps).  Frames that do not match are left out."""
+    from mosaic_cli.estimators import OrbEstimator
+    from mosaic_cli.video import open_video
+
+    estimator = OrbEstimator(work_width)
+    indices, warps = [], []
+    with open_video(input_video, width=work_width, gray=True) as src, open_video(output_video, width=work_width, gray=True) as dst:
+        full = src.info.source_size
+        if dst.info.source_size != full:
+            raise ValueError("input and output differ in size")
+        for t, (a, b) in enumerate(zip(src, dst)):
+            if t % step:
+                continue
+            estimator.reset(full)
+            estimator.feed(a)
+            (estimate,) = estimator.feed(b)
+            if estimate.confidence > 0:
+                indices.append(t)
+                warps.append(estimate.H)
+    return np.array(indices, dtype=int), np.array(warps).reshape(-1, 3, 3)
+
+
+def video_scores(output_video: str | Path, input_video: str | Path | None = None, step: int = 5,
+                 seconds: float = HIGHPASS_SECONDS) -> VideoScores:
+    """Residual jitter of ``output_video`` (and, with the input, cropping and distortion)."""
+    pairwise, size, fps = track_pairwise(output_video)
+    scores = VideoScores(pairwise_jitter(pairwise, size, fps, seconds))
+    if input_video is not None:
+        _, warps = matched_warps(input_video, output_video, step=step)
+        if len(warps):
+            scores.cropping = cropping_ratio(warps, size)
+            scores.distortion = distortion(warps, size)
+            scores.matched_frames = len(warps)
+    return scores

@@ -1,0 +1,159 @@
+"""``stabilize``: track the camera, plan a smooth view of it, render that view.
+
+Two passes over the input and nothing in memory that grows with its length but the
+per-frame matrices (72 bytes a frame):
+
+1. track: the estimator's pairwise homographies, frames decoded small and gray;
+2. plan: the camera motion in the chosen model, smoothed (L1-optimal path or Gaussian) with
+   the crop window kept inside every frame; the per-frame warps input -> output;
+3. render: decode again at full resolution, warp, encode with the input's audio.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.atomic import check_writable, write_json
+from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import make_estimator
+from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
+from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
+from mosaic_cli.stabilize.path import camera_motion, motion_model
+from mosaic_cli.stabilize.render import Renderer, parse_border
+from mosaic_cli.stabilize.smoothing import make_smoother
+from mosaic_cli.track import track_video
+from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.writer import PRESETS
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
+
+
+@dataclass
+class StabilizeOptions:
+    estimator: str = "orb"
+    work_width: int = 320
+    weights: str | None = None
+    device: str = "auto"
+    smoothing: str = "l1"  # or "gaussian"
+    radius: int = 30  # gaussian only, frames
+    model: str = "similarity"  # of the stabilising correction: similarity, affine or homography
+    crop: str | float | None = "auto"  # or the share of width and height kept, 0.5..1
+    border: str = "black"  # what fills any uncovered area: black, replicate, reflect
+    crf: int = 18
+    preset: str = "veryfast"
+
+
+@dataclass
+class StabilizeResult:
+    frames: int
+    size: tuple[int, int]
+    fps: float
+    warps: np.ndarray  # (N, 3, 3) input pixels -> output pixels
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def cropping(self) -> float:
+        return cropping_ratio(self.warps, self.size)
+
+    @property
+    def distortion(self) -> float:
+        return distortion(self.warps, self.size)
+
+    @property
+    def border(self) -> float:
+        """The mean share of the output frame that no input pixel covers."""
+        return float(border_fraction(self.warps, self.size).mean())
+
+
+def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | None = None,
+              warps_out: str | Path | None = None, compare: str | Path | None = None,
+              show_progress: bool = True) -> StabilizeResult:
+    """Write a stabilised copy of ``video`` to ``out`` (see the module docstring)."""
+    options = options or StabilizeOptions()
+    info, plan = check_request(video, out, options, warps_out, compare)
+    clock = time.perf_counter()
+
+    track = track_video(video, plan.estimator, show_progress=show_progress)
+    seconds = {"track": time.perf_counter() - clock}
+
+    motion = camera_motion(track.pairwise, info.source_size, plan.model, track.confidence)
+    views = plan.smoother.smooth(motion, info.source_size, plan.model, plan.crop)
+    warps = output_warps(views, info.source_size)
+    seconds["plan"] = time.perf_counter() - clock - seconds["track"]
+
+    written = plan.renderer.render(video, out, warps, info, compare=compare, show_progress=show_progress)
+    warps = _match_length(warps, written)
+    if warps_out is not None:
+        write_warps(warps_out, warps, info.source_size)
+    seconds["render"] = time.perf_counter() - clock - seconds["track"] - seconds["plan"]
+    seconds["total"] = time.perf_counter() - clock
+    return StabilizeResult(written, info.source_size, info.fps, warps, seconds)
+
+
+@dataclass
+class _Plan:
+    estimator: object
+    model: object
+    smoother: object
+    crop: float | None
+    renderer: Renderer
+
+
+def check_request(video, out, options: StabilizeOptions, warps_out=None, compare=None) -> tuple[VideoInfo, _Plan]:
+    """Every check that can fail on the user's input, before any long work."""
+    outputs = {"output": out, "--warps": warps_out, "--compare": compare}
+    given = {name: Path(p) for name, p in outputs.items() if p is not None}
+    for name, path in given.items():
+        check_writable(path)
+    if Path(out).suffix.lower() not in VIDEO_SUFFIXES:
+        raise BadInput(f"output {out} must end in one of {', '.join(VIDEO_SUFFIXES)}")
+    if compare is not None and Path(compare).suffix.lower() not in VIDEO_SUFFIXES:
+        raise BadInput(f"--compare {compare} must end in one of {', '.join(VIDEO_SUFFIXES)}")
+    if warps_out is not None and Path(warps_out).suffix.lower() != ".json":
+        raise BadInput(f"--warps {warps_out} must end in .json")
+    source = Path(video).resolve()
+    seen: dict[Path, str] = {}
+    for name, path in given.items():
+        resolved = path.resolve()
+        if resolved == source:
+            raise BadInput(f"{name} {path} is the input video itself")
+        if resolved in seen:
+            raise BadInput(f"{name} and {seen[resolved]} are the same file {path}")
+        seen[resolved] = name
+    if not 0 <= options.crf <= 51:
+        raise BadInput(f"--crf must be in 0..51, got {options.crf}")
+    if options.preset not in PRESETS:
+        raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {options.preset!r}")
+    plan = _Plan(
+        estimator=None,
+        model=motion_model(options.model),
+        smoother=make_smoother(options.smoothing, options.radius),
+        crop=parse_crop(options.crop),
+        renderer=Renderer(border=parse_border(options.border), crf=options.crf, preset=options.preset),
+    )
+    info = probe(video)
+    plan.estimator = make_estimator(options.estimator, work_width=options.work_width, weights=options.weights,
+                                    device=options.device)
+    return info, plan
+
+
+def write_warps(path: str | Path, warps: np.ndarray, size: tuple[int, int]) -> None:
+    """``{"frames": N, "size": [w, h], "warps": [N 3x3]}``, input pixels -> output pixels."""
+    write_json(path, {
+        "frames": int(len(warps)),
+        "size": [int(size[0]), int(size[1])],
+        "direction": "input_to_output",
+        "warps": [[[float(v) for v in row] for row in W] for W in warps],
+    })
+
+
+def _match_length(warps: np.ndarray, frames: int) -> np.ndarray:
+    """The warps of the frames actually written (the renderer reuses the last one when the
+    second decode finds more frames than the first)."""
+    if frames <= len(warps):
+        return warps[:frames]
+    return np.concatenate([warps, np.repeat(warps[-1:], frames - len(warps), axis=0)])
