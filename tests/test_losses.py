@@ -210,3 +210,10 @@ def test_loss_weights_default_to_the_paper_and_can_be_overridden():
         Objective("reg-q")
     with pytest.raises(ValueError):
         Objective("reg-p", positions=1)
+
+
+def test_patches_outside_the_frame_are_refused(panning_frames):
+    model = HomographyNet(NetConfig())
+    for bad in ([(193, 0)], [(0, 53)], [(-1, 0)]):
+        with pytest.raises(ValueError, match="inside"):
+            Objective("base")(model, batch_of(panning_frames[:, :2], bad))

@@ -118,6 +118,7 @@ class Objective:
     def __call__(self, model: HomographyNet, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         frames, positions = batch["frames"], batch["positions"].long()
         B, K, _, h, w = frames.shape
+        self.check_batch(frames, positions)
         crops = self.cut_patches(frames, positions)  # (B, K, M, 1, P, P)
         pairs = torch.cat([crops[:, :-1], crops[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
         H, H_children = self.predict(model, pairs, positions)
@@ -135,6 +136,16 @@ class Objective:
             out["temporal2"] = losses.chain_consistency(frames, H, positions, self.patch, self.photometric_norm)
         out["total"] = sum(self.weights[name] * value for name, value in out.items())
         return out
+
+    def check_batch(self, frames: Tensor, positions: Tensor) -> None:
+        """Shapes and patch positions (a negative index would silently wrap around)."""
+        if frames.dim() != 5 or positions.dim() != 3 or positions.shape[-1] != 2 or len(positions) != len(frames):
+            raise ValueError(f"batch shapes: frames {tuple(frames.shape)} (B, K, 1, h, w), positions {tuple(positions.shape)} (B, M, 2)")
+        h, w = frames.shape[-2:]
+        low = positions.amin(dim=(0, 1))
+        high = positions.amax(dim=(0, 1))
+        if bool((low < 0).any()) or int(high[0]) > w - self.patch or int(high[1]) > h - self.patch:
+            raise ValueError(f"patch positions must keep {self.patch}x{self.patch} patches inside {w}x{h} frames")
 
     # Stages -------------------------------------------------------------------------------
 
