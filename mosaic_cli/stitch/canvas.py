@@ -61,9 +61,10 @@ def plan_canvas(
     frame_indices: list[int],
     size: tuple[int, int],
     options: CanvasOptions,
+    drawn: list[bool] | None = None,
 ) -> Canvas:
-    """Bounding box of all placed frames, scaled down to ``max_size``; refuses degenerate
-    placements (a frame folded, behind the camera or blown up) with advice."""
+    """Bounding box of the ``drawn`` frames (default all), scaled down to ``max_size``; refuses
+    degenerate placements of any frame (folded, behind the camera or blown up) with advice."""
     for H, index in zip(placements, frame_indices):
         if not is_valid(H, size, max_area_ratio=options.max_area_ratio):
             raise ProcessingError(
@@ -72,7 +73,8 @@ def plan_canvas(
                 f"would explode; the estimator lost track: try a --reference near that frame, a shorter part "
                 f"(--start/--max-frames), or another --estimator"
             )
-    corners = np.concatenate([project(H, frame_corners(*size)) for H in placements])
+    drawn = [True] * len(placements) if drawn is None else drawn
+    corners = np.concatenate([project(H, frame_corners(*size)) for H, d in zip(placements, drawn) if d])
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     extent = hi - lo
     scale = 1.0

@@ -102,7 +102,8 @@ def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi) -> tuple[np.ndarray, n
 def _local_scale(H: np.ndarray, w: int, h: int) -> float:
     c = np.array([[w / 2, h / 2], [w / 2 + 1, h / 2], [w / 2, h / 2 + 1]])
     q = project(H, c)
-    return float(np.sqrt(abs(np.cross(q[1] - q[0], q[2] - q[0]))))
+    (ax, ay), (bx, by) = q[1] - q[0], q[2] - q[0]
+    return float(np.sqrt(abs(ax * by - ay * bx)))
 
 
 def compose(

@@ -20,6 +20,9 @@ from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
 class FeatureOptions:
     width: int = 640  # keyframes are described at this width (the source's if narrower)
     n_features: int = 1500
+    # Lower than OpenCV's 0.04: aerial ground is often low in contrast (grass, fields, water);
+    # n_features still keeps only the strongest points on rich ground.
+    contrast_threshold: float = 0.01
     ratio: float = 0.8  # Lowe's ratio test
     reproj_threshold: float = 1.5  # pixels at the feature width
     min_inliers: int = 20
@@ -60,7 +63,7 @@ class FeatureExtractor:
         self.source_size = source_size
         width = min(self.options.width, source_size[0])
         self.size = (width, max(1, round(source_size[1] * width / source_size[0])))
-        self._sift = cv2.SIFT_create(nfeatures=self.options.n_features)
+        self._sift = cv2.SIFT_create(nfeatures=self.options.n_features, contrastThreshold=self.options.contrast_threshold)
         self._to_source = np.linalg.inv(resize_matrix(source_size, self.size))
         # The matching threshold, re-expressed in source pixels.
         self.threshold = self.options.reproj_threshold * source_size[0] / width
@@ -83,7 +86,9 @@ class FeatureMatcher:
         self.options = extractor.options
         self.source_size = extractor.source_size
         self.threshold = extractor.threshold
-        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
+        # Approximate nearest neighbours (kd-trees): about twice as fast as brute force for
+        # 1500 x 1500 SIFT descriptors, with the same inliers after the ratio test.
+        self._matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 32})
 
     def match(
         self,

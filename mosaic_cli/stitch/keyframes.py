@@ -32,8 +32,11 @@ from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Feature
 class KeyframeOptions:
     new_ground: float = 0.6  # a keyframe is due once the overlap with the last one drops below this
     force_overlap: float = 0.35  # ... and is taken (the sharpest candidate) at the latest here
-    sharpness_ratio: float = 0.6  # "sharp": Laplacian variance >= this x the running median
-    sharpness_window: int = 31  # frames in that running median
+    # "Sharp": Laplacian variance at least this fraction of the recent sharp level (the 80th
+    # percentile over a window, so that a run of blurred frames does not lower the bar).
+    sharpness_ratio: float = 0.6
+    sharpness_percentile: float = 80.0
+    sharpness_window: int = 31
     dark_level: float = 25.0  # mean gray below this: a black frame
     bright_level: float = 235.0  # mean gray above this: over-exposed
     max_clipped: float = 0.3  # ... or more than this fraction of pixels saturated
@@ -278,7 +281,7 @@ class FlightScanner:
     def _consider(self, frame: np.ndarray, quality: FrameQuality) -> None:
         if not quality.well_exposed(self.o):
             return
-        sharp = quality.sharpness >= self.o.sharpness_ratio * float(np.median(self._sharpness))
+        sharp = quality.sharpness >= self.o.sharpness_ratio * float(np.percentile(self._sharpness, self.o.sharpness_percentile))
         if not self.keyframes:
             if sharp:
                 self._add(self.index, frame, quality, self.placement)

@@ -49,7 +49,7 @@ class StitchOptions:
 @dataclass
 class StitchResult:
     canvas_size: tuple[int, int]
-    transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per used frame
+    transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per keyframe
     reference_frame: int
     frames: int
     keyframes: int
@@ -84,16 +84,17 @@ def stitch(
     seconds["register"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    used = [k for k in range(len(scan.keyframes)) if scan.keyframes[k].composited]
-    canvas = plan_canvas([placements[k] for k in used], [indices[k] for k in used], scan.source_size, options.canvas)
-    frame_to_canvas = [canvas.frame_to_canvas(placements[k]) for k in used]
-    panorama = _compose(scan, used, frame_to_canvas, canvas.size, options.compose, show_progress)
+    drawn = [k.composited for k in scan.keyframes]
+    canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
+    frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
+    panorama = _compose(scan, frame_to_canvas, canvas.size, options.compose, show_progress)
     seconds["compose"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
     write_panorama(out, panorama)
     del panorama
-    frames = [(indices[k], H) for k, H in zip(used, frame_to_canvas)]
+    # Every keyframe is reported, also those over ground already drawn (used for registration).
+    frames = list(zip(indices, frame_to_canvas))
     if transforms is not None:
         write_transforms(transforms, canvas.size, frames)
     seconds["write"] = time.perf_counter() - clock
@@ -169,10 +170,12 @@ def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress:
     return placements, report
 
 
-def _compose(scan: FlightScan, used, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
+def _compose(scan: FlightScan, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
     placed = []
-    for k, H in zip(used, frame_to_canvas):
-        image = scan.keyframes[k].image
+    for keyframe, H in zip(scan.keyframes, frame_to_canvas):
+        image = keyframe.image
+        if image is None:
+            continue
         to_source = np.linalg.inv(resize_matrix(scan.source_size, (image.shape[1], image.shape[0])))
         placed.append(PlacedImage(image, normalize(H @ to_source)))
     with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", len(placed), unit="fr/s", disable=not show_progress) as advance:

@@ -1,0 +1,410 @@
+"""``mosaic stitch`` against exact ground truth: survey flights rendered over a known map, so
+every frame's true map -> frame homography is known and any placement can be checked."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import textured_image
+from mosaic_cli.cli import main
+from mosaic_cli.errors import ProcessingError
+from mosaic_cli.estimators import Estimator
+from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
+from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
+from mosaic_cli.simulate import MapPyramid, plan_flight, render_frames, render_view
+from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
+from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
+from mosaic_cli.stitch.registration import Link, RegistrationReport, refine_placements
+from mosaic_cli.video import VideoWriter, open_video
+
+SIZE = (256, 144)
+MAP_SIZE = (1024, 1024)
+
+
+@dataclasses.dataclass
+class Flight:
+    path: Path
+    map_to_frame: np.ndarray  # (N, 3, 3) exact
+    map: np.ndarray
+
+
+@pytest.fixture(scope="module")
+def ground() -> np.ndarray:
+    return textured_image(*MAP_SIZE, seed=5)
+
+
+def fly(path: Path, ground: np.ndarray, frames: int = 200, step: int = 4, seed: int = 2, edit=None, fps: float = 30.0) -> Flight:
+    """A lawnmower survey (neighbouring lines overlap: ground is revisited), every ``step``-th
+    frame of the simulator's, so that small frames still move a few pixels per frame."""
+    plan = plan_flight(MAP_SIZE, "survey", frames=frames * step, size=SIZE, seed=seed)
+    plan = dataclasses.replace(plan, map_to_frame=plan.map_to_frame[::step], smooth_map_to_frame=plan.smooth_map_to_frame[::step])
+    with VideoWriter(path, SIZE, fps, crf=16, preset="veryfast") as writer:
+        for k, frame in enumerate(render_frames(ground, plan)):
+            writer.write(edit(k, frame) if edit else frame)
+    return Flight(path, plan.map_to_frame, ground)
+
+
+def fast_orb() -> Estimator:
+    return OrbEstimator(SIZE[0], OrbConfig(refine=None))
+
+
+def load_transforms(path: Path) -> tuple[tuple[int, int], list[int], list[np.ndarray]]:
+    data = json.loads(Path(path).read_text())
+    return tuple(data["canvas_size"]), [f["index"] for f in data["frames"]], [np.array(f["H"]) for f in data["frames"]]
+
+
+def placement_errors(indices, frame_to_pano, map_to_frame, gap: int) -> list[float]:
+    """Corner error of frame i placed relative to frame j (i -> j through the panorama) for
+    used frames at least ``gap`` frames apart, against the exact homography."""
+    errors = []
+    for a, i in enumerate(indices):
+        for b, j in enumerate(indices):
+            if j - i >= gap:
+                estimate = np.linalg.inv(frame_to_pano[b]) @ frame_to_pano[a]
+                truth = map_to_frame[j] @ np.linalg.inv(map_to_frame[i])
+                errors.append(float(corner_error(estimate, truth, SIZE)))
+    return errors
+
+
+def plain_chain(video: Path, indices: list[int]) -> list[np.ndarray]:
+    """The baseline: full-resolution ORB + RANSAC between consecutive used frames, chained
+    (frame -> first used frame), no joint refinement."""
+    wanted = set(indices)
+    gray = {}
+    with open_video(video, gray=True) as stream:
+        for k, frame in enumerate(stream):
+            if k in wanted:
+                gray[k] = frame
+    orb = cv2.ORB_create(2000, fastThreshold=10, edgeThreshold=15, patchSize=15)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    placements = [np.eye(3)]
+    for a, b in zip(indices[:-1], indices[1:]):
+        ka, da = orb.detectAndCompute(gray[a], None)
+        kb, db = orb.detectAndCompute(gray[b], None)
+        good = [m[0] for m in matcher.knnMatch(da, db, k=2) if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+        src = np.float32([ka[m.queryIdx].pt for m in good])
+        dst = np.float32([kb[m.trainIdx].pt for m in good])
+        H_ab, _ = cv2.findHomography(src, dst, cv2.RANSAC, 2.0)
+        placements.append(normalize(placements[-1] @ np.linalg.inv(H_ab)))
+    return placements
+
+
+def run_cli(capsys, *args) -> tuple[int, str]:
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(a) for a in args])
+    code = exit_info.value.code
+    return (0 if code is None else code), capsys.readouterr().err
+
+
+def read_rgba(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert image is not None, path
+    return image
+
+
+# -- a survey flight stitched once, checked many ways ----------------------------------------
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory, ground):
+    folder = tmp_path_factory.mktemp("survey")
+    flight = fly(folder / "survey.mp4", ground)
+    pano, transforms = folder / "pano.png", folder / "pano.json"
+    result = stitch(flight.path, pano, fast_orb(), transforms=transforms, show_progress=False)
+    return flight, pano, transforms, result
+
+
+def test_transforms_place_the_known_map_where_the_panorama_shows_it(survey):
+    flight, pano, transforms, result = survey
+    canvas, indices, H = load_transforms(transforms)
+    rgba = read_rgba(pano)
+    assert rgba.shape == (canvas[1], canvas[0], 4)
+    assert len(indices) == result.keyframes >= 5 and indices == sorted(indices)
+    # Through every used frame, a map point must land on the same panorama pixel.
+    map_to_pano = [normalize(H_i @ flight.map_to_frame[i]) for H_i, i in zip(H, indices)]
+    centre = np.mean([project(np.linalg.inv(flight.map_to_frame[i]), frame_corners(*SIZE)).mean(axis=0) for i in indices], axis=0)
+    landed = np.array([project(A, centre[None])[0] for A in map_to_pano])
+    assert np.max(np.linalg.norm(landed - np.median(landed, axis=0), axis=1)) < 2.0
+    # And the panorama there shows that map: warp the map by map -> panorama and compare.
+    expected = render_view(MapPyramid(flight.map), map_to_pano[len(map_to_pano) // 2], canvas)
+    inside = cv2.erode((rgba[..., 3] == 255).astype(np.uint8), np.ones((7, 7), np.uint8), borderValue=0).astype(bool)
+    got = cv2.cvtColor(rgba[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32)[inside]
+    want = expected.astype(np.float32)[inside]
+    assert inside.mean() > 0.4
+    assert np.mean(np.abs(got - want)) < 8.0
+    assert np.corrcoef(got.ravel(), want.ravel())[0, 1] > 0.95
+
+
+def test_drift_control_beats_plain_chaining(survey):
+    flight, _, transforms, result = survey
+    _, indices, H = load_transforms(transforms)
+    assert result.registration.loops >= 3  # neighbouring survey lines were registered directly
+    ours = placement_errors(indices, H, flight.map_to_frame, gap=60)
+    chained = placement_errors(indices, plain_chain(flight.path, indices), flight.map_to_frame, gap=60)
+    assert len(ours) >= 10
+    assert np.median(ours) < 1.0
+    assert np.median(ours) <= 0.5 * np.median(chained)
+
+
+def test_alpha_is_zero_exactly_outside_the_covered_ground(survey):
+    flight, pano, transforms, _ = survey
+    canvas, indices, H = load_transforms(transforms)
+    alpha = read_rgba(pano)[..., 3]
+    assert set(np.unique(alpha)) <= {0, 255}
+    # True footprints (from the exact homographies) of the used frames, on the canvas.
+    map_to_pano = normalize(H[0] @ flight.map_to_frame[indices[0]])
+    union = np.zeros((canvas[1], canvas[0]), np.uint8)
+    for i in indices:
+        quad = project(map_to_pano @ np.linalg.inv(flight.map_to_frame[i]), frame_corners(*SIZE))
+        cv2.fillConvexPoly(union, np.round(quad * 16).astype(np.int32), 1, shift=4)
+    first = np.zeros_like(union)
+    cv2.fillConvexPoly(first, np.round(project(H[0], frame_corners(*SIZE)) * 16).astype(np.int32), 1, shift=4)
+    kernel = np.ones((7, 7), np.uint8)
+    outside = cv2.dilate(union, kernel) == 0
+    assert outside.sum() > 1000  # a survey leaves parts of its bounding box unseen
+    assert np.all(alpha[outside] == 0)
+    inside = cv2.erode(first, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    assert inside.sum() > 10000 and np.all(alpha[inside == 1] == 255)
+
+
+def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
+    flight, _, _, full = survey
+    pano, transforms = tmp_path / "small.jpg", tmp_path / "small.json"
+    result = stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
+                    transforms=transforms, show_progress=False)
+    canvas, indices, H = load_transforms(transforms)
+    image = read_rgba(pano)
+    assert max(canvas) <= 200 and image.shape[:2] == (canvas[1], canvas[0]) and image.ndim == 3
+    assert max(canvas) >= 195
+    scale = max(canvas) / max(full.canvas_size)
+    errors = placement_errors(indices, H, flight.map_to_frame, gap=1)
+    assert np.median(errors) < 1.5  # frame <-> frame placement survives the canvas scale
+    # Frame -> panorama is the full-size one, scaled.
+    ratio = np.linalg.norm(project(H[0], frame_corners(*SIZE))[1] - project(H[0], frame_corners(*SIZE))[0])
+    full_H = dict(full.transforms)[indices[0]]
+    full_ratio = np.linalg.norm(project(full_H, frame_corners(*SIZE))[1] - project(full_H, frame_corners(*SIZE))[0])
+    assert ratio / full_ratio == pytest.approx(scale, rel=0.02)
+
+
+def test_no_drift_control_is_plain_estimator_chaining_and_worse(survey, tmp_path):
+    flight, _, transforms, _ = survey
+    options = StitchOptions(registration=RegistrationOptions(enabled=False))
+    result = stitch(flight.path, tmp_path / "p.png", fast_orb(), options, transforms=tmp_path / "t.json", show_progress=False)
+    assert result.registration.loops == 0
+    _, indices, H = load_transforms(tmp_path / "t.json")
+    _, ref_indices, ref_H = load_transforms(transforms)
+    assert np.median(placement_errors(indices, H, flight.map_to_frame, 60)) > 1.5 * np.median(
+        placement_errors(ref_indices, ref_H, flight.map_to_frame, 60)
+    )
+
+
+# -- keyframe choice and broken chains --------------------------------------------------------
+
+BLURRED = set(range(0, 200)) - set(range(0, 200, 3))
+BLACK = {70, 71, 72}
+BRIGHT = {120, 121}
+
+
+def spoil(k: int, frame: np.ndarray) -> np.ndarray:
+    if k in BLACK:
+        return np.zeros_like(frame)
+    if k in BRIGHT:
+        return np.full_like(frame, 255)
+    if k in BLURRED:
+        return cv2.GaussianBlur(frame, (0, 0), 1.5)
+    return frame
+
+
+def test_keyframes_skip_blurred_black_and_overexposed_frames_and_bridge_them(tmp_path, ground):
+    flight = fly(tmp_path / "spoilt.mp4", ground, edit=spoil)
+    result = stitch(flight.path, tmp_path / "p.png", fast_orb(), transforms=tmp_path / "t.json", show_progress=False)
+    _, indices, H = load_transforms(tmp_path / "t.json")
+    assert not set(indices) & (BLURRED | BLACK | BRIGHT)
+    # The estimator fails on the black and white frames; the flight is re-found after them.
+    assert indices[-1] > max(BRIGHT)
+    assert np.median(placement_errors(indices, H, flight.map_to_frame, 30)) < 1.5
+    assert result.keyframes >= 5
+
+
+def test_a_cut_to_unrelated_ground_is_refused_without_output(tmp_path, ground, capsys):
+    other = textured_image(*SIZE, seed=99)
+
+    def cut(k, frame):
+        return frame if k < 40 else np.roll(other, 3 * k, axis=1)
+
+    flight = fly(tmp_path / "cut.mp4", ground, frames=70, edit=cut, fps=10.0)  # gives up after 2 s: 20 frames
+    out = tmp_path / "out"
+    out.mkdir()
+    code, err = run_cli(capsys, "stitch", flight.path, "-o", out / "p.png", "--work-width", 128, "-q")
+    assert code == 1 and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "frame 40" in err and "--start" in err
+    assert list(out.iterdir()) == []
+
+
+class DivergingEstimator(Estimator):
+    """A broken estimator: each pairwise homography adds a little perspective, so the chain
+    tips over (frames mapped behind the camera) within a hundred frames."""
+
+    name = "diverging"
+
+    def _estimate(self, prev, cur):
+        return np.array([[1.0, 0, 1.0], [0, 1.0, 0], [4e-4, 2e-4, 1.0]]), 1.0
+
+
+def test_a_degenerate_chain_is_refused_with_advice_instead_of_a_huge_canvas(tmp_path, ground):
+    flight = fly(tmp_path / "f.mp4", ground, frames=150)
+    out = tmp_path / "p.png"
+    with pytest.raises(ProcessingError, match="degenerate.*canvas would explode.*--estimator"):
+        stitch(flight.path, out, DivergingEstimator(SIZE[0]), show_progress=False)
+    assert not out.exists() and list(tmp_path.glob("*.png")) == []
+
+
+# -- formats, references, errors ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def short_clip(tmp_path_factory, ground) -> Path:
+    return fly(tmp_path_factory.mktemp("short") / "short.mp4", ground, frames=40).path
+
+
+@pytest.mark.parametrize(
+    "name, channels, magic",
+    [("p.png", 4, b"\x89PNG"), ("p.jpg", 3, b"\xff\xd8\xff"), ("p.JPEG", 3, b"\xff\xd8\xff"), ("p.tif", 4, b"II*\x00"), ("p.tiff", 4, b"II*\x00")],
+)
+def test_format_follows_the_extension(short_clip, tmp_path, capsys, name, channels, magic):
+    out = tmp_path / name
+    code, err = run_cli(capsys, "stitch", short_clip, "-o", out, "--work-width", 128, "--no-drift-control", "-q")
+    assert code == 0, err
+    assert out.read_bytes()[:4].startswith(magic[:3]) and out.read_bytes()[:4] in (magic, magic[:3] + out.read_bytes()[3:4])
+    image = read_rgba(out)
+    assert (image.shape[2] if image.ndim == 3 else 1) == channels
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no temporary file left
+
+
+def test_reference_first_draws_the_first_keyframe_upright(short_clip, tmp_path, capsys):
+    code, err = run_cli(capsys, "stitch", short_clip, "-o", tmp_path / "p.png", "--transforms", tmp_path / "t.json",
+                        "--reference", "first", "--work-width", 128, "-q")
+    assert code == 0, err
+    _, indices, H = load_transforms(tmp_path / "t.json")
+    A = H[0] / H[0][2, 2]
+    assert indices[0] == 0
+    assert np.allclose(A[2, :2], 0, atol=1e-9) and np.allclose(A[:2, :2], A[0, 0] * np.eye(2), atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["-o", "{out}/p.gif"], ".png, .jpg"),
+        (["-o", "{out}/p.png", "--reference", "sideways"], "--reference"),
+        (["-o", "{out}/p.png", "--reference", "-3"], "--reference"),
+        (["-o", "{out}/p.png", "--reference", "5000"], "past the end"),
+        (["-o", "{out}/missing/p.png"], "does not exist"),
+        (["-o", "{out}/p.png", "--blend", "smudge"], "--blend"),
+        (["-o", "{out}/p.png", "--seam", "zip"], "--seam"),
+        (["-o", "{out}/p.png", "--max-size", "10"], "--max-size"),
+        (["-o", "{out}/p.png", "--overlap", "1.5"], "--overlap"),
+        (["-o", "{out}/p.png", "--transforms", "{out}/t.txt"], ".json"),
+        (["-o", "{out}/p.png", "--max-loop-pairs", "-1"], "--max-loop-pairs"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_no_file(short_clip, tmp_path, capsys, args, fragment):
+    out = tmp_path / "out"
+    out.mkdir()
+    code, err = run_cli(capsys, "stitch", short_clip, *[a.format(out=out) for a in args], "-q")
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mosaic: error: ") and fragment in lines[0]
+    assert list(out.iterdir()) == []
+
+
+def test_missing_or_unreadable_video_is_one_line_exit_2(tmp_path, capsys):
+    (tmp_path / "out").mkdir()
+    code, err = run_cli(capsys, "stitch", tmp_path / "nope.mp4", "-o", tmp_path / "out" / "p.png", "-q")
+    assert code == 2 and "no such file" in err and len(err.strip().splitlines()) == 1
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"not a video at all" * 100)
+    code, err = run_cli(capsys, "stitch", junk, "-o", tmp_path / "out" / "p.png", "-q")
+    assert code == 2 and "not a video" in err
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_unwritable_output_folder_is_refused_before_any_work(short_clip, tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        import os
+
+        if os.access(locked, os.W_OK):
+            pytest.skip("running as a user who can write anywhere")
+        code, err = run_cli(capsys, "stitch", short_clip, "-o", locked / "p.png", "-q")
+        assert code == 2 and "not writable" in err
+    finally:
+        locked.chmod(0o700)
+
+
+# -- the stages on their own ------------------------------------------------------------------
+
+
+def test_joint_refinement_removes_drift_and_ignores_a_wrong_loop_closure():
+    rng = np.random.default_rng(0)
+    size = (320, 180)
+    # True placements (frame -> reference): a row of frames 120 px apart, a second row below.
+    truth = []
+    for row in range(2):
+        for col in range(6):
+            t = np.array([[1, 0.01 * col, 120.0 * col], [-0.01 * col, 1, 110.0 * row], [1e-5 * col, 0, 1]])
+            truth.append(normalize(t))
+    n = len(truth)
+    grid = np.array([(x, y) for x in np.linspace(0, size[0] - 1, 8) for y in np.linspace(0, size[1] - 1, 5)])
+
+    def link(a, b, kind, noise=0.2, bias=None):
+        H_ab = np.linalg.inv(truth[b]) @ truth[a]
+        H_ab = H_ab if bias is None else bias @ H_ab
+        return Link(a, b, grid, project(H_ab, grid) + rng.normal(0, noise, grid.shape), kind)
+
+    links = [link(k, k + 1, "sequential") for k in range(n - 1)]
+    links += [link(k, k + 6, "loop") for k in range(6)]
+    links.append(link(2, 9, "loop", bias=np.array([[1, 0, 40.0], [0, 1, -30.0], [0, 0, 1]])))  # a wrong match
+    # Start from a drifted chain: every step is 2 px and 0.6 degrees off.
+    drift = np.array([[np.cos(0.01), -np.sin(0.01), 2.0], [np.sin(0.01), np.cos(0.01), 1.0], [0, 0, 1]])
+    initial = [truth[0]]
+    for k in range(1, n):
+        initial.append(normalize(initial[-1] @ np.linalg.inv(np.linalg.inv(truth[k]) @ truth[k - 1]) @ np.linalg.inv(drift)))
+    reference = 3
+    initial = [normalize(np.linalg.inv(initial[reference]) @ G) for G in initial]
+    truth = [normalize(np.linalg.inv(truth[reference]) @ G) for G in truth]
+    report = RegistrationReport(links=links)
+    refined = refine_placements(initial, report, reference, size, RegistrationOptions())
+    before = np.median([corner_error(G, T, size) for G, T in zip(initial, truth)])
+    after = np.median([corner_error(G, T, size) for G, T in zip(refined, truth)])
+    assert before > 5.0 and after < 0.3
+    assert report.loops_dropped == 1 and all(not (l.a == 2 and l.b == 9) for l in report.links)
+    assert np.allclose(refined[reference], np.eye(3))
+
+
+def test_keyframe_store_shrinks_held_pixels_as_the_flown_area_grows():
+    size = (400, 300)
+    store = KeyframeStore(size, decode_scale=1.0, max_size=1000)
+    frame = np.zeros((300, 400, 3), np.uint8)
+    keyframes = []
+    for k in range(40):
+        placement = np.array([[1, 0, 300.0 * k], [0, 1, 0], [0, 0, 1]])
+        key = Keyframe(k, placement, None, None)
+        store.keep(key, frame, project(placement, frame_corners(*size)))
+        keyframes.append(key)
+        store.shrink(keyframes)
+    extent = 300.0 * 39 + 400
+    assert store.scale == pytest.approx(KeyframeStore.MARGIN * 1000 / extent, rel=1e-6)
+    # Every held image is at most 1/SHRINK_BELOW times the scale the canvas needs.
+    for key in keyframes:
+        assert key.scale <= store.scale / KeyframeStore.SHRINK_BELOW + 1e-9
+        assert key.image.shape[1] == round(size[0] * key.scale)
+    held = sum(k.image.size for k in keyframes)
+    assert held < 40 * frame.size * 0.1
