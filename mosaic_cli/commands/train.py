@@ -1,1 +1,80 @@
-"""``mosaic train``: see the module docstring once implemented."""
+"""``mosaic train CLIPS_DIR --out RUN_DIR``: learn the homography network from raw clips.
+
+The procedure is :func:`mosaic_cli.train.loop.train`; this module only turns options into a
+:class:`~mosaic_cli.train.config.TrainConfig`.  Options left out take the paper's value for the
+variant (or, with ``--resume``, the run's saved value).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mosaic_cli.cli import app
+from mosaic_cli.progress import console
+
+
+@app.command()
+def train(
+    clips: Path = typer.Argument(..., help="Folder of training clips (video files and/or folders of frames), or one clip."),
+    out: Path = typer.Option(Path("runs/train"), "-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache."),
+    variant: str | None = typer.Option(None, "--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm or lstm-reg-all [base]."),
+    preset: str | None = typer.Option(None, "--preset", help="Network size: compact (CPU) or paper (Table 1) [compact]."),
+    init: Path | None = typer.Option(None, "--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors)."),
+    freeze: bool | None = typer.Option(None, "--freeze/--no-freeze", help="LSTM from a CNN --init: keep backbone + first Linear fixed [freeze]."),
+    steps: int | None = typer.Option(None, "--steps", help="Training steps [paper: 300k BASE, 90k fine-tunes]; more on --resume extends."),
+    batch_size: int | None = typer.Option(None, "--batch-size", help="Windows per step per process [paper: 64 BASE, 32 REG-*, 8 LSTM]."),
+    lr: float | None = typer.Option(None, "--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps [1e-3]."),
+    device: str | None = typer.Option(None, "--device", help="auto, cpu or cuda [auto]."),
+    amp: bool | None = typer.Option(None, "--amp/--no-amp", help="Mixed precision on CUDA [amp]."),
+    seed: int | None = typer.Option(None, "--seed", help="Random seed: initial weights, samples, dropout [0]."),
+    val: Path | None = typer.Option(None, "--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on."),
+    val_every: int | None = typer.Option(None, "--val-every", help="Validate every N steps [1000]."),
+    checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Checkpoint every N steps [500] (and every 15 min)."),
+    work_size: str | None = typer.Option(None, "--work-size", help="Working frame size WxH [320x180]."),
+    patch: int | None = typer.Option(None, "--patch", help="Patch side in working pixels [128]."),
+    num_workers: int | None = typer.Option(None, "--num-workers", help="Loader / decoder worker processes [1]."),
+    threads: int | None = typer.Option(None, "--threads", help="Torch CPU threads per process [all cores; 1 under torchrun]."),
+    cache_gb: float | None = typer.Option(None, "--cache-gb", help="Disk budget of the decoded-frame cache in RUN_DIR/cache [8]."),
+    resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Train the homography network unsupervised on raw clips (photometric loss + the paper's priors).
+
+    Ctrl-C (or SIGTERM) writes a checkpoint and stops; --resume continues at the same step.
+    Under torchrun --nproc_per_node=N it trains as DistributedDataParallel.
+    """
+    from mosaic_cli.train.config import parse_size
+    from mosaic_cli.train.loop import plan_run
+    from mosaic_cli.train.loop import train as run_training
+
+    options = {
+        "variant": variant.lower() if variant else None,
+        "preset": preset.lower() if preset else None,
+        "init": str(init) if init else None,
+        "freeze": freeze,
+        "steps": steps,
+        "batch_size": batch_size,
+        "lr": lr,
+        "device": device.lower() if device else None,
+        "amp": amp,
+        "seed": seed,
+        "val": str(val) if val else None,
+        "val_every": val_every,
+        "checkpoint_every": checkpoint_every,
+        "work_size": parse_size(work_size) if work_size else None,
+        "patch": patch,
+        "num_workers": num_workers,
+        "threads": threads,
+        "cache_gb": cache_gb,
+    }
+    config = plan_run(str(clips), str(out), options, resume)
+    summary = run_training(config, resume=resume, show_progress=not quiet)
+    if summary.weights is not None and not quiet:
+        total = summary.last_terms.get("total", float("nan"))
+        val_text = f", validation MACE {summary.val_mace:.2f} px" if summary.val_mace is not None else ""
+        console.print(
+            f"trained steps {summary.start_step + 1}-{summary.steps}: {summary.samples_per_s:.1f} samples/s, "
+            f"last loss {total:.4g}{val_text} -> {summary.weights}"
+        )

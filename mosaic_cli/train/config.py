@@ -1,0 +1,123 @@
+"""Everything that defines a training run, with the paper's values as defaults.
+
+A run's config is saved in ``RUN_DIR/state.json``; ``--resume`` reads it back, so the options
+that shape the run (variant, preset, batch size, learning rate, seed, sizes) cannot change
+half way.  Options left as ``None`` take the paper's value for the chosen variant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+
+from mosaic_cli.errors import BadInput
+
+VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
+PRESETS = ("compact", "paper")
+DEVICES = ("auto", "cpu", "cuda")
+
+# The paper trains BASE for 300k iterations at batch 64 and fine-tunes the REG-* variants
+# (batch 32) and the LSTM variants (batch 8) from it for 90k iterations.
+PAPER_STEPS = {"base": 300_000}
+PAPER_FINETUNE_STEPS = 90_000
+PAPER_BATCH = {"base": 64, "lstm": 8, "lstm-reg-all": 8}
+PAPER_REG_BATCH = 32
+
+# Options that define what a run learns: a resumed run must keep them.
+RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
+                "work_size", "patch")
+
+
+def paper_steps(variant: str) -> int:
+    return PAPER_STEPS.get(variant, PAPER_FINETUNE_STEPS)
+
+
+def paper_batch_size(variant: str) -> int:
+    return PAPER_BATCH.get(variant, PAPER_REG_BATCH)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'320x180' -> (320, 180)."""
+    try:
+        w, h = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise BadInput(f"size {text!r} must look like 320x180") from None
+    return (w, h)
+
+
+@dataclass
+class TrainConfig:
+    clips: str
+    out: str
+    variant: str = "base"
+    preset: str = "compact"
+    init: str | None = None  # a checkpoint to fine-tune from (the paper fine-tunes REG-* and LSTM from BASE)
+    freeze: bool = True  # LSTM from a CNN checkpoint: keep the copied backbone + first Linear fixed
+    steps: int | None = None  # None: the paper's count for the variant
+    batch_size: int | None = None  # windows per step per process; None: the paper's for the variant
+    lr: float = 1e-3
+    lr_decay: float = 0.1
+    lr_milestones: tuple[float, ...] = (1 / 3, 2 / 3)  # fractions of ``steps`` where lr *= lr_decay
+    device: str = "auto"
+    amp: bool = True  # mixed precision on CUDA (never on CPU)
+    seed: int = 0
+    val: str | None = None
+    val_every: int = 1000
+    checkpoint_every: int = 500
+    checkpoint_minutes: float = 15.0  # also checkpoint when this long has passed (slow CPU runs)
+    work_size: tuple[int, int] = (320, 180)
+    patch: int = 128
+    num_workers: int = 1
+    threads: int | None = None  # torch CPU threads per process; None: torch's default (all cores)
+    cache_gb: float = 8.0  # disk budget of the decoded-frame cache in RUN_DIR/cache
+    extra: dict = field(default_factory=dict)  # free-form notes kept with the run
+
+    def resolved(self) -> "TrainConfig":
+        """A copy with the paper's defaults filled in and every value checked."""
+        if self.variant not in VARIANTS:
+            raise BadInput(f"unknown --variant {self.variant!r}: choose one of {', '.join(VARIANTS)}")
+        if self.preset not in PRESETS:
+            raise BadInput(f"unknown --preset {self.preset!r}: choose one of {', '.join(PRESETS)}")
+        if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
+            raise BadInput(f"unknown --device {self.device!r}: choose one of {', '.join(DEVICES)}")
+        cfg = replace(
+            self,
+            steps=paper_steps(self.variant) if self.steps is None else int(self.steps),
+            batch_size=paper_batch_size(self.variant) if self.batch_size is None else int(self.batch_size),
+            work_size=tuple(int(v) for v in self.work_size),
+            lr_milestones=tuple(float(m) for m in self.lr_milestones),
+        )
+        checks = [
+            (cfg.steps >= 1, f"--steps must be at least 1, got {cfg.steps}"),
+            (cfg.batch_size >= 1, f"--batch-size must be at least 1, got {cfg.batch_size}"),
+            (cfg.lr > 0, f"--lr must be positive, got {cfg.lr}"),
+            (0 < cfg.lr_decay <= 1, f"the learning-rate decay must be in (0, 1], got {cfg.lr_decay}"),
+            (all(0 < m < 1 for m in cfg.lr_milestones), "learning-rate milestones must be fractions in (0, 1)"),
+            (cfg.patch >= 16, f"--patch must be at least 16, got {cfg.patch}"),
+            (min(cfg.work_size) >= cfg.patch,
+             f"--work-size {cfg.work_size[0]}x{cfg.work_size[1]} is smaller than a {cfg.patch}px patch"),
+            (cfg.threads is None or cfg.threads >= 1, f"--threads must be at least 1, got {cfg.threads}"),
+            (cfg.num_workers >= 0, f"--num-workers must be 0 or more, got {cfg.num_workers}"),
+            (cfg.checkpoint_every >= 1, f"--checkpoint-every must be at least 1, got {cfg.checkpoint_every}"),
+            (cfg.val_every >= 1, f"--val-every must be at least 1, got {cfg.val_every}"),
+            (cfg.cache_gb > 0, f"--cache-gb must be positive, got {cfg.cache_gb}"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise BadInput(message)
+        return cfg
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data["work_size"] = list(self.work_size)
+        data["lr_milestones"] = list(self.lr_milestones)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrainConfig":
+        known = {f.name for f in fields(cls)}
+        values = {k: v for k, v in data.items() if k in known}
+        if "work_size" in values:
+            values["work_size"] = tuple(values["work_size"])
+        if "lr_milestones" in values:
+            values["lr_milestones"] = tuple(values["lr_milestones"])
+        return cls(**values)
