@@ -42,6 +42,7 @@ class L1Smoother:
     overlap: int = 40  # frames re-solved by the next window (only the first part is kept)
     zoom_cost: float = 1.0  # per frame and unit of zoom: keeps the crop as large as it can be
     border_cost: float = 10.0  # per frame and unit of border, when the user fixed the crop ratio
+    fixed_zoom_cost: float = 100.0  # per frame and unit of zoom away from a crop ratio the user fixed
     hard_border_cost: float = 1e4  # the same with --crop auto: in effect a hard constraint
     max_zoom: float = 1.25  # --crop auto never zooms in further than this
     max_rotation: float = 0.15  # radians of correction
@@ -185,7 +186,7 @@ def _solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | No
         rhs.append(np.full(shape_rows.shape[0], opts.max_anisotropy))
     if explicit:
         u_at = z_at + n_z
-        cost[u_at:u_at + n_u] = opts.zoom_cost
+        cost[u_at:u_at + n_u] = opts.fixed_zoom_cost
         scale_rows = sp.kron(sp.identity(L), scale[None, :], format="csr")
         eye = sp.identity(L, format="csr")
         blocks += [columns(scale_rows, 0) - columns(eye, u_at), columns(-scale_rows, 0) - columns(eye, u_at)]
