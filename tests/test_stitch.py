@@ -19,6 +19,7 @@ from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
 from mosaic_cli.simulate import MapPyramid, plan_flight, render_frames, render_view
 from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
 from mosaic_cli.stitch.registration import Link, RegistrationReport, refine_placements
 from mosaic_cli.video import VideoWriter, open_video
@@ -408,3 +409,28 @@ def test_keyframe_store_shrinks_held_pixels_as_the_flown_area_grows():
         assert key.image.shape[1] == round(size[0] * key.scale)
     held = sum(k.image.size for k in keyframes)
     assert held < 40 * frame.size * 0.1
+
+
+def test_blending_in_strips_matches_blending_the_whole_canvas(ground):
+    """The blender runs on horizontal strips to bound its memory; the margins it borrows
+    from the neighbouring strips must make the seams between strips invisible."""
+    rng = np.random.default_rng(1)
+    canvas = (700, 620)
+    tiles = []
+    for k in range(9):
+        x, y = 40 + 190 * (k % 3) + rng.uniform(-10, 10), 30 + 170 * (k // 3) + rng.uniform(-10, 10)
+        H = np.array([[1.0, 0.02, x], [-0.02, 1.0, y], [0, 0, 1]])
+        gain = 0.85 + 0.3 * rng.random()  # uneven exposure, for the compensator to even out
+        view = cv2.warpPerspective(ground, np.linalg.inv(H), (256, 200), flags=cv2.INTER_LINEAR)
+        tiles.append((np.clip(view * gain, 0, 255).astype(np.uint8), H))
+    results = {}
+    for blend in ("multiband", "feather"):
+        for strip in (100.0, 0.05):  # one strip; strips of ~70 rows
+            placed = [PlacedImage(image.copy(), H) for image, H in tiles]
+            options = ComposeOptions(blend=blend, strip_megapix=strip)
+            results[blend, strip] = compose(placed, canvas, options)
+            assert all(p.image is None for p in placed)  # pixels dropped once drawn
+        whole, strips = results[blend, 100.0].astype(int), results[blend, 0.05].astype(int)
+        assert np.array_equal(whole[..., 3], strips[..., 3])
+        assert np.abs(whole - strips).max() <= 2, blend
+    assert (results["multiband", 100.0][..., 3] == 255).mean() > 0.6

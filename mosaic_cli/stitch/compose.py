@@ -37,6 +37,7 @@ class ComposeOptions:
     seam_megapix: float = 0.05
     # ... and all of them together no larger than this (bounds the memory for long flights).
     seam_canvas_megapix: float = 2.0
+    strip_megapix: float = 8.0  # the blender works on horizontal strips of about this size
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
 
     def validate(self) -> None:
@@ -50,7 +51,7 @@ class ComposeOptions:
 
 @dataclass
 class PlacedImage:
-    image: np.ndarray  # RGB uint8
+    image: np.ndarray | None  # RGB uint8; compose() drops it once drawn
     to_canvas: np.ndarray  # image pixels -> canvas pixels
 
 
@@ -112,29 +113,69 @@ def compose(
     options: ComposeOptions,
     advance: Callable[..., None] = lambda *a, **k: None,
 ) -> np.ndarray:
-    """The panorama as RGBA uint8 (H, W, 4)."""
+    """The panorama as RGBA uint8 (H, W, 4).
+
+    The blender runs on horizontal strips of the canvas (``strip_megapix``), each with a
+    margin wide enough for its pyramid or feather, so its memory does not grow with the
+    canvas; ``placed`` is consumed: an image's pixels are dropped after its last strip."""
     W, H = canvas_size
     rois = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size) for p in placed]
-    placed = [p for p, r in zip(placed, rois) if r is not None]
-    rois = [r for r in rois if r is not None]
+    keep = [k for k, r in enumerate(rois) if r is not None]
+    for k, r in enumerate(rois):
+        if r is None:  # entirely off the canvas
+            placed[k].image = None
+    placed = [placed[k] for k in keep]
+    rois = [rois[k] for k in keep]
     seam_scale = _seam_scale([r.w * r.h for r in rois], W * H, options)
     compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
     advance(0, status="blending")
-    blender = _blender(options, W, H)
-    for k, (p, roi) in enumerate(zip(placed, rois)):
-        warped, mask = warp_into(p.image, p.to_canvas, roi)
-        warped = compensator.apply(k, roi.corner, warped, mask)
-        seam = cv2.resize(cv2.dilate(seam_masks[k], None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
-        blender.feed(warped.astype(np.int16), cv2.bitwise_and(seam, mask), roi.corner)
-        advance(1)
-    result, result_mask = blender.blend(None, None)
-    del blender
-    rgba = np.empty((H, W, 4), np.uint8)
-    rgba[..., :3] = np.clip(result[:H, :W], 0, 255)
-    del result
-    rgba[..., 3] = np.where(result_mask[:H, :W] > 0, 255, 0)
-    rgba[rgba[..., 3] == 0, :3] = 0
+    blend = _blend_plan(options, W, H)
+    rgba = np.zeros((H, W, 4), np.uint8)
+    # Strips start on the pyramid's grid, so that each strip decimates like the whole canvas.
+    strip = max(64, int(options.strip_megapix * 1e6 / W))
+    strip = -(-strip // blend.unit) * blend.unit
+    ready: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # warped, blend mask; reused by the next strip
+    finished: set[int] = set()
+    for y0 in range(0, H, strip):
+        y1 = min(H, y0 + strip)
+        top, bottom = max(0, y0 - blend.margin), min(H, y1 + blend.margin)
+        blender = blend.make((0, top, W, bottom - top))
+        fed = False
+        for k, roi in enumerate(rois):
+            if k in finished or roi.y >= bottom or roi.y + roi.h <= top:
+                continue
+            if k not in ready:
+                ready[k] = _prepared(placed[k], roi, k, compensator, seam_masks[k])
+            warped, mask = ready[k]
+            r0, r1 = max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y
+            blender.feed(warped[r0:r1].astype(np.int16), mask[r0:r1], (roi.x, roi.y + r0))
+            fed = True
+        if fed:
+            result, result_mask = blender.blend(None, None)
+            rows = slice(y0 - top, y1 - top)
+            covered = result_mask[rows, :W] > 0
+            np.clip(result, 0, 255, out=result)
+            rgba[y0:y1, :, :3] = np.where(covered[..., None], result[rows, :W], 0)
+            rgba[y0:y1, :, 3] = np.where(covered, 255, 0)
+            del result, result_mask
+        del blender
+        # An image that the next strip (its margin included) does not reach is done.
+        next_top = y1 - blend.margin
+        for k, roi in enumerate(rois):
+            if k not in finished and (y1 >= H or roi.y + roi.h <= next_top):
+                finished.add(k)
+                ready.pop(k, None)
+                placed[k].image = None
+                advance(1)
     return rgba
+
+
+def _prepared(p: PlacedImage, roi: Roi, k: int, compensator, seam_mask: np.ndarray):
+    """Warped, exposure-compensated image and its blend mask (seam mask within coverage)."""
+    warped, mask = warp_into(p.image, p.to_canvas, roi)
+    warped = compensator.apply(k, roi.corner, warped, mask)
+    seam = cv2.resize(cv2.dilate(seam_mask, None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
+    return warped, cv2.bitwise_and(seam, mask)
 
 
 def _seam_scale(areas: list[int], canvas_area: int, options: ComposeOptions) -> float:
@@ -173,13 +214,33 @@ def _seams_and_exposure(placed, rois, seam_scale, options):
     return compensator, masks
 
 
-def _blender(options: ComposeOptions, W: int, H: int):
-    width = np.sqrt(W * H) * options.blend_strength / 100.0
-    if options.blend == "multiband" and width >= 1:
-        blender = cv2.detail.MultiBandBlender(0, max(1, int(np.log2(max(width, 2.0))) - 1))
-    elif options.blend == "feather" and width >= 1:
-        blender = cv2.detail.FeatherBlender(1.0 / width)
-    else:
-        blender = cv2.detail.Blender_createDefault(cv2.detail.Blender_NO)
-    blender.prepare((0, 0, W, H))
-    return blender
+@dataclass
+class _BlendPlan:
+    kind: str
+    bands: int
+    width: float  # blend width, pixels
+    margin: int  # rows a strip borrows from its neighbours
+    unit: int = 1  # strips start at multiples of this
+
+    def make(self, roi: tuple[int, int, int, int]):
+        if self.kind == "multiband":
+            blender = cv2.detail.MultiBandBlender(0, self.bands)
+        elif self.kind == "feather":
+            blender = cv2.detail.FeatherBlender(1.0 / self.width)
+        else:
+            blender = cv2.detail.Blender_createDefault(cv2.detail.Blender_NO)
+        blender.prepare(roi)
+        return blender
+
+
+def _blend_plan(options: ComposeOptions, W: int, H: int) -> _BlendPlan:
+    """The blender's settings for the whole canvas (as OpenStitching sizes them), and the
+    margin each strip needs: the multi-band pyramid's reach, or the feather's width."""
+    width = float(np.sqrt(W * H) * options.blend_strength / 100.0)
+    if options.blend == "multiband" and width >= 2:
+        bands = max(1, int(np.log2(width)) - 1)
+        # A 5-tap Gaussian at each of the levels reaches about 2 * (1 + 2 + ... + 2^bands) rows.
+        return _BlendPlan("multiband", bands, width, 4 * 2**bands, 2**bands)
+    if options.blend == "feather" and width >= 1:
+        return _BlendPlan("feather", 0, width, int(np.ceil(width)) + 8)
+    return _BlendPlan("none", 0, 1.0, 0)

@@ -78,12 +78,9 @@ class Keyframe:
     placement: np.ndarray  # frame -> world, source pixels (chained, before refinement)
     features: Features
     quality: FrameQuality
-    image: np.ndarray | None = None  # RGB at ``scale`` x source size; None: registration only
+    image: np.ndarray | None = None  # RGB at ``scale`` x source size, while it is held
     scale: float = 1.0
-
-    @property
-    def composited(self) -> bool:
-        return self.image is not None
+    composited: bool = False  # drawn in the panorama (else used for registration only)
 
 
 @dataclass
@@ -107,7 +104,7 @@ class KeyframeStore:
     flown so far must fit ``max_size`` (with a margin, as the final reference frame may be
     larger than the anchor); images already held shrink when the area outgrows them."""
 
-    MARGIN = 1.5
+    MARGIN = 1.2
     SHRINK_BELOW = 0.8  # re-scale held images only when they are this much too large
 
     def __init__(self, source_size: tuple[int, int], decode_scale: float, max_size: int | None):
@@ -125,6 +122,7 @@ class KeyframeStore:
             extent = float(np.max(self._hi - self._lo))
             self.scale = min(self.decode_scale, self.MARGIN * self.max_size / max(extent, 1.0))
         keyframe.image, keyframe.scale = self._resized(frame, self.decode_scale, self.scale)
+        keyframe.composited = True
 
     def shrink(self, keyframes: Iterable[Keyframe]) -> None:
         for k in keyframes:

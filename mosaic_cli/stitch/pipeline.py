@@ -173,10 +173,11 @@ def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress:
 def _compose(scan: FlightScan, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
     placed = []
     for keyframe, H in zip(scan.keyframes, frame_to_canvas):
-        image = keyframe.image
-        if image is None:
+        if not keyframe.composited:
             continue
+        image, keyframe.image = keyframe.image, None  # compose() frees each image once drawn
         to_source = np.linalg.inv(resize_matrix(scan.source_size, (image.shape[1], image.shape[0])))
         placed.append(PlacedImage(image, normalize(H @ to_source)))
+        del image
     with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", len(placed), unit="fr/s", disable=not show_progress) as advance:
         return compose(placed, canvas_size, options, advance)
