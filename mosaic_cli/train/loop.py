@@ -18,6 +18,8 @@ run interrupted at step s and resumed computes the same steps s+1.. as one that 
 
 from __future__ import annotations
 
+import contextlib
+import shutil
 import signal
 import time
 from dataclasses import dataclass, replace
@@ -27,7 +29,7 @@ import torch
 from torch import nn
 
 from mosaic_cli.atomic import check_writable
-from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.errors import BadInput, MosaicError, ProcessingError
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.network import HomographyNet, NetConfig
 from mosaic_cli.model.objective import Objective
@@ -106,23 +108,29 @@ def train(cfg: TrainConfig, resume: bool = False, show_progress: bool = True) ->
 
 
 def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: bool) -> TrainSummary:
-    run = prepare_run_dir(cfg, resume)
+    # 1. plan: every input is checked before anything is written or decoded
+    run = RunDir(Path(cfg.out))
     state = run.read_state() if resume else {"step": 0}
     start = int(state["step"])
     if start >= cfg.steps:
         raise BadInput(f"{run.root} has already run {start} steps; pass a larger --steps to continue it")
+    clips = discover_clips(cfg.clips)
     objective = Objective(cfg.variant, patch=cfg.patch)
     flights = find_val_flights(cfg.val) if cfg.val else []
     init_net = load_init(cfg) if (cfg.init and not resume) else None
-    clips = discover_clips(cfg.clips)
+    prepare_run_dir(run)
 
     # 2. decode the clips (rank 0; the others then find every clip in the cache)
-    if not dist.is_main:
-        dist.barrier()
-    cached = build_frame_cache(clips, run.cache, cfg.work_size, objective.window, cfg.cache_gb * 1e9,
-                               workers=cfg.num_workers, show_progress=show_progress)
+    failure, cached = None, []
     if dist.is_main:
-        dist.barrier()
+        try:
+            cached = decode_clips(clips, run, cfg, objective.window, fresh=not resume, show_progress=show_progress)
+        except MosaicError as exc:
+            failure = exc
+    if dist.any_flag(failure is not None)[0]:
+        raise failure or ProcessingError("rank 0 could not prepare the clips")
+    if not dist.is_main:
+        cached = decode_clips(clips, run, cfg, objective.window, fresh=False, show_progress=False)
 
     # 3. the network and 4. the optimiser
     torch.manual_seed(cfg.seed)  # the same initial weights on every rank (DDP also broadcasts them)
@@ -144,7 +152,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     loader = make_loader(dataset, StepBatches(start, cfg.steps, cfg.batch_size, dist.rank, dist.world),
                          cfg.num_workers, pin_memory=dist.device.type == "cuda")
     log = CsvLog(run.log, keep_until=start if resume else None) if dist.is_main else None
-    if dist.is_main:
+    if show_progress:
         describe_run(cfg, dist, net, trainable, cached, schedule, start, precision)
 
     # 5. step, 6. checkpoint, 7. validate
@@ -219,8 +227,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
 # ----------------------------------------------------------------------------- stages
 
 
-def prepare_run_dir(cfg: TrainConfig, resume: bool) -> RunDir:
-    run = RunDir(Path(cfg.out))
+def prepare_run_dir(run: RunDir) -> None:
     if run.root.exists() and not run.root.is_dir():
         raise BadInput(f"--out {run.root} exists and is not a folder")
     try:
@@ -228,7 +235,20 @@ def prepare_run_dir(cfg: TrainConfig, resume: bool) -> RunDir:
     except OSError as exc:
         raise BadInput(f"cannot create --out {run.root}: {exc.strerror}") from None
     check_writable(run.state)
-    return run
+
+
+def decode_clips(clips, run: RunDir, cfg: TrainConfig, window: int, fresh: bool, show_progress: bool):
+    """The frame cache of every usable clip.  A fresh run that finds no usable clip leaves no
+    run folder behind."""
+    try:
+        return build_frame_cache(clips, run.cache, cfg.work_size, window, cfg.cache_gb * 1e9,
+                                 workers=cfg.num_workers, show_progress=show_progress)
+    except MosaicError:
+        if fresh:
+            shutil.rmtree(run.cache, ignore_errors=True)
+            with contextlib.suppress(OSError):
+                run.root.rmdir()  # only if empty: never remove anything the user put there
+        raise
 
 
 def load_init(cfg: TrainConfig) -> HomographyNet:

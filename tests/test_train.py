@@ -1,0 +1,373 @@
+"""``mosaic train``: data pipeline, schedule, learning, exact resume, DDP, fine-tuning, validation.
+
+Every clip here is generated on the fly (a textured map seen by a panning camera), kept tiny
+(64x48 working frames, 32 px patches) and trained with one thread so each test takes seconds.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from safetensors import safe_open
+from torch.utils.data import default_collate
+
+from conftest import textured_image, write_clip
+from mosaic_cli.errors import BadInput
+from mosaic_cli.model import HomographyNet, NetConfig, Objective, load_weights
+from mosaic_cli.train.config import TrainConfig
+from mosaic_cli.train.data import (
+    StepBatches,
+    WindowDataset,
+    build_frame_cache,
+    discover_clips,
+    fit_to_work_size,
+    share_budget,
+    to_model_input,
+)
+from mosaic_cli.train.loop import plan_run, train
+from mosaic_cli.train.schedule import StepSchedule
+
+WORK = (64, 48)
+PATCH = 32
+SMALL = ["--work-size", "64x48", "--patch", "32", "--threads", "1", "-q"]
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+def pan_frames(n: int, size=WORK, speed: float = 2.0, seed: int = 2, blur: float = 1.0) -> np.ndarray:
+    """(n, h, w) gray frames of a camera panning over a texture by (speed, speed/2) px a frame."""
+    tex = cv2.cvtColor(textured_image(600, 500, seed=seed), cv2.COLOR_RGB2GRAY)
+    if blur:
+        tex = cv2.GaussianBlur(tex, (0, 0), blur)
+    out = []
+    for t in range(n):
+        M = np.array([[1, 0, 100 + speed * t], [0, 1, 100 + 0.5 * speed * t], [0, 0, 1.0]])
+        out.append(cv2.warpPerspective(tex, M, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP))
+    return np.array(out)
+
+
+def write_png_folder(folder: Path, frames: np.ndarray) -> Path:
+    folder.mkdir(parents=True)
+    for k, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"frame_{k:04d}.png"), f)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def pan_clips(tmp_path_factory) -> Path:
+    """A folder with one 60-frame panning mp4."""
+    root = tmp_path_factory.mktemp("pan")
+    write_clip(root / "pan.mp4", [cv2.cvtColor(f, cv2.COLOR_GRAY2RGB) for f in pan_frames(60)])
+    return root
+
+
+def run_cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mosaic_cli", *args], capture_output=True, text=True,
+                          env=ENV, timeout=timeout)
+
+
+def cli_in_process(capsys, *args: str) -> tuple[int, str]:
+    """Run ``mosaic ARGS`` in this process: (exit code, stderr)."""
+    from mosaic_cli.cli import main
+
+    capsys.readouterr()
+    try:
+        main(list(args))
+        code = 0
+    except SystemExit as exc:
+        code = exc.code or 0
+    return code, capsys.readouterr().err
+
+
+def read_log(run: Path) -> list[dict]:
+    with open(run / "log.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def tensors(path: Path) -> dict[str, torch.Tensor]:
+    with safe_open(str(path), framework="pt") as fh:
+        return {k: fh.get_tensor(k) for k in fh.keys()}
+
+
+# ----------------------------------------------------------------------------- schedule, config
+
+
+def test_schedule_decays_at_the_papers_fractions_of_any_step_count():
+    paper = StepSchedule(1e-3, 300_000)
+    assert paper.milestone_steps == (100_000, 200_000)  # BASE: x0.1 every 100k of 300k
+    assert StepSchedule(1e-3, 90_000).milestone_steps == (30_000, 60_000)  # fine-tunes: every 30k of 90k
+    assert paper.lr_at(99_999) == pytest.approx(1e-3)
+    assert paper.lr_at(100_000) == pytest.approx(1e-4)
+    assert paper.lr_at(299_999) == pytest.approx(1e-5)
+    short = StepSchedule(1e-3, 30)
+    assert [short.lr_at(s) for s in (9, 10, 19, 20)] == pytest.approx([1e-3, 1e-4, 1e-4, 1e-5])
+
+
+def test_config_takes_the_papers_batch_and_steps_per_variant():
+    base = TrainConfig("c", "o").resolved()
+    assert (base.batch_size, base.steps) == (64, 300_000)
+    assert (TrainConfig("c", "o", variant="reg-all").resolved().batch_size, TrainConfig("c", "o", variant="reg-t").resolved().steps) == (32, 90_000)
+    assert TrainConfig("c", "o", variant="lstm-reg-all").resolved().batch_size == 8
+    with pytest.raises(BadInput, match="variant"):
+        TrainConfig("c", "o", variant="nope").resolved()
+    with pytest.raises(BadInput, match="patch"):
+        TrainConfig("c", "o", work_size=(100, 60), patch=64).resolved()
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def test_discover_clips_finds_videos_and_frame_folders(tmp_path, tiny_clip):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "one.mp4").write_bytes(tiny_clip.read_bytes())
+    (tmp_path / "a" / "one.gt.json").write_text("{}")
+    write_png_folder(tmp_path / "b" / "frames", pan_frames(3))
+    (tmp_path / "notes.txt").write_text("x")
+    found = discover_clips(tmp_path)
+    assert found == [tmp_path / "a" / "one.mp4", tmp_path / "b" / "frames"]
+    assert discover_clips(tmp_path / "b" / "frames") == [tmp_path / "b" / "frames"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(BadInput, match="no video files"):
+        discover_clips(empty)
+    with pytest.raises(BadInput, match="no such"):
+        discover_clips(tmp_path / "missing")
+
+
+def test_frame_cache_holds_the_exact_frames_and_windows_are_consecutive(tmp_path):
+    frames = pan_frames(20)
+    clip = write_png_folder(tmp_path / "clip", frames)  # lossless: the cache must equal the PNGs
+    cached = build_frame_cache([clip], tmp_path / "cache", WORK, window=4, budget_bytes=1e9, workers=0,
+                               show_progress=False)
+    stored = np.load(cached[0].file, mmap_mode="r")
+    np.testing.assert_array_equal(stored, frames)
+
+    ds = WindowDataset(cached, window=4, positions=3, patch=PATCH, seed=7)
+    reversed_count = 0
+    for index in range(200):
+        sample = ds[index]
+        window = sample["frames"][:, 0].numpy()
+        assert sample["frames"].shape == (4, 1, 48, 64) and sample["frames"].dtype == torch.uint8
+        forward = [s for s in range(17) if np.array_equal(window, frames[s:s + 4])]
+        backward = [s for s in range(17) if np.array_equal(window, frames[s:s + 4][::-1])]
+        assert forward or backward, "a window must be 4 consecutive frames, forward or reversed"
+        reversed_count += bool(backward) and not forward
+        pos = sample["positions"].numpy()
+        assert pos.shape == (3, 2)
+        assert np.all(pos >= 0) and np.all(pos[:, 0] <= 64 - PATCH) and np.all(pos[:, 1] <= 48 - PATCH)
+        torch.testing.assert_close(ds[index]["frames"], sample["frames"])  # a pure function of the index
+    assert 60 < reversed_count < 140  # about half are time-reversed
+
+    # A second build finds everything in the cache and decodes nothing.
+    mtime = Path(cached[0].file).stat().st_mtime_ns
+    again = build_frame_cache([clip], tmp_path / "cache", WORK, 4, 1e9, workers=0, show_progress=False)
+    assert again == cached and Path(cached[0].file).stat().st_mtime_ns == mtime
+
+
+def test_frame_cache_stays_within_its_budget_with_segments_of_real_consecutive_frames(tmp_path):
+    frames = pan_frames(300, speed=1.0)
+    clip = write_png_folder(tmp_path / "long", frames)
+    budget = 140 * WORK[0] * WORK[1]  # room for 140 of the 300 frames
+    cached = build_frame_cache([clip], tmp_path / "cache", WORK, window=4, budget_bytes=budget, workers=0,
+                               show_progress=False)
+    entry = cached[0]
+    stored = np.load(entry.file, mmap_mode="r")
+    assert Path(entry.file).stat().st_size <= budget + 128
+    assert 4 <= entry.frames <= 140 and len(entry.segments) >= 1
+    for offset, length in entry.segments:
+        seg = stored[offset:offset + length]
+        starts = [s for s in range(300 - length + 1) if np.array_equal(seg[0], frames[s])]
+        assert starts and np.array_equal(seg, frames[starts[0]:starts[0] + length])
+    assert entry.segments[-1][0] + entry.segments[-1][1] == entry.frames
+
+
+def test_budget_is_shared_out_by_water_filling():
+    assert share_budget([10, 100, None], 90) == [10, 40, 40]
+    assert share_budget([10, 20], 1000) == [10, 20]
+    assert sum(share_budget([None, None, None], 100)) <= 100
+
+
+def test_frames_of_another_aspect_are_scaled_to_cover_and_centre_cropped():
+    frame = np.zeros((120, 120), np.uint8)
+    frame[55:65, 55:65] = 255  # a square in the middle
+    out = fit_to_work_size(frame, (64, 48))
+    assert out.shape == (48, 64)
+    ys, xs = np.nonzero(out > 127)
+    # scale 64/120 keeps the square square and centred
+    assert abs((xs.max() - xs.min()) - (ys.max() - ys.min())) <= 1
+    assert abs(xs.mean() - 31.5) < 1 and abs(ys.mean() - 23.5) < 1
+
+
+def test_step_batches_never_reuse_a_sample_across_steps_or_ranks():
+    seen = []
+    for rank in range(2):
+        seen += [i for batch in StepBatches(3, 6, 4, rank, 2) for i in batch]
+    assert len(seen) == len(set(seen)) == 2 * 3 * 4
+    assert min(seen) == 3 * 2 * 4  # resuming at step 3 starts where step 3 started
+
+
+def test_an_unreadable_clip_is_skipped_and_no_usable_clip_is_a_clear_error(tmp_path, pan_clips, capsys):
+    bad = tmp_path / "clips"
+    bad.mkdir()
+    (bad / "broken.mp4").write_bytes(b"not a video at all" * 100)
+    (bad / "pan.mp4").write_bytes((pan_clips / "pan.mp4").read_bytes())
+    code, err = cli_in_process(capsys, "train", str(bad), "-o", str(tmp_path / "run"), "--steps", "2",
+                               "--batch-size", "2", "--num-workers", "0", *SMALL)
+    assert code == 0, err
+    assert "skipping" in err and "broken.mp4" in err
+    assert (tmp_path / "run" / "weights.safetensors").is_file()
+
+    (bad / "pan.mp4").unlink()
+    code, err = cli_in_process(capsys, "train", str(bad), "-o", str(tmp_path / "run2"), "--steps", "2", *SMALL)
+    assert code == 2
+    assert err.strip().splitlines()[-1].startswith("mosaic: error: no usable clips")
+    assert "Traceback" not in err
+    assert not (tmp_path / "run2").exists()
+
+
+def test_bad_options_fail_before_any_work(tmp_path, pan_clips, capsys):
+    cases = [
+        (["train", str(tmp_path / "missing"), "-o", str(tmp_path / "r1")], "no such file"),
+        (["train", str(pan_clips), "-o", str(tmp_path / "r2"), "--variant", "huge"], "unknown --variant"),
+        (["train", str(pan_clips), "-o", str(tmp_path / "r3"), "--resume"], "no run to resume"),
+        (["train", str(pan_clips), "-o", str(tmp_path / "r4"), "--init", str(tmp_path / "none.safetensors")], "--init"),
+        (["train", str(pan_clips), "-o", str(tmp_path / "r5"), "--val", str(tmp_path / "noval")], "--val"),
+    ]
+    for args, message in cases:
+        code, err = cli_in_process(capsys, *args)
+        assert code == 2, (args, err)
+        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert not Path(args[3]).exists(), f"{args[3]} left behind"
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def test_a_short_cpu_run_lowers_the_photometric_loss_clearly(tmp_path, pan_clips):
+    cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / "run"), steps=250, batch_size=8, work_size=WORK,
+                      patch=PATCH, num_workers=0, threads=1, lr_milestones=(0.9,), seed=0).resolved()
+    summary = train(cfg, show_progress=False)
+    assert summary.weights.is_file() and summary.samples_per_s > 0
+
+    # The same held-out windows before (the run's initial weights) and after training, no dropout.
+    cached = build_frame_cache(discover_clips(pan_clips), tmp_path / "run" / "cache", WORK, 2, 8e9, workers=0,
+                               show_progress=False)
+    held_out = WindowDataset(cached, window=2, positions=1, patch=PATCH, seed=12345)
+    batch = to_model_input(default_collate([held_out[i] for i in range(32)]), torch.device("cpu"))
+    objective = Objective("base", patch=PATCH)
+    torch.manual_seed(cfg.seed)
+    before_net = HomographyNet(NetConfig(preset="compact", head="cnn", patch=PATCH)).eval()
+    after_net, meta = load_weights(summary.weights)
+    assert meta["variant"] == "base" and meta["extra"]["step"] == 250
+    with torch.no_grad():
+        before = objective(before_net, batch)["photometric"].item()
+        after = objective(after_net, batch)["photometric"].item()
+    assert after < 0.75 * before, (before, after)
+    rows = read_log(tmp_path / "run")
+    assert [int(r["step"]) for r in rows] == list(range(1, 251))
+    assert {"lr", "photometric", "total", "samples_per_s"} <= set(rows[0])
+
+
+def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one(tmp_path, pan_clips):
+    args = [str(pan_clips), "--steps", "60", "--batch-size", "16", "--num-workers", "1", "--checkpoint-every", "1000",
+            *SMALL]
+    straight = run_cli("train", *args, "-o", str(tmp_path / "a"))
+    assert straight.returncode == 0, straight.stderr
+
+    run_b = tmp_path / "b"
+    proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "train", *args, "-o", str(run_b)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        if (run_b / "log.csv").is_file() and len(read_log(run_b)) >= 5:
+            break
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)  # what Ctrl-C sends
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "continue with --resume" in " ".join(err.split())
+    stopped_at = json.loads((run_b / "state.json").read_text())["step"]
+    assert 5 <= stopped_at < 60
+    assert not (run_b / "weights.safetensors").exists()
+
+    resumed = run_cli("train", *args, "-o", str(run_b), "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    rows_a, rows_b = read_log(tmp_path / "a"), read_log(run_b)
+    assert [int(r["step"]) for r in rows_b] == list(range(1, 61))  # the step count continued, no step twice
+    for ra, rb in zip(rows_a, rows_b):
+        assert float(rb["total"]) == pytest.approx(float(ra["total"]), rel=1e-5, abs=1e-6), ra["step"]
+    final_a, final_b = tensors(tmp_path / "a" / "weights.safetensors"), tensors(run_b / "weights.safetensors")
+    for name in final_a:
+        torch.testing.assert_close(final_b[name], final_a[name], rtol=1e-5, atol=1e-6)
+
+    # The resumed run keeps what defines it.
+    changed = run_cli("train", *args, "-o", str(run_b), "--resume", "--steps", "80", "--batch-size", "4")
+    assert changed.returncode == 2 and "batch-size" in changed.stderr
+
+
+def test_a_two_process_cpu_ddp_run_completes(tmp_path, pan_clips):
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "mosaic_cli",
+           "train", str(pan_clips), "-o", str(run), "--variant", "reg-all", "--steps", "3", "--batch-size", "1",
+           "--num-workers", "0", *SMALL]
+    result = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    state = json.loads((run / "state.json").read_text())
+    assert state["world"] == 2 and state["step"] == 3
+    rows = read_log(run)
+    assert [int(r["step"]) for r in rows] == [1, 2, 3]
+    assert all(np.isfinite(float(r[k])) for r in rows for k in ("photometric", "spatial", "scale", "temporal1", "temporal2"))
+    net, meta = load_weights(run / "weights.safetensors")
+    assert meta["variant"] == "reg-all"
+
+
+def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pan_clips):
+    base = run_cli("train", str(pan_clips), "-o", str(tmp_path / "base"), "--steps", "2", "--batch-size", "2",
+                   "--num-workers", "0", *SMALL)
+    assert base.returncode == 0, base.stderr
+    base_w = tensors(tmp_path / "base" / "weights.safetensors")
+    for freeze, run in (("--freeze", "lstm"), ("--no-freeze", "lstm_all")):
+        out = run_cli("train", str(pan_clips), "-o", str(tmp_path / run), "--variant", "lstm", "--init",
+                      str(tmp_path / "base" / "weights.safetensors"), freeze, "--steps", "2", "--batch-size", "1",
+                      "--num-workers", "0", *SMALL)
+        assert out.returncode == 0, out.stderr
+        w = tensors(tmp_path / run / "weights.safetensors")
+        shared = [k for k in base_w if k.startswith(("backbone.", "embed."))]
+        assert shared and all(k in w for k in shared)
+        same = [torch.equal(w[k], base_w[k]) for k in shared]
+        if freeze == "--freeze":
+            assert all(same)
+            assert any(not torch.equal(w[k], torch.zeros_like(w[k])) for k in w if k.startswith("lstm."))
+        else:
+            assert not all(same)
+    assert load_weights(tmp_path / "lstm" / "weights.safetensors")[1]["variant"] == "lstm"
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path):
+    from mosaic_cli.evaluate import landmarks_from_ground_truth, mace
+    from mosaic_cli.simulate import simulate_flight
+    from mosaic_cli.train.validate import find_flights, validation_mace
+
+    gt = simulate_flight(tmp_path / "f.mp4", frames=40, size=(128, 96), preset="ultrafast", show_progress=False)
+    flights = find_flights(tmp_path)
+    net = HomographyNet(NetConfig(preset="compact", head="lstm", patch=PATCH))
+    with torch.no_grad():
+        net.regressor.weight.zero_()
+        net.regressor.bias.zero_()  # offsets 0: the identity for every pair
+    got = validation_mace(net, flights, torch.device("cpu"), (128, 96))
+    identity = mace(np.tile(np.eye(3), (gt.frames - 1, 1, 1)), landmarks_from_ground_truth(gt), gt.size)
+    assert got == pytest.approx(identity, rel=1e-9)
+    assert identity > 1.0  # the flight moves: a non-trivial number
