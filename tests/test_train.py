@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -277,42 +278,64 @@ def test_a_short_cpu_run_lowers_the_photometric_loss_clearly(tmp_path, pan_clips
     assert [int(r["step"]) for r in rows] == list(range(1, 251))
     assert {"lr", "photometric", "total", "samples_per_s"} <= set(rows[0])
 
+    # The weights drive ``mosaic track`` and move it towards the true pan, (-2, -1) px a frame.
+    from mosaic_cli.estimators import make_estimator
+    from mosaic_cli.geometry import corner_error
+    from mosaic_cli.track import track_video
 
-def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one(tmp_path, pan_clips):
-    args = [str(pan_clips), "--steps", "60", "--batch-size", "16", "--num-workers", "1", "--checkpoint-every", "1000",
-            *SMALL]
-    straight = run_cli("train", *args, "-o", str(tmp_path / "a"))
-    assert straight.returncode == 0, straight.stderr
+    tracked = track_video(pan_clips / "pan.mp4", make_estimator("cnn", weights=str(summary.weights), device="cpu"),
+                          show_progress=False)
+    truth = np.array([[1, 0, -2.0], [0, 1, -1.0], [0, 0, 1]])
+    assert tracked.pairwise.shape == (59, 3, 3)
+    err = np.median(corner_error(tracked.pairwise, truth, WORK))
+    print("track corner error", err, "identity", corner_error(np.eye(3), truth, WORK))
+    assert err < 0.5 * corner_error(np.eye(3), truth, WORK)
+
+
+def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one(tmp_path, pan_clips, capsys):
+    args = ["train", str(pan_clips), "--steps", "40", "--batch-size", "8", "--num-workers", "1",
+            "--checkpoint-every", "1000", *SMALL]
+    code, err = cli_in_process(capsys, *args, "-o", str(tmp_path / "a"))
+    assert code == 0, err
 
     run_b = tmp_path / "b"
-    proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "train", *args, "-o", str(run_b)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        if (run_b / "log.csv").is_file() and len(read_log(run_b)) >= 5:
-            break
-        time.sleep(0.01)
-    proc.send_signal(signal.SIGINT)  # what Ctrl-C sends
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+
+    def press_ctrl_c_after_five_steps():
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            if (run_b / "log.csv").is_file() and len(read_log(run_b)) >= 5:
+                os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C sends; handled in the main thread
+                return
+            time.sleep(0.005)
+
+    presser = threading.Thread(target=press_ctrl_c_after_five_steps)
+    presser.start()
+    code, err = cli_in_process(capsys, *args, "-o", str(run_b))
+    presser.join()
+    assert code == 130, err
     assert "continue with --resume" in " ".join(err.split())
     stopped_at = json.loads((run_b / "state.json").read_text())["step"]
-    assert 5 <= stopped_at < 60
+    assert 5 <= stopped_at < 40
+    assert len(read_log(run_b)) == stopped_at
     assert not (run_b / "weights.safetensors").exists()
 
-    resumed = run_cli("train", *args, "-o", str(run_b), "--resume")
-    assert resumed.returncode == 0, resumed.stderr
+    code, err = cli_in_process(capsys, *args, "-o", str(run_b), "--resume")
+    assert code == 0, err
     rows_a, rows_b = read_log(tmp_path / "a"), read_log(run_b)
-    assert [int(r["step"]) for r in rows_b] == list(range(1, 61))  # the step count continued, no step twice
+    assert [int(r["step"]) for r in rows_b] == list(range(1, 41))  # the step count continued, no step twice
     for ra, rb in zip(rows_a, rows_b):
         assert float(rb["total"]) == pytest.approx(float(ra["total"]), rel=1e-5, abs=1e-6), ra["step"]
     final_a, final_b = tensors(tmp_path / "a" / "weights.safetensors"), tensors(run_b / "weights.safetensors")
     for name in final_a:
         torch.testing.assert_close(final_b[name], final_a[name], rtol=1e-5, atol=1e-6)
 
-    # The resumed run keeps what defines it.
-    changed = run_cli("train", *args, "-o", str(run_b), "--resume", "--steps", "80", "--batch-size", "4")
-    assert changed.returncode == 2 and "batch-size" in changed.stderr
+    # A resumed run keeps what defines it; a finished one needs a larger --steps.
+    code, err = cli_in_process(capsys, *args, "-o", str(run_b), "--resume", "--batch-size", "4")
+    assert code == 2 and "batch-size" in err
+    code, err = cli_in_process(capsys, *args, "-o", str(run_b), "--resume")
+    assert code == 2 and "already run 40 steps" in err
+    code, err = cli_in_process(capsys, *args, "-o", str(run_b))
+    assert code == 2 and "--resume" in err
 
 
 def test_a_two_process_cpu_ddp_run_completes(tmp_path, pan_clips):
@@ -332,24 +355,21 @@ def test_a_two_process_cpu_ddp_run_completes(tmp_path, pan_clips):
 
 
 def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pan_clips):
-    base = run_cli("train", str(pan_clips), "-o", str(tmp_path / "base"), "--steps", "2", "--batch-size", "2",
-                   "--num-workers", "0", *SMALL)
-    assert base.returncode == 0, base.stderr
-    base_w = tensors(tmp_path / "base" / "weights.safetensors")
-    for freeze, run in (("--freeze", "lstm"), ("--no-freeze", "lstm_all")):
-        out = run_cli("train", str(pan_clips), "-o", str(tmp_path / run), "--variant", "lstm", "--init",
-                      str(tmp_path / "base" / "weights.safetensors"), freeze, "--steps", "2", "--batch-size", "1",
-                      "--num-workers", "0", *SMALL)
-        assert out.returncode == 0, out.stderr
-        w = tensors(tmp_path / run / "weights.safetensors")
-        shared = [k for k in base_w if k.startswith(("backbone.", "embed."))]
-        assert shared and all(k in w for k in shared)
-        same = [torch.equal(w[k], base_w[k]) for k in shared]
-        if freeze == "--freeze":
-            assert all(same)
-            assert any(not torch.equal(w[k], torch.zeros_like(w[k])) for k in w if k.startswith("lstm."))
-        else:
-            assert not all(same)
+    def run(name: str, **options) -> dict[str, torch.Tensor]:
+        cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / name), steps=2, work_size=WORK, patch=PATCH,
+                          num_workers=0, threads=1, **options).resolved()
+        return tensors(train(cfg, show_progress=False).weights)
+
+    base = run("base", batch_size=2)
+    shared = [k for k in base if k.startswith(("backbone.", "embed."))]
+    init = str(tmp_path / "base" / "weights.safetensors")
+    frozen = run("lstm", variant="lstm", init=init, batch_size=1)
+    assert shared and all(torch.equal(frozen[k], base[k]) for k in shared)
+    torch.manual_seed(0)  # the run's seed: the LSTM and regressor weights it started from
+    untrained = HomographyNet(NetConfig(preset="compact", head="lstm", patch=PATCH)).state_dict()
+    assert any(not torch.equal(frozen[k], untrained[k]) for k in frozen if k.startswith(("lstm.", "regressor.")))
+    everything = run("lstm_all", variant="lstm", init=init, batch_size=1, freeze=False)
+    assert not all(torch.equal(everything[k], base[k]) for k in shared)
     assert load_weights(tmp_path / "lstm" / "weights.safetensors")[1]["variant"] == "lstm"
 
 

@@ -332,7 +332,7 @@ def validate_now(net: HomographyNet, flights, device: torch.device, cfg: TrainCo
 
     was_training = net.training
     try:
-        return validation_mace(net, flights, device, cfg.work_size)
+        return validation_mace(net, flights, device, cfg.work_size, cfg.variant)
     finally:
         net.train(was_training)
 
