@@ -27,6 +27,16 @@ FULL, WORK = (640, 360), (320, 180)
 STEP_FULL = (6, -4)  # content moves by this many full-resolution pixels per frame
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
+    threads make a 2-thread run up to 50x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def panning():
     """Eight 640x360 RGB frames: frame t+1 shows at x + STEP_FULL what frame t shows at x."""

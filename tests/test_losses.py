@@ -17,7 +17,7 @@ from torch import nn
 from conftest import textured_image
 from mosaic_cli.geometry import chain as np_chain
 from mosaic_cli.model import HomographyNet, LossWeights, NetConfig, Objective
-from mosaic_cli.model.dlt import chain
+from mosaic_cli.model.dlt import chain, homography_to_offsets
 from mosaic_cli.model.losses import (
     chain_consistency,
     corner_distance,
@@ -31,6 +31,16 @@ from mosaic_cli.model.objective import VARIANTS, frame_corners_tensor
 W, H_ = 320, 180
 CORNERS = frame_corners_tensor(W, H_)
 STEP = (3, -2)  # content moves by (+3, -2) px per frame: H t -> t+1 is a translation by STEP
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
+    threads make a 2-thread run up to 50x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -171,6 +181,41 @@ def test_oracle_makes_every_term_vanish(panning_frames):
     # the same net read in the wrong direction: frame t+1 -> t
     wrong = Objective("reg-t", window=4)(PhaseOracle(flip=True), batch_of(frames, [(96, 26)]))
     assert float(wrong["photometric"]) > 20 * float(out["photometric"]) and float(wrong["temporal2"]) > 20 * float(out["temporal2"])
+
+
+def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography():
+    """Free corner offsets, optimised on one frame pair related by a known homography (rotation,
+    zoom, tilt and shift): the loss and its gradient lead to the true offsets."""
+    W_, H_ = 320, 180
+    tex = cv2.GaussianBlur(cv2.cvtColor(textured_image(600, 400, seed=5), cv2.COLOR_RGB2GRAY), (0, 0), 2.0)
+    x, y = 100, 80
+    c = np.array([[1, 0, W_ / 2 - 0.5], [0, 1, H_ / 2 - 0.5], [0, 0, 1.0]])
+    angle, zoom = 0.015, 1.02
+    rot = np.array([[zoom * np.cos(angle), -zoom * np.sin(angle), 4.0], [zoom * np.sin(angle), zoom * np.cos(angle), -3.0], [0, 0, 1]])
+    tilt = np.array([[1, 0, 0], [0, 1, 0], [1e-5, -2e-5, 1.0]])
+    truth = c @ tilt @ rot @ np.linalg.inv(c)  # frame 0 -> frame 1
+    to_texture = np.array([[1, 0, x], [0, 1, y], [0, 0, 1.0]])
+    f0 = cv2.warpPerspective(tex, to_texture, (W_, H_), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    f1 = cv2.warpPerspective(tex, to_texture @ np.linalg.inv(truth), (W_, H_), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    frames = torch.tensor(np.stack([f0, f1]), dtype=torch.float32)[None, :, None] / 127.5 - 1
+
+    class FreeOffsets(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.offsets = nn.Parameter(torch.zeros(4, 2))
+
+        def forward(self, patches, state=None):
+            return self.offsets.expand(*patches.shape[:2], 4, 2), None
+
+    model, objective = FreeOffsets(), Objective("base")
+    optimiser = torch.optim.Adam(model.parameters(), lr=0.1)
+    for _ in range(150):
+        loss = objective(model, batch_of(frames, [(96, 26)]))["total"]
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    expected = homography_to_offsets(torch.tensor(truth), torch.tensor([96, 26]), 128).float()
+    assert (model.offsets.detach() - expected).abs().max() < 0.1, (model.offsets, expected)
 
 
 def test_scale_term_halves_child_offsets(panning_frames):

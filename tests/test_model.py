@@ -27,6 +27,16 @@ from mosaic_cli.model.dlt import (
 from mosaic_cli.model.network import count_macs, count_parameters, macs_per_pair
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
+    threads make a 2-thread run up to 50x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def random_quads(rng, n, spread=8.0):
     """Patch corners at random places of a 320x180 frame, and where a random motion takes them."""
     pos = np.stack([rng.integers(0, 193, n), rng.integers(0, 53, n)], -1)
