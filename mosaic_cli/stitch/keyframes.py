@@ -32,6 +32,7 @@ from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Feature
 class KeyframeOptions:
     new_ground: float = 0.6  # a keyframe is due once the overlap with the last one drops below this
     force_overlap: float = 0.35  # ... and is taken (the sharpest candidate) at the latest here
+    last_overlap: float = 0.9  # the flight's last frame is kept if it overlaps the last keyframe less
     # "Sharp": Laplacian variance at least this fraction of the recent sharp level (the 80th
     # percentile over a window, so that a run of blurred frames does not lower the bar).
     sharpness_ratio: float = 0.6
@@ -197,6 +198,7 @@ class FlightScanner:
         self.relocalised: list[int] = []
         self._sharpness: deque[float] = deque(maxlen=options.sharpness_window)
         self._candidate: tuple | None = None  # (sharpness, index, frame, quality, placement)
+        self._last: tuple | None = None  # the same, of the last sharp and well exposed frame
         self._quality_size = (options.quality_width, max(1, round(source_size[1] * options.quality_width / source_size[0])))
         self._corners = frame_corners(*source_size)
 
@@ -214,9 +216,12 @@ class FlightScanner:
             self._consider(frame, quality)
 
     def finish(self) -> FlightScan:
-        if self._candidate is not None and (not self.keyframes or self._candidate[1] > self.keyframes[-1].index):
-            _, index, frame, quality, placement = self._candidate
-            self._add(index, frame, quality, placement)
+        # The flight's last ground: the best frame since the last keyframe, if it adds any.
+        ending = self._candidate or self._last
+        if ending is not None and self.keyframes and ending[1] > self.keyframes[-1].index:
+            _, index, frame, quality, placement = ending
+            if overlap_fraction(np.linalg.inv(self.keyframes[-1].placement) @ placement, self.size) < self.o.last_overlap:
+                self._add(index, frame, quality, placement)
         self.store.shrink(self.keyframes)
         return FlightScan(
             self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
@@ -280,6 +285,8 @@ class FlightScanner:
         if not quality.well_exposed(self.o):
             return
         sharp = quality.sharpness >= self.o.sharpness_ratio * float(np.percentile(self._sharpness, self.o.sharpness_percentile))
+        if sharp:
+            self._last = (quality.sharpness, self.index, frame, quality, self.placement)
         if not self.keyframes:
             if sharp:
                 self._add(self.index, frame, quality, self.placement)
@@ -298,7 +305,7 @@ class FlightScanner:
             self._add(index, frame, quality, placement)
 
     def _add(self, index: int, frame: np.ndarray, quality: FrameQuality, placement: np.ndarray) -> None:
-        self._candidate = None
+        self._candidate = self._last = None
         keyframe = Keyframe(index, placement, self.extract(frame), quality)
         world = project(placement, self._corners)
         cells = self.coverage.cells(world)

@@ -31,7 +31,7 @@ from mosaic_cli.stitch.registration import (
     loop_candidates,
     refine_placements,
 )
-from mosaic_cli.video import open_video, probe
+from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
 
@@ -70,11 +70,11 @@ def stitch(
     show_progress: bool = True,
 ) -> StitchResult:
     options = options or StitchOptions()
-    reference = _check_inputs(video, out, transforms, options)
+    info, reference = _check_inputs(video, out, transforms, options)
     seconds: dict[str, float] = {}
 
     clock = time.perf_counter()
-    scan = _scan(video, estimator, options, show_progress)
+    scan = _scan(video, info, estimator, options, show_progress)
     seconds["scan"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -101,7 +101,7 @@ def stitch(
     return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
 
 
-def _check_inputs(video, out, transforms, options: StitchOptions) -> str | int:
+def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
     """Every check that can fail fast, before decoding a single frame."""
     check_outputs(out, transforms, options.canvas.max_size)
     reference = parse_reference(options.canvas.reference)
@@ -119,11 +119,10 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> str | int:
         raise BadInput(f"--start {options.start} is past the end of {video} ({info.frame_count} frames)")
     if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
         raise BadInput(f"--reference {reference} is past the end of {video} ({info.frame_count} frames)")
-    return reference
+    return info, reference
 
 
-def _scan(video, estimator: Estimator, options: StitchOptions, show_progress: bool) -> FlightScan:
-    info = probe(video)
+def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool) -> FlightScan:
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None

@@ -1,0 +1,281 @@
+"""Benchmarks of ``mosaic stitch`` on simulated flights with exact ground truth.
+
+    python scripts/bench_stitch.py accuracy     # placement accuracy vs plain chaining (720p survey)
+    python scripts/bench_stitch.py throughput   # frames/s with the ORB estimator on 720p input
+    python scripts/bench_stitch.py memory       # peak RSS of 1080p flights of growing length and area
+    python scripts/bench_stitch.py figure       # docs/stitch_pano.jpg and docs/stitch_source.jpg
+    python scripts/bench_stitch.py all
+
+Flights are rendered (and cached) under --workdir by ``mosaic_cli.simulate`` over the real
+NEON orthophoto in ../shared/data when present (a procedural map otherwise).  Every number is
+printed with the command that reproduces it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mosaic_cli.estimators import make_estimator
+from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
+from mosaic_cli.simulate import FlightPlan, load_ground_truth, load_map, plan_flight, procedural_map, write_flight
+from mosaic_cli.simulate.trajectory import camera_homography
+from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
+from mosaic_cli.video import open_video
+
+ROOT = Path(__file__).resolve().parents[1]
+ORTHOPHOTO = ROOT.parent / "shared/data/aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png"
+GAP = 60  # frames: placement accuracy is measured between used frames at least this far apart
+
+
+def here(args: argparse.Namespace, command: str) -> str:
+    return f"python scripts/bench_stitch.py {command} --workdir {args.workdir}"
+
+
+# -- flights -----------------------------------------------------------------------------------
+
+
+def survey_flight(workdir: Path, frames: int, size: tuple[int, int], seed: int) -> Path:
+    """A lawnmower survey over the orthophoto (the simulator's 'survey' profile), cached."""
+    name = f"survey_{size[0]}x{size[1]}_{frames}_s{seed}.mp4"
+    path = workdir / name
+    if not path.exists():
+        ground = load_map(ORTHOPHOTO if ORTHOPHOTO.exists() else None, seed=seed)
+        plan = plan_flight((ground.shape[1], ground.shape[0]), "survey", frames, size, seed)
+        write_flight(path, ground, plan, map_name=ORTHOPHOTO.name if ORTHOPHOTO.exists() else "procedural", preset="veryfast")
+    return path
+
+
+def long_survey_plan(frames: int, size: tuple[int, int], speed: float = 8.0, line: int = 7000, seed: int = 0) -> FlightPlan:
+    """A survey whose covered area grows with its length: lines ``line`` map pixels long,
+    0.55 frame heights apart, at one map pixel per frame pixel, turning at the ends."""
+    w, h = size
+    spacing = 0.55 * h
+    margin = 0.75 * np.hypot(w, h)
+    path_len = frames * speed
+    turn = np.pi * spacing / 2
+    lines = int(np.ceil(path_len / (line + turn))) + 1
+    pts, headings = [], []
+    for k in range(lines):
+        y = margin + k * spacing
+        xs = np.arange(0, line, speed)
+        xs = margin + (xs if k % 2 == 0 else line - xs)
+        pts += [(x, y) for x in xs]
+        headings += [0.0 if k % 2 == 0 else np.pi] * len(xs)
+        centre = (xs[-1], y + spacing / 2)
+        angles = np.arange(0, np.pi, speed / (spacing / 2))
+        side = 1 if k % 2 == 0 else -1
+        pts += [(centre[0] + side * spacing / 2 * np.sin(a), centre[1] - spacing / 2 * np.cos(a)) for a in angles]
+        headings += [(0.0 if k % 2 == 0 else np.pi) + a for a in angles]
+    pts, headings = np.array(pts[:frames]), np.array(headings[:frames])
+    rng = np.random.default_rng(seed)
+    tilt = np.radians(1.0) * np.sin(np.arange(frames) / 90.0 + rng.uniform(0, 6))
+    M = np.stack([camera_homography(size, float(w), x, y, 1.0, a, p, 0.0) for (x, y), a, p in zip(pts, headings, tilt)])
+    map_size = (int(line + 2 * margin + 1), int(pts[:, 1].max() + margin + 1))
+    return FlightPlan(M, M.copy(), size, "long-survey", seed, map_size, 30.0)
+
+
+def long_flight(workdir: Path, frames: int, size: tuple[int, int]) -> Path:
+    path = workdir / f"long_{size[0]}x{size[1]}_{frames}.mp4"
+    if not path.exists():
+        plan = long_survey_plan(frames, size)
+        ground = procedural_map(plan.map_size, seed=11)
+        write_flight(path, ground, plan, preset="ultrafast", crf=20)
+    return path
+
+
+# -- placement accuracy ------------------------------------------------------------------------
+
+
+def placement_errors(indices, frame_to_pano, map_to_frame, size, gap=GAP) -> np.ndarray:
+    """Corner error of used frame i placed relative to used frame j (through the panorama),
+    for every pair at least ``gap`` frames apart, against the exact homography."""
+    errors = []
+    for a, i in enumerate(indices):
+        for b, j in enumerate(indices):
+            if j - i >= gap:
+                estimate = np.linalg.inv(frame_to_pano[b]) @ frame_to_pano[a]
+                truth = map_to_frame[j] @ np.linalg.inv(map_to_frame[i])
+                errors.append(float(corner_error(estimate, truth, size)))
+    return np.array(errors)
+
+
+def plain_chain(video: Path, indices: list[int]) -> list[np.ndarray]:
+    """Full-resolution ORB + RANSAC between consecutive used frames, chained, no refinement."""
+    wanted, gray = set(indices), {}
+    with open_video(video, gray=True) as stream:
+        for k, frame in enumerate(stream):
+            if k in wanted:
+                gray[k] = frame
+            if k >= indices[-1]:
+                break
+    orb = cv2.ORB_create(4000, fastThreshold=10)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    placements = [np.eye(3)]
+    for a, b in zip(indices[:-1], indices[1:]):
+        ka, da = orb.detectAndCompute(gray[a], None)
+        kb, db = orb.detectAndCompute(gray[b], None)
+        good = [m[0] for m in matcher.knnMatch(da, db, k=2) if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+        H_ab, _ = cv2.findHomography(
+            np.float32([ka[m.queryIdx].pt for m in good]), np.float32([kb[m.trainIdx].pt for m in good]), cv2.RANSAC, 3.0
+        )
+        placements.append(normalize(placements[-1] @ np.linalg.inv(H_ab)))
+    return placements
+
+
+def accuracy(args) -> dict:
+    rows = []
+    for seed in args.seeds:
+        video = survey_flight(args.workdir, args.frames, (1280, 720), seed)
+        gt = load_ground_truth(video.with_suffix(".gt.json"))
+        row = {"flight": video.name}
+        for label, enabled in (("drift control", True), ("estimator chain only", False)):
+            options = StitchOptions(registration=RegistrationOptions(enabled=enabled))
+            out = args.workdir / f"{video.stem}_{'dc' if enabled else 'chain'}.png"
+            result = stitch(video, out, make_estimator("orb"), options, transforms=out.with_suffix(".json"), show_progress=False)
+            indices = [i for i, _ in result.transforms]
+            errors = placement_errors(indices, [H for _, H in result.transforms], gt.map_to_frame, gt.size)
+            row[label] = float(np.median(errors))
+            if enabled:
+                row["used frames"], row["pairs"], row["loops"] = len(indices), len(errors), result.registration.loops
+                plain = placement_errors(indices, plain_chain(video, indices), gt.map_to_frame, gt.size)
+                row["plain chaining"] = float(np.median(plain))
+        rows.append(row)
+        print(
+            f"{row['flight']}: {row['used frames']} used frames, {row['pairs']} pairs >= {GAP} frames apart, {row['loops']} loop closures; "
+            f"median corner error  drift control {row['drift control']:.2f} px | plain chaining (full-res ORB+RANSAC, "
+            f"chained) {row['plain chaining']:.2f} px | estimator chain only {row['estimator chain only']:.2f} px",
+            flush=True,
+        )
+    print(f"  reproduce: {here(args, 'accuracy')} --frames {args.frames} --seeds {' '.join(map(str, args.seeds))}")
+    return {"accuracy": rows}
+
+
+# -- throughput --------------------------------------------------------------------------------
+
+
+def throughput(args) -> dict:
+    video = survey_flight(args.workdir, args.frames, (1280, 720), args.seeds[0])
+    runs = []
+    for _ in range(args.repeat):
+        cpu0 = time.process_time()
+        load = os.getloadavg()[0]
+        result = stitch(video, args.workdir / "throughput.jpg", make_estimator("orb"), show_progress=False)
+        total = sum(result.seconds.values())
+        runs.append(
+            {"fps": result.frames / total, "scan_fps": result.frames / result.seconds["scan"], "seconds": result.seconds,
+             "cpu_s": time.process_time() - cpu0, "load": load, "frames": result.frames}
+        )
+        print(
+            f"  {result.frames} frames 1280x720: {runs[-1]['fps']:.1f} fr/s overall (scan {runs[-1]['scan_fps']:.1f} fr/s), "
+            f"stages {', '.join(f'{k} {v:.1f}s' for k, v in result.seconds.items())}, CPU {runs[-1]['cpu_s']:.1f}s, load {load:.1f}",
+            flush=True,
+        )
+    fps = float(np.median([r["fps"] for r in runs]))
+    print(f"throughput (ORB, 720p, median of {len(runs)}): {fps:.1f} fr/s overall; reproduce: {here(args, 'throughput')} --repeat {args.repeat}")
+    return {"throughput": runs, "throughput_median_fps": fps}
+
+
+# -- memory ------------------------------------------------------------------------------------
+
+
+def peak_rss_of(cmd: list[str]) -> tuple[float, float, str]:
+    """Peak RSS (MiB) and wall time of one command, measured in a fresh child process."""
+    probe = (
+        "import resource, subprocess, sys, time; t = time.time(); "
+        "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, time.time() - t, r.returncode); "
+        "sys.stderr.write(r.stderr[-2000:])"
+    )
+    run = subprocess.run([sys.executable, "-c", probe, *cmd], capture_output=True, text=True)
+    rss, seconds, code = run.stdout.split()
+    if int(code) != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed: {run.stderr}")
+    return float(rss), float(seconds), run.stderr
+
+
+def memory(args) -> dict:
+    rows = []
+    for frames in args.lengths:
+        video = long_flight(args.workdir, frames, (1920, 1080))
+        out = args.workdir / f"long_{frames}.jpg"
+        cmd = [sys.executable, "-m", "mosaic_cli", "stitch", str(video), "-o", str(out), "--transforms", str(out.with_suffix(".json")), "-q"]
+        rss, seconds, _ = peak_rss_of(cmd)
+        canvas = json.loads(out.with_suffix(".json").read_text())["canvas_size"]
+        used = len(json.loads(out.with_suffix(".json").read_text())["frames"])
+        rows.append({"frames": frames, "peak_rss_mib": rss, "seconds": seconds, "canvas": canvas, "keyframes": used})
+        print(f"  1920x1080, {frames} frames ({frames / 30:.0f} s of flight): peak RSS {rss:.0f} MiB, {seconds:.0f} s, "
+              f"{used} keyframes, canvas {canvas[0]}x{canvas[1]}", flush=True)
+    print(f"memory: reproduce: {here(args, 'memory')} --lengths {' '.join(map(str, args.lengths))}")
+    return {"memory": rows}
+
+
+# -- README figure -----------------------------------------------------------------------------
+
+
+def figure(args) -> dict:
+    video = survey_flight(args.workdir, args.frames, (1280, 720), args.seeds[0])
+    gt = load_ground_truth(video.with_suffix(".gt.json"))
+    out = args.workdir / "figure.png"
+    result = stitch(video, out, make_estimator("orb"), transforms=out.with_suffix(".json"), show_progress=False)
+    docs = ROOT / "docs"
+    docs.mkdir(exist_ok=True)
+    pano = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    # Transparent areas shown white, as on a page.
+    alpha = pano[..., 3:4].astype(np.float32) / 255.0
+    flat = (pano[..., :3] * alpha + 255 * (1 - alpha)).astype(np.uint8)
+    _save_jpeg(docs / "stitch_pano.jpg", flat, args.figure_width)
+    # The same ground cut from the orthophoto: the map region under the used frames.
+    ground = load_map(ORTHOPHOTO if ORTHOPHOTO.exists() else None, seed=args.seeds[0])
+    corners = np.concatenate([project(np.linalg.inv(gt.map_to_frame[i]), frame_corners(*gt.size)) for i, _ in result.transforms])
+    (x0, y0), (x1, y1) = np.floor(corners.min(axis=0)).astype(int), np.ceil(corners.max(axis=0)).astype(int)
+    crop = ground[max(0, y0): y1, max(0, x0): x1]
+    _save_jpeg(docs / "stitch_source.jpg", cv2.cvtColor(crop, cv2.COLOR_RGB2BGR), args.figure_width)
+    print(f"figure: docs/stitch_pano.jpg ({result.canvas_size[0]}x{result.canvas_size[1]} panorama of {result.frames} frames, "
+          f"{len(result.transforms)} keyframes), docs/stitch_source.jpg (orthophoto region {x1 - x0}x{y1 - y0}); "
+          f"reproduce: {here(args, 'figure')} --frames {args.frames} --seeds {args.seeds[0]}")
+    return {"figure": {"canvas": result.canvas_size, "keyframes": len(result.transforms)}}
+
+
+def _save_jpeg(path: Path, bgr: np.ndarray, width: int) -> None:
+    if bgr.shape[1] > width:
+        bgr = cv2.resize(bgr, (width, round(bgr.shape[0] * width / bgr.shape[1])), interpolation=cv2.INTER_AREA)
+    for quality in (88, 80, 70, 60):
+        ok, data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if ok and len(data) < 900_000:
+            break
+    path.write_bytes(data.tobytes())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "figure", "all"])
+    parser.add_argument("--workdir", type=Path, default=ROOT / ".dev" / "bench_stitch")
+    parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
+    parser.add_argument("--figure-width", type=int, default=1400)
+    parser.add_argument("--json", type=Path, help="also write the numbers here")
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    results = {"load_average_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
+    for what, fn in (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("figure", figure)):
+        if args.what in (what, "all"):
+            results.update(fn(args))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
