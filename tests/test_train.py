@@ -376,7 +376,7 @@ def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pa
 # ----------------------------------------------------------------------------- validation
 
 
-def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path):
+def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan_clips):
     from mosaic_cli.evaluate import landmarks_from_ground_truth, mace
     from mosaic_cli.simulate import simulate_flight
     from mosaic_cli.train.validate import find_flights, validation_mace
@@ -391,3 +391,11 @@ def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path):
     identity = mace(np.tile(np.eye(3), (gt.frames - 1, 1, 1)), landmarks_from_ground_truth(gt), gt.size)
     assert got == pytest.approx(identity, rel=1e-9)
     assert identity > 1.0  # the flight moves: a non-trivial number
+
+    # During training: every --val-every steps and at the end, in val.csv.
+    cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / "run"), steps=3, batch_size=2, work_size=(128, 96),
+                      patch=PATCH, num_workers=0, threads=1, val=str(tmp_path), val_every=2).resolved()
+    summary = train(cfg, show_progress=False)
+    rows = list(csv.DictReader(open(tmp_path / "run" / "val.csv")))
+    assert [int(r["step"]) for r in rows] == [2, 3]
+    assert float(rows[-1]["mace"]) == pytest.approx(summary.val_mace, rel=1e-6) and np.isfinite(summary.val_mace)

@@ -18,7 +18,7 @@ from mosaic_cli.progress import console
 @app.command()
 def train(
     clips: Path = typer.Argument(..., help="Folder of training clips (video files and/or folders of frames), or one clip."),
-    out: Path = typer.Option(Path("runs/train"), "-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache."),
+    out: Path | None = typer.Option(None, "-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache [runs/VARIANT]."),
     variant: str | None = typer.Option(None, "--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm or lstm-reg-all [base]."),
     preset: str | None = typer.Option(None, "--preset", help="Network size: compact (CPU) or paper (Table 1) [compact]."),
     init: Path | None = typer.Option(None, "--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors)."),
@@ -31,7 +31,8 @@ def train(
     seed: int | None = typer.Option(None, "--seed", help="Random seed: initial weights, samples, dropout [0]."),
     val: Path | None = typer.Option(None, "--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on."),
     val_every: int | None = typer.Option(None, "--val-every", help="Validate every N steps [1000]."),
-    checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Checkpoint every N steps [500] (and every 15 min)."),
+    checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Checkpoint every N steps [500]."),
+    checkpoint_minutes: float | None = typer.Option(None, "--checkpoint-minutes", help="...and whenever this many minutes have passed [15]."),
     work_size: str | None = typer.Option(None, "--work-size", help="Working frame size WxH [320x180]."),
     patch: int | None = typer.Option(None, "--patch", help="Patch side in working pixels [128]."),
     num_workers: int | None = typer.Option(None, "--num-workers", help="Loader / decoder worker processes [1]."),
@@ -63,12 +64,15 @@ def train(
         "val": str(val) if val else None,
         "val_every": val_every,
         "checkpoint_every": checkpoint_every,
+        "checkpoint_minutes": checkpoint_minutes,
         "work_size": parse_size(work_size) if work_size else None,
         "patch": patch,
         "num_workers": num_workers,
         "threads": threads,
         "cache_gb": cache_gb,
     }
+    if out is None:
+        out = Path("runs") / (options["variant"] or "base")
     config = plan_run(str(clips), str(out), options, resume)
     summary = run_training(config, resume=resume, show_progress=not quiet)
     if summary.weights is not None and not quiet:

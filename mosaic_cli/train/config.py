@@ -99,6 +99,7 @@ class TrainConfig:
             (cfg.num_workers >= 0, f"--num-workers must be 0 or more, got {cfg.num_workers}"),
             (cfg.checkpoint_every >= 1, f"--checkpoint-every must be at least 1, got {cfg.checkpoint_every}"),
             (cfg.val_every >= 1, f"--val-every must be at least 1, got {cfg.val_every}"),
+            (cfg.checkpoint_minutes > 0, f"--checkpoint-minutes must be positive, got {cfg.checkpoint_minutes}"),
             (cfg.cache_gb > 0, f"--cache-gb must be positive, got {cfg.cache_gb}"),
         ]
         for ok, message in checks:

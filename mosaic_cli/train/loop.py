@@ -151,13 +151,15 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed)
     loader = make_loader(dataset, StepBatches(start, cfg.steps, cfg.batch_size, dist.rank, dist.world),
                          cfg.num_workers, pin_memory=dist.device.type == "cuda")
-    log = CsvLog(run.log, keep_until=start if resume else None) if dist.is_main else None
+    log = CsvLog(run.log if dist.is_main else None, keep_until=start if resume else None)
+    val_log = CsvLog(run.val_log if dist.is_main and flights else None, keep_until=start if resume else None)
     if show_progress:
         describe_run(cfg, dist, net, trainable, cached, schedule, start, precision)
 
     # 5. step, 6. checkpoint, 7. validate
     samples_per_step = cfg.batch_size * dist.world
     run_state = {"config": cfg.to_dict(), "schedule": schedule.describe(), "world": dist.world,
+                 "samples_per_step": samples_per_step,
                  "rng": {"seed": cfg.seed, "scheme": "torch.manual_seed(seed * 1000003 + step * world + rank) each step"}}
     rate = RateMeter()
     terms: dict = {}
@@ -165,7 +167,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     step = start
     last_checkpoint = time.monotonic()
     skipped = 0
-    with StopRequests() as stop, progress_task(
+    with contextlib.closing(log), contextlib.closing(val_log), StopRequests() as stop, progress_task(
         f"train {cfg.variant}", cfg.steps - start, unit="step/s", disable=not show_progress
     ) as advance:
         for step, batch in zip(range(start, cfg.steps), loader):
@@ -196,9 +198,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
             names = list(losses)
             terms = dict(zip(names, dist.mean([float(losses[k].detach()) for k in names])))
             samples_per_s = rate.tick(samples_per_step)
-            if log is not None:
-                log.write({"step": done, "lr": lr, **terms, "samples_per_s": samples_per_s,
-                           "skipped": int(diverged)})
+            log.write({"step": done, "lr": lr, **terms, "samples_per_s": samples_per_s, "skipped": int(diverged)})
             advance(1, status=status_line(terms, samples_per_s, done, cfg.steps))
 
             if stop_now or time_due or done % cfg.checkpoint_every == 0 or done == cfg.steps:
@@ -208,14 +208,13 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
             if flights and (done % cfg.val_every == 0 or done == cfg.steps):
                 if dist.is_main:
                     val_mace = validate_now(net, flights, dist.device, cfg)
-                    console.print(f"step {done}: validation MACE {val_mace:.2f} px")
+                    val_log.write({"step": done, "mace": val_mace})
+                    console.print(f"step {done}: validation MACE {val_mace:.2f} px (1280x720-equivalent)")
                 dist.barrier()
             if stop_now:
                 if dist.is_main:
                     console.print(f"stopped: checkpoint at step {done} in {run.root}; continue with --resume")
                 raise KeyboardInterrupt
-    if log is not None:
-        log.close()
 
     if dist.is_main:
         save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size)
@@ -350,10 +349,15 @@ def describe_run(cfg, dist, net, trainable, cached, schedule, start, precision) 
     )
 
 
+# The paper's names for the terms, to keep the progress line short.
+SHORT_NAMES = {"photometric": "L", "spatial": "Rp", "scale": "Rs", "temporal1": "Rt1", "temporal2": "Rt2"}
+
+
 def status_line(terms: dict, samples_per_s: float, done: int, steps: int) -> str:
-    parts = [f"{k} {v:.4g}" for k, v in terms.items() if k != "total"]
-    parts.append(f"total {terms.get('total', float('nan')):.4g}")
-    return f"{' '.join(parts)} | {samples_per_s:.1f} samples/s | step {done}/{steps}"
+    parts = [f"{SHORT_NAMES.get(k, k)} {v:.4g}" for k, v in terms.items() if k != "total"]
+    if len(parts) > 1:
+        parts.append(f"total {terms['total']:.4g}")
+    return f"{' '.join(parts)} | {samples_per_s:.1f} samples/s"
 
 
 class RateMeter:

@@ -5,6 +5,7 @@
     RUN_DIR/state.json              step, config, schedule, RNG scheme, optimizer scalars; written
                                     last, so it names the step the two files above belong to
     RUN_DIR/log.csv                 one row per step: learning rate, every loss term, samples/s
+    RUN_DIR/val.csv                 with --val: step, MACE (1280x720-equivalent px)
     RUN_DIR/weights.safetensors     the final weights (what ``mosaic track --weights`` takes)
     RUN_DIR/cache/                  decoded frames (see mosaic_cli.train.data)
 
@@ -50,6 +51,10 @@ class RunDir:
     @property
     def log(self) -> Path:
         return self.root / "log.csv"
+
+    @property
+    def val_log(self) -> Path:
+        return self.root / "val.csv"
 
     @property
     def weights(self) -> Path:
@@ -157,11 +162,12 @@ class CsvLog:
     """``log.csv``: one row per step.  On resume the rows after the checkpoint are dropped (those
     steps run again), so the log never holds a step twice."""
 
-    def __init__(self, path: Path, keep_until: int | None):
+    def __init__(self, path: Path | None, keep_until: int | None):
+        """``path`` None: a log that writes nothing (processes other than rank 0)."""
         self.path = path
         self.columns: list[str] | None = None
         self._fh = None
-        if keep_until is None or not path.is_file():
+        if path is None or keep_until is None or not path.is_file():
             return
         with open(path, newline="") as fh:
             rows = list(csv.DictReader(fh))
@@ -174,6 +180,8 @@ class CsvLog:
                 writer.writerows(kept)
 
     def write(self, row: dict) -> None:
+        if self.path is None:
+            return
         if self._fh is None:
             fresh = self.columns is None
             if fresh:
