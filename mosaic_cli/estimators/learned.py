@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators.base import Estimator, PairEstimate, working_size
+from mosaic_cli.estimators.base import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, sample_patches, transform_points
