@@ -37,32 +37,25 @@ def estimate(prev, cur, orb, matcher):
     return H, float(mask.sum()) / len(matches)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("video")
-    parser.add_argument("-o", "--out", required=True)
-    parser.add_argument("--work-width", type=int, default=320)
-    parser.add_argument("--max-frames", type=int, default=None)
-    args = parser.parse_args()
-
-    cap = cv2.VideoCapture(args.video)
+def track_baseline(video: str, work_width: int = 320, max_frames: int | None = None) -> dict:
+    """The baseline over a whole video, as a ``mosaic track`` JSON document."""
+    cap = cv2.VideoCapture(video)
     if not cap.isOpened():
-        raise SystemExit(f"cannot open {args.video}")
+        raise SystemExit(f"cannot open {video}")
     orb = cv2.ORB_create(nfeatures=500, WTA_K=2)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
     pairwise, confidence = [], []
-    prev = None
-    size = None
-    start = time.perf_counter()
+    prev = size = None
     n = 0
-    while args.max_frames is None or n < args.max_frames:
+    start = time.perf_counter()
+    while max_frames is None or n < max_frames:
         ok, frame = cap.read()
         if not ok:
             break
         n += 1
         if size is None:
             size = (frame.shape[1], frame.shape[0])
-            small = (args.work_width, int(round(size[1] * args.work_width / size[0])))
+            small = (work_width, int(round(size[1] * work_width / size[0])))
             s = size[0] / small[0]
             up, down = np.diag([s, s, 1.0]), np.diag([1 / s, 1 / s, 1.0])
         gray = cv2.resize(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), small, interpolation=cv2.INTER_AREA)
@@ -73,15 +66,24 @@ def main() -> None:
             confidence.append(c)
         prev = gray
     elapsed = time.perf_counter() - start
-    fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
-    out = {
-        "version": 1, "frames": n, "size": list(size), "fps": fps, "estimator": "baseline-orb2-ransac",
-        "direction": "t_to_t+1", "pairwise": pairwise, "confidence": confidence,
-        "meta": {"ms_per_frame": 1000 * elapsed / max(n, 1), "work_width": args.work_width},
+    return {
+        "version": 1, "frames": n, "size": list(size), "fps": cap.get(cv2.CAP_PROP_FPS) or 30.0,
+        "estimator": "baseline-orb2-ransac", "direction": "t_to_t+1", "pairwise": pairwise, "confidence": confidence,
+        "meta": {"ms_per_frame": 1000 * elapsed / max(n, 1), "work_width": work_width},
     }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("video")
+    parser.add_argument("-o", "--out", required=True)
+    parser.add_argument("--work-width", type=int, default=320)
+    parser.add_argument("--max-frames", type=int, default=None)
+    args = parser.parse_args()
+    out = track_baseline(args.video, args.work_width, args.max_frames)
     with open(args.out, "w") as fh:
         json.dump(out, fh)
-    print(f"{n} frames, {out['meta']['ms_per_frame']:.1f} ms/frame -> {args.out}")
+    print(f"{out['frames']} frames, {out['meta']['ms_per_frame']:.1f} ms/frame -> {args.out}")
 
 
 if __name__ == "__main__":
