@@ -78,13 +78,13 @@ def output_warps(V: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return normalize(np.linalg.inv(N) @ np.linalg.inv(V) @ N)
 
 
-def border_fraction(warps: np.ndarray, size: tuple[int, int], grid: int = 48) -> np.ndarray:
-    """(N,) the fraction of each output frame that no input pixel covers (sampled on a grid)."""
+def border_fraction(warps: np.ndarray, size: tuple[int, int], grid: int = 64) -> np.ndarray:
+    """(N,) the fraction of each output frame that no input pixel covers, sampled on a grid of
+    pixel centres (so a border thinner than half a pixel does not count)."""
     w, h = size
-    xs = np.linspace(-0.5, w - 0.5, grid)
-    ys = np.linspace(-0.5, h - 0.5, max(2, int(grid * h / w)))
+    xs = np.linspace(0, w - 1, grid)
+    ys = np.linspace(0, h - 1, max(2, int(round(grid * h / w))))
     pts = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     src = project(np.linalg.inv(warps), pts)
-    tol = 1e-6
-    inside = (src[..., 0] >= -0.5 - tol) & (src[..., 0] <= w - 0.5 + tol) & (src[..., 1] >= -0.5 - tol) & (src[..., 1] <= h - 0.5 + tol)
+    inside = (src[..., 0] >= -0.5) & (src[..., 0] <= w - 0.5) & (src[..., 1] >= -0.5) & (src[..., 1] <= h - 0.5)
     return 1.0 - inside.mean(axis=-1)

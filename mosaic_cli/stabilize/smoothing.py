@@ -37,12 +37,17 @@ CARRIED = 3
 class L1Smoother:
     """Options of the L1-optimal path.  Costs are per frame, in normalised units."""
 
-    weights: tuple[float, float, float] = (10.0, 1.0, 100.0)  # |D|, |D^2|, |D^3| (Grundmann et al.)
+    # |D|, |D^2|, |D^3|.  Grundmann et al. use (10, 1, 100); in normalised units a jerk weight
+    # of 3000 leaves a third to a half of the high-frequency residual (shaky flights, see
+    # docs/stabilize.md): the path's rare jerks are what a viewer still sees as shake.
+    weights: tuple[float, float, float] = (10.0, 1.0, 3000.0)
     window: int = 120  # frames per linear program (4 s at 30 fps: time enough to plan ahead)
     overlap: int = 40  # frames re-solved by the next window (only the first part is kept)
     zoom_cost: float = 1.0  # per frame and unit of zoom: keeps the crop as large as it can be
-    border_cost: float = 10.0  # per frame and unit of border, when the user fixed the crop ratio
-    fixed_zoom_cost: float = 100.0  # per frame and unit of zoom away from a crop ratio the user fixed
+    # With a crop ratio the user fixed, the zoom stays put and a border costs this per frame and
+    # unit: none shows while the margin suffices; at --crop 1 a thin one (a few px) does.
+    border_cost: float = 100.0
+    fixed_zoom_cost: float = 1e4
     hard_border_cost: float = 1e4  # the same with --crop auto: in effect a hard constraint
     max_zoom: float = 1.25  # --crop auto never zooms in further than this
     max_rotation: float = 0.15  # radians of correction
@@ -91,18 +96,106 @@ def _bounds(model: MotionModel, crop: float | None, opts: L1Smoother) -> list[tu
     return [limits[kind] for kind in model.kinds]
 
 
+class _Program:
+    """A linear program assembled from blocks of variables and sparse constraint blocks."""
+
+    def __init__(self) -> None:
+        self.costs: list[np.ndarray] = []
+        self.bounds: list[tuple[float | None, float | None]] = []
+        self.rows = {"ub": [], "eq": []}
+        self.size = 0
+
+    def variables(self, n: int, cost, bounds=(0.0, None)) -> slice:
+        """``n`` new variables with per-variable ``cost`` and one (lo, hi) or a list of them."""
+        self.costs.append(np.broadcast_to(np.asarray(cost, dtype=np.float64), (n,)))
+        self.bounds += list(bounds) if isinstance(bounds, list) else [bounds] * n
+        block = slice(self.size, self.size + n)
+        self.size += n
+        return block
+
+    def at_most(self, terms: list[tuple[slice, sp.spmatrix]], rhs: np.ndarray) -> None:
+        """sum of block @ variables <= rhs."""
+        self.rows["ub"].append((terms, np.asarray(rhs, dtype=np.float64)))
+
+    def equal(self, terms: list[tuple[slice, sp.spmatrix]], rhs: np.ndarray) -> None:
+        self.rows["eq"].append((terms, np.asarray(rhs, dtype=np.float64)))
+
+    def _matrix(self, kind: str):
+        if not self.rows[kind]:
+            return None, None
+        mats = []
+        for terms, rhs in self.rows[kind]:
+            m = sp.csr_matrix((len(rhs), self.size))
+            for block, coef in terms:
+                m = m + sp.hstack([sp.csr_matrix((len(rhs), block.start)), sp.csr_matrix(coef),
+                                   sp.csr_matrix((len(rhs), self.size - block.stop))], format="csr")
+            mats.append(m)
+        return sp.vstack(mats, format="csr"), np.concatenate([rhs for _, rhs in self.rows[kind]])
+
+    def solve(self) -> np.ndarray:
+        A_ub, b_ub = self._matrix("ub")
+        A_eq, b_eq = self._matrix("eq")
+        problem = dict(c=np.concatenate(self.costs), A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=self.bounds)
+        # The interior point method is the faster on these banded programs; simplex the fallback.
+        result = linprog(method="highs-ipm", **problem)
+        if result.status != 0 or result.x is None:
+            result = linprog(method="highs-ds", **problem)
+        if result.status != 0 or result.x is None:
+            raise ProcessingError(f"the L1 camera path could not be solved ({result.message})")
+        return result.x
+
+
 def _solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | None, size: tuple[int, int],
                   crop: float | None, opts: L1Smoother) -> np.ndarray:
     """One linear program over L = len(motion) + 1 frames; returns (L, K) parameters of B_t."""
     L, K = len(motion) + 1, model.n_params
     if L == 1:
         return model.identity[None].copy() if fixed is None else fixed[:1].copy()
+    explicit = crop is not None
+    scale = model.scale_weights()
+    lp = _Program()
+
+    bounds = _bounds(model, crop, opts) * L
+    if fixed is not None:  # the previous window's last transforms: the path continues from them
+        for t, values in enumerate(fixed[:L]):
+            bounds[t * K:(t + 1) * K] = [(float(v), float(v)) for v in values]
+    # With --crop auto every frame pays for its zoom: the crop stays as large as the shake allows.
+    p = lp.variables(L * K, 0.0 if explicit else -opts.zoom_cost * np.tile(scale, L), bounds)
+
+    # |D^n P| as the sum of a positive and a negative part: D^n (R p + r0) = pos - neg.
+    for operator, constant, weight in _derivatives(motion, model, opts.weights):
+        m = len(constant)
+        pos, neg = lp.variables(m, weight), lp.variables(m, weight)
+        lp.equal([(p, operator), (pos, -sp.identity(m)), (neg, sp.identity(m))], -constant)
+
+    coef, const = _inclusion(model, size, 1.0 if crop is None else crop)
+    z = lp.variables(L, opts.border_cost if explicit else opts.hard_border_cost)  # border shown in frame t
+    lp.at_most([(p, sp.kron(sp.identity(L), coef)), (z, sp.kron(sp.identity(L), np.ones((len(coef), 1))) * -1)],
+               -np.tile(const, L))
+
+    shape = _similarity_rows(model)
+    if shape is not None:  # affine corrections close to a similarity: what the distortion score sees
+        lp.at_most([(p, sp.kron(sp.identity(L), shape))], np.full(L * len(shape), opts.max_anisotropy))
+
+    if explicit:  # the zoom stays at the ratio the user chose: u >= |scale - 1|
+        u = lp.variables(L, opts.fixed_zoom_cost)
+        scale_rows, eye = sp.kron(sp.identity(L), scale[None, :]), sp.identity(L)
+        lp.at_most([(p, scale_rows), (u, -eye)], np.ones(L))
+        lp.at_most([(p, -scale_rows), (u, -eye)], -np.ones(L))
+
+    return lp.solve()[p].reshape(L, K)
+
+
+def _derivatives(motion: np.ndarray, model: MotionModel, weights) -> list[tuple[sp.csr_matrix, np.ndarray, np.ndarray]]:
+    """(operator on the parameters p, constant, weight per row) of the path's D, D^2 and D^3.
+
+    R_j = F_{j+1} M(p_{j+1}) - M(p_j) over the compared entries is linear in p:
+    A_j p_{j+1} - P p_j + r0_j.  D^2 and D^3 are its first and second differences."""
+    L, K = len(motion) + 1, model.n_params
     rows_e = np.array([r for r, _ in model.entries])
     cols_e = np.array([c for _, c in model.entries])
     E = len(rows_e)
     entry_weights = np.ones(E) if model.entry_weights is None else np.asarray(model.entry_weights)
-
-    # R_j = F_{j+1} M(p_{j+1}) - M(p_j) = A_j p_{j+1} - P p_j + r0_j, over the compared entries.
     A = np.einsum("jrm,kmc->jrck", motion, model.basis)[:, rows_e, cols_e, :]  # (L-1, E, K)
     P = model.basis[:, rows_e, cols_e].T  # (E, K)
     r0 = (motion @ model.offset)[:, rows_e, cols_e] - model.offset[rows_e, cols_e]  # (L-1, E)
@@ -112,100 +205,45 @@ def _solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | No
          (np.concatenate([(j * E + e).ravel()] * 2), np.concatenate([((j + 1) * K + k).ravel(), (j * K + k).ravel()]))),
         shape=((L - 1) * E, L * K),
     ).tocsr()
-
-    # |D^n P| as the sum of a positive and a negative part: D^n (R p + r0) = pos - neg, both >= 0.
-    derivatives = []  # (operator on p, constant, weight per row) for D, D^2, D^3 of the path
-    for order, weight in enumerate(opts.weights):
+    terms = []
+    for order, weight in enumerate(weights):
         if L - 1 - order <= 0:
             continue
         D = sp.kron(_difference(L - 1, order), sp.identity(E), format="csr")
-        derivatives.append((D @ R, D @ r0.ravel(), weight * np.tile(entry_weights, D.shape[0] // E)))
+        terms.append((D @ R, D @ r0.ravel(), weight * np.tile(entry_weights, D.shape[0] // E)))
+    return terms
 
-    # Inclusion: every output corner, through B_j (and the fixed crop), inside frame j.
-    ratio = 1.0 if crop is None else crop
+
+def _inclusion(model: MotionModel, size: tuple[int, int], ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """(16, K) coefficients and (16,) constants with ``coef @ p + const <= 0`` exactly when the
+    four corners of the crop window, through M(p), lie inside the frame.  For a homography
+    x' = num / den with den > 0, so lo <= x' <= hi is linear: lo den <= num <= hi den."""
     x0, y0, x1, y1 = normalized_frame_rect(size)
     corners = np.concatenate([ratio * rect_corners_normalized(size), np.ones((4, 1))], axis=1)  # (4, 3)
+    den = np.einsum("kc,ic->ik", model.basis[:, 2, :], corners)
+    den0 = corners @ model.offset[2]
     coef, const = [], []
     for row, lo, hi in ((0, x0, x1), (1, y0, y1)):
         num = np.einsum("kc,ic->ik", model.basis[:, row, :], corners)
-        den = np.einsum("kc,ic->ik", model.basis[:, 2, :], corners)
-        num0, den0 = corners @ model.offset[row], corners @ model.offset[2]
-        coef += [num - hi * den, -num + lo * den]  # num <= hi * den and num >= lo * den
+        num0 = corners @ model.offset[row]
+        coef += [num - hi * den, -num + lo * den]
         const += [num0 - hi * den0, -num0 + lo * den0]
-    coef, const = np.concatenate(coef), np.concatenate(const)  # (16, K), (16,)
-    Q = len(coef)
-    frame_rows = sp.kron(sp.identity(L), sp.csr_matrix(coef), format="csr")
+    return np.concatenate(coef), np.concatenate(const)
 
-    # Keep affine corrections close to a similarity: that is what the distortion score sees.
-    shape_rows = None
+
+def _similarity_rows(model: MotionModel) -> np.ndarray | None:
+    """Rows bounding |a - d| and |b + c| (4, K), for models with two scale parameters."""
     kinds = list(model.kinds)
-    if kinds.count("scale") == 2:
-        a, d = [i for i, kind in enumerate(kinds) if kind == "scale"]
-        b, c = [i for i, kind in enumerate(kinds) if kind == "rotation"]
-        template = np.zeros((4, K))
-        template[0, [a, d]] = (1, -1)
-        template[1, [a, d]] = (-1, 1)
-        template[2, [b, c]] = (1, 1)
-        template[3, [b, c]] = (-1, -1)
-        shape_rows = sp.kron(sp.identity(L, format="csr"), sp.csr_matrix(template))
-
-    scale = model.scale_weights()
-    explicit = crop is not None
-    n_p = L * K
-    n_slack = [2 * op.shape[0] for op, _, _ in derivatives]
-    n_z = L
-    n_u = L if explicit else 0
-    n_total = n_p + sum(n_slack) + n_z + n_u
-
-    cost = np.zeros(n_total)
-    if not explicit:
-        cost[:n_p] = -opts.zoom_cost * np.tile(scale, L)
-    offset = n_p
-    blocks, rhs = [], []
-    eq_blocks, eq_rhs = [], []
-
-    def columns(block: sp.spmatrix, at: int) -> sp.csr_matrix:
-        """``block`` placed at column ``at`` of the full variable vector."""
-        left = sp.csr_matrix((block.shape[0], at))
-        right = sp.csr_matrix((block.shape[0], n_total - at - block.shape[1]))
-        return sp.hstack([left, block, right], format="csr")
-
-    for (op, c0, weight), m in zip(derivatives, n_slack):
-        half = m // 2
-        cost[offset:offset + m] = np.tile(weight, 2)
-        eye = sp.identity(half, format="csr")
-        eq_blocks.append(columns(op, 0) - columns(eye, offset) + columns(eye, offset + half))
-        eq_rhs.append(-c0)
-        offset += m
-    z_at = offset
-    cost[z_at:z_at + n_z] = opts.border_cost if explicit else opts.hard_border_cost
-    blocks.append(columns(frame_rows, 0) - columns(sp.kron(sp.identity(L), np.ones((Q, 1)), format="csr"), z_at))
-    rhs.append(-np.tile(const, L))
-    if shape_rows is not None:
-        blocks.append(columns(shape_rows, 0))
-        rhs.append(np.full(shape_rows.shape[0], opts.max_anisotropy))
-    if explicit:
-        u_at = z_at + n_z
-        cost[u_at:u_at + n_u] = opts.fixed_zoom_cost
-        scale_rows = sp.kron(sp.identity(L), scale[None, :], format="csr")
-        eye = sp.identity(L, format="csr")
-        blocks += [columns(scale_rows, 0) - columns(eye, u_at), columns(-scale_rows, 0) - columns(eye, u_at)]
-        rhs += [np.ones(L), -np.ones(L)]
-
-    bounds = _bounds(model, crop, opts) * L + [(0.0, None)] * (n_total - n_p)
-    if fixed is not None:
-        for t, values in enumerate(fixed[:L]):
-            for i, v in enumerate(values):
-                bounds[t * K + i] = (float(v), float(v))
-    problem = dict(A_ub=sp.vstack(blocks, format="csr"), b_ub=np.concatenate(rhs),
-                   A_eq=sp.vstack(eq_blocks, format="csr"), b_eq=np.concatenate(eq_rhs), bounds=bounds)
-    # The interior point method is the faster on these banded programs; simplex is the fallback.
-    result = linprog(cost, method="highs-ipm", **problem)
-    if result.status != 0 or result.x is None:
-        result = linprog(cost, method="highs-ds", **problem)
-    if result.status != 0 or result.x is None:
-        raise ProcessingError(f"the L1 camera path could not be solved ({result.message})")
-    return result.x[:n_p].reshape(L, K)
+    if kinds.count("scale") != 2:
+        return None
+    a, d = [i for i, kind in enumerate(kinds) if kind == "scale"]
+    b, c = [i for i, kind in enumerate(kinds) if kind == "rotation"]
+    rows = np.zeros((4, model.n_params))
+    rows[0, [a, d]] = (1, -1)
+    rows[1, [a, d]] = (-1, 1)
+    rows[2, [b, c]] = (1, 1)
+    rows[3, [b, c]] = (-1, -1)
+    return rows
 
 
 @dataclass
