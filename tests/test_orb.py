@@ -127,3 +127,20 @@ def test_make_estimator_validates_names_and_widths():
         make_estimator("orb", work_width=8)
     with pytest.raises(ValueError):
         OrbConfig(method="lmeds")
+
+
+def test_recovers_known_warps_on_real_aerial_imagery(shared_data):
+    """The same < 0.5 px at 1280x720 over a real orthophoto (conifer forest, NEON), when the
+    shared data sits beside the repository."""
+    import cv2
+
+    path = shared_data / "aerial_stills" / "deepforest_neon_orthophoto" / "2019_YELL_2_541000_4977000_image_crop.png"
+    if not path.exists():
+        pytest.skip(f"{path.name} is not present")
+    photo = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    # the photo is 1249x1035: view it at 1.6x so a 1280x720 frame (and its warps) fits inside
+    ground = cv2.resize(photo, None, fx=1.6, fy=1.6, interpolation=cv2.INTER_CUBIC)
+    est = OrbEstimator(320)
+    errors = [corner_error(estimate_pair(est, *warped_pair(ground, H, origin=(300.0, 300.0))).H, H, HD)
+              for H in known_warps(3, seed=21)]
+    assert max(errors) < 0.5, errors
