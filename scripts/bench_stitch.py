@@ -35,11 +35,13 @@ from mosaic_cli.video import open_video
 
 ROOT = Path(__file__).resolve().parents[1]
 ORTHOPHOTO = ROOT.parent / "shared/data/aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png"
+DEFAULT_WORKDIR = ROOT / ".dev" / "bench_stitch"
 GAP = 60  # frames: placement accuracy is measured between used frames at least this far apart
 
 
 def here(args: argparse.Namespace, command: str) -> str:
-    return f"python scripts/bench_stitch.py {command} --workdir {args.workdir}"
+    workdir = "" if args.workdir == DEFAULT_WORKDIR else f" --workdir {args.workdir}"
+    return f"python scripts/bench_stitch.py {command}{workdir}"
 
 
 # -- flights -----------------------------------------------------------------------------------
@@ -260,7 +262,7 @@ def _save_jpeg(path: Path, bgr: np.ndarray, width: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("what", choices=["accuracy", "throughput", "memory", "figure", "all"])
-    parser.add_argument("--workdir", type=Path, default=ROOT / ".dev" / "bench_stitch")
+    parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--repeat", type=int, default=3)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -77,11 +78,17 @@ def measure_quality(gray: np.ndarray) -> FrameQuality:
 class Keyframe:
     index: int  # frame number in the video
     placement: np.ndarray  # frame -> world, source pixels (chained, before refinement)
-    features: Features
+    described: Features | Future | None  # its features, or their computation under way
     quality: FrameQuality
     image: np.ndarray | None = None  # RGB at ``scale`` x source size, while it is held
     scale: float = 1.0
     composited: bool = False  # drawn in the panorama (else used for registration only)
+
+    @property
+    def features(self) -> Features:
+        if isinstance(self.described, Future):
+            self.described = self.described.result()
+        return self.described
 
 
 @dataclass
@@ -187,11 +194,13 @@ class FlightScanner:
         self.fps = fps
         self.index = first_index - 1
         self.first_index = first_index
-        self.extract = FeatureExtractor(source_size, feature_options)
+        self.extract = FeatureExtractor(source_size, feature_options)  # used by the worker thread only
+        self._extract_here = FeatureExtractor(source_size, feature_options)  # ... and by this one
         self.matcher = FeatureMatcher(self.extract)
         self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size)
         self.coverage = CoverageMap(source_size, options.coverage_cells)
         self.keyframes: list[Keyframe] = []
+        self._describer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
         self.placement: np.ndarray | None = None  # of the current frame, None while lost
         self.lost_since: int | None = None
         self.failed_pairs = 0
@@ -223,6 +232,9 @@ class FlightScanner:
             if overlap_fraction(np.linalg.inv(self.keyframes[-1].placement) @ placement, self.size) < self.o.last_overlap:
                 self._add(index, frame, quality, placement)
         self.store.shrink(self.keyframes)
+        for keyframe in self.keyframes:
+            keyframe.features  # noqa: B018 (waits for the descriptions under way)
+        self._describer.shutdown()
         return FlightScan(
             self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
             self.failed_pairs, self.relocalised,
@@ -247,7 +259,7 @@ class FlightScanner:
         """Register the frame directly against the last keyframes (the estimator lost it)."""
         if self.lost_since is None:
             self.lost_since = self.index
-        features = self.extract(frame)
+        features = self._extract_here(frame)
         for key in reversed(self.keyframes[-3:]):
             match = self.matcher.match(features, key.features)
             if match is not None:
@@ -306,7 +318,8 @@ class FlightScanner:
 
     def _add(self, index: int, frame: np.ndarray, quality: FrameQuality, placement: np.ndarray) -> None:
         self._candidate = self._last = None
-        keyframe = Keyframe(index, placement, self.extract(frame), quality)
+        # Described on the second core while the estimator goes on with the next frames.
+        keyframe = Keyframe(index, placement, self._describer.submit(self.extract, frame), quality)
         world = project(placement, self._corners)
         cells = self.coverage.cells(world)
         if not self.keyframes or self.coverage.new_fraction(cells) >= self.o.min_new_coverage:
