@@ -185,7 +185,34 @@ def throughput(args) -> dict:
         )
     fps = float(np.median([r["fps"] for r in runs]))
     print(f"throughput (ORB, 720p, median of {len(runs)}): {fps:.1f} fr/s overall; reproduce: {here(args, 'throughput')} --repeat {args.repeat}")
-    return {"throughput": runs, "throughput_median_fps": fps}
+    result = {"throughput": runs, "throughput_median_fps": fps}
+    if args.compare_polish:
+        result["polish"] = compare_polish(args, video)
+    return result
+
+
+def compare_polish(args, video: Path) -> dict:
+    """Why stitch() drops the ORB estimator's per-pair polish under drift control: the same
+    flight with and without it, alternating, same placement error measured."""
+    import mosaic_cli.stitch.pipeline as pipeline
+
+    gt = load_ground_truth(video.with_suffix(".gt.json"))
+    skip = pipeline._skip_pair_polish
+    rows = {"without polish (default)": [], "with the estimator's polish": []}
+    for _ in range(args.repeat):
+        for label in rows:
+            pipeline._skip_pair_polish = skip if label.startswith("without") else (lambda *a: None)
+            try:
+                out = args.workdir / "polish.jpg"
+                result = stitch(video, out, make_estimator("orb"), transforms=out.with_suffix(".json"), show_progress=False)
+            finally:
+                pipeline._skip_pair_polish = skip
+            errors = placement_errors([i for i, _ in result.transforms], [H for _, H in result.transforms], gt.map_to_frame, gt.size)
+            rows[label].append((result.frames / result.seconds["scan"], float(np.median(errors))))
+    for label, runs in rows.items():
+        print(f"  {label}: scan {np.median([r[0] for r in runs]):.1f} fr/s, placement error {np.median([r[1] for r in runs]):.2f} px")
+    print(f"  reproduce: {here(args, 'throughput')} --repeat {args.repeat} --compare-polish")
+    return rows
 
 
 # -- memory ------------------------------------------------------------------------------------
@@ -266,6 +293,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--compare-polish", action="store_true", help="throughput: also with the ORB estimator's per-pair polish")
     parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
     parser.add_argument("--figure-width", type=int, default=1400)
     parser.add_argument("--json", type=Path, help="also write the numbers here")

@@ -434,3 +434,42 @@ def test_blending_in_strips_matches_blending_the_whole_canvas(ground):
         assert np.array_equal(whole[..., 3], strips[..., 3])
         assert np.abs(whole - strips).max() <= 2, blend
     assert (results["multiband", 100.0][..., 3] == 255).mean() > 0.6
+
+
+class Batching(Estimator):
+    """Wraps an estimator and hands its estimates out four frames late, in bursts, as a
+    batched (learned) estimator does."""
+
+    name = "batching"
+
+    def __init__(self, inner: Estimator):
+        super().__init__(inner.work_width)
+        self.inner, self.held = inner, []
+
+    def reset(self, full_size):
+        super().reset(full_size)
+        self.inner.reset(full_size)
+        self.held = []
+
+    def feed(self, frame):
+        self.held += self.inner.feed(frame)
+        if len(self.held) < 4:
+            return []
+        out, self.held = self.held, []
+        return out
+
+    def finish(self):
+        out, self.held = self.held + self.inner.finish(), []
+        return out
+
+    def _estimate(self, prev, cur):
+        raise AssertionError("not used")
+
+
+def test_an_estimator_that_answers_late_in_batches_gives_the_same_panorama(survey, tmp_path):
+    flight, _, transforms, _ = survey
+    stitch(flight.path, tmp_path / "p.png", Batching(fast_orb()), transforms=tmp_path / "t.json", show_progress=False)
+    canvas, indices, H = load_transforms(tmp_path / "t.json")
+    ref_canvas, ref_indices, ref_H = load_transforms(transforms)
+    assert (canvas, indices) == (ref_canvas, ref_indices)
+    assert np.allclose(np.array(H), np.array(ref_H), atol=1e-6)

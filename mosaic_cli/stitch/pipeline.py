@@ -128,7 +128,7 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
 def _skip_pair_polish(estimator: Estimator, options: StitchOptions) -> None:
     """With drift control the keyframes are re-registered with SIFT and placed jointly, so the
     ORB estimator's sub-pixel polish of every frame pair no longer changes the panorama, but
-    it costs half the scan (720p survey: 16 -> 32 fr/s at the same placement error)."""
+    it costs a good part of the scan (``scripts/bench_stitch.py throughput --compare-polish``)."""
     if options.registration.enabled and isinstance(estimator, OrbEstimator) and estimator.config.refine:
         estimator.config = dataclasses.replace(estimator.config, refine=None)
 
