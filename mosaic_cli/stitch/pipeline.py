@@ -26,13 +26,7 @@ from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight
 from mosaic_cli.stitch.output import check_outputs, write_panorama, write_transforms
-from mosaic_cli.stitch.registration import (
-    RegistrationOptions,
-    RegistrationReport,
-    link_keyframes,
-    loop_candidates,
-    refine_placements,
-)
+from mosaic_cli.stitch.registration import RegistrationOptions, RegistrationReport, register_keyframes
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
@@ -166,16 +160,12 @@ def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress:
     if not keyframes:
         raise BadInput("no frame of the video is usable (all black, blank or over-exposed)")
     chained = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
-    report = RegistrationReport()
     if not options.registration.enabled or len(keyframes) < 2:
-        return chained, report
+        return chained, RegistrationReport()
     matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features))
-    candidates = loop_candidates(keyframes, scan.source_size, options.registration)
-    total = len(keyframes) - 1 + len(candidates)
-    with progress_task("register", total, unit="pairs/s", disable=not show_progress) as advance:
-        report = link_keyframes(keyframes, matcher, options.registration, candidates, advance)
-        advance(0, status=f"{report.loops} loops; refining")
-        placements = refine_placements(chained, report, ref, scan.source_size, options.registration)
+    features = [k.features for k in keyframes]
+    with progress_task("register", None, unit="pairs/s", disable=not show_progress) as advance:
+        placements, report = register_keyframes(features, chained, ref, matcher, options.registration, advance)
         advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
     return placements, report
 

@@ -20,8 +20,8 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from mosaic_cli.geometry import frame_corners, normalize, project
-from mosaic_cli.stitch.features import FeatureMatcher, PairMatch
-from mosaic_cli.stitch.keyframes import Keyframe, overlap_fraction
+from mosaic_cli.stitch.features import FeatureMatcher, Features, PairMatch
+from mosaic_cli.stitch.keyframes import overlap_fraction
 
 
 @dataclass
@@ -40,6 +40,7 @@ class RegistrationOptions:
     loss_scale: float = 1.5  # pixels: soft-L1 turns from quadratic to linear here
     outlier_residual: float = 5.0  # pixels: median residual above which a loop pair is dropped
     max_evaluations: int = 200
+    loop_rounds: int = 2  # look for loops again once the placements are refined
 
 
 @dataclass
@@ -67,64 +68,97 @@ class RegistrationReport:
     links: list[Link] = field(default_factory=list)
 
 
-def chained(keyframes: list[Keyframe], a: int, b: int) -> np.ndarray:
-    """Keyframe a -> keyframe b by the estimator's chain."""
-    return normalize(np.linalg.inv(keyframes[b].placement) @ keyframes[a].placement)
+def relative(placements: list[np.ndarray], a: int, b: int) -> np.ndarray:
+    """Keyframe a -> keyframe b, from placements into a common frame."""
+    return normalize(np.linalg.inv(placements[b]) @ placements[a])
 
 
-def link_keyframes(
-    keyframes: list[Keyframe],
+def register_keyframes(
+    features: list[Features],
+    placements: list[np.ndarray],
+    reference: int,
     matcher: FeatureMatcher,
     options: RegistrationOptions,
-    candidates: list[tuple[int, int]] | None = None,
     advance: Callable[..., None] = lambda *a, **k: None,
-) -> RegistrationReport:
-    """Sequential links between neighbours, then loop links between the ``candidates``
-    (default: :func:`loop_candidates`), keyframe pairs predicted to overlap."""
+) -> tuple[list[np.ndarray], RegistrationReport]:
+    """Keyframe -> reference placements refined against direct registrations.
+
+    Loops are looked for twice: with the chained placements, then again with the refined ones,
+    which can reveal overlaps that the chain's drift had hidden (within ``max_loop_pairs``)."""
     size = matcher.source_size
-    diagonal = float(np.hypot(*size))
     report = RegistrationReport()
-    for a in range(len(keyframes) - 1):
-        prior = chained(keyframes, a, a + 1)
-        match = matcher.match(keyframes[a].features, keyframes[a + 1].features, prior, options.sequential_tolerance * diagonal)
+    report.links = link_neighbours(features, placements, matcher, options, report, advance)
+    tried: set[tuple[int, int]] = set()
+    for _ in range(options.loop_rounds):
+        candidates = loop_candidates(placements, size, options, tried)
+        if tried and not candidates:
+            break
+        tried |= set(candidates)
+        report.loop_candidates += len(candidates)
+        report.links += link_loops(features, placements, candidates, matcher, options, report, advance)
+        placements = refine_placements(placements, report, reference, size, options)
+    return placements, report
+
+
+def link_neighbours(features, placements, matcher: FeatureMatcher, options: RegistrationOptions, report, advance) -> list[Link]:
+    """Consecutive keyframes, registered directly when that agrees with the chain, else
+    linked by the chain itself (weaker)."""
+    size = matcher.source_size
+    tolerance = options.sequential_tolerance * float(np.hypot(*size))
+    links = []
+    for a in range(len(features) - 1):
+        prior = relative(placements, a, a + 1)
+        match = matcher.match(features[a], features[a + 1], prior, tolerance)
         if match is not None:
-            report.links.append(_from_match(a, a + 1, match, "sequential", options))
+            links.append(_from_match(a, a + 1, match, "sequential", options))
             report.sequential += 1
         else:
-            report.links.append(_from_homography(a, a + 1, prior, size, "chain", options.chain_weight))
+            links.append(_from_homography(a, a + 1, prior, size, "chain", options.chain_weight))
             report.chained += 1
         advance(1)
-    if candidates is None:
-        candidates = loop_candidates(keyframes, size, options)
-    report.loop_candidates = len(candidates)
+    return links
+
+
+def link_loops(features, placements, candidates, matcher: FeatureMatcher, options: RegistrationOptions, report, advance) -> list[Link]:
+    tolerance = options.loop_tolerance * float(np.hypot(*matcher.source_size))
+    links = []
     for a, b in candidates:
-        prior = chained(keyframes, a, b)
-        match = matcher.match(keyframes[a].features, keyframes[b].features, prior, options.loop_tolerance * diagonal)
+        match = matcher.match(features[a], features[b], relative(placements, a, b), tolerance)
         if match is not None:
-            report.links.append(_from_match(a, b, match, "loop", options))
+            links.append(_from_match(a, b, match, "loop", options))
             report.loops += 1
         advance(1)
-    return report
+    return links
 
 
-def loop_candidates(keyframes: list[Keyframe], size: tuple[int, int], options: RegistrationOptions) -> list[tuple[int, int]]:
-    """Non-neighbouring keyframe pairs predicted to overlap, best first, within the budget."""
-    if options.max_loop_pairs <= 0 or len(keyframes) < options.min_loop_gap + 1:
+def loop_candidates(
+    placements: list[np.ndarray],
+    size: tuple[int, int],
+    options: RegistrationOptions,
+    tried: set[tuple[int, int]] = frozenset(),
+) -> list[tuple[int, int]]:
+    """Non-neighbouring keyframe pairs predicted to overlap and not ``tried`` yet, most
+    overlap first (the most reliable registrations), spread over the keyframes, within what
+    is left of ``max_loop_pairs``."""
+    budget = options.max_loop_pairs - len(tried)
+    if budget <= 0 or len(placements) < options.min_loop_gap + 1:
         return []
-    centre = np.array([[size[0] / 2 - 0.5, size[1] / 2 - 0.5]])
-    centres = np.array([project(k.placement, centre)[0] for k in keyframes])
-    radius = float(max(np.hypot(*(np.ptp(project(k.placement, frame_corners(*size)), axis=0))) for k in keyframes))
+    corners = [project(P, frame_corners(*size)) for P in placements]
+    centres = np.array([c.mean(axis=0) for c in corners])
+    radius = float(max(np.hypot(*np.ptp(c, axis=0)) for c in corners))
     scored = []
     for a, b in cKDTree(centres).query_pairs(radius):
         a, b = min(a, b), max(a, b)
-        if b - a < options.min_loop_gap:
+        if b - a < options.min_loop_gap or (a, b) in tried:
             continue
-        overlap = overlap_fraction(chained(keyframes, a, b), size)
+        overlap = overlap_fraction(relative(placements, a, b), size)
         if overlap >= options.min_loop_overlap:
             scored.append((overlap, a, b))
-    # Most overlap first: those registrations are the most reliable; spread over keyframes.
     scored.sort(key=lambda s: (-s[0], s[1], s[2]))
-    count = np.zeros(len(keyframes), int)
+    count = np.zeros(len(placements), int)
+    for a, b in tried:
+        count[a] += 1
+        count[b] += 1
     chosen = []
     for _, a, b in scored:
         if count[a] >= options.max_loops_per_keyframe or count[b] >= options.max_loops_per_keyframe:
@@ -132,7 +166,7 @@ def loop_candidates(keyframes: list[Keyframe], size: tuple[int, int], options: R
         chosen.append((a, b))
         count[a] += 1
         count[b] += 1
-        if len(chosen) >= options.max_loop_pairs:
+        if len(chosen) >= budget:
             break
     return chosen
 
@@ -254,7 +288,8 @@ def refine_placements(
     links = list(report.links)
     problem = _Problem(initial, links, reference, size)
     x = np.zeros(problem.n_params)
-    report.residual_before = float(np.median(problem.link_residuals(x)))
+    if not report.residual_before:  # before the first refinement
+        report.residual_before = float(np.median(problem.link_residuals(x)))
     for _ in range(3):
         x = _solve(problem, x, options)
         residual = problem.link_residuals(x)
