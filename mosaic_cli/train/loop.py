@@ -175,22 +175,17 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
             for group in optimizer.param_groups:
                 group["lr"] = lr
             torch.manual_seed(cfg.seed * 1000003 + step * dist.world + dist.rank)
-            model.train()
-
-            optimizer.zero_grad(set_to_none=True)
-            losses = objective(model, to_model_input(batch, dist.device))
-            scaler.scale(losses["total"]).backward()
+            losses = compute_gradients(model, objective, optimizer, scaler, to_model_input(batch, dist.device))
+            # One collective per step: whether any process saw a non-finite loss, was asked to
+            # stop, or is due a time-based checkpoint, so that all act on it together.
             time_due = time.monotonic() - last_checkpoint > 60 * cfg.checkpoint_minutes
             diverged, stop_now, time_due = dist.any_flag(
                 not torch.isfinite(losses["total"]).item(), stop.requested, time_due
             )
-            if diverged:  # skip this update everywhere rather than poison the weights
-                skipped += 1
-                if skipped > MAX_SKIPPED_STEPS:
-                    raise ProcessingError(f"training diverged: {skipped} steps in a row gave a non-finite loss")
-                optimizer.zero_grad(set_to_none=True)
-            else:
-                skipped = 0
+            skipped = skipped + 1 if diverged else 0
+            if skipped > MAX_SKIPPED_STEPS:
+                raise ProcessingError(f"training diverged: {skipped} steps in a row gave a non-finite loss")
+            if not diverged:  # else skip this update everywhere rather than poison the weights
                 scaler.step(optimizer)
                 scaler.update()
 
@@ -224,6 +219,17 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
 
 
 # ----------------------------------------------------------------------------- stages
+
+
+def compute_gradients(model: nn.Module, objective: Objective, optimizer: torch.optim.Optimizer,
+                      scaler: torch.amp.GradScaler, batch: dict) -> dict:
+    """Every loss term of one batch, with the gradient of the total in the parameters (averaged
+    over the processes by DDP during backward)."""
+    model.train()
+    optimizer.zero_grad(set_to_none=True)
+    losses = objective(model, batch)
+    scaler.scale(losses["total"]).backward()
+    return losses
 
 
 def prepare_run_dir(run: RunDir) -> None:
