@@ -36,7 +36,7 @@ from mosaic_cli.train.data import (
     share_budget,
     to_model_input,
 )
-from mosaic_cli.train.loop import plan_run, train
+from mosaic_cli.train.loop import train
 from mosaic_cli.train.schedule import StepSchedule
 
 WORK = (64, 48)
@@ -399,3 +399,23 @@ def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan
     rows = list(csv.DictReader(open(tmp_path / "run" / "val.csv")))
     assert [int(r["step"]) for r in rows] == [2, 3]
     assert float(rows[-1]["mace"]) == pytest.approx(summary.val_mace, rel=1e-6) and np.isfinite(summary.val_mace)
+
+
+# ----------------------------------------------------------------------------- real imagery
+
+
+def test_trains_on_a_flight_rendered_from_real_aerial_imagery(tmp_path, shared_data):
+    from mosaic_cli.simulate import simulate_flight
+
+    still = shared_data / "aerial_stills" / "opencv_aero" / "aero1.jpg"
+    if not still.is_file():
+        pytest.skip(f"{still} is not present")
+    clips = tmp_path / "clips"
+    clips.mkdir()
+    simulate_flight(clips / "aero.mp4", still, frames=24, size=(128, 72), preset="ultrafast", show_progress=False)
+    cfg = TrainConfig(clips=str(clips), out=str(tmp_path / "run"), steps=3, batch_size=2, work_size=(64, 36),
+                      patch=PATCH, num_workers=1, threads=1).resolved()
+    summary = train(cfg, show_progress=False)
+    rows = read_log(tmp_path / "run")
+    assert [int(r["step"]) for r in rows] == [1, 2, 3] and all(np.isfinite(float(r["total"])) for r in rows)
+    assert load_weights(summary.weights)[1]["work_size"] == (64, 36)
