@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -38,6 +40,7 @@ from pathlib import Path
 import imageio_ffmpeg
 import numpy as np
 
+from mosaic_cli.geometry import normalize
 from mosaic_cli.simulate import load_ground_truth, load_map, plan_flight, write_flight
 from mosaic_cli.stabilize import StabilizeOptions, stabilize
 from mosaic_cli.stabilize.crop import output_warps
@@ -63,11 +66,18 @@ MAPS = [
 FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
 
 
+def cpu_seconds() -> float:
+    """User + system CPU time of this process and its finished children (ffmpeg)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 @dataclass
 class Row:
     clip: str
     method: str
     fps: float | None = None
+    cpu_ms: float | None = None  # CPU milliseconds per frame, all threads and processes
     gt_jitter: float | None = None  # exact warps (mosaic only), input px
     gt_jitter_measured: float | None = None  # warps measured from the pixels, input px
     video_jitter: float | None = None  # output px
@@ -86,18 +96,18 @@ def make_clip(folder: Path, map_path: Path | None, seed: int, frames: int, size:
     return clip
 
 
-def run_vidstab(clip: Path, out: Path, smoothing: int | None, crf: int, preset: str) -> float:
-    """vidstabdetect then vidstabtransform (+ x264); returns wall seconds for both passes."""
+def run_vidstab(clip: Path, out: Path, smoothing: int | None, crf: int, preset: str) -> tuple[float, float]:
+    """vidstabdetect then vidstabtransform (+ x264); returns wall and CPU seconds for both."""
     clip, out = clip.resolve(), out.resolve()
     trf = out.with_suffix(".trf")
     transform = f"vidstabtransform=input={trf.name}" + ("" if smoothing is None else f":smoothing={smoothing}")
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), cpu_seconds()
     subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-i", str(clip), "-vf",
                     f"vidstabdetect=result={trf.name}", "-f", "null", "-"], check=True, cwd=out.parent)
     subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-i", str(clip), "-vf", transform,
                     "-c:v", "libx264", "-preset", preset, "-crf", str(crf), "-pix_fmt", "yuv420p", "-c:a", "copy",
                     str(out)], check=True, cwd=out.parent)
-    return time.perf_counter() - start
+    return time.perf_counter() - start, cpu_seconds() - cpu
 
 
 def pixel_scores(row: Row, clip: Path, out: Path, gt) -> None:
@@ -138,14 +148,14 @@ def fmt(value, spec=".3f") -> str:
 
 
 def print_table(rows: list[Row], input_jitter: dict[str, float]) -> None:
-    head = f"{'clip':<34} {'method':<36} {'fps':>6} {'gt jit':>7} {'ratio':>6} {'gt jit*':>7} {'ratio*':>6} {'vid jit':>7} {'crop':>6} {'dist':>6}"
+    head = f"{'clip':<34} {'method':<36} {'fps':>6} {'cpu ms':>6} {'gt jit':>7} {'ratio':>6} {'gt jit*':>7} {'ratio*':>6} {'vid jit':>7} {'crop':>6} {'dist':>6}"
     print(head)
     print("-" * len(head))
     for r in rows:
         base = input_jitter.get(r.clip)
         ratio = None if r.gt_jitter is None or not base else r.gt_jitter / base
         ratio_m = None if r.gt_jitter_measured is None or not base else r.gt_jitter_measured / base
-        print(f"{r.clip[:34]:<34} {r.method[:36]:<36} {fmt(r.fps, '.1f'):>6} {fmt(r.gt_jitter):>7} {fmt(ratio):>6} "
+        print(f"{r.clip[:34]:<34} {r.method[:36]:<36} {fmt(r.fps, '.1f'):>6} {fmt(r.cpu_ms, '.1f'):>6} {fmt(r.gt_jitter):>7} {fmt(ratio):>6} "
               f"{fmt(r.gt_jitter_measured):>7} {fmt(ratio_m):>6} {fmt(r.video_jitter):>7} {fmt(r.cropping):>6} {fmt(r.distortion):>6}")
 
 
@@ -165,6 +175,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="write all rows here")
     args = parser.parse_args()
     print("command:", shlex.join([sys.executable, *sys.argv]))
+    print(f"cpus: {os.cpu_count()}, load average at start: {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     size = tuple(int(v) for v in args.size.lower().split("x"))
     args.out.mkdir(parents=True, exist_ok=True)
     maps = [STILLS / m for m in MAPS if (STILLS / m).exists()] or [None]
@@ -175,17 +186,23 @@ def main() -> None:
         clip = make_clip(args.out, map_path, args.seed + k, args.frames, size)
         gt = load_ground_truth(clip.with_suffix(".gt.json"))
         input_jitter[clip.stem] = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps)
+        measured = track_pairwise(clip)[0]
+        # The ruler's own noise: the jitter of a video whose only motion is its errors.
+        errors = normalize(measured @ np.linalg.inv(gt.pairwise))
         source = Row(clip.stem, "input (shaky)", gt_jitter=input_jitter[clip.stem],
-                     video_jitter=pairwise_jitter(track_pairwise(clip)[0], gt.size, gt.fps),
-                     extra={"true_video_jitter": pairwise_jitter(gt.pairwise, gt.size, gt.fps)})
+                     video_jitter=pairwise_jitter(measured, gt.size, gt.fps),
+                     extra={"true_video_jitter": pairwise_jitter(gt.pairwise, gt.size, gt.fps),
+                            "ruler_noise": pairwise_jitter(errors, gt.size, gt.fps)})
+        print(f"{clip.stem}: ruler noise floor {source.extra['ruler_noise']:.3f} px (video jitter of its errors)")
         rows.append(source)
 
         out = args.out / f"{clip.stem}.mosaic.mp4"
         options = StabilizeOptions(model=args.model, smoothing=args.smoothing, crf=args.crf, preset=args.preset)
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), cpu_seconds()
         result = stabilize(clip, out, options, show_progress=False)
-        seconds = time.perf_counter() - start
+        seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu
         row = Row(clip.stem, f"mosaic {args.smoothing} {args.model}", fps=result.frames / seconds,
+                  cpu_ms=1000 * cpu / result.frames,
                   gt_jitter=ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, result.warps),
                   extra={"stage_seconds": result.seconds, "exact_cropping": result.cropping,
                          "exact_distortion": result.distortion, "border": result.border})
@@ -195,16 +212,17 @@ def main() -> None:
         if not args.no_vidstab:
             for smoothing in (None, 30):
                 out = args.out / f"{clip.stem}.vidstab{'' if smoothing is None else smoothing}.mp4"
-                seconds = run_vidstab(clip, out, smoothing, args.crf, args.preset)
+                seconds, cpu = run_vidstab(clip, out, smoothing, args.crf, args.preset)
                 row = Row(clip.stem, "vid.stab " + ("defaults" if smoothing is None else f"smoothing={smoothing}"),
-                          fps=gt.frames / seconds)
+                          fps=gt.frames / seconds, cpu_ms=1000 * cpu / gt.frames)
                 pixel_scores(row, clip, out, gt)
                 rows.append(row)
         if args.variants:
-            rows += variants(clip, gt, 320)
+            rows += variants(clip, gt, 640)
         print_table([r for r in rows if r.clip == clip.stem], input_jitter)
         print(flush=True)
 
+    print(f"load average at end: {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print("all clips (gt jit: input px vs the known smooth path, exact warps; * : warps measured from the pixels;")
     print("vid jit: output px from the output video alone; crop/dist: Liu et al. from measured warps)")
     print_table(rows, input_jitter)
@@ -218,7 +236,7 @@ def main() -> None:
 
         ratios = [r.gt_jitter_measured / input_jitter[r.clip] for r in sel if r.gt_jitter_measured is not None]
         exact = [r.gt_jitter / input_jitter[r.clip] for r in sel if r.gt_jitter is not None]
-        print(f"  {method:<40} fps {fmt(med('fps'), '.1f'):>5}  gt ratio {fmt(float(np.median(exact)) if exact else None)}"
+        print(f"  {method:<40} fps {fmt(med('fps'), '.1f'):>5}  cpu ms/frame {fmt(med('cpu_ms'), '.1f'):>5}  gt ratio {fmt(float(np.median(exact)) if exact else None)}"
               f"  gt ratio* {fmt(float(np.median(ratios)) if ratios else None)}  video jitter {fmt(med('video_jitter'))}"
               f"  cropping {fmt(med('cropping'))}  distortion {fmt(med('distortion'))}")
     if args.json:

@@ -25,7 +25,8 @@ def stabilize(
     warps: Path | None = typer.Option(None, "--warps", help="Write the per-frame warps (input -> output pixels) as JSON."),
     compare: Path | None = typer.Option(None, "--compare", help="Also write input and output side by side to this video."),
     estimator: str = typer.Option("orb", "--estimator", "-e", help="orb, orb-ransac, identity, lstm or cnn."),
-    work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
+    work_width: int | None = typer.Option(None, "--work-width", help="Width the estimator works at (pixels; "
+                                          "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),

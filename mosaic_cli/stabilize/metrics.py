@@ -101,37 +101,65 @@ class VideoScores:
     matched_frames: int = 0
 
 
-def track_pairwise(video: str | Path, work_width: int = 640) -> tuple[np.ndarray, tuple[int, int], float]:
-    """Frame-to-frame homographies of a video with mosaic's ORB estimator (full-res pixels)."""
+# The ruler for scores from pixels: mosaic's ORB with its sub-pixel polish, finer than the
+# stabiliser's own tracking (measured on shaky flights: 0.05-0.09 px high-frequency error of
+# the chained path, against 0.07-0.4 px at 320 px wide with 500 features).
+RULER_WIDTH = 960
+RULER_FEATURES = 1000
+
+
+def ruler():
     from mosaic_cli.estimators import OrbEstimator
+    from mosaic_cli.estimators.orb import OrbConfig
+
+    return OrbEstimator(RULER_WIDTH, OrbConfig(n_features=RULER_FEATURES))
+
+
+def track_pairwise(video: str | Path) -> tuple[np.ndarray, tuple[int, int], float]:
+    """Frame-to-frame homographies of a video, measured with :func:`ruler` (full-res pixels)."""
     from mosaic_cli.track import track_video
 
-    result = track_video(video, OrbEstimator(work_width), show_progress=False)
+    result = track_video(video, ruler(), show_progress=False)
     return result.pairwise, result.info.source_size, result.info.fps
 
 
-def matched_warps(input_video: str | Path, output_video: str | Path, work_width: int = 640,
-                  step: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Estimate the warp input frame t -> output frame t from the pixels (ORB + ECC), for every
-    ``step``-th frame; returns (frame indices, warps).  Frames that do not match are left out."""
-    from mosaic_cli.estimators import OrbEstimator
+def matched_warps(input_video: str | Path, output_video: str | Path, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Estimate the warp input frame t -> output frame t from the pixels, for every ``step``-th
+    frame; returns (frame indices, warps in full-resolution pixels).  Frames that do not match
+    are left out.
+
+    Two rounds: the first fit brings the output back onto the input, where a zoom or rotation no
+    longer spoils the sub-pixel polish; the second measures what is left."""
+    import cv2
+
+    from mosaic_cli.geometry import to_resolution
     from mosaic_cli.video import open_video
 
-    estimator = OrbEstimator(work_width)
+    estimator = ruler()
+
+    def fit(a: np.ndarray, b: np.ndarray, full: tuple[int, int]) -> np.ndarray | None:
+        estimator.reset(full)
+        estimator.feed(a)
+        (estimate,) = estimator.feed(b)
+        return estimate.H if estimate.confidence > 0 else None
+
     indices, warps = [], []
-    with open_video(input_video, width=work_width, gray=True) as src, open_video(output_video, width=work_width, gray=True) as dst:
+    with open_video(input_video, width=RULER_WIDTH, gray=True) as src, \
+            open_video(output_video, width=RULER_WIDTH, gray=True) as dst:
         full = src.info.source_size
         if dst.info.source_size != full:
             raise ValueError("input and output differ in size")
         for t, (a, b) in enumerate(zip(src, dst)):
             if t % step:
                 continue
-            estimator.reset(full)
-            estimator.feed(a)
-            (estimate,) = estimator.feed(b)
-            if estimate.confidence > 0:
-                indices.append(t)
-                warps.append(estimate.H)
+            first = fit(a, b, full)
+            if first is None:
+                continue
+            work = (a.shape[1], a.shape[0])
+            back = cv2.warpPerspective(b, to_resolution(first, full, work), work, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+            rest = fit(a, back, full)
+            indices.append(t)
+            warps.append(first if rest is None else normalize(first @ rest))
     return np.array(indices, dtype=int), np.array(warps).reshape(-1, 3, 3)
 
 

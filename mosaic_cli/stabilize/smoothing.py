@@ -18,6 +18,7 @@ normalised coordinates of the input frame (see :mod:`.crop`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -55,8 +56,10 @@ class L1Smoother:
     max_anisotropy: float = 0.02  # |a - d| and |b + c| of affine and homography corrections
     max_perspective: float = 0.05  # |g|, |h| of homography corrections (normalised)
 
-    def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None) -> np.ndarray:
-        """``motion`` (N-1, 3, 3): F_{t+1}, frame t+1 -> frame t, normalised (see path.py)."""
+    def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None,
+               advance: Callable[[int], None] | None = None) -> np.ndarray:
+        """``motion`` (N-1, 3, 3): F_{t+1}, frame t+1 -> frame t, normalised (see path.py);
+        ``advance(n)`` is told of every n frames whose view is settled."""
         n_frames = len(motion) + 1
         if self.window < 2 * CARRIED + 2 or not 0 <= self.overlap < self.window - CARRIED:
             raise BadInput("the L1 window must hold at least 8 frames and exceed the overlap by 3")
@@ -66,11 +69,16 @@ class L1Smoother:
             end = min(n_frames, start + self.window)
             fixed = params[start:start + CARRIED] if start > 0 else None
             solution = _solve_window(motion[start:end - 1], model, fixed, size, crop, self)
+            done = start + (CARRIED if start else 0)
             if end == n_frames:
                 params[start:end] = solution
+                if advance:
+                    advance(n_frames - done)
                 break
             keep = start + self.window - self.overlap
             params[start:keep] = solution[:keep - start]
+            if advance:
+                advance(keep - done)
             start = keep - CARRIED
         ratio = 1.0 if crop is None else crop
         return model.matrices(params) @ zoom_matrix(ratio)
@@ -255,15 +263,20 @@ class GaussianSmoother:
     radius: int = 30
     max_zoom: float = 1.25
 
-    def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None) -> np.ndarray:
+    def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None,
+               advance: Callable[[int], None] | None = None) -> np.ndarray:
         if self.radius < 1:
             raise BadInput(f"--radius must be at least 1, got {self.radius}")
         corners = rect_corners_normalized(size)
         smoothed = neighbour_mean(motion, corners, gaussian_weights(self.radius))
         V = fit_model(four_point_to_homography(corners, smoothed - corners), model)
         if crop is not None:
+            if advance:
+                advance(len(V))
             return V @ zoom_matrix(crop)
         zoom = float(largest_inside_zoom(V, size, smallest=1.0 / self.max_zoom).min())
+        if advance:
+            advance(len(V))
         return zoomed(V, zoom)
 
 
