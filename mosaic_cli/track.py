@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, write_json
+from mosaic_cli.atomic import atomic_path
 from mosaic_cli.estimators import Estimator, estimate_stream
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
@@ -29,6 +30,13 @@ class TrackResult:
         return len(self.pairwise) + 1
 
     def to_json(self) -> dict:
+        doc = self._header()
+        doc["pairwise"] = [[[float(v) for v in row] for row in H] for H in self.pairwise]
+        doc["confidence"] = [float(c) for c in self.confidence]
+        doc["meta"] = self.meta
+        return doc
+
+    def _header(self) -> dict:
         return {
             "version": TRACK_FORMAT_VERSION,
             "frames": self.frames,
@@ -36,10 +44,18 @@ class TrackResult:
             "fps": self.info.fps,
             "estimator": self.estimator,
             "direction": "t_to_t+1",
-            "pairwise": [[[float(v) for v in row] for row in H] for H in self.pairwise],
-            "confidence": [float(c) for c in self.confidence],
-            "meta": self.meta,
         }
+
+    def write_json(self, fh) -> None:
+        """The :meth:`to_json` document, written matrix by matrix: a long video's track is never
+        held as one big list of Python floats and one big string."""
+        fh.write(json.dumps(self._header())[:-1])
+        fh.write(', "pairwise": [')
+        for k, H in enumerate(self.pairwise):
+            fh.write((", " if k else "") + json.dumps(np.asarray(H, dtype=np.float64).tolist()))
+        fh.write('], "confidence": ')
+        fh.write(json.dumps(np.asarray(self.confidence, dtype=np.float64).tolist()))
+        fh.write(', "meta": ' + json.dumps(self.meta) + "}\n")
 
 
 def track_video(
@@ -84,13 +100,13 @@ def save_track(result: TrackResult, out: str | Path) -> None:
             with open(tmp, "wb") as fh:
                 np.save(fh, result.pairwise)
     else:
-        write_json(out, result.to_json())
+        with atomic_path(out) as tmp:
+            with open(tmp, "w") as fh:
+                result.write_json(fh)
 
 
 def load_track(path: str | Path) -> TrackResult:
     """Read a ``mosaic track`` JSON file back."""
-    import json
-
     from mosaic_cli.errors import BadInput
 
     p = Path(path)

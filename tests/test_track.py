@@ -40,6 +40,7 @@ def test_track_json_matches_exact_ground_truth(tmp_path, hd_flight, hd_clip):
     assert data["fps"] == pytest.approx(25.0) and data["estimator"] == "orb" and data["direction"] == "t_to_t+1"
     assert len(data["pairwise"]) == 15 and len(data["confidence"]) == 15
     assert data["meta"]["ms_per_frame"] > 0
+    assert load_track(out).to_json() == data  # the streamed writer and the in-memory document agree
     pairwise = np.array(data["pairwise"])
     assert pairwise.shape == (15, 3, 3) and np.all(np.isfinite(pairwise))
     # pairwise[t] maps frame t to t+1 in full-resolution pixels; judge it at the working resolution
