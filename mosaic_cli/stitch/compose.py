@@ -30,14 +30,17 @@ EXPOSURES = {
 @dataclass
 class ComposeOptions:
     blend: str = "multiband"
-    blend_strength: float = 5.0  # blend width, percent of the canvas' geometric mean side
+    # Blend width, percent of a frame's geometric mean side on the canvas.  OpenStitching sizes
+    # it from the whole canvas, which suits a few photos; a flight of hundreds of frames would
+    # then blend over several frames' width (ghosting) with a pyramid deeper than it needs.
+    blend_strength: float = 10.0
     seam: str = "dp"
     exposure: str = "gain-blocks"
     # Seams and exposure gains are found on small copies: each keyframe about this size ...
     seam_megapix: float = 0.05
     # ... and all of them together no larger than this (bounds the memory for long flights).
     seam_canvas_megapix: float = 2.0
-    strip_megapix: float = 8.0  # the blender works on horizontal strips of about this size
+    strip_megapix: float = 4.0  # the blender works on horizontal strips of about this size
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
 
     def validate(self) -> None:
@@ -129,7 +132,7 @@ def compose(
     seam_scale = _seam_scale([r.w * r.h for r in rois], W * H, options)
     compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
     advance(0, status="blending")
-    blend = _blend_plan(options, W, H)
+    blend = _blend_plan(options, float(np.sqrt(np.median([r.w * r.h for r in rois]))) if rois else 1.0)
     rgba = np.zeros((H, W, 4), np.uint8)
     # Strips start on the pyramid's grid, so that each strip decimates like the whole canvas.
     strip = max(64, int(options.strip_megapix * 1e6 / W))
@@ -153,10 +156,11 @@ def compose(
         if fed:
             result, result_mask = blender.blend(None, None)
             rows = slice(y0 - top, y1 - top)
-            covered = result_mask[rows, :W] > 0
             np.clip(result, 0, 255, out=result)
-            rgba[y0:y1, :, :3] = np.where(covered[..., None], result[rows, :W], 0)
-            rgba[y0:y1, :, 3] = np.where(covered, 255, 0)
+            out = rgba[y0:y1]
+            out[..., :3] = result[rows, :W]
+            out[..., 3] = result_mask[rows, :W]
+            out[out[..., 3] == 0] = 0
             del result, result_mask
         del blender
         # An image that the next strip (its margin included) does not reach is done.
@@ -233,10 +237,10 @@ class _BlendPlan:
         return blender
 
 
-def _blend_plan(options: ComposeOptions, W: int, H: int) -> _BlendPlan:
-    """The blender's settings for the whole canvas (as OpenStitching sizes them), and the
-    margin each strip needs: the multi-band pyramid's reach, or the feather's width."""
-    width = float(np.sqrt(W * H) * options.blend_strength / 100.0)
+def _blend_plan(options: ComposeOptions, frame_side: float) -> _BlendPlan:
+    """The blender's settings, and the margin each strip needs: the multi-band pyramid's
+    reach, or the feather's width."""
+    width = frame_side * options.blend_strength / 100.0
     if options.blend == "multiband" and width >= 2:
         bands = max(1, int(np.log2(width)) - 1)
         # A 5-tap Gaussian at each of the levels reaches about 2 * (1 + 2 + ... + 2^bands) rows.

@@ -36,12 +36,13 @@ def check_outputs(out: str | Path, transforms: str | Path | None, max_size: int 
 
 def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) -> None:
     """PNG and TIFF keep the alpha channel (transparent where nothing was seen); JPEG has
-    none, so uncovered areas are black."""
+    none, so uncovered areas are black.  ``rgba`` is turned into BGRA in place: a panorama
+    may be gigabytes, so no second copy is made."""
     fmt = FORMATS[Path(out).suffix.lower()]
-    if fmt == "jpeg":
-        image, params = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGR), [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
+    image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA, dst=rgba)
+    if fmt == "jpeg":  # OpenCV drops the alpha channel row by row
+        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
     else:
-        image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA)
         params = [cv2.IMWRITE_PNG_COMPRESSION, 3] if fmt == "png" else []
     with atomic_path(out) as tmp:
         if not cv2.imwrite(str(tmp), image, params):
