@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Render the training clips and the held-out development flights used for the shipped weights
+# (models/README.md) from the real aerial imagery in ../shared/data.  Nothing here is committed:
+# the clips go to $OUT (default ../runs/data), outside the repository.
+#
+#   bash scripts/make_dataset.sh [OUT]
+#
+# Held out from training (whole sites): the Boruszyn orthomosaic and both Boruszyn photos,
+# the NEON YELL 541000 tile and SOAP_061.  Everything else in aerial_stills/aerial_sequences
+# (nadir only) is used for training.
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+data=${DATA:-$here/../shared/data}
+out=${1:-$here/../runs/data}
+mkdir -p "$out/train" "$out/dev"
+
+train_maps=(
+  aerial_stills/odm_orthomosaic_previews/aukerman.png
+  aerial_stills/odm_orthomosaic_previews/zoo.png
+  aerial_stills/odm_orthomosaic_previews/caliterra.png
+  aerial_stills/odm_orthomosaic_previews/lewis.png
+  aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png
+  aerial_stills/deepforest_neon_orthophoto/SOAP_031.png
+  aerial_stills/deepforest_neon_orthophoto/OSBS_029.tif
+  aerial_sequences/odm_caliterra/IMG_9354.jpg
+  aerial_sequences/odm_caliterra/IMG_9356.jpg
+  aerial_sequences/odm_caliterra/IMG_9358.jpg
+  aerial_sequences/odm_caliterra/IMG_9360.jpg
+  aerial_sequences/odm_garfield_msp_rgb/IMG_161122_163234_0000_RGB.JPG
+  aerial_sequences/odm_garfield_msp_rgb/IMG_161122_163244_0002_RGB.JPG
+  aerial_sequences/odm_garfield_msp_rgb/IMG_161122_163338_0011_RGB.JPG
+  aerial_sequences/odm_garfield_msp_rgb/IMG_161122_163346_0013_RGB.JPG
+)
+dev_maps=(
+  aerial_stills/odm_orthomosaic_previews/boruszyn.png
+  aerial_sequences/odm_boruszyn_kap/img_4854.jpg
+  aerial_sequences/odm_boruszyn_kap/img_4858.jpg
+  aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_541000_4977000_image_crop.png
+  aerial_stills/deepforest_neon_orthophoto/SOAP_061.png
+)
+
+seed=0
+for map in "${train_maps[@]}"; do
+  name=$(basename "${map%.*}")
+  for profile in paper fast hard survey; do
+    seed=$((seed + 1))
+    clip="$out/train/${name}_${profile}.mp4"
+    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile "$profile" --frames 300 \
+      --size 640x360 --seed "$seed" --preset veryfast --quiet
+  done
+done
+
+for map in "${dev_maps[@]}"; do
+  name=$(basename "${map%.*}")
+  for profile in paper fast hard; do
+    seed=$((seed + 1))
+    clip="$out/dev/${name}_${profile}.mp4"
+    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile "$profile" --frames 300 \
+      --size 1280x720 --seed "$seed" --preset veryfast --quiet
+  done
+done
+echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)) and $out/dev ($(ls "$out/dev"/*.mp4 | wc -l))"
