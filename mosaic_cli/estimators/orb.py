@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from mosaic_cli.estimators.base import Estimator
-from mosaic_cli.geometry import is_valid, project, frame_corners
+from mosaic_cli.estimators.refine import PolishConfig, align_pixels, track_points
+from mosaic_cli.geometry import is_valid
 
 ROBUST_METHODS = {"usac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
 REFINERS = (None, "ecc", "lk")
@@ -49,6 +50,11 @@ class OrbConfig:
             raise ValueError(f"method must be one of {', '.join(ROBUST_METHODS)}, got {self.method!r}")
         if self.refine not in REFINERS:
             raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
+
+    @property
+    def polish(self) -> PolishConfig:
+        return PolishConfig(window=self.lk_window, levels=1, threshold=self.lk_threshold, max_iters=self.max_iters,
+                            min_inliers=self.min_inliers, ecc_iterations=self.ecc_iterations, max_shift=self.max_refine_shift)
 
 
 class OrbEstimator(Estimator):
@@ -86,9 +92,9 @@ class OrbEstimator(Estimator):
         self._prev_features = (cur_pts, cur_desc)
         H, confidence, src = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._matcher, self.config, self.work_size)
         if H is not None and self.config.refine == "ecc":
-            H = refine_ecc(prev, cur, H, self.config)
+            H = align_pixels(prev, cur, H, self.config.polish).H
         elif H is not None and self.config.refine == "lk":
-            H = refine_lk(prev, cur, H, src, self.config)
+            H = track_points(prev, cur, H, src, self.config.polish).H
         return H, confidence
 
 
@@ -115,55 +121,3 @@ def fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, matcher, config: OrbC
         return None, 0.0, None
     confidence = min(1.0, inliers / c.confident_inliers) * np.sqrt(inliers / len(good))
     return H, confidence, src[mask.ravel() > 0]
-
-
-def refine_lk(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.ndarray, config: OrbConfig) -> np.ndarray:
-    """Polish the feature fit by tracking the inlier points of ``prev`` into ``cur`` with
-    pyramidal Lucas-Kanade, started where ``H`` puts them: keypoint positions are only good to
-    about a pixel (and biased between pyramid levels), LK's to a small fraction of one.
-    Returns ``H`` unchanged when too few points track."""
-    c = config
-    guess = cv2.perspectiveTransform(points.reshape(-1, 1, 2).astype(np.float32), H.astype(np.float64))
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
-    tracked, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, points.reshape(-1, 1, 2).astype(np.float32), guess.copy(),
-                                                  winSize=(c.lk_window, c.lk_window), maxLevel=1, criteria=criteria,
-                                                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    ok = status.ravel() == 1
-    if ok.sum() < c.min_inliers:
-        return H
-    src, dst = points[ok], tracked.reshape(-1, 2)[ok]
-    try:
-        refined, mask = cv2.findHomography(src, dst, cv2.RANSAC, c.lk_threshold, maxIters=c.max_iters, confidence=0.999)
-    except cv2.error:
-        return H
-    if refined is None or mask is None or mask.sum() < c.min_inliers:
-        return H
-    size = (prev.shape[1], prev.shape[0])
-    corners = frame_corners(*size)
-    shift = np.linalg.norm(project(refined, corners) - project(H, corners), axis=-1).max()
-    if shift > c.max_refine_shift or not is_valid(refined, size, max_area_ratio=2.0):
-        return H
-    return refined
-
-
-def refine_ecc(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, config: OrbConfig) -> np.ndarray:
-    """Polish the feature fit by aligning the pixels themselves (OpenCV's ECC, a Gauss-Newton
-    search on a correlation score): keypoints are only located to about a pixel, the image
-    gradients to a small fraction of one.  Returns ``H`` unchanged when ECC fails or wanders."""
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.ecc_iterations, 1e-4)
-    # ECC's warp maps template (cur) pixels to input (prev) pixels: the inverse of H.
-    warp = np.linalg.inv(H / H[2, 2]).astype(np.float32)
-    try:
-        _, warp = cv2.findTransformECC(cur, prev, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 3)
-    except cv2.error:
-        return H
-    refined = np.linalg.inv(warp.astype(np.float64))
-    if not np.all(np.isfinite(refined)):
-        return H
-    refined /= refined[2, 2]
-    size = (prev.shape[1], prev.shape[0])
-    corners = frame_corners(*size)
-    shift = np.linalg.norm(project(refined, corners) - project(H, corners), axis=-1).max()
-    if shift > config.max_refine_shift or not is_valid(refined, size, max_area_ratio=2.0):
-        return H
-    return refined

@@ -1,0 +1,125 @@
+"""Sub-pixel polish of a frame-to-frame homography, seeded by a coarser estimate.
+
+Shared by the ORB estimator (seeded by its feature fit) and the learned estimator (seeded by
+the network).  Both seeds are good to about a working pixel, with errors that are correlated
+from frame to frame and so add up over a chain; the image gradients locate the motion to a
+small fraction of a pixel.  Two polishers:
+
+* :func:`track_points`: pyramidal Lucas-Kanade tracks points of the previous frame into the
+  current one, starting where the seed puts them, then a robust refit with a tight threshold.
+* :func:`align_pixels`: OpenCV's ECC (Gauss-Newton on a correlation score) over all pixels.
+
+Either keeps the seed when it fails or wanders further than ``max_shift`` from it, and says so
+(:class:`Polish`), with a score of how well the frames agreed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mosaic_cli.geometry import frame_corners, is_valid, project
+
+POLISHERS = ("lk", "ecc")
+
+
+@dataclass
+class PolishConfig:
+    window: int = 15  # Lucas-Kanade window (working pixels)
+    levels: int = 1  # LK pyramid levels above the frame itself (1: displacements of a few px)
+    threshold: float = 0.5  # reprojection threshold (working px) of the refit on tracked points
+    max_iters: int = 2000  # RANSAC iterations of the refit
+    min_inliers: int = 12
+    ecc_iterations: int = 20
+    max_shift: float = 2.0  # a polished fit further than this (working px, at any corner) from the seed is a divergence
+
+
+@dataclass(frozen=True)
+class Polish:
+    H: np.ndarray  # the polished homography, or the seed when ``refined`` is False
+    refined: bool
+    score: float  # LK: refit inliers / points asked to track; ECC: its correlation; 0 when not refined
+
+
+def track_points(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.ndarray, config: PolishConfig) -> Polish:
+    """Track ``points`` (N, 2) of ``prev`` into ``cur`` with pyramidal LK, starting at ``H @ points``,
+    and refit a homography to the tracks (RANSAC at ``config.threshold``)."""
+    c = config
+    n = len(points)
+    kept = Polish(H, False, 0.0)
+    if n < c.min_inliers:
+        return kept
+    src = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 1, 2)
+    guess = cv2.perspectiveTransform(src, np.asarray(H, dtype=np.float64))
+    if not np.all(np.isfinite(guess)):
+        return kept
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, src, guess.copy(), winSize=(c.window, c.window), maxLevel=c.levels,
+                                                  criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    ok = status.ravel() == 1
+    if ok.sum() < c.min_inliers:
+        return kept
+    try:
+        refined, mask = cv2.findHomography(src.reshape(-1, 2)[ok], tracked.reshape(-1, 2)[ok], cv2.RANSAC, c.threshold,
+                                           maxIters=c.max_iters, confidence=0.999)
+    except cv2.error:  # degenerate tracks (all collinear, all equal)
+        return kept
+    if refined is None or mask is None or mask.sum() < c.min_inliers:
+        return kept
+    if not _close_and_valid(refined, H, prev.shape, c.max_shift):
+        return kept
+    return Polish(refined, True, float(mask.sum()) / n)
+
+
+def align_pixels(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, config: PolishConfig) -> Polish:
+    """Align ``cur`` onto ``prev`` with ECC, starting from ``H``."""
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.ecc_iterations, 1e-4)
+    kept = Polish(H, False, 0.0)
+    # ECC's warp maps template (cur) pixels to input (prev) pixels: the inverse of H.
+    try:
+        warp = np.linalg.inv(H / H[2, 2]).astype(np.float32)
+        correlation, warp = cv2.findTransformECC(cur, prev, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 3)
+    except (cv2.error, np.linalg.LinAlgError):
+        return kept
+    refined = np.linalg.inv(warp.astype(np.float64))
+    if not np.all(np.isfinite(refined)):
+        return kept
+    refined /= refined[2, 2]
+    if not _close_and_valid(refined, H, prev.shape, config.max_shift):
+        return kept
+    return Polish(refined, True, float(np.clip(correlation, 0.0, 1.0)))
+
+
+def _close_and_valid(refined: np.ndarray, seed: np.ndarray, shape: tuple[int, ...], max_shift: float) -> bool:
+    size = (shape[1], shape[0])
+    corners = frame_corners(*size)
+    shift = np.linalg.norm(project(refined, corners) - project(seed, corners), axis=-1).max()
+    return bool(shift <= max_shift and is_valid(refined, size, max_area_ratio=2.0))
+
+
+@dataclass
+class CornerConfig:
+    max_points: int = 300  # a few hundred: the refit is over-determined many times, LK stays cheap
+    quality: float = 0.01  # of the strongest corner's response (cv2.goodFeaturesToTrack)
+    min_distance: int = 8  # spread the points over the frame
+    block_size: int = 5
+    # Below this strongest Shi-Tomasi response (OpenCV's scale for 8-bit frames) a frame has no
+    # texture: measured 0.004-0.018 on the development flights (the 'hard' ones included),
+    # 2e-5-3e-5 on flat, heavily blurred (sigma 8) or nearly black (3 %) frames.
+    min_response: float = 2e-4
+
+
+def points_to_track(gray: np.ndarray, config: CornerConfig) -> np.ndarray:
+    """Well-spread Shi-Tomasi corners of ``gray`` (N, 2); none on a textureless frame (where the
+    relative quality threshold would otherwise pick up compression noise)."""
+    c = config
+    response = cv2.cornerMinEigenVal(gray, c.block_size)
+    if float(response.max()) < c.min_response:
+        return np.zeros((0, 2), np.float32)
+    found = cv2.goodFeaturesToTrack(gray, c.max_points, c.quality, c.min_distance, blockSize=c.block_size)
+    return np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
+
+
+__all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "points_to_track", "track_points"]
