@@ -193,7 +193,7 @@ def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     assert ratio / full_ratio == pytest.approx(scale, rel=0.02)
 
 
-def test_no_drift_control_is_plain_estimator_chaining_and_worse(survey, tmp_path):
+def test_without_drift_control_keyframes_are_only_chained_and_placed_worse(survey, tmp_path):
     flight, _, transforms, _ = survey
     options = StitchOptions(registration=RegistrationOptions(enabled=False))
     result = stitch(flight.path, tmp_path / "p.png", fast_orb(), options, transforms=tmp_path / "t.json", show_progress=False)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
@@ -26,7 +25,7 @@ import numpy as np
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, normalize, project
-from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch
 
 
 @dataclass
@@ -46,6 +45,9 @@ class KeyframeOptions:
     min_new_coverage: float = 0.1  # a keyframe keeps its pixels if it adds this much new ground
     coverage_cells: int = 16  # coverage is tracked on cells 1/16 of a frame width wide
     min_confidence: float = 0.0  # estimates at or below this confidence count as failures
+    # A keyframe's direct registration to the previous one must agree with the chain this well
+    # (fraction of the frame diagonal, at the corners) to replace it.
+    link_tolerance: float = 0.25
     max_lost_seconds: float = 2.0  # refuse when the flight cannot be re-found for this long
     quality_width: int = 320
     # The chained placement may make a frame this many times larger/smaller than the anchor.
@@ -78,17 +80,12 @@ def measure_quality(gray: np.ndarray) -> FrameQuality:
 class Keyframe:
     index: int  # frame number in the video
     placement: np.ndarray  # frame -> world, source pixels (chained, before refinement)
-    described: Features | Future | None  # its features, or their computation under way
+    features: Features
     quality: FrameQuality
+    link: PairMatch | None = None  # direct registration to the previous keyframe (this -> it)
     image: np.ndarray | None = None  # RGB at ``scale`` x source size, while it is held
     scale: float = 1.0
     composited: bool = False  # drawn in the panorama (else used for registration only)
-
-    @property
-    def features(self) -> Features:
-        if isinstance(self.described, Future):
-            self.described = self.described.result()
-        return self.described
 
 
 @dataclass
@@ -194,13 +191,11 @@ class FlightScanner:
         self.fps = fps
         self.index = first_index - 1
         self.first_index = first_index
-        self.extract = FeatureExtractor(source_size, feature_options)  # used by the worker thread only
-        self._extract_here = FeatureExtractor(source_size, feature_options)  # ... and by this one
+        self.extract = FeatureExtractor(source_size, feature_options)
         self.matcher = FeatureMatcher(self.extract)
         self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size)
         self.coverage = CoverageMap(source_size, options.coverage_cells)
         self.keyframes: list[Keyframe] = []
-        self._describer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="keyframe-features")
         self.placement: np.ndarray | None = None  # of the current frame, None while lost
         self.lost_since: int | None = None
         self.failed_pairs = 0
@@ -232,9 +227,6 @@ class FlightScanner:
             if overlap_fraction(np.linalg.inv(self.keyframes[-1].placement) @ placement, self.size) < self.o.last_overlap:
                 self._add(index, frame, quality, placement)
         self.store.shrink(self.keyframes)
-        for keyframe in self.keyframes:
-            keyframe.features  # noqa: B018 (waits for the descriptions under way)
-        self._describer.shutdown()
         return FlightScan(
             self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
             self.failed_pairs, self.relocalised,
@@ -259,7 +251,7 @@ class FlightScanner:
         """Register the frame directly against the last keyframes (the estimator lost it)."""
         if self.lost_since is None:
             self.lost_since = self.index
-        features = self._extract_here(frame)
+        features = self.extract(frame)
         for key in reversed(self.keyframes[-3:]):
             match = self.matcher.match(features, key.features)
             if match is not None:
@@ -316,10 +308,26 @@ class FlightScanner:
             _, index, frame, quality, placement = self._candidate
             self._add(index, frame, quality, placement)
 
+    def _anchor(self, keyframe: Keyframe, previous: Keyframe) -> None:
+        """Place a new keyframe by registering it directly with the previous one, when that
+        agrees with the estimator's chain: one accurate step instead of dozens of small ones,
+        so the world placement of a long flight does not drift into perspective nonsense."""
+        chained = np.linalg.inv(previous.placement) @ keyframe.placement
+        tolerance = self.o.link_tolerance * float(np.hypot(*self.size))
+        keyframe.link = self.matcher.match(keyframe.features, previous.features, chained, tolerance)
+        if keyframe.link is not None:
+            anchored = normalize(previous.placement @ keyframe.link.H)
+            # The frames after the keyframe were chained from its old placement: move them too.
+            if self.placement is not None:
+                self.placement = normalize(anchored @ np.linalg.inv(keyframe.placement) @ self.placement)
+            keyframe.placement = anchored
+
     def _add(self, index: int, frame: np.ndarray, quality: FrameQuality, placement: np.ndarray) -> None:
         self._candidate = self._last = None
-        # Described on the second core while the estimator goes on with the next frames.
-        keyframe = Keyframe(index, placement, self._describer.submit(self.extract, frame), quality)
+        keyframe = Keyframe(index, placement, self.extract(frame), quality)
+        if self.keyframes:
+            self._anchor(keyframe, self.keyframes[-1])
+        placement = keyframe.placement
         world = project(placement, self._corners)
         cells = self.coverage.cells(world)
         if not self.keyframes or self.coverage.new_fraction(cells) >= self.o.min_new_coverage:

@@ -67,7 +67,7 @@ def stitch(
 ) -> StitchResult:
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
-    _skip_pair_polish(estimator, options)
+    _skip_pair_polish(estimator)
     seconds: dict[str, float] = {}
 
     clock = time.perf_counter()
@@ -119,11 +119,12 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     return info, reference
 
 
-def _skip_pair_polish(estimator: Estimator, options: StitchOptions) -> None:
-    """With drift control the keyframes are re-registered with SIFT and placed jointly, so the
-    ORB estimator's sub-pixel polish of every frame pair no longer changes the panorama, but
-    it costs a good part of the scan (``scripts/bench_stitch.py throughput --compare-polish``)."""
-    if options.registration.enabled and isinstance(estimator, OrbEstimator) and estimator.config.refine:
+def _skip_pair_polish(estimator: Estimator) -> None:
+    """Keyframes are placed by direct SIFT registration, not by the chain of pairwise
+    estimates, so the ORB estimator's sub-pixel polish of every frame pair does not change
+    the panorama, but it costs a good part of the scan
+    (``scripts/bench_stitch.py throughput --compare-polish``)."""
+    if isinstance(estimator, OrbEstimator) and estimator.config.refine:
         estimator.config = dataclasses.replace(estimator.config, refine=None)
 
 
@@ -164,8 +165,9 @@ def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress:
         return chained, RegistrationReport()
     matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features))
     features = [k.features for k in keyframes]
+    neighbours = [k.link for k in keyframes[1:]]
     with progress_task("register", None, unit="pairs/s", disable=not show_progress) as advance:
-        placements, report = register_keyframes(features, chained, ref, matcher, options.registration, advance)
+        placements, report = register_keyframes(features, chained, neighbours, ref, matcher, options.registration, advance)
         advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
     return placements, report
 

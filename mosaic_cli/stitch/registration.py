@@ -31,9 +31,8 @@ class RegistrationOptions:
     max_loops_per_keyframe: int = 6
     min_loop_overlap: float = 0.25  # predicted overlap (fraction of a frame) worth a try
     min_loop_gap: int = 2  # keyframes between the two of a loop pair, at least
-    # A direct registration must agree with the chained prediction this well (fraction of the
-    # frame diagonal at the corners); loops may have drifted further than neighbours.
-    sequential_tolerance: float = 0.25
+    # A loop registration must agree with the predicted placement this well (fraction of the
+    # frame diagonal at the corners): a wrong loop closure costs more than a missing one.
     loop_tolerance: float = 0.5
     points_per_pair: int = 60  # inlier correspondences kept per pair
     chain_weight: float = 0.3  # weight of a chained (estimator-only) link against a registered one
@@ -76,6 +75,7 @@ def relative(placements: list[np.ndarray], a: int, b: int) -> np.ndarray:
 def register_keyframes(
     features: list[Features],
     placements: list[np.ndarray],
+    neighbours: list[PairMatch | None],
     reference: int,
     matcher: FeatureMatcher,
     options: RegistrationOptions,
@@ -83,11 +83,12 @@ def register_keyframes(
 ) -> tuple[list[np.ndarray], RegistrationReport]:
     """Keyframe -> reference placements refined against direct registrations.
 
-    Loops are looked for twice: with the chained placements, then again with the refined ones,
-    which can reveal overlaps that the chain's drift had hidden (within ``max_loop_pairs``)."""
+    ``neighbours[k]`` is keyframe k+1 registered to keyframe k during the scan (None where
+    that failed).  Loops are looked for twice: with the scan's placements, then again with the
+    refined ones, which can reveal overlaps that drift had hidden (within ``max_loop_pairs``)."""
     size = matcher.source_size
     report = RegistrationReport()
-    report.links = link_neighbours(features, placements, matcher, options, report, advance)
+    report.links = link_neighbours(neighbours, placements, size, options, report)
     tried: set[tuple[int, int]] = set()
     for _ in range(options.loop_rounds):
         candidates = loop_candidates(placements, size, options, tried)
@@ -100,22 +101,17 @@ def register_keyframes(
     return placements, report
 
 
-def link_neighbours(features, placements, matcher: FeatureMatcher, options: RegistrationOptions, report, advance) -> list[Link]:
-    """Consecutive keyframes, registered directly when that agrees with the chain, else
-    linked by the chain itself (weaker)."""
-    size = matcher.source_size
-    tolerance = options.sequential_tolerance * float(np.hypot(*size))
+def link_neighbours(neighbours, placements, size, options: RegistrationOptions, report) -> list[Link]:
+    """Consecutive keyframes: their direct registration, or the estimator's chain (a weaker
+    link) where that failed or disagreed with the chain."""
     links = []
-    for a in range(len(features) - 1):
-        prior = relative(placements, a, a + 1)
-        match = matcher.match(features[a], features[a + 1], prior, tolerance)
+    for a, match in enumerate(neighbours):
         if match is not None:
-            links.append(_from_match(a, a + 1, match, "sequential", options))
+            links.append(_from_match(a + 1, a, match, "sequential", options))
             report.sequential += 1
         else:
-            links.append(_from_homography(a, a + 1, prior, size, "chain", options.chain_weight))
+            links.append(_from_homography(a, a + 1, relative(placements, a, a + 1), size, "chain", options.chain_weight))
             report.chained += 1
-        advance(1)
     return links
 
 
