@@ -185,8 +185,9 @@ def gaussian_weights(radius: int, sigma: float | None = None) -> np.ndarray:
 
 
 def neighbour_mean(motion: np.ndarray, points: np.ndarray, weights: np.ndarray, block: int = 256) -> np.ndarray:
-    """(N, P, 2): for every frame t, the weighted mean position of ``points`` (P, 2) of the
-    frames t-r..t+r, seen in frame t's own coordinates (r = len(weights) // 2).
+    """(N, P, 2): for every frame t, the weighted sum (weights summing to 1) of the positions
+    of ``points`` (P, 2) in frames t-r..t+r, seen in frame t's own coordinates
+    (r = len(weights) // 2).
 
     ``motion`` (N-1, 3, 3) maps frame t+1 -> frame t.  Positions are chained through an anchor
     frame shared by a block of frames, so chains stay short (well conditioned on long videos).
