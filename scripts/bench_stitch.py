@@ -141,7 +141,7 @@ def accuracy(args) -> dict:
         video = survey_flight(args.workdir, args.frames, (1280, 720), seed)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
         row = {"flight": video.name}
-        for label, enabled in (("drift control", True), ("estimator chain only", False)):
+        for label, enabled in (("drift control", True), ("no drift control", False)):
             options = StitchOptions(registration=RegistrationOptions(enabled=enabled))
             out = args.workdir / f"{video.stem}_{'dc' if enabled else 'chain'}.png"
             result = stitch(video, out, make_estimator("orb"), options, transforms=out.with_suffix(".json"), show_progress=False)
@@ -156,7 +156,7 @@ def accuracy(args) -> dict:
         print(
             f"{row['flight']}: {row['used frames']} used frames, {row['pairs']} pairs >= {GAP} frames apart, {row['loops']} loop closures; "
             f"median corner error  drift control {row['drift control']:.2f} px | plain chaining (full-res ORB+RANSAC, "
-            f"chained) {row['plain chaining']:.2f} px | estimator chain only {row['estimator chain only']:.2f} px",
+            f"chained) {row['plain chaining']:.2f} px | --no-drift-control {row['no drift control']:.2f} px",
             flush=True,
         )
     print(f"  reproduce: {here(args, 'accuracy')} --frames {args.frames} --seeds {' '.join(map(str, args.seeds))}")

@@ -135,9 +135,12 @@ def compose(
     blend = _blend_plan(options, float(np.sqrt(np.median([r.w * r.h for r in rois]))) if rois else 1.0)
     rgba = np.zeros((H, W, 4), np.uint8)
     # Strips start on the pyramid's grid, so that each strip decimates like the whole canvas.
-    strip = max(64, int(options.strip_megapix * 1e6 / W))
+    # At least twice the margin tall, or the margins would cost more than the strips.
+    strip = max(64, 2 * blend.margin, int(options.strip_megapix * 1e6 / W))
     strip = -(-strip // blend.unit) * blend.unit
-    ready: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # warped, blend mask; reused by the next strip
+    # Each strip warps just the rows of each image it needs: no image is ever held warped in
+    # full, so the memory stays bounded however the flight lies on the canvas.
+    gains = compensator.getMatGains()
     finished: set[int] = set()
     for y0 in range(0, H, strip):
         y1 = min(H, y0 + strip)
@@ -147,11 +150,9 @@ def compose(
         for k, roi in enumerate(rois):
             if k in finished or roi.y >= bottom or roi.y + roi.h <= top:
                 continue
-            if k not in ready:
-                ready[k] = _prepared(placed[k], roi, k, compensator, seam_masks[k])
-            warped, mask = ready[k]
-            r0, r1 = max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y
-            blender.feed(warped[r0:r1].astype(np.int16), mask[r0:r1], (roi.x, roi.y + r0))
+            rows = (max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y)
+            image, mask = _strip_part(placed[k], roi, rows, gains[k] if gains else None, seam_masks[k])
+            blender.feed(image, mask, (roi.x, roi.y + rows[0]))
             fed = True
         if fed:
             result, result_mask = blender.blend(None, None)
@@ -168,18 +169,26 @@ def compose(
         for k, roi in enumerate(rois):
             if k not in finished and (y1 >= H or roi.y + roi.h <= next_top):
                 finished.add(k)
-                ready.pop(k, None)
                 placed[k].image = None
                 advance(1)
     return rgba
 
 
-def _prepared(p: PlacedImage, roi: Roi, k: int, compensator, seam_mask: np.ndarray):
-    """Warped, exposure-compensated image and its blend mask (seam mask within coverage)."""
-    warped, mask = warp_into(p.image, p.to_canvas, roi)
-    warped = compensator.apply(k, roi.corner, warped, mask)
-    seam = cv2.resize(cv2.dilate(seam_mask, None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
-    return warped, cv2.bitwise_and(seam, mask)
+def _strip_part(p: PlacedImage, roi: Roi, rows: tuple[int, int], gain: np.ndarray | None, seam_mask: np.ndarray):
+    """Rows ``rows`` (of its bounding box ``roi``) of an image: warped, exposure-compensated
+    (``gain``: a scalar or a block map over the whole box, from ``getMatGains``) as int16 for
+    the blender, and its blend mask (the seam mask within the image's coverage)."""
+    r0, r1 = rows
+    part = Roi(roi.x, roi.y + r0, roi.w, r1 - r0)
+    warped, mask = warp_into(p.image, p.to_canvas, part)
+    if gain is not None and gain.size == 1:
+        warped = np.multiply(warped, float(gain.ravel()[0]), dtype=np.float32)
+    elif gain is not None:
+        full = cv2.resize(gain.astype(np.float32), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR)
+        warped = np.multiply(warped, full[r0:r1, :, None], dtype=np.float32)
+    image = np.clip(np.rint(warped), 0, 255).astype(np.int16)
+    seam = cv2.resize(cv2.dilate(seam_mask, None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)[r0:r1]
+    return image, cv2.bitwise_and(seam, mask)
 
 
 def _seam_scale(areas: list[int], canvas_area: int, options: ComposeOptions) -> float:
