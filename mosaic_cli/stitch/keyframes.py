@@ -110,7 +110,7 @@ class KeyframeStore:
     larger than the anchor); images already held shrink when the area outgrows them."""
 
     MARGIN = 1.2
-    SHRINK_BELOW = 0.8  # re-scale held images only when they are this much too large
+    SHRINK_BELOW = 0.9  # re-scale held images only when they are this much too large
 
     def __init__(self, source_size: tuple[int, int], decode_scale: float, max_size: int | None):
         self.source_size = source_size
