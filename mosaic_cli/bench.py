@@ -12,6 +12,14 @@ Stages are timed separately, per frame:
 With no video, a short flight is simulated first, so accuracy (MACE, corner error, failure
 rate, see :mod:`mosaic_cli.evaluate`) comes with the timings.  A video with a ``.gt.json``
 beside it (a simulated flight) is scored too; any other video gives latency only.
+
+:func:`run_flights` scores a folder of flights (every ``X.mp4`` with its ``X.gt.json``): each
+flight is decoded once and every estimator runs on the same frames; MACE pools the landmark
+pairs of all flights (the paper's protocol), corner errors and failures pool the frame pairs,
+and a breakdown per flight profile (paper / fast / hard ...) comes with the totals.
+
+Estimators are named as on the command line, options included (``cnn:refine=none``); their
+name is their label in the report, so one estimator can be run with several settings.
 """
 
 from __future__ import annotations
@@ -37,6 +45,7 @@ class StageTimes:
     decode: list[float] = field(default_factory=list)
     preprocess: list[float] = field(default_factory=list)
     estimate: list[float] = field(default_factory=list)
+    cpu: list[float] = field(default_factory=list)
 
 
 def _stats(ms: list[float] | np.ndarray) -> dict:
@@ -70,8 +79,10 @@ def decode_frames(path: str | Path, width: int | None, max_frames: int | None = 
     return frames, times, info
 
 
-def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, int]) -> tuple[np.ndarray, StageTimes]:
-    """Run ``estimator`` over in-memory frames; pairwise (N-1, 3, 3) and per-frame stage times (ms)."""
+def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, int], advance=None) -> tuple[np.ndarray, StageTimes]:
+    """Run ``estimator`` over in-memory frames; pairwise (N-1, 3, 3) and per-frame stage times
+    (ms): wall clock per stage, and the process's CPU time of preprocess + estimate in ``cpu``
+    (all threads; less moved by other jobs on a shared machine)."""
     times = StageTimes()
     estimates = []
     estimator.reset(full_size)
@@ -80,29 +91,36 @@ def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, in
     # feed() calls self.prepare(frame): hand it the frame prepared (and timed) just before.
     estimator.prepare = lambda _frame: holder[0]
     try:
-        pending = 0.0
+        pending = pending_cpu = 0.0
         waiting = 0
         for frame in frames:
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             holder[0] = original(frame)
             t1 = time.perf_counter()
             out = estimator.feed(frame)
-            t2 = time.perf_counter()
+            t2, c2 = time.perf_counter(), time.process_time()
             times.preprocess.append((t1 - t0) * 1000.0)
             pending += (t2 - t1) * 1000.0
+            pending_cpu += (c2 - c0) * 1000.0
             waiting += 1
             if out:
                 estimates.extend(out)
                 times.estimate.extend([pending / waiting] * waiting)
-                pending, waiting = 0.0, 0
-        t0 = time.perf_counter()
+                times.cpu.extend([pending_cpu / waiting] * waiting)
+                pending, pending_cpu, waiting = 0.0, 0.0, 0
+            if advance is not None:
+                advance(1)
+        c0, t0 = time.process_time(), time.perf_counter()
         out = estimator.finish()
         pending += (time.perf_counter() - t0) * 1000.0
+        pending_cpu += (time.process_time() - c0) * 1000.0
         estimates.extend(out)
         if waiting:
             times.estimate.extend([pending / waiting] * waiting)
+            times.cpu.extend([pending_cpu / waiting] * waiting)
         elif times.estimate and pending > 0:
             times.estimate[-1] += pending
+            times.cpu[-1] += pending_cpu
     finally:
         del estimator.prepare
     pairwise = np.array([e.H for e in estimates], dtype=np.float64).reshape(-1, 3, 3)
@@ -120,33 +138,56 @@ def _gpu_name() -> str | None:
     return None
 
 
-def _build(name: str, work_width: int, device: str, explicit: bool, notes: list[str]):
+def _learned(label: str) -> bool:
+    from mosaic_cli.estimators import parse_spec
+
+    return parse_spec(label)[0] in LEARNED
+
+
+def build_estimators(labels: list[str], work_width: int, device: str, weights: str | None, explicit: bool, notes: list[str]) -> dict:
+    """label -> estimator, for names as the command line gives them (options included).  The
+    learned ones get ``weights``; when the names are the defaults (not ``explicit``), a learned
+    estimator that cannot be built (no shipped weights, a checkpoint of the other head) is
+    skipped with a note instead of failing."""
     from mosaic_cli.estimators import make_estimator
 
-    try:
-        return make_estimator(name, work_width=work_width, device=device)
-    except (MosaicError, ImportError, OSError) as exc:
-        if explicit or name not in LEARNED:
-            if isinstance(exc, MosaicError):
-                raise
-            raise BadInput(f"estimator {name!r} is unavailable: {exc}") from None
-        notes.append(f"{name}: skipped ({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})")
-        return None
+    if not labels:
+        raise BadInput("--estimators is empty")
+    if len(set(labels)) != len(labels):
+        raise BadInput("--estimators names an estimator twice")
+    built = {}
+    for label in labels:
+        learned = _learned(label)
+        try:
+            built[label] = make_estimator(label, work_width=work_width, device=device, weights=weights if learned else None)
+        except (MosaicError, ImportError, OSError) as exc:
+            if explicit or not learned:
+                if isinstance(exc, MosaicError):
+                    raise
+                raise BadInput(f"estimator {label!r} is unavailable: {exc}") from None
+            notes.append(f"{label}: skipped ({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})")
+    if not built:
+        raise BadInput("no estimator to benchmark")
+    return built
 
 
-def _gpu_batch(name: str, work_width: int, frames: list[np.ndarray], full_size, chunks=(16, 64)) -> dict | None:
+def _labels(estimators: list[str] | None) -> list[str]:
+    return [n.strip().lower() for n in (estimators if estimators is not None else list(DEFAULT_ESTIMATORS)) if n.strip()]
+
+
+def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np.ndarray], full_size, chunks=(16, 64)) -> dict | None:
     """Throughput of a learned estimator on the GPU for larger batches (frames per second)."""
     try:
         import torch
 
-        if not torch.cuda.is_available() or name not in LEARNED:
+        if not torch.cuda.is_available() or not _learned(label):
             return None
         from mosaic_cli.estimators import make_estimator
     except Exception:  # no torch: no GPU numbers
         return None
     out = {}
     for chunk in chunks:
-        est = make_estimator(name, work_width=work_width, device="cuda")
+        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda")
         if not hasattr(est, "config") or not hasattr(est.config, "chunk"):
             return None
         est.config.chunk = int(chunk)
@@ -174,6 +215,7 @@ def run_bench(
     device: str = "auto",
     seed: int = 0,
     show_progress: bool = True,
+    weights: str | None = None,
 ) -> dict:
     """Benchmark ``estimators`` on ``video`` (or a simulated flight) and return the report dict."""
     from mosaic_cli.evaluate import evaluate
@@ -183,25 +225,13 @@ def run_bench(
         raise BadInput("give --video or --map, not both")
     if frames < 2:
         raise BadInput(f"--frames must be at least 2, got {frames}")
-    explicit = estimators is not None
-    names = [n.strip().lower() for n in (estimators or list(DEFAULT_ESTIMATORS)) if n.strip()]
-    if not names:
-        raise BadInput("--estimators is empty")
-    if len(set(names)) != len(names):
-        raise BadInput("--estimators names an estimator twice")
     notes: list[str] = []
-    built = {}
-    for name in names:
-        est = _build(name, work_width, device, explicit, notes)
-        if est is not None:
-            built[name] = est
-    if not built:
-        raise BadInput("no estimator to benchmark")
+    built = build_estimators(_labels(estimators), work_width, device, weights, estimators is not None, notes)
 
     report: dict = {
         "version": 1,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "gpu": _gpu_name()},
-        "settings": {"frames": frames, "work_width": work_width, "device": device},
+        "machine": _machine(),
+        "settings": {"frames": frames, "work_width": work_width, "device": device, "weights": str(weights) if weights else None},
     }
     with tempfile.TemporaryDirectory(prefix="mosaic-bench-") as tmp:
         gt = None
@@ -248,6 +278,7 @@ def run_bench(
                 "ms_per_frame": total_ms / n,
                 "fps": 1000.0 * n / total_ms if total_ms > 0 else None,
                 "stages": {"decode": _stats(st.decode), "preprocess": _stats(st.preprocess), "estimate": _stats(st.estimate)},
+                "cpu": _stats(st.cpu),
                 "latency": _stats(per_frame),
                 "frames": n,
                 "work_width": getattr(est, "work_width", None),
@@ -257,13 +288,187 @@ def run_bench(
             if gt is not None and len(pairwise):
                 m = evaluate(pairwise, gt)
                 entry.update({k: m[k] for k in ("mace", "corner_error", "corner_error_mean", "failure_rate", "pairs")})
-            gpu = _gpu_batch(name, work_width, frs, full_size) if name in LEARNED else None
+            gpu = _gpu_batch(name, work_width, weights, frs, full_size)
             if gpu:
                 entry["gpu_batch"] = gpu
             results[name] = entry
         report["estimators"] = results
     report["notes"] = notes
     return report
+
+
+# --------------------------------------------------------------------------------------------
+# A folder of flights
+
+
+@dataclass
+class Flight:
+    name: str
+    video: Path
+    gt: object  # GroundTruth
+
+    @property
+    def profile(self) -> str:
+        return self.gt.profile
+
+
+@dataclass
+class FlightScore:
+    """One estimator on one flight: the raw errors, so that flights pool exactly."""
+
+    flight: str
+    profile: str
+    landmark_errors: np.ndarray  # mean landmark error of each (f1, f2) pair (px, 1280x720-equivalent)
+    corner_errors: np.ndarray  # per frame pair
+    ms: np.ndarray  # per frame: preprocess + estimate, wall clock
+    cpu_ms: np.ndarray  # per frame: preprocess + estimate, process CPU time
+    metrics: dict  # mosaic_cli.evaluate.evaluate of this flight alone (what `mosaic eval` prints)
+
+
+def find_flights(folder: str | Path) -> list[Flight]:
+    """Every ``X.mp4`` in ``folder`` with an ``X.gt.json`` beside it, by name."""
+    from mosaic_cli.simulate import ground_truth_path, load_ground_truth
+
+    root = Path(folder)
+    if not root.is_dir():
+        raise BadInput(f"--flights {root}: not a folder")
+    flights = [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in sorted(root.glob("*.mp4")) if ground_truth_path(v).is_file()]
+    if not flights:
+        raise BadInput(f"--flights {root}: no X.mp4 with an X.gt.json beside it")
+    return flights
+
+
+def score_flight(flight: Flight, pairwise: np.ndarray, times: StageTimes) -> FlightScore:
+    """MACE by the paper's protocol (landmark pairs every 30 frames, from the exact ground truth,
+    on the frames the prediction covers), corner errors and per-frame times of one run."""
+    from mosaic_cli.evaluate import corner_errors, evaluate, landmarks_from_ground_truth, mace_pairs
+
+    gt = flight.gt
+    n = len(pairwise)
+    ann = landmarks_from_ground_truth(gt)
+    ann = ann[ann[:, 3] <= n]
+    landmark = mace_pairs(pairwise, ann, gt.size)[1] if len(ann) else np.zeros(0)
+    corners = corner_errors(pairwise, np.asarray(gt.pairwise)[:n], gt.size)
+    frames = len(times.preprocess)
+    ms = np.asarray(times.preprocess[:frames]) + np.asarray(times.estimate[:frames])
+    return FlightScore(flight.name, flight.profile, landmark, corners, ms, np.asarray(times.cpu[:frames]), evaluate(pairwise, gt, ann))
+
+
+def pool(scores: list[FlightScore]) -> dict:
+    """The metrics of several flights taken together: MACE = mean over all their landmark pairs,
+    corner error = median over all their frame pairs, failure rate = share of those pairs with a
+    corner error above evaluate.FAILURE_PX, times = p50 over all their frames."""
+    from mosaic_cli.evaluate import FAILURE_PX
+
+    landmark = np.concatenate([s.landmark_errors for s in scores])
+    corners = np.concatenate([s.corner_errors for s in scores])
+    ms = np.concatenate([s.ms for s in scores])
+    cpu = np.concatenate([s.cpu_ms for s in scores])
+    return {
+        "mace": float(landmark.mean()) if len(landmark) else None,
+        "corner_error": float(np.median(corners)),
+        "failure_rate": float(np.mean(corners > FAILURE_PX)),
+        "ms_per_frame": _stats(ms),
+        "cpu_ms_per_frame": _stats(cpu),
+        "flights": len(scores),
+        "pairs": int(len(corners)),
+        "landmark_pairs": int(len(landmark)),
+    }
+
+
+def run_flights(
+    folder: str | Path,
+    estimators: list[str] | None = None,
+    weights: str | None = None,
+    work_width: int = 320,
+    device: str = "auto",
+    show_progress: bool = True,
+) -> dict:
+    """Score ``estimators`` over every flight of ``folder``; returns the report dict (see the
+    module doc).  Memory: one flight's decoded frames at a time."""
+    from mosaic_cli.progress import progress_task
+
+    flights = find_flights(folder)
+    notes: list[str] = []
+    built = build_estimators(_labels(estimators), work_width, device, weights, estimators is not None, notes)
+    widths: dict[int, list[str]] = {}
+    for label, est in built.items():
+        widths.setdefault(est.input_width, []).append(label)
+    scores: dict[str, list[FlightScore]] = {label: [] for label in built}
+    decode_ms: list[float] = []
+    total = sum(f.gt.frames for f in flights) * len(built)
+    with progress_task("bench", total, disable=not show_progress) as advance:
+        for flight in flights:
+            for width, labels in widths.items():
+                frames, decode, info = decode_frames(flight.video, width)
+                decode_ms += decode
+                for label in labels:
+                    advance(0, status=f"{label} on {flight.name}")
+                    pairwise, times = time_estimator(built[label], frames, tuple(info.source_size), advance)
+                    scores[label].append(score_flight(flight, pairwise, times))
+                del frames
+    profiles = sorted({f.profile for f in flights}, key=lambda p: (PROFILE_ORDER.index(p) if p in PROFILE_ORDER else len(PROFILE_ORDER), p))
+    results = {}
+    for label, runs in scores.items():
+        entry = pool(runs)
+        entry["profiles"] = {p: pool([r for r in runs if r.profile == p]) for p in profiles}
+        entry["per_flight"] = {r.flight: r.metrics for r in runs}
+        entry["device"] = str(getattr(built[label], "device", "cpu"))
+        entry["work_width"] = getattr(built[label], "work_width", None)
+        results[label] = entry
+    return {
+        "version": 1,
+        "machine": _machine(),
+        "source": {"kind": "flights", "path": str(folder), "flights": [f.name for f in flights], "profiles": profiles,
+                   "frames": sum(f.gt.frames for f in flights)},
+        "settings": {"work_width": work_width, "device": device, "weights": str(weights) if weights else None},
+        "decode": _stats(decode_ms),
+        "estimators": results,
+        "notes": notes,
+        "units": "1280x720-equivalent px; ms per frame = preprocess + estimate (decoding excluded, shared)",
+    }
+
+
+PROFILE_ORDER = ("paper", "fast", "hard")
+
+
+def _machine() -> dict:
+    threads = None
+    try:
+        import torch
+
+        threads = torch.get_num_threads()
+    except Exception:  # no torch: no thread count to report
+        pass
+    return {"cpus": os.cpu_count(), "platform": platform.platform(), "gpu": _gpu_name(), "torch_threads": threads}
+
+
+def render_flights_table(report: dict):
+    """A rich table of a :func:`run_flights` report: totals, then MACE per profile."""
+    from rich.table import Table
+
+    src = report["source"]
+    profiles = src["profiles"]
+    table = Table(title=f"bench: {len(src['flights'])} flights in {src['path']} ({src['frames']} frames)", title_justify="left")
+    table.add_column("estimator", no_wrap=True)
+    for col in ("MACE\nall", *[f"MACE\n{p}" for p in profiles], "corner px\nmedian", "failure\nrate",
+                "ms/frame\np50", "CPU ms/fr\np50"):
+        table.add_column(col, justify="right", no_wrap=True)
+
+    def num(v, fmt):
+        return "-" if v is None else fmt.format(v)
+
+    for label, e in report["estimators"].items():
+        table.add_row(
+            label,
+            num(e["mace"], "{:.2f}"),
+            *[num(e["profiles"][p]["mace"], "{:.2f}") for p in profiles],
+            num(e["corner_error"], "{:.2f}"),
+            num(e["failure_rate"], "{:.1%}"),
+            num(e["ms_per_frame"]["p50"], "{:.2f}"),
+            num(e["cpu_ms_per_frame"]["p50"], "{:.2f}"),
+        )
+    return table
 
 
 def render_table(report: dict):

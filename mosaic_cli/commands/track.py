@@ -20,10 +20,14 @@ MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
 def track(
     video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
     out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
-    estimator: str = typer.Option("orb", "--estimator", "-e", help="orb, orb-ransac, identity, lstm or cnn."),
+    estimator: str = typer.Option("orb", "--estimator", "-e", help="orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5)."),
     work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    patches: int | None = typer.Option(None, "--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus."),
+    reset_every: int | None = typer.Option(None, "--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video)."),
+    refine: str | None = typer.Option(None, "--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb)."),
+    chunk: int | None = typer.Option(None, "--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
@@ -38,7 +42,8 @@ def track(
     check_writable(out)
     if out.suffix.lower() not in (".json", ".npy"):
         raise BadInput(f"output {out} must end in .json or .npy")
-    est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
+    est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
+                         patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
     save_track(result, out)
     if not quiet:

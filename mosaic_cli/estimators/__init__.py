@@ -1,27 +1,110 @@
-"""Homography estimators behind one streaming interface (see :mod:`.base`)."""
+"""Homography estimators behind one streaming interface (see :mod:`.base`).
+
+An estimator is named on the command line as ``NAME[:OPTION=VALUE]...``, e.g. ``orb``,
+``cnn:patches=5:refine=none`` or ``lstm:reset-every=300``; :func:`make_estimator` builds it.
+"""
 
 from __future__ import annotations
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, IdentityEstimator, PairEstimate, estimate_stream  # noqa: F401
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
+from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 
-CLASSICAL = ("orb", "identity")
+CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
+LEARNED = ("lstm", "cnn")
+NAMES = (*CLASSICAL, *LEARNED)
+
+# The options each estimator takes (in a name or as command-line flags) and how to read them.
+OPTIONS: dict[str, dict[str, type]] = {
+    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str},
+    "cnn": {"patches": int, "chunk": int, "refine": str},
+    "orb": {"refine": str},
+    "orb-ransac": {"refine": str},
+}
 
 
-def make_estimator(name: str, work_width: int = 320, weights: str | None = None, device: str = "auto") -> Estimator:
-    """Build the estimator a user named on the command line."""
-    name = name.lower()
+def parse_spec(spec: str) -> tuple[str, dict[str, str]]:
+    """``"cnn:patches=5:refine=none"`` -> ``("cnn", {"patches": "5", "refine": "none"})``."""
+    name, *parts = [p.strip() for p in spec.strip().split(":")]
+    options = {}
+    for part in parts:
+        key, sep, value = part.partition("=")
+        key = key.strip().lower().replace("-", "_")
+        if not sep or not key or not value.strip():
+            raise BadInput(f"estimator {spec!r}: options are written NAME:OPTION=VALUE, got {part!r}")
+        if key in options:
+            raise BadInput(f"estimator {spec!r}: option {key!r} given twice")
+        options[key] = value.strip()
+    return name.lower(), options
+
+
+def _typed(name: str, options: dict) -> dict:
+    allowed = OPTIONS.get(name, {})
+    out = {}
+    for key, value in options.items():
+        if value is None:
+            continue
+        key = key.replace("-", "_")
+        if key not in allowed:
+            offer = ", ".join(k.replace("_", "-") for k in allowed) or "none"
+            raise BadInput(f"estimator {name!r} has no option {key.replace('_', '-')!r} (its options: {offer})")
+        kind = allowed[key]
+        if kind is int:
+            try:
+                value = int(value)
+            except (TypeError, ValueError):
+                raise BadInput(f"estimator {name!r}: {key.replace('_', '-')} must be a whole number, got {value!r}") from None
+        else:
+            value = str(value).lower()
+            if key == "refine" and value == "none":
+                value = None
+        out[key] = value
+    return out
+
+
+def make_estimator(name: str, work_width: int = 320, weights: str | None = None, device: str = "auto", **options) -> Estimator:
+    """Build the estimator a user named on the command line.
+
+    ``name`` may carry options (``cnn:patches=5``); keyword ``options`` (from flags, None = not
+    given) add to them.  ``weights`` selects a learned estimator whatever the name (its head
+    then decides lstm or cnn)."""
+    base, spec_options = parse_spec(name)
     if work_width < 32:
         raise BadInput(f"--work-width must be at least 32, got {work_width}")
-    if weights is not None or name in ("lstm", "cnn"):
-        from mosaic_cli.estimators.learned import make_learned_estimator
+    learned = weights is not None or base in LEARNED
+    kind = base if base in LEARNED or not learned else "lstm"  # --weights with a classical name: any learned option
+    given = {**spec_options, **{k: v for k, v in options.items() if v is not None}}
+    typed = _typed(kind, given) if base in NAMES or learned else {}
+    if learned:
+        from mosaic_cli.estimators.learned import LearnedConfig, make_learned_estimator
 
-        return make_learned_estimator(name, weights=weights, device=device)
-    if name == "orb":
-        return OrbEstimator(work_width)
-    if name == "orb-ransac":
-        return OrbEstimator(work_width, OrbConfig(method="ransac"))
-    if name == "identity":
+        return make_learned_estimator(base, weights=weights, device=device, config=LearnedConfig(**typed))
+    if base in ("orb", "orb-ransac"):
+        config = OrbConfig(method="ransac" if base == "orb-ransac" else "usac")
+        if "refine" in typed:
+            if typed["refine"] not in (None, "lk", "ecc"):
+                raise BadInput(f"refine must be one of lk, ecc or none, got {typed['refine']!r}")
+            config.refine = typed["refine"]
+        return OrbEstimator(work_width, config)
+    if base == "orb-paper":
+        return PaperOrbEstimator(work_width)
+    if base == "identity":
         return IdentityEstimator(work_width)
-    raise BadInput(f"unknown estimator {name!r}: choose one of orb, orb-ransac, identity, lstm, cnn")
+    raise BadInput(f"unknown estimator {base!r}: choose one of {', '.join(NAMES)}")
+
+
+__all__ = [
+    "CLASSICAL",
+    "LEARNED",
+    "NAMES",
+    "Estimator",
+    "IdentityEstimator",
+    "OrbConfig",
+    "OrbEstimator",
+    "PairEstimate",
+    "PaperOrbEstimator",
+    "estimate_stream",
+    "make_estimator",
+    "parse_spec",
+]
