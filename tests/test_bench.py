@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mosaic_cli.bench import run_bench, time_estimator
+from mosaic_cli.bench import run_bench, run_flights, time_estimator
 from mosaic_cli.cli import main
 from mosaic_cli.estimators.base import Estimator, PairEstimate
 from mosaic_cli.simulate import plan_flight, procedural_map, write_flight
@@ -115,3 +115,115 @@ def test_bench_command_errors(args, message, capsys):
     assert run_cli(["bench", "-q", *args]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+# --- a folder of flights -------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def flights_dir(tmp_path_factory):
+    """Two short flights of different profiles, each X.mp4 with its X.gt.json, plus a video
+    without ground truth (ignored)."""
+    folder = tmp_path_factory.mktemp("flights")
+    rgb = procedural_map((1400, 1400), seed=2)
+    for name, profile, seed in (("a_paper", "paper", 1), ("b_fast", "fast", 2)):
+        plan = plan_flight((1400, 1400), profile, frames=64, size=(320, 180), seed=seed)
+        write_flight(folder / f"{name}.mp4", rgb, plan, preset="veryfast", show_progress=False)
+    plan = plan_flight((1400, 1400), "paper", frames=8, size=(320, 180), seed=3)
+    write_flight(folder / "c_nogt.mp4", rgb, plan, preset="veryfast", show_progress=False)
+    (folder / "c_nogt.gt.json").unlink()
+    return folder
+
+
+def test_flights_pool_what_mosaic_eval_reports_per_flight(tmp_path, flights_dir):
+    """bench --flights against `mosaic track` + `mosaic eval` on each flight, combined by hand:
+    MACE weighted by landmark pairs, failures by frame pairs, the median corner error from the
+    tracks and the ground truth directly."""
+    from mosaic_cli.geometry import corner_error
+    from mosaic_cli.simulate import load_ground_truth
+
+    out = tmp_path / "bench.json"
+    assert run_cli(["bench", "-q", "--flights", str(flights_dir), "-e", "orb,identity", "--json", str(out)]) in (0, None)
+    report = json.loads(out.read_text())
+    assert report["source"]["flights"] == ["a_paper", "b_fast"] and report["source"]["profiles"] == ["paper", "fast"]
+    for name in ("orb", "identity"):
+        evals, corners = {}, []
+        for flight in ("a_paper", "b_fast"):
+            track, metrics = tmp_path / f"{flight}.{name}.json", tmp_path / f"{flight}.{name}.eval.json"
+            assert run_cli(["track", str(flights_dir / f"{flight}.mp4"), "-e", name, "-o", str(track), "-q"]) in (0, None)
+            assert run_cli(["eval", str(track), "--gt", str(flights_dir / f"{flight}.gt.json"), "--json", str(metrics), "-q"]) in (0, None)
+            evals[flight] = json.loads(metrics.read_text())
+            gt = load_ground_truth(flights_dir / f"{flight}.gt.json")
+            pred = np.array(json.loads(track.read_text())["pairwise"])
+            corners.append(corner_error(pred, gt.pairwise, gt.size) * 1280 / gt.size[0])
+        e = report["estimators"][name]
+        lp = {f: m["landmark_pairs"] for f, m in evals.items()}
+        assert min(lp.values()) >= 1
+        mace = sum(m["mace"] * lp[f] for f, m in evals.items()) / sum(lp.values())
+        failures = sum(m["failure_rate"] * m["pairs"] for m in evals.values()) / sum(m["pairs"] for m in evals.values())
+        assert e["mace"] == pytest.approx(mace, rel=1e-9)
+        assert e["failure_rate"] == pytest.approx(failures, abs=1e-12)
+        assert e["corner_error"] == pytest.approx(float(np.median(np.concatenate(corners))), rel=1e-9)
+        assert e["pairs"] == 126 and e["landmark_pairs"] == sum(lp.values())
+        assert e["profiles"]["paper"]["mace"] == pytest.approx(evals["a_paper"]["mace"], rel=1e-9)
+        assert e["profiles"]["fast"]["mace"] == pytest.approx(evals["b_fast"]["mace"], rel=1e-9)
+        assert e["per_flight"]["b_fast"]["corner_error"] == pytest.approx(evals["b_fast"]["corner_error"], rel=1e-9)
+        assert e["ms_per_frame"]["p50"] > 0 and e["cpu_ms_per_frame"]["p50"] >= 0
+    assert report["estimators"]["orb"]["mace"] < 0.1 * report["estimators"]["identity"]["mace"]
+
+
+def test_flights_estimator_options_and_errors(tmp_path, flights_dir, capsys):
+    report = run_flights(flights_dir, ["orb", "orb:refine=none", "orb-paper"], show_progress=False)
+    assert list(report["estimators"]) == ["orb", "orb:refine=none", "orb-paper"]
+    polished, plain = report["estimators"]["orb"], report["estimators"]["orb:refine=none"]
+    assert polished["corner_error"] < plain["corner_error"]  # the option reached the estimator
+    assert run_cli(["bench", "-q", "--flights", str(tmp_path)]) == 2
+    assert "no X.mp4 with an X.gt.json" in capsys.readouterr().err
+    assert run_cli(["bench", "-q", "--flights", str(flights_dir), "-e", "orb:patches=5"]) == 2
+    assert "has no option 'patches'" in capsys.readouterr().err
+    assert run_cli(["bench", "-q", "--flights", str(flights_dir), "--video", str(flights_dir / "a_paper.mp4")]) == 2
+    assert "not both" in capsys.readouterr().err
+
+
+# --- the paper's baseline ------------------------------------------------------------------
+
+
+def load_script():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "baseline_orb.py"
+    spec = importlib.util.spec_from_file_location("baseline_orb", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_orb_paper_matches_the_baseline_script(flights_dir):
+    """The `orb-paper` estimator against scripts/baseline_orb.py (independent of mosaic_cli) on
+    the same clip, decoded by OpenCV for both: the same working-resolution homographies and
+    confidences (at full resolution they differ by the script's diag(s, s, 1) scaling, which
+    ignores pixel centres)."""
+    from mosaic_cli.estimators import estimate_stream, make_estimator
+    from mosaic_cli.geometry import to_resolution
+
+    clip = str(flights_dir / "b_fast.mp4")
+    script = load_script().track_baseline(clip, work_width=160)
+    cap = cv2.VideoCapture(clip)
+    frames = []
+    while True:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    size = (frames[0].shape[1], frames[0].shape[0])
+    estimates = list(estimate_stream(make_estimator("orb-paper", work_width=160), frames, size))
+    ours = np.array([e.H for e in estimates])
+    theirs = np.array(script["pairwise"])
+    assert len(ours) == len(theirs) == 63
+    s = size[0] / 160
+    down, up = np.diag([1 / s, 1 / s, 1.0]), np.diag([s, s, 1.0])
+    small = (160, 90)
+    np.testing.assert_allclose(to_resolution(ours, size, small), down @ theirs @ up, rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose([e.confidence for e in estimates], script["confidence"], rtol=1e-12)
+    assert np.any(np.abs(theirs - np.eye(3)).max(axis=(1, 2)) > 1e-3)  # it did estimate motion
