@@ -473,3 +473,13 @@ def test_an_estimator_that_answers_late_in_batches_gives_the_same_panorama(surve
     ref_canvas, ref_indices, ref_H = load_transforms(transforms)
     assert (canvas, indices) == (ref_canvas, ref_indices)
     assert np.allclose(np.array(H), np.array(ref_H), atol=1e-6)
+
+
+def test_a_video_with_no_usable_frame_is_refused(tmp_path, capsys):
+    with VideoWriter(tmp_path / "black.mp4", SIZE, 30.0) as writer:
+        for _ in range(10):
+            writer.write(np.zeros((SIZE[1], SIZE[0], 3), np.uint8))
+    (tmp_path / "out").mkdir()
+    code, err = run_cli(capsys, "stitch", tmp_path / "black.mp4", "-o", tmp_path / "out" / "p.png", "--reference", 5, "-q")
+    assert code == 2 and "no frame is usable" in err and len(err.strip().splitlines()) == 1
+    assert list((tmp_path / "out").iterdir()) == []

@@ -44,15 +44,16 @@ def parse_reference(spec: str) -> str | int:
     return value
 
 
-def choose_reference(frame_indices: list[int], spec: str | int) -> int:
-    """Position (in ``frame_indices``) of the reference keyframe.  The middle one by default:
-    distortion grows with the distance from the reference, so the middle halves the worst."""
+def choose_reference(frame_indices: list[int], spec: str | int, last_frame: int) -> int:
+    """Position (in ``frame_indices``) of the reference keyframe: for a frame number, the
+    keyframe nearest to it.  The middle one by default: distortion grows with the distance
+    from the reference, so the middle halves the worst."""
     if spec == "first":
         return 0
     if spec == "middle":
         return (len(frame_indices) - 1) // 2
-    if spec > frame_indices[-1] + 1 and spec > 0:
-        raise BadInput(f"--reference {spec} is past the last frame stitched ({frame_indices[-1]})")
+    if spec > last_frame:
+        raise BadInput(f"--reference {spec} is past the last frame stitched ({last_frame})")
     return int(np.argmin(np.abs(np.asarray(frame_indices) - spec)))
 
 

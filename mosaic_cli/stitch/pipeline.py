@@ -1,7 +1,8 @@
 """``stitch()``: a video in, a panorama out, in five stages.
 
-1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes
-2. register  link keyframes directly, close loops, refine all placements jointly (drift control)
+1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
+             placed by direct registration with the previous one
+2. register  close loops, refine all placements jointly (drift control)
 3. canvas    pick the reference keyframe, size the canvas (``max_size``), refuse degenerate chains
 4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending
 5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically
@@ -65,6 +66,10 @@ def stitch(
     transforms: str | Path | None = None,
     show_progress: bool = True,
 ) -> StitchResult:
+    """Stitch ``video`` into the panorama ``out`` (format by extension), optionally writing
+    every keyframe's frame -> panorama homography to ``transforms``.  Raises ``BadInput``
+    before any work for unusable input, ``ProcessingError`` when the flight cannot be
+    stitched; never leaves a partial file.  An ORB ``estimator`` loses its per-pair polish."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
     _skip_pair_polish(estimator)
@@ -74,9 +79,12 @@ def stitch(
     scan = _scan(video, info, estimator, options, show_progress)
     seconds["scan"] = time.perf_counter() - clock
 
+    if not scan.keyframes:
+        raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
+
     clock = time.perf_counter()
     indices = [k.index for k in scan.keyframes]
-    ref = choose_reference(indices, reference)
+    ref = choose_reference(indices, reference, scan.first_index + scan.frames - 1)
     placements, report = _register(scan, ref, options, show_progress)
     seconds["register"] = time.perf_counter() - clock
 
@@ -158,8 +166,6 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
 def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress: bool):
     """Keyframe -> reference placements: jointly refined, or by the chain alone when off."""
     keyframes = scan.keyframes
-    if not keyframes:
-        raise BadInput("no frame of the video is usable (all black, blank or over-exposed)")
     chained = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
     if not options.registration.enabled or len(keyframes) < 2:
         return chained, RegistrationReport()
