@@ -6,7 +6,9 @@ keyframe falls below ``new_ground``) and it is sharp and well exposed; blurred, 
 over-exposed frames are passed over while a better one may still come.  Only keyframes that
 add ground not yet covered keep their pixels (at the scale the canvas will need); keyframes
 over ground already covered keep only their features, as anchors for drift control.  So the
-memory grows with the area flown over, not with the number of frames.
+memory grows with the area flown over, not with the number of frames.  Each keyframe is placed
+by registering it directly with the previous one (SIFT), not by the dozens of pairwise
+estimates in between; the estimator only tracks the frames from one keyframe to the next.
 
 Placements are "world" homographies: frame pixels -> pixels of the first keyframe's frame
 (the anchor), all in full-resolution source pixels.
