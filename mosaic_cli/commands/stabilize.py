@@ -19,7 +19,8 @@ def stabilize(
     model: str = typer.Option("similarity", "--model", help="Motion model of the correction: similarity, affine or homography."),
     crop: str = typer.Option("auto", "--crop", help="auto (zoom just enough that no border shows) or the share of "
                              "width and height to keep, 0.5..1 (borders may then show, filled as --border says)."),
-    border: str = typer.Option("black", "--border", help="Fill of uncovered areas: black, replicate or reflect."),
+    border: str | None = typer.Option(None, "--border", help="Fill of uncovered areas with a fixed --crop: black "
+                                      "(default), replicate or reflect."),
     crf: int = typer.Option(18, "--crf", help="x264 quality, 0 (lossless) .. 51."),
     preset: str = typer.Option("veryfast", "--preset", help="x264 preset (ultrafast .. veryslow)."),
     warps: Path | None = typer.Option(None, "--warps", help="Write the per-frame warps (input -> output pixels) as JSON."),

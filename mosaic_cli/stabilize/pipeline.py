@@ -47,7 +47,10 @@ class StabilizeOptions:
     radius: int = 30  # gaussian only, frames
     model: str = "similarity"  # of the stabilising correction: similarity, affine or homography
     crop: str | float | None = "auto"  # or the share of width and height kept, 0.5..1
-    border: str = "black"  # what fills any uncovered area: black, replicate, reflect
+    # What fills uncovered areas: black, replicate or reflect.  None: black with a fixed crop;
+    # with --crop auto there are none (replicate keeps the half-pixel rim and the rare frame
+    # the zoom limit cannot cover from turning dark).
+    border: str | None = None
     crf: int = 18
     preset: str = "veryfast"
 
@@ -134,12 +137,14 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
         raise BadInput(f"--crf must be in 0..51, got {options.crf}")
     if options.preset not in PRESETS:
         raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {options.preset!r}")
+    crop = parse_crop(options.crop)
+    border = options.border if options.border is not None else ("replicate" if crop is None else "black")
     plan = _Plan(
         estimator=None,
         model=motion_model(options.model),
         smoother=make_smoother(options.smoothing, options.radius),
-        crop=parse_crop(options.crop),
-        renderer=Renderer(border=parse_border(options.border), crf=options.crf, preset=options.preset),
+        crop=crop,
+        renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset),
     )
     info = probe(video)
     width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
