@@ -53,6 +53,7 @@ class VideoWriter:
         preset: str = "medium",
         audio_from: str | os.PathLike | None = None,
         audio_codec: str | None = None,
+        pix_fmt_in: str = "rgb24",
     ):
         if not 0 <= crf <= 51:
             raise BadInput(f"--crf must be in 0..51, got {crf}")
@@ -63,6 +64,11 @@ class VideoWriter:
         self.path = check_writable(path)
         self.size = (int(size[0]), int(size[1]))
         self.out_size = even_size(self.size)
+        # "yuv420p": frames are the planes as written by ffmpeg, (h * 3 // 2, w), even sizes only;
+        # saves the RGB conversions when the frames were decoded as yuv420p too.
+        if pix_fmt_in not in ("rgb24", "yuv420p") or (pix_fmt_in == "yuv420p" and self.out_size != self.size):
+            raise ValueError(f"pix_fmt_in must be rgb24, or yuv420p with an even size; got {pix_fmt_in} at {self.size}")
+        self.pix_fmt_in = pix_fmt_in
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".part{self.path.suffix or '.mp4'}", dir=self.path.parent)
         os.close(fd)
         self._tmp = Path(tmp)
@@ -78,7 +84,7 @@ class VideoWriter:
             self.out_size,
             fps=fps,
             codec="libx264",
-            pix_fmt_in="rgb24",
+            pix_fmt_in=pix_fmt_in,
             pix_fmt_out="yuv420p",
             quality=None,
             macro_block_size=1,
@@ -96,6 +102,12 @@ class VideoWriter:
         return "aac"
 
     def write(self, frame: np.ndarray) -> None:
+        if self.pix_fmt_in == "yuv420p":
+            if frame.shape != (self.size[1] * 3 // 2, self.size[0]):
+                raise ProcessingError(f"yuv420p frame of shape {frame.shape} written to a {self.size[0]}x{self.size[1]} video")
+            self._gen.send(np.ascontiguousarray(frame, dtype=np.uint8))
+            self.frames_written += 1
+            return
         if frame.shape[:2] != (self.size[1], self.size[0]):
             raise ProcessingError(f"frame of size {frame.shape[1]}x{frame.shape[0]} written to a {self.size[0]}x{self.size[1]} video")
         if frame.ndim == 2:
