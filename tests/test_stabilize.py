@@ -20,7 +20,7 @@ from mosaic_cli.geometry import frame_corners, project
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MODELS, camera_motion
-from mosaic_cli.stabilize.render import warp_frame
+from mosaic_cli.stabilize.render import warp_frame, warp_yuv, yuv_planes
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother
 from mosaic_cli.video import open_video, probe
 
@@ -151,6 +151,29 @@ def test_border_fills():
     perspective = shift.copy()
     perspective[2, 0] = 1e-5  # the warpPerspective path gives the same fill
     assert (warp_frame(frame, perspective, (64, 48), "black")[:, :4] == 0).all()
+
+
+def test_yuv_planes_warp_like_rgb():
+    """The yuv420p path (chroma warped at half resolution) gives the RGB path's picture."""
+    frame = textured_image(160, 96, seed=6)
+    size = (160, 96)
+    warp = np.array([[0.98, -0.05, 6.3], [0.05, 0.98, -3.7], [0, 0, 1]])
+    yuv = cv2.cvtColor(frame, cv2.COLOR_RGB2YUV_I420)  # (h * 3 / 2, w) planes, as ffmpeg's yuv420p
+    via_yuv = cv2.cvtColor(warp_yuv(yuv, warp, size, "black"), cv2.COLOR_YUV2RGB_I420)
+    via_rgb = warp_frame(frame, warp, size, "black")
+    inner = (slice(12, -12), slice(12, -12))
+    reference = cv2.cvtColor(cv2.cvtColor(via_rgb, cv2.COLOR_RGB2YUV_I420), cv2.COLOR_YUV2RGB_I420)
+    assert cv2.PSNR(via_yuv[inner], reference[inner]) > 35
+    # A chroma plane warped with the luma matrix would be off by pixels: much worse.
+    wrong = yuv.copy()
+    y, u, v = yuv_planes(wrong, size)
+    u[...] = warp_frame(u, warp, (80, 48))
+    v[...] = warp_frame(v, warp, (80, 48))
+    y[...] = warp_frame(y, warp, size)
+    assert cv2.PSNR(cv2.cvtColor(wrong, cv2.COLOR_YUV2RGB_I420)[inner], reference[inner]) < cv2.PSNR(via_yuv[inner], reference[inner]) - 3
+    # Black in yuv420p is (16, 128, 128), which decodes to RGB black.
+    shifted = warp_yuv(yuv, np.array([[1, 0, 8.0], [0, 1, 0], [0, 0, 1]]), size, "black")
+    assert (cv2.cvtColor(shifted, cv2.COLOR_YUV2RGB_I420)[:, :6] <= 2).all()
 
 
 # --- the command, on a rendered shaky clip with sound ------------------------------------------

@@ -3,10 +3,15 @@
 Decoding (an ffmpeg pipe), warping (OpenCV) and encoding (an x264 pipe) all release the GIL, so
 each runs in its own thread with small bounded queues between them: on two cores the three
 overlap instead of taking turns, and at most a handful of frames are in memory.
+
+Video files of even size stay in yuv420p from decoder to encoder (the planes are warped
+separately, chroma at half resolution): no RGB conversion either way and half the pixels to
+warp, 27 instead of 37 ms of CPU a 1280x720 frame.  Image folders and odd sizes go through RGB.
 """
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 from dataclasses import dataclass
@@ -14,9 +19,11 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 import cv2
+import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry import resize_matrix
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, VideoWriter, open_video
 
@@ -32,12 +39,73 @@ def parse_border(name: str) -> str:
 
 def warp_frame(frame: np.ndarray, warp: np.ndarray, size: tuple[int, int], border: str = "black") -> np.ndarray:
     """The output frame: ``frame`` resampled so that input pixel x lands on ``warp @ x``."""
+    # (An affine warp takes the faster path, with no per-pixel division.)
+    return _warp_plane(frame, np.asarray(warp, dtype=np.float64), size, border, 0)
+
+
+# yuv420p frames: the three planes one after the other in one uint8 array of (h * 3 // 2, w).
+YUV_BLACK = (16, 128, 128)  # limited-range black, as ffmpeg converts RGB (0, 0, 0)
+
+
+def yuv_planes(frame: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Views of the Y (h, w), U and V (h/2, w/2) planes of a yuv420p frame."""
+    w, h = size
+    flat = frame.reshape(-1)
+    q = (w // 2) * (h // 2)
+    return flat[:w * h].reshape(h, w), flat[w * h:w * h + q].reshape(h // 2, w // 2), flat[w * h + q:].reshape(h // 2, w // 2)
+
+
+def warp_yuv(frame: np.ndarray, warp: np.ndarray, size: tuple[int, int], border: str = "black") -> np.ndarray:
+    """:func:`warp_frame` for a yuv420p frame: chroma warped by the same map at half resolution."""
+    w, h = size
+    out = np.empty((h * 3 // 2, w), np.uint8)
+    to_chroma = resize_matrix((w, h), (w // 2, h // 2))
+    chroma_warp = to_chroma @ warp @ np.linalg.inv(to_chroma)
+    for src, dst, M, black in zip(yuv_planes(frame, size), yuv_planes(out, size), (warp, chroma_warp, chroma_warp), YUV_BLACK):
+        dst[...] = _warp_plane(src, M, (dst.shape[1], dst.shape[0]), border, black)
+    return out
+
+
+def side_by_side_yuv(left: np.ndarray, right: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """:func:`side_by_side` for yuv420p frames of ``size``."""
+    out_size = compare_size(size)
+    out = np.empty((out_size[1] * 3 // 2, out_size[0]), np.uint8)
+    for a, b, dst in zip(yuv_planes(left, size), yuv_planes(right, size), yuv_planes(out, out_size)):
+        panel = (dst.shape[1] // 2, dst.shape[0])
+        if (a.shape[1], a.shape[0]) != panel:
+            a = cv2.resize(a, panel, interpolation=cv2.INTER_AREA)
+            b = cv2.resize(b, panel, interpolation=cv2.INTER_AREA)
+        dst[:, :panel[0]], dst[:, panel[0]:] = a, b
+    return out
+
+
+def _warp_plane(plane: np.ndarray, warp: np.ndarray, size: tuple[int, int], border: str, black) -> np.ndarray:
     mode = BORDERS[border]
     if abs(warp[2, 0]) < 1e-12 and abs(warp[2, 1]) < 1e-12:
-        # An affine warp is worth the faster path (no per-pixel division).
-        return cv2.warpAffine(frame, (warp[:2] / warp[2, 2]).astype(np.float64), size, flags=cv2.INTER_LINEAR,
-                              borderMode=mode)
-    return cv2.warpPerspective(frame, warp, size, flags=cv2.INTER_LINEAR, borderMode=mode)
+        return cv2.warpAffine(plane, warp[:2] / warp[2, 2], size, flags=cv2.INTER_LINEAR, borderMode=mode,
+                              borderValue=black)
+    return cv2.warpPerspective(plane, warp, size, flags=cv2.INTER_LINEAR, borderMode=mode, borderValue=black)
+
+
+def _yuv_frames(video: str | Path, size: tuple[int, int]) -> Iterator[np.ndarray]:
+    """The frames of a video file as yuv420p arrays (h * 3 // 2, w), upright like open_video's."""
+    w, h = size
+    gen = imageio_ffmpeg.read_frames(str(video), pix_fmt="yuv420p", bits_per_pixel=12)
+    try:
+        next(gen)  # metadata
+        for raw in gen:
+            yield np.frombuffer(raw, dtype=np.uint8).reshape(h * 3 // 2, w)
+    except RuntimeError:
+        return  # a truncated stream: what ffmpeg could decode (as open_video does)
+    finally:
+        gen.close()
+
+
+def _yuv_possible(info: VideoInfo, compare: bool) -> bool:
+    w, h = info.source_size
+    sizes = [info.source_size] + ([compare_size(info.source_size)] if compare else [])
+    halves = [(w // 2, h // 2)] if compare and w > COMPARE_PANEL_WIDTH else []
+    return not info.is_image_folder and all(a % 2 == 0 and b % 2 == 0 for a, b in sizes + halves)
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
@@ -71,16 +139,21 @@ class Renderer:
         reuse the last warp."""
         size = info.source_size
         audio = str(video) if info.has_audio else None
-        writers = [VideoWriter(out, size, info.fps, crf=self.crf, preset=self.preset, audio_from=audio)]
+        yuv = _yuv_possible(info, compare is not None)
+        pix_fmt = "yuv420p" if yuv else "rgb24"
+        warp = warp_yuv if yuv else warp_frame
+        join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
+        writers = [VideoWriter(out, size, info.fps, crf=self.crf, preset=self.preset, audio_from=audio, pix_fmt_in=pix_fmt)]
         if compare is not None:
             writers.append(VideoWriter(compare, compare_size(size), info.fps, crf=self.crf, preset=self.preset,
-                                       audio_from=audio))
+                                       audio_from=audio, pix_fmt_in=pix_fmt))
         try:
-            with open_video(video) as stream, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:
+            source = contextlib.closing(_yuv_frames(video, size)) if yuv else open_video(video)
+            with source as frames, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
-                    for t, frame in enumerate(_background(stream)):
-                        result = warp_frame(frame, warps[min(t, len(warps) - 1)], size, self.border)
-                        yield (result, side_by_side(frame, result)) if compare is not None else (result,)
+                    for t, frame in enumerate(_background(frames)):
+                        result = warp(frame, warps[min(t, len(warps) - 1)], size, self.border)
+                        yield (result, join(frame, result)) if compare is not None else (result,)
 
                 written = _drain(outputs(), [w.write for w in writers], advance)
             for writer in writers:
