@@ -43,12 +43,6 @@ class MotionModel:
         """(..., K) parameters -> (..., 3, 3) matrices."""
         return self.offset + np.einsum("...k,kij->...ij", np.asarray(params, dtype=np.float64), self.basis)
 
-    def params(self, matrices: np.ndarray) -> np.ndarray:
-        """(..., 3, 3) matrices of this model -> (..., K) parameters (least squares on the basis)."""
-        flat_basis = self.basis.reshape(self.n_params, 9).T
-        flat = (normalize(matrices) - self.offset).reshape(*np.shape(matrices)[:-2], 9)
-        return np.linalg.lstsq(flat_basis, flat.reshape(-1, 9).T, rcond=None)[0].T.reshape(*np.shape(matrices)[:-2], -1)
-
     def scale_weights(self) -> np.ndarray:
         """Weights w such that ``w @ p`` is the mean scale of the linear part, (a + d) / 2."""
         weights = np.zeros(self.n_params)

@@ -11,6 +11,7 @@ per-frame matrices (72 bytes a frame):
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,13 +20,13 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import make_estimator
+from mosaic_cli.estimators import Estimator, make_estimator
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
-from mosaic_cli.stabilize.path import camera_motion, motion_model
+from mosaic_cli.stabilize.path import MotionModel, camera_motion, motion_model
 from mosaic_cli.stabilize.render import Renderer, parse_border
-from mosaic_cli.stabilize.smoothing import make_smoother
+from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.track import track_video
 from mosaic_cli.video import VideoInfo, probe
 from mosaic_cli.video.writer import PRESETS
@@ -105,10 +106,12 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
 
 @dataclass
 class _Plan:
-    estimator: object
-    model: object
-    smoother: object
-    crop: float | None
+    """The stages, configured from the options."""
+
+    estimator: Estimator | None
+    model: MotionModel
+    smoother: L1Smoother | GaussianSmoother
+    crop: float | None  # None: --crop auto
     renderer: Renderer
 
 
@@ -117,7 +120,7 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     outputs = {"output": out, "--warps": warps_out, "--compare": compare}
     given = {name: Path(p) for name, p in outputs.items() if p is not None}
     for name, path in given.items():
-        check_writable(path)
+        _check_writable(path)
     if Path(out).suffix.lower() not in VIDEO_SUFFIXES:
         raise BadInput(f"output {out} must end in one of {', '.join(VIDEO_SUFFIXES)}")
     if compare is not None and Path(compare).suffix.lower() not in VIDEO_SUFFIXES:
@@ -150,6 +153,17 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
     plan.estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device)
     return info, plan
+
+
+def _check_writable(path: Path) -> None:
+    """``check_writable``, then a real file created and removed beside the output: permission
+    bits do not stop root, and read-only file systems pass the access check."""
+    target = check_writable(path)
+    try:
+        with tempfile.TemporaryFile(dir=target.parent if str(target.parent) else "."):
+            pass
+    except OSError:
+        raise BadInput(f"output folder {target.parent} is not writable") from None
 
 
 def write_warps(path: str | Path, warps: np.ndarray, size: tuple[int, int]) -> None:
