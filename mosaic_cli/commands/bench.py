@@ -24,6 +24,7 @@ def bench(
     work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators work at."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulated flight."),
+    threads: int | None = typer.Option(None, "--threads", help="CPU threads for the learned estimators' network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the full report as JSON."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (use with --json)."),
 ) -> None:
@@ -56,6 +57,12 @@ def bench(
         raise BadInput(f"{weights}: no such weights file")
     if map_image is not None and not map_image.exists():
         raise BadInput(f"{map_image}: no such file")
+    if threads is not None:
+        if threads < 1:
+            raise BadInput(f"--threads must be at least 1, got {threads}")
+        import torch
+
+        torch.set_num_threads(threads)
     names = estimators.split(",") if estimators is not None else None
     weights_file = str(weights) if weights is not None else None
     if flights is not None:

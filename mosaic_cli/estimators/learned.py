@@ -27,7 +27,16 @@ import torch
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, PairEstimate
-from mosaic_cli.estimators.refine import POLISHERS, CornerConfig, Polish, PolishConfig, align_pixels, points_to_track, track_points
+from mosaic_cli.estimators.refine import (
+    POLISHERS,
+    CornerConfig,
+    Polish,
+    PolishConfig,
+    align_pixels,
+    band_pass,
+    points_to_track,
+    track_points,
+)
 from mosaic_cli.geometry import frame_corners, is_valid
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, transform_points
@@ -46,11 +55,30 @@ class LearnedConfig:
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
     refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
-    # The network's estimate can be a few working px off where ORB's feature fit is within one:
-    # a deeper LK pyramid and a wider leash than ORB's polish.
-    polish: PolishConfig = field(default_factory=lambda: PolishConfig(levels=2, max_shift=4.0))
+    # The network's estimate can be several working px off where ORB's feature fit is within
+    # one: a deeper LK pyramid and a longer leash than ORB's polish (with 2 levels and 4 px, the
+    # BASE network's worst pairs on a fast development flight stayed unpolished: MACE 30 -> 1.0).
+    polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=15, levels=3, max_shift=8.0))
+    # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
+    # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
+    # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
+    # Chosen on the 15 development flights, seeded by the BASE network (pooled MACE, plain
+    # frames -> band-passed): paper 2.01 -> 0.58, hard 3.24 -> 0.78, fast 1.01 -> 0.79
+    # None: plain frames.
+    polish_band: tuple[float, float] | None = (1.5, 6.0)
     corners: CornerConfig = field(default_factory=CornerConfig)
     unpolished_weight: float = 0.5  # confidence factor of an estimate the polish could not confirm
+
+
+@dataclass
+class WorkFrame:
+    """A frame at the working resolution and what the polish needs of it, computed once (a frame
+    is the second of one pair and the first of the next, possibly in the next chunk)."""
+
+    gray: np.ndarray
+    textured: bool | None = None
+    points: np.ndarray | None = None  # Shi-Tomasi corners to track (LK polish)
+    aligned: np.ndarray | None = None  # the image the polish aligns (band-passed gray)
 
 
 def resolve_device(device: str | None) -> torch.device:
@@ -109,8 +137,7 @@ class LearnedEstimator(Estimator):
             self.model = self.model.to(memory_format=torch.channels_last)
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
-        self._pending: list[np.ndarray] = []
-        self._points: list[np.ndarray | None] = []  # Shi-Tomasi corners of the pending frames, once known
+        self._pending: list[WorkFrame] = []
         self._state = None
         self._pairs_done = 0
 
@@ -126,7 +153,6 @@ class LearnedEstimator(Estimator):
         self._positions_t = torch.as_tensor(self.positions, device=self.device)
         self._corners = frame_corners(w, h)
         self._pending = []
-        self._points = []
         self._state = None
         self._pairs_done = 0
 
@@ -135,8 +161,7 @@ class LearnedEstimator(Estimator):
     def feed(self, frame: np.ndarray) -> list[PairEstimate]:
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
-        self._pending.append(self.prepare(frame))
-        self._points.append(None)
+        self._pending.append(WorkFrame(self.prepare(frame)))
         if len(self._pending) - 1 >= self.config.chunk:
             return self._run_chunk()
         return []
@@ -145,16 +170,19 @@ class LearnedEstimator(Estimator):
         return self._run_chunk() if len(self._pending) >= 2 else []
 
     def _run_chunk(self) -> list[PairEstimate]:
-        frames, points = self._pending, self._points
-        textured = self._textured(frames, points)
-        self._pending, self._points = [frames[-1]], [points[-1]]  # the last frame starts the next chunk's first pair
-        H_patches, offsets_ok = self._predict(frames)
+        frames = self._pending
+        self._pending = [frames[-1]]  # the last frame starts the next chunk's first pair
+        grays = [f.gray for f in frames]
+        H_patches, offsets_ok = self._predict(grays)
         H_net, agreement = self._consensus(H_patches)
-        valid = [bool(offsets_ok[k] and textured[k] and textured[k + 1]
-                      and is_valid(H_net[k], self.work_size, max_area_ratio=self.config.max_area_ratio)) for k in range(len(H_net))]
-        polished = [self._polish(frames[k], frames[k + 1], H_net[k], points[k]) if valid[k] else None for k in range(len(H_net))]
-        H_work = np.stack([p.H if p is not None else np.eye(3) for p in polished])
-        zncc = self._zncc(frames, H_work)
+        for f in frames:
+            self._describe(f)
+        polished = []
+        for k, (prev, cur) in enumerate(zip(frames[:-1], frames[1:])):
+            usable = offsets_ok[k] and prev.textured and cur.textured
+            valid = usable and is_valid(H_net[k], self.work_size, max_area_ratio=self.config.max_area_ratio)
+            polished.append(self._polish(prev, cur, H_net[k]) if valid else None)
+        zncc = self._zncc(grays, np.stack([p.H if p is not None else np.eye(3) for p in polished]))
         out = []
         for k, p in enumerate(polished):
             if p is None:
@@ -164,24 +192,25 @@ class LearnedEstimator(Estimator):
             out.append(self._to_full(p.H, confidence))
         return out
 
-    def _textured(self, frames: list[np.ndarray], points: list[np.ndarray | None]) -> list[bool]:
-        """Whether each frame has texture to register (black, blown-out, flat or badly blurred
-        frames do not); with the LK polish, fills ``points`` with each frame's corners as well."""
-        out = []
-        for k, gray in enumerate(frames):
-            if self.config.refine == "lk":
-                if points[k] is None:
-                    points[k] = points_to_track(gray, self.config.corners)
-                out.append(len(points[k]) > 0)
-            else:
-                out.append(bool(cv2.cornerMinEigenVal(gray, self.config.corners.block_size).max() >= self.config.corners.min_response))
-        return out
+    def _describe(self, frame: WorkFrame) -> None:
+        """Whether the frame has texture to register (black, blown-out, flat or badly blurred
+        frames do not) and, for the polish, its band-passed image and corners."""
+        if frame.textured is not None:
+            return
+        c = self.config
+        if c.refine == "lk":
+            frame.points = points_to_track(frame.gray, c.corners)
+            frame.textured = len(frame.points) > 0
+        else:
+            frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
+        if c.refine is not None and frame.textured:
+            frame.aligned = band_pass(frame.gray, *c.polish_band) if c.polish_band else frame.gray
 
-    def _polish(self, prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.ndarray | None) -> Polish:
+    def _polish(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> Polish:
         if self.config.refine == "lk":
-            return track_points(prev, cur, H, points, self.config.polish)
+            return track_points(prev.aligned, cur.aligned, H, prev.points, self.config.polish)
         if self.config.refine == "ecc":
-            return align_pixels(prev, cur, H, self.config.polish)
+            return align_pixels(prev.aligned, cur.aligned, H, self.config.polish)
         return Polish(H, False, 1.0)
 
     def _polish_weight(self, p: Polish) -> float:
@@ -259,16 +288,21 @@ class LearnedEstimator(Estimator):
             target, warped = [], []
             for x, y in self.positions:
                 to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-                sample = lambda image: cv2.warpPerspective(image, to_next, (P, P), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                                           borderMode=cv2.BORDER_CONSTANT)
-                valid = sample(ones) > 0.999  # every bilinear tap inside frame t+1
+                valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
                 target.append(detail[k][y : y + P, x : x + P][valid])
-                warped.append(sample(detail[k + 1])[valid])
+                warped.append(_sample(detail[k + 1], to_next, P)[valid])
             scores[k] = _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
         return scores
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
+
+
+def _sample(image: np.ndarray, patch_to_image: np.ndarray, size: int) -> np.ndarray:
+    """The ``size`` x ``size`` patch whose pixel (x, y) is ``image`` at ``patch_to_image @ (x, y, 1)``
+    (bilinear, 0 outside)."""
+    return cv2.warpPerspective(image, patch_to_image, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT)
 
 
 def _zncc(a: np.ndarray, b: np.ndarray, total: int) -> float:

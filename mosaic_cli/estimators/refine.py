@@ -99,6 +99,17 @@ def _close_and_valid(refined: np.ndarray, seed: np.ndarray, shape: tuple[int, ..
     return bool(shift <= max_shift and is_valid(refined, size, max_area_ratio=2.0))
 
 
+def band_pass(gray: np.ndarray, fine: float, coarse: float, gain: float = 3.0) -> np.ndarray:
+    """Difference of Gaussians of ``gray`` (sigmas ``fine`` < ``coarse``, pixels) as uint8 around
+    128 (LK wants 8 bits): what a polish should align when the finest detail is unreliable
+    (compression) and the brightness drifts (exposure).  ``gain`` keeps the quantisation step
+    well under a gray level of the original."""
+    f = gray.astype(np.float32)
+    smooth = cv2.GaussianBlur(f, (0, 0), fine)
+    base = cv2.GaussianBlur(smooth, (0, 0), float(np.sqrt(coarse**2 - fine**2)))
+    return cv2.addWeighted(smooth, gain, base, -gain, 128.0, dtype=cv2.CV_8U)
+
+
 @dataclass
 class CornerConfig:
     max_points: int = 300  # a few hundred: the refit is over-determined many times, LK stays cheap
@@ -122,4 +133,4 @@ def points_to_track(gray: np.ndarray, config: CornerConfig) -> np.ndarray:
     return np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
 
 
-__all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "points_to_track", "track_points"]
+__all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "band_pass", "points_to_track", "track_points"]
