@@ -253,3 +253,39 @@ def test_track_cli_refuses_bad_weights(tmp_path, panning, capsys, args, message)
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_track_cli_flags_reach_the_estimator(tmp_path, panning, capsys):
+    path, _ = checkpoint(tmp_path, head="cnn")
+    clip = write_clip(tmp_path / "pan.mp4", panning, fps=10)
+    out = tmp_path / "track.json"
+
+    def track(*args):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["track", str(clip), "-o", str(out), "-q", *args])
+        return exit_info.value.code
+
+    from mosaic_cli.video import open_video
+
+    with open_video(clip, width=320, gray=True) as stream:
+        frames = list(stream)
+    config = LearnedConfig(patches=5, refine=None, chunk=3)
+    direct, _ = run(make_learned_estimator("cnn", weights=path, device="cpu", config=config), frames, FULL)
+    assert track("--weights", str(path), "--device", "cpu", "--patches", "5", "--refine", "none", "--chunk", "3") in (0, None)
+    np.testing.assert_allclose(np.array(json.loads(out.read_text())["pairwise"]), direct, rtol=1e-6, atol=1e-6)
+    # the same through an estimator name with options
+    assert track("-e", "cnn:patches=5:refine=none:chunk=3", "--weights", str(path), "--device", "cpu") in (0, None)
+    np.testing.assert_allclose(np.array(json.loads(out.read_text())["pairwise"]), direct, rtol=1e-6, atol=1e-6)
+    out.unlink()
+    for args, message in (
+        (["-e", "orb", "--patches", "5"], "has no option 'patches'"),
+        (["--weights", str(path), "--reset-every", "0"], "reset-every must be at least 1"),
+        (["--weights", str(path), "--patches", "4"], "patches must be one of 1, 5, 9"),
+        (["--weights", str(path), "--refine", "sift"], "refine must be one of lk, ecc or none"),
+        (["-e", "cnn:patches", "--weights", str(path)], "NAME:OPTION=VALUE"),
+    ):
+        capsys.readouterr()
+        assert track(*args) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+        assert not out.exists()

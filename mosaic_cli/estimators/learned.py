@@ -7,8 +7,9 @@
           -> offsets -> DLT -> homography of the working frame, frame t -> t+1
           -> several patches: consensus (per-corner median of where the frame corners go)
           -> polish, per pair, seeded by the network (default "lk": Shi-Tomasi corners of frame t
-             tracked into frame t+1 by Lucas-Kanade from where the network puts them, robust
-             refit; the network's estimate is kept when the polish fails or wanders)
+             tracked into frame t+1 by pyramidal Lucas-Kanade on band-passed frames, starting
+             where the network puts them, robust refit; the network's estimate is kept when the
+             polish fails or wanders off; see :mod:`.refine`)
           -> confidence (ZNCC of the registered patches x agreement between patches x how much
              of the polish agreed)
           -> invalid, or a frame without texture -> identity with confidence 0; else
