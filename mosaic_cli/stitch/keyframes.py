@@ -10,8 +10,12 @@ memory grows with the area flown over, not with the number of frames.  Each keyf
 by registering it directly with the previous one (SIFT), not by the dozens of pairwise
 estimates in between; the estimator only tracks the frames from one keyframe to the next.
 
-Placements are "world" homographies: frame pixels -> pixels of the first keyframe's frame
-(the anchor), all in full-resolution source pixels.
+Placements here are "world" transforms: frame pixels -> pixels of the first frame (the
+anchor), full-resolution source pixels.  They are affine: chained homographies accumulate
+perspective error, and far from the anchor that error grows without bound (the estimated
+horizon closes in until frames fold), whereas this bookkeeping (overlaps, coverage, canvas
+extent, starting values) needs only a stable, roughly metric world.  The perspective is
+recovered from the full registrations by the joint refinement (:mod:`.registration`).
 """
 
 from __future__ import annotations
@@ -81,7 +85,7 @@ def measure_quality(gray: np.ndarray) -> FrameQuality:
 @dataclass
 class Keyframe:
     index: int  # frame number in the video
-    placement: np.ndarray  # frame -> world, source pixels (chained, before refinement)
+    placement: np.ndarray  # frame -> world (affine, see the module doc), source pixels
     features: Features
     quality: FrameQuality
     link: PairMatch | None = None  # direct registration to the previous keyframe (this -> it)
@@ -207,6 +211,8 @@ class FlightScanner:
         self._last: tuple | None = None  # the same, of the last sharp and well exposed frame
         self._quality_size = (options.quality_width, max(1, round(source_size[1] * options.quality_width / source_size[0])))
         self._corners = frame_corners(*source_size)
+        self._fit_points = np.vstack([self._corners, [[(source_size[0] - 1) / 2, (source_size[1] - 1) / 2]]])
+        self._fit_design = np.hstack([self._fit_points, np.ones((5, 1))])
 
     # -- per frame -------------------------------------------------------------------
     def first(self, frame: np.ndarray) -> None:
@@ -240,7 +246,7 @@ class FlightScanner:
         if not ok:
             self.failed_pairs += 1
         if ok and self.placement is not None:
-            placement = normalize(self.placement @ np.linalg.inv(estimate.H))
+            placement = self.placement @ np.linalg.inv(self._affine(estimate.H))
             self._check_chain(placement)
             return placement
         if not self.keyframes:
@@ -259,7 +265,7 @@ class FlightScanner:
             if match is not None:
                 self.lost_since = None
                 self.relocalised.append(self.index)
-                return normalize(key.placement @ match.H)
+                return key.placement @ self._affine(match.H)
         if (self.index - self.lost_since) > self.o.max_lost_seconds * self.fps:
             raise ProcessingError(
                 f"the flight cannot be followed past frame {self.lost_since} ({_timecode(self.lost_since, self.fps)}): "
@@ -318,11 +324,17 @@ class FlightScanner:
         tolerance = self.o.link_tolerance * float(np.hypot(*self.size))
         keyframe.link = self.matcher.match(keyframe.features, previous.features, chained, tolerance)
         if keyframe.link is not None:
-            anchored = normalize(previous.placement @ keyframe.link.H)
+            anchored = previous.placement @ self._affine(keyframe.link.H)
             # The frames after the keyframe were chained from its old placement: move them too.
             if self.placement is not None:
-                self.placement = normalize(anchored @ np.linalg.inv(keyframe.placement) @ self.placement)
+                self.placement = anchored @ np.linalg.inv(keyframe.placement) @ self.placement
             keyframe.placement = anchored
+
+    def _affine(self, H: np.ndarray) -> np.ndarray:
+        """The affine transform closest to ``H`` over the frame (corners and centre)."""
+        target = project(H, self._fit_points)
+        A, *_ = np.linalg.lstsq(self._fit_design, target, rcond=None)
+        return np.vstack([A.T, [0.0, 0.0, 1.0]])
 
     def _add(self, index: int, frame: np.ndarray, quality: FrameQuality, placement: np.ndarray) -> None:
         self._candidate = self._last = None

@@ -27,7 +27,7 @@ from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight
 from mosaic_cli.stitch.output import check_outputs, write_panorama, write_transforms
-from mosaic_cli.stitch.registration import RegistrationOptions, RegistrationReport, register_keyframes
+from mosaic_cli.stitch.registration import RegistrationOptions, RegistrationReport, chain_neighbours, register_keyframes
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
@@ -164,16 +164,17 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
 
 
 def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress: bool):
-    """Keyframe -> reference placements: jointly refined, or by the chain alone when off."""
+    """Keyframe -> reference placements: jointly refined, or chained from the neighbours'
+    registrations when drift control is off."""
     keyframes = scan.keyframes
-    chained = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
+    world = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
+    neighbours = [k.link for k in keyframes[1:]]
     if not options.registration.enabled or len(keyframes) < 2:
-        return chained, RegistrationReport()
+        return chain_neighbours(neighbours, world, ref), RegistrationReport()
     matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features))
     features = [k.features for k in keyframes]
-    neighbours = [k.link for k in keyframes[1:]]
     with progress_task("register", None, unit="pairs/s", disable=not show_progress) as advance:
-        placements, report = register_keyframes(features, chained, neighbours, ref, matcher, options.registration, advance)
+        placements, report = register_keyframes(features, world, neighbours, ref, matcher, options.registration, advance)
         advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
     return placements, report
 

@@ -101,6 +101,17 @@ def register_keyframes(
     return placements, report
 
 
+def chain_neighbours(neighbours: list[PairMatch | None], placements: list[np.ndarray], reference: int) -> list[np.ndarray]:
+    """Keyframe -> reference by chaining the neighbours' registrations (full homographies;
+    the scan's placement where a registration failed): plain chaining, no drift control."""
+    chain = [np.eye(3)]
+    for k, match in enumerate(neighbours, start=1):
+        step = match.H if match is not None else relative(placements, k, k - 1)
+        chain.append(normalize(chain[-1] @ step))
+    to_reference = np.linalg.inv(chain[reference])
+    return [normalize(to_reference @ H) for H in chain]
+
+
 def link_neighbours(neighbours, placements, size, options: RegistrationOptions, report) -> list[Link]:
     """Consecutive keyframes: their direct registration, or the estimator's chain (a weaker
     link) where that failed or disagreed with the chain."""
