@@ -1,11 +1,10 @@
 """Stage 2, drift control: register keyframes directly and place them all jointly.
 
-Chaining hundreds of pairwise estimates accumulates error: a long flight bends.  Here
-consecutive keyframes are registered directly (one SIFT match instead of dozens of chained
-estimates), keyframes that see the same ground again (loops, neighbouring survey lines) are
-registered as well, and one robust least-squares problem (scipy ``least_squares``, soft-L1
-loss over the inlier correspondences) places every keyframe in the reference keyframe's
-frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
+Chaining accumulates error: a long flight bends.  Consecutive keyframes were registered
+directly during the scan (one SIFT match instead of dozens of chained estimates); here the
+keyframes that see the same ground again (loops, neighbouring survey lines) are registered as
+well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over the
+inlier correspondences) places every keyframe in the reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
 again, so one bad match cannot bend the panorama.
 """
 
@@ -26,7 +25,7 @@ from mosaic_cli.stitch.keyframes import overlap_fraction
 
 @dataclass
 class RegistrationOptions:
-    enabled: bool = True  # off: keyframes are placed by the estimator's chain alone
+    enabled: bool = True  # off: keyframes are placed by chaining the neighbours' registrations
     max_loop_pairs: int = 300  # bounds the cost: at most this many non-consecutive registrations
     max_loops_per_keyframe: int = 6
     min_loop_overlap: float = 0.25  # predicted overlap (fraction of a frame) worth a try
