@@ -165,7 +165,8 @@ def test_network_estimate_kept_when_the_polish_cannot_confirm_it(ground):
     frames = flight(ground, H_full)
     bias = np.full((4, 2), 0.7)
     raw, raw_conf = run(oracle_estimator(H_full, bias, refine=None), frames)
-    kept, conf = run(oracle_estimator(H_full, bias, refine="lk", polish=PolishConfig(min_inliers=100000)), frames)
+    never = PolishConfig(min_inliers=100000)
+    kept, conf = run(oracle_estimator(H_full, bias, refine="lk", polish=never, polish_wide=never), frames)
     np.testing.assert_allclose(kept, raw, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(conf, 0.5 * raw_conf, rtol=1e-9)
 
@@ -202,3 +203,15 @@ def test_frames_without_texture_give_identity_with_zero_confidence(ground, kind,
     for k in (1, 2, 3):  # every pair with a degraded frame
         np.testing.assert_array_equal(H[k], np.eye(3))
         assert conf[k] == 0
+
+
+def test_wide_polish_rescues_a_far_off_network(ground):
+    """A network 6 working px off is out of reach of the cheap first polish (1 level, 3 px
+    leash); the wide retry (3 levels, 8 px) brings it to sub-pixel accuracy."""
+    H_full = true_motion(5)
+    frames = flight(ground, H_full, n=3)
+    bias = np.array([[5.0, -3.5], [4.6, -3.2], [5.3, -3.8], [4.8, -3.0]])
+    narrow, _ = run(oracle_estimator(H_full, bias, polish_wide=None), frames)
+    wide, conf = run(oracle_estimator(H_full, bias), frames)
+    assert corner_error(narrow, H_full, FULL).min() > 8.0
+    assert corner_error(wide, H_full, FULL).max() < 0.3 and conf.min() > 0.5

@@ -56,10 +56,12 @@ class LearnedConfig:
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
     refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
-    # The network's estimate can be several working px off where ORB's feature fit is within
-    # one: a deeper LK pyramid and a longer leash than ORB's polish (with 2 levels and 4 px, the
-    # BASE network's worst pairs on a fast development flight stayed unpolished: MACE 30 -> 1.0).
-    polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=15, levels=3, max_shift=8.0))
+    # The network's estimate is usually within a working px or two, like ORB's feature fit, but
+    # can be several px off: a cheap polish first (1 pyramid level), and where it fails a
+    # deeper pyramid with a longer leash (with only 2 levels and 4 px, the BASE network's worst
+    # pairs on a fast development flight stayed unpolished: MACE 30 -> 1.0 with the retry).
+    polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=15, levels=1, max_shift=3.0))
+    polish_wide: PolishConfig | None = field(default_factory=lambda: PolishConfig(window=15, levels=3, max_shift=8.0))
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
@@ -208,11 +210,18 @@ class LearnedEstimator(Estimator):
             frame.aligned = band_pass(frame.gray, *c.polish_band) if c.polish_band else frame.gray
 
     def _polish(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> Polish:
-        if self.config.refine == "lk":
-            return track_points(prev.aligned, cur.aligned, H, prev.points, self.config.polish)
-        if self.config.refine == "ecc":
-            return align_pixels(prev.aligned, cur.aligned, H, self.config.polish)
-        return Polish(H, False, 1.0)
+        c = self.config
+        if c.refine is None:
+            return Polish(H, False, 1.0)
+        result = Polish(H, False, 0.0)
+        for config in (c.polish, c.polish_wide):
+            if config is None or result.refined:
+                break
+            if c.refine == "lk":
+                result = track_points(prev.aligned, cur.aligned, H, prev.points, config)
+            else:
+                result = align_pixels(prev.aligned, cur.aligned, H, config)
+        return result
 
     def _polish_weight(self, p: Polish) -> float:
         """The polish's say in the confidence: its score when it confirmed the network's estimate,

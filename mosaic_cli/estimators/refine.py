@@ -126,11 +126,10 @@ def points_to_track(gray: np.ndarray, config: CornerConfig) -> np.ndarray:
     """Well-spread Shi-Tomasi corners of ``gray`` (N, 2); none on a textureless frame (where the
     relative quality threshold would otherwise pick up compression noise)."""
     c = config
-    response = cv2.cornerMinEigenVal(gray, c.block_size)
-    if float(response.max()) < c.min_response:
+    found, quality = cv2.goodFeaturesToTrackWithQuality(gray, c.max_points, c.quality, c.min_distance, None, blockSize=c.block_size)
+    if found is None or float(quality.max()) < c.min_response:  # quality: the Shi-Tomasi response itself
         return np.zeros((0, 2), np.float32)
-    found = cv2.goodFeaturesToTrack(gray, c.max_points, c.quality, c.min_distance, blockSize=c.block_size)
-    return np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2)
+    return found.reshape(-1, 2)
 
 
 __all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "band_pass", "points_to_track", "track_points"]
