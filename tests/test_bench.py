@@ -173,8 +173,8 @@ def test_flights_pool_what_mosaic_eval_reports_per_flight(tmp_path, flights_dir)
 
 
 def test_flights_estimator_options_and_errors(tmp_path, flights_dir, capsys):
-    report = run_flights(flights_dir, ["orb", "orb:refine=none", "orb-paper"], show_progress=False)
-    assert list(report["estimators"]) == ["orb", "orb:refine=none", "orb-paper"]
+    report = run_flights(flights_dir, ["orb", "orb:refine=none"], show_progress=False)
+    assert list(report["estimators"]) == ["orb", "orb:refine=none"]
     polished, plain = report["estimators"]["orb"], report["estimators"]["orb:refine=none"]
     assert polished["corner_error"] < plain["corner_error"]  # the option reached the estimator
     assert run_cli(["bench", "-q", "--flights", str(tmp_path)]) == 2
