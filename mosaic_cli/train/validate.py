@@ -1,9 +1,9 @@
 """Validation during training: the paper's MACE on flights with known homographies.
 
 ``--val VAL_DIR`` holds videos written by ``mosaic simulate`` (``X.mp4`` with ``X.gt.json``
-beside it).  The network runs exactly as ``mosaic track --weights`` runs it (the learned
-estimator: the centre patch of each gray working frame, the LSTM state carried through the
-whole flight, implausible estimates replaced by the identity), its pairwise homographies
+beside it).  The network runs as ``mosaic track --weights W --refine none`` runs it (the
+learned estimator without the polish it seeds: the centre patch of each gray working frame,
+the LSTM state carried through the whole flight, implausible estimates replaced by the identity), its pairwise homographies
 are scored against landmarks derived from the ground truth every 30 frames, and the errors
 are averaged over the (f1, f2) pairs of all flights together, as in the paper.
 """
@@ -19,7 +19,7 @@ import torch
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.evaluate import landmarks_from_ground_truth, mace_pairs
-from mosaic_cli.estimators.learned import LearnedEstimator
+from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator
 from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.simulate import ground_truth_path, load_ground_truth
 from mosaic_cli.track import track_video
@@ -53,10 +53,11 @@ def find_flights(folder: str | Path) -> list[ValFlight]:
 def flight_pairwise(net: HomographyNet, video: Path, device: torch.device, work_size: tuple[int, int],
                     variant: str = "base") -> np.ndarray:
     """Pairwise homographies (N-1, 3, 3), frame t -> t+1 in full-resolution pixels: exactly what
-    ``mosaic track --weights`` would output for this net (a copy, so that the estimator's
+    ``mosaic track --weights W --refine none`` would output for this net (a copy, so that the estimator's
     inference settings never touch the weights being trained)."""
     meta = {"work_size": tuple(work_size), "variant": variant}
-    estimator = LearnedEstimator(copy.deepcopy(net), meta, device=str(device))
+    # The network alone: the LK polish it seeds at inference would hide what training changes.
+    estimator = LearnedEstimator(copy.deepcopy(net), meta, device=str(device), config=LearnedConfig(refine=None))
     return track_video(video, estimator, show_progress=False).pairwise
 
 
