@@ -283,6 +283,7 @@ def test_track_cli_flags_reach_the_estimator(tmp_path, panning, capsys):
         (["--weights", str(path), "--patches", "4"], "patches must be one of 1, 5, 9"),
         (["--weights", str(path), "--refine", "sift"], "refine must be one of lk, ecc or none"),
         (["-e", "cnn:patches", "--weights", str(path)], "NAME:OPTION=VALUE"),
+        (["--weights", str(path), "--threads", "0"], "--threads must be at least 1"),
     ):
         capsys.readouterr()
         assert track(*args) == 2

@@ -28,6 +28,7 @@ def track(
     reset_every: int | None = typer.Option(None, "--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video)."),
     refine: str | None = typer.Option(None, "--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb)."),
     chunk: int | None = typer.Option(None, "--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU)."),
+    threads: int | None = typer.Option(None, "--threads", help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
@@ -39,11 +40,17 @@ def track(
         raise BadInput("--max-frames must be at least 2")
     if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:
         raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
+    if threads is not None and threads < 1:
+        raise BadInput(f"--threads must be at least 1, got {threads}")
     check_writable(out)
     if out.suffix.lower() not in (".json", ".npy"):
         raise BadInput(f"output {out} must end in .json or .npy")
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
     result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
     save_track(result, out)
     if not quiet:
