@@ -3,6 +3,7 @@
     python scripts/bench_stitch.py accuracy     # placement accuracy vs plain chaining (720p survey)
     python scripts/bench_stitch.py throughput   # frames/s with the ORB estimator on 720p input
     python scripts/bench_stitch.py memory       # peak RSS of 1080p flights of growing length and area
+    python scripts/bench_stitch.py accuracy-long  # placement accuracy on those (after memory)
     python scripts/bench_stitch.py figure       # docs/stitch_pano.jpg and docs/stitch_source.jpg
     python scripts/bench_stitch.py all
 
@@ -14,7 +15,6 @@ printed with the command that reproduces it.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import resource
@@ -87,10 +87,14 @@ def long_survey_plan(frames: int, size: tuple[int, int], speed: float = 8.0, lin
     return FlightPlan(M, M.copy(), size, "long-survey", seed, map_size, 30.0)
 
 
-def long_flight(workdir: Path, frames: int, size: tuple[int, int]) -> Path:
-    path = workdir / f"long_{size[0]}x{size[1]}_{frames}.mp4"
+def long_name(frames: int, speed: float) -> str:
+    return f"long_1920x1080_{frames}" + ("" if speed == 8.0 else f"_v{speed:g}")
+
+
+def long_flight(workdir: Path, frames: int, speed: float) -> Path:
+    path = workdir / f"{long_name(frames, speed)}.mp4"
     if not path.exists():
-        plan = long_survey_plan(frames, size)
+        plan = long_survey_plan(frames, (1920, 1080), speed)
         ground = procedural_map(plan.map_size, seed=11)
         write_flight(path, ground, plan, preset="ultrafast", crf=20)
     return path
@@ -185,34 +189,7 @@ def throughput(args) -> dict:
         )
     fps = float(np.median([r["fps"] for r in runs]))
     print(f"throughput (ORB, 720p, median of {len(runs)}): {fps:.1f} fr/s overall; reproduce: {here(args, 'throughput')} --repeat {args.repeat}")
-    result = {"throughput": runs, "throughput_median_fps": fps}
-    if args.compare_polish:
-        result["polish"] = compare_polish(args, video)
-    return result
-
-
-def compare_polish(args, video: Path) -> dict:
-    """Why stitch() drops the ORB estimator's per-pair polish under drift control: the same
-    flight with and without it, alternating, same placement error measured."""
-    import mosaic_cli.stitch.pipeline as pipeline
-
-    gt = load_ground_truth(video.with_suffix(".gt.json"))
-    skip = pipeline._skip_pair_polish
-    rows = {"without polish (default)": [], "with the estimator's polish": []}
-    for _ in range(args.repeat):
-        for label in rows:
-            pipeline._skip_pair_polish = skip if label.startswith("without") else (lambda *a: None)
-            try:
-                out = args.workdir / "polish.jpg"
-                result = stitch(video, out, make_estimator("orb"), transforms=out.with_suffix(".json"), show_progress=False)
-            finally:
-                pipeline._skip_pair_polish = skip
-            errors = placement_errors([i for i, _ in result.transforms], [H for _, H in result.transforms], gt.map_to_frame, gt.size)
-            rows[label].append((result.frames / result.seconds["scan"], float(np.median(errors))))
-    for label, runs in rows.items():
-        print(f"  {label}: scan {np.median([r[0] for r in runs]):.1f} fr/s, placement error {np.median([r[1] for r in runs]):.2f} px")
-    print(f"  reproduce: {here(args, 'throughput')} --repeat {args.repeat} --compare-polish")
-    return rows
+    return {"throughput": runs, "throughput_median_fps": fps}
 
 
 # -- memory ------------------------------------------------------------------------------------
@@ -236,17 +213,42 @@ def peak_rss_of(cmd: list[str]) -> tuple[float, float, str]:
 def memory(args) -> dict:
     rows = []
     for frames in args.lengths:
-        video = long_flight(args.workdir, frames, (1920, 1080))
-        out = args.workdir / f"long_{frames}.jpg"
+        video = long_flight(args.workdir, frames, args.speed)
+        out = args.workdir / f"{long_name(frames, args.speed)}_pano.jpg"
         cmd = [sys.executable, "-m", "mosaic_cli", "stitch", str(video), "-o", str(out), "--transforms", str(out.with_suffix(".json")), "-q"]
         rss, seconds, _ = peak_rss_of(cmd)
         canvas = json.loads(out.with_suffix(".json").read_text())["canvas_size"]
         used = len(json.loads(out.with_suffix(".json").read_text())["frames"])
         rows.append({"frames": frames, "peak_rss_mib": rss, "seconds": seconds, "canvas": canvas, "keyframes": used})
-        print(f"  1920x1080, {frames} frames ({frames / 30:.0f} s of flight): peak RSS {rss:.0f} MiB, {seconds:.0f} s, "
+        print(f"  1920x1080, {frames} frames ({frames / 30:.0f} s of flight, {args.speed:g} px/frame): peak RSS {rss:.0f} MiB, {seconds:.0f} s, "
               f"{used} keyframes, canvas {canvas[0]}x{canvas[1]}", flush=True)
-    print(f"memory: reproduce: {here(args, 'memory')} --lengths {' '.join(map(str, args.lengths))}")
+    speed = "" if args.speed == 8.0 else f" --speed {args.speed:g}"
+    print(f"memory: reproduce: {here(args, 'memory')} --lengths {' '.join(map(str, args.lengths))}{speed}")
     return {"memory": rows}
+
+
+def accuracy_long(args) -> dict:
+    """Placement accuracy on the memory flights (long, over a procedural map), read from the
+    transforms their ``memory`` runs wrote: run ``memory`` first."""
+    rows = [long_accuracy(args.workdir, frames, args.speed) for frames in args.lengths]
+    print(f"  reproduce: {here(args, 'memory')} --lengths {' '.join(map(str, args.lengths))} && "
+          f"{here(args, 'accuracy-long')} --lengths {' '.join(map(str, args.lengths))}")
+    return {"accuracy_long": rows}
+
+
+def long_accuracy(workdir: Path, frames: int, speed: float) -> dict:
+    """Placement accuracy on a memory flight (from the transforms its run wrote), and plain
+    chaining between the same used frames."""
+    video = workdir / f"{long_name(frames, speed)}.mp4"
+    gt = load_ground_truth(video.with_suffix(".gt.json"))
+    data = json.loads((workdir / f"{long_name(frames, speed)}_pano.json").read_text())
+    indices = [f["index"] for f in data["frames"]]
+    ours = placement_errors(indices, [np.array(f["H"]) for f in data["frames"]], gt.map_to_frame, gt.size)
+    plain = placement_errors(indices, plain_chain(video, indices), gt.map_to_frame, gt.size)
+    print(f"  {frames} frames: median corner error (1920x1080 px) over {len(ours)} pairs >= {GAP} frames apart: "
+          f"drift control {np.median(ours):.2f} px (90th pct {np.percentile(ours, 90):.1f}) | plain chaining "
+          f"{np.median(plain):.2f} px (90th pct {np.percentile(plain, 90):.1f})", flush=True)
+    return {"frames": frames, "median_error": float(np.median(ours)), "plain_chaining": float(np.median(plain))}
 
 
 # -- README figure -----------------------------------------------------------------------------
@@ -288,19 +290,20 @@ def _save_jpeg(path: Path, bgr: np.ndarray, width: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "figure", "all"])
+    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "accuracy-long", "figure", "all"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--compare-polish", action="store_true", help="throughput: also with the ORB estimator's per-pair polish")
     parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
+    parser.add_argument("--speed", type=float, default=8.0, help="map pixels per frame of the memory flights")
     parser.add_argument("--figure-width", type=int, default=1400)
     parser.add_argument("--json", type=Path, help="also write the numbers here")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     results = {"load_average_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
-    for what, fn in (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("figure", figure)):
+    steps = (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("accuracy-long", accuracy_long), ("figure", figure))
+    for what, fn in steps:
         if args.what in (what, "all"):
             results.update(fn(args))
     if args.json:

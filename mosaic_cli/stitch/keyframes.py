@@ -30,7 +30,7 @@ import numpy as np
 
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
-from mosaic_cli.geometry import frame_corners, is_valid, normalize, project
+from mosaic_cli.geometry import frame_corners, is_valid, project
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch
 
 

@@ -10,7 +10,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +18,6 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
-from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.geometry import normalize, resize_matrix
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -69,10 +67,9 @@ def stitch(
     """Stitch ``video`` into the panorama ``out`` (format by extension), optionally writing
     every keyframe's frame -> panorama homography to ``transforms``.  Raises ``BadInput``
     before any work for unusable input, ``ProcessingError`` when the flight cannot be
-    stitched; never leaves a partial file.  An ORB ``estimator`` loses its per-pair polish."""
+    stitched; never leaves a partial file."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
-    _skip_pair_polish(estimator)
     seconds: dict[str, float] = {}
 
     clock = time.perf_counter()
@@ -125,15 +122,6 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
         raise BadInput(f"--reference {reference} is past the end of {video} ({info.frame_count} frames)")
     return info, reference
-
-
-def _skip_pair_polish(estimator: Estimator) -> None:
-    """Keyframes are placed by direct SIFT registration, not by the chain of pairwise
-    estimates, so the ORB estimator's sub-pixel polish of every frame pair does not change
-    the panorama, but it costs a good part of the scan
-    (``scripts/bench_stitch.py throughput --compare-polish``)."""
-    if isinstance(estimator, OrbEstimator) and estimator.config.refine:
-        estimator.config = dataclasses.replace(estimator.config, refine=None)
 
 
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool) -> FlightScan:
