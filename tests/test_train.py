@@ -25,7 +25,7 @@ from torch.utils.data import default_collate
 
 from conftest import textured_image, write_clip
 from mosaic_cli.errors import BadInput
-from mosaic_cli.model import HomographyNet, NetConfig, Objective, load_weights
+from mosaic_cli.model import HomographyNet, NetConfig, Objective, load_weights, quantize
 from mosaic_cli.train.config import TrainConfig
 from mosaic_cli.train.data import (
     StepBatches,
@@ -36,7 +36,7 @@ from mosaic_cli.train.data import (
     share_budget,
     to_model_input,
 )
-from mosaic_cli.train.loop import train
+from mosaic_cli.train.loop import CALIBRATION_PAIRS, train
 from mosaic_cli.train.schedule import StepSchedule
 
 WORK = (64, 48)
@@ -370,7 +370,11 @@ def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pa
     assert any(not torch.equal(frozen[k], untrained[k]) for k in frozen if k.startswith(("lstm.", "regressor.")))
     everything = run("lstm_all", variant="lstm", init=init, batch_size=1, freeze=False)
     assert not all(torch.equal(everything[k], base[k]) for k in shared)
-    assert load_weights(tmp_path / "lstm" / "weights.safetensors")[1]["variant"] == "lstm"
+    model, meta = load_weights(tmp_path / "lstm" / "weights.safetensors")
+    assert meta["variant"] == "lstm"
+    if quantize.engine() is not None:  # the final weights carry int8 ranges that fit the net
+        assert meta["int8"]["pairs"] == CALIBRATION_PAIRS
+        assert quantize.quantized_features(model, meta["int8"]) is not None
 
 
 # ----------------------------------------------------------------------------- validation

@@ -6,6 +6,8 @@ An estimator is named on the command line as ``NAME[:OPTION=VALUE]...``, e.g. ``
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, IdentityEstimator, PairEstimate, estimate_stream  # noqa: F401
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
@@ -17,8 +19,8 @@ NAMES = (*CLASSICAL, *LEARNED)
 
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
-    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str},
-    "cnn": {"patches": int, "chunk": int, "refine": str},
+    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path},
+    "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path},
     "orb": {"refine": str},
     "orb-ransac": {"refine": str},
 }
@@ -55,6 +57,8 @@ def _typed(name: str, options: dict) -> dict:
                 value = int(value)
             except (TypeError, ValueError):
                 raise BadInput(f"estimator {name!r}: {key.replace('_', '-')} must be a whole number, got {value!r}") from None
+        elif kind is Path:
+            value = str(value)  # a file name keeps its case
         else:
             value = str(value).lower()
             if key == "refine" and value == "none":
@@ -66,9 +70,10 @@ def _typed(name: str, options: dict) -> dict:
 def make_estimator(name: str, work_width: int = 320, weights: str | None = None, device: str = "auto", **options) -> Estimator:
     """Build the estimator a user named on the command line.
 
-    ``name`` may carry options (``cnn:patches=5``); keyword ``options`` (from flags, None = not
-    given) add to them.  ``weights`` selects a learned estimator whatever the name (its head
-    then decides lstm or cnn)."""
+    ``name`` may carry options (``cnn:patches=5``, ``lstm:weights=run/weights.safetensors``);
+    keyword ``options`` (from flags, None = not given) add to them.  ``weights`` selects a learned
+    estimator whatever the name (its head then decides lstm or cnn); a ``weights`` option in the
+    name wins over it, so that one benchmark can compare several checkpoints."""
     base, spec_options = parse_spec(name)
     if work_width < 32:
         raise BadInput(f"--work-width must be at least 32, got {work_width}")
@@ -79,6 +84,7 @@ def make_estimator(name: str, work_width: int = 320, weights: str | None = None,
     if learned:
         from mosaic_cli.estimators.learned import LearnedConfig, make_learned_estimator
 
+        weights = typed.pop("weights", weights)
         return make_learned_estimator(base, weights=weights, device=device, config=LearnedConfig(**typed))
     if base in ("orb", "orb-ransac"):
         config = OrbConfig(method="ransac" if base == "orb-ransac" else "usac")

@@ -9,6 +9,7 @@ Metadata keys (all strings, as safetensors wants):
     work_size  "[320, 180]": the working frame the net was trained at
     direction  "t_to_t+1": offsets move patch corners from frame t to frame t+1
     extra      JSON of whatever the trainer adds (step, data, losses, ...)
+    int8       optional: JSON of the activation ranges for int8 CPU inference (see quantize.py)
 """
 
 from __future__ import annotations
@@ -36,8 +37,10 @@ def save_weights(
     variant: str = "base",
     extra: dict | None = None,
     work_size: tuple[int, int] = DEFAULT_WORK_SIZE,
+    int8: dict | None = None,
 ) -> None:
-    """Write ``model``'s weights (fp32, CPU) and metadata to ``path`` atomically."""
+    """Write ``model``'s weights (fp32, CPU) and metadata to ``path`` atomically; ``int8``: the
+    calibrated activation ranges of :func:`mosaic_cli.model.quantize.calibrate`, if any."""
     from mosaic_cli.model.objective import VARIANTS
 
     config = config or model.config
@@ -58,6 +61,8 @@ def save_weights(
         "direction": "t_to_t+1",
         "extra": json.dumps(extra or {}),
     }
+    if int8 is not None:
+        metadata["int8"] = json.dumps(int8)
     with atomic_path(path) as tmp:
         save_file(tensors, str(tmp), metadata=metadata)
 
@@ -82,6 +87,7 @@ def read_metadata(path: str | Path) -> dict:
             "work_size": tuple(json.loads(raw.get("work_size", "[320, 180]"))),
             "direction": raw.get("direction", "t_to_t+1"),
             "extra": json.loads(raw.get("extra", "{}")),
+            "int8": json.loads(raw["int8"]) if "int8" in raw else None,
         }
     except (KeyError, ValueError, TypeError) as exc:
         raise BadInput(f"{p}: damaged mosaic checkpoint metadata ({exc})") from None

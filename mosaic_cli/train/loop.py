@@ -8,6 +8,7 @@ Read ``train`` top to bottom; it is the whole procedure:
     4. the optimiser         Adam with the paper's step schedule (mosaic_cli.train.schedule)
     5. step                  windows -> objective -> backward -> Adam, logging every term
     6. checkpoint            every N steps, every few minutes, on Ctrl-C / SIGTERM, at the end
+                             (the final weights also carry int8 activation ranges, model.quantize)
     7. validate              MACE on --val flights every N steps (mosaic_cli.train.validate)
 
 Exact resume: sample ``i`` depends only on ``(seed, i)`` and step ``s`` uses samples
@@ -30,6 +31,7 @@ from torch import nn
 
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, MosaicError, ProcessingError
+from mosaic_cli.model import quantize
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.network import HomographyNet, NetConfig
 from mosaic_cli.model.objective import Objective
@@ -54,6 +56,7 @@ from mosaic_cli.train.run import (
 )
 from mosaic_cli.train.schedule import StepSchedule
 
+CALIBRATION_PAIRS = 512  # training patch pairs that set the int8 activation ranges of the final weights
 MAX_SKIPPED_STEPS = 50  # consecutive non-finite losses before the run is declared diverged
 
 
@@ -212,13 +215,21 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
                 raise KeyboardInterrupt
 
     if dist.is_main:
-        save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size)
+        save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size, int8=calibrate_int8(net, dataset, cfg.seed))
     dist.barrier()
     return TrainSummary(run.root, start, cfg.steps, rate.mean(), terms, val_mace,
                         run.weights if dist.is_main else None)
 
 
 # ----------------------------------------------------------------------------- stages
+
+
+def calibrate_int8(net: HomographyNet, dataset: WindowDataset, seed: int) -> dict | None:
+    """Activation ranges for int8 CPU inference, measured on training patch pairs and shipped in
+    the final weights (None where this PyTorch has no int8 engine)."""
+    if quantize.engine() is None:
+        return None
+    return quantize.calibrate(net, quantize.sample_pairs(dataset, CALIBRATION_PAIRS, seed=seed))
 
 
 def compute_gradients(model: nn.Module, objective: Objective, optimizer: torch.optim.Optimizer,

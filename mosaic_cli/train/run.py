@@ -207,5 +207,6 @@ def _fmt(value) -> str:
     return str(value)
 
 
-def save_final_weights(run: RunDir, net, variant: str, step: int, work_size: tuple[int, int]) -> None:
-    save_weights(run.weights, net, net.config, variant, extra={"step": step}, work_size=work_size)
+def save_final_weights(run: RunDir, net, variant: str, step: int, work_size: tuple[int, int],
+                       int8: dict | None = None) -> None:
+    save_weights(run.weights, net, net.config, variant, extra={"step": step}, work_size=work_size, int8=int8)

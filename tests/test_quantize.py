@@ -1,0 +1,86 @@
+"""int8 CPU inference: calibrated ranges travel with the weights, the int8 features follow the
+fp32 ones closely on textured patches, and the estimator picks int8 only when it can."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import textured_image
+from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import make_estimator
+from mosaic_cli.model import HomographyNet, NetConfig, read_metadata, save_weights
+from mosaic_cli.model import quantize
+
+pytestmark = pytest.mark.skipif(quantize.engine() is None, reason="this PyTorch build has no int8 engine")
+PATCH = 128
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def patch_pairs(count: int, seed: int) -> torch.Tensor:
+    """(count, 2, P, P) gray patch pairs in [-1, 1]: a textured patch and the same ground a few
+    pixels further on."""
+    gray = textured_image(640, 480, seed=seed).mean(axis=2).astype(np.float32) / 127.5 - 1.0
+    rng = np.random.default_rng(seed)
+    pairs = []
+    for _ in range(count):
+        x, y = rng.integers(8, 640 - PATCH - 8), rng.integers(8, 480 - PATCH - 8)
+        dx, dy = rng.integers(-6, 7, size=2)
+        pairs.append(np.stack([gray[y : y + PATCH, x : x + PATCH], gray[y + dy : y + dy + PATCH, x + dx : x + dx + PATCH]]))
+    return torch.from_numpy(np.stack(pairs))
+
+
+@pytest.fixture(scope="module")
+def net_and_ranges():
+    torch.manual_seed(0)
+    model = HomographyNet(NetConfig(head="cnn", patch=PATCH)).eval()
+    return model, quantize.calibrate(model, patch_pairs(48, seed=1))
+
+
+def test_int8_features_follow_fp32_on_patches_it_was_not_calibrated_on(net_and_ranges):
+    model, ranges = net_and_ranges
+    int8 = quantize.quantized_features(model, ranges)
+    assert int8 is not None
+    test = patch_pairs(24, seed=7)
+    with torch.inference_mode():
+        exact, approx = model.features(test), int8(test)
+        other = model.features(patch_pairs(24, seed=8))
+    error = (approx - exact).norm(dim=1) / exact.norm(dim=1)
+    assert float(error.median()) < 0.15
+    # ...and far closer to its own fp32 features than to those of other patches
+    assert float(error.max()) < 0.5 * float(((other - exact).norm(dim=1) / exact.norm(dim=1)).min())
+
+
+def test_ranges_are_refused_by_another_network(net_and_ranges):
+    _, ranges = net_and_ranges
+    other = HomographyNet(NetConfig(head="cnn", patch=PATCH, backbone=((16, 2), 16, "M", 32, "M", 32, "M"))).eval()
+    assert quantize.quantized_features(other, ranges) is None
+    assert quantize.quantized_features(other, None) is None
+    assert quantize.quantized_features(other, {**ranges, "format": quantize.RANGES_FORMAT + 1}) is None
+
+
+def test_the_estimator_runs_int8_only_with_calibrated_weights(tmp_path, net_and_ranges):
+    model, ranges = net_and_ranges
+    with_ranges, without = tmp_path / "int8.safetensors", tmp_path / "plain.safetensors"
+    save_weights(with_ranges, model, model.config, "base", int8=ranges)
+    save_weights(without, model, model.config, "base")
+    assert read_metadata(with_ranges)["int8"] == ranges
+    assert read_metadata(without)["int8"] is None
+
+    assert make_estimator("cnn", weights=str(with_ranges), device="cpu").precision == "int8"
+    assert make_estimator("cnn:precision=fp32", weights=str(with_ranges), device="cpu").precision == "fp32"
+    assert make_estimator("cnn", weights=str(without), device="cpu").precision == "fp32"
+    with pytest.raises(BadInput, match="int8"):
+        make_estimator("cnn:precision=int8", weights=str(without), device="cpu")
+    with pytest.raises(BadInput, match="precision"):
+        make_estimator("cnn:precision=fp16", weights=str(with_ranges), device="cpu")
+    # the weights option in a name picks the checkpoint, whatever --weights says
+    assert make_estimator(f"cnn:weights={with_ranges}", weights=str(without), device="cpu").precision == "int8"
