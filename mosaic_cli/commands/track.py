@@ -9,7 +9,7 @@ import typer
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.cli import app
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import make_estimator
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
 
@@ -20,7 +20,7 @@ MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
 def track(
     video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
     out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
-    estimator: str = typer.Option("orb", "--estimator", "-e", help="orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5)."),
+    estimator: str = typer.Option(DEFAULT_ESTIMATOR, "--estimator", "-e", help="orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5)."),
     work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),

@@ -16,6 +16,8 @@ from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")
 NAMES = (*CLASSICAL, *LEARNED)
+# What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
+DEFAULT_ESTIMATOR = "orb"
 
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
@@ -102,6 +104,7 @@ def make_estimator(name: str, work_width: int = 320, weights: str | None = None,
 
 __all__ = [
     "CLASSICAL",
+    "DEFAULT_ESTIMATOR",
     "LEARNED",
     "NAMES",
     "Estimator",
