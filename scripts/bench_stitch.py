@@ -35,6 +35,9 @@ from mosaic_cli.video import open_video
 
 ROOT = Path(__file__).resolve().parents[1]
 ORTHOPHOTO = ROOT.parent / "shared/data/aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png"
+# The README figure shows its source region, so it flies over a CC0 photo (ODM's Caliterra set;
+# this one is not among the training images).
+FIGURE_MAP = ROOT.parent / "shared/data/aerial_sequences/odm_caliterra/IMG_9355.jpg"
 DEFAULT_WORKDIR = ROOT / ".dev" / "bench_stitch"
 GAP = 60  # frames: placement accuracy is measured between used frames at least this far apart
 
@@ -47,14 +50,16 @@ def here(args: argparse.Namespace, command: str) -> str:
 # -- flights -----------------------------------------------------------------------------------
 
 
-def survey_flight(workdir: Path, frames: int, size: tuple[int, int], seed: int) -> Path:
-    """A lawnmower survey over the orthophoto (the simulator's 'survey' profile), cached."""
-    name = f"survey_{size[0]}x{size[1]}_{frames}_s{seed}.mp4"
-    path = workdir / name
+def survey_flight(workdir: Path, frames: int, size: tuple[int, int], seed: int, image: Path = ORTHOPHOTO) -> Path:
+    """A lawnmower survey over ``image`` (the simulator's 'survey' profile; a procedural map when
+    the image is absent), cached."""
+    known = image.exists()
+    tag = "" if image == ORTHOPHOTO or not known else f"_{image.stem}"
+    path = workdir / f"survey_{size[0]}x{size[1]}_{frames}_s{seed}{tag}.mp4"
     if not path.exists():
-        ground = load_map(ORTHOPHOTO if ORTHOPHOTO.exists() else None, seed=seed)
+        ground = load_map(image if known else None, seed=seed)
         plan = plan_flight((ground.shape[1], ground.shape[0]), "survey", frames, size, seed)
-        write_flight(path, ground, plan, map_name=ORTHOPHOTO.name if ORTHOPHOTO.exists() else "procedural", preset="veryfast")
+        write_flight(path, ground, plan, map_name=image.name if known else "procedural", preset="veryfast")
     return path
 
 
@@ -255,7 +260,7 @@ def long_accuracy(workdir: Path, frames: int, speed: float) -> dict:
 
 
 def figure(args) -> dict:
-    video = survey_flight(args.workdir, args.frames, (1280, 720), args.seeds[0])
+    video = survey_flight(args.workdir, args.frames, (1280, 720), args.seeds[0], args.figure_map)
     gt = load_ground_truth(video.with_suffix(".gt.json"))
     out = args.workdir / "figure.png"
     result = stitch(video, out, make_estimator("orb"), transforms=out.with_suffix(".json"), show_progress=False)
@@ -267,14 +272,14 @@ def figure(args) -> dict:
     flat = (pano[..., :3] * alpha + 255 * (1 - alpha)).astype(np.uint8)
     _save_jpeg(docs / "stitch_pano.jpg", flat, args.figure_width)
     # The same ground cut from the orthophoto: the map region under the used frames.
-    ground = load_map(ORTHOPHOTO if ORTHOPHOTO.exists() else None, seed=args.seeds[0])
+    ground = load_map(args.figure_map if args.figure_map.exists() else None, seed=args.seeds[0])
     corners = np.concatenate([project(np.linalg.inv(gt.map_to_frame[i]), frame_corners(*gt.size)) for i, _ in result.transforms])
     (x0, y0), (x1, y1) = np.floor(corners.min(axis=0)).astype(int), np.ceil(corners.max(axis=0)).astype(int)
     crop = ground[max(0, y0): y1, max(0, x0): x1]
     _save_jpeg(docs / "stitch_source.jpg", cv2.cvtColor(crop, cv2.COLOR_RGB2BGR), args.figure_width)
     print(f"figure: docs/stitch_pano.jpg ({result.canvas_size[0]}x{result.canvas_size[1]} panorama of {result.frames} frames, "
           f"{len(result.transforms)} keyframes), docs/stitch_source.jpg (orthophoto region {x1 - x0}x{y1 - y0}); "
-          f"reproduce: {here(args, 'figure')} --frames {args.frames} --seeds {args.seeds[0]}")
+          f"reproduce: {here(args, 'figure')} --frames {args.frames} --seeds {args.seeds[0]} --figure-map {args.figure_map}")
     return {"figure": {"canvas": result.canvas_size, "keyframes": len(result.transforms)}}
 
 
@@ -298,6 +303,7 @@ def main() -> None:
     parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
     parser.add_argument("--speed", type=float, default=8.0, help="map pixels per frame of the memory flights")
     parser.add_argument("--figure-width", type=int, default=1400)
+    parser.add_argument("--figure-map", type=Path, default=FIGURE_MAP, help="the image the README figure's flight flies over")
     parser.add_argument("--json", type=Path, help="also write the numbers here")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)

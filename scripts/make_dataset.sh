@@ -6,13 +6,14 @@
 #   bash scripts/make_dataset.sh [OUT]
 #
 # Held out from training (whole sites): the Boruszyn orthomosaic and both Boruszyn photos,
-# the NEON YELL 541000 tile and SOAP_061.  Everything else in aerial_stills/aerial_sequences
-# (nadir only) is used for training.
+# the NEON YELL 541000 tile and SOAP_061: they make the development flights (where settings are
+# chosen) and the test flights (the same sites flown with other seeds, only for confirmation).
+# Everything else in aerial_stills/aerial_sequences (nadir only) is used for training.
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 data=${DATA:-$here/../shared/data}
 out=${1:-$here/../runs/data}
-mkdir -p "$out/train" "$out/dev"
+mkdir -p "$out/train" "$out/dev" "$out/test"
 
 train_maps=(
   aerial_stills/odm_orthomosaic_previews/aukerman.png
@@ -59,4 +60,15 @@ for map in "${dev_maps[@]}"; do
       --size 1280x720 --seed "$seed" --preset veryfast --quiet
   done
 done
-echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)) and $out/dev ($(ls "$out/dev"/*.mp4 | wc -l))"
+# The test flights: the same held-out sites, flown again with other seeds.  Nothing is tuned on
+# them; they confirm what the development flights (where settings were chosen) showed.
+for map in "${dev_maps[@]}"; do
+  name=$(basename "${map%.*}")
+  for profile in paper fast hard; do
+    seed=$((seed + 1))
+    clip="$out/test/${name}_${profile}.mp4"
+    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile "$profile" --frames 300 \
+      --size 1280x720 --seed $((seed + 1000)) --preset veryfast --quiet
+  done
+done
+echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)), $out/dev ($(ls "$out/dev"/*.mp4 | wc -l)) and $out/test ($(ls "$out/test"/*.mp4 | wc -l))"
