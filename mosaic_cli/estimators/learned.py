@@ -14,7 +14,8 @@
              polish fails or wanders off; see :mod:`.refine`)
           -> confidence (ZNCC of the registered patches x agreement between patches x how much
              of the polish agreed)
-          -> invalid, or a frame without texture -> identity with confidence 0; else
+          -> invalid, a frame without texture, or detail that does not correlate once registered
+             (unrelated ground) -> identity with confidence 0; else
              re-expressed at full resolution exactly
 """
 
@@ -79,8 +80,18 @@ class LearnedConfig:
     # frames -> band-passed): paper 2.01 -> 0.58, hard 3.24 -> 0.78, fast 1.01 -> 0.79
     # None: plain frames.
     polish_band: tuple[float, float] | None = (1.5, 6.0)
+    # ...but only for video at least this many times wider than the working frame.  Frames that
+    # already are at the working size keep their finest detail, which is then real: on a
+    # 320x180 procedural flight the band-pass left a median pair error of 0.28 px, plain frames
+    # 0.06 px (tests/test_track.py), while the 1280x720 development flights above need it.
+    polish_band_min_downscale: float = 2.0
     corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_points=200))
     unpolished_weight: float = 0.5  # confidence factor of an estimate the polish could not confirm
+    # Registered detail that correlates less than this is unrelated ground (a cut, a swapped
+    # camera): the pair is reported as failed (identity, confidence 0), as ORB does, so that
+    # stitch and stabilize treat it as one.  On the 15 development flights the lowest ZNCC of a
+    # registered pair was 0.44 (noisy `hard` frames); a cut to unrelated ground scores ~0.001.
+    min_zncc: float | None = 0.1  # None: never
 
 
 @dataclass
@@ -176,6 +187,8 @@ class LearnedEstimator(Estimator):
         self.positions = patch_positions(self.work_size, self.patch, self.config.patches)
         self._positions_t = torch.as_tensor(self.positions, device=self.device)
         self._corners = frame_corners(w, h)
+        downscaled = full_size[0] >= self.config.polish_band_min_downscale * w
+        self._band = self.config.polish_band if downscaled else None
         self._pending = []
         self._state = None
         self._pairs_done = 0
@@ -209,7 +222,8 @@ class LearnedEstimator(Estimator):
         zncc = self._zncc(grays, np.stack([p.H if p is not None else np.eye(3) for p in polished]))
         out = []
         for k, p in enumerate(polished):
-            if p is None:
+            unrelated = self.config.min_zncc is not None and zncc[k] < self.config.min_zncc
+            if p is None or unrelated:
                 out.append(PairEstimate.failed())
                 continue
             confidence = max(0.0, float(zncc[k])) * float(agreement[k]) * self._polish_weight(p)
@@ -228,7 +242,7 @@ class LearnedEstimator(Estimator):
         else:
             frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
         if c.refine is not None and frame.textured:
-            frame.aligned = band_pass(frame.gray, *c.polish_band) if c.polish_band else frame.gray
+            frame.aligned = band_pass(frame.gray, *self._band) if self._band else frame.gray
 
     def _polish(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> Polish:
         c = self.config
