@@ -35,7 +35,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput, MosaicError
 
-DEFAULT_ESTIMATORS = ("lstm", "cnn", "orb", "identity")
+DEFAULT_ESTIMATORS = ("lstm", "cnn", "orb", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")
 MAX_DECODED_BYTES = 1_500_000_000  # frames kept in memory for one input width
 
@@ -172,7 +172,8 @@ def build_estimators(labels: list[str], work_width: int, device: str, weights: s
 
 
 def _labels(estimators: list[str] | None) -> list[str]:
-    return [n.strip().lower() for n in (estimators if estimators is not None else list(DEFAULT_ESTIMATORS)) if n.strip()]
+    # Not lowercased: a weights=FILE option keeps its case (parse_spec lowercases names and keys).
+    return [n.strip() for n in (estimators if estimators is not None else list(DEFAULT_ESTIMATORS)) if n.strip()]
 
 
 def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np.ndarray], full_size, chunks=(16, 64)) -> dict | None:

@@ -148,11 +148,11 @@ def test_failure_midway_leaves_no_file_and_debug_shows_the_traceback(capsys, wor
 
     monkeypatch.setattr(OrbEstimator, "_estimate", broken)
     out = workdir / "out" / "t.json"
-    code, err = run_cli(capsys, "track", clip, "-o", out, "-q")
+    code, err = run_cli(capsys, "track", clip, "-o", out, "-e", "orb", "-q")
     assert_one_line_error(code, err, 1, "estimator exploded", "--debug")
     assert outputs(workdir) == []
     with pytest.raises(RuntimeError, match="exploded"):
-        main(["--debug", "track", str(clip), "-o", str(out), "-q"])
+        main(["--debug", "track", str(clip), "-o", str(out), "-e", "orb", "-q"])
     assert outputs(workdir) == []
 
 

@@ -16,7 +16,7 @@ def bench(
     video: Path | None = typer.Option(None, "--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it)."),
     flights: Path | None = typer.Option(None, "--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile)."),
     map_image: Path | None = typer.Option(None, "--map", help="Simulate the flight over this aerial image (default: procedural map)."),
-    estimators: str | None = typer.Option(None, "--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300; default: lstm,cnn,orb,identity; learned ones without weights are skipped)."),
+    estimators: str | None = typer.Option(None, "--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn)."),
     profile: str = typer.Option("paper", "--profile", "-p", help="Flight profile of the simulated clip."),
     frames: int = typer.Option(300, "--frames", "-n", help="Frames to simulate (or to read from --video)."),

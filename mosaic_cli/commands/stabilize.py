@@ -26,7 +26,7 @@ def stabilize(
     preset: str = typer.Option("veryfast", "--preset", help="x264 preset (ultrafast .. veryslow)."),
     warps: Path | None = typer.Option(None, "--warps", help="Write the per-frame warps (input -> output pixels) as JSON."),
     compare: Path | None = typer.Option(None, "--compare", help="Also write input and output side by side to this video."),
-    estimator: str = typer.Option(DEFAULT_ESTIMATOR, "--estimator", "-e", help="orb, orb-ransac, identity, lstm or cnn."),
+    estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, identity, lstm or cnn. Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
     work_width: int | None = typer.Option(None, "--work-width", help="Width the estimator works at (pixels; "
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),

@@ -26,7 +26,7 @@ def stitch(
     blend: str = typer.Option("multiband", "--blend", help="multiband, feather or none."),
     seam: str = typer.Option("dp", "--seam", help="Seam finder: dp, graphcut, voronoi or none."),
     exposure: str = typer.Option("gain-blocks", "--exposure", help="Exposure compensation: gain-blocks, gain or none."),
-    estimator: str = typer.Option(DEFAULT_ESTIMATOR, "--estimator", "-e", help="orb, orb-ransac, identity, lstm or cnn."),
+    estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, identity, lstm or cnn. Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
     work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),

@@ -20,7 +20,7 @@ MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
 def track(
     video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
     out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
-    estimator: str = typer.Option(DEFAULT_ESTIMATOR, "--estimator", "-e", help="orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5)."),
+    estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
     work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),

@@ -69,13 +69,16 @@ def _typed(name: str, options: dict) -> dict:
     return out
 
 
-def make_estimator(name: str, work_width: int = 320, weights: str | None = None, device: str = "auto", **options) -> Estimator:
+def make_estimator(name: str | None = None, work_width: int = 320, weights: str | None = None, device: str = "auto",
+                   **options) -> Estimator:
     """Build the estimator a user named on the command line.
 
-    ``name`` may carry options (``cnn:patches=5``, ``lstm:weights=run/weights.safetensors``);
+    ``name`` (None: :data:`DEFAULT_ESTIMATOR`) may carry options (``cnn:patches=5``, ``lstm:weights=run/weights.safetensors``);
     keyword ``options`` (from flags, None = not given) add to them.  ``weights`` selects a learned
     estimator whatever the name (its head then decides lstm or cnn); a ``weights`` option in the
     name wins over it, so that one benchmark can compare several checkpoints."""
+    if name is None:  # not named: the default, or with ``weights`` whichever network they hold
+        name = "" if weights is not None else DEFAULT_ESTIMATOR
     base, spec_options = parse_spec(name)
     if work_width < 32:
         raise BadInput(f"--work-width must be at least 32, got {work_width}")

@@ -20,7 +20,7 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR, Estimator, make_estimator
+from mosaic_cli.estimators import Estimator, make_estimator
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
@@ -40,7 +40,7 @@ WORK_WIDTH = 640
 
 @dataclass
 class StabilizeOptions:
-    estimator: str = DEFAULT_ESTIMATOR
+    estimator: str | None = None  # None: DEFAULT_ESTIMATOR, or the network --weights hold
     work_width: int | None = None  # None: min(640, input width), see WORK_WIDTH
     weights: str | None = None
     device: str = "auto"
