@@ -5,7 +5,8 @@ Each clip is a 'shaky' virtual flight (3-8 Hz shake over a smooth drone path, ex
 truth) rendered over a real orthophoto from ../shared/data/aerial_stills when present (a
 procedural map otherwise).  In one run, side by side, on the same clips:
 
-* mosaic stabilize (defaults unless told otherwise), timed end to end (tracking, path,
+* mosaic stabilize (defaults unless told otherwise; ``--estimators orb,lstm`` gives a row for
+  each), timed end to end (tracking, path,
   warping and H.264 encoding, file to file);
 * vid.stab (vidstabdetect + vidstabtransform, in the imageio-ffmpeg binary) with its defaults
   and with smoothing=30, encoded with the same x264 settings, timed the same way.
@@ -42,6 +43,7 @@ import numpy as np
 
 from mosaic_cli.geometry import normalize
 from mosaic_cli.simulate import load_ground_truth, load_map, plan_flight, write_flight
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR
 from mosaic_cli.stabilize import StabilizeOptions, stabilize
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.metrics import (
@@ -171,6 +173,8 @@ def main() -> None:
     parser.add_argument("--model", default="similarity")
     parser.add_argument("--smoothing", default="l1")
     parser.add_argument("--variants", action="store_true", help="also compare models and smoothers (planning only)")
+    parser.add_argument("--estimators", type=lambda text: [e.strip() for e in text.split(",") if e.strip()],
+                        default=[DEFAULT_ESTIMATOR], help=f"comma-separated mosaic estimators, one row each [{DEFAULT_ESTIMATOR}]")
     parser.add_argument("--no-vidstab", action="store_true")
     parser.add_argument("--json", type=Path, help="write all rows here")
     args = parser.parse_args()
@@ -196,18 +200,20 @@ def main() -> None:
         print(f"{clip.stem}: ruler noise floor {source.extra['ruler_noise']:.3f} px (video jitter of its errors)")
         rows.append(source)
 
-        out = args.out / f"{clip.stem}.mosaic.mp4"
-        options = StabilizeOptions(model=args.model, smoothing=args.smoothing, crf=args.crf, preset=args.preset)
-        start, cpu = time.perf_counter(), cpu_seconds()
-        result = stabilize(clip, out, options, show_progress=False)
-        seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu
-        row = Row(clip.stem, f"mosaic {args.smoothing} {args.model}", fps=result.frames / seconds,
-                  cpu_ms=1000 * cpu / result.frames,
-                  gt_jitter=ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, result.warps),
-                  extra={"stage_seconds": result.seconds, "exact_cropping": result.cropping,
-                         "exact_distortion": result.distortion, "border": result.border})
-        pixel_scores(row, clip, out, gt)
-        rows.append(row)
+        for estimator in args.estimators:
+            out = args.out / f"{clip.stem}.mosaic.{estimator}.mp4"
+            options = StabilizeOptions(estimator=estimator, model=args.model, smoothing=args.smoothing, crf=args.crf,
+                                       preset=args.preset)
+            start, cpu = time.perf_counter(), cpu_seconds()
+            result = stabilize(clip, out, options, show_progress=False)
+            seconds, cpu = time.perf_counter() - start, cpu_seconds() - cpu
+            row = Row(clip.stem, f"mosaic {args.smoothing} {args.model} ({estimator})", fps=result.frames / seconds,
+                      cpu_ms=1000 * cpu / result.frames,
+                      gt_jitter=ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, result.warps),
+                      extra={"stage_seconds": result.seconds, "exact_cropping": result.cropping,
+                             "exact_distortion": result.distortion, "border": result.border})
+            pixel_scores(row, clip, out, gt)
+            rows.append(row)
 
         if not args.no_vidstab:
             for smoothing in (None, 30):
