@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -21,6 +22,7 @@ from mosaic_cli.simulate import MapPyramid, plan_flight, render_frames, render_v
 from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
+from mosaic_cli.stitch.spill import SpilledImage
 from mosaic_cli.stitch.registration import Link, RegistrationReport, refine_placements
 from mosaic_cli.video import VideoWriter, open_video
 
@@ -434,6 +436,70 @@ def test_blending_in_strips_matches_blending_the_whole_canvas(ground):
         assert np.array_equal(whole[..., 3], strips[..., 3])
         assert np.abs(whole - strips).max() <= 2, blend
     assert (results["multiband", 100.0][..., 3] == 255).mean() > 0.6
+
+
+def test_keyframe_pixels_spilled_to_files_are_the_pixels_held_in_memory(tmp_path):
+    size = (400, 300)
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 256, (300, 400, 3), dtype=np.uint8) for _ in range(12)]
+    stores = {"memory": KeyframeStore(size, 1.0, max_size=1200), "files": KeyframeStore(size, 1.0, max_size=1200, spill=tmp_path)}
+    held = {}
+    for name, store in stores.items():
+        keyframes = []
+        for k, frame in enumerate(frames):
+            placement = np.array([[1, 0, 300.0 * k], [0, 1, 0], [0, 0, 1]])
+            key = Keyframe(k, placement, None, None)
+            store.keep(key, frame, project(placement, frame_corners(*size)))
+            keyframes.append(key)
+            store.shrink(keyframes)
+        held[name] = keyframes
+    assert all(isinstance(k.image, SpilledImage) for k in held["files"])
+    assert any(k.scale < 1.0 for k in held["files"])  # some were shrunk, re-written
+    for a, b in zip(held["memory"], held["files"]):
+        assert a.scale == b.scale and a.image.shape == b.image.shape
+        assert np.array_equal(a.image, b.image.load())
+    # One file per held image: a shrunk image's old file is gone.
+    assert sorted(tmp_path.iterdir()) == sorted(k.image.path for k in held["files"])
+
+
+def test_spilled_images_compose_exactly_as_in_memory_and_their_files_go(ground, tmp_path):
+    tiles = []
+    for k in range(6):
+        H = np.array([[1.0, 0.01, 30 + 150 * (k % 3)], [-0.01, 1.0, 20 + 140 * (k // 3)], [0, 0, 1]])
+        tiles.append((cv2.warpPerspective(ground, np.linalg.inv(H), (220, 180)), H))
+    in_memory = compose([PlacedImage(image.copy(), H) for image, H in tiles], (560, 380), ComposeOptions(strip_megapix=0.03))
+    spilled = [PlacedImage(SpilledImage(image, tmp_path), H) for image, H in tiles]
+    assert len(list(tmp_path.iterdir())) == 6
+    from_files = compose(spilled, (560, 380), ComposeOptions(strip_megapix=0.03))
+    assert np.array_equal(in_memory, from_files)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_stitch_spills_keyframes_to_a_temporary_folder_it_always_removes(survey, tmp_path, ground, monkeypatch):
+    spill_root = tmp_path / "tmp"
+    spill_root.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(spill_root))
+    flight, _, transforms, _ = survey
+    seen = []
+    original = SpilledImage.__init__
+
+    def spy(self, image, folder):
+        seen.append(Path(folder))
+        original(self, image, folder)
+
+    monkeypatch.setattr(SpilledImage, "__init__", spy)
+    stitch(flight.path, tmp_path / "p.png", fast_orb(), transforms=tmp_path / "t.json", show_progress=False)
+    assert seen and all(folder.parent == spill_root for folder in seen)
+    assert list(spill_root.iterdir()) == []
+    # The same panorama as with the pixels in memory.
+    stitch(flight.path, tmp_path / "m.png", fast_orb(), StitchOptions(spill=False), show_progress=False)
+    assert np.array_equal(read_rgba(tmp_path / "p.png"), read_rgba(tmp_path / "m.png"))
+    assert load_transforms(tmp_path / "t.json")[:2] == load_transforms(transforms)[:2]
+    # A stitch that fails half way leaves no folder behind either.
+    broken = fly(tmp_path / "f.mp4", ground, frames=150)
+    with pytest.raises(ProcessingError):
+        stitch(broken.path, tmp_path / "d.png", DivergingEstimator(SIZE[0]), show_progress=False)
+    assert list(spill_root.iterdir()) == []
 
 
 class Batching(Estimator):

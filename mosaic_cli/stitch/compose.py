@@ -12,6 +12,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import normalize, project, rect_corners, resize_matrix
+from mosaic_cli.stitch.spill import Pixels, drop_pixels, load_pixels
 
 BLENDS = ("multiband", "feather", "none")
 SEAMS = {
@@ -54,7 +55,7 @@ class ComposeOptions:
 
 @dataclass
 class PlacedImage:
-    image: np.ndarray | None  # RGB uint8; compose() drops it once drawn
+    image: Pixels | None  # RGB uint8, in memory or spilled to a file; compose() drops it once drawn
     to_canvas: np.ndarray  # image pixels -> canvas pixels
 
 
@@ -126,6 +127,7 @@ def compose(
     keep = [k for k, r in enumerate(rois) if r is not None]
     for k, r in enumerate(rois):
         if r is None:  # entirely off the canvas
+            drop_pixels(placed[k].image)
             placed[k].image = None
     placed = [placed[k] for k in keep]
     rois = [rois[k] for k in keep]
@@ -142,6 +144,7 @@ def compose(
     # full, so the memory stays bounded however the flight lies on the canvas.
     gains = compensator.getMatGains()
     finished: set[int] = set()
+    loaded: dict[int, np.ndarray] = {}  # the pixels of the images the current strip reaches
     for y0 in range(0, H, strip):
         y1 = min(H, y0 + strip)
         top, bottom = max(0, y0 - blend.margin), min(H, y1 + blend.margin)
@@ -151,7 +154,9 @@ def compose(
             if k in finished or roi.y >= bottom or roi.y + roi.h <= top:
                 continue
             rows = (max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y)
-            image, mask = _strip_part(placed[k], roi, rows, gains[k] if gains else None, seam_masks[k])
+            if k not in loaded:
+                loaded[k] = load_pixels(placed[k].image)
+            image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gains[k] if gains else None, seam_masks[k])
             blender.feed(image, mask, (roi.x, roi.y + rows[0]))
             fed = True
         if fed:
@@ -169,18 +174,21 @@ def compose(
         for k, roi in enumerate(rois):
             if k not in finished and (y1 >= H or roi.y + roi.h <= next_top):
                 finished.add(k)
+                loaded.pop(k, None)
+                drop_pixels(placed[k].image)
                 placed[k].image = None
                 advance(1)
     return rgba
 
 
-def _strip_part(p: PlacedImage, roi: Roi, rows: tuple[int, int], gain: np.ndarray | None, seam_mask: np.ndarray):
+def _strip_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, rows: tuple[int, int], gain: np.ndarray | None,
+                seam_mask: np.ndarray):
     """Rows ``rows`` (of its bounding box ``roi``) of an image: warped, exposure-compensated
     (``gain``: a scalar or a block map over the whole box, from ``getMatGains``) as int16 for
     the blender, and its blend mask (the seam mask within the image's coverage)."""
     r0, r1 = rows
     part = Roi(roi.x, roi.y + r0, roi.w, r1 - r0)
-    warped, mask = warp_into(p.image, p.to_canvas, part)
+    warped, mask = warp_into(pixels, to_canvas, part)
     if gain is not None and gain.size == 1:
         warped = np.multiply(warped, float(gain.ravel()[0]), dtype=np.float32)
     elif gain is not None:
@@ -215,7 +223,7 @@ def _seams_and_exposure(placed, rois, seam_scale, options):
     S = resize_matrix((1.0, 1.0), (seam_scale, seam_scale))
     images, masks = [], []
     for p, roi in zip(placed, small_rois):
-        warped, mask = warp_into(p.image, normalize(S @ p.to_canvas), roi)
+        warped, mask = warp_into(load_pixels(p.image), normalize(S @ p.to_canvas), roi)
         images.append(warped)
         masks.append(mask)
     corners = [r.corner for r in small_rois]

@@ -23,6 +23,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Iterable
 
 import cv2
@@ -32,6 +33,7 @@ from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch
+from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
 
 @dataclass
@@ -89,7 +91,7 @@ class Keyframe:
     features: Features
     quality: FrameQuality
     link: PairMatch | None = None  # direct registration to the previous keyframe (this -> it)
-    image: np.ndarray | None = None  # RGB at ``scale`` x source size, while it is held
+    image: Pixels | None = None  # RGB at ``scale`` x source size, while it is held (maybe in a file)
     scale: float = 1.0
     composited: bool = False  # drawn in the panorama (else used for registration only)
 
@@ -113,15 +115,18 @@ class FlightScan:
 class KeyframeStore:
     """Holds keyframe pixels at the scale the canvas will need: the longest side of the area
     flown so far must fit ``max_size`` (with a margin, as the final reference frame may be
-    larger than the anchor); images already held shrink when the area outgrows them."""
+    larger than the anchor); images already held shrink when the area outgrows them.  With
+    ``spill``, a folder, the pixels are held there in files rather than in memory (see
+    :mod:`.spill`)."""
 
     MARGIN = 1.2
     SHRINK_BELOW = 0.9  # re-scale held images only when they are this much too large
 
-    def __init__(self, source_size: tuple[int, int], decode_scale: float, max_size: int | None):
+    def __init__(self, source_size: tuple[int, int], decode_scale: float, max_size: int | None, spill: str | Path | None = None):
         self.source_size = source_size
         self.decode_scale = decode_scale
         self.max_size = max_size
+        self.spill = spill
         self.scale = decode_scale
         self._lo = np.array([np.inf, np.inf])
         self._hi = -self._lo
@@ -132,13 +137,19 @@ class KeyframeStore:
         if self.max_size:
             extent = float(np.max(self._hi - self._lo))
             self.scale = min(self.decode_scale, self.MARGIN * self.max_size / max(extent, 1.0))
-        keyframe.image, keyframe.scale = self._resized(frame, self.decode_scale, self.scale)
+        image, keyframe.scale = self._resized(frame, self.decode_scale, self.scale)
+        keyframe.image = self._held(image)
         keyframe.composited = True
 
     def shrink(self, keyframes: Iterable[Keyframe]) -> None:
         for k in keyframes:
             if k.image is not None and self.scale < self.SHRINK_BELOW * k.scale:
-                k.image, k.scale = self._resized(k.image, k.scale, self.scale)
+                image, k.scale = self._resized(load_pixels(k.image), k.scale, self.scale)
+                drop_pixels(k.image)
+                k.image = self._held(image)
+
+    def _held(self, image: np.ndarray) -> Pixels:
+        return SpilledImage(image, self.spill) if self.spill is not None else image
 
     def _resized(self, image: np.ndarray, have: float, want: float) -> tuple[np.ndarray, float]:
         if want >= have * 0.999:
@@ -191,6 +202,7 @@ class FlightScanner:
         options: KeyframeOptions,
         feature_options: FeatureOptions,
         max_size: int | None,
+        spill: str | Path | None = None,
     ):
         self.o = options
         self.size = source_size
@@ -199,7 +211,7 @@ class FlightScanner:
         self.first_index = first_index
         self.extract = FeatureExtractor(source_size, feature_options)
         self.matcher = FeatureMatcher(self.extract)
-        self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size)
+        self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size, spill)
         self.coverage = CoverageMap(source_size, options.coverage_cells)
         self.keyframes: list[Keyframe] = []
         self.placement: np.ndarray | None = None  # of the current frame, None while lost

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,9 @@ class StitchOptions:
     compose: ComposeOptions = field(default_factory=ComposeOptions)
     start: int = 0
     max_frames: int | None = None
+    # Hold keyframe pixels in a temporary folder ($TMPDIR) rather than in memory: a survey's
+    # held pixels add up to several canvases (see spill.py).
+    spill: bool = True
 
 
 @dataclass
@@ -70,37 +74,40 @@ def stitch(
     stitched; never leaves a partial file."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
-    seconds: dict[str, float] = {}
 
-    clock = time.perf_counter()
-    scan = _scan(video, info, estimator, options, show_progress)
-    seconds["scan"] = time.perf_counter() - clock
+    # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
+    # folder goes however the stitch ends.
+    with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
+        seconds: dict[str, float] = {}
+        clock = time.perf_counter()
+        scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None)
+        seconds["scan"] = time.perf_counter() - clock
 
-    if not scan.keyframes:
-        raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
+        if not scan.keyframes:
+            raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
 
-    clock = time.perf_counter()
-    indices = [k.index for k in scan.keyframes]
-    ref = choose_reference(indices, reference, scan.first_index + scan.frames - 1)
-    placements, report = _register(scan, ref, options, show_progress)
-    seconds["register"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        indices = [k.index for k in scan.keyframes]
+        ref = choose_reference(indices, reference, scan.first_index + scan.frames - 1)
+        placements, report = _register(scan, ref, options, show_progress)
+        seconds["register"] = time.perf_counter() - clock
 
-    clock = time.perf_counter()
-    drawn = [k.composited for k in scan.keyframes]
-    canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
-    frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-    panorama = _compose(scan, frame_to_canvas, canvas.size, options.compose, show_progress)
-    seconds["compose"] = time.perf_counter() - clock
+        clock = time.perf_counter()
+        drawn = [k.composited for k in scan.keyframes]
+        canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
+        frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
+        panorama = _compose(scan, frame_to_canvas, canvas.size, options.compose, show_progress)
+        seconds["compose"] = time.perf_counter() - clock
 
-    clock = time.perf_counter()
-    write_panorama(out, panorama)
-    del panorama
-    # Every keyframe is reported, also those over ground already drawn (used for registration).
-    frames = list(zip(indices, frame_to_canvas))
-    if transforms is not None:
-        write_transforms(transforms, canvas.size, frames)
-    seconds["write"] = time.perf_counter() - clock
-    return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
+        clock = time.perf_counter()
+        write_panorama(out, panorama)
+        del panorama
+        # Every keyframe is reported, also those over ground already drawn (used for registration).
+        frames = list(zip(indices, frame_to_canvas))
+        if transforms is not None:
+            write_transforms(transforms, canvas.size, frames)
+        seconds["write"] = time.perf_counter() - clock
+        return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
@@ -124,7 +131,7 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     return info, reference
 
 
-def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool) -> FlightScan:
+def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None) -> FlightScan:
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None
@@ -138,7 +145,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             if options.max_frames is not None:
                 total = min(total, options.max_frames)
         scanner = FlightScanner(
-            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size
+            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill
         )
 
         def frames():
