@@ -20,7 +20,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import estimate_stream, make_estimator
 from mosaic_cli.estimators import learned
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, default_weights, make_learned_estimator
-from mosaic_cli.geometry import four_point_to_homography, rect_corners, to_resolution
+from mosaic_cli.geometry import corner_error, four_point_to_homography, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig, save_weights
 
 FULL, WORK = (640, 360), (320, 180)
@@ -183,6 +183,37 @@ def test_a_cut_to_unrelated_ground_is_a_failed_pair_not_a_weak_one(panning, refi
     assert conf[3] == 0.0
     np.testing.assert_array_equal(H[3], np.eye(3))
     assert np.delete(conf, 3).min() > 0.5
+
+
+SPOILERS = {
+    "blurred": lambda f: cv2.GaussianBlur(f, (0, 0), 6),
+    "dark": lambda f: (f * 0.04).astype(np.uint8),
+    "black": lambda f: np.zeros_like(f),
+    "over-exposed": lambda f: np.clip(f.astype(int) * 4 + 120, 0, 255).astype(np.uint8),
+    "white": lambda f: np.full_like(f, 255),
+    "textureless": lambda f: np.full_like(f, 128),
+}
+
+
+@pytest.mark.parametrize("spoil", SPOILERS)
+def test_the_shipped_default_is_right_or_says_it_is_unsure_on_spoiled_frames(spoil):
+    """The shipped default weights, with frames 5 and 6 of a known pan spoiled: every estimate
+    is finite, and each is either right (within 1 px) or flagged (confidence under 0.5); frames
+    with nothing to register (black, white, blank, too dark) give identity at confidence 0."""
+    tex = textured_image(800, 480, seed=11)
+    frames = [tex[60 + 4 * t : 420 + 4 * t, 100 - 6 * t : 740 - 6 * t] for t in range(12)]  # (6, -4) px a frame
+    frames[5], frames[6] = SPOILERS[spoil](frames[5]), SPOILERS[spoil](frames[6])
+    H, conf = run(make_estimator("lstm", device="cpu"), frames)
+    assert np.all(np.isfinite(H)) and np.all(np.isfinite(conf))
+    errors = np.array([corner_error(h, translation(6, -4), FULL) for h in H])
+    assert np.all((errors < 1.0) | (conf < 0.5)), (errors, conf)
+    clean = [0, 1, 2, 3, 7, 8, 9, 10]
+    assert errors[clean].max() < 0.5 and conf[clean].min() > 0.9
+    if spoil in ("black", "white", "textureless", "dark"):
+        np.testing.assert_array_equal(H[4:7], np.broadcast_to(np.eye(3), (3, 3, 3)))
+        assert np.all(conf[4:7] == 0)
+    else:
+        assert conf[4] < 0.5  # a sharp frame and a spoiled one do not register as sure
 
 
 def test_frames_smaller_than_the_patch_are_refused():

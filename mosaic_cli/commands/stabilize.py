@@ -27,7 +27,7 @@ def stabilize(
     warps: Path | None = typer.Option(None, "--warps", help="Write the per-frame warps (input -> output pixels) as JSON."),
     compare: Path | None = typer.Option(None, "--compare", help="Also write input and output side by side to this video."),
     estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, identity, lstm or cnn. Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
-    work_width: int | None = typer.Option(None, "--work-width", help="Width the estimator works at (pixels; "
+    work_width: int | None = typer.Option(None, "--work-width", help="Width the classical estimators work at (pixels; the learned ones use their weights' size; "
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),

@@ -27,7 +27,7 @@ def stitch(
     seam: str = typer.Option("dp", "--seam", help="Seam finder: dp, graphcut, voronoi or none."),
     exposure: str = typer.Option("gain-blocks", "--exposure", help="Exposure compensation: gain-blocks, gain or none."),
     estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, identity, lstm or cnn. Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
-    work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
+    work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),

@@ -21,7 +21,7 @@ def track(
     video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
     out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
     estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
-    work_width: int = typer.Option(320, "--work-width", help="Width the estimator works at (pixels)."),
+    work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
     patches: int | None = typer.Option(None, "--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus."),

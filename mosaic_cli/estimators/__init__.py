@@ -17,7 +17,7 @@ CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")
 NAMES = (*CLASSICAL, *LEARNED)
 # What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
-DEFAULT_ESTIMATOR = "orb"
+DEFAULT_ESTIMATOR = "lstm"
 
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
