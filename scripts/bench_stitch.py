@@ -1,7 +1,7 @@
 """Benchmarks of ``mosaic stitch`` on simulated flights with exact ground truth.
 
     python scripts/bench_stitch.py accuracy     # placement accuracy vs plain chaining (720p survey)
-    python scripts/bench_stitch.py throughput   # frames/s with the ORB estimator on 720p input
+    python scripts/bench_stitch.py throughput   # frames/s with the ORB estimator on 720p input (or --estimator lstm)
     python scripts/bench_stitch.py memory       # peak RSS of 1080p flights of growing length and area
     python scripts/bench_stitch.py accuracy-long  # placement accuracy on those (after memory)
     python scripts/bench_stitch.py figure       # docs/stitch_pano.jpg and docs/stitch_source.jpg
@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -26,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mosaic_cli.estimators import make_estimator
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
 from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
 from mosaic_cli.simulate import FlightPlan, load_ground_truth, load_map, plan_flight, procedural_map, write_flight
 from mosaic_cli.simulate.trajectory import camera_homography
@@ -149,11 +148,11 @@ def accuracy(args) -> dict:
     for seed in args.seeds:
         video = survey_flight(args.workdir, args.frames, (1280, 720), seed)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
-        row = {"flight": video.name}
+        row = {"flight": video.name, "estimator": args.estimator}
         for label, enabled in (("drift control", True), ("no drift control", False)):
             options = StitchOptions(registration=RegistrationOptions(enabled=enabled))
             out = args.workdir / f"{video.stem}_{'dc' if enabled else 'chain'}.png"
-            result = stitch(video, out, make_estimator("orb"), options, transforms=out.with_suffix(".json"), show_progress=False)
+            result = stitch(video, out, make_estimator(args.estimator), options, transforms=out.with_suffix(".json"), show_progress=False)
             indices = [i for i, _ in result.transforms]
             errors = placement_errors(indices, [H for _, H in result.transforms], gt.map_to_frame, gt.size)
             row[label] = float(np.median(errors))
@@ -163,12 +162,12 @@ def accuracy(args) -> dict:
                 row["plain chaining"] = float(np.median(plain))
         rows.append(row)
         print(
-            f"{row['flight']}: {row['used frames']} used frames, {row['pairs']} pairs >= {GAP} frames apart, {row['loops']} loop closures; "
+            f"{row['flight']} ({args.estimator}): {row['used frames']} used frames, {row['pairs']} pairs >= {GAP} frames apart, {row['loops']} loop closures; "
             f"median corner error  drift control {row['drift control']:.2f} px | plain chaining (full-res ORB+RANSAC, "
             f"chained) {row['plain chaining']:.2f} px | --no-drift-control {row['no drift control']:.2f} px",
             flush=True,
         )
-    print(f"  reproduce: {here(args, 'accuracy')} --frames {args.frames} --seeds {' '.join(map(str, args.seeds))}")
+    print(f"  reproduce: {here(args, 'accuracy')} --frames {args.frames} --seeds {' '.join(map(str, args.seeds))} --estimator {args.estimator}")
     return {"accuracy": rows}
 
 
@@ -181,7 +180,7 @@ def throughput(args) -> dict:
     for _ in range(args.repeat):
         cpu0 = time.process_time()
         load = os.getloadavg()[0]
-        result = stitch(video, args.workdir / "throughput.jpg", make_estimator("orb"), show_progress=False)
+        result = stitch(video, args.workdir / "throughput.jpg", make_estimator(args.estimator), show_progress=False)
         total = sum(result.seconds.values())
         runs.append(
             {"fps": result.frames / total, "scan_fps": result.frames / result.seconds["scan"], "seconds": result.seconds,
@@ -193,8 +192,9 @@ def throughput(args) -> dict:
             flush=True,
         )
     fps = float(np.median([r["fps"] for r in runs]))
-    print(f"throughput (ORB, 720p, median of {len(runs)}): {fps:.1f} fr/s overall; reproduce: {here(args, 'throughput')} --repeat {args.repeat}")
-    return {"throughput": runs, "throughput_median_fps": fps}
+    print(f"throughput ({args.estimator}, 720p, median of {len(runs)}): {fps:.1f} fr/s overall; "
+          f"reproduce: {here(args, 'throughput')} --repeat {args.repeat} --estimator {args.estimator}")
+    return {"throughput": runs, "throughput_median_fps": fps, "estimator": args.estimator}
 
 
 # -- memory ------------------------------------------------------------------------------------
@@ -224,11 +224,11 @@ def memory(args) -> dict:
         rss, seconds, _ = peak_rss_of(cmd)
         canvas = json.loads(out.with_suffix(".json").read_text())["canvas_size"]
         used = len(json.loads(out.with_suffix(".json").read_text())["frames"])
-        rows.append({"frames": frames, "peak_rss_mib": rss, "seconds": seconds, "canvas": canvas, "keyframes": used})
+        rows.append({"estimator": DEFAULT_ESTIMATOR, "frames": frames, "peak_rss_mib": rss, "seconds": seconds, "canvas": canvas, "keyframes": used})
         print(f"  1920x1080, {frames} frames ({frames / 30:.0f} s of flight, {args.speed:g} px/frame): peak RSS {rss:.0f} MiB, {seconds:.0f} s, "
               f"{used} keyframes, canvas {canvas[0]}x{canvas[1]}", flush=True)
     speed = "" if args.speed == 8.0 else f" --speed {args.speed:g}"
-    print(f"memory: reproduce: {here(args, 'memory')} --lengths {' '.join(map(str, args.lengths))}{speed}")
+    print(f"memory (mosaic stitch with its defaults: estimator {DEFAULT_ESTIMATOR}): reproduce: {here(args, 'memory')} --lengths {' '.join(map(str, args.lengths))}{speed}")
     return {"memory": rows}
 
 
@@ -300,6 +300,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--estimator", default="orb", help="the estimator of the accuracy and throughput runs (the throughput goal is stated for orb)")
     parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
     parser.add_argument("--speed", type=float, default=8.0, help="map pixels per frame of the memory flights")
     parser.add_argument("--figure-width", type=int, default=1400)
