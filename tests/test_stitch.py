@@ -475,6 +475,18 @@ def test_spilled_images_compose_exactly_as_in_memory_and_their_files_go(ground, 
     assert list(tmp_path.iterdir()) == []
 
 
+def test_compose_reports_progress_in_canvas_rows_each_row_once(ground):
+    tiles = []
+    for k in range(4):
+        H = np.array([[1.0, 0.0, 40 + 200 * (k % 2)], [0.0, 1.0, 30 + 150 * (k // 2)], [0, 0, 1]])
+        tiles.append(PlacedImage(cv2.warpPerspective(ground, np.linalg.inv(H), (220, 180)), H))
+    steps = []
+    compose(tiles, (500, 380), ComposeOptions(strip_megapix=0.02), lambda n=1, status=None: steps.append(n))
+    rows = [n for n in steps if n]
+    assert len(rows) > 1  # several strips, so the bar moves while the canvas is blended
+    assert sum(rows) == 380
+
+
 def test_stitch_spills_keyframes_to_a_temporary_folder_it_always_removes(survey, tmp_path, ground, monkeypatch):
     spill_root = tmp_path / "tmp"
     spill_root.mkdir()

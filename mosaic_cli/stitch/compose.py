@@ -121,7 +121,8 @@ def compose(
 
     The blender runs on horizontal strips of the canvas (``strip_megapix``), each with a
     margin wide enough for its pyramid or feather, so its memory does not grow with the
-    canvas; ``placed`` is consumed: an image's pixels are dropped after its last strip."""
+    canvas; ``placed`` is consumed: an image's pixels are dropped after its last strip.
+    ``advance(n)`` is called with the canvas rows finished, strip by strip."""
     W, H = canvas_size
     rois = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size) for p in placed]
     keep = [k for k, r in enumerate(rois) if r is not None]
@@ -169,6 +170,7 @@ def compose(
             out[out[..., 3] == 0] = 0
             del result, result_mask
         del blender
+        advance(y1 - y0)
         # An image that the next strip (its margin included) does not reach is done.
         next_top = y1 - blend.margin
         for k, roi in enumerate(rois):
@@ -177,7 +179,6 @@ def compose(
                 loaded.pop(k, None)
                 drop_pixels(placed[k].image)
                 placed[k].image = None
-                advance(1)
     return rgba
 
 

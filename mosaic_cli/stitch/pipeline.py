@@ -183,5 +183,5 @@ def _compose(scan: FlightScan, frame_to_canvas, canvas_size, options: ComposeOpt
         to_source = np.linalg.inv(resize_matrix(scan.source_size, (image.shape[1], image.shape[0])))
         placed.append(PlacedImage(image, normalize(H @ to_source)))
         del image
-    with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", len(placed), unit="fr/s", disable=not show_progress) as advance:
+    with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", canvas_size[1], unit="rows/s", disable=not show_progress) as advance:
         return compose(placed, canvas_size, options, advance)
