@@ -34,11 +34,20 @@ def _fail(message: str, code: int) -> None:
     raise SystemExit(code)
 
 
+def _quiet_opencv() -> None:
+    """OpenCV's warnings (a GeoTIFF's unknown tags, say) are not the user's business: errors only."""
+    import cv2
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     if argv is None:
         argv = sys.argv[1:]
     DEBUG["on"] = "--debug" in argv
+    if not DEBUG["on"]:
+        _quiet_opencv()
     try:
         app(args=argv, standalone_mode=True)
     except MosaicError as exc:
