@@ -16,7 +16,7 @@ from torch import nn
 from conftest import render, textured_image
 from mosaic_cli.estimators import estimate_stream
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, patch_positions
-from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, align_pixels, points_to_track, track_points
+from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, align_pixels, band_pass, points_to_track, track_points
 from mosaic_cli.geometry import corner_error, four_point_to_homography, frame_corners, project, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig
 
@@ -215,3 +215,20 @@ def test_wide_polish_rescues_a_far_off_network(ground):
     wide, conf = run(oracle_estimator(H_full, bias), frames)
     assert corner_error(narrow, H_full, FULL).min() > 8.0
     assert corner_error(wide, H_full, FULL).max() < 0.3 and conf.min() > 0.5
+
+
+@pytest.mark.parametrize("size", [(320, 180), (321, 181)])
+def test_band_pass_matches_the_full_resolution_difference_of_gaussians(ground, size):
+    """The coarse base is blurred at half size; the band it leaves must be the plain DoG's, to
+    within a gray level, up to the frame's borders."""
+    gray = cv2.cvtColor(cv2.resize(ground, size, interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2GRAY)
+    fine, coarse, gain = 1.5, 6.0, 3.0
+    smooth = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), fine)
+    base = cv2.GaussianBlur(smooth, (0, 0), float(np.sqrt(coarse**2 - fine**2)))
+    expected = np.clip(np.rint(128 + gain * (smooth - base)), 0, 255)
+    got = band_pass(gray, fine, coarse, gain)
+    assert got.shape == gray.shape and got.dtype == np.uint8
+    diff = np.abs(got.astype(np.float64) - expected)
+    assert np.percentile(diff, 99) <= 1.0 and diff.max() <= 3.0
+    assert diff.mean() < 0.5
+    assert np.std(got.astype(np.float64)) > 5  # the band carries the texture, not a flat 128

@@ -106,7 +106,20 @@ def band_pass(gray: np.ndarray, fine: float, coarse: float, gain: float = 3.0) -
     well under a gray level of the original."""
     f = gray.astype(np.float32)
     smooth = cv2.GaussianBlur(f, (0, 0), fine)
-    base = cv2.GaussianBlur(smooth, (0, 0), float(np.sqrt(coarse**2 - fine**2)))
+    # The coarse base has no detail finer than a few pixels, so it is blurred at half size (a
+    # kernel of a quarter the taps on a quarter the pixels) and brought back up.  The frame is
+    # first padded as GaussianBlur pads it (reflect-101), so that the borders match too.  The
+    # 2x2 average down and the linear interpolation up blur too (variances 1/4 and 2/3 px^2).
+    h, w = smooth.shape
+    pad = 2 * int(np.ceil(1.5 * coarse))  # even: the halving keeps the pixel grid
+    if min(w, h) > pad:
+        padded = cv2.copyMakeBorder(smooth, pad, pad + h % 2, pad, pad + w % 2, cv2.BORDER_REFLECT_101)
+        half = cv2.resize(padded, (padded.shape[1] // 2, padded.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        sigma = float(np.sqrt(max(coarse**2 - fine**2 - 0.25 - 2 / 3, 0.25))) / 2
+        up = cv2.resize(cv2.GaussianBlur(half, (0, 0), sigma), (padded.shape[1], padded.shape[0]), interpolation=cv2.INTER_LINEAR)
+        base = up[pad : pad + h, pad : pad + w]
+    else:
+        base = cv2.GaussianBlur(smooth, (0, 0), float(np.sqrt(coarse**2 - fine**2)))
     return cv2.addWeighted(smooth, gain, base, -gain, 128.0, dtype=cv2.CV_8U)
 
 
