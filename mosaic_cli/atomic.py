@@ -25,6 +25,13 @@ def check_writable(path: str | os.PathLike) -> Path:
         raise BadInput(f"output folder {parent} does not exist")
     if not os.access(parent, os.W_OK):
         raise BadInput(f"output folder {parent} is not writable")
+    # A real file, made and removed: permission bits do not stop root, and read-only or
+    # pseudo file systems (/proc) pass the access check.
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as exc:
+        raise BadInput(f"output folder {parent} is not writable ({exc.strerror.lower()})") from None
     return target
 
 

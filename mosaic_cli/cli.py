@@ -6,11 +6,17 @@ Every user mistake ends as one line on stderr and a non-zero exit (2 for bad inp
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import typer
 
-from mosaic_cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, MosaicError
+try:  # recent typer carries its own copy of click
+    from typer._click.exceptions import ClickException
+except ImportError:  # pragma: no cover - older typer, with click installed beside it
+    from click.exceptions import ClickException
+
+from mosaic_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, MosaicError
 
 app = typer.Typer(
     name="mosaic",
@@ -41,29 +47,67 @@ def _quiet_opencv() -> None:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
+# Signals end a run by unwinding it as Ctrl-C does, so that every temporary output is removed on
+# the way out; which one arrived decides the message and the exit status (128 + signal).
+SIGNAL_EXITS = {signal.SIGINT: ("interrupted", EXIT_INTERRUPTED), signal.SIGTERM: ("terminated", 128 + signal.SIGTERM)}
+_received: list[int] = []
+
+
+def _on_signal(signum, frame) -> None:
+    _received.append(signum)
+    raise KeyboardInterrupt
+
+
+def _stop_by_unwinding_on_signals() -> None:
+    for signum in SIGNAL_EXITS:
+        signal.signal(signum, _on_signal)
+
+
+def _usage_message(exc: ClickException) -> str:
+    """Click's usage errors as one line that says where the help is."""
+    ctx = getattr(exc, "ctx", None)
+    where = f" (see {ctx.command_path} --help)" if ctx is not None else ""
+    return f"{exc.format_message()}{where}"
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     if argv is None:
         argv = sys.argv[1:]
+    if not [a for a in argv if a != "--debug"]:
+        argv = [*argv, "--help"]
     DEBUG["on"] = "--debug" in argv
-    if not DEBUG["on"]:
+    if DEBUG["on"]:  # accepted anywhere on the line, not only before the command
+        argv = ["--debug", *(a for a in argv if a != "--debug")]
+    else:
         _quiet_opencv()
+    _received.clear()
+    _stop_by_unwinding_on_signals()
     try:
-        app(args=argv, standalone_mode=True)
+        code = app(args=argv, prog_name="mosaic", standalone_mode=False)
+    except ClickException as exc:  # a usage error: unknown option, bad value, missing argument
+        _fail(_usage_message(exc), EXIT_BAD_INPUT)
     except MosaicError as exc:
         if DEBUG["on"]:
             raise
         _fail(str(exc), exc.exit_code)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, typer.Abort):
         if DEBUG["on"]:
             raise
-        _fail("interrupted", EXIT_INTERRUPTED)
+        _fail(*SIGNAL_EXITS[_received[0] if _received else signal.SIGINT])
     except SystemExit:
         raise
-    except Exception as exc:  # a bug, not a user error: still one line unless --debug
+    except Exception as exc:
         if DEBUG["on"]:
             raise
+        if _received:  # a signal that cut an import or a library call short, whatever it raised
+            _fail(*SIGNAL_EXITS[_received[0]])
+        if isinstance(exc, OSError) and exc.strerror:  # the machine's, not a bug: disk full, I/O error
+            _fail(f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror, EXIT_FAILED)
         _fail(f"{exc.__class__.__name__}: {exc} (run with --debug for the traceback)", EXIT_FAILED)
+    if _received or code == EXIT_INTERRUPTED:  # typer turns a KeyboardInterrupt into status 130 on its own
+        _fail(*SIGNAL_EXITS[_received[0] if _received else signal.SIGINT])
+    raise SystemExit(code or 0)
 
 
 # Commands register themselves on ``app``; import them last.

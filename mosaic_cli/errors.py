@@ -23,3 +23,9 @@ class ProcessingError(MosaicError):
     """Valid input that the pipeline cannot turn into a result (e.g. a degenerate chain)."""
 
     exit_code = EXIT_FAILED
+
+
+class Interrupted(MosaicError):
+    """The user stopped the run (Ctrl-C, SIGTERM) at a point where it could say what was kept."""
+
+    exit_code = EXIT_INTERRUPTED

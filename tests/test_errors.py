@@ -4,8 +4,11 @@ no traceback unless --debug, and no output file (nor temporary file) left behind
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -119,9 +122,52 @@ def test_bad_option_values(capsys, workdir, clip, args, message):
     assert outputs(workdir) == []
 
 
-def test_option_of_the_wrong_type_is_a_usage_error(capsys, workdir, clip):
-    code, err = run_cli(capsys, "track", clip, "-o", workdir / "out" / "t.json", "--work-width", "wide")
-    assert code == 2 and "Traceback" not in err and "work-width" in err
+@pytest.mark.parametrize("args, fragments", [
+    (["track", "{clip}", "-o", "{out}", "--work-width", "wide"], ["--work-width", "mosaic track --help"]),
+    (["track"], ["missing argument", "mosaic track --help"]),
+    (["track", "{clip}", "-o", "{out}", "--no-such-option"], ["--no-such-option"]),
+    (["no-such-command"], ["no-such-command", "mosaic --help"]),
+    (["simulate", "-o", "{out}", "--seed", "-1"], ["--seed"]),
+])
+def test_usage_errors_are_one_line_too(capsys, workdir, clip, args, fragments):
+    """Click's own errors (a value of the wrong type, a missing argument, an unknown option or
+    command) keep the one-line form, and say where the help is."""
+    out = workdir / "out" / "t.json"
+    code, err = run_cli(capsys, *(a.format(clip=clip, out=out) for a in args))
+    assert_one_line_error(code, err, 2, *fragments)
+    assert outputs(workdir) == []
+
+
+def test_output_on_a_file_system_that_takes_no_files(capsys, clip):
+    """/proc passes the permission check (as root) but cannot hold a file: refused before any work."""
+    if not os.path.isdir("/proc/self"):
+        pytest.skip("no /proc here")
+    code, err = run_cli(capsys, "track", clip, "-o", "/proc/t.json", "-q")
+    assert_one_line_error(code, err, 2, "/proc", "not writable")
+
+
+@pytest.mark.parametrize("signum, status, message", [
+    (signal.SIGINT, 130, "interrupted"),
+    (signal.SIGTERM, 143, "terminated"),
+])
+def test_a_signal_midway_is_one_line_and_leaves_no_file(workdir, signum, status, message):
+    """Ctrl-C (to the whole process group, as a terminal sends it) or SIGTERM while the output is
+    being written: one line, 128 + the signal, and neither the output nor its temporary file."""
+    out = workdir / "out" / "f.mp4"
+    run = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(out), "-n", "3000", "--size", "320x180",
+                            "--preset", "ultrafast", "-q"], stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(p.name.endswith(".part.mp4") for p in (workdir / "out").iterdir()):
+            assert run.poll() is None and time.monotonic() < deadline, "the run ended before writing began"
+            time.sleep(0.05)
+        os.killpg(run.pid, signum)
+        err = run.communicate(timeout=60)[1]
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+    assert run.returncode == status, err
+    assert err.strip() == f"mosaic: error: {message}"
     assert outputs(workdir) == []
 
 

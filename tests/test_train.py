@@ -314,6 +314,7 @@ def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one
     presser.join()
     assert code == 130, err
     assert "continue with --resume" in " ".join(err.split())
+    assert err.strip().splitlines()[-1].startswith("mosaic: error: interrupted: checkpoint at step")
     stopped_at = json.loads((run_b / "state.json").read_text())["step"]
     assert 5 <= stopped_at < 40
     assert len(read_log(run_b)) == stopped_at

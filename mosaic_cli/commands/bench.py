@@ -23,7 +23,7 @@ def bench(
     size: str = typer.Option("1280x720", "--size", help="Frame size of the simulated clip, WxH."),
     work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators work at."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the simulated flight."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated flight."),
     threads: int | None = typer.Option(None, "--threads", help="CPU threads for the learned estimators' network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the full report as JSON."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (use with --json)."),

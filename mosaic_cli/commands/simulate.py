@@ -30,7 +30,7 @@ def simulate(
     frames: int = typer.Option(300, "--frames", "-n", help="Number of frames."),
     size: str = typer.Option("1280x720", "--size", help="Frame size WxH."),
     fps: float = typer.Option(30.0, "--fps", help="Frame rate."),
-    seed: int = typer.Option(0, "--seed", help="Random seed (path, map, effects)."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Random seed (path, map, effects)."),
     crf: int = typer.Option(18, "--crf", help="H.264 quality (0-51, lower is better)."),
     preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),

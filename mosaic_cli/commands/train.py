@@ -28,7 +28,7 @@ def train(
     lr: float | None = typer.Option(None, "--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps [1e-3]."),
     device: str | None = typer.Option(None, "--device", help="auto, cpu or cuda [auto]."),
     amp: bool | None = typer.Option(None, "--amp/--no-amp", help="Mixed precision on CUDA [amp]."),
-    seed: int | None = typer.Option(None, "--seed", help="Random seed: initial weights, samples, dropout [0]."),
+    seed: int | None = typer.Option(None, "--seed", min=0, help="Random seed: initial weights, samples, dropout [0]."),
     val: Path | None = typer.Option(None, "--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on."),
     val_every: int | None = typer.Option(None, "--val-every", help="Validate every N steps [1000]."),
     checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Checkpoint every N steps [500]."),

@@ -11,7 +11,6 @@ per-frame matrices (72 bytes a frame):
 
 from __future__ import annotations
 
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,8 +118,8 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     """Every check that can fail on the user's input, before any long work."""
     outputs = {"output": out, "--warps": warps_out, "--compare": compare}
     given = {name: Path(p) for name, p in outputs.items() if p is not None}
-    for name, path in given.items():
-        _check_writable(path)
+    for path in given.values():
+        check_writable(path)
     if Path(out).suffix.lower() not in VIDEO_SUFFIXES:
         raise BadInput(f"output {out} must end in one of {', '.join(VIDEO_SUFFIXES)}")
     if compare is not None and Path(compare).suffix.lower() not in VIDEO_SUFFIXES:
@@ -153,17 +152,6 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
     plan.estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device)
     return info, plan
-
-
-def _check_writable(path: Path) -> None:
-    """``check_writable``, then a real file created and removed beside the output: permission
-    bits do not stop root, and read-only file systems pass the access check."""
-    target = check_writable(path)
-    try:
-        with tempfile.TemporaryFile(dir=target.parent if str(target.parent) else "."):
-            pass
-    except OSError:
-        raise BadInput(f"output folder {target.parent} is not writable") from None
 
 
 def write_warps(path: str | Path, warps: np.ndarray, size: tuple[int, int]) -> None:

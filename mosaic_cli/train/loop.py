@@ -30,7 +30,7 @@ import torch
 from torch import nn
 
 from mosaic_cli.atomic import check_writable
-from mosaic_cli.errors import BadInput, MosaicError, ProcessingError
+from mosaic_cli.errors import BadInput, Interrupted, MosaicError, ProcessingError
 from mosaic_cli.model import quantize
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.network import HomographyNet, NetConfig
@@ -210,9 +210,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
                     console.print(f"step {done}: validation MACE {val_mace:.2f} px (1280x720-equivalent)")
                 dist.barrier()
             if stop_now:
-                if dist.is_main:
-                    console.print(f"stopped: checkpoint at step {done} in {run.root}; continue with --resume")
-                raise KeyboardInterrupt
+                raise Interrupted(f"interrupted: checkpoint at step {done} in {run.root}; continue with --resume")
 
     if dist.is_main:
         save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size, int8=calibrate_int8(net, dataset, cfg.seed))
