@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -44,22 +45,54 @@ def give_default_permissions(path: str | os.PathLike) -> None:
 
 
 @contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM while a temporary file is made and its name handed to the code that
+    removes it (a signal in between would leave the file behind); they take effect on leaving.
+
+    The Python handlers are swapped for recorders, rather than the signals blocked, because a
+    process with other threads (OpenCV's) takes a signal on any of them and Python still runs
+    its handler on the main thread.  Off the main thread nothing is held."""
+    held = (signal.SIGINT, signal.SIGTERM)
+    pending: list[int] = []
+    try:
+        previous = {signum: signal.signal(signum, lambda signum, frame: pending.append(signum)) for signum in held}
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in pending:
+            signal.raise_signal(signum)  # now, to the handler that was in place
+
+
+def temporary_beside(target: Path, suffix: str) -> Path:
+    """A new empty file ``.<stem>.XXXX<suffix>`` in the target's folder (call under :func:`signals_held`)."""
+    fd, name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=suffix, dir=target.parent or ".")
+    os.close(fd)
+    return Path(name)
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path with the target's suffix; rename it onto ``path`` on success.
 
     The suffix is kept so that tools choosing a format by extension (ffmpeg, cv2.imwrite) work.
     """
     target = check_writable(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".part{target.suffix}", dir=target.parent or ".")
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp = None
     try:
+        with signals_held():
+            tmp = temporary_beside(target, f".part{target.suffix}")
         yield tmp
         give_default_permissions(tmp)
         os.replace(tmp, target)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
         raise
 
 

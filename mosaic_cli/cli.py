@@ -6,8 +6,10 @@ Every user mistake ends as one line on stderr and a non-zero exit (2 for bad inp
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
+import threading
 
 import typer
 
@@ -58,9 +60,20 @@ def _on_signal(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def _deliver_again_if_swallowed(unraisable) -> None:
+    """Python swallows an exception raised where none can propagate (a fork hook while ffmpeg is
+    started, a finaliser) and prints it: such an interrupt is sent again, to land in the run."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and _received:
+        # From another thread, so that it arrives after this hook has returned, not inside it.
+        threading.Timer(0.01, os.kill, (os.getpid(), _received[-1])).start()
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def _stop_by_unwinding_on_signals() -> None:
     for signum in SIGNAL_EXITS:
         signal.signal(signum, _on_signal)
+    sys.unraisablehook = _deliver_again_if_swallowed
 
 
 def _usage_message(exc: ClickException) -> str:

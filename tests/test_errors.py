@@ -146,19 +146,43 @@ def test_output_on_a_file_system_that_takes_no_files(capsys, clip):
     assert_one_line_error(code, err, 2, "/proc", "not writable")
 
 
+@pytest.mark.parametrize("args, fragments", [
+    (["simulate", "-o", "{out}/odd.mp4", "-n", "3", "--size", "321x181"], ["even", "321x181"]),
+    (["eval", "{pred}", "--gt", "{folder}"], ["a folder", "ground-truth"]),
+    (["track", "{clip}", "-o", "{out}/t.json", "--weights", "{folder}"], ["a folder", "weights"]),
+    (["track", "{clip}", "-o", "{out}/t.json", "-e", "orb", "--device", "tpu"], ["--device", "tpu"]),
+    (["bench", "--video", "{clip}", "-e", "identity", "--json", "{out}/report.txt"], ["--json", ".json"]),
+    (["train", "{folder}", "-o", "{out}/run", "--steps", "1"], ["no usable clips", "not a video"]),
+])
+def test_more_bad_input_across_commands(capsys, workdir, clip, args, fragments):
+    """Each names what is wrong in one line, and writes nothing: a simulated flight whose video
+    would be padded away from its ground truth, a folder where a file belongs, a device that
+    does not exist for any estimator, a report without its extension, clips that are all unusable."""
+    folder = workdir / "in" / "folder"
+    folder.mkdir()
+    (folder / "notes.mp4").write_text("not a video\n" * 10)
+    pred = workdir / "in" / "track.npy"
+    np.save(pred, np.repeat(np.eye(3)[None], 4, axis=0))
+    code, err = run_cli(capsys, *(a.format(clip=clip, out=workdir / "out", folder=folder, pred=pred) for a in args))
+    assert_one_line_error(code, err, 2, *fragments)
+    assert outputs(workdir) == []
+
+
 @pytest.mark.parametrize("signum, status, message", [
     (signal.SIGINT, 130, "interrupted"),
     (signal.SIGTERM, 143, "terminated"),
 ])
-def test_a_signal_midway_is_one_line_and_leaves_no_file(workdir, signum, status, message):
+@pytest.mark.parametrize("min_bytes", [0, 1], ids=["as the encoder starts", "while encoding"])
+def test_a_signal_midway_is_one_line_and_leaves_no_file(workdir, signum, status, message, min_bytes):
     """Ctrl-C (to the whole process group, as a terminal sends it) or SIGTERM while the output is
-    being written: one line, 128 + the signal, and neither the output nor its temporary file."""
+    being written: one line, 128 + the signal, and neither the output nor its temporary file,
+    whether it lands as the encoder starts (the temporary file just made) or later."""
     out = workdir / "out" / "f.mp4"
     run = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(out), "-n", "3000", "--size", "320x180",
                             "--preset", "ultrafast", "-q"], stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
-        while not any(p.name.endswith(".part.mp4") for p in (workdir / "out").iterdir()):
+        while not any(p.name.endswith(".part.mp4") and p.stat().st_size >= min_bytes for p in (workdir / "out").iterdir()):
             assert run.poll() is None and time.monotonic() < deadline, "the run ended before writing began"
             time.sleep(0.05)
         os.killpg(run.pid, signum)

@@ -47,6 +47,8 @@ def bench(
         raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
     if json_out is not None:
         check_writable(json_out)
+        if json_out.suffix.lower() != ".json":
+            raise BadInput(f"--json {json_out} must end in .json")
     if video is not None and not video.exists():
         raise BadInput(f"{video}: no such file or folder")
     if flights is not None and (video is not None or map_image is not None):

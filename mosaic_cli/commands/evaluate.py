@@ -36,6 +36,8 @@ def evaluate_command(
         raise BadInput("give --gt GROUND_TRUTH.json and/or --annotations ANNOTATIONS.txt")
     if json_out is not None:
         check_writable(json_out)
+        if json_out.suffix.lower() != ".json":
+            raise BadInput(f"--json {json_out} must end in .json")
     pred, pred_size = load_prediction(prediction)
     ann = read_annotations(annotations) if annotations is not None else None
     if gt is not None:

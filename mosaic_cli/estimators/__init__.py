@@ -6,6 +6,7 @@ An estimator is named on the command line as ``NAME[:OPTION=VALUE]...``, e.g. ``
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from mosaic_cli.errors import BadInput
@@ -82,6 +83,8 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
     base, spec_options = parse_spec(name)
     if work_width < 32:
         raise BadInput(f"--work-width must be at least 32, got {work_width}")
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):  # checked for every estimator
+        raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
     learned = weights is not None or base in LEARNED
     kind = base if base in LEARNED or not learned else "lstm"  # --weights with a classical name: any learned option
     given = {**spec_options, **{k: v for k, v in options.items() if v is not None}}

@@ -70,6 +70,8 @@ def save_weights(
 def read_metadata(path: str | Path) -> dict:
     """The decoded metadata of a mosaic checkpoint; BadInput if it is not one."""
     p = Path(path)
+    if p.is_dir():
+        raise BadInput(f"{p}: a folder, not a weights file (.safetensors)")
     if not p.is_file():
         raise BadInput(f"{p}: no such weights file")
     try:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mosaic_cli.errors import BadInput
 from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load_ground_truth
 from mosaic_cli.simulate.maps import load_map, procedural_map
 from mosaic_cli.simulate.render import MapPyramid, render_frames, render_view
@@ -53,6 +54,9 @@ def write_flight(
     from mosaic_cli.progress import progress_task
     from mosaic_cli.video import VideoWriter
 
+    if plan.size[0] % 2 or plan.size[1] % 2:
+        # H.264 in 4:2:0 needs even sides; a padded video would not match its ground truth.
+        raise BadInput(f"--size must have even sides for an H.264 flight, got {plan.size[0]}x{plan.size[1]}")
     out = check_writable(out_path)
     gt_path = check_writable(ground_truth_path(out))
     rate = float(plan.fps if fps is None else fps)

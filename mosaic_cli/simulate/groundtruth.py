@@ -91,6 +91,8 @@ def ground_truth_path(video_path: str | Path) -> Path:
 def load_ground_truth(path: str | Path) -> GroundTruth:
     """Read a ``.gt.json`` file (or, given a video, the ``.gt.json`` beside it)."""
     p = Path(path)
+    if p.is_dir():
+        raise BadInput(f"{p}: a folder, not a ground-truth file (.gt.json)")
     if not p.name.endswith(".json"):
         p = ground_truth_path(p)
     if not p.exists():

@@ -218,7 +218,7 @@ def decode_clip(job: DecodeJob) -> tuple[str, CachedClip | None, str | None]:
             n = _write_npy_stream(tmp, kept_frames(stream), job.work_size)
     except (MosaicError, OSError, RuntimeError, ValueError) as exc:
         tmp.unlink(missing_ok=True)
-        return job.clip, None, str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
+        return job.clip, None, _reason(job.clip, exc)
     entry = CachedClip(job.clip, str(target), n, tuple(segments))
     os.replace(tmp, target)
     write_json(target.with_suffix(".json"), asdict(entry))
@@ -240,7 +240,13 @@ def _probe_frames(clip: str) -> tuple[str, int | None, str | None]:
     try:
         return clip, probe(clip).frame_count, None
     except (MosaicError, OSError, RuntimeError, ValueError) as exc:
-        return clip, None, str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
+        return clip, None, _reason(clip, exc)
+
+
+def _reason(clip: str, exc: Exception) -> str:
+    """Why ``clip`` is unusable, in one line that names it once (the reader's messages name it)."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
+    return text if clip in text else f"{clip}: {text}"
 
 
 def _ignore_sigint() -> None:
@@ -309,17 +315,20 @@ def build_frame_cache(
                     entries[clip] = entry
                     advance(entry.frames)
 
-    usable = []
+    usable, skipped = [], []
     for clip in (str(c) for c in clips):
         entry = entries.get(clip)
         if problems.get(clip) is not None:
-            console.print(f"[yellow]warning:[/] skipping {clip}: {problems[clip]}")
+            skipped.append(problems[clip])
         elif entry is None or entry.windows(window) == 0:
-            console.print(f"[yellow]warning:[/] skipping {clip}: fewer than {window} consecutive frames")
+            skipped.append(f"{clip}: fewer than {window} consecutive frames")
         else:
             usable.append(entry)
     if not usable:
-        raise BadInput(f"no usable clips: none of the {len(clips)} clips gave a window of {window} frames")
+        more = f" (and {len(skipped) - 1} more clips)" if len(skipped) > 1 else ""
+        raise BadInput(f"no usable clips: {skipped[0]}{more}")
+    for reason in skipped:
+        console.print(f"[yellow]warning:[/] skipping {reason}")
     return usable
 
 

@@ -1,4 +1,4 @@
-"""Streaming H.264 writer (imageio-ffmpeg), atomic, optionally carrying a source's audio."""
+"""Streaming H.264 writer (the ffmpeg of imageio-ffmpeg), atomic, optionally carrying a source's audio."""
 
 from __future__ import annotations
 
@@ -7,12 +7,13 @@ import os
 import re
 import subprocess
 import tempfile
+from fractions import Fraction
 from pathlib import Path
 
 import imageio_ffmpeg
 import numpy as np
 
-from mosaic_cli.atomic import check_writable, give_default_permissions
+from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
@@ -69,31 +70,39 @@ class VideoWriter:
         if pix_fmt_in not in ("rgb24", "yuv420p") or (pix_fmt_in == "yuv420p" and self.out_size != self.size):
             raise ValueError(f"pix_fmt_in must be rgb24, or yuv420p with an even size; got {pix_fmt_in} at {self.size}")
         self.pix_fmt_in = pix_fmt_in
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".part{self.path.suffix or '.mp4'}", dir=self.path.parent)
-        os.close(fd)
-        self._tmp = Path(tmp)
-        audio_kwargs = {}
-        extra_params: list[str] = []
-        source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
-        if source_audio is not None:
-            audio_kwargs = {"audio_path": str(audio_from), "audio_codec": audio_codec or self._audio_codec_for(source_audio)}
-            # The video may be shorter than the source (a --max-frames run): end with it.
-            extra_params = ["-shortest"]
-        self._gen = imageio_ffmpeg.write_frames(
-            str(self._tmp),
-            self.out_size,
-            fps=fps,
-            codec="libx264",
-            pix_fmt_in=pix_fmt_in,
-            pix_fmt_out="yuv420p",
-            quality=None,
-            macro_block_size=1,
-            output_params=["-crf", str(crf), "-preset", preset, "-movflags", "+faststart", *extra_params],
-            ffmpeg_log_level="error",
-            **audio_kwargs,
-        )
-        self._gen.send(None)
+        self._tmp: Path | None = None
+        self._encoder: subprocess.Popen | None = None
+        self._log = None
+        try:  # until the writer is returned, no ``with`` block will remove the file: this one does
+            # Signals wait until the file and the encoder are both in hand: a Ctrl-C inside Popen
+            # would lose the encoder, which would then make the file again after it was removed.
+            with signals_held():
+                self._tmp = temporary_beside(self.path, f".part{self.path.suffix or '.mp4'}")
+                self._start_encoder(fps, crf, preset, audio_from, audio_codec)
+        except BaseException:
+            self.abort()
+            raise
         self.frames_written = 0
+
+    def _start_encoder(self, fps: float, crf: int, preset: str, audio_from, audio_codec: str | None) -> None:
+        """ffmpeg reading raw frames on its stdin, in its own session: the terminal's Ctrl-C
+        reaches mosaic alone, which then stops it (it inherits the held signals, and needs none)."""
+        w, h = self.out_size
+        cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-hide_banner", "-v", "error",
+               "-f", "rawvideo", "-pix_fmt", self.pix_fmt_in, "-s", f"{w}x{h}", "-r", str(Fraction(fps).limit_denominator()),
+               "-i", "-"]
+        source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
+        if source_audio is None:
+            cmd += ["-an"]
+        else:
+            # The video may be shorter than the source (a --max-frames run): end with it.
+            cmd += ["-i", str(audio_from), "-map", "0:v:0", "-map", "1:a:0",
+                    "-acodec", audio_codec or self._audio_codec_for(source_audio), "-shortest"]
+        cmd += ["-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-preset", preset,
+                "-movflags", "+faststart", str(self._tmp)]
+        self._log = tempfile.TemporaryFile()  # ffmpeg's complaints, for the error message
+        self._encoder = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._log,
+                                         start_new_session=True)
 
     def _audio_codec_for(self, source_codec: str) -> str:
         """Copy the source's audio where the container takes it as it is, else AAC."""
@@ -105,37 +114,59 @@ class VideoWriter:
         if self.pix_fmt_in == "yuv420p":
             if frame.shape != (self.size[1] * 3 // 2, self.size[0]):
                 raise ProcessingError(f"yuv420p frame of shape {frame.shape} written to a {self.size[0]}x{self.size[1]} video")
-            self._gen.send(np.ascontiguousarray(frame, dtype=np.uint8))
-            self.frames_written += 1
-            return
-        if frame.shape[:2] != (self.size[1], self.size[0]):
+        elif frame.shape[:2] != (self.size[1], self.size[0]):
             raise ProcessingError(f"frame of size {frame.shape[1]}x{frame.shape[0]} written to a {self.size[0]}x{self.size[1]} video")
-        if frame.ndim == 2:
-            frame = np.repeat(frame[:, :, None], 3, axis=2)
-        if self.out_size != self.size:
-            frame = np.pad(frame, ((0, self.out_size[1] - self.size[1]), (0, self.out_size[0] - self.size[0]), (0, 0)), mode="edge")
-        self._gen.send(np.ascontiguousarray(frame, dtype=np.uint8))
+        else:
+            if frame.ndim == 2:
+                frame = np.repeat(frame[:, :, None], 3, axis=2)
+            if self.out_size != self.size:
+                frame = np.pad(frame, ((0, self.out_size[1] - self.size[1]), (0, self.out_size[0] - self.size[0]), (0, 0)), mode="edge")
+        try:
+            self._encoder.stdin.write(np.ascontiguousarray(frame, dtype=np.uint8).data)
+        except OSError:  # the encoder is gone
+            self.abort()
+            raise ProcessingError(f"{self.path}: encoding failed ({self._complaint()})") from None
         self.frames_written += 1
 
     def close(self) -> Path:
-        """Finish encoding and move the file into place."""
+        """Finish encoding and move the file into place (or, whatever stops that, remove it)."""
         try:
-            self._gen.close()
-        except Exception as exc:
+            with contextlib.suppress(OSError):
+                self._encoder.stdin.close()
+            if self._encoder.wait() != 0:
+                raise ProcessingError(f"{self.path}: encoding failed ({self._complaint()})")
+            if self.frames_written == 0:
+                raise ProcessingError(f"{self.path}: no frames to write")
+            give_default_permissions(self._tmp)
+            os.replace(self._tmp, self.path)
+        except BaseException:
             self.abort()
-            raise ProcessingError(f"{self.path}: encoding failed ({str(exc).splitlines()[0]})") from exc
-        if self.frames_written == 0:
-            self.abort()
-            raise ProcessingError(f"{self.path}: no frames to write")
-        give_default_permissions(self._tmp)
-        os.replace(self._tmp, self.path)
+            raise
+        self._log.close()
         return self.path
 
     def abort(self) -> None:
-        with contextlib.suppress(Exception):
-            self._gen.close()
-        with contextlib.suppress(FileNotFoundError):
-            self._tmp.unlink()
+        """Stop the encoder, wait until it has exited (it could still create the file), remove the file."""
+        if self._encoder is not None:
+            with contextlib.suppress(OSError):
+                self._encoder.kill()
+            self._encoder.wait()
+            with contextlib.suppress(OSError):
+                self._encoder.stdin.close()
+        if self._log is not None:
+            self._log.close()
+        if self._tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self._tmp.unlink()
+
+    def _complaint(self) -> str:
+        """ffmpeg's last line on stderr, or its exit status."""
+        if self._log is not None and not self._log.closed:
+            self._log.seek(0)
+            lines = self._log.read().decode("utf-8", "replace").strip().splitlines()
+            if lines:
+                return lines[-1]
+        return f"ffmpeg exited with status {self._encoder.poll() if self._encoder else None}"
 
     def __enter__(self) -> "VideoWriter":
         return self
