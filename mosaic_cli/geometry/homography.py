@@ -153,7 +153,8 @@ def is_valid(
     if not np.all(np.sign(cross) == np.sign(_turns(c))):
         return False
     area_src = float(size[0] * size[1])
-    area_dst = 0.5 * abs(np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1]))
+    after = _following(q)
+    area_dst = 0.5 * abs(np.sum(q[:, 0] * after[:, 1] - after[:, 0] * q[:, 1]))
     if not (1.0 / max_area_ratio < area_dst / area_src < max_area_ratio):
         return False
     if max_corner_shift is not None and np.max(np.linalg.norm(q - c, axis=-1)) > max_corner_shift:
@@ -161,8 +162,14 @@ def is_valid(
     return True
 
 
+def _following(points: np.ndarray) -> np.ndarray:
+    """Each vertex's successor around a closed polygon (np.roll(points, -1, axis=0), without its
+    overhead: is_valid runs twice a frame pair in the learned estimator)."""
+    return np.concatenate((points[1:], points[:1]))
+
+
 def _turns(quad: np.ndarray) -> np.ndarray:
     """z of the cross product of consecutive edges of a closed polygon (4, 2)."""
-    edges = np.roll(quad, -1, axis=0) - quad
-    nxt = np.roll(edges, -1, axis=0)
+    edges = _following(quad) - quad
+    nxt = _following(edges)
     return edges[:, 0] * nxt[:, 1] - edges[:, 1] * nxt[:, 0]
