@@ -6,10 +6,12 @@ Every user mistake ends as one line on stderr and a non-zero exit (2 for bad inp
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
 import threading
+from typing import Iterator
 
 import typer
 
@@ -70,10 +72,23 @@ def _deliver_again_if_swallowed(unraisable) -> None:
     sys.__unraisablehook__(unraisable)
 
 
-def _stop_by_unwinding_on_signals() -> None:
-    for signum in SIGNAL_EXITS:
-        signal.signal(signum, _on_signal)
-    sys.unraisablehook = _deliver_again_if_swallowed
+@contextlib.contextmanager
+def _stop_by_unwinding_on_signals() -> Iterator[None]:
+    """Our handlers for the run, and the caller's back afterwards (main() also runs in-process)."""
+    _received.clear()
+    previous = {signum: signal.signal(signum, _on_signal) for signum in SIGNAL_EXITS}
+    previous_hook, sys.unraisablehook = sys.unraisablehook, _deliver_again_if_swallowed
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        sys.unraisablehook = previous_hook
+
+
+def _fail_stopped() -> None:
+    """The one line for a run stopped by a signal (Ctrl-C when typer swallowed which one)."""
+    _fail(*SIGNAL_EXITS[_received[0] if _received else signal.SIGINT])
 
 
 def _usage_message(exc: ClickException) -> str:
@@ -94,8 +109,11 @@ def main(argv: list[str] | None = None) -> None:
         argv = ["--debug", *(a for a in argv if a != "--debug")]
     else:
         _quiet_opencv()
-    _received.clear()
-    _stop_by_unwinding_on_signals()
+    with _stop_by_unwinding_on_signals():
+        _run(argv)
+
+
+def _run(argv: list[str]) -> None:
     try:
         code = app(args=argv, prog_name="mosaic", standalone_mode=False)
     except ClickException as exc:  # a usage error: unknown option, bad value, missing argument
@@ -107,19 +125,19 @@ def main(argv: list[str] | None = None) -> None:
     except (KeyboardInterrupt, typer.Abort):
         if DEBUG["on"]:
             raise
-        _fail(*SIGNAL_EXITS[_received[0] if _received else signal.SIGINT])
+        _fail_stopped()
     except SystemExit:
         raise
     except Exception as exc:
         if DEBUG["on"]:
             raise
         if _received:  # a signal that cut an import or a library call short, whatever it raised
-            _fail(*SIGNAL_EXITS[_received[0]])
+            _fail_stopped()
         if isinstance(exc, OSError) and exc.strerror:  # the machine's, not a bug: disk full, I/O error
             _fail(f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror, EXIT_FAILED)
         _fail(f"{exc.__class__.__name__}: {exc} (run with --debug for the traceback)", EXIT_FAILED)
     if _received or code == EXIT_INTERRUPTED:  # typer turns a KeyboardInterrupt into status 130 on its own
-        _fail(*SIGNAL_EXITS[_received[0] if _received else signal.SIGINT])
+        _fail_stopped()
     raise SystemExit(code or 0)
 
 

@@ -73,31 +73,32 @@ class VideoWriter:
         self._tmp: Path | None = None
         self._encoder: subprocess.Popen | None = None
         self._log = None
+        source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
+        audio = None if source_audio is None else (str(audio_from), audio_codec or self._audio_codec_for(source_audio))
         try:  # until the writer is returned, no ``with`` block will remove the file: this one does
             # Signals wait until the file and the encoder are both in hand: a Ctrl-C inside Popen
             # would lose the encoder, which would then make the file again after it was removed.
             with signals_held():
                 self._tmp = temporary_beside(self.path, f".part{self.path.suffix or '.mp4'}")
-                self._start_encoder(fps, crf, preset, audio_from, audio_codec)
+                self._start_encoder(fps, crf, preset, audio)
         except BaseException:
             self.abort()
             raise
         self.frames_written = 0
 
-    def _start_encoder(self, fps: float, crf: int, preset: str, audio_from, audio_codec: str | None) -> None:
+    def _start_encoder(self, fps: float, crf: int, preset: str, audio: tuple[str, str] | None) -> None:
         """ffmpeg reading raw frames on its stdin, in its own session: the terminal's Ctrl-C
-        reaches mosaic alone, which then stops it (it inherits the held signals, and needs none)."""
+        reaches mosaic alone, which then stops it (it inherits the held signals, and needs none).
+        ``audio``: (the file whose first audio stream is carried, the codec: "copy" or one to encode)."""
         w, h = self.out_size
         cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-hide_banner", "-v", "error",
                "-f", "rawvideo", "-pix_fmt", self.pix_fmt_in, "-s", f"{w}x{h}", "-r", str(Fraction(fps).limit_denominator()),
                "-i", "-"]
-        source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
-        if source_audio is None:
+        if audio is None:
             cmd += ["-an"]
         else:
             # The video may be shorter than the source (a --max-frames run): end with it.
-            cmd += ["-i", str(audio_from), "-map", "0:v:0", "-map", "1:a:0",
-                    "-acodec", audio_codec or self._audio_codec_for(source_audio), "-shortest"]
+            cmd += ["-i", audio[0], "-map", "0:v:0", "-map", "1:a:0", "-acodec", audio[1], "-shortest"]
         cmd += ["-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-preset", preset,
                 "-movflags", "+faststart", str(self._tmp)]
         self._log = tempfile.TemporaryFile()  # ffmpeg's complaints, for the error message
