@@ -292,6 +292,22 @@ def test_a_short_cpu_run_lowers_the_photometric_loss_clearly(tmp_path, pan_clips
     assert err < 0.5 * corner_error(np.eye(3), truth, WORK)
 
 
+def test_resume_refuses_a_damaged_checkpoint_in_one_line(tmp_path, pan_clips, capsys):
+    """A checkpoint cut short by a full disk, say (mosaic's own writes are atomic): --resume names
+    the damaged file and says what to do, and writes nothing."""
+    args = ["train", str(pan_clips), "--steps", "2", "--batch-size", "2", "--num-workers", "0", *SMALL, "-o", str(tmp_path / "run")]
+    code, err = cli_in_process(capsys, *args)
+    assert code == 0, err
+    checkpoint = tmp_path / "run" / "checkpoint.safetensors"
+    checkpoint.write_bytes(checkpoint.read_bytes()[:1000])
+    before = sorted(p.name for p in (tmp_path / "run").iterdir())
+    code, err = cli_in_process(capsys, *args[:-2], "--steps", "4", "-o", str(tmp_path / "run"), "--resume")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert lines[0].startswith("mosaic: error: ") and "checkpoint.safetensors: damaged" in lines[0] and "--resume" in lines[0]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == before
+
+
 def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one(tmp_path, pan_clips, capsys):
     args = ["train", str(pan_clips), "--steps", "40", "--batch-size", "8", "--num-workers", "1",
             "--checkpoint-every", "1000", *SMALL]

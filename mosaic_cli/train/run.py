@@ -100,6 +100,9 @@ def load_checkpoint(run: RunDir, state: dict, device: torch.device):
         if not path.is_file():
             raise BadInput(f"{run.root}: {path.name} is missing; cannot resume")
         found = _metadata_step(path)
+        if found is None:
+            raise BadInput(f"{path}: damaged (not a readable mosaic checkpoint); cannot resume "
+                           "(start again without --resume, or --init from a weights file)")
         if found != step:
             raise ProcessingError(
                 f"{run.root}: {path.name} is from step {found} but state.json from step {step} "
