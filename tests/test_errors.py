@@ -128,6 +128,7 @@ def test_bad_option_values(capsys, workdir, clip, args, message):
     (["track", "{clip}", "-o", "{out}", "--no-such-option"], ["--no-such-option"]),
     (["no-such-command"], ["no-such-command", "mosaic --help"]),
     (["simulate", "-o", "{out}", "--seed", "-1"], ["--seed"]),
+    (["stabilize", "{clip}", "{out}.mp4", "-e", "orb", "--radius", "0"], ["--radius"]),
 ])
 def test_usage_errors_are_one_line_too(capsys, workdir, clip, args, fragments):
     """Click's own errors (a value of the wrong type, a missing argument, an unknown option or

@@ -16,7 +16,7 @@ def stabilize(
     video: Path = typer.Argument(..., help="Input video file or folder of numbered images."),
     out: Path = typer.Argument(..., help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio."),
     smoothing: str = typer.Option("l1", "--smoothing", help="l1 (L1-optimal camera path) or gaussian."),
-    radius: int = typer.Option(30, "--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3)."),
+    radius: int = typer.Option(30, "--radius", min=1, help="Gaussian smoothing radius in frames (sigma = radius / 3)."),
     model: str = typer.Option("similarity", "--model", help="Motion model of the correction: similarity, affine or homography."),
     crop: str = typer.Option("auto", "--crop", help="auto (zoom just enough that no border shows) or the share of "
                              "width and height to keep, 0.5..1 (borders may then show, filled as --border says)."),
