@@ -44,7 +44,7 @@ from mosaic_cli.estimators.refine import (
 from mosaic_cli.geometry import frame_corners, is_valid
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, transform_points
-from mosaic_cli.model.quantize import quantized_features
+from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
 
 KINDS = ("lstm", "cnn")
@@ -58,9 +58,9 @@ class LearnedConfig:
     patches: int = 1  # 1: the centre patch (paper); 5: centre + 4 corners; 9: a 3x3 grid
     chunk: int = 16  # frame pairs per backbone batch (larger on a GPU)
     reset_every: int | None = None  # LSTM: restart from a zero state every K pairs (None: never)
-    # The feature extractor's arithmetic: "auto" is int8 on a CPU when the weights carry
-    # calibrated ranges (4x faster convolutions; offsets within a few hundredths of a working px
-    # of fp32's), fp32 otherwise and on GPUs.
+    # The network's arithmetic: "auto" is int8 on a CPU when the weights carry calibrated ranges
+    # (4x faster convolutions; offsets within a few hundredths of a working px of fp32's; the
+    # LSTM's weights too, 10x faster), fp32 otherwise and on GPUs.
     precision: str = "auto"
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
@@ -167,6 +167,7 @@ class LearnedEstimator(Estimator):
                 int8 = quantized_features(self.model, meta.get("int8"))
                 if int8 is not None:
                     self._features, self.precision = int8, "int8"
+                    self.model = quantized_head(self.model) or self.model
         if self.config.precision == "int8" and self.precision != "int8":
             raise BadInput("int8 needs a CPU with an int8 engine and weights with calibrated ranges "
                            "(mosaic train writes them; scripts/calibrate_int8.py adds them)")

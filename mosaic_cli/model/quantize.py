@@ -10,7 +10,12 @@ loading is deterministic and needs no data:
     quantized_features(model, ranges) -> a module (N, 2, P, P) -> (N, F), or None where the
                                         platform has no int8 engine or the ranges do not fit
 
-The LSTM and the regressor stay in fp32: they are a small part of the cost and carry state.
+    quantized_head(model)            -> a copy of ``model`` whose LSTM has int8 weights
+                                        (dynamic: activations quantised on the fly, so no
+                                        ranges are needed), or None where there is none
+
+Stepped one 16-pair chunk at a time, the LSTM reads its 4 MB of weights once a pair: in int8 a
+chunk took 0.55 ms instead of 5.5 on the development machine.  The regressor stays in fp32.
 """
 
 from __future__ import annotations
@@ -116,6 +121,18 @@ def quantized_features(model: HomographyNet, ranges: dict | None) -> nn.Module |
         return convert_fx(prepared).eval()
 
 
+def quantized_head(model: HomographyNet) -> HomographyNet | None:
+    """A copy of ``model`` with its LSTM's weights in int8; None without an LSTM or an int8 engine."""
+    from torch.ao.quantization import quantize_dynamic
+
+    if model.lstm is None or engine() is None:
+        return None
+    torch.backends.quantized.engine = engine()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch.ao announces its move to torchao
+        return quantize_dynamic(copy.deepcopy(model).cpu().eval(), {nn.LSTM}, dtype=torch.qint8)
+
+
 def sample_pairs(windows, count: int, seed: int = 0) -> Tensor:
     """``count`` patch pairs (N, 2, P, P) in [-1, 1] from a training dataset whose items are
     ``{"frames": (K, 1, h, w) uint8, "positions": (M, 2)}`` windows: consecutive frames, the
@@ -135,4 +152,4 @@ def sample_pairs(windows, count: int, seed: int = 0) -> Tensor:
     return torch.stack(pairs)
 
 
-__all__ = ["RANGES_FORMAT", "engine", "calibrate", "quantized_features", "sample_pairs"]
+__all__ = ["RANGES_FORMAT", "engine", "calibrate", "quantized_features", "quantized_head", "sample_pairs"]
