@@ -1,4 +1,4 @@
-"""int8 inference of the feature extractor (backbone + first Linear) on CPUs.
+"""int8 inference on CPUs: the feature extractor (backbone + first Linear), and the LSTM's weights.
 
 The convolutions are most of a pair's cost on a CPU (4 ms of the compact net's 4.5 ms on one
 core of the development machine); PyTorch's int8 kernels (x86/fbgemm, or qnnpack on ARM) run them
@@ -130,7 +130,7 @@ def quantized_head(model: HomographyNet) -> HomographyNet | None:
     torch.backends.quantized.engine = engine()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torch.ao announces its move to torchao
-        return quantize_dynamic(copy.deepcopy(model).cpu().eval(), {nn.LSTM}, dtype=torch.qint8)
+        return quantize_dynamic(model.eval(), {nn.LSTM}, dtype=torch.qint8)  # a copy: not in place
 
 
 def sample_pairs(windows, count: int, seed: int = 0) -> Tensor:
