@@ -396,6 +396,7 @@ def run_flights(
     for label, est in built.items():
         widths.setdefault(est.input_width, []).append(label)
     scores: dict[str, list[FlightScore]] = {label: [] for label in built}
+    paths: dict[str, dict[str, int]] = {label: {} for label in built}  # which path made each pair (learned)
     decode_ms: list[float] = []
     total = sum(f.gt.frames for f in flights) * len(built)
     with progress_task("bench", total, disable=not show_progress) as advance:
@@ -407,6 +408,8 @@ def run_flights(
                     advance(0, status=f"{label} on {flight.name}")
                     pairwise, times = time_estimator(built[label], frames, tuple(info.source_size), advance)
                     scores[label].append(score_flight(flight, pairwise, times))
+                    for path, count in getattr(built[label], "path_counts", {}).items():
+                        paths[label][path] = paths[label].get(path, 0) + count
                 del frames
     profiles = sorted({f.profile for f in flights}, key=lambda p: (PROFILE_ORDER.index(p) if p in PROFILE_ORDER else len(PROFILE_ORDER), p))
     results = {}
@@ -416,6 +419,8 @@ def run_flights(
         entry["per_flight"] = {r.flight: r.metrics for r in runs}
         entry["device"] = str(getattr(built[label], "device", "cpu"))
         entry["work_width"] = getattr(built[label], "work_width", None)
+        if paths[label]:
+            entry["paths"] = paths[label]
         results[label] = entry
     return {
         "version": 1,
@@ -430,7 +435,7 @@ def run_flights(
     }
 
 
-PROFILE_ORDER = ("paper", "fast", "hard")
+PROFILE_ORDER = ("paper", "survey", "fast", "shaky", "hard", "extreme")
 
 
 def _machine() -> dict:
@@ -452,20 +457,23 @@ def render_flights_table(report: dict):
     profiles = src["profiles"]
     table = Table(title=f"bench: {len(src['flights'])} flights in {src['path']} ({src['frames']} frames)", title_justify="left")
     table.add_column("estimator", no_wrap=True)
-    for col in ("MACE\nall", *[f"MACE\n{p}" for p in profiles], "corner px\nmedian", "failure\nrate",
-                "ms/frame\np50", "CPU ms/fr\np50"):
+    for col in ("MACE\nall", *[f"MACE / failed\n{p}" for p in profiles], "corner px\nmedian", "failure\nrate",
+                "fallback\npairs", "ms/frame\np50", "CPU ms/fr\np50"):
         table.add_column(col, justify="right", no_wrap=True)
 
     def num(v, fmt):
         return "-" if v is None else fmt.format(v)
 
     for label, e in report["estimators"].items():
+        paths = e.get("paths")
+        fallback = paths.get("fallback", 0) / max(1, sum(paths.values())) if paths else None
         table.add_row(
             label,
             num(e["mace"], "{:.2f}"),
-            *[num(e["profiles"][p]["mace"], "{:.2f}") for p in profiles],
+            *[f"{num(e['profiles'][p]['mace'], '{:.2f}')} / {e['profiles'][p]['failure_rate']:.1%}" for p in profiles],
             num(e["corner_error"], "{:.2f}"),
             num(e["failure_rate"], "{:.1%}"),
+            num(fallback, "{:.1%}"),
             num(e["ms_per_frame"]["p50"], "{:.2f}"),
             num(e["cpu_ms_per_frame"]["p50"], "{:.2f}"),
         )

@@ -73,7 +73,7 @@ def test_plan_api_and_pairwise_definition():
 
 @pytest.mark.parametrize(
     "profile,lo,hi",
-    [("paper", 1.0, 2.0), ("survey", 4.0, 7.0), ("fast", 10.0, 20.0), ("hard", 1.0, 2.0)],
+    [("paper", 1.0, 2.0), ("survey", 4.0, 7.0), ("fast", 10.0, 20.0), ("hard", 1.0, 2.0), ("extreme", 25.0, 60.0)],
 )
 def test_profile_speed_in_range(profile, lo, hi):
     plan = plan_flight((4096, 4096), profile, frames=300, size=SIZE, seed=11)
@@ -204,6 +204,23 @@ def test_hard_profile_effects_only_in_pixels(small_map):
     assert ref.map_to_frame.shape == plan.map_to_frame.shape
     again = list(render_frames(small_map, plan))
     assert all(np.array_equal(x, y) for x, y in zip(a, again))  # deterministic noise
+
+
+def test_extreme_profile_turns_fast_and_degrades_the_pixels_only():
+    """Yaw turns (degrees a frame well above the paper profile's 0.25), altitude changes, and
+    on a flat gray map the vignetting darkens the corners while the geometry stays exact."""
+    plan = plan_flight((4096, 4096), "extreme", frames=300, size=(1280, 720), seed=4)
+    angles = np.degrees(np.arctan2(plan.pairwise[:, 1, 0], plan.pairwise[:, 0, 0]))
+    assert np.abs(angles).max() > 0.5  # 15 degrees/s at 30 fps
+    scale = np.sqrt(np.abs(np.linalg.det(plan.map_to_frame[:, :2, :2])))
+    assert scale.max() / scale.min() > 1.2  # altitude changes of tens of percent
+    assert {"gain", "noise_sigma", "blur", "vignette", "contrast"} <= set(plan.effects)
+    gray = np.full((2048, 2048, 3), 128, np.uint8)
+    small = plan_flight((2048, 2048), "extreme", frames=3, size=(320, 180), seed=4)
+    frame = next(iter(render_frames(gray, small))).astype(float)
+    centre, corner = frame[70:110, 140:180].mean(), frame[:20, :20].mean()
+    assert corner < centre * (1 - 0.5 * small.effects["vignette"][0])
+    assert PROFILES["extreme"].crf > PROFILES["paper"].crf  # low-bitrate encoding by default
 
 
 def test_write_flight_and_ground_truth_round_trip(tmp_path, small_map):

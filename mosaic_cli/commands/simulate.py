@@ -26,12 +26,12 @@ def parse_size(text: str) -> tuple[int, int]:
 def simulate(
     map_image: Path | None = typer.Argument(None, help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map."),
     out: Path = typer.Option(..., "-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it."),
-    profile: str = typer.Option("paper", "--profile", "-p", help="paper, survey, fast, shaky or hard."),
+    profile: str = typer.Option("paper", "--profile", "-p", help="paper, survey, fast, shaky, hard or extreme."),
     frames: int = typer.Option(300, "--frames", "-n", help="Number of frames."),
     size: str = typer.Option("1280x720", "--size", help="Frame size WxH."),
     fps: float = typer.Option(30.0, "--fps", help="Frame rate."),
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed (path, map, effects)."),
-    crf: int = typer.Option(18, "--crf", help="H.264 quality (0-51, lower is better)."),
+    crf: int | None = typer.Option(None, "--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme."),
     preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
@@ -39,7 +39,9 @@ def simulate(
 
     Profiles: paper (1-2 px/frame, slow heading changes, altitude drift), survey (lawnmower
     lines that revisit the ground), fast (10-20 px/frame), shaky (paper + 3-8 Hz shake),
-    hard (paper + exposure drift, noise, motion blur).  Motion is in 1280x720-equivalent px.
+    hard (paper + exposure drift, noise, motion blur), extreme (25-60 px/frame, fast yaw turns
+    and altitude changes, exposure drift and jumps, noise, motion blur, vignetting, haze,
+    low-bitrate H.264).  Motion is in 1280x720-equivalent px.
     The exact homographies go to <stem>.gt.json: map_to_frame per frame and pairwise t -> t+1.
     """
     from mosaic_cli.atomic import check_writable

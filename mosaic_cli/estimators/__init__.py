@@ -22,8 +22,10 @@ DEFAULT_ESTIMATOR = "lstm"
 
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
-    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path},
-    "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path},
+    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path,
+             "seed": str, "prior": str, "fallback": str},
+    "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path,
+            "seed": str, "prior": str, "fallback": str},
     "orb": {"refine": str},
     "orb-ransac": {"refine": str},
 }

@@ -31,6 +31,7 @@ import torch
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, PairEstimate
+from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.estimators.refine import (
     POLISHERS,
     CornerConfig,
@@ -48,6 +49,10 @@ from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
 
 KINDS = ("lstm", "cnn")
+SEEDS = ("network", "identity", "velocity")
+PRIORS = ("velocity", "none")
+FALLBACKS = ("orb", "none")
+PATHS = ("learned", "fallback", "failed")  # which path produced a pair, counted in ``path_counts``
 PRECISIONS = ("auto", "int8", "fp32")
 PATCH_LAYOUTS = (1, 5, 9)
 REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -92,6 +97,17 @@ class LearnedConfig:
     # stitch and stabilize treat it as one.  On the 15 development flights the lowest ZNCC of a
     # registered pair was 0.44 (noisy `hard` frames); a cut to unrelated ground scores ~0.001.
     min_zncc: float | None = 0.1  # None: never
+    # What seeds the polish: "network" (the product), or for the ablations the identity or the
+    # previous pair's motion (constant velocity), with everything else unchanged.
+    seed: str = "network"
+    # The sequential estimator's motion prior: "velocity" pre-aligns frame t+1 by the last
+    # confirmed pair's motion before the network reads it, so that the network regresses only what
+    # changed (acceleration, turns) and the LSTM's state carries the flight's dynamics; "none"
+    # reads the raw pair, as the paper's BASE does.  None: "velocity" for lstm, "none" for cnn.
+    prior: str | None = None
+    # When the learned path cannot confirm a pair (the polish fails or its detail does not
+    # correlate), the classical estimator (ORB + the same polish) tries that pair: "orb" or "none".
+    fallback: str = "orb"
 
 
 @dataclass
@@ -103,6 +119,8 @@ class WorkFrame:
     textured: bool | None = None
     points: np.ndarray | None = None  # Shi-Tomasi corners to track (LK polish)
     aligned: np.ndarray | None = None  # the image the polish aligns (band-passed gray)
+    detail: np.ndarray | None = None  # fine detail (gray minus its 5x5 mean), for the ZNCC check
+    features: tuple | None = None  # ORB keypoints and descriptors, when the fallback needed them
 
 
 def resolve_device(device: str | None) -> torch.device:
@@ -157,6 +175,12 @@ class LearnedEstimator(Estimator):
             raise BadInput(f"reset-every must be at least 1 frame pair, got {self.config.reset_every}")
         if self.config.precision not in PRECISIONS:
             raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.config.precision!r}")
+        if self.config.seed not in SEEDS:
+            raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.config.seed!r}")
+        if self.config.prior not in (None, *PRIORS):
+            raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.config.prior!r}")
+        if self.config.fallback not in FALLBACKS:
+            raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.config.fallback!r}")
         self.device = resolve_device(device)
         self.model = model.to(self.device).eval()
         self.precision = "fp32"
@@ -173,9 +197,16 @@ class LearnedEstimator(Estimator):
                            "(mosaic train writes them; scripts/calibrate_int8.py adds them)")
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
+        prior = self.config.prior or ("velocity" if model.config.head == "lstm" else "none")
+        # Pair by pair when each pair needs the previous one's result; in chunks otherwise.
+        self._sequential = prior == "velocity" or self.config.seed == "velocity"
+        self._prior_warp = prior == "velocity" and self.config.seed == "network"
+        self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
         self._state = None
         self._pairs_done = 0
+        self._motion = np.eye(3)
+        self.path_counts = dict.fromkeys(PATHS, 0)
 
     def reset(self, full_size: tuple[int, int]) -> None:
         super().reset(full_size)
@@ -193,6 +224,10 @@ class LearnedEstimator(Estimator):
         self._pending = []
         self._state = None
         self._pairs_done = 0
+        self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
+        self.path_counts = dict.fromkeys(PATHS, 0)
+        if self._fallback is not None:
+            self._fallback.reset(full_size)
 
     # Streaming ----------------------------------------------------------------------------
 
@@ -200,7 +235,7 @@ class LearnedEstimator(Estimator):
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
         self._pending.append(WorkFrame(self.prepare(frame)))
-        if len(self._pending) - 1 >= self.config.chunk:
+        if len(self._pending) - 1 >= (1 if self._sequential else self.config.chunk):
             return self._run_chunk()
         return []
 
@@ -210,26 +245,66 @@ class LearnedEstimator(Estimator):
     def _run_chunk(self) -> list[PairEstimate]:
         frames = self._pending
         self._pending = [frames[-1]]  # the last frame starts the next chunk's first pair
-        grays = [f.gray for f in frames]
-        H_patches, offsets_ok = self._predict(grays)
-        H_net, agreement = self._consensus(H_patches)
         for f in frames:
             self._describe(f)
-        polished = []
-        for k, (prev, cur) in enumerate(zip(frames[:-1], frames[1:])):
-            usable = offsets_ok[k] and prev.textured and cur.textured
-            valid = usable and is_valid(H_net[k], self.work_size, max_area_ratio=self.config.max_area_ratio)
-            polished.append(self._polish(prev, cur, H_net[k]) if valid else None)
-        zncc = self._zncc(grays, np.stack([p.H if p is not None else np.eye(3) for p in polished]))
-        out = []
-        for k, p in enumerate(polished):
-            unrelated = self.config.min_zncc is not None and zncc[k] < self.config.min_zncc
-            if p is None or unrelated:
-                out.append(PairEstimate.failed())
-                continue
-            confidence = max(0.0, float(zncc[k])) * float(agreement[k]) * self._polish_weight(p)
-            out.append(self._to_full(p.H, confidence))
-        return out
+        if self._sequential:
+            return [self._run_pair(frames[0], frames[1])]
+        seeds, offsets_ok, agreement = self._seeds([f.gray for f in frames])
+        return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k])
+                for k, (prev, cur) in enumerate(zip(frames[:-1], frames[1:]))]
+
+    def _seeds(self, grays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The polish's seeds (n, 3, 3) for the n pairs of ``grays``, whether the network's
+        offsets were finite, and how much its patches agreed."""
+        n = len(grays) - 1
+        if self.config.seed == "identity":
+            return np.repeat(np.eye(3)[None], n, 0), np.ones(n, bool), np.ones(n)
+        H_patches, offsets_ok = self._predict(grays)
+        H_net, agreement = self._consensus(H_patches)
+        return H_net, offsets_ok, agreement
+
+    def _run_pair(self, prev: WorkFrame, cur: WorkFrame) -> PairEstimate:
+        """One pair with the motion prior: the network reads frame t+1 pre-aligned by the last
+        confirmed motion P and regresses the rest R, so frame t -> t+1 is P @ R."""
+        prior = self._motion
+        if self.config.seed == "velocity":
+            return self._finish_pair(prev, cur, prior, True, 1.0)
+        if not self._prior_warp:
+            seeds, ok, agreement = self._seeds([prev.gray, cur.gray])
+            return self._finish_pair(prev, cur, seeds[0], ok[0], agreement[0])
+        aligned = cv2.warpPerspective(cur.gray, prior, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                      borderMode=cv2.BORDER_REPLICATE)
+        residual, ok, agreement = self._seeds([prev.gray, aligned])
+        return self._finish_pair(prev, cur, prior @ residual[0], ok[0], agreement[0])
+
+    def _finish_pair(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, offsets_ok: bool, agreement: float) -> PairEstimate:
+        """Polish the seed, confirm it by the correlation of the registered detail, and where the
+        learned path cannot confirm the pair, let the classical fallback try it."""
+        usable = bool(offsets_ok) and prev.textured and cur.textured
+        valid = usable and is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio)
+        polished = self._polish(prev, cur, seed) if valid else None
+        zncc = self._zncc(prev, cur, polished.H) if polished is not None else 0.0
+        related = self.config.min_zncc is None or zncc >= self.config.min_zncc
+        confirmed = polished is not None and related and (polished.refined or self.config.refine is None)
+        if not confirmed and self._fallback is not None and prev.textured and cur.textured:
+            for f in (prev, cur):
+                if f.features is None:
+                    f.features = self._fallback._describe(f.gray)
+            H_orb, orb_confidence = self._fallback.register(prev.gray, cur.gray, prev.features, cur.features)
+            if H_orb is not None and np.all(np.isfinite(H_orb)):
+                return self._result(H_orb, orb_confidence, "fallback")
+        if polished is None or not related:
+            return self._result(None, 0.0, "failed")
+        confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
+        return self._result(polished.H, confidence, "learned")
+
+    def _result(self, H_work: np.ndarray | None, confidence: float, path: str) -> PairEstimate:
+        self.path_counts[path] += 1
+        if H_work is None:
+            return PairEstimate.failed()
+        if confidence > 0:
+            self._motion = H_work
+        return self._to_full(H_work, confidence)
 
     def _describe(self, frame: WorkFrame) -> None:
         """Whether the frame has texture to register (black, blown-out, flat or badly blurred
@@ -318,27 +393,25 @@ class LearnedEstimator(Estimator):
         agreement = 1.0 / (1.0 + (spread / self.config.agreement_px) ** 2)
         return H.cpu().numpy(), agreement.cpu().numpy()
 
-    def _zncc(self, frames: list[np.ndarray], H_work: np.ndarray) -> np.ndarray:
-        """Zero-normalised cross-correlation, per pair, between the fine detail (image minus its
-        5x5 mean) of the patches of frame t and of frame t+1 sampled through the estimate, on
-        pixels whose every bilinear tap lies inside frame t+1, averaged over the patches.  Detail
-        decorrelates within a pixel or two of misregistration (measured on a virtual flight: 0.94
-        registered, 0.58 one pixel off, ~0 unregistered), where raw intensities still correlate
-        at 0.5; and a textureless patch scores low, as it should.  On the CPU with OpenCV, per
-        pair, after the polish (cheaper than the network's device for 128x128 patches)."""
-        detail = [frame.astype(np.float32) - cv2.blur(frame.astype(np.float32), (5, 5)) for frame in frames]
-        ones = np.ones(frames[0].shape, np.float32)
+    def _zncc(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
+        """Zero-normalised cross-correlation between the fine detail (image minus its 5x5 mean)
+        of the patches of frame t and of frame t+1 sampled through ``H``, on pixels whose every
+        bilinear tap lies inside frame t+1, over all patches.  Detail decorrelates within a pixel
+        or two of misregistration, where raw intensities still correlate, and a textureless patch
+        scores low, as it should (docs in models/README.md)."""
+        for f in (prev, cur):
+            if f.detail is None:
+                g = f.gray.astype(np.float32)
+                f.detail = g - cv2.blur(g, (5, 5))
+        ones = np.ones(prev.gray.shape, np.float32)
         P = self.patch
-        scores = np.zeros(len(H_work))
-        for k, H in enumerate(H_work):
-            target, warped = [], []
-            for x, y in self.positions:
-                to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-                valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
-                target.append(detail[k][y : y + P, x : x + P][valid])
-                warped.append(_sample(detail[k + 1], to_next, P)[valid])
-            scores[k] = _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
-        return scores
+        target, warped = [], []
+        for x, y in self.positions:
+            to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
+            valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
+            target.append(prev.detail[y : y + P, x : x + P][valid])
+            warped.append(_sample(cur.detail, to_next, P)[valid])
+        return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
