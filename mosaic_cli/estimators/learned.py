@@ -198,8 +198,6 @@ class LearnedEstimator(Estimator):
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
         prior = self.config.prior or ("velocity" if model.config.head == "lstm" else "none")
-        # Pair by pair when each pair needs the previous one's result; in chunks otherwise.
-        self._sequential = prior == "velocity" or self.config.seed == "velocity"
         self._prior_warp = prior == "velocity" and self.config.seed == "network"
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
@@ -235,7 +233,7 @@ class LearnedEstimator(Estimator):
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
         self._pending.append(WorkFrame(self.prepare(frame)))
-        if len(self._pending) - 1 >= (1 if self._sequential else self.config.chunk):
+        if len(self._pending) - 1 >= self.config.chunk:
             return self._run_chunk()
         return []
 
@@ -247,35 +245,30 @@ class LearnedEstimator(Estimator):
         self._pending = [frames[-1]]  # the last frame starts the next chunk's first pair
         for f in frames:
             self._describe(f)
-        if self._sequential:
-            return [self._run_pair(frames[0], frames[1])]
-        seeds, offsets_ok, agreement = self._seeds([f.gray for f in frames])
-        return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k])
-                for k, (prev, cur) in enumerate(zip(frames[:-1], frames[1:]))]
-
-    def _seeds(self, grays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The polish's seeds (n, 3, 3) for the n pairs of ``grays``, whether the network's
-        offsets were finite, and how much its patches agreed."""
-        n = len(grays) - 1
+        pairs = list(zip(frames[:-1], frames[1:]))
+        if self.config.seed == "velocity":  # each pair starts from the one before: no batch
+            return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
+        firsts, seconds = [f.gray for f in frames[:-1]], [f.gray for f in frames[1:]]
         if self.config.seed == "identity":
-            return np.repeat(np.eye(3)[None], n, 0), np.ones(n, bool), np.ones(n)
-        H_patches, offsets_ok = self._predict(grays)
+            seeds, offsets_ok, agreement = np.repeat(np.eye(3)[None], len(pairs), 0), np.ones(len(pairs), bool), np.ones(len(pairs))
+        elif self._prior_warp:
+            # The motion prior P (the last confirmed motion when the chunk starts): the network reads
+            # frame t+1 pre-aligned by P and regresses the rest R, so frame t -> t+1 is P @ R.
+            prior = self._motion
+            seconds = [cv2.warpPerspective(g, prior, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                           borderMode=cv2.BORDER_REPLICATE) for g in seconds]
+            residual, offsets_ok, agreement = self._network(firsts, seconds)
+            seeds = prior[None] @ residual
+        else:
+            seeds, offsets_ok, agreement = self._network(firsts, seconds)
+        return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
+
+    def _network(self, firsts: list[np.ndarray], seconds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The network's homographies (n, 3, 3) for the n pairs (firsts[k], seconds[k]), whether
+        its offsets were finite, and how much its patches agreed."""
+        H_patches, offsets_ok = self._predict(firsts, seconds)
         H_net, agreement = self._consensus(H_patches)
         return H_net, offsets_ok, agreement
-
-    def _run_pair(self, prev: WorkFrame, cur: WorkFrame) -> PairEstimate:
-        """One pair with the motion prior: the network reads frame t+1 pre-aligned by the last
-        confirmed motion P and regresses the rest R, so frame t -> t+1 is P @ R."""
-        prior = self._motion
-        if self.config.seed == "velocity":
-            return self._finish_pair(prev, cur, prior, True, 1.0)
-        if not self._prior_warp:
-            seeds, ok, agreement = self._seeds([prev.gray, cur.gray])
-            return self._finish_pair(prev, cur, seeds[0], ok[0], agreement[0])
-        aligned = cv2.warpPerspective(cur.gray, prior, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                      borderMode=cv2.BORDER_REPLICATE)
-        residual, ok, agreement = self._seeds([prev.gray, aligned])
-        return self._finish_pair(prev, cur, prior @ residual[0], ok[0], agreement[0])
 
     def _finish_pair(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, offsets_ok: bool, agreement: float) -> PairEstimate:
         """Polish the seed, confirm it by the correlation of the registered detail, and where the
@@ -343,14 +336,14 @@ class LearnedEstimator(Estimator):
         return w + (1.0 - w) * p.score if p.refined else w
 
     @torch.inference_mode()
-    def _predict(self, frames: list[np.ndarray]):
-        """Working-frame homographies (n, M, 3, 3) of every patch for the n pairs of ``frames``."""
-        stack = torch.from_numpy(np.stack(frames)).to(self.device, non_blocking=True)
-        frames_t = (stack.float() * (2.0 / 255.0) - 1.0).unsqueeze(1)  # (n+1, 1, h, w) in [-1, 1]
-        n, M = len(frames) - 1, len(self.positions)
-        pos = self._positions_t[None].expand(n + 1, M, 2)
-        crops = crop(frames_t, pos, self.patch)  # (n+1, M, 1, P, P)
-        pairs = torch.cat([crops[:-1], crops[1:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P)
+    def _predict(self, firsts: list[np.ndarray], seconds: list[np.ndarray]):
+        """Working-frame homographies (n, M, 3, 3) of every patch for the n pairs (firsts[k], seconds[k])."""
+        n, M = len(firsts), len(self.positions)
+        stack = torch.from_numpy(np.stack([*firsts, *seconds])).to(self.device, non_blocking=True)
+        frames_t = (stack.float() * (2.0 / 255.0) - 1.0).unsqueeze(1)  # (2n, 1, h, w) in [-1, 1]
+        pos = self._positions_t[None].expand(2 * n, M, 2)
+        crops = crop(frames_t, pos, self.patch)  # (2n, M, 1, P, P)
+        pairs = torch.cat([crops[:n], crops[n:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P)
         if self.device.type == "cpu" and self.precision == "fp32":
             pairs = pairs.contiguous(memory_format=torch.channels_last)
         feats = self._features(pairs).unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
