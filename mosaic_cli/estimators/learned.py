@@ -1,22 +1,26 @@
 """The paper's learned estimator at test time: a trained :class:`HomographyNet` run over a video.
 
     frame -> gray, working size (320 px wide), [-1, 1]
-          -> every ``chunk`` frame pairs: cut the patch pairs (the centre 128x128, as the paper,
-             or several places), backbone on the whole chunk in one batch (on a CPU in int8
+          -> every ``chunk`` frame pairs: frame t+1 pre-aligned by the motion prior P (lstm: the
+             last confirmed motion; cnn: none), the patch pairs cut (the centre 128x128, as the
+             paper, or several places), backbone on the whole chunk in one batch (on a CPU in int8
              when the weights carry calibrated ranges, see mosaic_cli.model.quantize; else fp32
              channels-last)
           -> LSTM stepped pair by pair with (h, c) carried through the whole video
-          -> offsets -> DLT -> homography of the working frame, frame t -> t+1
+          -> offsets -> DLT -> residual R of the working frame; the network's estimate is P @ R,
+             frame t -> t+1
           -> several patches: consensus (per-corner median of where the frame corners go)
           -> polish, per pair, seeded by the network (default "lk": Shi-Tomasi corners of frame t
              tracked into frame t+1 by pyramidal Lucas-Kanade on band-passed frames, starting
-             where the network puts them, robust refit; the network's estimate is kept when the
-             polish fails or wanders off; see :mod:`.refine`)
+             where the network puts them, robust refit; see :mod:`.refine`)
+          -> confirmed when the polish agreed and the registered detail correlates (ZNCC); else
+             the classical fallback (ORB + its polish) tries the pair
           -> confidence (ZNCC of the registered patches x agreement between patches x how much
-             of the polish agreed)
+             of the polish agreed), or ORB's when the fallback made the pair
           -> invalid, a frame without texture, or detail that does not correlate once registered
-             (unrelated ground) -> identity with confidence 0; else
+             (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
+    ``path_counts`` says which path made each pair: learned, fallback or failed.
 """
 
 from __future__ import annotations
@@ -60,53 +64,48 @@ REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
 
 @dataclass
 class LearnedConfig:
+    """The learned estimator's options (``-e lstm:OPTION=VALUE``).  The measurements behind
+    each default are in models/README.md ("Why these defaults")."""
+
     patches: int = 1  # 1: the centre patch (paper); 5: centre + 4 corners; 9: a 3x3 grid
     chunk: int = 16  # frame pairs per backbone batch (larger on a GPU)
     reset_every: int | None = None  # LSTM: restart from a zero state every K pairs (None: never)
     # The network's arithmetic: "auto" is int8 on a CPU when the weights carry calibrated ranges
-    # (4x faster convolutions; offsets within a few hundredths of a working px of fp32's; the
-    # LSTM's weights too, 10x faster), fp32 otherwise and on GPUs.
+    # (the convolutions and the LSTM's weights; offsets stay within hundredths of a working px of
+    # fp32's), fp32 otherwise and on GPUs.
     precision: str = "auto"
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
     refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
-    # The network's estimate is usually within a working px or two, like ORB's feature fit, but
-    # can be several px off: a cheap polish first (1 pyramid level), and where it fails a
-    # deeper pyramid with a longer leash (with only 2 levels and 4 px, the BASE network's worst
-    # pairs on a fast development flight stayed unpolished: MACE 30 -> 1.0 with the retry).
-    # Window and point count: 11 px and 200 corners instead of 15 and 300 cost 1 CPU ms a frame
-    # less (4.4 -> 3.4) for MACE 0.72 -> 0.76 on the development flights.
+    # The network's estimate is usually within a working px or two, but can be several px off: a
+    # cheap polish first (1 pyramid level), and where it fails a deeper pyramid with a longer leash.
     polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
     polish_wide: PolishConfig | None = field(default_factory=lambda: PolishConfig(window=11, levels=3, max_shift=8.0))
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
-    # Chosen on the 15 development flights, seeded by the BASE network (pooled MACE, plain
-    # frames -> band-passed): paper 2.01 -> 0.58, hard 3.24 -> 0.78, fast 1.01 -> 0.79
     # None: plain frames.
     polish_band: tuple[float, float] | None = (1.5, 6.0)
-    # ...but only for video at least this many times wider than the working frame.  Frames that
-    # already are at the working size keep their finest detail, which is then real: on a
-    # 320x180 procedural flight the band-pass left a median pair error of 0.28 px, plain frames
-    # 0.06 px (tests/test_track.py), while the 1280x720 development flights above need it.
+    # ...but only for video at least this many times wider than the working frame: frames that
+    # already are at the working size keep their finest detail, which is then real.
     polish_band_min_downscale: float = 2.0
     corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_points=200))
     unpolished_weight: float = 0.5  # confidence factor of an estimate the polish could not confirm
     # Registered detail that correlates less than this is unrelated ground (a cut, a swapped
     # camera): the pair is reported as failed (identity, confidence 0), as ORB does, so that
-    # stitch and stabilize treat it as one.  On the 15 development flights the lowest ZNCC of a
-    # registered pair was 0.44 (noisy `hard` frames); a cut to unrelated ground scores ~0.001.
+    # stitch and stabilize treat it as one.  Registered noisy frames score far above it, a cut
+    # to unrelated ground far below.
     min_zncc: float | None = 0.1  # None: never
     # What seeds the polish: "network" (the product), or for the ablations the identity or the
     # previous pair's motion (constant velocity), with everything else unchanged.
     seed: str = "network"
     # The sequential estimator's motion prior: "velocity" pre-aligns frame t+1 by the last
-    # confirmed pair's motion before the network reads it, so that the network regresses only what
-    # changed (acceleration, turns) and the LSTM's state carries the flight's dynamics; "none"
-    # reads the raw pair, as the paper's BASE does.  None: "velocity" for lstm, "none" for cnn.
+    # confirmed motion (as the chunk starts) before the network reads it, so that the network
+    # regresses only what changed (acceleration, turns) and a fast flight looks like a slow one;
+    # "none" reads the raw pair, as the paper's BASE does.  None: "velocity" for lstm, "none" for cnn.
     prior: str | None = None
     # When the learned path cannot confirm a pair (the polish fails or its detail does not
-    # correlate), the classical estimator (ORB + the same polish) tries that pair: "orb" or "none".
+    # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
     fallback: str = "orb"
 
 
