@@ -86,8 +86,9 @@ for map in "${train_maps[@]}"; do
       --size 640x360 --seed "$seed" --preset veryfast --quiet
   done
 done
-# (SOAP_061 is too small for the extreme profile's altitude changes at 1280x720.)
-extreme_maps=("${dev_maps[@]:0:4}" "${lowtex_maps[@]}")
+# (The Boruszyn orthomosaic and SOAP_061, a few hundred px once cropped, are too small for the
+# extreme profile's altitude changes at 1280x720.)
+extreme_maps=("${dev_maps[@]:1:3}" "${lowtex_maps[@]}")
 for split in dev test; do
   for map in "${extreme_maps[@]}"; do
     name=$(basename "${map%.*}")
