@@ -241,8 +241,8 @@ def errors_against(H, truth):
 
 
 def test_the_motion_prior_lets_a_short_sighted_net_follow_a_fast_pan(fast_panning):
-    """The sequential estimator pre-aligns frame t+1 by the last confirmed motion, so its network
-    only has to see what changed: a net that sees 3 px tracks an 18 px/frame pan once the motion
+    """prior=velocity pre-aligns frame t+1 by the last confirmed motion, so the network only has
+    to see what changed: a net that sees 3 px tracks an 18 px/frame pan once the motion
     is known (here from the classical fallback on the first chunk), and without the prior it cannot."""
     truth = translation(*FAST_FULL)
     with_prior = phase_estimator(bias=short_sighted, prior="velocity", fallback="orb", refine="lk", chunk=3)

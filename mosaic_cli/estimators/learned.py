@@ -1,14 +1,13 @@
 """The paper's learned estimator at test time: a trained :class:`HomographyNet` run over a video.
 
     frame -> gray, working size (320 px wide), [-1, 1]
-          -> every ``chunk`` frame pairs: frame t+1 pre-aligned by the motion prior P (lstm: the
-             last confirmed motion; cnn: none), the patch pairs cut (the centre 128x128, as the
+          -> every ``chunk`` frame pairs: (with prior=velocity, frame t+1 pre-aligned by the last
+             confirmed motion P), the patch pairs cut (the centre 128x128, as the
              paper, or several places), backbone on the whole chunk in one batch (on a CPU in int8
              when the weights carry calibrated ranges, see mosaic_cli.model.quantize; else fp32
              channels-last)
           -> LSTM stepped pair by pair with (h, c) carried through the whole video
-          -> offsets -> DLT -> residual R of the working frame; the network's estimate is P @ R,
-             frame t -> t+1
+          -> offsets -> DLT -> homography of the working frame, frame t -> t+1 (P @ it with a prior)
           -> several patches: consensus (per-corner median of where the frame corners go)
           -> polish, per pair, seeded by the network (default "lk": Shi-Tomasi corners of frame t
              tracked into frame t+1 by pyramidal Lucas-Kanade on band-passed frames, starting
@@ -99,11 +98,11 @@ class LearnedConfig:
     # What seeds the polish: "network" (the product), or for the ablations the identity or the
     # previous pair's motion (constant velocity), with everything else unchanged.
     seed: str = "network"
-    # The sequential estimator's motion prior: "velocity" pre-aligns frame t+1 by the last
-    # confirmed motion (as the chunk starts) before the network reads it, so that the network
-    # regresses only what changed (acceleration, turns) and a fast flight looks like a slow one;
-    # "none" reads the raw pair, as the paper's BASE does.  None: "velocity" for lstm, "none" for cnn.
-    prior: str | None = None
+    # A motion prior: "velocity" pre-aligns frame t+1 by the last confirmed motion (as the chunk
+    # starts) before the network reads it, so that the network regresses only what changed;
+    # "none" reads the raw pair, as the paper does.  A network trained on fast flights needs no
+    # prior, and a prior a chunk old misleads it (models/README.md): "none" by default.
+    prior: str = "none"
     # When the learned path cannot confirm a pair (the polish fails or its detail does not
     # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
     fallback: str = "orb"
@@ -176,7 +175,7 @@ class LearnedEstimator(Estimator):
             raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.config.precision!r}")
         if self.config.seed not in SEEDS:
             raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.config.seed!r}")
-        if self.config.prior not in (None, *PRIORS):
+        if self.config.prior not in PRIORS:
             raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.config.prior!r}")
         if self.config.fallback not in FALLBACKS:
             raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.config.fallback!r}")
@@ -196,8 +195,7 @@ class LearnedEstimator(Estimator):
                            "(mosaic train writes them; scripts/calibrate_int8.py adds them)")
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
-        prior = self.config.prior or ("velocity" if model.config.head == "lstm" else "none")
-        self._prior_warp = prior == "velocity" and self.config.seed == "network"
+        self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
         self._state = None
