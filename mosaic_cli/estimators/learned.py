@@ -47,7 +47,7 @@ from mosaic_cli.estimators.refine import (
 )
 from mosaic_cli.geometry import frame_corners, is_valid
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, transform_points
+from mosaic_cli.model.dlt import dlt, offsets_to_homography, transform_points
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
 
@@ -335,12 +335,11 @@ class LearnedEstimator(Estimator):
     @torch.inference_mode()
     def _predict(self, firsts: list[np.ndarray], seconds: list[np.ndarray]):
         """Working-frame homographies (n, M, 3, 3) of every patch for the n pairs (firsts[k], seconds[k])."""
-        n, M = len(firsts), len(self.positions)
-        stack = torch.from_numpy(np.stack([*firsts, *seconds])).to(self.device, non_blocking=True)
-        frames_t = (stack.float() * (2.0 / 255.0) - 1.0).unsqueeze(1)  # (2n, 1, h, w) in [-1, 1]
-        pos = self._positions_t[None].expand(2 * n, M, 2)
-        crops = crop(frames_t, pos, self.patch)  # (2n, M, 1, P, P)
-        pairs = torch.cat([crops[:n], crops[n:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P)
+        n, M, P = len(firsts), len(self.positions), self.patch
+        # Cut the patches before anything else: only they are converted and sent to the device.
+        cut = np.stack([[frame[y : y + P, x : x + P] for x, y in self.positions] for frame in (*firsts, *seconds)])
+        crops = torch.from_numpy(cut).to(self.device, non_blocking=True).float() * (2.0 / 255.0) - 1.0  # (2n, M, P, P)
+        pairs = torch.stack([crops[:n], crops[n:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P) in [-1, 1]
         if self.device.type == "cpu" and self.precision == "fp32":
             pairs = pairs.contiguous(memory_format=torch.channels_last)
         feats = self._features(pairs).unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
