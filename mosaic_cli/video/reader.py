@@ -169,8 +169,9 @@ def _ffmpeg_frames(path: str, size: tuple[int, int], source_size: tuple[int, int
         filters.append(f"scale={size[0]}:{size[1]}:flags=area")
     if filters:
         output_params += ["-vf", ",".join(filters)]
-    if start:
-        output_params += ["-fps_mode", "passthrough"]
+    # Every decoded frame exactly once: ffmpeg's default for a pipe would resample a variable
+    # frame rate to a constant one, duplicating and dropping frames.
+    output_params += ["-fps_mode", "passthrough"]
     pix_fmt, bpp = ("gray", 8) if gray else ("rgb24", 24)
     gen = imageio_ffmpeg.read_frames(path, pix_fmt=pix_fmt, bits_per_pixel=bpp, output_params=output_params)
     next(gen)  # metadata, already known
@@ -206,8 +207,37 @@ def probe(path: str | Path) -> VideoInfo:
         # into avi reports 600 fps at 30 tbr); the base rate is the one to play at.
         fps = tail.tbr
     fps = fps or DEFAULT_FOLDER_FPS
+    announced = container_frames(p)
     count = int(round(duration * fps)) if duration > 0 else None
+    if announced.fps is not None and abs(announced.fps - fps) < 0.01:
+        # The container's figures where its rate is the stream's (an avi of copied h264
+        # announces 600 fps and 20 times the frames): the exact rate (ffmpeg's log rounds to 2
+        # decimals, 23.98 for 24000/1001) and the frame count.
+        fps = announced.fps
+        count = announced.frames or count
     return VideoInfo(str(p), size, size, fps, count, duration, tail.rotation, meta.get("audio_codec"))
+
+
+@dataclass(frozen=True)
+class ContainerCount:
+    """What the container itself says of its video stream."""
+
+    frames: int | None  # the frame count it announces (exact in mp4/mov/avi; else from the duration)
+    fps: float | None  # the average frame rate, unrounded
+
+
+def container_frames(path: str | Path) -> ContainerCount:
+    """The video stream's announced frame count and exact average rate (OpenCV's FFmpeg
+    backend reads them from the stream header; ffmpeg's log prints rounded figures only)."""
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        if not capture.isOpened():
+            return ContainerCount(None, None)
+        frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = float(capture.get(cv2.CAP_PROP_FPS))
+    finally:
+        capture.release()
+    return ContainerCount(frames if frames > 0 else None, fps if fps > 0 else None)
 
 
 def open_video(
