@@ -87,6 +87,8 @@ def track_video(
         elapsed = time.perf_counter() - start
     n = len(pairwise) + 1
     meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
+    if stream.shortfall is not None:  # read to the end, and the end came early
+        meta["input"] = stream.shortfall.as_meta()
     return TrackResult(
         info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta
     )

@@ -29,7 +29,7 @@ def evaluate_command(
 
     from mosaic_cli.atomic import check_writable, write_json
     from mosaic_cli.commands.simulate import parse_size
-    from mosaic_cli.evaluate import evaluate, landmarks_from_ground_truth, load_prediction, mace_pairs, read_annotations
+    from mosaic_cli.evaluate import check_same_video, evaluate, landmarks_from_ground_truth, load_prediction, mace_pairs, read_annotations
     from mosaic_cli.simulate import load_ground_truth
 
     if gt is None and annotations is None:
@@ -42,8 +42,7 @@ def evaluate_command(
     ann = read_annotations(annotations) if annotations is not None else None
     if gt is not None:
         truth = load_ground_truth(gt)
-        if pred_size is not None and tuple(pred_size) != tuple(truth.size):
-            raise BadInput(f"prediction is for {pred_size[0]}x{pred_size[1]} frames, ground truth for {truth.size[0]}x{truth.size[1]}")
+        check_same_video(pred, pred_size, truth)
         if ann is None and every != 30:
             ann = landmarks_from_ground_truth(truth, every=every)
             ann = ann[ann[:, 3] <= len(pred)]

@@ -133,7 +133,8 @@ class Renderer:
     preset: str = "veryfast"  # x264 'medium' halves throughput on two cores for a few % of bitrate
 
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray, info: VideoInfo,
-               compare: str | Path | None = None, show_progress: bool = True) -> int:
+               compare: str | Path | None = None, show_progress: bool = True,
+               metadata: dict[str, str] | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         Frames beyond ``len(warps)`` (a decoder that finds one more frame the second time)
@@ -146,7 +147,7 @@ class Renderer:
         join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
         # The audio ends with the video (the frames the first pass counted, at the input's rate).
         common = dict(crf=self.crf, preset=self.preset, audio_from=audio, audio_seconds=len(warps) / info.fps,
-                      pix_fmt_in=pix_fmt)
+                      pix_fmt_in=pix_fmt, metadata=metadata)
         writers = [VideoWriter(out, size, info.fps, **common)]
         if compare is not None:
             writers.append(VideoWriter(compare, compare_size(size), info.fps, **common))

@@ -59,6 +59,7 @@ class VideoWriter:
         audio_codec: str | None = None,
         pix_fmt_in: str = "rgb24",
         audio_seconds: float | None = None,
+        metadata: dict[str, str] | None = None,
     ):
         if not 0 <= crf <= 51:
             raise BadInput(f"--crf must be in 0..51, got {crf}")
@@ -82,6 +83,7 @@ class VideoWriter:
         if audio_seconds is not None and audio_seconds <= 0:
             raise ValueError(f"audio_seconds must be positive, got {audio_seconds}")
         self.audio_seconds = audio_seconds
+        self.metadata = dict(metadata or {})  # container tags, e.g. {"comment": ...}
         try:  # until the writer is returned, no ``with`` block will remove the file: this one does
             # Signals wait until the file and the encoder are both in hand: a Ctrl-C inside Popen
             # would lose the encoder, which would then make the file again after it was removed.
@@ -111,6 +113,8 @@ class VideoWriter:
             # overhang by one AAC frame, 21 ms at 48 kHz).
             until = ["-t", f"{self.audio_seconds:.6f}"] if self.audio_seconds is not None else []
             cmd += [*until, "-i", audio[0], "-map", "0:v:0", "-map", "1:a:0", "-acodec", audio[1]]
+        for key, value in self.metadata.items():
+            cmd += ["-metadata", f"{key}={value}"]
         cmd += ["-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-preset", preset,
                 "-movflags", "+faststart", str(self._tmp)]
         self._log = tempfile.TemporaryFile()  # ffmpeg's complaints, for the error message
