@@ -91,7 +91,7 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
             raise BadInput(f"--weights goes with a learned estimator (lstm or cnn) or none; -e {base} takes no weights")
         raise BadInput(f"unknown estimator {base!r}: choose one of {', '.join(NAMES)}")
     learned = weights is not None or base in LEARNED
-    kind = base if base in LEARNED else "lstm"  # --weights alone: the options any learned estimator takes
+    kind = "lstm" if learned and base not in LEARNED else base  # --weights alone: the options any learned one takes
     given = {**spec_options, **{k: v for k, v in options.items() if v is not None}}
     typed = _typed(kind, given) if base in NAMES or learned else {}
     if learned:
