@@ -105,3 +105,6 @@ def test_whole_and_edit_list_clips_are_not_called_truncated(tmp_path, capsys, cl
         assert code == 0 and err == "", err
         data = json.loads(out.read_text())
         assert data["frames"] == decodable(video) and "input" not in data["meta"]
+    # frames skipped by --start count as decoded
+    code, err = run_cli(capsys, "stitch", whole, "--start", "30", "-o", tmp_path / "p.png", "-e", "orb", "-q", "--strict")
+    assert code == 0 and err == "", err

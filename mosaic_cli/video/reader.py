@@ -69,6 +69,7 @@ class VideoStream:
         self._frames = frames
         self._closer = closer
         self.frames_read = 0
+        self.frames_skipped = 0  # by ``start``: decoded, not yielded
         self.decode_error: str | None = None  # set when the decoder stopped with an error
         self.shortfall: Shortfall | None = None  # set when read to the end and short of the count
 
@@ -78,7 +79,7 @@ class VideoStream:
             yield frame
         if self.frames_read == 0:
             raise BadInput(f"{self.info.path}: no decodable frames")
-        self.shortfall = account_for_frames(self.info, self.frames_read, self.decode_error)
+        self.shortfall = account_for_frames(self.info, self.frames_skipped + self.frames_read, self.decode_error)
 
     def close(self) -> None:
         if self._closer is not None:
@@ -222,8 +223,8 @@ def probe(path: str | Path) -> VideoInfo:
         if announced.frames:
             count = min(announced.frames, count) if count else announced.frames
     if tail.damage and _policy["strict"]:  # known before any work: refuse at once
-        announced = f"; the container announces {count} frames" if count else ""
-        raise BadInput(f"{p}: truncated or damaged video ({tail.damage}{announced}); --strict refuses it")
+        said = f"; the container announces {count} frames" if count else ""
+        raise BadInput(f"{p}: truncated or damaged video ({tail.damage}{said}); --strict refuses it")
     return VideoInfo(str(p), size, size, fps, count, duration, tail.rotation, meta.get("audio_codec"),
                      damage=tail.damage)
 
@@ -286,6 +287,7 @@ def open_video(
             return
 
     stream = VideoStream(info, frames(), gen.close)
+    stream.frames_skipped = int(start)  # (a start past the end reads no frame, and says so)
     return stream
 
 
