@@ -15,7 +15,6 @@ Prints a markdown table and exits 1 if any count differs.
 from __future__ import annotations
 
 import argparse
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -110,8 +109,6 @@ def main() -> None:
     parser.add_argument("--workdir", default=None, help="keep the inputs here (default: a temporary folder)")
     args = parser.parse_args()
     work = Path(args.workdir or tempfile.mkdtemp(prefix="mosaic-frames-"))
-    if work.exists() and args.workdir is None:
-        shutil.rmtree(work)
     work.mkdir(parents=True, exist_ok=True)
     flight = work / "flight.mp4"
     subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(flight), "-n", str(args.frames),

@@ -24,7 +24,8 @@ def evaluate_command(
     """Score pairwise homographies against ground truth or landmark annotations.
 
     MACE by the paper's protocol (landmarks every 30 frames, chained estimates), corner error
-    and failure rate (corner error > 10 px), all in 1280x720-equivalent pixels."""
+    and failure rate (corner error > 10 px), all in 1280x720-equivalent pixels.  A track of
+    another frame count or frame size than the ground truth is refused."""
     from rich.table import Table
 
     from mosaic_cli.atomic import check_writable, write_json
