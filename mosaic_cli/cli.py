@@ -141,5 +141,23 @@ def _run(argv: list[str]) -> None:
     raise SystemExit(code or 0)
 
 
+def _flags_take_no_value_in_help() -> None:
+    """typer's rich help gives every flag (``-q``, ``--help``, ``--no-drift-control``) a
+    ``<bool>`` type column, which reads as ``-q true``; a flag takes no value: show none."""
+    from typer.core import TyperOption
+
+    shown = TyperOption.display_type_rich
+    if getattr(shown, "mosaic_flags", False):
+        return
+
+    def display_type_rich(self, ctx):
+        return None if getattr(self, "is_flag", False) else shown(self, ctx)
+
+    display_type_rich.mosaic_flags = True
+    TyperOption.display_type_rich = display_type_rich
+
+
+_flags_take_no_value_in_help()
+
 # Commands register themselves on ``app``; import them last.
 from mosaic_cli.commands import bench, evaluate, simulate, stabilize, stitch, track, train  # noqa: E402,F401

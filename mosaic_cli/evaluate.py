@@ -148,6 +148,19 @@ def corner_errors(pairwise_pred: np.ndarray, pairwise_true: np.ndarray, size: tu
     return np.where(np.isfinite(err), err, np.inf)
 
 
+def check_same_video(pairwise_pred: np.ndarray, pred_size: tuple[int, int] | None, gt) -> None:
+    """A prediction is scored against a ground truth only when both describe the same video:
+    the same frame count and (when the prediction says) the same frame size.  A track of part
+    of the flight, or of another clip, would otherwise get a score that means nothing."""
+    if pred_size is not None and tuple(pred_size) != tuple(gt.size):
+        raise BadInput(f"the prediction is for {pred_size[0]}x{pred_size[1]} frames but the ground truth for "
+                       f"{gt.size[0]}x{gt.size[1]}: not the same video")
+    frames = len(pairwise_pred) + 1
+    if frames != gt.frames:
+        raise BadInput(f"the prediction covers {frames} frames but the ground truth {gt.frames}: not the same video "
+                       f"(track the whole clip the ground truth came with)")
+
+
 def evaluate(pairwise_pred: np.ndarray, gt, annotations: np.ndarray | None = None) -> dict:
     """All metrics of a prediction against a ground truth.
 

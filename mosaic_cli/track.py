@@ -89,6 +89,8 @@ def track_video(
     meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
     if getattr(estimator, "path_counts", None):  # the learned estimator: which path made each pair
         meta["paths"] = dict(estimator.path_counts)
+    if stream.shortfall is not None:  # read to the end, and the end came early
+        meta["input"] = stream.shortfall.as_meta()
     return TrackResult(
         info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta
     )

@@ -191,6 +191,12 @@ def test_eval_command_errors(tmp_path, gt, capsys):
     other = tmp_path / "other.json"
     _write_track(other, gt.pairwise, (1280, 720))
     cases.append(([str(other), "--gt", str(gt_path)], "1280x720"))
+    # a track of part of the flight (or of another clip) is refused, not scored on what it covers
+    short = tmp_path / "short.json"
+    _write_track(short, gt.pairwise[:89], gt.size)
+    cases.append(([str(short), "--gt", str(gt_path)], f"covers 90 frames but the ground truth {len(gt.pairwise) + 1}"))
+    np.save(tmp_path / "long.npy", np.tile(np.eye(3), (len(gt.pairwise) + 30, 1, 1)))
+    cases.append(([str(tmp_path / "long.npy"), "--gt", str(gt_path)], f"covers {len(gt.pairwise) + 31} frames"))
     for args, message in cases:
         capsys.readouterr()
         assert run_cli(["eval", *args]) == 2, args

@@ -317,8 +317,11 @@ def test_frames_smaller_than_the_patch_are_refused():
 
 def test_weights_select_the_estimator(tmp_path):
     path, _ = checkpoint(tmp_path, head="cnn")
-    estimator = make_estimator("orb", weights=str(path), device="cpu")  # --weights wins over the default name
+    estimator = make_estimator(None, weights=str(path), device="cpu")  # no name: the network the weights hold
     assert isinstance(estimator, LearnedEstimator) and estimator.model.head == "cnn" and estimator.name == "reg-all"
+    for classical in ("orb", "orb-ransac", "orb-paper", "identity"):  # never the network instead of what was named
+        with pytest.raises(BadInput, match=f"--weights goes with a learned estimator .* -e {classical} takes no weights"):
+            make_estimator(classical, weights=str(path), device="cpu")
     with pytest.raises(BadInput, match="holds a cnn"):
         make_learned_estimator("lstm", weights=path)
     with pytest.raises(BadInput, match="--device"):

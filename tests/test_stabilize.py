@@ -17,7 +17,7 @@ import pytest
 from conftest import ffmpeg, render, textured_image, write_clip
 from mosaic_cli.cli import main
 from mosaic_cli.geometry import frame_corners, project
-from mosaic_cli.stabilize.crop import output_warps
+from mosaic_cli.stabilize.crop import BORDER_CHUNK, border_fraction, output_warps
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MODELS, camera_motion
 from mosaic_cli.stabilize.render import warp_frame, warp_yuv, yuv_planes
@@ -151,6 +151,17 @@ def test_border_fills():
     perspective = shift.copy()
     perspective[2, 0] = 1e-5  # the warpPerspective path gives the same fill
     assert (warp_frame(frame, perspective, (64, 48), "black")[:, :4] == 0).all()
+
+
+def test_border_fraction_in_chunks_is_each_frames_own():
+    """Measured a chunk of frames at a time (memory bounded), each frame's share is still its own:
+    a shift of d pixels to the right uncovers d columns of the output, here over more frames
+    than one chunk holds."""
+    w, h = 64, 40
+    shifts = np.arange(2 * BORDER_CHUNK + 17) % 20
+    warps = np.stack([np.array([[1, 0, d], [0, 1, 0], [0, 0, 1.0]]) for d in shifts])
+    share = border_fraction(warps, (w, h), grid=w)  # the grid on every pixel centre
+    np.testing.assert_allclose(share, shifts / w, atol=1e-12)
 
 
 def test_yuv_planes_warp_like_rgb():

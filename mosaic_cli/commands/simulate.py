@@ -56,13 +56,23 @@ def simulate(
     wh = parse_size(size)
     if out.suffix.lower() not in (".mp4", ".mov", ".mkv"):
         raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
-    check_writable(out)
-    check_writable(ground_truth_path(out))
     if map_image is not None and not map_image.exists():
         raise BadInput(f"{map_image}: no such file")
+    _make_folder(out.parent)  # a flight is often written to a data folder of its own
+    check_writable(out)
+    check_writable(ground_truth_path(out))
     gt = simulate_flight(out, map_image, profile, frames, wh, fps, seed, crf, preset, show_progress=not quiet)
     if not quiet:
         console.print(
             f"{gt.frames} frames {gt.size[0]}x{gt.size[1]} over {gt.map_name} ({gt.map_size[0]}x{gt.map_size[1]}), "
             f"profile {gt.profile} -> {out}, ground truth -> {ground_truth_path(out)}"
         )
+
+
+def _make_folder(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise BadInput(f"output folder {folder} is a file") from None
+    except OSError as exc:
+        raise BadInput(f"cannot make the output folder {folder} ({(exc.strerror or str(exc)).lower()})") from None

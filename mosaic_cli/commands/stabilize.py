@@ -31,6 +31,7 @@ def stabilize(
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
@@ -43,7 +44,10 @@ def stabilize(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
     )
-    result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
+    from mosaic_cli.video.reader import reading_policy
+
+    with reading_policy(strict):
+        result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if not quiet:
         s = result.seconds
         console.print(

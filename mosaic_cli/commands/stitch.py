@@ -32,6 +32,7 @@ def stitch(
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
@@ -52,7 +53,10 @@ def stitch(
     # Output and option checks come before the estimator is built (a learned one loads weights).
     check_outputs(out, transforms, options.canvas.max_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
-    result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
+    from mosaic_cli.video.reader import reading_policy
+
+    with reading_policy(strict):
+        result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

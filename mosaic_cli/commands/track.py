@@ -12,6 +12,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
+from mosaic_cli.video.reader import reading_policy
 
 MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
 
@@ -30,6 +31,7 @@ def track(
     chunk: int | None = typer.Option(None, "--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU)."),
     threads: int | None = typer.Option(None, "--threads", help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.
@@ -51,7 +53,8 @@ def track(
         import torch
 
         torch.set_num_threads(threads)
-    result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+    with reading_policy(strict):
+        result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
     save_track(result, out)
     if not quiet:
         console.print(

@@ -51,11 +51,14 @@ def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) ->
 
 def write_transforms(path: str | Path, canvas_size: tuple[int, int], frames: list[tuple[int, np.ndarray]]) -> None:
     """``{"canvas_size": [W, H], "frames": [{"index": i, "H": 3x3}, ...]}``: each used frame's
-    homography, frame pixels (full resolution) -> panorama pixels."""
-    write_json(
-        path,
-        {
-            "canvas_size": [int(canvas_size[0]), int(canvas_size[1])],
-            "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H]} for i, H in frames],
-        },
-    )
+    homography, frame pixels (full resolution) -> panorama pixels; with ``"input": {...}`` when
+    the video decoded to fewer frames than its container announced (video.reader.Shortfall)."""
+    from mosaic_cli.video.reader import shortfalls
+
+    doc = {
+        "canvas_size": [int(canvas_size[0]), int(canvas_size[1])],
+        "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H]} for i, H in frames],
+    }
+    for short in shortfalls().values():  # one video a run
+        doc["input"] = short.as_meta()
+    write_json(path, doc)
