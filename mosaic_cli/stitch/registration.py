@@ -11,8 +11,9 @@ again, so one bad match cannot bend the panorama.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, ContextManager
 
 import numpy as np
 import scipy.sparse
@@ -72,56 +73,77 @@ def relative(placements: list[np.ndarray], a: int, b: int) -> np.ndarray:
     return normalize(np.linalg.inv(placements[b]) @ placements[a])
 
 
+# A progress task: ``(description, total)`` -> a context manager yielding ``advance(n)``.
+ProgressFactory = Callable[[str, int], ContextManager[Callable[..., None]]]
+
+
+@contextlib.contextmanager
+def no_progress(description: str, total: int):
+    yield lambda *a, **k: None
+
+
+# (a, b, match): keyframe a was linked to keyframe b during the scan, ``match`` its direct
+# registration (a -> b), None where that failed (the estimator's chain links them then).
+Sequence = list[tuple[int, int, PairMatch | None]]
+
+
 def register_keyframes(
     features: list[Features],
     placements: list[np.ndarray],
-    neighbours: list[PairMatch | None],
+    sequence: Sequence,
     reference: int,
     matcher: FeatureMatcher,
     options: RegistrationOptions,
-    advance: Callable[..., None] = lambda *a, **k: None,
+    progress: ProgressFactory = no_progress,
+    extra_links: list[Link] = (),
 ) -> tuple[list[np.ndarray], RegistrationReport]:
-    """Keyframe -> reference placements refined against direct registrations.
+    """Keyframe -> reference placements refined against direct registrations: the scan's
+    ``sequence`` links, ``extra_links`` (segments relocalised on each other) and loops.
 
-    ``neighbours[k]`` is keyframe k+1 registered to keyframe k during the scan (None where
-    that failed).  Loops are looked for twice: with the scan's placements, then again with the
-    refined ones, which can reveal overlaps that drift had hidden (within ``max_loop_pairs``)."""
+    Loops are looked for twice: with the scan's placements, then again with the refined
+    ones, which can reveal overlaps that drift had hidden (within ``max_loop_pairs``)."""
     size = matcher.source_size
     report = RegistrationReport()
-    report.links = link_neighbours(neighbours, placements, size, options, report)
+    report.links = link_sequence(sequence, placements, size, options, report) + list(extra_links)
     tried: set[tuple[int, int]] = set()
-    for _ in range(options.loop_rounds):
-        candidates = loop_candidates(placements, size, options, tried)
+    linked = {(min(l.a, l.b), max(l.a, l.b)) for l in report.links}
+    for round_ in range(options.loop_rounds):
+        candidates = [c for c in loop_candidates(placements, size, options, tried) if c not in linked]
         if tried and not candidates:
             break
         tried |= set(candidates)
         report.loop_candidates += len(candidates)
-        report.links += link_loops(features, placements, candidates, matcher, options, report, advance)
-        placements = refine_placements(placements, report, reference, size, options)
+        name = "register loops" if round_ == 0 else f"register loops (round {round_ + 1})"
+        with progress(name, len(candidates)) as advance:
+            report.links += link_loops(features, placements, candidates, matcher, options, report, advance)
+            advance(0, status="refining")
+            placements = refine_placements(placements, report, reference, size, options)
+            advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
     return placements, report
 
 
-def chain_neighbours(neighbours: list[PairMatch | None], placements: list[np.ndarray], reference: int) -> list[np.ndarray]:
-    """Keyframe -> reference by chaining the neighbours' registrations (full homographies;
-    the scan's placement where a registration failed): plain chaining, no drift control."""
-    chain = [np.eye(3)]
-    for k, match in enumerate(neighbours, start=1):
-        step = match.H if match is not None else relative(placements, k, k - 1)
-        chain.append(normalize(chain[-1] @ step))
+def chain_sequence(sequence: Sequence, placements: list[np.ndarray], reference: int) -> list[np.ndarray]:
+    """Keyframe -> reference by chaining the scan's registrations (full homographies; the
+    scan's placement where a registration failed): plain chaining, no drift control.  A
+    keyframe linked to none (a segment's first) keeps the scan's placement."""
+    chain = [np.asarray(P, float) for P in placements]
+    for a, b, match in sorted(sequence):  # a > b: the linked-to keyframe is placed first
+        step = match.H if match is not None else relative(placements, a, b)
+        chain[a] = normalize(chain[b] @ step)
     to_reference = np.linalg.inv(chain[reference])
     return [normalize(to_reference @ H) for H in chain]
 
 
-def link_neighbours(neighbours, placements, size, options: RegistrationOptions, report) -> list[Link]:
-    """Consecutive keyframes: their direct registration, or the estimator's chain (a weaker
-    link) where that failed or disagreed with the chain."""
+def link_sequence(sequence: Sequence, placements, size, options: RegistrationOptions, report) -> list[Link]:
+    """The scan's links: direct registrations, or the estimator's chain (a weaker link) where
+    that failed or disagreed with the chain."""
     links = []
-    for a, match in enumerate(neighbours):
+    for a, b, match in sequence:
         if match is not None:
-            links.append(_from_match(a + 1, a, match, "sequential", options))
+            links.append(_from_match(a, b, match, "sequential", options))
             report.sequential += 1
         else:
-            links.append(_from_homography(a, a + 1, relative(placements, a, a + 1), size, "chain", options.chain_weight))
+            links.append(_from_homography(a, b, relative(placements, a, b), size, "chain", options.chain_weight))
             report.chained += 1
     return links
 
