@@ -261,3 +261,32 @@ def direct_registration(a: np.ndarray, b: np.ndarray):
         return None, None
     keep = mask.ravel().astype(bool)
     return pa[keep], pb[keep]
+
+
+def test_every_progress_stage_has_a_total_and_keeps_within_it(tmp_path, forward, monkeypatch):
+    """The register stage showed ``123/?`` with no ETA: each stage now knows its total."""
+    import contextlib
+
+    import mosaic_cli.stitch.pipeline as pipeline
+
+    frames, _ = forward
+    video = write(tmp_path / "loop.mp4", frames + frames)  # relocalisation and loops: every stage
+    stages = []
+
+    @contextlib.contextmanager
+    def recording(description, total, unit="fr/s", disable=False):
+        stage = {"description": description, "total": total, "done": 0}
+        stages.append(stage)
+
+        def advance(n=1, status=None):
+            stage["done"] += n
+
+        yield advance
+
+    monkeypatch.setattr(pipeline, "progress_task", recording)
+    stitch(video, tmp_path / "p.png", orb(), show_progress=True)
+    names = [s["description"].split(" ")[0] for s in stages]
+    assert {"scan", "relocalise", "register", "compose"} <= set(names)
+    for stage in stages:
+        assert isinstance(stage["total"], int) and stage["total"] > 0, stage
+        assert stage["done"] == stage["total"], stage

@@ -54,15 +54,15 @@ def join_segments(
     links: list[Link] = []
     tried = 0
     plan = [(s, c) for i, s in enumerate(order) for c in order[:i]]
-    with progress("relocalise segments", sum(min(options.max_pairs, options.picks * len(members[c])) for s, c in plan)) as advance:
+    budget = {(s, c): len(_pairs(members[s], members[c], options)) for s, c in plan}
+    with progress("relocalise segments", sum(budget.values())) as advance:
         for s, c in plan:
-            budget = min(options.max_pairs, options.picks * len(members[c]))
             if group_of[s] == group_of[c]:
-                advance(budget)
+                advance(budget[s, c])
                 continue
-            join, n = _try_join(features, placements, members[s], members[c], matcher, registration, options)
+            join, n = _try_join(features, placements, members[s], members[c], matcher, registration, options, advance)
             tried += n
-            advance(budget)
+            advance(budget[s, c] - n)  # the pairs not needed
             if join is None:
                 continue
             k, j, match = join
@@ -81,24 +81,30 @@ def join_segments(
     return Joined(placements, list(groups.values()), links, tried)
 
 
-def _try_join(features, placements, mine: list[int], theirs: list[int], matcher: FeatureMatcher, registration: RegistrationOptions, options: JoinOptions):
-    """The first of ``mine`` x ``theirs`` that registers and is confirmed; (None, tries) if none."""
+def _pairs(mine: list[int], theirs: list[int], options: JoinOptions) -> list[tuple[int, int]]:
+    """Keyframe pairs to try: a few keyframes spread along the segment, each against keyframes
+    spread over the other group, ``max_pairs`` at most."""
     picks = [mine[int(round(p))] for p in np.linspace(0, len(mine) - 1, min(options.picks, len(mine)))]
     per_pick = max(1, options.max_pairs // len(picks))
     targets = [theirs[int(round(p))] for p in np.linspace(0, len(theirs) - 1, min(per_pick, len(theirs)))]
+    return [(k, j) for k in picks for j in targets]
+
+
+def _try_join(features, placements, mine, theirs, matcher: FeatureMatcher, registration: RegistrationOptions, options: JoinOptions, advance):
+    """The first of the pairs that registers and is confirmed; (None, tries) if none."""
     size = matcher.source_size
     tolerance = registration.loop_tolerance * float(np.hypot(*size))
     tries = 0
-    for k in picks:
-        for j in targets:
-            tries += 1
-            match = matcher.match(features[k], features[j])
-            if match is None:
-                continue
-            # Confirm with another keyframe of the segment, where the join predicts an overlap.
-            k_to_world = placements[j] @ closest_affine(match.H, size) @ np.linalg.inv(placements[k])
-            if _confirmed(features, placements, k, match, mine, theirs, k_to_world, matcher, tolerance, options):
-                return (k, j, match), tries
+    for k, j in _pairs(mine, theirs, options):
+        tries += 1
+        advance(1)
+        match = matcher.match(features[k], features[j])
+        if match is None:
+            continue
+        # Confirm with another keyframe of the segment, where the join predicts an overlap.
+        k_to_world = placements[j] @ closest_affine(match.H, size) @ np.linalg.inv(placements[k])
+        if _confirmed(features, placements, k, match, mine, theirs, k_to_world, matcher, tolerance, options):
+            return (k, j, match), tries
     return None, tries
 
 
