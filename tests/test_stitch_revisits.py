@@ -290,3 +290,22 @@ def test_every_progress_stage_has_a_total_and_keeps_within_it(tmp_path, forward,
     for stage in stages:
         assert isinstance(stage["total"], int) and stage["total"] > 0, stage
         assert stage["done"] == stage["total"], stage
+
+
+def test_a_convincing_direct_registration_overrules_a_wrong_chain():
+    """Frames further apart than the estimator follows: it answered 'no motion' with
+    confidence; the keyframe's direct registration with the previous one (many inliers)
+    places it where it is, 120 px on, instead of where the chain said."""
+    from mosaic_cli.stitch.features import FeatureOptions
+    from mosaic_cli.stitch.keyframes import FlightScanner, KeyframeOptions
+
+    ground = textured_image(600, 200, seed=8)
+    first, second = ground[20:164, 0:256], ground[20:164, 120:376]
+    scanner = FlightScanner(SIZE, SIZE, 30.0, 0, KeyframeOptions(), FeatureOptions(), None)
+    scanner.first(first)
+    assert len(scanner.keyframes) == 1
+    scanner.placement = np.eye(3)  # the wrong chain: no motion
+    scanner._add(1, second, scanner._quality(second), np.eye(3))
+    keyframe = scanner.keyframes[1]
+    assert keyframe.link is not None and keyframe.link.inliers >= 60
+    np.testing.assert_allclose(project(keyframe.placement, frame_corners(*SIZE)), frame_corners(*SIZE) + [120, 0], atol=0.5)

@@ -39,7 +39,7 @@ import numpy as np
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
-from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
 
@@ -63,6 +63,9 @@ class KeyframeOptions:
     # A keyframe's direct registration to the previous one must agree with the chain this well
     # (fraction of the frame diagonal, at the corners) to replace it.
     link_tolerance: float = 0.25
+    # ... unless it has this many inliers: then the estimator was wrong (frames further apart
+    # than it can follow, say) and the registration overrules the chain.
+    override_inliers: int = 60
     relocalise_keyframes: int = 3  # a lost frame is registered against this many last keyframes
     quality_width: int = 320
     # The chained placement may make a frame this many times larger/smaller than the anchor.
@@ -383,7 +386,10 @@ class FlightScanner:
         so the world placement of a long flight does not drift into perspective nonsense."""
         chained = np.linalg.inv(previous.placement) @ keyframe.placement
         tolerance = self.o.link_tolerance * float(np.hypot(*self.size))
-        keyframe.link = self.matcher.match(keyframe.features, previous.features, chained, tolerance)
+        match = self.matcher.match(keyframe.features, previous.features)
+        if match is not None and corner_distance(match.H, chained, self.size) > tolerance and match.inliers < self.o.override_inliers:
+            match = None  # disagrees with the chain, and not convincingly enough to overrule it
+        keyframe.link = match
         keyframe.link_to = self.previous
         if keyframe.link is not None:
             anchored = previous.placement @ self._affine(keyframe.link.H)
