@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import typer
@@ -60,10 +61,45 @@ def stitch(
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""
-        console.print(
-            f"{result.frames} frames -> {len(result.transforms)} keyframes{loops}, "
-            f"{result.canvas_size[0]}x{result.canvas_size[1]} canvas, {result.frames_per_second:.1f} fr/s -> {out}"
+        used = sum(len(p.transforms) for p in result.panoramas)
+        console.print(f"{result.frames} frames -> {used} keyframes{loops}, {result.frames_per_second:.1f} fr/s")
+        for p in result.panoramas:
+            joined = f" ({p.segments} segments joined)" if p.segments > 1 else ""
+            console.print(f"  {p.canvas_size[0]}x{p.canvas_size[1]} panorama of {len(p.transforms)} keyframes{joined} -> {p.path}")
+    # Said even with -q: nothing leaves the panorama silently.
+    for line in _notices(video, result):
+        print(f"mosaic: warning: {line}", file=sys.stderr)
+
+
+def _notices(video: Path, result) -> list[str]:
+    """A line for each panorama beyond the first and for frames placed nowhere."""
+    lines = []
+    extra = result.panoramas[1:]
+    if extra:
+        firsts = ", ".join(f"frame {p.transforms[0][0]} -> {p.path}" for p in extra)
+        lines.append(
+            f"{len(extra)} part(s) of the flight registered with no other and went to panoramas of their own: {firsts}"
         )
+    if result.dropped:
+        if result.photos:
+            from mosaic_cli.video.reader import _folder_images
+
+            names = _folder_images(Path(video))
+            for index, why in result.dropped:
+                lines.append(f"photo {names[index].name} not used: {why}")
+        else:
+            lines.append(f"{len(result.dropped)} frame(s) placed nowhere (the flight was lost there): frames {_ranges([i for i, _ in result.dropped])}")
+    return lines
+
+
+def _ranges(indices: list[int]) -> str:
+    runs = []
+    for i in sorted(indices):
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _fraction(name: str, value: float) -> float:

@@ -34,6 +34,13 @@ def check_outputs(out: str | Path, transforms: str | Path | None, max_size: int 
     return fmt
 
 
+def numbered(path: str | Path, number: int) -> Path:
+    """The ``number``-th output (from 0) of a flight stitched into several panoramas:
+    pano.png, pano-2.png, pano-3.png, ..."""
+    path = Path(path)
+    return path if number == 0 else path.with_name(f"{path.stem}-{number + 1}{path.suffix}")
+
+
 def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) -> None:
     """PNG and TIFF keep the alpha channel (transparent where nothing was seen); JPEG has
     none, so uncovered areas are black.  ``rgba`` is turned into BGRA in place: a panorama
