@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput, MosaicError
+from mosaic_cli.estimators import LEARNED
 
-DEFAULT_ESTIMATORS = ("lstm", "cnn", "orb", "orb-paper", "identity")
-LEARNED = ("lstm", "cnn")
+DEFAULT_ESTIMATORS = (*LEARNED, "orb", "orb-paper", "identity")
 MAX_DECODED_BYTES = 1_500_000_000  # frames kept in memory for one input width
 
 

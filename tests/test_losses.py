@@ -16,9 +16,9 @@ from torch import nn
 
 from conftest import textured_image
 from mosaic_cli.geometry import chain as np_chain
-from mosaic_cli.model import HomographyNet, LossWeights, NetConfig, Objective
+from mosaic_cli.model import VARIANTS, HomographyNet, NetConfig
 from mosaic_cli.model.dlt import chain, homography_to_offsets
-from mosaic_cli.model.losses import (
+from mosaic_cli.train.losses import (
     chain_consistency,
     corner_distance,
     photometric,
@@ -26,7 +26,7 @@ from mosaic_cli.model.losses import (
     spatial_consistency,
     temporal_smoothness,
 )
-from mosaic_cli.model.objective import VARIANTS, frame_corners_tensor
+from mosaic_cli.train.objective import LossWeights, Objective, frame_corners_tensor
 
 W, H_ = 320, 180
 CORNERS = frame_corners_tensor(W, H_)

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
 from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.estimators.refine import (
@@ -51,7 +52,6 @@ from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, transform_poi
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
 
-KINDS = ("lstm", "cnn")
 SEEDS = ("network", "identity", "velocity")
 PRIORS = ("velocity", "none")
 FALLBACKS = ("orb", "none")
@@ -447,18 +447,17 @@ def make_learned_estimator(
     checkpoint's own preset, head and variant; ``name`` then only has to agree with its head)."""
     name = (name or "").lower()
     if weights is None:
-        if name not in KINDS:
+        if name not in LEARNED:
             raise BadInput(f"unknown learned estimator {name!r}: choose lstm or cnn, or pass --weights FILE")
         weights = default_weights(name)
     resolve_device(device)  # bad --device fails before loading anything
     model, meta = load_weights(weights, device="cpu")
-    if name in KINDS and name != model.config.head:
+    if name in LEARNED and name != model.config.head:
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
     return LearnedEstimator(model, meta, device=device, config=config)
 
 
 __all__ = [
-    "KINDS",
     "PRECISIONS",
     "LearnedConfig",
     "LearnedEstimator",

@@ -37,6 +37,9 @@ import torch
 from torch import Tensor, nn
 
 HEADS = ("cnn", "lstm")
+# The paper's training variants (Table 2; what each trains: mosaic_cli.train.objective).  A
+# checkpoint records the variant that made it, so the model side knows their names.
+VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": dict(backbone=(64, 64, "M", 64, 64, "M", 128, 128, "M", 128, 128), embed=1024, hidden=1024, dropout=0.5),
@@ -251,6 +254,7 @@ def count_macs(model: HomographyNet) -> int:
 
 __all__ = [
     "HEADS",
+    "VARIANTS",
     "PRESETS",
     "NetConfig",
     "HomographyNet",

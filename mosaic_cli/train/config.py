@@ -10,9 +10,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.model.network import PRESETS as NET_PRESETS
+from mosaic_cli.model.network import VARIANTS
 
-VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
-PRESETS = ("compact", "paper")
+PRESETS = tuple(NET_PRESETS)
 DEVICES = ("auto", "cpu", "cuda")
 
 # The paper trains BASE for 300k iterations at batch 64 and fine-tunes the REG-* variants

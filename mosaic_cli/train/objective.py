@@ -30,11 +30,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mosaic_cli.model import losses
 from mosaic_cli.model.dlt import crop, offsets_to_homography, sample_patches
-from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.model.network import VARIANTS, HomographyNet
+from mosaic_cli.train import losses
 
-VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
 TERMS = ("photometric", "spatial", "scale", "temporal1", "temporal2")
 
 _VARIANT_TERMS = {
