@@ -48,7 +48,8 @@ from mosaic_cli.estimators.refine import (
 )
 from mosaic_cli.geometry import frame_corners, is_valid
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, transform_points
+from mosaic_cli.geometry.tensor import four_point_to_homography, project
+from mosaic_cli.model.patches import crop, offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
 
@@ -376,9 +377,9 @@ class LearnedEstimator(Estimator):
         if M == 1:
             return H_patches[:, 0].cpu().numpy(), np.ones(n)
         corners = torch.as_tensor(self._corners, dtype=H_patches.dtype, device=H_patches.device)
-        moved = transform_points(H_patches, corners)  # (n, M, 4, 2)
+        moved = project(H_patches, corners)  # (n, M, 4, 2)
         median = moved.median(dim=1).values  # (n, 4, 2)
-        H = dlt(corners.expand(n, 4, 2), median)
+        H = four_point_to_homography(corners.expand(n, 4, 2), median - corners)
         spread = (moved - median[:, None]).norm(dim=-1).mean(-1).median(dim=1).values
         agreement = 1.0 / (1.0 + (spread / self.config.agreement_px) ** 2)
         return H.cpu().numpy(), agreement.cpu().numpy()

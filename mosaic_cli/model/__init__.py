@@ -1,5 +1,5 @@
-"""The paper's learned homography estimator, model side: network (:mod:`.network`), tensor DLT
-and warps (:mod:`.dlt`), checkpoint format (:mod:`.checkpoint`) and int8 CPU inference
+"""The paper's learned homography estimator, model side: network (:mod:`.network`), patches
+and their warps (:mod:`.patches`; the tensor DLT is :mod:`mosaic_cli.geometry.tensor`), checkpoint format (:mod:`.checkpoint`) and int8 CPU inference
 (:mod:`.quantize`).  Training (loss terms, per-variant objective) lives in :mod:`mosaic_cli.train`.
 Every homography maps frame t -> frame t+1."""
 

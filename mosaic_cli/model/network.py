@@ -9,7 +9,7 @@
       -> offsets (B, T, 4, 2)
 
 The 8 outputs are the displacements, in working-frame pixels, of the patch's four outer corners
-(TL, TR, BR, BL, see :func:`mosaic_cli.model.dlt.patch_corners`) from frame t to frame t+1:
+(TL, TR, BR, BL, see :func:`mosaic_cli.model.patches.patch_corners`) from frame t to frame t+1:
 a corner at ``c`` in frame t shows the ground that is at ``c + offset`` in frame t+1.  The DLT of
 those four correspondences is the homography of the whole working frame, frame t -> frame t+1.
 

@@ -37,7 +37,7 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from mosaic_cli.atomic import write_json
 from mosaic_cli.errors import BadInput, MosaicError
-from mosaic_cli.model.dlt import crop
+from mosaic_cli.model.patches import crop
 from mosaic_cli.progress import console, progress_task
 from mosaic_cli.video.reader import IMAGE_SUFFIXES, open_video, probe
 
