@@ -13,7 +13,7 @@ With no video, a short flight is simulated first, so accuracy (MACE, corner erro
 rate, see :mod:`mosaic_cli.evaluate`) comes with the timings.  A video with a ``.gt.json``
 beside it (a simulated flight) is scored too; any other video gives latency only.
 
-:func:`run_flights` scores a folder of flights (every ``X.mp4`` with its ``X.gt.json``): each
+:func:`run_flights` scores a folder of flights (every video ``X.mp4`` with its ``X.gt.json``): each
 flight is decoded once and every estimator runs on the same frames; MACE pools the landmark
 pairs of all flights (the paper's protocol), corner errors and failures pool the frame pairs,
 and a breakdown per flight profile (paper / fast / hard ...) comes with the totals.
@@ -327,16 +327,11 @@ class FlightScore:
 
 
 def find_flights(folder: str | Path) -> list[Flight]:
-    """Every ``X.mp4`` in ``folder`` with an ``X.gt.json`` beside it, by name."""
+    """The flights of ``folder`` (:func:`mosaic_cli.inputs.find_flights`) with their ground truth."""
+    from mosaic_cli.inputs import find_flights as find_flight_videos
     from mosaic_cli.simulate import ground_truth_path, load_ground_truth
 
-    root = Path(folder)
-    if not root.is_dir():
-        raise BadInput(f"--flights {root}: not a folder")
-    flights = [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in sorted(root.glob("*.mp4")) if ground_truth_path(v).is_file()]
-    if not flights:
-        raise BadInput(f"--flights {root}: no X.mp4 with an X.gt.json beside it")
-    return flights
+    return [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in find_flight_videos(folder, "--flights")]
 
 
 def score_flight(flight: Flight, pairwise: np.ndarray, times: StageTimes) -> FlightScore:

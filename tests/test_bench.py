@@ -178,7 +178,7 @@ def test_flights_estimator_options_and_errors(tmp_path, flights_dir, capsys):
     polished, plain = report["estimators"]["orb"], report["estimators"]["orb:refine=none"]
     assert polished["corner_error"] < plain["corner_error"]  # the option reached the estimator
     assert run_cli(["bench", "-q", "--flights", str(tmp_path)]) == 2
-    assert "no X.mp4 with an X.gt.json" in capsys.readouterr().err
+    assert "with an X.gt.json beside it" in capsys.readouterr().err
     assert run_cli(["bench", "-q", "--flights", str(flights_dir), "-e", "orb:patches=5"]) == 2
     assert "has no option 'patches'" in capsys.readouterr().err
     assert run_cli(["bench", "-q", "--flights", str(flights_dir), "--video", str(flights_dir / "a_paper.mp4")]) == 2

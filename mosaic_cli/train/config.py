@@ -36,15 +36,6 @@ def paper_batch_size(variant: str) -> int:
     return PAPER_BATCH.get(variant, PAPER_REG_BATCH)
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """'320x180' -> (320, 180)."""
-    try:
-        w, h = (int(v) for v in str(text).lower().split("x"))
-    except ValueError:
-        raise BadInput(f"size {text!r} must look like 320x180") from None
-    return (w, h)
-
-
 @dataclass
 class TrainConfig:
     clips: str

@@ -37,11 +37,11 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from mosaic_cli.atomic import write_json
 from mosaic_cli.errors import BadInput, MosaicError
+from mosaic_cli.inputs import VIDEO_SUFFIXES
 from mosaic_cli.model.patches import crop
 from mosaic_cli.progress import console, progress_task
 from mosaic_cli.video.reader import IMAGE_SUFFIXES, open_video, probe
 
-VIDEO_SUFFIXES = {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".wmv", ".flv"}
 CACHE_FORMAT = 1
 NPY_HEADER_BYTES = 128  # np.lib.format v1 header length for any (n, h, w) uint8 shape
 SEGMENT_FRAMES = 128  # frames per kept segment when a clip is longer than its cache share
