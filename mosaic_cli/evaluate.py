@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.geometry import chain, corner_error, frame_corners, normalize, project
+from mosaic_cli.geometry import chain, corner_error, normalize, project
 
 REFERENCE_WIDTH = 1280.0
 FAILURE_PX = 10.0

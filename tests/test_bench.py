@@ -33,7 +33,7 @@ def test_bench_command_small_run(tmp_path, map_file, capsys):
     assert code in (0, None)
     report = json.loads(out.read_text())
     assert set(report["estimators"]) == {"orb", "identity"}
-    for name, e in report["estimators"].items():
+    for e in report["estimators"].values():
         assert e["ms_per_frame"] > 0 and e["fps"] > 0 and e["frames"] == 40
         for stage in ("decode", "preprocess", "estimate"):
             assert set(e["stages"][stage]) >= {"p50", "p95"}

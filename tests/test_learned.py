@@ -17,8 +17,7 @@ from torch import nn
 from conftest import textured_image, write_clip
 from mosaic_cli.cli import main
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import estimate_stream, make_estimator
-from mosaic_cli.estimators import learned
+from mosaic_cli.estimators import estimate_stream, learned, make_estimator
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, default_weights, make_learned_estimator
 from mosaic_cli.geometry import corner_error, four_point_to_homography, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig, save_weights

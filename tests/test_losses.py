@@ -16,8 +16,8 @@ from torch import nn
 
 from conftest import textured_image
 from mosaic_cli.geometry import chain as np_chain
-from mosaic_cli.model import VARIANTS, HomographyNet, NetConfig
 from mosaic_cli.geometry.tensor import cumulative, frame_corners
+from mosaic_cli.model import VARIANTS, HomographyNet, NetConfig
 from mosaic_cli.model.patches import homography_to_offsets
 from mosaic_cli.train.losses import (
     chain_consistency,

@@ -19,6 +19,7 @@ from mosaic_cli.geometry import project as np_project
 from mosaic_cli.geometry import rect_corners
 from mosaic_cli.geometry.tensor import cumulative, four_point_to_homography, project
 from mosaic_cli.model import HomographyNet, NetConfig, load_weights, read_metadata, save_weights
+from mosaic_cli.model.network import count_macs, count_parameters, macs_per_pair
 from mosaic_cli.model.patches import (
     crop,
     homography_to_offsets,
@@ -27,7 +28,6 @@ from mosaic_cli.model.patches import (
     sample_patches,
     warp_perspective,
 )
-from mosaic_cli.model.network import count_macs, count_parameters, macs_per_pair
 
 
 @pytest.fixture(autouse=True, scope="module")

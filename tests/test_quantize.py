@@ -10,8 +10,7 @@ import torch
 from conftest import textured_image
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import make_estimator
-from mosaic_cli.model import HomographyNet, NetConfig, read_metadata, save_weights
-from mosaic_cli.model import quantize
+from mosaic_cli.model import HomographyNet, NetConfig, quantize, read_metadata, save_weights
 
 pytestmark = pytest.mark.skipif(quantize.engine() is None, reason="this PyTorch build has no int8 engine")
 PATCH = 128

@@ -228,7 +228,7 @@ def test_write_flight_and_ground_truth_round_trip(tmp_path, small_map):
 
     plan = plan_flight((1024, 1024), "shaky", frames=10, size=SIZE, seed=4)
     out = tmp_path / "flight.mp4"
-    gt = write_flight(out, small_map, plan, fps=25, map_name="test-map", show_progress=False)
+    write_flight(out, small_map, plan, fps=25, map_name="test-map", show_progress=False)
     gt_path = tmp_path / "flight.gt.json"
     assert out.exists() and gt_path.exists()
     data = json.loads(gt_path.read_text())

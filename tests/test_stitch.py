@@ -179,8 +179,8 @@ def test_alpha_is_zero_exactly_outside_the_covered_ground(survey):
 def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     flight, _, _, full = survey
     pano, transforms = tmp_path / "small.jpg", tmp_path / "small.json"
-    result = stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
-                    transforms=transforms, show_progress=False)
+    stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
+           transforms=transforms, show_progress=False)
     canvas, indices, H = load_transforms(transforms)
     image = read_rgba(pano)
     assert max(canvas) <= 200 and image.shape[:2] == (canvas[1], canvas[0]) and image.ndim == 3

@@ -28,8 +28,8 @@ def evaluate_command(
     from rich.table import Table
 
     from mosaic_cli.atomic import check_writable, write_json
-    from mosaic_cli.inputs import parse_size
     from mosaic_cli.evaluate import evaluate, landmarks_from_ground_truth, load_prediction, mace_pairs, read_annotations
+    from mosaic_cli.inputs import parse_size
     from mosaic_cli.simulate import load_ground_truth
 
     if gt is None and annotations is None:

@@ -47,11 +47,11 @@ from mosaic_cli.estimators.refine import (
     track_points,
 )
 from mosaic_cli.geometry import frame_corners, is_valid
-from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
+from mosaic_cli.model.checkpoint import load_weights
+from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.model.patches import crop, offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
-from mosaic_cli.model.network import HomographyNet
 
 SEEDS = ("network", "identity", "velocity")
 PRIORS = ("velocity", "none")

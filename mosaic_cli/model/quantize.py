@@ -23,7 +23,6 @@ from __future__ import annotations
 import copy
 import warnings
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 

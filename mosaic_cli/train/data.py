@@ -418,7 +418,7 @@ def make_loader(dataset: WindowDataset, sampler: StepBatches, num_workers: int, 
     )
 
 
-def sample_pairs(windows, count: int, seed: int = 0) -> Tensor:
+def sample_pairs(windows, count: int, seed: int = 0) -> torch.Tensor:
     """``count`` patch pairs (N, 2, P, P) in [-1, 1] from a training dataset whose items are
     ``{"frames": (K, 1, h, w) uint8, "positions": (M, 2)}`` windows: consecutive frames, the
     first position of each window, a random pair of its frames."""

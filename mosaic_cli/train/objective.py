@@ -31,8 +31,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from mosaic_cli.geometry.tensor import frame_corners
-from mosaic_cli.model.patches import crop, offsets_to_homography, sample_patches
 from mosaic_cli.model.network import VARIANTS, HomographyNet
+from mosaic_cli.model.patches import crop, offsets_to_homography, sample_patches
 from mosaic_cli.train import losses
 
 TERMS = ("photometric", "spatial", "scale", "temporal1", "temporal2")

@@ -19,8 +19,8 @@ import torch
 
 from mosaic_cli import inputs
 from mosaic_cli.errors import BadInput
-from mosaic_cli.evaluate import landmarks_from_ground_truth, mace_pairs
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator
+from mosaic_cli.evaluate import landmarks_from_ground_truth, mace_pairs
 from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.simulate import load_ground_truth
 from mosaic_cli.track import track_video
