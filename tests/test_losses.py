@@ -29,19 +29,11 @@ from mosaic_cli.train.losses import (
 )
 from mosaic_cli.train.objective import LossWeights, Objective
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 W, H_ = 320, 180
 CORNERS = frame_corners(W, H_)
 STEP = (3, -2)  # content moves by (+3, -2) px per frame: H t -> t+1 is a translation by STEP
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
-    threads make a 2-thread run up to 50x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

@@ -29,15 +29,7 @@ from mosaic_cli.model.patches import (
     warp_perspective,
 )
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
-    threads make a 2-thread run up to 50x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_quads(rng, n, spread=8.0):

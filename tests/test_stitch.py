@@ -12,8 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import textured_image
-from mosaic_cli.cli import main
+from conftest import run_cli, textured_image
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
@@ -96,13 +95,6 @@ def plain_chain(video: Path, indices: list[int]) -> list[np.ndarray]:
         H_ab, _ = cv2.findHomography(src, dst, cv2.RANSAC, 2.0)
         placements.append(normalize(placements[-1] @ np.linalg.inv(H_ab)))
     return placements
-
-
-def run_cli(capsys, *args) -> tuple[int, str]:
-    with pytest.raises(SystemExit) as exit_info:
-        main([str(a) for a in args])
-    code = exit_info.value.code
-    return (0 if code is None else code), capsys.readouterr().err
 
 
 def read_rgba(path: Path) -> np.ndarray:
