@@ -82,25 +82,28 @@ def decode_frames(path: str | Path, width: int | None, max_frames: int | None = 
 def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, int], advance=None) -> tuple[np.ndarray, StageTimes]:
     """Run ``estimator`` over in-memory frames; pairwise (N-1, 3, 3) and per-frame stage times
     (ms): wall clock per stage, and the process's CPU time of preprocess + estimate in ``cpu``
-    (all threads; less moved by other jobs on a shared machine)."""
+    (all threads; less moved by other jobs on a shared machine).  Preprocess is what the
+    estimator's own :class:`~mosaic_cli.estimators.base.StageTimer` records for ``prepare``; the
+    rest of each ``feed`` is estimation, spread evenly over the frames of a batch when a batched
+    estimator answers several at once."""
+    from mosaic_cli.estimators.base import StageTimer
+
     times = StageTimes()
     estimates = []
     estimator.reset(full_size)
-    holder: list = [None]
-    original = estimator.prepare
-    # feed() calls self.prepare(frame): hand it the frame prepared (and timed) just before.
-    estimator.prepare = lambda _frame: holder[0]
+    timer, previous = StageTimer(), estimator.timings
+    estimator.timings = timer
     try:
         pending = pending_cpu = 0.0
         waiting = 0
         for frame in frames:
+            before = timer.total("prepare")
             c0, t0 = time.process_time(), time.perf_counter()
-            holder[0] = original(frame)
-            t1 = time.perf_counter()
             out = estimator.feed(frame)
             t2, c2 = time.perf_counter(), time.process_time()
-            times.preprocess.append((t1 - t0) * 1000.0)
-            pending += (t2 - t1) * 1000.0
+            prepare_ms = timer.total("prepare") - before
+            times.preprocess.append(prepare_ms)
+            pending += (t2 - t0) * 1000.0 - prepare_ms
             pending_cpu += (c2 - c0) * 1000.0
             waiting += 1
             if out:
@@ -122,7 +125,7 @@ def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, in
             times.estimate[-1] += pending
             times.cpu[-1] += pending_cpu
     finally:
-        del estimator.prepare
+        estimator.timings = previous
     pairwise = np.array([e.H for e in estimates], dtype=np.float64).reshape(-1, 3, 3)
     return pairwise, times
 
@@ -188,10 +191,7 @@ def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np
         return None
     out = {}
     for chunk in chunks:
-        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda")
-        if not hasattr(est, "config") or not hasattr(est.config, "chunk"):
-            return None
-        est.config.chunk = int(chunk)
+        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda", chunk=int(chunk))
         for _ in range(2):  # warm-up, then timed
             torch.cuda.synchronize()
             t0 = time.perf_counter()

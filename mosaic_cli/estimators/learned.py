@@ -230,7 +230,7 @@ class LearnedEstimator(Estimator):
     def feed(self, frame: np.ndarray) -> list[PairEstimate]:
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
-        self._pending.append(WorkFrame(self.prepare(frame)))
+        self._pending.append(WorkFrame(self.prepared(frame)))
         if len(self._pending) - 1 >= self.config.chunk:
             return self._run_chunk()
         return []
