@@ -13,7 +13,7 @@ With no video, a short flight is simulated first, so accuracy (MACE, corner erro
 rate, see :mod:`mosaic_cli.evaluate`) comes with the timings.  A video with a ``.gt.json``
 beside it (a simulated flight) is scored too; any other video gives latency only.
 
-:func:`run_flights` scores a folder of flights (every ``X.mp4`` with its ``X.gt.json``): each
+:func:`run_flights` scores a folder of flights (every video ``X.mp4`` with its ``X.gt.json``): each
 flight is decoded once and every estimator runs on the same frames; MACE pools the landmark
 pairs of all flights (the paper's protocol), corner errors and failures pool the frame pairs,
 and a breakdown per flight profile (paper / fast / hard ...) comes with the totals.
@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput, MosaicError
+from mosaic_cli.estimators import LEARNED
 
-DEFAULT_ESTIMATORS = ("lstm", "cnn", "orb", "orb-paper", "identity")
-LEARNED = ("lstm", "cnn")
+DEFAULT_ESTIMATORS = (*LEARNED, "orb", "orb-paper", "identity")
 MAX_DECODED_BYTES = 1_500_000_000  # frames kept in memory for one input width
 
 
@@ -82,25 +82,28 @@ def decode_frames(path: str | Path, width: int | None, max_frames: int | None = 
 def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, int], advance=None) -> tuple[np.ndarray, StageTimes]:
     """Run ``estimator`` over in-memory frames; pairwise (N-1, 3, 3) and per-frame stage times
     (ms): wall clock per stage, and the process's CPU time of preprocess + estimate in ``cpu``
-    (all threads; less moved by other jobs on a shared machine)."""
+    (all threads; less moved by other jobs on a shared machine).  Preprocess is what the
+    estimator's own :class:`~mosaic_cli.estimators.base.StageTimer` records for ``prepare``; the
+    rest of each ``feed`` is estimation, spread evenly over the frames of a batch when a batched
+    estimator answers several at once."""
+    from mosaic_cli.estimators.base import StageTimer
+
     times = StageTimes()
     estimates = []
     estimator.reset(full_size)
-    holder: list = [None]
-    original = estimator.prepare
-    # feed() calls self.prepare(frame): hand it the frame prepared (and timed) just before.
-    estimator.prepare = lambda _frame: holder[0]
+    timer, previous = StageTimer(), estimator.timings
+    estimator.timings = timer
     try:
         pending = pending_cpu = 0.0
         waiting = 0
         for frame in frames:
+            before = timer.total("prepare")
             c0, t0 = time.process_time(), time.perf_counter()
-            holder[0] = original(frame)
-            t1 = time.perf_counter()
             out = estimator.feed(frame)
             t2, c2 = time.perf_counter(), time.process_time()
-            times.preprocess.append((t1 - t0) * 1000.0)
-            pending += (t2 - t1) * 1000.0
+            prepare_ms = timer.total("prepare") - before
+            times.preprocess.append(prepare_ms)
+            pending += (t2 - t0) * 1000.0 - prepare_ms
             pending_cpu += (c2 - c0) * 1000.0
             waiting += 1
             if out:
@@ -122,7 +125,7 @@ def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, in
             times.estimate[-1] += pending
             times.cpu[-1] += pending_cpu
     finally:
-        del estimator.prepare
+        estimator.timings = previous
     pairwise = np.array([e.H for e in estimates], dtype=np.float64).reshape(-1, 3, 3)
     return pairwise, times
 
@@ -188,10 +191,7 @@ def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np
         return None
     out = {}
     for chunk in chunks:
-        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda")
-        if not hasattr(est, "config") or not hasattr(est.config, "chunk"):
-            return None
-        est.config.chunk = int(chunk)
+        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda", chunk=int(chunk))
         for _ in range(2):  # warm-up, then timed
             torch.cuda.synchronize()
             t0 = time.perf_counter()
@@ -327,16 +327,11 @@ class FlightScore:
 
 
 def find_flights(folder: str | Path) -> list[Flight]:
-    """Every ``X.mp4`` in ``folder`` with an ``X.gt.json`` beside it, by name."""
+    """The flights of ``folder`` (:func:`mosaic_cli.inputs.find_flights`) with their ground truth."""
+    from mosaic_cli.inputs import find_flights as find_flight_videos
     from mosaic_cli.simulate import ground_truth_path, load_ground_truth
 
-    root = Path(folder)
-    if not root.is_dir():
-        raise BadInput(f"--flights {root}: not a folder")
-    flights = [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in sorted(root.glob("*.mp4")) if ground_truth_path(v).is_file()]
-    if not flights:
-        raise BadInput(f"--flights {root}: no X.mp4 with an X.gt.json beside it")
-    return flights
+    return [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in find_flight_videos(folder, "--flights")]
 
 
 def score_flight(flight: Flight, pairwise: np.ndarray, times: StageTimes) -> FlightScore:

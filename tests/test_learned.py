@@ -17,24 +17,15 @@ from torch import nn
 from conftest import textured_image, write_clip
 from mosaic_cli.cli import main
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import estimate_stream, make_estimator
-from mosaic_cli.estimators import learned
+from mosaic_cli.estimators import estimate_stream, learned, make_estimator
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, default_weights, make_learned_estimator
 from mosaic_cli.geometry import corner_error, four_point_to_homography, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig, save_weights
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 FULL, WORK = (640, 360), (320, 180)
 STEP_FULL = (6, -4)  # content moves by this many full-resolution pixels per frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
-    threads make a 2-thread run up to 50x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -380,6 +371,7 @@ def test_track_cli_with_weights(tmp_path, panning):
         (["--weights", "{ckpt}", "--device", "tpu"], "--device"),
     ],
 )
+
 def test_track_cli_refuses_bad_weights(tmp_path, panning, capsys, args, message):
     path, _ = checkpoint(tmp_path)
     clip = write_clip(tmp_path / "pan.mp4", panning[:3], fps=10)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import cli_exit
 from mosaic_cli.cli import main
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import project
@@ -26,13 +27,6 @@ from mosaic_cli.simulate import (
 from mosaic_cli.simulate.trajectory import footprints
 
 SIZE = (320, 180)
-
-
-def run_cli(args: list[str]) -> None:
-    """Run the CLI; a successful run exits with status 0."""
-    with pytest.raises(SystemExit) as exc:
-        main(args)
-    assert exc.value.code in (0, None)
 
 
 @pytest.fixture(scope="module")
@@ -228,7 +222,7 @@ def test_write_flight_and_ground_truth_round_trip(tmp_path, small_map):
 
     plan = plan_flight((1024, 1024), "shaky", frames=10, size=SIZE, seed=4)
     out = tmp_path / "flight.mp4"
-    gt = write_flight(out, small_map, plan, fps=25, map_name="test-map", show_progress=False)
+    write_flight(out, small_map, plan, fps=25, map_name="test-map", show_progress=False)
     gt_path = tmp_path / "flight.gt.json"
     assert out.exists() and gt_path.exists()
     data = json.loads(gt_path.read_text())
@@ -293,7 +287,7 @@ def test_load_map_variants(tmp_path):
 
 def test_simulate_command(tmp_path, capsys):
     out = tmp_path / "f.mp4"
-    run_cli(["simulate", "-o", str(out), "--frames", "8", "--size", "160x96", "--profile", "fast", "--seed", "3", "-q"])
+    assert cli_exit(["simulate", "-o", str(out), "--frames", "8", "--size", "160x96", "--profile", "fast", "--seed", "3", "-q"]) == 0
     gt = load_ground_truth(tmp_path / "f.gt.json")
     assert gt.frames == 8 and gt.size == (160, 96) and gt.profile == "fast" and gt.map_name == "procedural"
 
@@ -301,7 +295,7 @@ def test_simulate_command(tmp_path, capsys):
 def test_simulate_command_over_an_image(tmp_path):
     img = procedural_map((600, 500), seed=2)
     cv2.imwrite(str(tmp_path / "map.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-    run_cli(["simulate", str(tmp_path / "map.jpg"), "-o", str(tmp_path / "f.mp4"), "--frames", "5", "--size", "160x90", "-q"])
+    assert cli_exit(["simulate", str(tmp_path / "map.jpg"), "-o", str(tmp_path / "f.mp4"), "--frames", "5", "--size", "160x90", "-q"]) == 0
     gt = load_ground_truth(tmp_path / "f.gt.json")
     assert gt.map_name == "map.jpg" and gt.map_size == (600, 500)
 

@@ -12,8 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import textured_image
-from mosaic_cli.cli import main
+from conftest import run_cli, textured_image
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
@@ -98,13 +97,6 @@ def plain_chain(video: Path, indices: list[int]) -> list[np.ndarray]:
     return placements
 
 
-def run_cli(capsys, *args) -> tuple[int, str]:
-    with pytest.raises(SystemExit) as exit_info:
-        main([str(a) for a in args])
-    code = exit_info.value.code
-    return (0 if code is None else code), capsys.readouterr().err
-
-
 def read_rgba(path: Path) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert image is not None, path
@@ -179,8 +171,8 @@ def test_alpha_is_zero_exactly_outside_the_covered_ground(survey):
 def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     flight, _, _, full = survey
     pano, transforms = tmp_path / "small.jpg", tmp_path / "small.json"
-    result = stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
-                    transforms=transforms, show_progress=False)
+    stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
+           transforms=transforms, show_progress=False)
     canvas, indices, H = load_transforms(transforms)
     image = read_rgba(pano)
     assert max(canvas) <= 200 and image.shape[:2] == (canvas[1], canvas[0]) and image.ndim == 3

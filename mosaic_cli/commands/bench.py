@@ -41,7 +41,7 @@ def bench(
 
     from mosaic_cli.atomic import check_writable, write_json
     from mosaic_cli.bench import render_flights_table, render_table, run_bench, run_flights
-    from mosaic_cli.commands.simulate import parse_size
+    from mosaic_cli.inputs import parse_size
     from mosaic_cli.simulate import PROFILES
 
     if profile not in PROFILES:
@@ -74,7 +74,7 @@ def bench(
         if flights is not None:
             report = run_flights(flights, names, weights_file, work_width, device, show_progress=not quiet)
         else:
-            report = run_bench(video, map_image, names, profile, frames, parse_size(size), work_width, device, seed,
+            report = run_bench(video, map_image, names, profile, frames, parse_size(size, "--size"), work_width, device, seed,
                                show_progress=not quiet, weights=weights_file)
     if json_out is not None:
         write_json(json_out, report)

@@ -29,8 +29,8 @@ def evaluate_command(
     from rich.table import Table
 
     from mosaic_cli.atomic import check_writable, write_json
-    from mosaic_cli.commands.simulate import parse_size
     from mosaic_cli.evaluate import check_same_video, evaluate, landmarks_from_ground_truth, load_prediction, mace_pairs, read_annotations
+    from mosaic_cli.inputs import parse_size
     from mosaic_cli.simulate import load_ground_truth
 
     if gt is None and annotations is None:
@@ -49,7 +49,7 @@ def evaluate_command(
             ann = ann[ann[:, 3] <= len(pred)]
         metrics = evaluate(pred, truth, ann)
     else:
-        wh = parse_size(size) if size is not None else pred_size
+        wh = parse_size(size, "--size") if size is not None else pred_size
         if wh is None:
             raise BadInput("a .npy prediction scored on annotations needs --size WxH (the video's frame size)")
         _, errors = mace_pairs(pred, ann, wh)

@@ -2,24 +2,14 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import typer
 
 from mosaic_cli.cli import app
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m:
-        raise BadInput(f"--size must look like 1280x720, got {text!r}")
-    w, h = int(m.group(1)), int(m.group(2))
-    if w < 16 or h < 16 or w > 8192 or h > 8192:
-        raise BadInput(f"--size must be between 16x16 and 8192x8192, got {w}x{h}")
-    return w, h
 
 
 @app.command()
@@ -53,7 +43,7 @@ def simulate(
         raise BadInput(f"--frames must be at least 2, got {frames}")
     if not 0 < fps <= 1000:
         raise BadInput(f"--fps must be in (0, 1000], got {fps}")
-    wh = parse_size(size)
+    wh = parse_size(size, "--size")
     if out.suffix.lower() not in (".mp4", ".mov", ".mkv"):
         raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
     if map_image is not None and not map_image.exists():

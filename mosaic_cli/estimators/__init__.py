@@ -15,7 +15,7 @@ from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
-LEARNED = ("lstm", "cnn")
+LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
 NAMES = (*CLASSICAL, *LEARNED)
 # What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
 DEFAULT_ESTIMATOR = "lstm"

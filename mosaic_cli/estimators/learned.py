@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
 from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.estimators.refine import (
@@ -46,12 +47,12 @@ from mosaic_cli.estimators.refine import (
     track_points,
 )
 from mosaic_cli.geometry import frame_corners, is_valid
+from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.dlt import dlt, offsets_to_homography, transform_points
-from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.model.patches import offsets_to_homography
+from mosaic_cli.model.quantize import quantized_features, quantized_head
 
-KINDS = ("lstm", "cnn")
 SEEDS = ("network", "identity", "velocity")
 PRIORS = ("velocity", "none")
 FALLBACKS = ("orb", "none")
@@ -229,7 +230,7 @@ class LearnedEstimator(Estimator):
     def feed(self, frame: np.ndarray) -> list[PairEstimate]:
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
-        self._pending.append(WorkFrame(self.prepare(frame)))
+        self._pending.append(WorkFrame(self.prepared(frame)))
         if len(self._pending) - 1 >= self.config.chunk:
             return self._run_chunk()
         return []
@@ -375,9 +376,9 @@ class LearnedEstimator(Estimator):
         if M == 1:
             return H_patches[:, 0].cpu().numpy(), np.ones(n)
         corners = torch.as_tensor(self._corners, dtype=H_patches.dtype, device=H_patches.device)
-        moved = transform_points(H_patches, corners)  # (n, M, 4, 2)
+        moved = project(H_patches, corners)  # (n, M, 4, 2)
         median = moved.median(dim=1).values  # (n, 4, 2)
-        H = dlt(corners.expand(n, 4, 2), median)
+        H = four_point_to_homography(corners.expand(n, 4, 2), median - corners)
         spread = (moved - median[:, None]).norm(dim=-1).mean(-1).median(dim=1).values
         agreement = 1.0 / (1.0 + (spread / self.config.agreement_px) ** 2)
         return H.cpu().numpy(), agreement.cpu().numpy()
@@ -446,18 +447,17 @@ def make_learned_estimator(
     checkpoint's own preset, head and variant; ``name`` then only has to agree with its head)."""
     name = (name or "").lower()
     if weights is None:
-        if name not in KINDS:
+        if name not in LEARNED:
             raise BadInput(f"unknown learned estimator {name!r}: choose lstm or cnn, or pass --weights FILE")
         weights = default_weights(name)
     resolve_device(device)  # bad --device fails before loading anything
     model, meta = load_weights(weights, device="cpu")
-    if name in KINDS and name != model.config.head:
+    if name in LEARNED and name != model.config.head:
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
     return LearnedEstimator(model, meta, device=device, config=config)
 
 
 __all__ = [
-    "KINDS",
     "PRECISIONS",
     "LearnedConfig",
     "LearnedEstimator",

@@ -153,7 +153,8 @@ def _rotation(pitch: float, roll: float, heading: float) -> np.ndarray:
     return Rx @ Ry @ Rz
 
 
-def camera_homography(size, focal, X, Y, s, heading, pitch=0.0, roll=0.0) -> np.ndarray:
+def camera_homography(size: tuple[int, int], focal: float, X: float, Y: float, s: float, heading: float,
+                      pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
     """map_to_frame of a camera above map point (X, Y) with ground sample ``s`` (see module doc)."""
     w, h = size
     K = np.array([[focal, 0, (w - 1) / 2.0], [0, focal, (h - 1) / 2.0], [0, 0, 1.0]])
@@ -163,6 +164,8 @@ def camera_homography(size, focal, X, Y, s, heading, pitch=0.0, roll=0.0) -> np.
 
 # ---------------------------------------------------------------------------------------------
 # paths of the point below the camera, in map pixels
+
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1
 
 
 def _arc_sample(points: np.ndarray, distances: np.ndarray, closed: bool) -> np.ndarray:
@@ -176,7 +179,7 @@ def _arc_sample(points: np.ndarray, distances: np.ndarray, closed: bool) -> np.n
     return np.stack([np.interp(d, cum, points[:, 0]), np.interp(d, cum, points[:, 1])], axis=1)
 
 
-def _wander_path(rng, box, distances) -> np.ndarray:
+def _wander_path(rng: np.random.Generator, box: Box, distances: np.ndarray) -> np.ndarray:
     """A smooth closed loop filling ``box`` (x0, y0, x1, y1), followed from a random point."""
     x0, y0, x1, y1 = box
     u = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
@@ -194,7 +197,7 @@ def _wander_path(rng, box, distances) -> np.ndarray:
     return _arc_sample(pts, start + distances, closed=True)
 
 
-def _lawnmower_path(rng, box, distances, spacing: float) -> np.ndarray:
+def _lawnmower_path(rng: np.random.Generator, box: Box, distances: np.ndarray, spacing: float) -> np.ndarray:
     """Back-and-forth lines along x, ``spacing`` apart, joined by half-circle turns."""
     x0, y0, x1, y1 = box
     total = float(distances[-1]) if len(distances) else 0.0
@@ -321,7 +324,7 @@ def plan_flight(
     return plan
 
 
-def _shake(rng, n: int, fps: float) -> np.ndarray:
+def _shake(rng: np.random.Generator, n: int, fps: float) -> np.ndarray:
     """3-8 Hz shake in [-1, 1]: a few sinusoids with drifting amplitude."""
     t = np.arange(n) / fps
     out = np.zeros(n)
@@ -335,7 +338,7 @@ def _shake(rng, n: int, fps: float) -> np.ndarray:
     return out / total
 
 
-def _effects(rng, plan: FlightPlan, deg: Degradation) -> dict[str, np.ndarray]:
+def _effects(rng: np.random.Generator, plan: FlightPlan, deg: Degradation) -> dict[str, np.ndarray]:
     """Per-frame exposure gain, noise sigma, motion blur vector (and, where the profile has them,
     contrast and vignetting) of a degraded flight."""
     n, fps = plan.frames, plan.fps
