@@ -31,7 +31,7 @@ from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Feature
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
 from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
 from mosaic_cli.stitch.registration import (
-    Link, RegistrationOptions, RegistrationReport, chain_sequence, register_keyframes,
+    RegistrationOptions, RegistrationReport, chain_sequence, register_keyframes,
 )
 from mosaic_cli.stitch.segments import JoinOptions, Joined, join_segments
 from mosaic_cli.video import VideoInfo, open_video, probe
