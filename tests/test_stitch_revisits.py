@@ -4,7 +4,6 @@ map -> frame homographies are the forward pass's, reversed."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 

@@ -31,7 +31,7 @@ from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Feature
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
 from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
 from mosaic_cli.stitch.registration import (
-    Link, RegistrationOptions, RegistrationReport, chain_sequence, register_keyframes,
+    RegistrationOptions, RegistrationReport, chain_sequence, register_keyframes,
 )
 from mosaic_cli.stitch.segments import JoinOptions, Joined, join_segments
 from mosaic_cli.video import VideoInfo, open_video, probe
@@ -97,8 +97,9 @@ def stitch(
     info, reference = _check_inputs(video, out, transforms, options)
     if info.is_image_folder:
         # Photos are registered by features alone: describe them finer than video frames.
-        width = max(options.features.width, options.features.photo_width)
-        options = dataclasses.replace(options, features=dataclasses.replace(options.features, width=width))
+        f = options.features
+        photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features))
+        options = dataclasses.replace(options, features=photo)
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.

@@ -15,10 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mosaic_cli.geometry import frame_corners, project
 from mosaic_cli.stitch.features import FeatureMatcher, Features
 from mosaic_cli.stitch.keyframes import closest_affine, overlap_fraction
-from mosaic_cli.stitch.registration import Link, ProgressFactory, RegistrationOptions, _from_match, no_progress, relative
+from mosaic_cli.stitch.registration import Link, ProgressFactory, RegistrationOptions, _from_match, no_progress
 
 
 @dataclass
