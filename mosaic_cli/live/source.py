@@ -126,17 +126,21 @@ class LiveStream:
     at ``size``, or "yuv420p" (h * 3 // 2, w) at the source size.  Use as a context manager."""
 
     def __init__(self, source: str, pixels: str = "gray", width: int | None = None,
-                 timeout: float = DEFAULT_TIMEOUT, stop: StopRequest | None = None, quiet: bool = False):
+                 timeout: float = DEFAULT_TIMEOUT, stop: StopRequest | None = None, quiet: bool = False,
+                 live: bool = True):
         if pixels not in ("gray", "rgb", "yuv420p"):
             raise ValueError(f"pixels must be gray, rgb or yuv420p, got {pixels}")
         if timeout <= 0:
             raise BadInput(f"--timeout must be positive, got {timeout}")
         self.source = source
+        # live=False: a file read the same way (one pass, frames as they are decoded), which
+        # neither times out nor outlives a Ctrl-C: an interrupted file run leaves nothing.
+        self.live = live
         self.pixels = pixels
         self.timeout = float(timeout)
         self.quiet = quiet
         self.stop = stop or StopRequest()
-        self._own_stop = stop is None
+        self._own_stop = stop is None and live
         self.frames_read = 0
         self.ended_by: str | None = None  # "end of stream", "timeout", "Ctrl-C", "SIGTERM"
         self._log: list[str] = []
@@ -156,7 +160,9 @@ class LiveStream:
     def _start(self) -> subprocess.Popen:
         pix_fmt = {"gray": "gray", "rgb": "rgb24", "yuv420p": "yuv420p"}[self.pixels]
         cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostats", "-v", "info"]
-        if self.source != STDIN:
+        if self.source != STDIN and not self.live:
+            cmd += ["-nostdin"]
+        elif self.source != STDIN:
             # The network protocols' own read timeout (microseconds): ffmpeg then ends the
             # input itself and hands over the frames its demuxer and decoder still hold, which a
             # process killed while it waits for data never does.
@@ -187,7 +193,7 @@ class LiveStream:
     def _timed_out(self) -> bool:
         """Whether ffmpeg ended its input for want of data (its own -timeout)."""
         self._log_reader.join(timeout=1.0)
-        return self.source != STDIN and any(sign in line for line in self._log[-8:] for sign in _TIMED_OUT)
+        return self.live and self.source != STDIN and any(sign in line for line in self._log[-8:] for sign in _TIMED_OUT)
 
     def _read_log(self, proc: subprocess.Popen) -> None:
         output = False
@@ -221,7 +227,7 @@ class LiveStream:
 
     def _wait_for_header(self, width: int | None) -> VideoInfo:
         """Wait for ffmpeg to have found the video (at most ``timeout`` s, or a stop request)."""
-        deadline = time.monotonic() + self.timeout
+        deadline = time.monotonic() + (self.timeout if self.live else 3600.0)
         if self._own_stop:
             self.stop.install()
         while not self._header.wait(0.05):
@@ -284,7 +290,7 @@ class LiveStream:
                 item = self._queue.get(timeout=0.05)
             except queue.Empty:
                 now = time.monotonic()
-                if self.ended_by is None and now - last > self.timeout + WATCHDOG_SLACK:
+                if self.live and self.ended_by is None and now - last > self.timeout + WATCHDOG_SLACK:
                     self.ended_by = "timeout"
                 elif stopping_since is not None and now - stopping_since > FLUSH_SECONDS:
                     with contextlib.suppress(OSError):
