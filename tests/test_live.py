@@ -24,13 +24,23 @@ RUN_LIMIT = 90  # seconds any one command may take, far above what it needs
 
 
 @pytest.fixture(scope="module")
-def flight(tmp_path_factory) -> tuple[Path, dict]:
-    """A 2-second shaky simulated flight (with its exact ground truth)."""
-    folder = tmp_path_factory.mktemp("live")
-    video = folder / "flight.mp4"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky", "-n", str(FRAMES),
+def shaky_flight(tmp_path_factory) -> tuple[Path, dict]:
+    """5 s of a shaky simulated flight (long enough for the jitter's high-pass), exact truth."""
+    folder = tmp_path_factory.mktemp("shaky")
+    video = folder / "shaky.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky", "-n", "150",
                     "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
     return video, json.loads(video.with_suffix(".gt.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def flight(shaky_flight) -> tuple[Path, dict]:
+    """Its first 2 s, what the real-time tests send; the truth of those frames."""
+    video, truth = shaky_flight
+    short = video.with_name("short.mp4")
+    subprocess.run([FFMPEG, "-v", "error", "-y", "-i", str(video), "-frames:v", str(FRAMES), "-c:v", "libx264",
+                    "-preset", "veryfast", "-crf", "12", "-movflags", "+faststart", str(short)], check=True, timeout=RUN_LIMIT)
+    return short, {"pairwise": truth["pairwise"][:FRAMES - 1]}
 
 
 def free_port(kind: int) -> int:
@@ -173,3 +183,147 @@ def test_garbage_on_stdin_is_one_clear_error(tmp_path):
     rc, _, err = finish(mosaic("track", "-", "-o", tmp_path / "t.jsonl", "-e", "orb", stdin=subprocess.PIPE))
     assert rc == 2
     assert err.startswith("mosaic: error: standard input: cannot read a video stream") and err.count("\n") == 1
+
+
+# -- stabilize --latency ------------------------------------------------------------------
+
+def gt_jitter(truth: dict, warps: np.ndarray | None) -> float:
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+
+    return ground_truth_jitter(np.array(truth["map_to_frame"]), np.array(truth["smooth_map_to_frame"]), SIZE,
+                               float(truth.get("fps", 30.0)), warps)
+
+
+def count_frames(video: Path) -> int:
+    run = subprocess.run([FFMPEG, "-hide_banner", "-i", str(video), "-map", "0:v:0", "-f", "null", "-"],
+                         capture_output=True, timeout=RUN_LIMIT)
+    frames = [line for line in run.stderr.decode().replace("\r", "\n").splitlines() if line.startswith("frame=")]
+    return int(frames[-1].split("=")[1].split()[0])
+
+
+def test_stabilize_live_over_tcp_to_a_file_keeps_every_frame_and_steadies(tmp_path, flight):
+    video, truth = flight
+    port = free_port(socket.SOCK_STREAM)
+    out, warps = tmp_path / "steady.mp4", tmp_path / "warps.json"
+    proc = mosaic("stabilize", f"tcp://127.0.0.1:{port}?listen=1", out, "-e", "orb", "--warps", warps)
+    wait_until_bound(port, udp=False)
+    assert send(video, f"tcp://127.0.0.1:{port}").returncode == 0
+    rc, _, err = finish(proc)
+    assert rc == 0, err
+    assert f"{FRAMES} frames in, {FRAMES} out" in err
+    assert count_frames(out) == FRAMES
+    assert len(json.loads(warps.read_text())["warps"]) == FRAMES
+
+
+def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offline(tmp_path, shaky_flight):
+    video, truth = shaky_flight
+    jitter = {}
+    for name, extra in (("live", ["--latency", "1"]), ("offline", [])):
+        warps = tmp_path / f"{name}.json"
+        subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / f"{name}.mp4"), "-e",
+                        "orb", "--warps", str(warps), "-q", *extra], check=True, timeout=RUN_LIMIT)
+        jitter[name] = gt_jitter(truth, np.array(json.loads(warps.read_text())["warps"]))
+    assert jitter["live"] < 0.5 * gt_jitter(truth, None)
+    assert jitter["live"] <= 1.5 * jitter["offline"]
+
+
+def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
+    video, _ = flight
+    with open(video, "rb") as stdin:
+        proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", "-", "-", "-e", "orb", "--latency", "0.5",
+                               "-q"], stdin=stdin, capture_output=True, timeout=RUN_LIMIT)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert proc.stdout[0] == 0x47 and proc.stdout[188] == 0x47  # MPEG-TS sync bytes
+    (tmp_path / "out.ts").write_bytes(proc.stdout)
+    assert count_frames(tmp_path / "out.ts") == FRAMES
+
+
+def test_online_path_waits_at_most_its_horizon_and_equals_the_offline_path_when_it_sees_everything():
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import camera_motion, motion_model
+    from mosaic_cli.stabilize.smoothing import L1Smoother
+
+    rng = np.random.default_rng(1)
+    n, size, model = 50, SIZE, motion_model("similarity")
+    pairwise = np.tile(np.eye(3), (n - 1, 1, 1))
+    pairwise[:, 0, 2] = 2.0 + rng.normal(0, 1.5, n - 1)  # a pan with shake
+    pairwise[:, 1, 2] = rng.normal(0, 1.5, n - 1)
+
+    horizon = Horizon(step=4, lookahead=6)
+    online = OnlineL1Path(model, size, None, horizon)
+    settled_at: list[int] = []
+    for t in range(n):
+        online.push(None if t == 0 else pairwise[t - 1])
+        settled_at += [t] * len(online.settle())
+    settled_at += [n - 1] * len(online.settle(final=True))
+    assert len(settled_at) == n
+    waits = np.array(settled_at) - np.arange(n)
+    assert waits.min() >= 0 and waits.max() <= horizon.frames - 1
+
+    whole = OnlineL1Path(model, size, None, Horizon(step=n, lookahead=n))
+    for t in range(n):
+        whole.push(None if t == 0 else pairwise[t - 1])
+    assert len(whole.settle()) == 0
+    views = whole.settle(final=True)
+    offline = L1Smoother().smooth(camera_motion(pairwise, size, model), size, model, None)
+    np.testing.assert_allclose(views, offline, atol=1e-9)
+
+
+def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, flight):
+    video, _ = flight
+    proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / "o.mp4"), "-e", "orb",
+                           "--latency", "0.1"], capture_output=True, timeout=RUN_LIMIT)
+    assert proc.returncode == 2
+    assert proc.stderr.decode().startswith("mosaic: error: --latency 0.1 s is too short at 30 fps")
+    assert not (tmp_path / "o.mp4").exists()
+
+
+# -- stitch --live ------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("survey")
+    video = folder / "survey.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "survey", "-n", "120",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    return video
+
+
+def test_stitch_live_from_stdin_equals_the_offline_stitch(tmp_path, survey):
+    with open(survey, "rb") as stdin:
+        rc, _, err = finish(mosaic("stitch", "-", "-o", tmp_path / "live.png", "--transforms", tmp_path / "live.json",
+                                   "-e", "orb", "-q", stdin=stdin))
+    assert rc == 0, err
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(survey), "-o", str(tmp_path / "off.png"),
+                    "--transforms", str(tmp_path / "off.json"), "-e", "orb", "-q"], check=True, timeout=RUN_LIMIT)
+    import cv2
+
+    assert json.loads((tmp_path / "live.json").read_text()) == json.loads((tmp_path / "off.json").read_text())
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "live.png"), -1), cv2.imread(str(tmp_path / "off.png"), -1))
+
+
+def test_stitch_live_over_udp_writes_a_growing_preview_and_ends_on_timeout(tmp_path, survey):
+    import cv2
+
+    port = free_port(socket.SOCK_DGRAM)
+    preview, out = tmp_path / "preview.png", tmp_path / "pano.png"
+    proc = mosaic("stitch", f"udp://127.0.0.1:{port}", "-o", out, "--live", "--preview", preview, "--every", "0.2",
+                  "-e", "orb", "--timeout", "1.5")
+    wait_until_bound(port, udp=True)
+    sender = subprocess.Popen([FFMPEG, "-v", "error", "-re", "-i", str(survey), "-c", "copy", "-f", "mpegts",
+                               f"udp://127.0.0.1:{port}?pkt_size=1316"])
+    sizes = []
+    while sender.poll() is None:
+        if preview.exists():
+            image = cv2.imread(str(preview), cv2.IMREAD_UNCHANGED)
+            assert image is not None  # never a half-written file
+            sizes.append(int((image[..., 3] > 0).sum()))
+        time.sleep(0.1)
+    rc, _, err = finish(proc)
+    assert rc == 0, err
+    assert "(--timeout)" in err
+    assert "120 frames ->" in err
+    assert sizes and sizes[-1] > sizes[0]  # the covered area grew while the flight was sent
+    pano = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert pano is not None and pano.shape[2] == 4
+    assert not list(tmp_path.glob(".*.part*"))

@@ -90,6 +90,8 @@ class LivePreview:
         return True
 
     def update(self, keyframes: list[Keyframe]) -> None:
+        if self.options.path is None:
+            return
         clock = time.perf_counter()
         image = self.draw(keyframes)
         if image is not None:
