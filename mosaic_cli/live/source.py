@@ -356,8 +356,14 @@ class LiveStream:
         self.close()
 
 
+# yuv420p luma is limited range (16..235); ffmpeg's "gray", which every other command decodes
+# and the learned estimators were trained on, is full range: the same table ffmpeg applies.
+_FULL_RANGE = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+
+
 def gray_of_yuv(frame: np.ndarray, source_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
-    """The Y plane of a yuv420p frame, resized to ``size`` (what the estimators take)."""
+    """The Y plane of a yuv420p frame as ffmpeg's full-range gray, resized to ``size`` (what
+    the estimators take): the frames a file's ``track`` sees."""
     w, h = source_size
-    y = frame[:h]
+    y = cv2.LUT(frame[:h], _FULL_RANGE)
     return y if (w, h) == tuple(size) else cv2.resize(y, size, interpolation=cv2.INTER_AREA)

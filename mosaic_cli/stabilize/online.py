@@ -22,7 +22,7 @@ from mosaic_cli.stabilize.path import MotionModel, fit_model, to_normalized
 from mosaic_cli.stabilize.smoothing import CARRIED, L1Smoother, _solve_window
 
 # Part of the latency budget left for the work itself (tracking, warping, encoding, queues).
-WORK_SHARE = 0.25
+WORK_SHARE = 0.15
 MIN_LOOKAHEAD = 4
 
 
@@ -46,7 +46,9 @@ class Horizon:
         if budget < CARRIED + MIN_LOOKAHEAD:
             need = (CARRIED + MIN_LOOKAHEAD + estimator_delay) / fps / (1.0 - WORK_SHARE)
             raise BadInput(f"--latency {latency:g} s is too short at {fps:g} fps for this estimator: give at least {need:.2f} s")
-        step = max(CARRIED, budget // 2)  # half the horizon: one solve per step frames
+        # A quarter of the horizon: shorter steps re-plan more often with the future in view
+        # (half the horizon left twice the jitter of a quarter: docs/live.md).
+        step = max(CARRIED, budget // 4)
         return cls(step=step, lookahead=budget - step)
 
 

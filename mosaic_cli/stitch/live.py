@@ -5,8 +5,10 @@ The scan (stage 1 of :mod:`.pipeline`) runs on frames as they come off a live so
 viewer reloading the file never sees half an image).  Its cost is bounded: it is drawn at most
 ``PREVIEW_SIDE`` pixels on its longest side, from per-keyframe thumbnails made once (and shrunk
 as the area flown grows), each warped only into its own bounding box, later keyframes over
-earlier ones, no seams or blending.  Placements in the preview are the scan's (each keyframe
-registered directly with the previous one).
+earlier ones, no seams or blending.  With drift control on, the preview's placements are
+refined incrementally (:class:`IncrementalRegistration`): each preview registers only the loop
+pairs that became candidates since the last one (within the same ``max_loop_pairs`` budget) and
+solves the joint placement again from the previous solution, over every loop closed so far.
 
 When the stream ends (its end, ``--timeout``, Ctrl-C or SIGTERM) stages 2-5 run as they do
 offline on the same keyframes: drift control over every loop closed, the reference frame,
@@ -31,8 +33,18 @@ from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
 from mosaic_cli.stitch.output import check_outputs, write_panorama, write_transforms
+from mosaic_cli.stitch.registration import (
+    Link,
+    RegistrationOptions,
+    RegistrationReport,
+    link_loops,
+    link_neighbours,
+    loop_candidates,
+    refine_placements,
+)
 from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, _compose, _register
 from mosaic_cli.stitch.spill import load_pixels
 from mosaic_cli.video.reader import scaled_size
@@ -62,6 +74,46 @@ class PreviewOptions:
             raise BadInput(f"the preview must be at least 64 pixels, got {self.side}")
 
 
+class IncrementalRegistration:
+    """Drift control on the keyframes found so far, for the preview: loop registrations are
+    made once and kept; every :meth:`update` adds the new keyframes (placed from the last
+    refined one by the scan's chain), registers the new loop candidates and refines every
+    placement jointly.  The final panorama does not use it: it runs the offline stage 2."""
+
+    def __init__(self, source_size: tuple[int, int], options: RegistrationOptions, features: FeatureOptions):
+        self.size = source_size
+        self.options = options
+        self.matcher = FeatureMatcher(FeatureExtractor(source_size, features))
+        self.placements: list[np.ndarray] = []  # keyframe -> keyframe 0, refined
+        self.loops: list[Link] = []
+        self.tried: set[tuple[int, int]] = set()
+        self.loops_closed = 0
+
+    def update(self, keyframes: list[Keyframe]) -> list[np.ndarray]:
+        """Keyframe -> keyframe 0 placements of every keyframe in ``keyframes``."""
+        if not keyframes:
+            return []
+        scan = [normalize(np.linalg.inv(keyframes[0].placement) @ k.placement) for k in keyframes]
+        if not self.placements:
+            self.placements = [scan[0]]
+        last = len(self.placements) - 1
+        bridge = self.placements[last] @ np.linalg.inv(scan[last])
+        self.placements += [normalize(bridge @ P) for P in scan[last + 1:]]
+        if len(keyframes) < 2:
+            return list(self.placements)
+        report = RegistrationReport()
+        neighbours = link_neighbours([k.link for k in keyframes[1:]], self.placements, self.size, self.options, report)
+        candidates = loop_candidates(self.placements, self.size, self.options, self.tried)
+        self.tried |= set(candidates)
+        features = [k.features for k in keyframes]
+        self.loops += link_loops(features, self.placements, candidates, self.matcher, self.options, report, lambda *a, **k: None)
+        report.links = neighbours + self.loops
+        self.placements = refine_placements(self.placements, report, 0, self.size, self.options)
+        self.loops = [link for link in report.links if link.kind == "loop"]
+        self.loops_closed = len(self.loops)
+        return list(self.placements)
+
+
 @dataclass
 class _Thumb:
     image: np.ndarray  # RGB
@@ -74,6 +126,7 @@ class LivePreview:
 
     options: PreviewOptions
     source_size: tuple[int, int]
+    registration: IncrementalRegistration | None = None  # None: the scan's placements
     written: int = 0
     seconds: float = 0.0  # spent drawing and writing previews
     _thumbs: dict[int, _Thumb] = field(default_factory=dict)
@@ -106,19 +159,24 @@ class LivePreview:
 
     def draw(self, keyframes: list[Keyframe]) -> np.ndarray | None:
         """RGBA preview of the composited keyframes, None while they cannot be drawn sanely."""
-        drawn = [k for k in keyframes if k.composited and (k.image is not None or k.index in self._thumbs)]
+        if self.registration is not None:
+            placements = self.registration.update(keyframes)
+        else:
+            placements = [k.placement for k in keyframes]
+        drawn = [(k, P) for k, P in zip(keyframes, placements)
+                 if k.composited and (k.image is not None or k.index in self._thumbs)]
         if not drawn:
             return None
         try:
-            canvas = plan_canvas([k.placement for k in drawn], [k.index for k in drawn], self.source_size,
+            canvas = plan_canvas([P for _, P in drawn], [k.index for k, _ in drawn], self.source_size,
                                  CanvasOptions(max_size=self.options.side))
         except ProcessingError:
             return None  # a placement degenerated; the final stitch will say so
         W, H = canvas.size
         out = np.zeros((H, W, 4), np.uint8)
-        for k in drawn:
+        for k, P in drawn:
             thumb = self._thumb(k, canvas.scale)
-            M = normalize(canvas.frame_to_canvas(k.placement) @ np.linalg.inv(
+            M = normalize(canvas.frame_to_canvas(P) @ np.linalg.inv(
                 resize_matrix(self.source_size, (thumb.image.shape[1], thumb.image.shape[0]))))
             self._paste(out, thumb.image, M)
         return out
@@ -184,7 +242,9 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
             stream.info = replace(info, size=decode_size)
             scanner = FlightScanner(info.source_size, decode_size, info.fps, 0, options.keyframes, options.features,
                                     max_size, spill if options.spill else None)
-            drawer = LivePreview(preview, info.source_size)
+            registration = (IncrementalRegistration(info.source_size, options.registration, options.features)
+                            if options.registration.enabled else None)
+            drawer = LivePreview(preview, info.source_size, registration)
 
             def frames():
                 for k, frame in enumerate(stream):
@@ -224,6 +284,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         seconds["write"] = time.perf_counter() - clock
         result = StitchResult(canvas.size, frames_out, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
         result.previews = drawer.written  # type: ignore[attr-defined]
+        result.preview_loops = registration.loops_closed if registration else 0  # type: ignore[attr-defined]
         result.preview_seconds = drawer.seconds  # type: ignore[attr-defined]
         result.ended_by = stream.ended_by if live else None  # type: ignore[attr-defined]
         return result
