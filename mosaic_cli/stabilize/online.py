@@ -62,6 +62,11 @@ class OnlineL1Path:
     crop: float | None
     horizon: Horizon
     options: L1Smoother = field(default_factory=L1Smoother)
+    # Frames beyond the newest planned as if the camera kept its recent mean motion: without
+    # them the window's free tail stops following the camera, and the next window bends the
+    # path back (see docs/live.md).  Only the real frames' views are used.
+    predicted: int | None = None  # None: as many as the lookahead
+    recent: int = 15  # frames whose mean motion is carried on
 
     def __post_init__(self) -> None:
         if self.horizon.step < CARRIED:
@@ -99,8 +104,12 @@ class OnlineL1Path:
         views: list[np.ndarray] = []
         while self.settled < self.frames and (final or self.frames - self.settled >= self.horizon.frames):
             end = self.frames if final else self.settled + self.horizon.frames
-            solution = _solve_window(np.array(self._motion[:end - 1 - self._start]).reshape(-1, 3, 3),
-                                     self.model, self._fixed, self.size, self.crop, self.options)
+            motion = np.array(self._motion[:end - 1 - self._start]).reshape(-1, 3, 3)
+            extra = 0 if final else (self.horizon.lookahead if self.predicted is None else self.predicted)
+            if extra and len(motion):
+                mean = motion[-self.recent:].mean(axis=0)
+                motion = np.concatenate([motion, np.repeat(mean[None], extra, axis=0)])
+            solution = _solve_window(motion, self.model, self._fixed, self.size, self.crop, self.options)
             keep = end if final else self.settled + self.horizon.step
             views.append(self.model.matrices(solution[self.settled - self._start:keep - self._start]) @ self._zoom)
             self.settled = keep
