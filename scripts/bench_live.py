@@ -12,6 +12,9 @@ machine; say how loaded it was beside it.
     python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2]
         frames in / out (counted by a receiving ffmpeg), latency p50/p95/max, residual jitter
         against the offline L1 path on the same frames (ground truth from simulate -p shaky)
+    python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
+        the online path over an offline track against the offline L1 path of that track, for
+        several horizons and predicted tails (how the defaults were chosen)
     python scripts/bench_live.py memory     [--frames 54000]
         resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
         sent as fast as mosaic takes it), sampled every second
@@ -270,18 +273,65 @@ def bench_memory(args) -> list[dict]:
     return rows
 
 
+# -- horizon ------------------------------------------------------------------------------
+
+def bench_horizon(args) -> list[dict]:
+    """The online path over an offline track of a shaky flight, against the offline L1 path of
+    the same track: residual jitter (ground truth) for several horizons and predicted tails."""
+    from mosaic_cli.stabilize.crop import output_warps
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import camera_motion, motion_model
+    from mosaic_cli.stabilize.smoothing import L1Smoother
+    from mosaic_cli.track import load_track
+
+    video = flight("shaky", args.frames, size=args.size, seed=args.seed)
+    track_file = video.with_suffix(f".{args.estimator}.json")
+    if not track_file.exists():
+        subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(track_file), "-e", args.estimator, "-q"],
+                       check=True)
+    track, gt = load_track(track_file), load_ground_truth(video.with_suffix(".gt.json"))
+    size, model = gt.size, motion_model("similarity")
+
+    def jitter(views: np.ndarray) -> float:
+        return ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, output_warps(views, size))
+
+    offline = jitter(L1Smoother().smooth(camera_motion(track.pairwise, size, model, track.confidence), size, model, None))
+    rows = []
+    for step, lookahead, predicted in ((9, 10, 0), (5, 14, 0), (5, 17, 0), (5, 17, 8), (5, 17, 17), (5, 17, 34)):
+        path = OnlineL1Path(model, size, None, Horizon(step, lookahead), predicted=predicted)
+        path.push()
+        views = []
+        clock = time.process_time()
+        for H, c in zip(track.pairwise, track.confidence):
+            path.push(H, c)
+            views.append(path.settle())
+        views.append(path.settle(final=True))
+        cpu_ms = 1000 * (time.process_time() - clock) / track.frames
+        ratio = jitter(np.concatenate(views)) / offline
+        rows.append({"step": step, "lookahead": lookahead, "predicted": predicted, "ratio": ratio, "cpu ms": cpu_ms})
+        print(f"{video.name} ({args.estimator}): step {step}, lookahead {lookahead}, predicted {predicted}: "
+              f"jitter {ratio:.2f}x the offline L1 path's ({offline:.3f} px); {cpu_ms:.1f} ms CPU a frame", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py horizon --estimator {args.estimator} --frames {args.frames} "
+          f"--size {args.size} --seed {args.seed}")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory"])
+    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon"])
+    parser.add_argument("--size", default="1280x720", help="horizon: the flight's size")
+    parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
     args = parser.parse_args()
     WORKDIR.mkdir(parents=True, exist_ok=True)
-    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000}
+    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600}
     args.frames = args.frames or defaults[args.what]
-    rows = {"track": bench_track, "stitch": bench_stitch, "stabilize": bench_stabilize, "memory": bench_memory}[args.what](args)
+    rows = {"track": bench_track, "stitch": bench_stitch, "stabilize": bench_stabilize, "memory": bench_memory,
+            "horizon": bench_horizon}[args.what](args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str) + "\n")
 
