@@ -33,7 +33,7 @@ def stabilize(
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
-    latency: float | None = typer.Option(None, "--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input: 1."),
+    latency: float | None = typer.Option(None, "--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1."),
     timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),
 ) -> None:
@@ -47,7 +47,9 @@ def stabilize(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
     )
-    if latency is not None or is_live_source(video):
+    from mosaic_cli.live.output import is_stream_output
+
+    if latency is not None or is_live_source(video) or is_stream_output(out):
         from mosaic_cli.live.stabilize import DEFAULT_LATENCY, stabilize_live
 
         if timeout <= 0:
