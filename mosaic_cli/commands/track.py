@@ -51,7 +51,7 @@ def track(
     if not is_jsonl(out):
         check_writable(out)
         if Path(out).suffix.lower() not in (".json", ".npy"):
-            raise BadInput(f"output {out} must end in .json, .npy or .jsonl, or be - (standard output)")
+            raise BadInput(f"output {out} must end in .json or .npy (or .jsonl, or be -, for JSON Lines)")
     elif out != "-":
         check_writable(out)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
