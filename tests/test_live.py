@@ -326,6 +326,8 @@ def test_stitch_live_over_udp_writes_a_growing_preview_and_ends_on_timeout(tmp_p
         time.sleep(0.1)
     sender.wait(timeout=RUN_LIMIT)
     rc = proc.wait(timeout=RUN_LIMIT)
+    final = cv2.imread(str(preview), cv2.IMREAD_UNCHANGED)  # the last one: every keyframe scanned
+    sizes.append(int((final[..., 3] > 0).sum()))
     log.seek(0)
     err = log.read()
     log.close()
