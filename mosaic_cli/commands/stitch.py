@@ -14,7 +14,7 @@ from mosaic_cli.progress import console
 
 @app.command()
 def stitch(
-    video: Path = typer.Argument(..., help="Video file or folder of numbered images."),
+    video: str = typer.Argument(..., help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
     out: Path = typer.Option(..., "-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg."),
     transforms: Path | None = typer.Option(
         None, "--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON."
@@ -34,6 +34,10 @@ def stitch(
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
+    live: bool = typer.Option(False, "--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview."),
+    preview: Path | None = typer.Option(None, "--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds."),
+    every: float = typer.Option(2.0, "--every", help="--live: seconds between two previews."),
+    timeout: float = typer.Option(10.0, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
@@ -53,11 +57,26 @@ def stitch(
     options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
     # Output and option checks come before the estimator is built (a learned one loads weights).
     check_outputs(out, transforms, options.canvas.max_size)
+    from mosaic_cli.live.source import is_live_source
+    from mosaic_cli.stitch.live import PreviewOptions, stitch_live
+
+    live = live or is_live_source(video) or preview is not None
+    preview_options = PreviewOptions(preview, every)
+    if live:
+        from mosaic_cli.errors import BadInput
+
+        if timeout <= 0:
+            raise BadInput(f"--timeout must be positive, got {timeout}")
+        preview_options.validate(out)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
     from mosaic_cli.video.reader import reading_policy
 
-    with reading_policy(strict):
-        result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
+    if live:
+        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, timeout=timeout,
+                             show_progress=not quiet)
+    else:
+        with reading_policy(strict):
+            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

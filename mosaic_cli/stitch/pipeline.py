@@ -31,9 +31,12 @@ from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Feature
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
 from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
 from mosaic_cli.stitch.registration import (
-    RegistrationOptions, RegistrationReport, chain_sequence, register_keyframes,
+    RegistrationOptions,
+    RegistrationReport,
+    chain_sequence,
+    register_keyframes,
 )
-from mosaic_cli.stitch.segments import JoinOptions, Joined, join_segments
+from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
@@ -111,38 +114,45 @@ def stitch(
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
+        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds)
+
+
+def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
+                  transforms: str | Path | None, show_progress: bool, seconds: dict[str, float]) -> StitchResult:
+    """The stages after the scan, shared by the offline and the live stitch: register the
+    keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
+    write each panorama.  ``seconds`` gains each stage's time."""
+    clock = time.perf_counter()
+    groups, report = _register(scan, reference, options, show_progress)
+    seconds["register"] = time.perf_counter() - clock
+
+    seconds["compose"] = seconds["write"] = 0.0
+    panoramas = []
+    for number, (members, placements, ref, segments) in enumerate(groups):
+        clock = time.perf_counter()
+        keyframes = [scan.keyframes[k] for k in members]
+        indices = [k.index for k in keyframes]
+        drawn = [k.composited for k in keyframes]
+        canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
+        frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
+        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress)
+        seconds["compose"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
-        groups, report = _register(scan, reference, options, show_progress)
-        seconds["register"] = time.perf_counter() - clock
-
-        seconds["compose"] = seconds["write"] = 0.0
-        panoramas = []
-        for number, (members, placements, ref, segments) in enumerate(groups):
-            clock = time.perf_counter()
-            keyframes = [scan.keyframes[k] for k in members]
-            indices = [k.index for k in keyframes]
-            drawn = [k.composited for k in keyframes]
-            canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
-            frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-            panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress)
-            seconds["compose"] += time.perf_counter() - clock
-
-            clock = time.perf_counter()
-            path, json_path = numbered(out, number), numbered(transforms, number) if transforms is not None else None
-            write_panorama(path, panorama)
-            del panorama
-            # Every keyframe is reported, also those over ground already drawn (used for registration).
-            frames = list(zip(indices, frame_to_canvas))
-            if json_path is not None:
-                write_transforms(json_path, canvas.size, frames)
-            seconds["write"] += time.perf_counter() - clock
-            panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments))
-        first = panoramas[0]
-        return StitchResult(
-            first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
-            seconds, panoramas, scan.dropped, scan.photos,
-        )
+        path, json_path = numbered(out, number), numbered(transforms, number) if transforms is not None else None
+        write_panorama(path, panorama)
+        del panorama
+        # Every keyframe is reported, also those over ground already drawn (used for registration).
+        frames = list(zip(indices, frame_to_canvas))
+        if json_path is not None:
+            write_transforms(json_path, canvas.size, frames)
+        seconds["write"] += time.perf_counter() - clock
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments))
+    first = panoramas[0]
+    return StitchResult(
+        first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
+        seconds, panoramas, scan.dropped, scan.photos,
+    )
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
