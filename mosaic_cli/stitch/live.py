@@ -42,7 +42,7 @@ from mosaic_cli.stitch.registration import (
     RegistrationOptions,
     RegistrationReport,
     link_loops,
-    link_neighbours,
+    link_sequence,
     loop_candidates,
     refine_placements,
 )
@@ -102,7 +102,8 @@ class IncrementalRegistration:
         if len(keyframes) < 2:
             return list(self.placements)
         report = RegistrationReport()
-        neighbours = link_neighbours([k.link for k in keyframes[1:]], self.placements, self.size, self.options, report)
+        sequence = [(i, k.link_to, k.link) for i, k in enumerate(keyframes) if k.link_to is not None and k.link_to < len(keyframes)]
+        neighbours = link_sequence(sequence, self.placements, self.size, self.options, report)
         candidates = loop_candidates(self.placements, self.size, self.options, self.tried)
         self.tried |= set(candidates)
         features = [k.features for k in keyframes]
