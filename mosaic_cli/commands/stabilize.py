@@ -7,8 +7,8 @@ from pathlib import Path
 import typer
 
 from mosaic_cli.cli import app
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR
 from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.progress import console
 
