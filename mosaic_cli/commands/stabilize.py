@@ -31,17 +31,21 @@ def stabilize(
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
+    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of the motion estimate (the output keeps every pixel)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
     from mosaic_cli.stabilize import StabilizeOptions
+    from mosaic_cli.overlay import MaskOptions
     from mosaic_cli.stabilize import stabilize as run
 
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
+        mask=MaskOptions(file=mask, detect=overlay_detect),
     )
     result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if not quiet:

@@ -30,6 +30,8 @@ def stitch(
     work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
+    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of estimation and the panorama."),
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
@@ -38,6 +40,7 @@ def stitch(
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
+    from mosaic_cli.overlay import MaskOptions
     from mosaic_cli.stitch.output import check_outputs
 
     options = StitchOptions(
@@ -45,17 +48,25 @@ def stitch(
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
         canvas=CanvasOptions(reference=reference, max_size=max_size or None),
         compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure),
+        mask=MaskOptions(file=mask, detect=overlay_detect),
         start=start,
         max_frames=max_frames,
     )
     options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
     # Output and option checks come before the estimator is built (a learned one loads weights).
     check_outputs(out, transforms, options.canvas.max_size)
+    if mask is not None:  # a bad --mask fails before the estimator loads its weights
+        from mosaic_cli.overlay import load_mask
+        from mosaic_cli.video import probe
+
+        load_mask(mask, probe(video).source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
     result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""
+        if result.mask is not None and result.mask.use is not None:
+            console.print(result.mask.describe())
         console.print(
             f"{result.frames} frames -> {len(result.transforms)} keyframes{loops}, "
             f"{result.canvas_size[0]}x{result.canvas_size[1]} canvas, {result.frames_per_second:.1f} fr/s -> {out}"

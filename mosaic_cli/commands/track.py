@@ -10,8 +10,10 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.cli import app
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
+from mosaic_cli.overlay import MaskOptions, frame_mask, load_mask
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
+from mosaic_cli.video import probe
 
 MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
 
@@ -29,6 +31,8 @@ def track(
     refine: str | None = typer.Option(None, "--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb)."),
     chunk: int | None = typer.Option(None, "--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU)."),
     threads: int | None = typer.Option(None, "--threads", help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
+    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
+    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of estimation."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
@@ -45,15 +49,22 @@ def track(
     check_writable(out)
     if out.suffix.lower() not in (".json", ".npy"):
         raise BadInput(f"output {out} must end in .json or .npy")
+    if mask is not None:  # a bad --mask fails before the estimator loads its weights
+        load_mask(mask, probe(video).source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
+    masked = frame_mask(video, MaskOptions(file=mask, detect=overlay_detect))
+    est.set_mask(masked.use)
     result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+    result.meta["mask"] = masked.to_json()
     save_track(result, out)
     if not quiet:
+        if masked.use is not None:
+            console.print(masked.describe())
         console.print(
             f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
             f"median confidence {float(_median(result.confidence)):.2f} -> {out}"

@@ -38,6 +38,7 @@ from mosaic_cli.estimators.refine import (
     PolishConfig,
     align_pixels,
     band_pass,
+    erode_mask,
     points_to_track,
     track_points,
 )
@@ -190,6 +191,8 @@ class LearnedEstimator(Estimator):
         self._corners = frame_corners(w, h)
         downscaled = full_size[0] >= self.config.polish_band_min_downscale * w
         self._band = self.config.polish_band if downscaled else None
+        # Overlays (set_mask): no polish corner whose LK window would reach them.
+        self._corner_mask = None if self.work_mask is None else erode_mask(self.work_mask, self.config.polish.window // 2 + 1)
         self._pending = []
         self._state = None
         self._pairs_done = 0
@@ -238,7 +241,7 @@ class LearnedEstimator(Estimator):
             return
         c = self.config
         if c.refine == "lk":
-            frame.points = points_to_track(frame.gray, c.corners)
+            frame.points = points_to_track(frame.gray, c.corners, self._corner_mask)
             frame.textured = len(frame.points) > 0
         else:
             frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
@@ -254,9 +257,9 @@ class LearnedEstimator(Estimator):
             if config is None or result.refined:
                 break
             if c.refine == "lk":
-                result = track_points(prev.aligned, cur.aligned, H, prev.points, config)
+                result = track_points(prev.aligned, cur.aligned, H, prev.points, config, self.work_mask)
             else:
-                result = align_pixels(prev.aligned, cur.aligned, H, config)
+                result = align_pixels(prev.aligned, cur.aligned, H, config, self.work_mask)
         return result
 
     def _polish_weight(self, p: Polish) -> float:
@@ -327,14 +330,16 @@ class LearnedEstimator(Estimator):
         at 0.5; and a textureless patch scores low, as it should.  On the CPU with OpenCV, per
         pair, after the polish (cheaper than the network's device for 128x128 patches)."""
         detail = [frame.astype(np.float32) - cv2.blur(frame.astype(np.float32), (5, 5)) for frame in frames]
-        ones = np.ones(frames[0].shape, np.float32)
+        ones = np.ones(frames[0].shape, np.float32) if self.work_mask is None else (self.work_mask > 0).astype(np.float32)
         P = self.patch
         scores = np.zeros(len(H_work))
         for k, H in enumerate(H_work):
             target, warped = [], []
             for x, y in self.positions:
                 to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-                valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
+                valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1 (and unmasked)
+                if self.work_mask is not None:  # nor on an overlay of frame t
+                    valid &= self.work_mask[y : y + P, x : x + P] > 0
                 target.append(detail[k][y : y + P, x : x + P][valid])
                 warped.append(_sample(detail[k + 1], to_next, P)[valid])
             scores[k] = _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)

@@ -32,6 +32,7 @@ import numpy as np
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
+from mosaic_cli.overlay import fill_masked
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
@@ -203,13 +204,15 @@ class FlightScanner:
         feature_options: FeatureOptions,
         max_size: int | None,
         spill: str | Path | None = None,
+        use: np.ndarray | None = None,
     ):
         self.o = options
+        self.use = use  # burned-in overlays (255 = ground): no features there, never drawn
         self.size = source_size
         self.fps = fps
         self.index = first_index - 1
         self.first_index = first_index
-        self.extract = FeatureExtractor(source_size, feature_options)
+        self.extract = FeatureExtractor(source_size, feature_options, use)
         self.matcher = FeatureMatcher(self.extract)
         self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size, spill)
         self.coverage = CoverageMap(source_size, options.coverage_cells)
@@ -358,7 +361,9 @@ class FlightScanner:
         cells = self.coverage.cells(world)
         if not self.keyframes or self.coverage.new_fraction(cells) >= self.o.min_new_coverage:
             self.coverage.add(cells)
-            self.store.keep(keyframe, frame, world)
+            # Overlay pixels are replaced by the ground around them: the blender's pyramid
+            # reaches a few pixels past the mask's edge.
+            self.store.keep(keyframe, frame if self.use is None else fill_masked(frame, self.use), world)
             self.store.shrink(self.keyframes)
         self.keyframes.append(keyframe)
 

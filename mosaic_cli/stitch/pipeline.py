@@ -1,5 +1,7 @@
 """``stitch()``: a video in, a panorama out, in five stages.
 
+0. overlays  burned-in logos, text and letterbox bars found on frames sampled over the clip,
+             merged with --mask: kept out of estimation, registration and the panorama
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one
 2. register  close loops, refine all placements jointly (drift control)
@@ -20,6 +22,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import normalize, resize_matrix
+from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
@@ -38,6 +41,7 @@ class StitchOptions:
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     canvas: CanvasOptions = field(default_factory=CanvasOptions)
     compose: ComposeOptions = field(default_factory=ComposeOptions)
+    mask: MaskOptions = field(default_factory=MaskOptions)  # burned-in overlays, --mask
     start: int = 0
     max_frames: int | None = None
     # Hold keyframe pixels in a temporary folder ($TMPDIR) rather than in memory: a survey's
@@ -54,6 +58,7 @@ class StitchResult:
     keyframes: int
     registration: RegistrationReport
     seconds: dict[str, float]
+    mask: FrameMask | None = None
 
     @property
     def frames_per_second(self) -> float:
@@ -80,7 +85,12 @@ def stitch(
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None)
+        mask = frame_mask(video, options.mask, info)
+        estimator.set_mask(mask.use)
+        seconds["overlays"] = time.perf_counter() - clock
+
+        clock = time.perf_counter()
+        scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None, mask.use)
         seconds["scan"] = time.perf_counter() - clock
 
         if not scan.keyframes:
@@ -96,7 +106,7 @@ def stitch(
         drawn = [k.composited for k in scan.keyframes]
         canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        panorama = _compose(scan, frame_to_canvas, canvas.size, options.compose, show_progress)
+        panorama = _compose(scan, frame_to_canvas, canvas.size, options.compose, show_progress, mask.use)
         seconds["compose"] = time.perf_counter() - clock
 
         clock = time.perf_counter()
@@ -107,7 +117,7 @@ def stitch(
         if transforms is not None:
             write_transforms(transforms, canvas.size, frames)
         seconds["write"] = time.perf_counter() - clock
-        return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
+        return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds, mask)
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
@@ -131,7 +141,8 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     return info, reference
 
 
-def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None) -> FlightScan:
+def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
+          use: np.ndarray | None = None) -> FlightScan:
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None
@@ -145,7 +156,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             if options.max_frames is not None:
                 total = min(total, options.max_frames)
         scanner = FlightScanner(
-            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill
+            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill, use
         )
 
         def frames():
@@ -174,14 +185,15 @@ def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress:
     return placements, report
 
 
-def _compose(scan: FlightScan, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
+def _compose(scan: FlightScan, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool,
+             use: np.ndarray | None = None):
     placed = []
     for keyframe, H in zip(scan.keyframes, frame_to_canvas):
         if not keyframe.composited:
             continue
         image, keyframe.image = keyframe.image, None  # compose() frees each image once drawn
         to_source = np.linalg.inv(resize_matrix(scan.source_size, (image.shape[1], image.shape[0])))
-        placed.append(PlacedImage(image, normalize(H @ to_source)))
+        placed.append(PlacedImage(image, normalize(H @ to_source), use))
         del image
     with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", canvas_size[1], unit="rows/s", disable=not show_progress) as advance:
         return compose(placed, canvas_size, options, advance)
