@@ -170,10 +170,10 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
     ua, ub = sum_a / norm, sum_b / norm
     strong = (8.0 * o.min_gradient) ** 2
     aligned_cos = float(np.cos(np.radians(2 * 20.0)))
-    count = np.zeros((h, w), np.uint16)
+    edges = np.zeros((h, w), np.uint16)
     for a, b, e in doubled:  # e: the channels' mean squared gradient
-        count += ((e >= strong) & (a * ua + b * ub >= aligned_cos * e)).astype(np.uint16)
-    static = count >= o.persistence * len(frames)
+        edges += ((e >= strong) & (a * ua + b * ub >= aligned_cos * e)).astype(np.uint16)
+    static = edges >= o.persistence * len(frames)
     # The bars are masked on their own; their inner edge (bar against ground, blurred over a
     # pixel or two by the scaling and the Sobel) is not an overlay.
     top, bottom, left, right = (k + BAR_MARGIN if k else 0 for k in box)
@@ -183,15 +183,15 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
     if o.close_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * o.close_px + 1, 2 * o.close_px + 1))
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    regions, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     # A region is kept when it is large enough and its static edges run more than one way.  A
     # straight edge sliding along itself (a road the camera follows) keeps its orientation
     # too, but it is one orientation; logos and text have corners.  Isotropy: the ratio of the
     # small to the large eigenvalue of the region's summed structure tensor.
     inside = labels[static]
-    tensor_e = np.bincount(inside, sum_e[static], count)
-    tensor_a = np.bincount(inside, sum_a[static], count)
-    tensor_b = np.bincount(inside, sum_b[static], count)
+    tensor_e = np.bincount(inside, sum_e[static], regions)
+    tensor_a = np.bincount(inside, sum_a[static], regions)
+    tensor_b = np.bincount(inside, sum_b[static], regions)
     spread = np.hypot(tensor_a, tensor_b)
     isotropy = (tensor_e - spread) / np.maximum(tensor_e + spread, 1e-6)
     keep = (stats[:, cv2.CC_STAT_AREA] >= o.min_area) & (isotropy >= o.min_isotropy)
@@ -242,47 +242,85 @@ def _bars_at(box: tuple[int, int, int, int], work: tuple[int, int], full_size: t
 # -- reading sample frames ---------------------------------------------------------------------
 
 
-# Up to this many frames a clip is decoded once (small and gray, about 1.5 ms a frame at
-# 640x360); longer ones are sampled by seeking (a decoder start and the frames from the last
-# keyframe each: 0.05-0.2 s a sample), see docs/stitch.md.
-DECODE_ALL_BELOW = 2000
+# Up to this many frames a clip is decoded once, keeping only the sampled frames; longer ones
+# are sampled by seeking (a decoder start and the frames from the last keyframe each: at most
+# ``samples`` keyframe intervals decoded, however long the clip).  docs/stitch.md has the costs.
+DECODE_ALL_BELOW = 1000
 
 
 def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
     """About ``count`` RGB frames spread evenly over ``video`` (a file or an image folder),
     ``width`` wide.  Short clips are decoded once; long ones are sampled by seeking, so the
-    cost does not grow with the clip's length."""
+    cost does not grow with the clip's length; a folder's images are read only when picked."""
     info = info or probe(video)
     total = info.frame_count
-    if info.is_image_folder or total is None or total <= DECODE_ALL_BELOW or info.duration <= 0:
-        return _sample_by_decoding(video, count, width, total)
+    if info.is_image_folder:
+        return _sample_folder(Path(video), count, width)
+    if total is None or info.duration <= 0:
+        return _sample_by_decoding(video, count, width)
+    if total <= DECODE_ALL_BELOW:
+        return _sample_by_selecting(video, count, width, info)
     return _sample_by_seeking(video, count, width, info)
 
 
-def _sample_by_decoding(video, count: int, width: int, total: int | None) -> list[np.ndarray]:
-    frames: list[np.ndarray] = []
+def _picked(total: int, count: int) -> np.ndarray:
+    return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
+
+
+def _sample_folder(folder: Path, count: int, width: int) -> list[np.ndarray]:
+    from mosaic_cli.video.reader import _folder_images, _read_image_rgb
+
+    files = _folder_images(folder)
+    frames = []
+    for k in _picked(len(files), count):
+        image = _read_image_rgb(files[k])
+        size = scaled_size((image.shape[1], image.shape[0]), width)
+        frames.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size[0] != image.shape[1] else image)
+    sizes = {f.shape for f in frames}
+    return frames if len(sizes) <= 1 else []  # photos of several sizes: the reader refuses them anyway
+
+
+def _sample_by_decoding(video, count: int, width: int) -> list[np.ndarray]:
+    """Unknown length: decode everything, keep an even spread (bounded memory: every other
+    kept frame is dropped whenever twice ``count`` are held)."""
+    kept: list[tuple[int, np.ndarray]] = []
+    step = 1
     with open_video(video, width=width) as stream:
-        if total:
-            wanted = set(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int).tolist())
-            for k, frame in enumerate(stream):
-                if k in wanted:
-                    frames.append(frame.copy())
-        else:  # unknown length: keep every frame, then pick
-            frames = [f.copy() for f in stream]
-            pick = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int) if frames else []
-            frames = [frames[k] for k in pick]
-    return frames
+        for k, frame in enumerate(stream):
+            if k % step == 0:
+                kept.append((k, frame.copy()))
+                if len(kept) >= 2 * count:
+                    kept, step = kept[::2], step * 2
+    return [f for _, f in kept][:: max(1, len(kept) // count)][:count]
 
 
-def _sample_by_seeking(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+def _sample_by_selecting(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+    """One decoder pass; only the picked frames are scaled and piped (ffmpeg's select filter)."""
     import imageio_ffmpeg
 
     size = scaled_size(info.source_size, width)
+    picks = "+".join(f"eq(n\\,{k})" for k in _picked(info.frame_count, count))
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error", "-i", str(video), "-map", "0:v:0",
+           "-vf", f"select='{picks}',scale={size[0]}:{size[1]}:flags=area", "-fps_mode", "passthrough",
+           "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
+    try:
+        run = subprocess.run(cmd, capture_output=True, timeout=600)
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    n = size[0] * size[1] * 3
+    return [np.frombuffer(run.stdout[k : k + n], np.uint8).reshape(size[1], size[0], 3).copy()
+            for k in range(0, len(run.stdout) - n + 1, n)]
+
+
+def _sample_by_seeking(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+    """One decoder start per picked frame, seeking to it: each decodes from the keyframe
+    before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
+    size = scaled_size(info.source_size, width)
     fps = info.fps if info.fps > 0 else 30.0
-    frames = []
-    # The same frames as decoding would pick; a seek past the last decodable frame (the
-    # container's duration can run a little long) steps back a frame or two.
-    for index in np.linspace(0, max(0, info.frame_count - 1), count).round():
+    frames: list[np.ndarray] = []
+    for index in _picked(info.frame_count, count):
+        # A seek past the last decodable frame (the container's duration can run a little
+        # long) steps back a frame or two.
         for back in (0, 1, 2):
             frame = _frame_at(video, max(0.0, (index - back - 0.25) / fps), size)  # the first frame at or after
             if frame is not None:
@@ -292,13 +330,12 @@ def _sample_by_seeking(video, count: int, width: int, info: VideoInfo) -> list[n
 
 
 def _frame_at(video, seconds: float, size: tuple[int, int]) -> np.ndarray | None:
-    """The frame shown at ``seconds`` (RGB, ``size``): ffmpeg seeks before the input, which
-    starts decoding at the keyframe before it, not at the start of the clip."""
+    """The first frame at or after ``seconds`` (RGB, ``size``)."""
     import imageio_ffmpeg
 
-    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error", "-ss", f"{seconds:.4f}",
-           "-i", str(video), "-map", "0:v:0", "-frames:v", "1", "-vf", f"scale={size[0]}:{size[1]}:flags=area",
-           "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error",
+           "-ss", f"{seconds:.4f}", "-i", str(video), "-map", "0:v:0", "-frames:v", "1",
+           "-vf", f"scale={size[0]}:{size[1]}:flags=area", "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
     try:
         run = subprocess.run(cmd, capture_output=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired):

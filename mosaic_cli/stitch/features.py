@@ -16,7 +16,7 @@ import numpy as np
 from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
 from mosaic_cli.overlay import work_mask
 
-MASK_MARGIN = 8  # px at the feature width: a keypoint's descriptor must not reach a masked pixel
+MASK_MARGIN = 4  # px at the feature width: keypoints this close to an overlay are not kept
 
 
 @dataclass
