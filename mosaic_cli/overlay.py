@@ -435,10 +435,18 @@ def load_mask(path: str | Path, full_size: tuple[int, int]) -> np.ndarray:
     return use
 
 
-def frame_mask(video: str | Path, options: MaskOptions | None = None, info: VideoInfo | None = None) -> FrameMask:
+def frame_mask(video: str | Path, options: MaskOptions | None = None, info: VideoInfo | None = None,
+               show_progress: bool = False) -> FrameMask:
     """The merged use mask of ``video``: the ``--mask`` file's, and the detector's unless off.
     The file is checked before any frame is decoded."""
     options = options or MaskOptions()
+    if show_progress and options.detect:
+        from mosaic_cli.progress import progress_task
+
+        with progress_task("overlays", None, unit="fr/s") as advance:
+            found = frame_mask(video, options, info)
+            advance(0, status=f"{100 * found.excluded:.1f}% masked")
+        return found
     clock = time.perf_counter()
     info = info or probe(video)
     use = load_mask(options.file, info.source_size) if options.file is not None else None

@@ -57,7 +57,7 @@ def track(
         import torch
 
         torch.set_num_threads(threads)
-    masked = frame_mask(video, MaskOptions(file=mask, detect=overlay_detect))
+    masked = frame_mask(video, MaskOptions(file=mask, detect=overlay_detect), show_progress=not quiet)
     est.set_mask(masked.use)
     result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
     result.meta["mask"] = masked.to_json()

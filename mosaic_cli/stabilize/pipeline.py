@@ -89,7 +89,7 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     info, plan = check_request(video, out, options, warps_out, compare)
     clock = time.perf_counter()
 
-    plan.estimator.set_mask(frame_mask(video, options.mask, info).use)
+    plan.estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
     track = track_video(video, plan.estimator, show_progress=show_progress)
     seconds = {"track": time.perf_counter() - clock}
 

@@ -85,7 +85,7 @@ def stitch(
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        mask = frame_mask(video, options.mask, info)
+        mask = frame_mask(video, options.mask, info, show_progress)
         estimator.set_mask(mask.use)
         seconds["overlays"] = time.perf_counter() - clock
 
