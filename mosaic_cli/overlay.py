@@ -438,15 +438,8 @@ def load_mask(path: str | Path, full_size: tuple[int, int]) -> np.ndarray:
 def frame_mask(video: str | Path, options: MaskOptions | None = None, info: VideoInfo | None = None,
                show_progress: bool = False) -> FrameMask:
     """The merged use mask of ``video``: the ``--mask`` file's, and the detector's unless off.
-    The file is checked before any frame is decoded."""
+    The video and the file are checked before any frame is decoded or progress shown."""
     options = options or MaskOptions()
-    if show_progress and options.detect:
-        from mosaic_cli.progress import progress_task
-
-        with progress_task("overlays", None, unit="fr/s") as advance:
-            found = frame_mask(video, options, info)
-            advance(0, status=f"{100 * found.excluded:.1f}% masked")
-        return found
     clock = time.perf_counter()
     info = info or probe(video)
     use = load_mask(options.file, info.source_size) if options.file is not None else None
@@ -458,8 +451,15 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     if options.detect:
         options.overlay.validate()
         width = min(options.overlay.width, info.source_size[0])
-        frames = sample_frames(video, options.overlay.samples, width, info)
-        detection = detect_overlays(frames, info.source_size, options.overlay)
+        if show_progress:
+            from mosaic_cli.progress import progress_task
+
+            with progress_task("overlays", None, unit="fr/s") as advance:
+                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size,
+                                            options.overlay)
+                advance(0, status=f"{100 * detection.excluded:.1f}% masked")
+        else:
+            detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
         if detection.use is not None:
             use = detection.use if use is None else np.minimum(use, detection.use)
     return FrameMask(use, detection, options.file is not None, time.perf_counter() - clock)
