@@ -39,6 +39,9 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
+# Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
+LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
+
 
 @dataclass
 class OverlayOptions:
@@ -442,11 +445,7 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     options = options or MaskOptions()
     clock = time.perf_counter()
     info = info or probe(video)
-    use = load_mask(options.file, info.source_size) if options.file is not None else None
-    if use is not None and options.file_margin > 0:
-        r = options.file_margin
-        use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
-                        borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    use = _file_mask(options, info.source_size)
     detection = None
     if options.detect:
         options.overlay.validate()
@@ -463,6 +462,29 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
         if detection.use is not None:
             use = detection.use if use is None else np.minimum(use, detection.use)
     return FrameMask(use, detection, options.file is not None, time.perf_counter() - clock)
+
+
+def live_mask(options: MaskOptions | None, full_size: tuple[int, int], show_progress: bool = True) -> FrameMask:
+    """The use mask of a live input: the ``--mask`` file's only.  Detection samples frames
+    spread over the whole clip before the first is estimated, which a stream does not have;
+    when it was asked for (the default), one line says it is skipped."""
+    options = options or MaskOptions()
+    clock = time.perf_counter()
+    if options.detect and show_progress:
+        from mosaic_cli.live.source import note
+
+        note(LIVE_DETECTION_SKIPPED + ("; --mask applies" if options.file is not None else "; use --mask to exclude overlays"))
+    return FrameMask(_file_mask(options, full_size), None, options.file is not None, time.perf_counter() - clock)
+
+
+def _file_mask(options: MaskOptions, full_size: tuple[int, int]) -> np.ndarray | None:
+    """The ``--mask`` file's use mask at ``full_size``, its black areas grown by the margin."""
+    use = load_mask(options.file, full_size) if options.file is not None else None
+    if use is not None and options.file_margin > 0:
+        r = options.file_margin
+        use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
+                        borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    return use
 
 
 def fill_masked(image: np.ndarray, use: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from mosaic_cli.cli import main
 from mosaic_cli.estimators import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, points_to_track, track_points
 from mosaic_cli.evaluate import corner_errors
-from mosaic_cli.overlay import OverlayOptions, detect_overlays, fill_masked, frame_mask, load_mask, sample_frames
+from mosaic_cli.overlay import detect_overlays, fill_masked, frame_mask, load_mask, sample_frames
 from mosaic_cli.simulate import OverlaySpec, load_ground_truth, overlay_mask_path, plan_flight, procedural_map, write_flight
 from mosaic_cli.simulate.overlay import LOGO_RGB, TEXT_RGB, OverlayBurner
 from mosaic_cli.track import load_track

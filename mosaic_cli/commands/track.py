@@ -10,18 +10,21 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.cli import app
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
+from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
+from mosaic_cli.live.track import is_jsonl, track_stream
 from mosaic_cli.overlay import MaskOptions, frame_mask, load_mask
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
 from mosaic_cli.video import probe
+from mosaic_cli.video.reader import reading_policy
 
 MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
 
 
 @app.command()
 def track(
-    video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
+    video: str = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...), folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
+    out: str = typer.Option(..., "-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated."),
     estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
     work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
@@ -34,6 +37,8 @@ def track(
     mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
     overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of estimation."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
+    timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.
@@ -46,10 +51,18 @@ def track(
         raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
     if threads is not None and threads < 1:
         raise BadInput(f"--threads must be at least 1, got {threads}")
-    check_writable(out)
-    if out.suffix.lower() not in (".json", ".npy"):
-        raise BadInput(f"output {out} must end in .json or .npy")
-    if mask is not None:  # a bad --mask fails before the estimator loads its weights
+    if timeout <= 0:
+        raise BadInput(f"--timeout must be positive, got {timeout}")
+    streaming = is_live_source(video) or is_jsonl(out)
+    if not is_jsonl(out):
+        check_writable(out)
+        if Path(out).suffix.lower() not in (".json", ".npy"):
+            raise BadInput(f"output {out} must end in .json or .npy (or .jsonl, or be -, for JSON Lines)")
+    elif out != "-":
+        check_writable(out)
+    live = is_live_source(video)
+    mask_options = MaskOptions(file=mask, detect=overlay_detect)
+    if mask is not None and not live:  # a bad --mask fails before the estimator loads its weights
         load_mask(mask, probe(video).source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
@@ -57,17 +70,30 @@ def track(
         import torch
 
         torch.set_num_threads(threads)
-    masked = frame_mask(video, MaskOptions(file=mask, detect=overlay_detect), show_progress=not quiet)
-    est.set_mask(masked.use)
-    result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
-    result.meta["mask"] = masked.to_json()
-    save_track(result, out)
+    masked = None
+    if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
+        masked = frame_mask(video, mask_options, show_progress=not quiet)
+        est.set_mask(masked.use)
+    if streaming:
+        result = track_stream(video, est, out, timeout=timeout, max_frames=max_frames, show_progress=not quiet,
+                              mask=mask_options if live else None)
+        if masked is not None:
+            result.meta["mask"] = masked.to_json()
+        if not is_jsonl(out):
+            save_track(result, out)
+    else:
+        with reading_policy(strict):
+            result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+        result.meta["mask"] = masked.to_json()
+        save_track(result, out)
     if not quiet:
-        if masked.use is not None:
+        if masked is not None and masked.use is not None:
             console.print(masked.describe())
+        elif masked is None and result.meta["mask"]["excluded"] > 0:
+            console.print(f"{100 * result.meta['mask']['excluded']:.1f}% of the frame masked (--mask)")
         console.print(
             f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
-            f"median confidence {float(_median(result.confidence)):.2f} -> {out}"
+            f"median confidence {float(_median(result.confidence)):.2f} -> {'standard output' if out == '-' else out}"
         )
 
 
