@@ -144,7 +144,6 @@ def bench_stitch(args) -> dict:
     port = free_port()
     url = f"tcp://127.0.0.1:{port}?listen=1"
     result: dict = {}
-    scan_done: list[float] = []
 
     def run() -> None:
         estimator = make_estimator(args.estimator)
@@ -200,7 +199,7 @@ def bench_stabilize(args) -> list[dict]:
         receiver = subprocess.Popen([FFMPEG, "-v", "error", "-y", "-timeout", "20000000", "-i", f"udp://127.0.0.1:{out_port}",
                                      "-c", "copy", str(received)])
         holder: dict = {}
-        threading.Thread(target=lambda: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
+        threading.Thread(target=lambda port=port, holder=holder, video=video, url=url: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
                          daemon=True).start()
         live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, latency=1.0, show_progress=False)
         receiver.wait()

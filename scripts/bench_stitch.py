@@ -20,8 +20,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shutil
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -223,7 +223,7 @@ def revisits(args) -> dict:
         for seed in args.seeds:
             video, truth = revisit_flight(args.workdir, kind, args.revisit_frames, seed)
             n = args.revisit_frames
-            twin = (lambda j: 2 * n - 1 - j) if kind == "fb" else (lambda j: j - n)
+            twin = (lambda j, n=n: 2 * n - 1 - j) if kind == "fb" else (lambda j, n=n: j - n)
             row = {"flight": video.name, "estimator": args.estimator}
             for label, enabled in (("dc", True), ("no-dc", False)):
                 options = StitchOptions(registration=RegistrationOptions(enabled=enabled))

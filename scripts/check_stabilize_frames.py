@@ -114,7 +114,7 @@ def main() -> None:
     subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(flight), "-n", str(args.frames),
                     "--profile", "shaky", "--size", args.size, "--preset", "veryfast", "-q"], check=True)
     inputs = make_inputs(flight, args.frames / 30.0, work)
-    print(f"| input | frames in | frames out | audio in (s) | audio out (s) | video out (s) |\n|---|---:|---:|---:|---:|---:|")
+    print("| input | frames in | frames out | audio in (s) | audio out (s) | video out (s) |\n|---|---:|---:|---:|---:|---:|")
     failed = 0
     for name, path in inputs.items():
         out = work / f"out_{path.stem}.mp4"

@@ -244,3 +244,14 @@ def test_all_black_video_gives_identity_with_zero_confidence(capsys, workdir):
     assert code == 0 and data["frames"] == 10
     assert np.array_equal(np.array(data["pairwise"]), np.broadcast_to(np.eye(3), (9, 3, 3)))
     assert data["confidence"] == [0.0] * 9
+
+
+@pytest.mark.parametrize("command", ["track", "stitch", "stabilize"])
+@pytest.mark.parametrize("width", ["16", "100000"])
+def test_work_width_has_one_rule_for_every_command(capsys, tiny_clip, tmp_path, command, width):
+    """--work-width is bounded the same way wherever an estimator is built (stabilize once
+    upsampled every frame to 100000 px)."""
+    out = {"track": ["-o", tmp_path / "t.json"], "stitch": ["-o", tmp_path / "p.png"], "stabilize": [tmp_path / "s.mp4"]}[command]
+    code, err = run_cli(capsys, command, tiny_clip, *out, "-e", "orb", "--work-width", width, "-q")
+    assert_one_line_error(code, err, "--work-width must be in 32..4096")
+    assert not any(tmp_path.iterdir())

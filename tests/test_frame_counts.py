@@ -12,11 +12,11 @@ from fractions import Fraction
 import cv2
 import numpy as np
 import pytest
+from test_stabilize import shaky_path
 
 from conftest import FFMPEG, ffmpeg, render, textured_image
 from mosaic_cli.cli import main
 from mosaic_cli.video import VideoWriter, open_video, probe
-from test_stabilize import shaky_path
 
 
 def decoded_count(path) -> int:

@@ -5,7 +5,6 @@ command runs against it.  Every run is bounded in time (subprocess timeouts)."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess

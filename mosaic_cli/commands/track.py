@@ -18,8 +18,6 @@ from mosaic_cli.track import save_track, track_video
 from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
 
-MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
-
 
 @app.command()
 def track(
@@ -47,8 +45,6 @@ def track(
     """
     if max_frames is not None and max_frames < 2:
         raise BadInput("--max-frames must be at least 2")
-    if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:
-        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
     if threads is not None and threads < 1:
         raise BadInput(f"--threads must be at least 1, got {threads}")
     if timeout <= 0:

@@ -17,6 +17,7 @@ from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
 NAMES = (*CLASSICAL, *LEARNED)
+MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096  # estimators work on frames this wide (px)
 # What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
 DEFAULT_ESTIMATOR = "lstm"
 
@@ -84,8 +85,8 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
     if name is None:  # not named: the default, or with ``weights`` whichever network they hold
         name = "" if weights is not None else DEFAULT_ESTIMATOR
     base, spec_options = parse_spec(name)
-    if work_width < 32:
-        raise BadInput(f"--work-width must be at least 32, got {work_width}")
+    if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:  # one rule for track, stitch, stabilize and bench
+        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):  # checked for every estimator
         raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
     if weights is not None and base not in (*LEARNED, ""):

@@ -14,7 +14,7 @@ import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput, ProcessingError
-from mosaic_cli.live.source import STDIN, _URL
+from mosaic_cli.live.source import _URL, STDIN
 from mosaic_cli.video.writer import PRESETS
 
 OUTPUT_SCHEMES = ("udp", "srt", "tcp", "rtp", "rist")

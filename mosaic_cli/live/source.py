@@ -17,7 +17,6 @@ sender back; UDP has no back pressure and its socket buffer is what is left).
 from __future__ import annotations
 
 import contextlib
-import os
 import queue
 import re
 import signal
