@@ -433,6 +433,12 @@ def load_mask(path: str | Path, full_size: tuple[int, int]) -> np.ndarray:
             raise BadInput(f"--mask {p} is {w}x{h}, the video {W}x{H}: a mask must have the video's size or at least its aspect ratio")
         image = cv2.resize(image, (W, H), interpolation=cv2.INTER_AREA)
     use = np.where(image >= 128, 255, 0).astype(np.uint8)
+    if w < W:
+        # A smaller mask places an edge only to within one of its pixels, (W / w) of the
+        # frame's: its black areas grow by that much, so that no overlay pixel slips out.
+        r = int(np.ceil(W / w - 1))
+        use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
+                        borderType=cv2.BORDER_CONSTANT, borderValue=255)
     if np.count_nonzero(use) < 0.05 * use.size:
         raise BadInput(f"--mask {p} leaves less than 5% of the frame to use (white = use, black = ignore)")
     return use

@@ -271,3 +271,53 @@ def test_burner_colours_are_absent_from_the_procedural_map():
     r, g, b = (rgb[..., k].astype(int) for k in range(3))
     assert not np.any((r > 200) & (g < 70) & (b > 200)) and not np.any((r > 200) & (g > 200) & (b < 70))
     assert TEXT_RGB == (255, 255, 0) and LOGO_RGB == (255, 0, 255)
+
+
+def test_the_learned_estimators_orb_fallback_takes_the_mask():
+    """The fallback's own ORB (``fallback=orb``) is masked with the learned estimator: a pair whose
+    larger, static part is an overlay registers by the ground that moves, not by the overlay."""
+    from mosaic_cli.estimators import make_estimator
+
+    rng = np.random.default_rng(4)
+    ground = cv2.GaussianBlur(rng.integers(0, 255, (180, 360), dtype=np.uint8), (0, 0), 1.2)
+    static = cv2.GaussianBlur(rng.integers(0, 255, (180, 200), dtype=np.uint8), (0, 0), 1.2)
+    prev, cur = ground[:, :320].copy(), ground[:, 12:332].copy()  # the ground moves 12 px left
+    prev[:, :200] = cur[:, :200] = static  # an overlay over 62% of the frame, fixed
+    shift = np.array([[1, 0, -12.0], [0, 1, 0], [0, 0, 1]])
+    est = make_estimator("lstm", device="cpu")
+    use = np.full((360, 640), 255, np.uint8)
+    use[:, :400] = 0  # full resolution, twice the working size
+    for mask, moves in ((None, False), (use, True)):
+        est.set_mask(mask)
+        est.reset((640, 360))
+        assert est.work_size == (320, 180)
+        points, _ = est._fallback._describe(prev)
+        H, _ = est._fallback.register(prev, cur)
+        assert H is not None
+        if moves:
+            assert points[:, 0].min() >= 200 and np.abs(H / H[2, 2] - shift).max() < 0.05, H
+        else:  # the check can fail: unmasked, the static overlay pulls the fit off the ground's motion
+            assert np.abs(H / H[2, 2] - shift).max() > 1.0, H
+
+
+def test_a_live_input_takes_the_mask_file_and_skips_detection_with_one_line(flights, tmp_path):
+    """stdin is a live input: no frames to sample ahead, so detection is skipped (said once)
+    and ``--mask`` alone keeps the overlays out of the panorama and the track."""
+    import subprocess
+    import sys
+
+    exact = overlay_mask_path(flights.burned)
+    pano = tmp_path / "live.png"
+    with open(flights.burned, "rb") as stdin:
+        done = subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", "-", "-o", str(pano), "-e", "orb", "--mask", str(exact)],
+                              stdin=stdin, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert sum("overlay detection is skipped" in line for line in done.stderr.splitlines()) == 1, done.stderr
+    assert overlay_coloured(cv2.imread(str(pano), cv2.IMREAD_UNCHANGED)) == 0
+    out = tmp_path / "live.json"
+    with open(flights.burned, "rb") as stdin:
+        done = subprocess.run([sys.executable, "-m", "mosaic_cli", "track", "-", "-o", str(out), "-e", "orb", "-q",
+                               "--mask", str(exact)], stdin=stdin, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    meta = json.loads(out.read_text())["meta"]["mask"]
+    assert meta["from_file"] and meta["detected"] is None and meta["excluded"] > 0.1

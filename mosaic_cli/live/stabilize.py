@@ -87,19 +87,18 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
     live = is_live_source(source)
     notes: list[str] = []
-    # A file's overlays are found before its stream starts; a live input has only --mask.
-    masked = None if live else frame_mask(source, options.mask, None, show_progress)
     with LiveStream(source, "yuv420p", timeout=timeout, quiet=not show_progress, live=live) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         width = options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0])
         estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device,
                                    **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
-        if masked is None:
-            masked = live_mask(options.mask, size, show_progress)
-        estimator.set_mask(masked.use)
         chunk = getattr(getattr(estimator, "config", None), "chunk", 1)
         horizon = Horizon.for_latency(latency, fps, estimator_delay=max(0, chunk - 1))
+        # After the option checks: a file's overlays are found as offline (it is there whole);
+        # a live input has only --mask.
+        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, None, show_progress)
+        estimator.set_mask(masked.use)
         path = OnlineL1Path(model, size, crop, horizon, L1Smoother())
         gray_size = scaled_size(size, estimator.input_width)
         if info.has_audio:
