@@ -462,7 +462,7 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
             with progress_task("overlays", None, unit="fr/s") as advance:
                 detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size,
                                             options.overlay)
-                advance(0, status=f"{100 * detection.excluded:.1f}% masked")
+                advance(detection.samples, status=f"{100 * detection.excluded:.1f}% masked")  # frames sampled
         else:
             detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
         if detection.use is not None:
