@@ -65,8 +65,9 @@ def test_progress_to_a_pipe_is_one_line_per_stage(tmp_path, tiny_clip):
     assert run.returncode == 0, run.stderr
     lines = run.stderr.strip().splitlines()
     frames = json.loads(out.read_text())["frames"]
-    assert lines[0].startswith(f"track (orb): {frames}/{frames} in ") and lines[0].endswith("fr/s)")
-    assert len(lines) == 2 and lines[1].startswith(f"{frames} frames, ")  # the stage, then the summary, each whole
+    assert lines[0].startswith("overlays: ") and lines[0].endswith("% masked")  # the detection stage
+    assert lines[1].startswith(f"track (orb): {frames}/{frames} in ") and lines[1].endswith("fr/s)")
+    assert len(lines) == 3 and lines[2].startswith(f"{frames} frames, ")  # the stages, then the summary, each whole
     assert not any(mark in run.stderr for mark in "━╸\r")
 
 

@@ -23,6 +23,7 @@ def simulate(
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed (path, map, effects)."),
     crf: int | None = typer.Option(None, "--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme."),
     preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
+    overlays: str | None = typer.Option(None, "--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Render a drone flight over a large aerial image with a virtual nadir camera.
@@ -35,7 +36,7 @@ def simulate(
     The exact homographies go to <stem>.gt.json: map_to_frame per frame and pairwise t -> t+1.
     """
     from mosaic_cli.atomic import check_writable
-    from mosaic_cli.simulate import PROFILES, ground_truth_path, simulate_flight
+    from mosaic_cli.simulate import PROFILES, OverlaySpec, ground_truth_path, overlay_mask_path, simulate_flight
 
     if profile not in PROFILES:
         raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
@@ -48,10 +49,14 @@ def simulate(
         raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
     if map_image is not None and not map_image.exists():
         raise BadInput(f"{map_image}: no such file")
+    burned = OverlaySpec.parse(overlays)
     _make_folder(out.parent)  # a flight is often written to a data folder of its own
     check_writable(out)
     check_writable(ground_truth_path(out))
-    gt = simulate_flight(out, map_image, profile, frames, wh, fps, seed, crf, preset, show_progress=not quiet)
+    if burned.any:
+        check_writable(overlay_mask_path(out))
+    gt = simulate_flight(out, map_image, profile, frames, wh, fps, seed, crf, preset, show_progress=not quiet,
+                         overlays=burned)
     if not quiet:
         console.print(
             f"{gt.frames} frames {gt.size[0]}x{gt.size[1]} over {gt.map_name} ({gt.map_size[0]}x{gt.map_size[1]}), "

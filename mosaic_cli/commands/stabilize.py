@@ -33,6 +33,8 @@ def stabilize(
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
+    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of the motion estimate (the output keeps every pixel)."),
     strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
     latency: float | None = typer.Option(None, "--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1."),
     timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
@@ -41,12 +43,14 @@ def stabilize(
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
+    from mosaic_cli.overlay import MaskOptions
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
 
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
+        mask=MaskOptions(file=mask, detect=overlay_detect),
     )
     from mosaic_cli.live.output import is_stream_output
 

@@ -31,6 +31,8 @@ def stitch(
     work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
+    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of estimation and the panorama."),
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
@@ -42,6 +44,7 @@ def stitch(
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
+    from mosaic_cli.overlay import MaskOptions
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
     from mosaic_cli.stitch.output import check_outputs
@@ -51,6 +54,7 @@ def stitch(
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
         canvas=CanvasOptions(reference=reference, max_size=max_size or None),
         compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure),
+        mask=MaskOptions(file=mask, detect=overlay_detect),
         start=start,
         max_frames=max_frames,
     )
@@ -68,6 +72,11 @@ def stitch(
         if timeout <= 0:
             raise BadInput(f"--timeout must be positive, got {timeout}")
         preview_options.validate(out)
+    if mask is not None and not is_live_source(video):  # a bad --mask fails before the estimator loads its weights
+        from mosaic_cli.overlay import load_mask
+        from mosaic_cli.video import probe
+
+        load_mask(mask, probe(video).source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
     from mosaic_cli.video.reader import reading_policy
 
@@ -80,6 +89,8 @@ def stitch(
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""
+        if result.mask is not None and result.mask.use is not None:
+            console.print(result.mask.describe())
         used = sum(len(p.transforms) for p in result.panoramas)
         console.print(f"{result.frames} frames -> {used} keyframes{loops}, {result.frames_per_second:.1f} fr/s")
         for p in result.panoramas:

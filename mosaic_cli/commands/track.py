@@ -12,8 +12,10 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
+from mosaic_cli.overlay import MaskOptions, frame_mask, load_mask
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
+from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
 
 
@@ -30,6 +32,8 @@ def track(
     refine: str | None = typer.Option(None, "--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb)."),
     chunk: int | None = typer.Option(None, "--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU)."),
     threads: int | None = typer.Option(None, "--threads", help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
+    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
+    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of estimation."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
     timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
@@ -52,21 +56,37 @@ def track(
             raise BadInput(f"output {out} must end in .json or .npy (or .jsonl, or be -, for JSON Lines)")
     elif out != "-":
         check_writable(out)
+    live = is_live_source(video)
+    mask_options = MaskOptions(file=mask, detect=overlay_detect)
+    if mask is not None and not live:  # a bad --mask fails before the estimator loads its weights
+        load_mask(mask, probe(video).source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
+    masked = None
+    if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
+        masked = frame_mask(video, mask_options, show_progress=not quiet)
+        est.set_mask(masked.use)
     if streaming:
-        result = track_stream(video, est, out, timeout=timeout, max_frames=max_frames, show_progress=not quiet)
+        result = track_stream(video, est, out, timeout=timeout, max_frames=max_frames, show_progress=not quiet,
+                              mask=mask_options if live else None)
+        if masked is not None:
+            result.meta["mask"] = masked.to_json()
         if not is_jsonl(out):
             save_track(result, out)
     else:
         with reading_policy(strict):
             result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+        result.meta["mask"] = masked.to_json()
         save_track(result, out)
     if not quiet:
+        if masked is not None and masked.use is not None:
+            console.print(masked.describe())
+        elif masked is None and result.meta["mask"]["excluded"] > 0:
+            console.print(f"{100 * result.meta['mask']['excluded']:.1f}% of the frame masked (--mask)")
         console.print(
             f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
             f"median confidence {float(_median(result.confidence)):.2f} -> {'standard output' if out == '-' else out}"

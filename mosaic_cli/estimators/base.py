@@ -74,6 +74,14 @@ class Estimator(ABC):
         self.work_width = int(work_width)
         self.full_size: tuple[int, int] | None = None
         self._prev: np.ndarray | None = None
+        self.mask: np.ndarray | None = None  # full-resolution use mask (255 = ground), see set_mask
+        self.work_mask: np.ndarray | None = None  # the same at the working size
+
+    def set_mask(self, use: np.ndarray | None) -> None:
+        """Estimate from the pixels ``use`` allows only (uint8 (h, w) at the full resolution of
+        the frames to come, 255 = use; None: every pixel): burned-in overlays and the user's
+        ``--mask`` (see :mod:`mosaic_cli.overlay`).  Applies from the next ``reset``."""
+        self.mask = None if use is None else np.asarray(use, dtype=np.uint8)
 
     @property
     def input_width(self) -> int:
@@ -85,6 +93,13 @@ class Estimator(ABC):
         self.full_size = (int(full_size[0]), int(full_size[1]))
         self.work_size = working_size(self.full_size, self.work_width)
         self._prev = None
+        self.work_mask = None
+        if self.mask is not None:
+            if (self.mask.shape[1], self.mask.shape[0]) != self.full_size:
+                raise ValueError(f"mask is {self.mask.shape[1]}x{self.mask.shape[0]}, the frames {self.full_size[0]}x{self.full_size[1]}")
+            from mosaic_cli.overlay import work_mask
+
+            self.work_mask = work_mask(self.mask, self.work_size)
 
     def prepare(self, frame: np.ndarray) -> np.ndarray:
         """Gray frame at the working resolution (from a frame at any resolution)."""

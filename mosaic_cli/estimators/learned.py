@@ -43,6 +43,7 @@ from mosaic_cli.estimators.refine import (
     PolishConfig,
     align_pixels,
     band_pass,
+    erode_mask,
     points_to_track,
     track_points,
 )
@@ -217,12 +218,16 @@ class LearnedEstimator(Estimator):
         self._corners = frame_corners(w, h)
         downscaled = full_size[0] >= self.config.polish_band_min_downscale * w
         self._band = self.config.polish_band if downscaled else None
+        # Overlays (set_mask): no polish corner whose LK window would reach them.
+        self._corner_mask = None if self.work_mask is None else erode_mask(self.work_mask, self.config.polish.window // 2 + 1)
         self._pending = []
         self._state = None
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
         self.path_counts = dict.fromkeys(PATHS, 0)
+        self._zncc_use = None  # the ZNCC's valid-pixel image (work size), made at the first pair
         if self._fallback is not None:
+            self._fallback.set_mask(self.mask)  # the fallback's ORB keypoints and polish skip overlays too
             self._fallback.reset(full_size)
 
     # Streaming ----------------------------------------------------------------------------
@@ -304,7 +309,7 @@ class LearnedEstimator(Estimator):
             return
         c = self.config
         if c.refine == "lk":
-            frame.points = points_to_track(frame.gray, c.corners)
+            frame.points = points_to_track(frame.gray, c.corners, self._corner_mask)
             frame.textured = len(frame.points) > 0
         else:
             frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
@@ -320,9 +325,9 @@ class LearnedEstimator(Estimator):
             if config is None or result.refined:
                 break
             if c.refine == "lk":
-                result = track_points(prev.aligned, cur.aligned, H, prev.points, config)
+                result = track_points(prev.aligned, cur.aligned, H, prev.points, config, self.work_mask)
             else:
-                result = align_pixels(prev.aligned, cur.aligned, H, config)
+                result = align_pixels(prev.aligned, cur.aligned, H, config, self.work_mask)
         return result
 
     def _polish_weight(self, p: Polish) -> float:
@@ -388,17 +393,23 @@ class LearnedEstimator(Estimator):
         of the patches of frame t and of frame t+1 sampled through ``H``, on pixels whose every
         bilinear tap lies inside frame t+1, over all patches.  Detail decorrelates within a pixel
         or two of misregistration, where raw intensities still correlate, and a textureless patch
-        scores low, as it should (docs in models/README.md)."""
+        scores low, as it should (docs in models/README.md).  Overlays (set_mask) are left out:
+        no tap on a masked pixel of frame t+1, no masked pixel of frame t."""
         for f in (prev, cur):
             if f.detail is None:
                 g = f.gray.astype(np.float32)
                 f.detail = g - cv2.blur(g, (5, 5))
-        ones = np.ones(prev.gray.shape, np.float32)
+        if self._zncc_use is None:
+            self._zncc_use = (np.ones(prev.gray.shape, np.float32) if self.work_mask is None
+                              else (self.work_mask > 0).astype(np.float32))
+        ones = self._zncc_use
         P = self.patch
         target, warped = [], []
         for x, y in self.positions:
             to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-            valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
+            valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1 (and unmasked)
+            if self.work_mask is not None:  # nor on an overlay of frame t
+                valid &= self.work_mask[y : y + P, x : x + P] > 0
             target.append(prev.detail[y : y + P, x : x + P][valid])
             warped.append(_sample(cur.detail, to_next, P)[valid])
         return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.estimators.base import Estimator
-from mosaic_cli.estimators.refine import PolishConfig, align_pixels, track_points
+from mosaic_cli.estimators.refine import PolishConfig, align_pixels, erode_mask, track_points
 from mosaic_cli.geometry import is_valid
 
 ROBUST_METHODS = {"usac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
@@ -78,9 +78,11 @@ class OrbEstimator(Estimator):
     def reset(self, full_size):
         super().reset(full_size)
         self._prev_features = None
+        # Keypoints whose descriptor patch would reach a masked pixel are not detected.
+        self._detect_mask = None if self.work_mask is None else erode_mask(self.work_mask, self._orb.getPatchSize() // 2 + 1)
 
     def _describe(self, gray: np.ndarray):
-        keypoints, descriptors = self._orb.detectAndCompute(gray, None)
+        keypoints, descriptors = self._orb.detectAndCompute(gray, self._detect_mask)
         points = np.float32([k.pt for k in keypoints]) if keypoints else np.zeros((0, 2), np.float32)
         return points, descriptors
 
@@ -98,9 +100,9 @@ class OrbEstimator(Estimator):
         cur_pts, cur_desc = cur_features if cur_features is not None else self._describe(cur)
         H, confidence, src = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._matcher, self.config, self.work_size)
         if H is not None and self.config.refine == "ecc":
-            H = align_pixels(prev, cur, H, self.config.polish).H
+            H = align_pixels(prev, cur, H, self.config.polish, self.work_mask).H
         elif H is not None and self.config.refine == "lk":
-            H = track_points(prev, cur, H, src, self.config.polish).H
+            H = track_points(prev, cur, H, src, self.config.polish, self.work_mask).H
         return H, confidence
 
 

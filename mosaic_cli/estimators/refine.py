@@ -43,9 +43,12 @@ class Polish:
     score: float  # LK: refit inliers / points asked to track; ECC: its correlation; 0 when not refined
 
 
-def track_points(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.ndarray, config: PolishConfig) -> Polish:
+def track_points(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.ndarray, config: PolishConfig,
+                 mask: np.ndarray | None = None) -> Polish:
     """Track ``points`` (N, 2) of ``prev`` into ``cur`` with pyramidal LK, starting at ``H @ points``,
-    and refit a homography to the tracks (RANSAC at ``config.threshold``)."""
+    and refit a homography to the tracks (RANSAC at ``config.threshold``).  With a ``mask``
+    (working size, 255 = use), tracks whose window would reach a masked pixel of either frame
+    are dropped: an overlay that stays put pulls a window toward zero motion."""
     c = config
     n = len(points)
     kept = Polish(H, False, 0.0)
@@ -59,6 +62,9 @@ def track_points(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.nd
     tracked, status, _ = cv2.calcOpticalFlowPyrLK(prev, cur, src, guess.copy(), winSize=(c.window, c.window), maxLevel=c.levels,
                                                   criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     ok = status.ravel() == 1
+    if mask is not None:
+        inside = erode_mask(mask, c.window // 2 + 1)
+        ok &= _allowed(inside, src.reshape(-1, 2)) & _allowed(inside, tracked.reshape(-1, 2))
     if ok.sum() < c.min_inliers:
         return kept
     try:
@@ -73,14 +79,15 @@ def track_points(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, points: np.nd
     return Polish(refined, True, float(mask.sum()) / n)
 
 
-def align_pixels(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, config: PolishConfig) -> Polish:
-    """Align ``cur`` onto ``prev`` with ECC, starting from ``H``."""
+def align_pixels(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, config: PolishConfig, mask: np.ndarray | None = None) -> Polish:
+    """Align ``cur`` onto ``prev`` with ECC, starting from ``H``, over the pixels of ``cur`` that
+    ``mask`` allows (working size, 255 = use; None: all)."""
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.ecc_iterations, 1e-4)
     kept = Polish(H, False, 0.0)
     # ECC's warp maps template (cur) pixels to input (prev) pixels: the inverse of H.
     try:
         warp = np.linalg.inv(H / H[2, 2]).astype(np.float32)
-        correlation, warp = cv2.findTransformECC(cur, prev, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 3)
+        correlation, warp = cv2.findTransformECC(cur, prev, warp, cv2.MOTION_HOMOGRAPHY, criteria, mask, 3)
     except (cv2.error, np.linalg.LinAlgError):
         return kept
     refined = np.linalg.inv(warp.astype(np.float64))
@@ -90,6 +97,26 @@ def align_pixels(prev: np.ndarray, cur: np.ndarray, H: np.ndarray, config: Polis
     if not _close_and_valid(refined, H, prev.shape, config.max_shift):
         return kept
     return Polish(refined, True, float(np.clip(correlation, 0.0, 1.0)))
+
+
+def erode_mask(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` (255 = use) shrunk by ``radius`` px, so that a window or a descriptor patch
+    centred on a remaining pixel sees no masked pixel; the frame border is not a mask edge."""
+    if radius <= 0:
+        return mask
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 1, 2 * radius + 1))
+    return cv2.erode(mask, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=255)
+
+
+def _allowed(mask: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points (x, y) fall on usable pixels of ``mask`` (outside the frame: no)."""
+    h, w = mask.shape
+    finite = np.all(np.isfinite(points), axis=1)
+    xy = np.where(finite[:, None], np.rint(points), -1).astype(np.int64)
+    inside = finite & (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    ok = np.zeros(len(points), bool)
+    ok[inside] = mask[xy[inside, 1], xy[inside, 0]] > 0
+    return ok
 
 
 def _close_and_valid(refined: np.ndarray, seed: np.ndarray, shape: tuple[int, ...], max_shift: float) -> bool:
@@ -135,14 +162,16 @@ class CornerConfig:
     min_response: float = 2e-4
 
 
-def points_to_track(gray: np.ndarray, config: CornerConfig) -> np.ndarray:
+def points_to_track(gray: np.ndarray, config: CornerConfig, mask: np.ndarray | None = None) -> np.ndarray:
     """Well-spread Shi-Tomasi corners of ``gray`` (N, 2); none on a textureless frame (where the
-    relative quality threshold would otherwise pick up compression noise)."""
+    relative quality threshold would otherwise pick up compression noise).  ``mask`` (255 =
+    use, same size) keeps corners to the pixels it allows."""
     c = config
-    found, quality = cv2.goodFeaturesToTrackWithQuality(gray, c.max_points, c.quality, c.min_distance, None, blockSize=c.block_size)
+    found, quality = cv2.goodFeaturesToTrackWithQuality(gray, c.max_points, c.quality, c.min_distance, mask, blockSize=c.block_size)
     if found is None or float(quality.max()) < c.min_response:  # quality: the Shi-Tomasi response itself
         return np.zeros((0, 2), np.float32)
     return found.reshape(-1, 2)
 
 
-__all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "band_pass", "points_to_track", "track_points"]
+__all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "band_pass", "erode_mask", "points_to_track",
+           "track_points"]

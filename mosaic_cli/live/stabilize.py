@@ -28,6 +28,7 @@ from mosaic_cli.estimators import make_estimator
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, gray_of_yuv, is_live_source, note, source_name
+from mosaic_cli.overlay import frame_mask, live_mask, load_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
 from mosaic_cli.stabilize.path import motion_model
@@ -71,7 +72,9 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, latency
     if warps_out is not None and Path(warps_out).suffix.lower() != ".json":
         raise BadInput(f"--warps {warps_out} must end in .json")
     if not is_live_source(source):
-        probe(source)  # the file checks of every command: missing, empty, damaged
+        info = probe(source)  # the file checks of every command: missing, empty, damaged
+        if options.mask.file is not None:
+            load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
 
 
 def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: float = DEFAULT_LATENCY,
@@ -92,6 +95,10 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
                                    **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
         chunk = getattr(getattr(estimator, "config", None), "chunk", 1)
         horizon = Horizon.for_latency(latency, fps, estimator_delay=max(0, chunk - 1))
+        # After the option checks: a file's overlays are found as offline (it is there whole);
+        # a live input has only --mask.
+        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, None, show_progress)
+        estimator.set_mask(masked.use)
         path = OnlineL1Path(model, size, crop, horizon, L1Smoother())
         gray_size = scaled_size(size, estimator.input_width)
         if info.has_audio:

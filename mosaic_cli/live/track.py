@@ -22,6 +22,7 @@ from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, estimate_stream
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
+from mosaic_cli.overlay import MaskOptions, live_mask
 from mosaic_cli.track import TrackResult
 from mosaic_cli.video import open_video
 
@@ -59,9 +60,12 @@ def _line_sink(out: str | Path, keep_on_failure: bool) -> Iterator[IO[str]]:
 
 
 def track_stream(source: str | Path, estimator: Estimator, out: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 max_frames: int | None = None, show_progress: bool = True) -> TrackResult:
+                 max_frames: int | None = None, show_progress: bool = True, mask: MaskOptions | None = None) -> TrackResult:
     """Track ``source`` (a live source, or a file when ``out`` takes JSON Lines), writing
-    each pair as it is estimated when ``out`` takes JSON Lines; returns everything tracked."""
+    each pair as it is estimated when ``out`` takes JSON Lines; returns everything tracked.
+    ``mask``: the ``--mask`` of a live input, applied once the stream gives the frame size
+    (overlay detection is skipped: see :func:`mosaic_cli.overlay.live_mask`); a file's mask
+    is set on the estimator beforehand."""
     live = is_live_source(source)
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
@@ -72,6 +76,10 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
     lines = is_jsonl(out)
     with stream, (_line_sink(out, keep_on_failure=live) if lines else contextlib.nullcontext()) as sink:
         info = stream.info
+        masked = None
+        if mask is not None:
+            masked = live_mask(mask, info.source_size, show_progress)
+            estimator.set_mask(masked.use)
 
         def frames():
             for k, frame in enumerate(stream):
@@ -99,6 +107,8 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
     meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
     if live:
         meta["ended_by"] = stream.ended_by
+    if masked is not None:
+        meta["mask"] = masked.to_json()
     from dataclasses import replace
 
     info = replace(info, frame_count=n)

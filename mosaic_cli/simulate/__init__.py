@@ -16,6 +16,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load_ground_truth
 from mosaic_cli.simulate.maps import load_map, procedural_map
+from mosaic_cli.simulate.overlay import OverlayBurner, OverlaySpec, overlay_mask_path, write_mask
 from mosaic_cli.simulate.render import MapPyramid, render_frames, render_view
 from mosaic_cli.simulate.trajectory import PROFILES, FlightPlan, Profile, centre_motion, plan_flight
 
@@ -35,6 +36,8 @@ __all__ = [
     "MapPyramid",
     "centre_motion",
     "simulate_flight",
+    "OverlaySpec",
+    "overlay_mask_path",
 ]
 
 
@@ -47,9 +50,12 @@ def write_flight(
     map_name: str = "procedural",
     preset: str = "medium",
     show_progress: bool = True,
+    overlays: "OverlaySpec | None" = None,
 ) -> GroundTruth:
     """Render ``plan`` over ``map_rgb`` into an H.264 video at ``out_path`` and write its
-    ground truth to ``<stem>.gt.json`` beside it; both appear atomically (the JSON last)."""
+    ground truth to ``<stem>.gt.json`` beside it; both appear atomically (the JSON last).
+    ``overlays`` burns a logo, a timestamp or letterbox bars into every frame; the exact
+    pixels drawn go to ``<stem>.mask.png`` (a ``--mask`` image: white where none was drawn)."""
     from mosaic_cli.atomic import check_writable
     from mosaic_cli.progress import progress_task
     from mosaic_cli.video import VideoWriter
@@ -63,11 +69,14 @@ def write_flight(
     gt = GroundTruth.from_plan(plan, fps=rate, map_name=map_name)
     if crf is None:  # the profile's own quality: degraded flights are low-bitrate too
         crf = PROFILES[plan.profile].crf if plan.profile in PROFILES else 18
+    burner = OverlayBurner(overlays, plan.size, rate) if overlays is not None and overlays.any else None
     with VideoWriter(out, plan.size, rate, crf=crf, preset=preset) as writer:
         with progress_task(f"simulate ({plan.profile})", plan.frames, disable=not show_progress) as advance:
-            for frame in render_frames(map_rgb, plan):
-                writer.write(frame)
+            for t, frame in enumerate(render_frames(map_rgb, plan)):
+                writer.write(burner.draw(frame, t) if burner else frame)
                 advance(1)
+    if burner is not None:
+        write_mask(overlay_mask_path(out), burner.use_mask())
     gt.save(gt_path)
     return gt
 
@@ -83,9 +92,11 @@ def simulate_flight(
     crf: int | None = None,
     preset: str = "medium",
     show_progress: bool = True,
+    overlays: "OverlaySpec | None" = None,
 ) -> GroundTruth:
     """Everything ``mosaic simulate`` does: load (or make) the map, plan, render, encode."""
     map_rgb = load_map(map_path, seed=seed)
     plan = plan_flight((map_rgb.shape[1], map_rgb.shape[0]), profile, frames, size, seed, fps)
     name = "procedural" if map_path is None else Path(map_path).name
-    return write_flight(out_path, map_rgb, plan, fps=fps, crf=crf, map_name=name, preset=preset, show_progress=show_progress)
+    return write_flight(out_path, map_rgb, plan, fps=fps, crf=crf, map_name=name, preset=preset, show_progress=show_progress,
+                       overlays=overlays)

@@ -20,6 +20,7 @@ import numpy as np
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.overlay import MaskOptions, frame_mask, load_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
@@ -53,6 +54,9 @@ class StabilizeOptions:
     border: str | None = None
     crf: int = 18
     preset: str = "veryfast"
+    # Burned-in overlays and --mask: kept out of the motion estimate only (the output is the
+    # whole frame, overlays included, as the input has them).
+    mask: MaskOptions = field(default_factory=MaskOptions)
 
 
 @dataclass
@@ -86,6 +90,7 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     info, plan = check_request(video, out, options, warps_out, compare)
     clock = time.perf_counter()
 
+    plan.estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
     track = track_video(video, plan.estimator, show_progress=show_progress)
     seconds = {"track": time.perf_counter() - clock}
 
@@ -157,6 +162,8 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
         renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset),
     )
     info = probe(video)
+    if options.mask.file is not None:
+        load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
     width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
     plan.estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device)
     return info, plan

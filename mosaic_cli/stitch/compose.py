@@ -12,6 +12,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import normalize, project, rect_corners, resize_matrix
+from mosaic_cli.overlay import work_mask
 from mosaic_cli.stitch.spill import Pixels, drop_pixels, load_pixels
 
 BLENDS = ("multiband", "feather", "none")
@@ -57,6 +58,7 @@ class ComposeOptions:
 class PlacedImage:
     image: Pixels | None  # RGB uint8, in memory or spilled to a file; compose() drops it once drawn
     to_canvas: np.ndarray  # image pixels -> canvas pixels
+    use: np.ndarray | None = None  # pixels to draw (uint8, 255 = use, any size of the image's aspect); None: all
 
 
 @dataclass(frozen=True)
@@ -88,9 +90,10 @@ def bounding_roi(H: np.ndarray, image_size: tuple[int, int], canvas_size: tuple[
     return Roi(int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1))
 
 
-def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi) -> tuple[np.ndarray, np.ndarray]:
-    """The image and its coverage mask warped by ``H`` (image -> canvas) into ``roi`` only.
-    Shrinks the image first when the warp shrinks it, so that bilinear sampling does not alias."""
+def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi, use: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The image and its coverage mask warped by ``H`` (image -> canvas) into ``roi`` only; the
+    pixels ``use`` excludes (burned-in overlays) are not covered.  Shrinks the image first when
+    the warp shrinks it, so that bilinear sampling does not alias."""
     scale = _local_scale(H, image.shape[1], image.shape[0])
     if scale < 0.8:
         size = (max(2, round(image.shape[1] * scale)), max(2, round(image.shape[0] * scale)))
@@ -99,7 +102,7 @@ def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi) -> tuple[np.ndarray, n
         H = H @ np.linalg.inv(S)
     T = np.array([[1, 0, -roi.x], [0, 1, -roi.y], [0, 0, 1.0]]) @ H
     warped = cv2.warpPerspective(image, T, (roi.w, roi.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    ones = np.full(image.shape[:2], 255, np.uint8)
+    ones = np.full(image.shape[:2], 255, np.uint8) if use is None else work_mask(use, (image.shape[1], image.shape[0]))
     mask = cv2.warpPerspective(ones, T, (roi.w, roi.h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
     return warped, mask
 
@@ -157,7 +160,8 @@ def compose(
             rows = (max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y)
             if k not in loaded:
                 loaded[k] = load_pixels(placed[k].image)
-            image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gains[k] if gains else None, seam_masks[k])
+            image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gains[k] if gains else None, seam_masks[k],
+                                      placed[k].use)
             blender.feed(image, mask, (roi.x, roi.y + rows[0]))
             fed = True
         if fed:
@@ -183,13 +187,13 @@ def compose(
 
 
 def _strip_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, rows: tuple[int, int], gain: np.ndarray | None,
-                seam_mask: np.ndarray):
+                seam_mask: np.ndarray, use: np.ndarray | None = None):
     """Rows ``rows`` (of its bounding box ``roi``) of an image: warped, exposure-compensated
     (``gain``: a scalar or a block map over the whole box, from ``getMatGains``) as int16 for
     the blender, and its blend mask (the seam mask within the image's coverage)."""
     r0, r1 = rows
     part = Roi(roi.x, roi.y + r0, roi.w, r1 - r0)
-    warped, mask = warp_into(pixels, to_canvas, part)
+    warped, mask = warp_into(pixels, to_canvas, part, use)
     if gain is not None and gain.size == 1:
         warped = np.multiply(warped, float(gain.ravel()[0]), dtype=np.float32)
     elif gain is not None:
@@ -224,7 +228,7 @@ def _seams_and_exposure(placed, rois, seam_scale, options):
     S = resize_matrix((1.0, 1.0), (seam_scale, seam_scale))
     images, masks = [], []
     for p, roi in zip(placed, small_rois):
-        warped, mask = warp_into(load_pixels(p.image), normalize(S @ p.to_canvas), roi)
+        warped, mask = warp_into(load_pixels(p.image), normalize(S @ p.to_canvas), roi, p.use)
         images.append(warped)
         masks.append(mask)
     corners = [r.corner for r in small_rois]

@@ -14,6 +14,9 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
+from mosaic_cli.overlay import work_mask
+
+MASK_MARGIN = 4  # px at the feature width: keypoints this close to an overlay are not kept
 
 
 @dataclass
@@ -58,9 +61,10 @@ class PairMatch:
 
 
 class FeatureExtractor:
-    """SIFT on a gray copy of a frame at ``options.width``; frames may arrive at any resolution."""
+    """SIFT on a gray copy of a frame at ``options.width``; frames may arrive at any resolution.
+    ``use`` (uint8 at the source size, 255 = use) keeps features off burned-in overlays."""
 
-    def __init__(self, source_size: tuple[int, int], options: FeatureOptions | None = None):
+    def __init__(self, source_size: tuple[int, int], options: FeatureOptions | None = None, use: np.ndarray | None = None):
         self.options = options or FeatureOptions()
         self.source_size = source_size
         width = min(self.options.width, source_size[0])
@@ -69,12 +73,13 @@ class FeatureExtractor:
         self._to_source = np.linalg.inv(resize_matrix(source_size, self.size))
         # The matching threshold, re-expressed in source pixels.
         self.threshold = self.options.reproj_threshold * source_size[0] / width
+        self._mask = work_mask(use, self.size, margin=MASK_MARGIN)
 
     def __call__(self, frame: np.ndarray) -> Features:
         gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
         if (gray.shape[1], gray.shape[0]) != self.size:
             gray = cv2.resize(gray, self.size, interpolation=cv2.INTER_AREA)
-        keypoints, descriptors = self._sift.detectAndCompute(gray, None)
+        keypoints, descriptors = self._sift.detectAndCompute(gray, self._mask)
         if not keypoints or descriptors is None:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
         points = project(self._to_source, np.float64([k.pt for k in keypoints])).astype(np.float32)

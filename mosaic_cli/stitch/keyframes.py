@@ -39,6 +39,7 @@ import numpy as np
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
+from mosaic_cli.overlay import fill_masked
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
@@ -122,6 +123,7 @@ class FlightScan:
     # named here) and video frames that could not be placed (between a cut and a new segment).
     dropped: list[tuple[int, str]] = field(default_factory=list)
     photos: bool = False
+    use: np.ndarray | None = None  # burned-in overlays and --mask (255 = ground): never drawn
 
     @property
     def composited(self) -> list[Keyframe]:
@@ -219,13 +221,15 @@ class FlightScanner:
         feature_options: FeatureOptions,
         max_size: int | None,
         spill: str | Path | None = None,
+        use: np.ndarray | None = None,
     ):
         self.o = options
+        self.use = use  # burned-in overlays (255 = ground): no features there, never drawn
         self.size = source_size
         self.fps = fps
         self.index = first_index - 1
         self.first_index = first_index
-        self.extract = FeatureExtractor(source_size, feature_options)
+        self.extract = FeatureExtractor(source_size, feature_options, use)
         self.matcher = FeatureMatcher(self.extract)
         self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size, spill)
         self.coverage: dict[int, CoverageMap] = {}  # per segment: each has its own world
@@ -295,7 +299,7 @@ class FlightScanner:
         self.store.shrink(self.keyframes)
         return FlightScan(
             self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
-            self.failed_pairs, self.relocalised, dropped=self.dropped, photos=self.photos,
+            self.failed_pairs, self.relocalised, dropped=self.dropped, photos=self.photos, use=self.use,
         )
 
     # -- placement -------------------------------------------------------------------
@@ -416,7 +420,9 @@ class FlightScanner:
         cells = coverage.cells(world)
         if not coverage.covered or coverage.new_fraction(cells) >= self.o.min_new_coverage:
             coverage.add(cells)
-            self.store.keep(keyframe, frame, world)
+            # Overlay pixels are replaced by the ground around them: the blender's pyramid
+            # reaches a few pixels past the mask's edge.
+            self.store.keep(keyframe, frame if self.use is None else fill_masked(frame, self.use), world)
             self.store.shrink(self.keyframes)
         self.keyframes.append(keyframe)
         self.previous = len(self.keyframes) - 1

@@ -32,6 +32,7 @@ from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
+from mosaic_cli.overlay import frame_mask, live_mask
 from mosaic_cli.stitch.canvas import CanvasOptions, parse_reference, plan_canvas
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
@@ -226,10 +227,13 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
     preview = preview or PreviewOptions()
     reference = _check(out, transforms, options, preview)
     live = is_live_source(source)
+    masked = None
     if not live:
         from mosaic_cli.video import probe
 
-        probe(source)
+        info = probe(source)
+        # A file read as a stream is there whole: its overlays are found before the scan starts.
+        masked = frame_mask(source, options.mask, info, show_progress)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
@@ -241,8 +245,11 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
                 width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
             decode_size = scaled_size(info.source_size, width)
             stream.info = replace(info, size=decode_size)
+            if masked is None:  # a live input: only --mask, sized by the stream's first frame
+                masked = live_mask(options.mask, info.source_size, show_progress)
+            estimator.set_mask(masked.use)
             scanner = FlightScanner(info.source_size, decode_size, info.fps, 0, options.keyframes, options.features,
-                                    max_size, spill if options.spill else None)
+                                    max_size, spill if options.spill else None, masked.use)
             registration = (IncrementalRegistration(info.source_size, options.registration, options.features)
                             if options.registration.enabled else None)
             drawer = LivePreview(preview, info.source_size, registration)
@@ -262,10 +269,11 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
                 scan = scan_flight(frames(), estimator, scanner, step)
             drawer.update(scan.keyframes)  # the last ground too, before the long final stages
         seconds["scan"] = time.perf_counter() - clock
+        seconds["overlays"] = masked.seconds
         if not scan.keyframes:
             raise BadInput(f"{source}: no frame is usable (all black, blank or over-exposed)")
         # The stages after the scan as in pipeline.stitch, on the same keyframes.
-        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds)
+        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, masked)
         result.previews = drawer.written  # type: ignore[attr-defined]
         result.preview_loops = registration.loops_closed if registration else 0  # type: ignore[attr-defined]
         result.preview_seconds = drawer.seconds  # type: ignore[attr-defined]

@@ -1,5 +1,7 @@
 """``stitch()``: a video in, a panorama out, in five stages.
 
+0. overlays  burned-in logos, text and letterbox bars found on frames sampled over the clip,
+             merged with --mask: kept out of estimation, registration and the panorama
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one (photos: registered
              directly, no estimator); a cut starts a new segment
@@ -24,6 +26,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import normalize, resize_matrix
+from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
@@ -49,6 +52,7 @@ class StitchOptions:
     joining: JoinOptions = field(default_factory=JoinOptions)
     canvas: CanvasOptions = field(default_factory=CanvasOptions)
     compose: ComposeOptions = field(default_factory=ComposeOptions)
+    mask: MaskOptions = field(default_factory=MaskOptions)  # burned-in overlays, --mask
     start: int = 0
     max_frames: int | None = None
     # Hold keyframe pixels in a temporary folder ($TMPDIR) rather than in memory: a survey's
@@ -78,6 +82,7 @@ class StitchResult:
     panoramas: list[Panorama] = field(default_factory=list)  # all of them, the first first
     dropped: list[tuple[int, str]] = field(default_factory=list)  # (frame index, why) not placed anywhere
     photos: bool = False
+    mask: FrameMask | None = None  # what was kept out of estimation and the panoramas
 
     @property
     def frames_per_second(self) -> float:
@@ -109,19 +114,26 @@ def stitch(
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None)
+        mask = frame_mask(video, options.mask, info, show_progress)
+        estimator.set_mask(mask.use)
+        seconds["overlays"] = time.perf_counter() - clock
+
+        clock = time.perf_counter()
+        scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None, mask.use)
         seconds["scan"] = time.perf_counter() - clock
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
-        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds)
+        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask)
 
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
-                  transforms: str | Path | None, show_progress: bool, seconds: dict[str, float]) -> StitchResult:
+                  transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
+                  mask: FrameMask | None = None) -> StitchResult:
     """The stages after the scan, shared by the offline and the live stitch: register the
     keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
-    write each panorama.  ``seconds`` gains each stage's time."""
+    write each panorama; the overlays of ``scan.use`` are drawn in none (``mask``: what the
+    result reports of them).  ``seconds`` gains each stage's time."""
     clock = time.perf_counter()
     groups, report = _register(scan, reference, options, show_progress)
     seconds["register"] = time.perf_counter() - clock
@@ -135,7 +147,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         drawn = [k.composited for k in keyframes]
         canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress)
+        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress, scan.use)
         seconds["compose"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
@@ -151,7 +163,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
-        seconds, panoramas, scan.dropped, scan.photos,
+        seconds, panoramas, scan.dropped, scan.photos, mask,
     )
 
 
@@ -176,7 +188,8 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     return info, reference
 
 
-def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None) -> FlightScan:
+def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
+          use: np.ndarray | None = None) -> FlightScan:
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None
@@ -190,7 +203,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             if options.max_frames is not None:
                 total = min(total, options.max_frames)
         scanner = FlightScanner(
-            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill
+            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill, use
         )
 
         def frames():
@@ -216,7 +229,7 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
     def progress(description: str, total: int):
         return progress_task(description, total, unit="pairs/s", disable=not show_progress)
 
-    matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features))
+    matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features, scan.use))
     features = [k.features for k in keyframes]
     segments = [k.segment for k in keyframes]
     world = [k.placement for k in keyframes]
@@ -264,14 +277,15 @@ def _add_report(total: RegistrationReport, report: RegistrationReport) -> None:
         total.residual_after = float(np.median([l.residual for l in total.links]))
 
 
-def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
+def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool,
+             use: np.ndarray | None = None):
     placed = []
     for keyframe, H in zip(keyframes, frame_to_canvas):
         if not keyframe.composited:
             continue
         image, keyframe.image = keyframe.image, None  # compose() frees each image once drawn
         to_source = np.linalg.inv(resize_matrix(source_size, (image.shape[1], image.shape[0])))
-        placed.append(PlacedImage(image, normalize(H @ to_source)))
+        placed.append(PlacedImage(image, normalize(H @ to_source), use))
         del image
     with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", canvas_size[1], unit="rows/s", disable=not show_progress) as advance:
         return compose(placed, canvas_size, options, advance)

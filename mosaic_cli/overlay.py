@@ -1,0 +1,541 @@
+"""Burned-in overlays: find what stays put in the frame while the ground moves, and the user's
+own ``--mask``, as one "use" mask (uint8, full resolution, 255 = ground to use).
+
+Logos, OSD text, timestamps and letterbox bars do not move with the ground.  Left in, they
+pull frame-to-frame estimates toward zero motion and get stitched into the panorama once per
+keyframe.  The detector looks at a few dozen frames spread over the whole clip, gray, at a
+small working width, in colour:
+
+* **static structure**: at a ground pixel the image gradient points a different way in every
+  sampled frame (the ground under it changes), at an overlay pixel it keeps its orientation
+  (its sign flips with the ground behind the overlay's edge).  A pixel that has an edge along
+  its dominant orientation in most samples (``persistence``) is overlay, in regions whose
+  edges run more than one way (a straight road the camera follows slides along itself and
+  keeps its orientation too, but only one).
+  Closing joins a logo's or a text line's edges into one region, holes are filled (a logo's
+  flat inside has no gradient), and the region is grown by a margin (glyphs of a running
+  timestamp that change between samples sit between the digits that do not);
+* **letterbox bars**: rows or columns at the frame's edges that hold one flat value in every
+  sample.
+
+When the ground hardly moves over the clip (a hovering camera) everything looks static; more
+than ``max_static`` of the frame found static is taken for that and nothing is masked.
+
+:func:`frame_mask` merges detection with a ``--mask`` file (white = use); the estimators
+(``Estimator.set_mask``) and ``stitch`` take the result.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.video import VideoInfo, open_video, probe
+from mosaic_cli.video.reader import scaled_size
+
+# Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
+LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
+
+
+@dataclass
+class OverlayOptions:
+    samples: int = 32  # frames spread over the clip
+    min_samples: int = 8  # fewer frames than this (a short photo folder): no detection
+    width: int = 320  # the detector works on gray frames this wide
+    # A pixel is static when it has an edge of one orientation in at least this share of the
+    # samples (ground: only while an edge happens to pass by).
+    persistence: float = 0.7
+    # Gradient (gray levels per working px) below which a sample has no edge at a pixel.
+    min_gradient: float = 6.0
+    close_px: int = 5  # closing radius joining an overlay's edges (working px)
+    min_isotropy: float = 0.1  # a region's static edges must run more than one way (see _static_structure)
+    min_area: int = 12  # static regions smaller than this (working px) are noise
+    margin_px: float = 2.0  # the mask is grown by this much (working px) before scaling up
+    bar_range: float = 10.0  # letterbox: an edge row/column within this gray range in every sample
+    max_bar: float = 0.25  # letterbox bars cover at most this share of each side
+    max_static: float = 0.3  # more of the frame static: the ground did not move, mask nothing
+
+    def validate(self) -> None:
+        if self.samples < 4:
+            raise BadInput(f"overlay detection needs at least 4 sample frames, got {self.samples}")
+        if self.width < 32:
+            raise BadInput(f"overlay detection width must be at least 32, got {self.width}")
+
+
+@dataclass(frozen=True)
+class Letterbox:
+    top: int = 0
+    bottom: int = 0
+    left: int = 0
+    right: int = 0  # full-resolution pixels
+
+    @property
+    def any(self) -> bool:
+        return bool(self.top or self.bottom or self.left or self.right)
+
+
+@dataclass
+class Detection:
+    """What :func:`detect_overlays` found: ``use`` is None when nothing is to be excluded."""
+
+    use: np.ndarray | None  # (h, w) uint8 full resolution, 255 = use
+    letterbox: Letterbox = field(default_factory=Letterbox)
+    static_fraction: float = 0.0  # of the frame, before any margin (0 when rejected)
+    rejected: bool = False  # static everywhere: the ground did not move enough to tell
+    samples: int = 0
+    too_few: bool = False  # fewer frames than min_samples: not attempted
+
+    @property
+    def excluded(self) -> float:
+        return 0.0 if self.use is None else float(np.count_nonzero(self.use == 0)) / self.use.size
+
+
+def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], options: OverlayOptions | None = None) -> Detection:
+    """Pure detector: ``frames`` are RGB (or gray) frames of one clip spread over it, any one
+    size; the mask comes back at ``full_size`` (w, h).  Fewer than ``min_samples`` frames
+    (a short photo folder) cannot tell a fixed edge from a coincidence: nothing is detected."""
+    o = options or OverlayOptions()
+    if len(frames) < o.min_samples:
+        return Detection(None, samples=len(frames), too_few=True)
+    h, w = frames[0].shape[:2]
+    box = _letterbox(frames, o)
+    static = _static_structure(frames, box, o)
+    fraction = float(np.count_nonzero(static)) / static.size
+    rejected = fraction > o.max_static
+    if rejected:
+        static[:] = False
+        fraction = 0.0
+    exclude = static.astype(np.uint8) * 255
+    if o.margin_px > 0 and exclude.any():
+        r = int(np.ceil(o.margin_px))
+        exclude = cv2.dilate(exclude, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    full = _exclude_at(exclude, full_size)
+    bars = _bars_at(box, (w, h), full_size)
+    full[: bars.top] = 255
+    full[full.shape[0] - bars.bottom :] = 255
+    full[:, : bars.left] = 255
+    full[:, full.shape[1] - bars.right :] = 255
+    use = None if not full.any() else np.where(full > 0, 0, 255).astype(np.uint8)
+    return Detection(use, bars, fraction, rejected, len(frames))
+
+
+def _letterbox(frames: list[np.ndarray], o: OverlayOptions) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right) rows/columns, working px, flat in every sample.  Judged in
+    gray: H.264's chroma, at half resolution, rings a few pixels into a bar."""
+    stack = np.stack([f if f.ndim == 2 else cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames])
+    lo, hi = stack.min(axis=0).astype(np.int16), stack.max(axis=0).astype(np.int16)
+    h, w = lo.shape
+
+    def flat(lo_line: np.ndarray, hi_line: np.ndarray) -> bool:
+        return int(hi_line.max()) - int(lo_line.min()) <= o.bar_range
+
+    def run(n: int, line) -> int:
+        k = 0
+        while k < int(o.max_bar * n) and flat(*line(k)):
+            k += 1
+        return k
+
+    return (
+        run(h, lambda k: (lo[k], hi[k])),
+        run(h, lambda k: (lo[h - 1 - k], hi[h - 1 - k])),
+        run(w, lambda k: (lo[:, k], hi[:, k])),
+        run(w, lambda k: (lo[:, w - 1 - k], hi[:, w - 1 - k])),
+    )
+
+
+def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], o: OverlayOptions) -> np.ndarray:
+    """(h, w) bool: pixels whose edge keeps one orientation in every sample (see the module
+    doc), grouped into regions with edges of several orientations."""
+    h, w = frames[0].shape[:2]
+    # The orientation is compared through the doubled angle (gx^2 - gy^2, 2 gx gy): an overlay's
+    # edge against changing ground flips its sign whenever the ground is brighter than the
+    # overlay, but keeps its orientation.
+    doubled = []
+    sum_a = np.zeros((h, w), np.float32)
+    sum_b = np.zeros((h, w), np.float32)
+    sum_e = np.zeros((h, w), np.float32)
+    for frame in frames:
+        a, b, e = _colour_tensor(frame)
+        sum_a += a
+        sum_b += b
+        sum_e += e
+        doubled.append((a, b, e))
+    # Persistence: in how many samples the pixel has an edge (Sobel's 3x3 kernel has a gain of
+    # 8 over a unit step per pixel) along the pixel's dominant orientation (within 20 degrees).
+    # One strong edge passing by in one sample is not an overlay; a fixed edge is there in all.
+    norm = np.maximum(cv2.magnitude(sum_a, sum_b), 1e-6)
+    ua, ub = sum_a / norm, sum_b / norm
+    strong = (8.0 * o.min_gradient) ** 2
+    aligned_cos = float(np.cos(np.radians(2 * 20.0)))
+    edges = np.zeros((h, w), np.uint16)
+    for a, b, e in doubled:  # e: the channels' mean squared gradient
+        edges += ((e >= strong) & (a * ua + b * ub >= aligned_cos * e)).astype(np.uint16)
+    static = edges >= o.persistence * len(frames)
+    # The bars are masked on their own; their inner edge (bar against ground, blurred over a
+    # pixel or two by the scaling and the Sobel) is not an overlay.
+    top, bottom, left, right = (k + BAR_MARGIN if k else 0 for k in box)
+    static[:top] = static[h - bottom :] = False
+    static[:, :left] = static[:, w - right :] = False
+    mask = static.astype(np.uint8) * 255
+    if o.close_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * o.close_px + 1, 2 * o.close_px + 1))
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
+    regions, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    # A region is kept when it is large enough and its static edges run more than one way.  A
+    # straight edge sliding along itself (a road the camera follows) keeps its orientation
+    # too, but it is one orientation; logos and text have corners.  Isotropy: the ratio of the
+    # small to the large eigenvalue of the region's summed structure tensor.
+    inside = labels[static]
+    tensor_e = np.bincount(inside, sum_e[static], regions)
+    tensor_a = np.bincount(inside, sum_a[static], regions)
+    tensor_b = np.bincount(inside, sum_b[static], regions)
+    spread = np.hypot(tensor_a, tensor_b)
+    isotropy = (tensor_e - spread) / np.maximum(tensor_e + spread, 1e-6)
+    keep = (stats[:, cv2.CC_STAT_AREA] >= o.min_area) & (isotropy >= o.min_isotropy)
+    keep[0] = False
+    mask = np.where(keep[labels], 255, 0).astype(np.uint8)
+    # Fill holes: a logo's flat inside has no gradient to be found by.
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(mask, contours, -1, 255, thickness=cv2.FILLED)
+    return mask > 0
+
+
+def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The doubled-angle gradient (gx^2 - gy^2, 2 gx gy) and the squared gradient, averaged over
+    the colour channels: a magenta logo on green fields of the same gray level has edges too."""
+    smooth = cv2.GaussianBlur(frame, (0, 0), 0.8).astype(np.float32)  # compression noise is not structure
+    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
+    xx, yy, xy = gx * gx, gy * gy, gx * gy
+    if frame.ndim == 3:
+        xx, yy, xy = xx.mean(axis=2), yy.mean(axis=2), xy.mean(axis=2)
+    return xx - yy, 2.0 * xy, xx + yy
+
+
+def _exclude_at(exclude: np.ndarray, full_size: tuple[int, int]) -> np.ndarray:
+    """The working-size exclusion scaled to ``full_size``, conservatively: a full-resolution
+    pixel is excluded when any part of it touches an excluded working pixel."""
+    if (exclude.shape[1], exclude.shape[0]) == tuple(full_size):
+        return exclude.copy()
+    up = cv2.resize(exclude, tuple(full_size), interpolation=cv2.INTER_LINEAR)
+    return np.where(up > 0, 255, 0).astype(np.uint8)
+
+
+BAR_MARGIN = 2
+
+
+def _bars_at(box: tuple[int, int, int, int], work: tuple[int, int], full_size: tuple[int, int]) -> Letterbox:
+    """Bars in working px -> full-resolution px, rounded outward and grown by ``BAR_MARGIN``
+    working px: the codec rings a row or two across the bar's edge, which then is not flat."""
+    top, bottom, left, right = box
+    sx, sy = full_size[0] / work[0], full_size[1] / work[1]
+
+    def up(n: int, s: float, limit: int) -> int:
+        return 0 if n == 0 else min(limit, int(np.ceil((n + BAR_MARGIN) * s)))
+
+    return Letterbox(up(top, sy, full_size[1]), up(bottom, sy, full_size[1]), up(left, sx, full_size[0]), up(right, sx, full_size[0]))
+
+
+# -- reading sample frames ---------------------------------------------------------------------
+
+
+# Up to this many frames a clip is decoded once, keeping only the sampled frames; longer ones
+# are sampled by seeking (a decoder start and the frames from the last keyframe each: at most
+# ``samples`` keyframe intervals decoded, however long the clip).  docs/stitch.md has the costs.
+DECODE_ALL_BELOW = 1000
+
+
+def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
+    """About ``count`` RGB frames spread evenly over ``video`` (a file or an image folder),
+    ``width`` wide.  Short clips are decoded once; long ones are sampled by seeking, so the
+    cost does not grow with the clip's length; a folder's images are read only when picked."""
+    info = info or probe(video)
+    total = info.frame_count
+    if info.is_image_folder:
+        return _sample_folder(Path(video), count, width)
+    if total is None or info.duration <= 0:
+        return _sample_by_decoding(video, count, width)
+    if total <= DECODE_ALL_BELOW:
+        return _sample_by_selecting(video, count, width, info)
+    return _sample_by_seeking(video, count, width, info)
+
+
+def _picked(total: int, count: int) -> np.ndarray:
+    return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
+
+
+def _sample_folder(folder: Path, count: int, width: int) -> list[np.ndarray]:
+    from mosaic_cli.video.reader import _folder_images, _read_image_rgb
+
+    files = _folder_images(folder)
+    frames = []
+    for k in _picked(len(files), count):
+        image = _read_image_rgb(files[k])
+        size = scaled_size((image.shape[1], image.shape[0]), width)
+        frames.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size[0] != image.shape[1] else image)
+    sizes = {f.shape for f in frames}
+    return frames if len(sizes) <= 1 else []  # photos of several sizes: the reader refuses them anyway
+
+
+def _sample_by_decoding(video, count: int, width: int) -> list[np.ndarray]:
+    """Unknown length: decode everything, keep an even spread (bounded memory: every other
+    kept frame is dropped whenever twice ``count`` are held)."""
+    kept: list[tuple[int, np.ndarray]] = []
+    step = 1
+    with open_video(video, width=width) as stream:
+        for k, frame in enumerate(stream):
+            if k % step == 0:
+                kept.append((k, frame.copy()))
+                if len(kept) >= 2 * count:
+                    kept, step = kept[::2], step * 2
+    return [f for _, f in kept][:: max(1, len(kept) // count)][:count]
+
+
+def _sample_by_selecting(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+    """One decoder pass; only the picked frames are scaled and piped (ffmpeg's select filter)."""
+    import imageio_ffmpeg
+
+    size = scaled_size(info.source_size, width)
+    picks = "+".join(f"eq(n\\,{k})" for k in _picked(info.frame_count, count))
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error", "-i", str(video), "-map", "0:v:0",
+           "-vf", f"select='{picks}',scale={size[0]}:{size[1]}:flags=area", "-fps_mode", "passthrough",
+           "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
+    try:
+        run = subprocess.run(cmd, capture_output=True, timeout=600)
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    n = size[0] * size[1] * 3
+    return [np.frombuffer(run.stdout[k : k + n], np.uint8).reshape(size[1], size[0], 3).copy()
+            for k in range(0, len(run.stdout) - n + 1, n)]
+
+
+def _sample_by_seeking(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+    """One decoder start per picked frame, seeking to it: each decodes from the keyframe
+    before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
+    size = scaled_size(info.source_size, width)
+    fps = info.fps if info.fps > 0 else 30.0
+    frames: list[np.ndarray] = []
+    for index in _picked(info.frame_count, count):
+        # A seek past the last decodable frame (the container's duration can run a little
+        # long) steps back a frame or two.
+        for back in (0, 1, 2):
+            frame = _frame_at(video, max(0.0, (index - back - 0.25) / fps), size)  # the first frame at or after
+            if frame is not None:
+                frames.append(frame)
+                break
+    return frames
+
+
+def _frame_at(video, seconds: float, size: tuple[int, int]) -> np.ndarray | None:
+    """The first frame at or after ``seconds`` (RGB, ``size``)."""
+    import imageio_ffmpeg
+
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error",
+           "-ss", f"{seconds:.4f}", "-i", str(video), "-map", "0:v:0", "-frames:v", "1",
+           "-vf", f"scale={size[0]}:{size[1]}:flags=area", "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
+    try:
+        run = subprocess.run(cmd, capture_output=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    n = size[0] * size[1] * 3
+    if len(run.stdout) < n:
+        return None
+    return np.frombuffer(run.stdout[:n], np.uint8).reshape(size[1], size[0], 3).copy()
+
+
+# -- the user's mask and the merged result -------------------------------------------------------
+
+
+@dataclass
+class MaskOptions:
+    """``--mask FILE`` (white = use) and ``--overlay-detect/--no-overlay-detect``."""
+
+    file: str | Path | None = None
+    detect: bool = True
+    # The file's black areas are grown by this many px: H.264 smears an overlay's colour
+    # beyond its edge (chroma at half resolution; up to 1.9 px on the simulator's flights).
+    file_margin: int = 2
+    overlay: OverlayOptions = field(default_factory=OverlayOptions)
+
+
+@dataclass
+class FrameMask:
+    use: np.ndarray | None  # (h, w) uint8 at the source size, 255 = use; None: use everything
+    detection: Detection | None = None
+    from_file: bool = False
+    seconds: float = 0.0
+
+    @property
+    def excluded(self) -> float:
+        return 0.0 if self.use is None else float(np.count_nonzero(self.use == 0)) / self.use.size
+
+    def describe(self) -> str:
+        """One line for the user: what is kept out of estimation and the panorama, and why."""
+        if self.use is None:
+            return ""
+        what = []
+        if self.detection is not None and self.detection.use is not None:
+            found = []
+            if self.detection.static_fraction > 0:
+                found.append("static overlays")
+            if self.detection.letterbox.any:
+                found.append("letterbox bars")
+            what.append(" and ".join(found) + " detected")
+        if self.from_file:
+            what.append("--mask")
+        return f"{100 * self.excluded:.1f}% of the frame masked ({', '.join(what)})"
+
+    def to_json(self) -> dict:
+        d = self.detection
+        return {
+            "excluded": round(self.excluded, 4),
+            "from_file": self.from_file,
+            "detected": None if d is None else {
+                "static_fraction": round(d.static_fraction, 4),
+                "letterbox": [d.letterbox.top, d.letterbox.bottom, d.letterbox.left, d.letterbox.right],
+                "rejected_as_hovering": d.rejected,
+                "samples": d.samples,
+                "too_few_frames": d.too_few,
+            },
+            "seconds": round(self.seconds, 3),
+        }
+
+
+def load_mask(path: str | Path, full_size: tuple[int, int]) -> np.ndarray:
+    """A ``--mask`` image as a use mask at ``full_size``: white (>= 128) = use.  A mask of
+    another size but the same aspect ratio is scaled; any other is refused (BadInput)."""
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(f"--mask {p}: no such file")
+    if p.is_dir():
+        raise BadInput(f"--mask {p}: is a folder, not an image")
+    image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise BadInput(f"--mask {p}: not an image OpenCV can read")
+    if image.ndim == 3:
+        # Transparent pixels count as black (not to use); colour is judged by its gray level.
+        alpha = image[..., 3] if image.shape[2] == 4 else None
+        image = cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2GRAY)
+        if alpha is not None:
+            image = np.minimum(image, alpha)
+    if image.dtype != np.uint8:
+        image = cv2.convertScaleAbs(image, alpha=255.0 / max(1.0, float(np.iinfo(image.dtype).max)))
+    h, w = image.shape
+    W, H = full_size
+    if (w, h) != (W, H):
+        if abs(w * H - h * W) > 0.01 * W * H or min(w, h) < 2:
+            raise BadInput(f"--mask {p} is {w}x{h}, the video {W}x{H}: a mask must have the video's size or at least its aspect ratio")
+        image = cv2.resize(image, (W, H), interpolation=cv2.INTER_AREA)
+    use = np.where(image >= 128, 255, 0).astype(np.uint8)
+    if w < W:
+        # A smaller mask places an edge only to within one of its pixels, (W / w) of the
+        # frame's: its black areas grow by that much, so that no overlay pixel slips out.
+        r = int(np.ceil(W / w - 1))
+        use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)),
+                        borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    if np.count_nonzero(use) < 0.05 * use.size:
+        raise BadInput(f"--mask {p} leaves less than 5% of the frame to use (white = use, black = ignore)")
+    return use
+
+
+def frame_mask(video: str | Path, options: MaskOptions | None = None, info: VideoInfo | None = None,
+               show_progress: bool = False) -> FrameMask:
+    """The merged use mask of ``video``: the ``--mask`` file's, and the detector's unless off.
+    The video and the file are checked before any frame is decoded or progress shown."""
+    options = options or MaskOptions()
+    clock = time.perf_counter()
+    info = info or probe(video)
+    use = _file_mask(options, info.source_size)
+    detection = None
+    if options.detect:
+        options.overlay.validate()
+        width = min(options.overlay.width, info.source_size[0])
+        if show_progress:
+            from mosaic_cli.progress import progress_task
+
+            with progress_task("overlays", None, unit="fr/s") as advance:
+                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size,
+                                            options.overlay)
+                advance(detection.samples, status=f"{100 * detection.excluded:.1f}% masked")  # frames sampled
+        else:
+            detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
+        if detection.use is not None:
+            use = detection.use if use is None else np.minimum(use, detection.use)
+    return FrameMask(use, detection, options.file is not None, time.perf_counter() - clock)
+
+
+def live_mask(options: MaskOptions | None, full_size: tuple[int, int], show_progress: bool = True) -> FrameMask:
+    """The use mask of a live input: the ``--mask`` file's only.  Detection samples frames
+    spread over the whole clip before the first is estimated, which a stream does not have;
+    when it was asked for (the default), one line says it is skipped."""
+    options = options or MaskOptions()
+    clock = time.perf_counter()
+    if options.detect and show_progress:
+        from mosaic_cli.live.source import note
+
+        note(LIVE_DETECTION_SKIPPED + ("; --mask applies" if options.file is not None else "; use --mask to exclude overlays"))
+    return FrameMask(_file_mask(options, full_size), None, options.file is not None, time.perf_counter() - clock)
+
+
+def _file_mask(options: MaskOptions, full_size: tuple[int, int]) -> np.ndarray | None:
+    """The ``--mask`` file's use mask at ``full_size``, its black areas grown by the margin."""
+    use = load_mask(options.file, full_size) if options.file is not None else None
+    if use is not None and options.file_margin > 0:
+        r = options.file_margin
+        use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
+                        borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    return use
+
+
+def fill_masked(image: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """``image`` with the pixels ``use`` excludes replaced by a smooth fill from the pixels
+    around them (normalised convolution), so that filters reaching across the mask's edge (a
+    multi-band blend's pyramid) see plausible ground, never the overlay's colours."""
+    valid = (work_mask(use, (image.shape[1], image.shape[0])) > 0).astype(np.float32)
+    if valid.all():
+        return image
+    sigma = max(4.0, 0.02 * max(image.shape[:2]))
+    f = image.astype(np.float32)
+    weight = cv2.GaussianBlur(valid, (0, 0), sigma)
+    filled = cv2.GaussianBlur(f * (valid[..., None] if f.ndim == 3 else valid), (0, 0), sigma)
+    filled /= np.maximum(weight, 1e-6)[..., None] if f.ndim == 3 else np.maximum(weight, 1e-6)
+    mean = f[valid > 0].mean(axis=0)
+    far = weight < 1e-3  # no valid pixel within reach: the mean of the ground
+    filled[far] = mean
+    out = image.copy()
+    out[valid == 0] = np.clip(filled[valid == 0], 0, 255).astype(image.dtype)
+    return out
+
+
+def work_mask(use: np.ndarray | None, size: tuple[int, int], margin: int = 0) -> np.ndarray | None:
+    """A full-resolution use mask at ``size`` (w, h): a pixel is usable only when all of it is,
+    shrunk by ``margin`` px (a feature's descriptor or an LK window must not reach the overlay)."""
+    if use is None:
+        return None
+    small = use if (use.shape[1], use.shape[0]) == tuple(size) else cv2.resize(use, tuple(size), interpolation=cv2.INTER_AREA)
+    small = np.where(small >= 255, 255, 0).astype(np.uint8)
+    if margin > 0:
+        small = cv2.erode(small, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * margin + 1, 2 * margin + 1)),
+                          borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    return small
+
+
+__all__ = [
+    "Detection",
+    "FrameMask",
+    "Letterbox",
+    "MaskOptions",
+    "OverlayOptions",
+    "detect_overlays",
+    "fill_masked",
+    "frame_mask",
+    "load_mask",
+    "sample_frames",
+    "work_mask",
+]

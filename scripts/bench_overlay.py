@@ -1,0 +1,185 @@
+"""Burned-in overlays on simulated flights with exact ground truth (docs/stitch.md, "Burned-in
+overlays").
+
+    python scripts/bench_overlay.py                  # accuracy + overlay pixels + detector cost
+    python scripts/bench_overlay.py --frames 300 --seeds 1 --estimators orb
+    python scripts/bench_overlay.py --cost-only      # the detector's cost alone
+
+Each seed's survey flight (1280x720, over the NEON orthophoto in ../shared/data when present,
+a procedural map otherwise) is rendered twice from one plan: clean, and with overlays burned in
+(``mosaic simulate --overlays``; a magenta logo and a yellow running timestamp by default).
+For each estimator:
+
+* track: the pairwise estimates' MACE and median corner error against the exact homographies
+  (clean flight; burned flight with detection; burned flight with detection off);
+* stitch: the placement error of used frames at least 60 frames apart (median and 90th
+  percentile, 1280x720 px) and the panorama pixels in the overlays' colours, same three runs.
+
+Then the detector's cost: sampling plus detection on the flight, the detection alone, and the
+sampling of a long clip (the flight looped to 10x its length) by seeking.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import imageio_ffmpeg
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_stitch import ORTHOPHOTO, placement_errors  # noqa: E402
+
+from mosaic_cli.estimators import make_estimator  # noqa: E402
+from mosaic_cli.evaluate import evaluate  # noqa: E402
+from mosaic_cli.overlay import MaskOptions, OverlayOptions, detect_overlays, frame_mask, sample_frames  # noqa: E402
+from mosaic_cli.simulate import OverlaySpec, load_ground_truth, load_map, plan_flight, write_flight  # noqa: E402
+from mosaic_cli.stitch import StitchOptions, stitch  # noqa: E402
+from mosaic_cli.track import track_video  # noqa: E402
+from mosaic_cli.video import probe  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_WORKDIR = ROOT / ".dev" / "bench_overlay"
+SIZE = (1280, 720)
+
+
+def flights(workdir: Path, frames: int, seed: int, overlays: str) -> tuple[Path, Path]:
+    """(clean, burned) renderings of one survey plan, cached."""
+    known = ORTHOPHOTO.exists()
+    stem = f"survey_{SIZE[0]}x{SIZE[1]}_{frames}_s{seed}"
+    clean, burned = workdir / f"{stem}.mp4", workdir / f"{stem}_{overlays.replace(',', '+')}.mp4"
+    if not clean.exists() or not burned.exists():
+        ground = load_map(ORTHOPHOTO if known else None, seed=seed)
+        plan = plan_flight((ground.shape[1], ground.shape[0]), "survey", frames, SIZE, seed)
+        name = ORTHOPHOTO.name if known else "procedural"
+        write_flight(clean, ground, plan, map_name=name, preset="veryfast", show_progress=False)
+        write_flight(burned, ground, plan, map_name=name, preset="veryfast", show_progress=False, overlays=OverlaySpec.parse(overlays))
+    return clean, burned
+
+
+def overlay_coloured(path: Path) -> int:
+    """Covered panorama pixels in the logo's (magenta) or the timestamp's (yellow) colour."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    b, g, r, a = (image[..., k].astype(int) for k in range(4))
+    hit = ((r > 200) & (g < 70) & (b > 200)) | ((r > 200) & (g > 200) & (b < 70))
+    return int(np.count_nonzero(hit & (a > 0)))
+
+
+RUNS = (("clean", False, True), ("burned", True, True), ("burned, detection off", True, False))
+
+
+def accuracy(args, clean: Path, burned: Path, estimator: str) -> list[dict]:
+    gt = load_ground_truth(clean.with_suffix(".gt.json"))
+    rows = []
+    for label, is_burned, detect in RUNS:
+        video = burned if is_burned else clean
+        row = {"flight": clean.stem, "estimator": estimator, "run": label}
+        est = make_estimator(estimator)
+        mask = frame_mask(video, MaskOptions(detect=detect))
+        row["masked %"] = 100 * mask.excluded
+        est.set_mask(mask.use)
+        track = track_video(video, est, show_progress=False)
+        scores = evaluate(track.pairwise, gt)
+        row["MACE"], row["pair error"] = scores["mace"], scores["corner_error"]
+        out = args.workdir / f"{video.stem}_{estimator}_{'det' if detect else 'nodet'}.png"
+        result = stitch(video, out, make_estimator(estimator), StitchOptions(mask=MaskOptions(detect=detect)), show_progress=False)
+        indices = [i for i, _ in result.transforms]
+        errors = placement_errors(indices, [H for _, H in result.transforms], gt.map_to_frame, gt.size)
+        row["placement median"], row["placement p90"] = float(np.median(errors)), float(np.percentile(errors, 90))
+        row["overlay px in panorama"] = overlay_coloured(out)
+        row["canvas"] = f"{result.canvas_size[0]}x{result.canvas_size[1]}"
+        rows.append(row)
+        print(f"{row['flight']} {estimator:5s} {label:22s} masked {row['masked %']:5.1f}%  MACE {row['MACE']:.2f}  pair {row['pair error']:.2f}  "
+              f"placement median {row['placement median']:.2f} p90 {row['placement p90']:.2f} px  overlay px {row['overlay px in panorama']}  "
+              f"canvas {row['canvas']}", flush=True)
+    return rows
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process and its finished children (the ffmpeg decoders)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def detector_cost(args, burned: Path) -> dict:
+    info = probe(burned)
+    times, cpu = [], []
+    for _ in range(args.repeat):
+        clock, used = time.perf_counter(), cpu_seconds()
+        frame_mask(burned, MaskOptions(), info)
+        times.append(time.perf_counter() - clock)
+        cpu.append(cpu_seconds() - used)
+    frames = sample_frames(burned, OverlayOptions().samples, OverlayOptions().width, info)
+    detect, detect_cpu = [], []
+    for _ in range(args.repeat):
+        clock, used = time.perf_counter(), time.process_time()
+        detect_overlays(frames, info.source_size)
+        detect.append(time.perf_counter() - clock)
+        detect_cpu.append(time.process_time() - used)
+    # A long clip with keyframes every second, as drone cameras write them (x264's default,
+    # one every 250 frames, leaves too few distinct keyframes to seek to; then the clip is
+    # decoded once instead).
+    looped = args.workdir / f"{burned.stem}_x10_g30.mp4"
+    if not looped.exists():
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-stream_loop", "9", "-i", str(burned),
+                        "-c:v", "libx264", "-preset", "ultrafast", "-g", "30", str(looped)], check=True)
+    long_info = probe(looped)
+    seek, seek_cpu = [], []
+    for _ in range(args.repeat):
+        clock, used = time.perf_counter(), cpu_seconds()
+        frame_mask(looped, MaskOptions(), long_info)
+        seek.append(time.perf_counter() - clock)
+        seek_cpu.append(cpu_seconds() - used)
+    cost = {
+        "flight": f"{burned.name}, {info.frame_count} frames {info.source_size[0]}x{info.source_size[1]}",
+        "sample + detect s (median wall)": float(np.median(times)),
+        "sample + detect CPU s (median, ffmpeg included)": float(np.median(cpu)),
+        "detect alone ms (median wall)": 1000 * float(np.median(detect)),
+        "detect alone CPU ms (median)": 1000 * float(np.median(detect_cpu)),
+        "long clip": f"{long_info.frame_count} frames, a keyframe a second (seeking)",
+        "long clip sample + detect s (median wall)": float(np.median(seek)),
+        "long clip sample + detect CPU s (median, ffmpeg included)": float(np.median(seek_cpu)),
+        "load average": os.getloadavg()[0],
+    }
+    print(json.dumps(cost, indent=1), flush=True)
+    return cost
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
+    parser.add_argument("--frames", type=int, default=600)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--estimators", nargs="+", default=["lstm", "orb"])
+    parser.add_argument("--overlays", default="logo,timestamp")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--cost-only", action="store_true", help="only the detector's cost (on the first seed's flight)")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    results: dict = {"load_average_at_start": os.getloadavg()[0], "rows": []}
+    burned = None
+    for seed in args.seeds:
+        clean, burned = flights(args.workdir, args.frames, seed, args.overlays)
+        if args.cost_only:
+            break
+        for estimator in args.estimators:
+            results["rows"] += accuracy(args, clean, burned, estimator)
+    results["detector cost"] = detector_cost(args, burned)
+    command = (f"python scripts/bench_overlay.py --frames {args.frames} --seeds {' '.join(map(str, args.seeds))} "
+               + (f"--cost-only --repeat {args.repeat}" if args.cost_only else f"--estimators {' '.join(args.estimators)}")
+               + f" --overlays {args.overlays}")
+    print(f"  reproduce: {command}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()

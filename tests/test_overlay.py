@@ -1,0 +1,323 @@
+"""Burned-in overlays (a logo, a running timestamp, letterbox bars): found, kept out of the
+estimates and out of the panorama; ``--mask`` for the user's own.  Checked against the exact
+pixels the simulator drew and its exact homographies."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic_cli.cli import main
+from mosaic_cli.estimators import OrbConfig, OrbEstimator
+from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, points_to_track, track_points
+from mosaic_cli.evaluate import corner_errors
+from mosaic_cli.overlay import detect_overlays, fill_masked, frame_mask, load_mask, sample_frames
+from mosaic_cli.simulate import OverlaySpec, load_ground_truth, overlay_mask_path, plan_flight, procedural_map, write_flight
+from mosaic_cli.simulate.overlay import LOGO_RGB, TEXT_RGB, OverlayBurner
+from mosaic_cli.track import load_track
+
+SIZE = (320, 180)
+FRAMES = 60
+
+
+@dataclasses.dataclass
+class Flights:
+    plain: Path
+    burned: Path  # the same flight with a logo, a timestamp and letterbox bars burned in
+    regions: np.ndarray  # (h, w) bool: the overlays' boxes
+    drawn: np.ndarray  # (h, w) bool: every pixel an overlay covered in some frame
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory) -> Flights:
+    folder = tmp_path_factory.mktemp("overlay")
+    ground = procedural_map((1024, 1024), seed=3)
+    plan = plan_flight((1024, 1024), "fast", frames=FRAMES, size=SIZE, seed=3)
+    write_flight(folder / "plain.mp4", ground, plan, crf=16, preset="veryfast", show_progress=False)
+    spec = OverlaySpec.parse("all")
+    write_flight(folder / "burned.mp4", ground, plan, crf=16, preset="veryfast", show_progress=False, overlays=spec)
+    burner = OverlayBurner(spec, SIZE, plan.fps)  # the same drawing again, for its boxes
+    for t in range(FRAMES):
+        burner.draw(np.zeros((SIZE[1], SIZE[0], 3), np.uint8), t)
+    written = cv2.imread(str(overlay_mask_path(folder / "burned.mp4")), cv2.IMREAD_GRAYSCALE)
+    assert np.array_equal(written == 0, burner.drawn)
+    return Flights(folder / "plain.mp4", folder / "burned.mp4", burner.regions(), burner.drawn)
+
+
+def run(capsys, *args) -> tuple[int, str]:
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(a) for a in args])
+    code = exit_info.value.code
+    return (0 if code is None else code), capsys.readouterr().err
+
+
+def overlay_coloured(rgba_bgr: np.ndarray) -> int:
+    """Pixels of a panorama (as cv2 reads it) drawn in the logo's or the timestamp's colour."""
+    b, g, r, a = (rgba_bgr[..., k].astype(int) for k in range(4))
+    covered = a > 0
+    magenta = (r > 200) & (g < 70) & (b > 200)
+    yellow = (r > 200) & (g > 200) & (b < 70)
+    return int(np.count_nonzero(covered & (magenta | yellow)))
+
+
+# -- the detector ------------------------------------------------------------------------------
+
+
+def test_detector_finds_the_logo_the_timestamp_and_the_letterbox(flights):
+    detection = frame_mask(flights.burned).detection
+    excluded = detection.use == 0
+    # Every pixel an overlay ever drew is masked, and the mask is the overlays' boxes, not more.
+    assert np.count_nonzero(flights.drawn & ~excluded) == 0
+    iou = np.count_nonzero(excluded & flights.regions) / np.count_nonzero(excluded | flights.regions)
+    assert iou > 0.75, iou
+    bar = round(OverlaySpec().bar_height * SIZE[1])
+    box = detection.letterbox
+    assert bar <= box.top <= bar + 4 and bar <= box.bottom <= bar + 4 and box.left == box.right == 0
+    # The ground itself is never taken for an overlay.
+    assert frame_mask(flights.plain).use is None
+
+
+def test_a_hovering_camera_or_too_few_frames_masks_nothing():
+    rng = np.random.default_rng(0)
+    still = cv2.GaussianBlur(rng.integers(0, 255, (180, 320), dtype=np.uint8), (0, 0), 1.5)
+    frames = [np.clip(still.astype(int) + rng.integers(-2, 3, still.shape), 0, 255).astype(np.uint8) for _ in range(16)]
+    hovering = detect_overlays(frames, SIZE)
+    assert hovering.use is None and hovering.rejected
+    few = detect_overlays(frames[:4], SIZE)
+    assert few.use is None and few.too_few
+
+
+def test_long_clips_are_sampled_by_seeking_as_short_ones_by_decoding(flights, monkeypatch):
+    import mosaic_cli.overlay as overlay
+
+    decoded = sample_frames(flights.burned, 12, 160)
+    monkeypatch.setattr(overlay, "DECODE_ALL_BELOW", 10)  # as if the clip were long
+    sought = sample_frames(flights.burned, 12, 160)
+    assert len(decoded) == len(sought) == 12 and decoded[0].shape == (90, 160, 3)
+    # The same frames of the clip (a seek decodes from the keyframe before the frame it wants).
+    assert all(np.abs(a.astype(int) - b).mean() < 1.0 for a, b in zip(decoded, sought))
+
+
+def test_fill_masked_replaces_overlay_pixels_by_the_ground_around_them():
+    image = np.full((90, 160, 3), (90, 140, 60), np.uint8)
+    image[10:30, 10:50] = LOGO_RGB
+    use = np.full((180, 320), 255, np.uint8)  # at another (the full) resolution
+    use[18:62, 18:102] = 0
+    filled = fill_masked(image, use)
+    assert np.array_equal(filled[40:, 60:], image[40:, 60:])
+    assert np.abs(filled[10:30, 10:50].astype(int) - (90, 140, 60)).max() <= 2
+
+
+# -- estimators ----------------------------------------------------------------------------------
+
+
+def test_orb_and_the_lk_polish_keep_off_masked_pixels():
+    rng = np.random.default_rng(1)
+    gray = cv2.GaussianBlur(rng.integers(0, 255, (180, 320), dtype=np.uint8), (0, 0), 1.0)
+    use = np.full((360, 640), 255, np.uint8)  # full resolution: twice the working width
+    use[:, :320] = 0
+    orb = OrbEstimator(320, OrbConfig())
+    orb.set_mask(use)
+    orb.reset((640, 360))
+    points, _ = orb._describe(gray)
+    assert len(points) > 50 and points[:, 0].min() >= 160 + orb._orb.getPatchSize() // 2
+    corners = points_to_track(gray, CornerConfig(), orb.work_mask)
+    assert len(corners) > 50 and corners[:, 0].min() >= 160
+    # A track that starts on usable ground but ends on the mask is dropped from the refit.
+    shift = np.array([[1, 0, -40.0], [0, 1, 0], [0, 0, 1]])
+    moved = cv2.warpPerspective(gray, shift, (320, 180))
+    start = points_to_track(gray, CornerConfig(), np.where(np.arange(320) >= 170, 255, 0).astype(np.uint8)[None].repeat(180, 0))
+    result = track_points(gray, moved, shift, start, PolishConfig(), orb.work_mask)
+    assert result.refined and np.abs(result.H - shift).max() < 0.05
+    mask_px = orb.work_mask
+    assert mask_px[:, :160].max() == 0 and mask_px[:, 160:].min() == 255
+
+
+@pytest.mark.parametrize("estimator", ["orb", "lstm"])
+def test_estimates_with_overlays_are_as_good_as_without(flights, tmp_path, capsys, estimator):
+    """Against the exact pairwise homographies: the burned-in flight, its overlays found and
+    masked, is tracked as well as the clean flight; with detection off the overlays hurt."""
+    gt = load_ground_truth(flights.plain.with_name("plain.gt.json"))
+    errors = {}
+    for name, video, extra in [("plain", flights.plain, []), ("masked", flights.burned, []),
+                               ("unmasked", flights.burned, ["--no-overlay-detect"])]:
+        out = tmp_path / f"{name}.json"
+        code, err = run(capsys, "track", video, "-o", out, "-e", estimator, "-q", *extra)
+        assert code == 0, err
+        track = load_track(out)
+        errors[name] = corner_errors(track.pairwise, gt.pairwise, gt.size)
+        if name == "masked":
+            assert json.loads(out.read_text())["meta"]["mask"]["excluded"] > 0.15
+    median = {k: float(np.median(v)) for k, v in errors.items()}
+    assert median["masked"] <= 1.25 * median["plain"] + 0.05, median
+    assert np.percentile(errors["masked"], 90) <= 1.25 * np.percentile(errors["plain"], 90) + 0.1, median
+    if estimator == "orb":  # the logo and the letterbox pull ORB's fits toward zero motion
+        assert median["unmasked"] > 3 * median["masked"], median
+
+
+# -- stitch ----------------------------------------------------------------------------------------
+
+
+def test_the_panorama_holds_no_overlay_pixel(flights, tmp_path, capsys):
+    pano, transforms = tmp_path / "pano.png", tmp_path / "pano.json"
+    code, err = run(capsys, "stitch", flights.burned, "-o", pano, "--transforms", transforms, "-e", "orb", "-q")
+    assert code == 0, err
+    image = cv2.imread(str(pano), cv2.IMREAD_UNCHANGED)
+    assert overlay_coloured(image) == 0
+    # Nor the letterbox: no covered pixel is black.
+    assert np.count_nonzero((image[..., 3] > 0) & (image[..., :3].max(axis=2) < 12)) == 0
+    # The check can fail: without detection the logo and the timestamp are stitched in.
+    raw = tmp_path / "raw.png"
+    code, err = run(capsys, "stitch", flights.burned, "-o", raw, "-e", "orb", "-q", "--no-overlay-detect")
+    assert code == 0, err
+    assert overlay_coloured(cv2.imread(str(raw), cv2.IMREAD_UNCHANGED)) > 200
+
+
+def test_a_mask_file_alone_keeps_the_overlays_out(flights, tmp_path, capsys):
+    """The simulator's exact mask as ``--mask``, detection off; at half size too (same aspect)."""
+    exact = overlay_mask_path(flights.burned)
+    half = tmp_path / "half.png"
+    cv2.imwrite(str(half), cv2.resize(cv2.imread(str(exact), cv2.IMREAD_GRAYSCALE), (160, 90), interpolation=cv2.INTER_AREA))
+    for mask in (exact, half):
+        pano = tmp_path / f"pano_{mask.stem}.png"
+        code, err = run(capsys, "stitch", flights.burned, "-o", pano, "-e", "orb", "-q", "--no-overlay-detect", "--mask", mask)
+        assert code == 0, err
+        assert overlay_coloured(cv2.imread(str(pano), cv2.IMREAD_UNCHANGED)) == 0
+    out = tmp_path / "track.json"
+    code, err = run(capsys, "track", flights.burned, "-o", out, "-e", "orb", "-q", "--no-overlay-detect", "--mask", exact)
+    assert code == 0, err
+    meta = json.loads(out.read_text())["meta"]["mask"]
+    assert meta["from_file"] and meta["detected"] is None
+    drawn = cv2.imread(str(exact), cv2.IMREAD_GRAYSCALE) < 128
+    grown = cv2.dilate(drawn.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0  # the 2-px margin
+    assert meta["excluded"] == pytest.approx(np.mean(grown), abs=1e-3)
+
+
+def test_the_mask_file_and_the_detector_are_merged(flights, tmp_path):
+    corner = np.full((SIZE[1], SIZE[0]), 255, np.uint8)
+    corner[100:140, 120:200] = 0  # ground the user does not want, in the middle of the frame
+    path = tmp_path / "corner.png"
+    cv2.imwrite(str(path), corner)
+    from mosaic_cli.overlay import MaskOptions
+
+    merged = frame_mask(flights.burned, MaskOptions(file=path))
+    excluded = merged.use == 0
+    assert excluded[100:140, 120:200].all() and np.count_nonzero(flights.drawn & ~excluded) == 0
+
+
+def write_image(path: Path, image: np.ndarray) -> Path:
+    cv2.imwrite(str(path), image)
+    return path
+
+
+@pytest.mark.parametrize("command", ["track", "stitch", "stabilize"])
+@pytest.mark.parametrize("case,fragment", [
+    ("aspect", "aspect ratio"),
+    ("missing", "no such file"),
+    ("garbage", "not an image"),
+    ("black", "less than 5%"),
+])
+def test_a_bad_mask_is_one_line_exit_2_and_no_output(flights, tmp_path, capsys, command, case, fragment):
+    mask = {
+        "aspect": lambda: write_image(tmp_path / "square.png", np.full((100, 100), 255, np.uint8)),
+        "missing": lambda: tmp_path / "nothing.png",
+        "garbage": lambda: (tmp_path / "bad.png").write_bytes(b"not a png") and tmp_path / "bad.png",
+        "black": lambda: write_image(tmp_path / "black.png", np.zeros((180, 320), np.uint8)),
+    }[case]()
+    out = tmp_path / {"track": "t.json", "stitch": "p.png", "stabilize": "s.mp4"}[command]
+    args = [command, flights.burned, out] if command == "stabilize" else [command, flights.burned, "-o", out]
+    code, err = run(capsys, *args, "--mask", mask, "-q")
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mosaic: error: --mask") and fragment in lines[0], err
+    assert not out.exists()
+
+
+def test_load_mask_reads_alpha_as_not_to_use(tmp_path):
+    rgba = np.full((180, 320, 4), 255, np.uint8)
+    rgba[:50, :50, 3] = 0
+    use = load_mask(write_image(tmp_path / "alpha.png", rgba), SIZE)
+    assert use[:50, :50].max() == 0 and use[60:, 60:].min() == 255
+
+
+def test_stabilize_estimates_without_the_overlays_but_keeps_them_in_the_output(flights, tmp_path, capsys):
+    out = tmp_path / "stable.mp4"
+    code, err = run(capsys, "stabilize", flights.burned, out, "-e", "orb", "-q")
+    assert code == 0, err
+    from mosaic_cli.video import probe
+
+    assert probe(out).frame_count == FRAMES
+
+
+def test_simulate_overlays_option(tmp_path, capsys):
+    out = tmp_path / "f.mp4"
+    ground = write_image(tmp_path / "map.png", procedural_map((512, 512), seed=1))
+    code, err = run(capsys, "simulate", ground, "-o", out, "-n", "4", "--size", "160x90", "--overlays", "logo", "-q")
+    assert code == 0, err
+    mask = cv2.imread(str(overlay_mask_path(out)), cv2.IMREAD_GRAYSCALE)
+    assert mask.shape == (90, 160) and 0.01 < np.mean(mask == 0) < 0.1
+    code, err = run(capsys, "simulate", "-o", tmp_path / "g.mp4", "-n", "4", "--overlays", "banner", "-q")
+    assert code == 2 and err.strip().startswith("mosaic: error: --overlays") and len(err.strip().splitlines()) == 1
+
+
+def test_burner_colours_are_absent_from_the_procedural_map():
+    """The premise of the panorama checks: the map never has the overlays' colours."""
+    rgb = procedural_map((1024, 1024), seed=3)
+    r, g, b = (rgb[..., k].astype(int) for k in range(3))
+    assert not np.any((r > 200) & (g < 70) & (b > 200)) and not np.any((r > 200) & (g > 200) & (b < 70))
+    assert TEXT_RGB == (255, 255, 0) and LOGO_RGB == (255, 0, 255)
+
+
+def test_the_learned_estimators_orb_fallback_takes_the_mask():
+    """The fallback's own ORB (``fallback=orb``) is masked with the learned estimator: a pair whose
+    larger, static part is an overlay registers by the ground that moves, not by the overlay."""
+    from mosaic_cli.estimators import make_estimator
+
+    rng = np.random.default_rng(4)
+    ground = cv2.GaussianBlur(rng.integers(0, 255, (180, 360), dtype=np.uint8), (0, 0), 1.2)
+    static = cv2.GaussianBlur(rng.integers(0, 255, (180, 200), dtype=np.uint8), (0, 0), 1.2)
+    prev, cur = ground[:, :320].copy(), ground[:, 12:332].copy()  # the ground moves 12 px left
+    prev[:, :200] = cur[:, :200] = static  # an overlay over 62% of the frame, fixed
+    shift = np.array([[1, 0, -12.0], [0, 1, 0], [0, 0, 1]])
+    est = make_estimator("lstm", device="cpu")
+    use = np.full((360, 640), 255, np.uint8)
+    use[:, :400] = 0  # full resolution, twice the working size
+    for mask, moves in ((None, False), (use, True)):
+        est.set_mask(mask)
+        est.reset((640, 360))
+        assert est.work_size == (320, 180)
+        points, _ = est._fallback._describe(prev)
+        H, _ = est._fallback.register(prev, cur)
+        assert H is not None
+        if moves:
+            assert points[:, 0].min() >= 200 and np.abs(H / H[2, 2] - shift).max() < 0.05, H
+        else:  # the check can fail: unmasked, the static overlay pulls the fit off the ground's motion
+            assert np.abs(H / H[2, 2] - shift).max() > 1.0, H
+
+
+def test_a_live_input_takes_the_mask_file_and_skips_detection_with_one_line(flights, tmp_path):
+    """stdin is a live input: no frames to sample ahead, so detection is skipped (said once)
+    and ``--mask`` alone keeps the overlays out of the panorama and the track."""
+    import subprocess
+    import sys
+
+    exact = overlay_mask_path(flights.burned)
+    pano = tmp_path / "live.png"
+    with open(flights.burned, "rb") as stdin:
+        done = subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", "-", "-o", str(pano), "-e", "orb", "--mask", str(exact)],
+                              stdin=stdin, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert sum("overlay detection is skipped" in line for line in done.stderr.splitlines()) == 1, done.stderr
+    assert overlay_coloured(cv2.imread(str(pano), cv2.IMREAD_UNCHANGED)) == 0
+    out = tmp_path / "live.json"
+    with open(flights.burned, "rb") as stdin:
+        done = subprocess.run([sys.executable, "-m", "mosaic_cli", "track", "-", "-o", str(out), "-e", "orb", "-q",
+                               "--mask", str(exact)], stdin=stdin, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    meta = json.loads(out.read_text())["meta"]["mask"]
+    assert meta["from_file"] and meta["detected"] is None and meta["excluded"] > 0.1
