@@ -33,6 +33,10 @@ def stitch(
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    telemetry: str | None = typer.Option(None, "--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any."),
+    hfov: float | None = typer.Option(None, "--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV)."),
+    telemetry_offset: float = typer.Option(0.0, "--telemetry-offset", help="Seconds added to the telemetry's times to match the video's."),
+    footprints: Path | None = typer.Option(None, "--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84)."),
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
@@ -47,6 +51,7 @@ def stitch(
         compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure),
         start=start,
         max_frames=max_frames,
+        georef=_georef_options(telemetry, hfov, telemetry_offset, footprints),
     )
     options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
     # Output and option checks come before the estimator is built (a learned one loads weights).
@@ -60,6 +65,22 @@ def stitch(
             f"{result.frames} frames -> {len(result.transforms)} keyframes{loops}, "
             f"{result.canvas_size[0]}x{result.canvas_size[1]} canvas, {result.frames_per_second:.1f} fr/s -> {out}"
         )
+        if result.georef is not None:
+            console.print(result.georef.telemetry.summary())
+            console.print(result.georef.summary())
+
+
+def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None):
+    from mosaic_cli.errors import BadInput
+    from mosaic_cli.geo.georef import GeorefOptions
+
+    if telemetry is not None and telemetry.strip().lower() == "none":
+        if footprints is not None:
+            raise BadInput("--footprints needs telemetry (--telemetry none was given)")
+        return None
+    options = GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)
+    options.validate()
+    return options
 
 
 def _fraction(name: str, value: float) -> float:

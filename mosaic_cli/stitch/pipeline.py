@@ -19,6 +19,9 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
+from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
+from mosaic_cli.geo.output import transforms_extra
+from mosaic_cli.geo.stitching import load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import normalize, resize_matrix
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -43,6 +46,8 @@ class StitchOptions:
     # Hold keyframe pixels in a temporary folder ($TMPDIR) rather than in memory: a survey's
     # held pixels add up to several canvases (see spill.py).
     spill: bool = True
+    # Telemetry to lay the mosaic on the ground with (see mosaic_cli/geo); None: a plain panorama.
+    georef: "GeorefOptions | None" = None
 
 
 @dataclass
@@ -54,6 +59,7 @@ class StitchResult:
     keyframes: int
     registration: RegistrationReport
     seconds: dict[str, float]
+    georef: "Georeference | None" = None
 
     @property
     def frames_per_second(self) -> float:
@@ -74,6 +80,7 @@ def stitch(
     stitched; never leaves a partial file."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
+    track = load_track(video, out, options.georef)  # geo hook: before any work
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -90,6 +97,10 @@ def stitch(
         indices = [k.index for k in scan.keyframes]
         ref = choose_reference(indices, reference, scan.first_index + scan.frames - 1)
         placements, report = _register(scan, ref, options, show_progress)
+        georef = None
+        if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
+            georef = georeference(placements, ref, indices, scan.source_size, info.fps, track, options.georef)
+            placements = georef.placements_in_pixels(placements)
         seconds["register"] = time.perf_counter() - clock
 
         clock = time.perf_counter()
@@ -100,14 +111,19 @@ def stitch(
         seconds["compose"] = time.perf_counter() - clock
 
         clock = time.perf_counter()
-        write_panorama(out, panorama)
+        extra = None
+        if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
+            written = write_outputs(out, panorama, georef, options.georef, canvas.to_canvas, frame_to_canvas, scan.source_size, info.fps)
+            extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
+        if georef is None or not written:
+            write_panorama(out, panorama)
         del panorama
         # Every keyframe is reported, also those over ground already drawn (used for registration).
         frames = list(zip(indices, frame_to_canvas))
         if transforms is not None:
-            write_transforms(transforms, canvas.size, frames)
+            write_transforms(transforms, canvas.size, frames, extra)
         seconds["write"] = time.perf_counter() - clock
-        return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds)
+        return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds, georef)
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
