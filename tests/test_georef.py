@@ -167,6 +167,13 @@ def test_klv_log_gives_the_same_map(flights, tmp_path):
     mosaic("stitch", video, "--telemetry", log, "-o", tmp_path / "m.tif", "--transforms", tr, "-q")
     score = score_files(tr, gt, video.with_name("k.geo.json"))
     assert score.median_m < 0.3, score  # KLV altitudes are 0.3 m steps: a little less exact than SRT
+    # the same KLV as a data stream of an MPEG-TS, found without --telemetry
+    ts = tmp_path / "k.ts"
+    subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-i", str(video), "-f", "data", "-i", str(log),
+                    "-map", "0:v", "-map", "1:0", "-c", "copy", "-f", "mpegts", str(ts)], check=True)
+    tr_ts = tmp_path / "t_ts.json"
+    mosaic("stitch", ts, "-o", tmp_path / "ts.tif", "--transforms", tr_ts, "-q")
+    assert score_files(tr_ts, gt, video.with_name("k.geo.json")).median_m < 0.3
 
 
 @pytest.mark.parametrize("case", ["offset", "no-fix", "other-flight", "footprints-without"])
@@ -199,3 +206,23 @@ def test_unusable_telemetry_is_one_clear_line(flights, tmp_path, case):
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("mosaic: error:") and expect in lines[0], run.stderr
     assert not (tmp_path / "m.tif").exists()
+
+
+def test_drift_shifts_remove_slow_bending_but_not_follow_gps_noise():
+    from mosaic_cli.geo.drift import drift_shifts
+    from mosaic_cli.simulate.telemetry import gauss_markov
+
+    rng = np.random.default_rng(7)
+    times = np.arange(0, 240, 2.0)  # a keyframe every 2 s, 4 minutes
+    truth = np.stack([3.0 * times, np.zeros_like(times)], 1)  # 720 m straight line
+    bend = np.stack([np.zeros_like(times), 15.0 * np.sin(np.pi * times / 240)], 1)  # the images bent it 15 m
+    gps = truth + np.stack([gauss_markov(rng, times, 2.1, 2.0), gauss_markov(rng, times, 2.1, 2.0)], 1)
+    weights = np.ones(len(times))
+    shifts = drift_shifts(truth + bend, gps, weights, times, 30.0, 2.1)
+    after = np.linalg.norm(truth + bend + shifts - truth, axis=1)
+    assert np.median(after) < 1.0 and after.max() < 4.0  # from 15 m
+    # an unbent mosaic stays put: the shifts stay well under the GPS noise
+    still = drift_shifts(truth, gps, weights, times, 30.0, 2.1)
+    assert np.median(np.linalg.norm(still, axis=1)) < 1.0
+    # consecutive keyframes (6 m apart) move together to decimetres: no GPS jitter in the mosaic
+    assert np.abs(np.diff(shifts, axis=0)).max() < 0.6

@@ -24,7 +24,8 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
-from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, fit_similarity
+from mosaic_cli.geo.drift import DriftOptions, drift_shifts
+from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, fit_similarity, refine_homography
 from mosaic_cli.geometry import normalize, project
 from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
 from mosaic_cli.telemetry.track import Track
@@ -42,6 +43,11 @@ class GeorefOptions:
     min_coverage: float = 0.5  # at least this fraction of keyframes must have a fix
     max_scatter: float = 30.0  # metres: robust GPS scatter about the fit beyond this is no GPS error
     min_agreeing: float = 0.6  # fraction of fixes that must agree with the images
+    # A long flight's mosaic bends a little (perspective drift): a homography replaces the
+    # similarity when it explains the fixes this much better (robust scatter ratio) ...
+    perspective_gain: float = 0.8
+    min_fixes_for_perspective: int = 12
+    drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
 
     def validate(self) -> None:
         if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
@@ -62,6 +68,8 @@ class Georeference:
     telemetry: AlignedTelemetry
     frame_indices: list[int]
     used: np.ndarray  # keyframes whose fix entered the fit
+    shifts: np.ndarray  # (N, 2) per-keyframe ground shifts from the GPS drift prior
+    model: str  # "similarity" or "homography"
     hfov: float | None
     track: Track
     prior: SimilarityPrior | None
@@ -70,19 +78,27 @@ class Georeference:
     def crs(self) -> str:
         return self.projection.name
 
-    def frame_to_ground(self, placement: np.ndarray) -> np.ndarray:
-        """A keyframe's frame pixels -> (east, north), from its placement in the reference frame."""
-        return normalize(self.mosaic_to_ground @ placement)
+    def shift(self, k: int) -> np.ndarray:
+        return np.array([[1.0, 0, self.shifts[k, 0]], [0, 1.0, self.shifts[k, 1]], [0, 0, 1.0]])
+
+    def frame_to_ground(self, k: int, placement: np.ndarray) -> np.ndarray:
+        """Keyframe k's frame pixels -> (east, north), from its placement in the reference frame."""
+        return normalize(self.shift(k) @ self.mosaic_to_ground @ placement)
 
     def placements_in_pixels(self, placements: list[np.ndarray]) -> list[np.ndarray]:
-        return [normalize(self.ground_to_pixels @ self.mosaic_to_ground @ H) for H in placements]
+        return [normalize(self.ground_to_pixels @ self.frame_to_ground(k, H)) for k, H in enumerate(placements)]
+
+    def straightened(self, placements: list[np.ndarray]) -> list[np.ndarray]:
+        """The placements (in the reference frame) moved by the GPS drift shifts."""
+        back = np.linalg.inv(self.mosaic_to_ground)
+        return [normalize(back @ self.frame_to_ground(k, H)) for k, H in enumerate(placements)]
 
     def summary(self) -> str:
         agreeing = int(self.fit.inliers.sum())
         heading = (math.degrees(self.fit.rotation) + 180.0) % 360.0 - 180.0
         return (
             f"georeferenced in {self.crs}: {agreeing} of {len(self.fit.inliers)} keyframe fixes agree "
-            f"(scatter {self.fit.sigma:.1f} m), {self.gsd * 100:.1f} cm per pixel, mosaic heading {heading:+.1f} deg"
+            f"(scatter {self.fit.sigma:.1f} m, {self.model}), {self.gsd * 100:.1f} cm per pixel, mosaic heading {heading:+.1f} deg"
         )
 
 
@@ -131,7 +147,7 @@ def georeference(
     prior = None
     if f is not None and np.isfinite(aligned.height[ref]) and aligned.height[ref] > 0 and np.isfinite(aligned.yaw[ref]):
         # the untilted reference view sees height / f metres per pixel; its top edge points at yaw
-        prior = SimilarityPrior(float(aligned.height[ref]) / f, math.radians(float(aligned.yaw[ref])), 0.1)
+        prior = SimilarityPrior(float(aligned.height[ref]) / f, math.radians(float(aligned.yaw[ref])), 0.05)
     extent = float(np.linalg.norm(np.ptp(ground, axis=0)))
     if prior is None and extent < 30.0:
         raise BadInput(
@@ -155,11 +171,42 @@ def georeference(
             f"{track.source}: the telemetry disagrees with the images: the GPS track implies {fit.scale * 100:.1f} cm per pixel, "
             f"the height and field of view {prior.scale * 100:.1f} cm; check --hfov and the log"
         )
-    mosaic_to_ground = FLIP @ fit.matrix @ flatten
-    # Output pixels: north-up, the reference view's ground sample, anchored at its centre.
-    gsd = fit.scale
+    to_ground = fit.matrix
+    model = "similarity"
+    inliers, sigma = fit.inliers, fit.sigma
+    if fixes.sum() >= options.min_fixes_for_perspective:
+        # the perspective a long flight's chained registrations bend the mosaic with
+        placed = project(fit.matrix, mosaic[fixes])
+        better = refine_homography(placed, ground, min_sigma=1.0)
+        if better.sigma < options.perspective_gain * fit.sigma and better.inliers.mean() >= options.min_agreeing:
+            to_ground, model = better.matrix @ fit.matrix, "homography"
+            inliers, sigma = better.inliers, better.sigma
+    mosaic_to_ground = FLIP @ to_ground @ flatten
+    used = np.zeros(len(placements), bool)
+    used[np.nonzero(fixes)[0][inliers]] = True
+
+    # what bending is left: GPS shifts per keyframe, stiffly linked by the images (drift.py)
+    nadir_ground = np.array([project(mosaic_to_ground @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    all_fixes = np.full((len(placements), 2), np.nan)
+    all_fixes[fixes] = ground * np.array([1.0, -1.0])
+    footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
+    # sigma is 1.4826 x the median residual distance; a 2-D Gaussian's per-axis sigma is that / 1.75
+    shifts = drift_shifts(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(sigma / 1.75, 0.5), options.drift)
+
+    # Output pixels: north-up at the keyframes' median ground sample, anchored at the reference's centre.
+    gsd = footprint_m / max(w, h)
     anchor = project(mosaic_to_ground, centre[None])[0]
     ground_to_pixels = np.array([[1 / gsd, 0, -anchor[0] / gsd], [0, -1 / gsd, anchor[1] / gsd], [0, 0, 1.0]])
-    used = np.zeros(len(placements), bool)
-    used[np.nonzero(fixes)[0][fit.inliers]] = True
-    return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, hfov, track, prior)
+    fit.sigma = sigma
+    fit.inliers = inliers
+    return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
+                        hfov, track, prior)
+
+
+def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """2x2 derivative of the homography ``H`` at ``point``."""
+    x, y = point
+    den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
+    return np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]], [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / den

@@ -21,7 +21,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
-from mosaic_cli.geo.stitching import load_track, map_homographies, write_outputs
+from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import normalize, resize_matrix
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -80,7 +80,7 @@ def stitch(
     stitched; never leaves a partial file."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
-    track = load_track(video, out, options.georef)  # geo hook: before any work
+    track = load_track(video, out, options.georef, _time_span(info, options))  # geo hook: before any work
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -96,7 +96,10 @@ def stitch(
         clock = time.perf_counter()
         indices = [k.index for k in scan.keyframes]
         ref = choose_reference(indices, reference, scan.first_index + scan.frames - 1)
-        placements, report = _register(scan, ref, options, show_progress)
+        straighten = None  # geo hook: with telemetry, drift control starts from GPS-straightened placements
+        if track is not None:
+            straighten = gps_straightener(track, ref, indices, scan.source_size, info.fps, options.georef)
+        placements, report = _register(scan, ref, options, show_progress, straighten)
         georef = None
         if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
             georef = georeference(placements, ref, indices, scan.source_size, info.fps, track, options.georef)
@@ -147,6 +150,14 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     return info, reference
 
 
+def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] | None:
+    """Seconds of video the stitch covers, when the frame count is known."""
+    if not info.frame_count or info.fps <= 0:
+        return None
+    end = info.frame_count if options.max_frames is None else min(info.frame_count, options.start + options.max_frames)
+    return options.start / info.fps, (end - 1) / info.fps
+
+
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None) -> FlightScan:
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
@@ -174,11 +185,14 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             return scan_flight(frames(), estimator, scanner, advance)
 
 
-def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress: bool):
+def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress: bool, straighten=None):
     """Keyframe -> reference placements: jointly refined, or chained from the neighbours'
-    registrations when drift control is off."""
+    registrations when drift control is off.  ``straighten`` (telemetry) corrects the scan's
+    placements before loops are looked for."""
     keyframes = scan.keyframes
     world = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
+    if straighten is not None and options.registration.enabled and len(keyframes) >= 2:
+        world = straighten(world)
     neighbours = [k.link for k in keyframes[1:]]
     if not options.registration.enabled or len(keyframes) < 2:
         return chain_neighbours(neighbours, world, ref), RegistrationReport()

@@ -43,7 +43,8 @@ def find_streams(video: str | Path) -> list[EmbeddedStream]:
         index, what, codec, rest = int(m.group(1)), m.group(2), m.group(3).rstrip(","), m.group(4)
         if what == "Subtitle" and codec in ("subrip", "srt", "mov_text", "text", "ass", "ssa", "webvtt"):
             found.append(EmbeddedStream("srt", index, codec))
-        elif what == "Data" and (codec == "klv" or "KLVA" in rest):
+        elif what == "Data" and (codec in ("klv", "bin_data") or "KLVA" in rest):
+            # bin_data: a private stream (what ffmpeg makes of raw KLV it muxes); read if it holds ST 0601
             found.append(EmbeddedStream("klv", index, codec))
     return found
 
