@@ -270,3 +270,31 @@ def test_srt_subtitle_track_inside_the_video_is_found(flight, tmp_path):
     np.testing.assert_allclose(t.lat, sidecar.lat, equal_nan=True)
     np.testing.assert_allclose(t.time, sidecar.time, atol=2e-3)
     assert find_telemetry(flight) is None
+
+
+def test_geotiff_map_geotransform_follows_the_crop(tmp_path):
+    """A GeoTIFF's own geotransform, shifted by the crop load_map makes of its white fill."""
+    import rasterio
+    from affine import Affine
+
+    from mosaic_cli.simulate import load_map
+    from tests.conftest import textured_image
+
+    img = textured_image(240, 160, seed=1)
+    img[:, :40] = 255  # fill outside the footprint, cropped away by load_map
+    path = tmp_path / "ortho.tif"
+    transform = Affine(0.1, 0, 404_000.0, 0, -0.1, 3_285_000.0)
+    with rasterio.open(path, "w", driver="GTiff", width=240, height=160, count=3, dtype="uint8", crs="EPSG:32617", transform=transform) as ds:
+        ds.write(img.transpose(2, 0, 1))
+    geo = MapGeo.from_geotiff(path)
+    cropped = load_map(path)
+    assert geo.crs == "EPSG:32617" and geo.gsd == pytest.approx(0.1)
+    offset = 240 - cropped.shape[1]
+    assert offset >= 40
+    # map pixel (0, 0) of the cropped map is image pixel (offset, 0): its centre in the CRS
+    np.testing.assert_allclose(geo.map_to_crs @ [0, 0, 1], [404_000.0 + 0.1 * (offset + 0.5), 3_285_000.0 - 0.05, 1])
+    plain = tmp_path / "plain.tif"
+    import cv2
+
+    cv2.imwrite(str(plain), img)
+    assert MapGeo.from_geotiff(plain) is None  # no georeference: --origin and --gsd apply
