@@ -13,7 +13,7 @@ With no video, a short flight is simulated first, so accuracy (MACE, corner erro
 rate, see :mod:`mosaic_cli.evaluate`) comes with the timings.  A video with a ``.gt.json``
 beside it (a simulated flight) is scored too; any other video gives latency only.
 
-:func:`run_flights` scores a folder of flights (every ``X.mp4`` with its ``X.gt.json``): each
+:func:`run_flights` scores a folder of flights (every video ``X.mp4`` with its ``X.gt.json``): each
 flight is decoded once and every estimator runs on the same frames; MACE pools the landmark
 pairs of all flights (the paper's protocol), corner errors and failures pool the frame pairs,
 and a breakdown per flight profile (paper / fast / hard ...) comes with the totals.
@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput, MosaicError
+from mosaic_cli.estimators import LEARNED
 
-DEFAULT_ESTIMATORS = ("lstm", "cnn", "orb", "orb-paper", "identity")
-LEARNED = ("lstm", "cnn")
+DEFAULT_ESTIMATORS = (*LEARNED, "orb", "orb-paper", "identity")
 MAX_DECODED_BYTES = 1_500_000_000  # frames kept in memory for one input width
 
 
@@ -82,25 +82,28 @@ def decode_frames(path: str | Path, width: int | None, max_frames: int | None = 
 def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, int], advance=None) -> tuple[np.ndarray, StageTimes]:
     """Run ``estimator`` over in-memory frames; pairwise (N-1, 3, 3) and per-frame stage times
     (ms): wall clock per stage, and the process's CPU time of preprocess + estimate in ``cpu``
-    (all threads; less moved by other jobs on a shared machine)."""
+    (all threads; less moved by other jobs on a shared machine).  Preprocess is what the
+    estimator's own :class:`~mosaic_cli.estimators.base.StageTimer` records for ``prepare``; the
+    rest of each ``feed`` is estimation, spread evenly over the frames of a batch when a batched
+    estimator answers several at once."""
+    from mosaic_cli.estimators.base import StageTimer
+
     times = StageTimes()
     estimates = []
     estimator.reset(full_size)
-    holder: list = [None]
-    original = estimator.prepare
-    # feed() calls self.prepare(frame): hand it the frame prepared (and timed) just before.
-    estimator.prepare = lambda _frame: holder[0]
+    timer, previous = StageTimer(), estimator.timings
+    estimator.timings = timer
     try:
         pending = pending_cpu = 0.0
         waiting = 0
         for frame in frames:
+            before = timer.total("prepare")
             c0, t0 = time.process_time(), time.perf_counter()
-            holder[0] = original(frame)
-            t1 = time.perf_counter()
             out = estimator.feed(frame)
             t2, c2 = time.perf_counter(), time.process_time()
-            times.preprocess.append((t1 - t0) * 1000.0)
-            pending += (t2 - t1) * 1000.0
+            prepare_ms = timer.total("prepare") - before
+            times.preprocess.append(prepare_ms)
+            pending += (t2 - t0) * 1000.0 - prepare_ms
             pending_cpu += (c2 - c0) * 1000.0
             waiting += 1
             if out:
@@ -122,7 +125,7 @@ def time_estimator(estimator, frames: list[np.ndarray], full_size: tuple[int, in
             times.estimate[-1] += pending
             times.cpu[-1] += pending_cpu
     finally:
-        del estimator.prepare
+        estimator.timings = previous
     pairwise = np.array([e.H for e in estimates], dtype=np.float64).reshape(-1, 3, 3)
     return pairwise, times
 
@@ -188,10 +191,7 @@ def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np
         return None
     out = {}
     for chunk in chunks:
-        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda")
-        if not hasattr(est, "config") or not hasattr(est.config, "chunk"):
-            return None
-        est.config.chunk = int(chunk)
+        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda", chunk=int(chunk))
         for _ in range(2):  # warm-up, then timed
             torch.cuda.synchronize()
             t0 = time.perf_counter()
@@ -327,16 +327,11 @@ class FlightScore:
 
 
 def find_flights(folder: str | Path) -> list[Flight]:
-    """Every ``X.mp4`` in ``folder`` with an ``X.gt.json`` beside it, by name."""
+    """The flights of ``folder`` (:func:`mosaic_cli.inputs.find_flights`) with their ground truth."""
+    from mosaic_cli.inputs import find_flights as find_flight_videos
     from mosaic_cli.simulate import ground_truth_path, load_ground_truth
 
-    root = Path(folder)
-    if not root.is_dir():
-        raise BadInput(f"--flights {root}: not a folder")
-    flights = [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in sorted(root.glob("*.mp4")) if ground_truth_path(v).is_file()]
-    if not flights:
-        raise BadInput(f"--flights {root}: no X.mp4 with an X.gt.json beside it")
-    return flights
+    return [Flight(v.stem, v, load_ground_truth(ground_truth_path(v))) for v in find_flight_videos(folder, "--flights")]
 
 
 def score_flight(flight: Flight, pairwise: np.ndarray, times: StageTimes) -> FlightScore:
@@ -396,6 +391,7 @@ def run_flights(
     for label, est in built.items():
         widths.setdefault(est.input_width, []).append(label)
     scores: dict[str, list[FlightScore]] = {label: [] for label in built}
+    paths: dict[str, dict[str, int]] = {label: {} for label in built}  # which path made each pair (learned)
     decode_ms: list[float] = []
     total = sum(f.gt.frames for f in flights) * len(built)
     with progress_task("bench", total, disable=not show_progress) as advance:
@@ -407,6 +403,8 @@ def run_flights(
                     advance(0, status=f"{label} on {flight.name}")
                     pairwise, times = time_estimator(built[label], frames, tuple(info.source_size), advance)
                     scores[label].append(score_flight(flight, pairwise, times))
+                    for path, count in getattr(built[label], "path_counts", {}).items():
+                        paths[label][path] = paths[label].get(path, 0) + count
                 del frames
     profiles = sorted({f.profile for f in flights}, key=lambda p: (PROFILE_ORDER.index(p) if p in PROFILE_ORDER else len(PROFILE_ORDER), p))
     results = {}
@@ -416,6 +414,8 @@ def run_flights(
         entry["per_flight"] = {r.flight: r.metrics for r in runs}
         entry["device"] = str(getattr(built[label], "device", "cpu"))
         entry["work_width"] = getattr(built[label], "work_width", None)
+        if paths[label]:
+            entry["paths"] = paths[label]
         results[label] = entry
     return {
         "version": 1,
@@ -430,7 +430,7 @@ def run_flights(
     }
 
 
-PROFILE_ORDER = ("paper", "fast", "hard")
+PROFILE_ORDER = ("paper", "survey", "fast", "shaky", "hard", "extreme")
 
 
 def _machine() -> dict:
@@ -452,20 +452,23 @@ def render_flights_table(report: dict):
     profiles = src["profiles"]
     table = Table(title=f"bench: {len(src['flights'])} flights in {src['path']} ({src['frames']} frames)", title_justify="left")
     table.add_column("estimator", no_wrap=True)
-    for col in ("MACE\nall", *[f"MACE\n{p}" for p in profiles], "corner px\nmedian", "failure\nrate",
-                "ms/frame\np50", "CPU ms/fr\np50"):
+    for col in ("MACE\nall", *[f"MACE / failed\n{p}" for p in profiles], "corner px\nmedian", "failure\nrate",
+                "fallback\npairs", "ms/frame\np50", "CPU ms/fr\np50"):
         table.add_column(col, justify="right", no_wrap=True)
 
     def num(v, fmt):
         return "-" if v is None else fmt.format(v)
 
     for label, e in report["estimators"].items():
+        paths = e.get("paths")
+        fallback = paths.get("fallback", 0) / max(1, sum(paths.values())) if paths else None
         table.add_row(
             label,
             num(e["mace"], "{:.2f}"),
-            *[num(e["profiles"][p]["mace"], "{:.2f}") for p in profiles],
+            *[f"{num(e['profiles'][p]['mace'], '{:.2f}')} / {e['profiles'][p]['failure_rate']:.1%}" for p in profiles],
             num(e["corner_error"], "{:.2f}"),
             num(e["failure_rate"], "{:.1%}"),
+            num(fallback, "{:.1%}"),
             num(e["ms_per_frame"]["p50"], "{:.2f}"),
             num(e["cpu_ms_per_frame"]["p50"], "{:.2f}"),
         )

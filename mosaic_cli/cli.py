@@ -15,10 +15,12 @@ from typing import Iterator
 
 import typer
 
-try:  # recent typer carries its own copy of click
-    from typer._click.exceptions import ClickException
-except ImportError:  # pragma: no cover - older typer, with click installed beside it
-    from click.exceptions import ClickException
+# Usage errors (unknown option, bad value, missing argument): typer's public base of its click
+# exceptions since it carries its own copy of click; before that, click's own.
+if hasattr(typer, "TyperException"):
+    UsageProblem: type[Exception] = typer.TyperException
+else:  # pragma: no cover - older typer, with click installed beside it
+    from click.exceptions import ClickException as UsageProblem
 
 from mosaic_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, MosaicError
 
@@ -91,11 +93,12 @@ def _fail_stopped() -> None:
     _fail(*SIGNAL_EXITS[_received[0] if _received else signal.SIGINT])
 
 
-def _usage_message(exc: ClickException) -> str:
+def _usage_message(exc: Exception) -> str:
     """Click's usage errors as one line that says where the help is."""
     ctx = getattr(exc, "ctx", None)
     where = f" (see {ctx.command_path} --help)" if ctx is not None else ""
-    return f"{exc.format_message()}{where}"
+    message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+    return f"{message}{where}"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -116,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
 def _run(argv: list[str]) -> None:
     try:
         code = app(args=argv, prog_name="mosaic", standalone_mode=False)
-    except ClickException as exc:  # a usage error: unknown option, bad value, missing argument
+    except UsageProblem as exc:  # a usage error: unknown option, bad value, missing argument
         _fail(_usage_message(exc), EXIT_BAD_INPUT)
     except MosaicError as exc:
         if DEBUG["on"]:
@@ -140,6 +143,24 @@ def _run(argv: list[str]) -> None:
         _fail_stopped()
     raise SystemExit(code or 0)
 
+
+def _flags_take_no_value_in_help() -> None:
+    """typer's rich help gives every flag (``-q``, ``--help``, ``--no-drift-control``) a
+    ``<bool>`` type column, which reads as ``-q true``; a flag takes no value: show none."""
+    from typer.core import TyperOption
+
+    shown = TyperOption.display_type_rich
+    if getattr(shown, "mosaic_flags", False):
+        return
+
+    def display_type_rich(self, ctx):
+        return None if getattr(self, "is_flag", False) else shown(self, ctx)
+
+    display_type_rich.mosaic_flags = True
+    TyperOption.display_type_rich = display_type_rich
+
+
+_flags_take_no_value_in_help()
 
 # Commands register themselves on ``app``; import them last.
 from mosaic_cli.commands import bench, evaluate, simulate, stabilize, stitch, track, train  # noqa: E402,F401

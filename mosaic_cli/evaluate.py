@@ -14,13 +14,12 @@ exceeds :data:`FAILURE_PX`.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.geometry import chain, corner_error, frame_corners, normalize, project
+from mosaic_cli.geometry import chain, corner_error, normalize, project
 
 REFERENCE_WIDTH = 1280.0
 FAILURE_PX = 10.0
@@ -148,6 +147,19 @@ def corner_errors(pairwise_pred: np.ndarray, pairwise_true: np.ndarray, size: tu
     return np.where(np.isfinite(err), err, np.inf)
 
 
+def check_same_video(pairwise_pred: np.ndarray, pred_size: tuple[int, int] | None, gt) -> None:
+    """A prediction is scored against a ground truth only when both describe the same video:
+    the same frame count and (when the prediction says) the same frame size.  A track of part
+    of the flight, or of another clip, would otherwise get a score that means nothing."""
+    if pred_size is not None and tuple(pred_size) != tuple(gt.size):
+        raise BadInput(f"the prediction is for {pred_size[0]}x{pred_size[1]} frames but the ground truth for "
+                       f"{gt.size[0]}x{gt.size[1]}: not the same video")
+    frames = len(pairwise_pred) + 1
+    if frames != gt.frames:
+        raise BadInput(f"the prediction covers {frames} frames but the ground truth {gt.frames}: not the same video "
+                       f"(track the whole clip the ground truth came with)")
+
+
 def evaluate(pairwise_pred: np.ndarray, gt, annotations: np.ndarray | None = None) -> dict:
     """All metrics of a prediction against a ground truth.
 
@@ -197,19 +209,7 @@ def load_prediction(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | Non
         if arr.ndim != 3 or arr.shape[1:] != (3, 3):
             raise BadInput(f"{p}: expected an (N-1, 3, 3) array of pairwise homographies, got shape {arr.shape}")
         return arr.astype(np.float64), None
-    try:
-        data = json.loads(p.read_text())
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise BadInput(f"{p}: not a JSON file ({exc.__class__.__name__})") from None
-    if not isinstance(data, dict) or "pairwise" not in data:
-        raise BadInput(f"{p}: not a mosaic track file (no \"pairwise\" key)")
-    if data.get("kind") == "mosaic-ground-truth":
-        pass  # a ground truth scored against itself is fine
-    elif data.get("direction", "t_to_t+1") != "t_to_t+1":
-        raise BadInput(f"{p}: pairwise direction {data.get('direction')!r} is not 't_to_t+1'")
-    try:
-        arr = np.array(data["pairwise"], dtype=np.float64).reshape(-1, 3, 3)
-        size = (int(data["size"][0]), int(data["size"][1])) if "size" in data else None
-    except (ValueError, TypeError, IndexError, KeyError) as exc:
-        raise BadInput(f"{p}: malformed pairwise homographies ({exc.__class__.__name__})") from None
+    from mosaic_cli.track import read_track_file
+
+    _, arr, size = read_track_file(p)
     return arr, size

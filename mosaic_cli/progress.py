@@ -1,8 +1,14 @@
-"""Rich progress bars for long work: frames, frames per second, ETA; on stderr."""
+"""Progress of long work on stderr: rich bars (frames, frames per second, ETA) on a terminal;
+plain lines where stderr is a file or a pipe, where redrawn bars would pile up and wrap.
+
+In line mode each stage writes one line when it ends (count, time, rate, last status), and
+a stage that runs longer than :data:`LINE_EVERY_SECONDS` also writes a line that often, so
+that a log of an hour-long run still shows it moving."""
 
 from __future__ import annotations
 
 import contextlib
+import time
 from typing import Iterator
 
 from rich.console import Console
@@ -19,7 +25,9 @@ from rich.progress import (
 )
 from rich.text import Text
 
-console = Console(stderr=True)
+# soft_wrap: a summary line written to a file stays one line (not broken at 80 columns).
+console = Console(stderr=True, soft_wrap=True)
+LINE_EVERY_SECONDS = 60.0
 
 
 class RateColumn(ProgressColumn):
@@ -51,9 +59,53 @@ def make_progress(unit: str = "fr/s", disable: bool = False) -> Progress:
     )
 
 
+class LineProgress:
+    """One stage's progress as plain text lines (see the module docstring)."""
+
+    def __init__(self, description: str, total: int | None, unit: str, every: float = LINE_EVERY_SECONDS,
+                 clock=time.monotonic):
+        self.description, self.total, self.unit, self.every, self.clock = description, total, unit, every, clock
+        self.done = 0
+        self.status = ""
+        self.start = self.last_line = clock()
+
+    def advance(self, n: int = 1, status: str | None = None) -> None:
+        self.done += n
+        if status is not None:
+            self.status = status
+        if self.clock() - self.last_line >= self.every:
+            self._write(self.line(final=False))
+
+    def line(self, final: bool) -> str:
+        elapsed = max(self.clock() - self.start, 1e-9)
+        count = f"{self.done}/{self.total}" if self.total is not None else f"{self.done}"
+        rate = self.done / elapsed
+        text = f"{self.description}: {count} in {_clock(elapsed)} ({rate:.1f} {self.unit})"
+        if not final and self.total and rate > 0:
+            text += f", ETA {_clock(max(self.total - self.done, 0) / rate)}"
+        return text + (f"; {self.status}" if self.status else "")
+
+    def _write(self, text: str) -> None:
+        self.last_line = self.clock()
+        console.file.write(text + "\n")
+        console.file.flush()
+
+
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
 @contextlib.contextmanager
 def progress_task(description: str, total: int | None, unit: str = "fr/s", disable: bool = False) -> Iterator:
-    """A context manager yielding ``advance(n=1, **fields)`` for one progress task."""
+    """A context manager yielding ``advance(n=1, status=None)`` for one progress task: a rich bar
+    on a terminal, plain lines otherwise (nothing when ``disable``).  A stage cut short by an
+    error writes no line: the error's own line is the one to read."""
+    if not disable and not console.is_terminal:
+        lines = LineProgress(description, total, unit)
+        yield lines.advance
+        lines._write(lines.line(final=True))
+        return
     with make_progress(unit, disable) as progress:
         task = progress.add_task(description, total=total, status="")
 

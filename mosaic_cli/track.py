@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path
+from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, estimate_stream
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
@@ -87,6 +88,10 @@ def track_video(
         elapsed = time.perf_counter() - start
     n = len(pairwise) + 1
     meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
+    if getattr(estimator, "path_counts", None):  # the learned estimator: which path made each pair
+        meta["paths"] = dict(estimator.path_counts)
+    if stream.shortfall is not None:  # read to the end, and the end came early
+        meta["input"] = stream.shortfall.as_meta()
     return TrackResult(
         info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta
     )
@@ -105,19 +110,41 @@ def save_track(result: TrackResult, out: str | Path) -> None:
                 result.write_json(fh)
 
 
-def load_track(path: str | Path) -> TrackResult:
-    """Read a ``mosaic track`` JSON file back."""
-    from mosaic_cli.errors import BadInput
-
+def read_track_file(path: str | Path) -> tuple[dict, np.ndarray, tuple[int, int] | None]:
+    """The one reader of the track JSON format (also accepted: a ``mosaic simulate`` ground
+    truth, which shares its keys) -> (document, pairwise (N-1, 3, 3) float64, size (w, h) or
+    None when the file does not say).  BadInput for anything else."""
     p = Path(path)
+    if not p.exists():
+        raise BadInput(f"{p}: no such file")
+    if p.is_dir():
+        raise BadInput(f"{p}: is a folder, not a prediction file")
     try:
         data = json.loads(p.read_text())
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise BadInput(f"{p}: not a JSON file ({exc.__class__.__name__})") from None
+    if not isinstance(data, dict) or "pairwise" not in data:
+        raise BadInput(f"{p}: not a mosaic track file (no \"pairwise\" key)")
+    if data.get("kind") == "mosaic-ground-truth":
+        pass  # a ground truth scored against itself is fine
+    elif data.get("direction", "t_to_t+1") != "t_to_t+1":
+        raise BadInput(f"{p}: pairwise direction {data.get('direction')!r} is not 't_to_t+1'")
+    try:
         pairwise = np.array(data["pairwise"], dtype=np.float64).reshape(-1, 3, 3)
-        size = tuple(int(v) for v in data["size"])
-    except FileNotFoundError:
-        raise BadInput(f"{p}: no such file") from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise BadInput(f"{p}: not a mosaic track file ({exc.__class__.__name__})") from None
-    info = VideoInfo(str(p), size, size, float(data.get("fps", 30.0)), int(data.get("frames", len(pairwise) + 1)), 0.0)
-    conf = np.array(data.get("confidence", [1.0] * len(pairwise)), dtype=np.float64)
+        size = (int(data["size"][0]), int(data["size"][1])) if "size" in data else None
+    except (ValueError, TypeError, IndexError, KeyError) as exc:
+        raise BadInput(f"{p}: malformed pairwise homographies ({exc.__class__.__name__})") from None
+    return data, pairwise, size
+
+
+def load_track(path: str | Path) -> TrackResult:
+    """Read a ``mosaic track`` JSON file back."""
+    data, pairwise, size = read_track_file(path)
+    if size is None:
+        raise BadInput(f"{path}: not a mosaic track file (no \"size\" key)")
+    try:
+        info = VideoInfo(str(path), size, size, float(data.get("fps", 30.0)), int(data.get("frames", len(pairwise) + 1)), 0.0)
+        conf = np.array(data.get("confidence", [1.0] * len(pairwise)), dtype=np.float64)
+    except (ValueError, TypeError) as exc:
+        raise BadInput(f"{path}: not a mosaic track file ({exc.__class__.__name__})") from None
     return TrackResult(info, data.get("estimator", "?"), pairwise, conf, data.get("meta", {}))

@@ -3,8 +3,10 @@
     python scripts/ablation_table.py REPORT.json [--name LABEL=NAME ...] [--ratio-to LABEL]
 
 One row per estimator, in the report's order (or the order of --name): MACE over all flights
-and per profile, median corner error, failure rate and CPU ms per frame (p50); --ratio-to adds
-each MACE as a multiple of that estimator's (per profile too).
+and, per profile, MACE and failure rate; median corner error, failure rate, the share of pairs
+the classical fallback made (learned estimators) and CPU ms per frame (p50); --ratio-to adds each
+MACE as a multiple of that estimator's (per profile too).  A second table gives the CPU ms per
+frame (p50) of each profile.
 """
 
 from __future__ import annotations
@@ -35,15 +37,25 @@ def main() -> None:
         text = f"{entry['mace']:.2f}"
         return f"{text} ({entry['mace'] / ref['mace']:.2f}x)" if ref and ref["mace"] > 0 else text
 
-    head = ["method", "MACE, all", *[f"MACE {p}" for p in profiles], "median corner error (px)", "failure rate", "CPU ms/frame (p50)"]
+    head = ["method", "MACE, all", *[f"{p}: MACE / failed" for p in profiles], "median corner error (px)", "failure rate",
+            "fallback pairs", "CPU ms/frame (p50)"]
     print("| " + " | ".join(head) + " |")
     print("| --- |" + " ---: |" * (len(head) - 1))
     for label in labels:
         e = estimators[label]
+        paths = e.get("paths")
+        fallback = f"{100 * paths.get('fallback', 0) / max(1, sum(paths.values())):.1f}%" if paths else "-"
         cells = [names.get(label, f"`{label}`"), mace(e, base)]
-        cells += [mace(e["profiles"][p], base["profiles"][p] if base else None) for p in profiles]
-        cells += [f"{e['corner_error']:.2f}", f"{100 * e['failure_rate']:.1f}%", f"{e['cpu_ms_per_frame']['p50']:.2f}"]
+        cells += [f"{mace(e['profiles'][p], base['profiles'][p] if base else None)} / {100 * e['profiles'][p]['failure_rate']:.1f}%"
+                  for p in profiles]
+        cells += [f"{e['corner_error']:.2f}", f"{100 * e['failure_rate']:.1f}%", fallback, f"{e['cpu_ms_per_frame']['p50']:.2f}"]
         print("| " + " | ".join(cells) + " |")
+    print()
+    print("| CPU ms/frame (p50) | " + " | ".join(profiles) + " |")
+    print("| --- |" + " ---: |" * len(profiles))
+    for label in labels:
+        e = estimators[label]
+        print(f"| {names.get(label, f'`{label}`')} | " + " | ".join(f"{e['profiles'][p]['cpu_ms_per_frame']['p50']:.2f}" for p in profiles) + " |")
     source = report["source"]
     print(f"\n{source['frames']} frames, {len(source['flights'])} flights in {source['path']}; "
           f"{report['units']}")

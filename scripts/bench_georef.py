@@ -148,7 +148,6 @@ def bench_refit(args) -> None:
     from mosaic_cli.geo.score import score_map_homographies
     from mosaic_cli.telemetry import read_telemetry
 
-    rows = []
     for seed in range(args.seeds):
         video = args.workdir / f"mapping_s{seed}.mp4"
         transforms = video.with_suffix(".map.json")

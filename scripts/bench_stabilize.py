@@ -41,9 +41,9 @@ from pathlib import Path
 import imageio_ffmpeg
 import numpy as np
 
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR
 from mosaic_cli.geometry import normalize
 from mosaic_cli.simulate import load_ground_truth, load_map, plan_flight, write_flight
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR
 from mosaic_cli.stabilize import StabilizeOptions, stabilize
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.metrics import (

@@ -5,6 +5,9 @@
     python scripts/bench_stitch.py memory       # peak RSS of 1080p flights of growing length and area
     python scripts/bench_stitch.py accuracy-long  # placement accuracy on those (after memory)
     python scripts/bench_stitch.py figure       # docs/stitch_pano.jpg and docs/stitch_source.jpg
+    python scripts/bench_stitch.py revisits     # forward-then-backward and looped (cut) 720p flights, exact truth
+    python scripts/bench_stitch.py real-revisits  # the real sparse drone frames, forward then backward
+    python scripts/bench_stitch.py photos       # the real ODM photo folders at full resolution
     python scripts/bench_stitch.py all
 
 Flights are rendered (and cached) under --workdir by ``mosaic_cli.simulate`` over the real
@@ -15,8 +18,10 @@ printed with the command that reproduces it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -29,7 +34,7 @@ from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
 from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
 from mosaic_cli.simulate import FlightPlan, load_ground_truth, load_map, plan_flight, procedural_map, write_flight
 from mosaic_cli.simulate.trajectory import camera_homography
-from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
+from mosaic_cli.stitch import CanvasOptions, RegistrationOptions, StitchOptions, stitch
 from mosaic_cli.video import open_video
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -171,6 +176,191 @@ def accuracy(args) -> dict:
     return {"accuracy": rows}
 
 
+# -- flights that revisit their ground ---------------------------------------------------------
+
+REAL_FRAMES = ROOT.parent / "shared/data/aerial_video/teon2001_blacksea_drone_frames"
+ODM = ROOT.parent / "shared/data/aerial_sequences"
+
+
+def revisit_flight(workdir: Path, kind: str, frames: int, seed: int) -> tuple[Path, np.ndarray]:
+    """A 1280x720 'fast' flight over the orthophoto, then the same flight backward
+    (``kind='fb'``) or again from its start after a cut (``kind='loop'``): the second pass's
+    exact map -> frame homographies are the first pass's, reversed or repeated."""
+    path = workdir / f"{kind}_1280x720_{frames}_s{seed}.mp4"
+    if not path.exists():
+        known = ORTHOPHOTO.exists()
+        ground = load_map(ORTHOPHOTO if known else None, seed=seed)
+        plan = plan_flight((ground.shape[1], ground.shape[0]), "fast", frames, (1280, 720), seed)
+        second = (lambda m: m[::-1]) if kind == "fb" else (lambda m: m)
+        plan = dataclasses.replace(
+            plan,
+            map_to_frame=np.concatenate([plan.map_to_frame, second(plan.map_to_frame)]),
+            smooth_map_to_frame=np.concatenate([plan.smooth_map_to_frame, second(plan.smooth_map_to_frame)]),
+        )
+        write_flight(path, ground, plan, map_name=ORTHOPHOTO.name if known else "procedural", preset="veryfast", show_progress=False)
+    return path, load_ground_truth(path.with_suffix(".gt.json")).map_to_frame
+
+
+def pass_offsets(transforms, truth, first_pass: int, twin, size) -> np.ndarray:
+    """For each second-pass keyframe: the largest corner distance (panorama pixels) between
+    where it is drawn and where the first pass puts it (the nearest first-pass keyframe's
+    placement carried over by the exact relative homography; ``twin(j)``: the first-pass
+    frame that sees what frame j sees)."""
+    first = [(i, H) for i, H in transforms if i < first_pass]
+    corners = frame_corners(*size)
+    offsets = []
+    for j, H_j in transforms:
+        if j >= first_pass:
+            i, H_i = min(first, key=lambda t: abs(t[0] - twin(j)))
+            expected = H_i @ truth[i] @ np.linalg.inv(truth[j])
+            offsets.append(float(np.max(np.linalg.norm(project(expected, corners) - project(H_j, corners), axis=1))))
+    return np.array(offsets)
+
+
+def revisits(args) -> dict:
+    rows = []
+    for kind in ("fb", "loop"):
+        for seed in args.seeds:
+            video, truth = revisit_flight(args.workdir, kind, args.revisit_frames, seed)
+            n = args.revisit_frames
+            twin = (lambda j, n=n: 2 * n - 1 - j) if kind == "fb" else (lambda j, n=n: j - n)
+            row = {"flight": video.name, "estimator": args.estimator}
+            for label, enabled in (("dc", True), ("no-dc", False)):
+                options = StitchOptions(registration=RegistrationOptions(enabled=enabled))
+                out = args.workdir / f"{video.stem}_{label}.png"
+                result = stitch(video, out, make_estimator(args.estimator), options, show_progress=False)
+                indices = [i for i, _ in result.transforms]
+                errors = placement_errors(indices, [H for _, H in result.transforms], truth, (1280, 720))
+                offsets = pass_offsets(result.transforms, truth, n, twin, (1280, 720))
+                row[label] = {
+                    "panoramas": len(result.panoramas), "canvas": list(result.canvas_size), "keyframes": len(indices),
+                    "median": float(np.median(errors)), "p90": float(np.percentile(errors, 90)), "max": float(errors.max()),
+                    "pass offset median": float(np.median(offsets)), "pass offset max": float(offsets.max()),
+                    "loops": result.registration.loops,
+                }
+            rows.append(row)
+            print(f"{video.name} ({args.estimator}):", flush=True)
+            for label in ("dc", "no-dc"):
+                r = row[label]
+                print(
+                    f"  {label:6s} {r['panoramas']} panorama(s) {r['canvas'][0]}x{r['canvas'][1]}, {r['keyframes']} keyframes, {r['loops']} loops; "
+                    f"corner error of keyframes >= {GAP} frames apart median {r['median']:.2f} p90 {r['p90']:.2f} max {r['max']:.2f} px; "
+                    f"second pass from the first: median {r['pass offset median']:.2f} max {r['pass offset max']:.2f} px",
+                    flush=True,
+                )
+    print(f"  reproduce: {here(args, 'revisits')} --revisit-frames {args.revisit_frames} --seeds {' '.join(map(str, args.seeds))} --estimator {args.estimator}")
+    return {"revisits": rows}
+
+
+def real_revisits(args) -> dict:
+    """The real sparse frames (6 of each video) as a photo folder: once, then forward and
+    backward (the same files in reverse after them), all drawn in the first frame.  Exact
+    truth for the second pass: each of its frames is a first-pass frame."""
+    rows = []
+    for clip in sorted(p for p in REAL_FRAMES.iterdir() if p.is_dir()):
+        files = sorted(p for p in clip.iterdir() if p.suffix.lower() in (".jpg", ".png"))
+        single, fb = args.workdir / f"real_{clip.name}_single", args.workdir / f"real_{clip.name}_fb"
+        for folder, sequence in ((single, files), (fb, files + files[::-1])):
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir(parents=True)
+            for k, f in enumerate(sequence):
+                os.symlink(f, folder / f"frame_{k:04d}{f.suffix}")
+        size = cv2.imread(str(files[0])).shape[1::-1]
+        n = len(files)
+        row = {"clip": clip.name, "frames": n}
+        # Both drawn in the first frame: the extents compare only in the same reference frame.
+        first_frame = CanvasOptions(reference="first")
+        ref = stitch(single, args.workdir / f"{single.name}.png", make_estimator(args.estimator), StitchOptions(canvas=first_frame), show_progress=False)
+        row["single"] = list(ref.canvas_size)
+        for label, enabled in (("dc", True), ("no-dc", False)):
+            options = StitchOptions(registration=RegistrationOptions(enabled=enabled), canvas=first_frame)
+            result = stitch(fb, args.workdir / f"{fb.name}_{label}.png", make_estimator(args.estimator), options, show_progress=False)
+            first = {i: H for i, H in result.transforms if i < n}
+            offsets = []
+            for j, H_j in result.transforms:
+                if j >= n and (2 * n - 1 - j) in first:
+                    c = frame_corners(*size)
+                    offsets.append(float(np.max(np.linalg.norm(project(first[2 * n - 1 - j], c) - project(H_j, c), axis=1))))
+            extent = np.array(result.canvas_size, float) / np.array(ref.canvas_size, float) - 1
+            row[label] = {
+                "panoramas": len(result.panoramas), "canvas": list(result.canvas_size), "extent change": [float(e) for e in extent],
+                "used": len(result.transforms), "dropped": len(result.dropped),
+                "pass offset max": max(offsets) if offsets else None,
+            }
+        rows.append(row)
+        print(f"{clip.name}: {n} real {size[0]}x{size[1]} frames; single pass canvas {ref.canvas_size[0]}x{ref.canvas_size[1]}", flush=True)
+        for label in ("dc", "no-dc"):
+            r = row[label]
+            offset = "n/a" if r["pass offset max"] is None else f"{r['pass offset max']:.2f} px"
+            print(
+                f"  forward+backward {label:6s}: {r['panoramas']} panorama(s), canvas {r['canvas'][0]}x{r['canvas'][1]} "
+                f"({100 * r['extent change'][0]:+.1f}% / {100 * r['extent change'][1]:+.1f}%), {r['used']} used, {r['dropped']} dropped; "
+                f"second pass from the first (same frame, corners): max {offset}",
+                flush=True,
+            )
+    print(f"  reproduce: {here(args, 'real-revisits')} --estimator {args.estimator}")
+    return {"real-revisits": rows}
+
+
+def direct_points(a: np.ndarray, b: np.ndarray):
+    """Inlier correspondences of a full-resolution SIFT + RANSAC registration (OpenCV)."""
+    sift = cv2.SIFT_create(8000)
+    ka, da = sift.detectAndCompute(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY), None)
+    kb, db = sift.detectAndCompute(cv2.cvtColor(b, cv2.COLOR_BGR2GRAY), None)
+    pairs = [m for m, n in cv2.BFMatcher().knnMatch(da, db, k=2) if m.distance < 0.75 * n.distance]
+    if len(pairs) < 30:
+        return None, None
+    pa = np.float64([ka[m.queryIdx].pt for m in pairs])
+    pb = np.float64([kb[m.trainIdx].pt for m in pairs])
+    H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, 4.0)
+    if H is None or mask.sum() < 30:
+        return None, None
+    keep = mask.ravel().astype(bool)
+    return pa[keep], pb[keep]
+
+
+def photos(args) -> dict:
+    """Every ODM folder at full resolution: every photo used or named; consecutive used
+    photos against a direct full-resolution registration (median distance over its inliers)."""
+    rows = []
+    for folder in sorted(p for p in ODM.iterdir() if p.is_dir()):
+        files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+        row = {"folder": folder.name, "photos": len(files)}
+        for label, enabled in (("dc", True), ("no-dc", False)):
+            options = StitchOptions(registration=RegistrationOptions(enabled=enabled))
+            start = time.perf_counter()
+            result = stitch(folder, args.workdir / f"{folder.name}_{label}.png", make_estimator(args.estimator), options, show_progress=False)
+            seconds = time.perf_counter() - start
+            pairs = []
+            for pano in result.panoramas:
+                for (i, H_i), (j, H_j) in zip(pano.transforms, pano.transforms[1:]):
+                    pi, pj = direct_points(cv2.imread(str(files[i])), cv2.imread(str(files[j])))
+                    if pi is None:
+                        pairs.append((i, j, None))
+                        continue
+                    d = np.linalg.norm(project(np.linalg.inv(H_j) @ H_i, pi) - pj, axis=1)
+                    pairs.append((i, j, float(np.median(d))))
+            used = sorted(i for p in result.panoramas for i, _ in p.transforms)
+            row[label] = {
+                "panoramas": [[i for i, _ in p.transforms] for p in result.panoramas],
+                "dropped": [(files[i].name, why) for i, why in result.dropped],
+                "all accounted": sorted(used + [i for i, _ in result.dropped]) == list(range(len(files))),
+                "pairs": pairs, "seconds": seconds,
+            }
+        rows.append(row)
+        print(f"{folder.name}: {len(files)} photos", flush=True)
+        for label in ("dc", "no-dc"):
+            r = row[label]
+            pairs = ", ".join(f"{i}-{j} {'n/a' if d is None else f'{d:.2f}'}" for i, j, d in r["pairs"])
+            print(
+                f"  {label:6s} panoramas {r['panoramas']}, dropped {r['dropped']}, every photo accounted for: {r['all accounted']}; "
+                f"consecutive photos from a direct full-res registration (median px): {pairs}; {r['seconds']:.1f} s",
+                flush=True,
+            )
+    print(f"  reproduce: {here(args, 'photos')}")
+    return {"photos": rows}
+
+
 # -- throughput --------------------------------------------------------------------------------
 
 
@@ -295,11 +485,12 @@ def _save_jpeg(path: Path, bgr: np.ndarray, width: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "accuracy-long", "figure", "all"])
+    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "accuracy-long", "figure", "revisits", "real-revisits", "photos", "all"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--revisit-frames", type=int, default=300, help="frames of each pass of the revisit flights")
     parser.add_argument("--estimator", default="orb", help="the estimator of the accuracy and throughput runs (the throughput goal is stated for orb)")
     parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
     parser.add_argument("--speed", type=float, default=8.0, help="map pixels per frame of the memory flights")
@@ -309,7 +500,8 @@ def main() -> None:
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     results = {"load_average_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
-    steps = (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("accuracy-long", accuracy_long), ("figure", figure))
+    steps = (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("accuracy-long", accuracy_long), ("figure", figure),
+             ("revisits", revisits), ("real-revisits", real_revisits), ("photos", photos))
     for what, fn in steps:
         if args.what in (what, "all"):
             results.update(fn(args))

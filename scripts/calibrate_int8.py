@@ -15,7 +15,7 @@ from pathlib import Path
 
 from mosaic_cli.model import quantize
 from mosaic_cli.model.checkpoint import load_weights, save_weights
-from mosaic_cli.train.data import WindowDataset, build_frame_cache, discover_clips
+from mosaic_cli.train.data import WindowDataset, build_frame_cache, discover_clips, sample_pairs
 
 FRAMES_PER_CLIP = 64  # decoded per clip (spread over it): plenty for 512 pairs, quick to decode
 
@@ -35,7 +35,7 @@ def main() -> None:
         budget = FRAMES_PER_CLIP * len(found) * work_size[0] * work_size[1]
         clips = build_frame_cache(found, Path(cache), work_size, 2, budget)
         windows = WindowDataset(clips, 2, 1, model.config.patch, args.seed)
-        ranges = quantize.calibrate(model, quantize.sample_pairs(windows, args.pairs, seed=args.seed))
+        ranges = quantize.calibrate(model, sample_pairs(windows, args.pairs, seed=args.seed))
     save_weights(args.weights, model, meta["config"], meta["variant"], extra=meta["extra"], work_size=work_size, int8=ranges)
     print(f"{args.weights}: int8 ranges of {len(ranges['activations'])} activations from {args.pairs} pairs of {args.clips}")
 

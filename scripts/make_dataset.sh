@@ -71,4 +71,32 @@ for map in "${dev_maps[@]}"; do
       --size 1280x720 --seed $((seed + 1000)) --preset veryfast --quiet
   done
 done
+# The fast degraded regime (issue 14): 25-60 px/frame, fast yaw turns, altitude changes,
+# exposure drift and jumps, noise, motion blur, vignetting, haze, low-bitrate H.264.  Two flights
+# per training image, one per held-out image for development and for test, plus a held-out
+# low-texture site (the Black Sea coast, mostly water).  Seeds continue after the ones above, so
+# the clips above stay as they were.
+lowtex_maps=(aerial_video/teon2001_blacksea_drone_frames/video1_nadir/frame_0000.jpg)
+for map in "${train_maps[@]}"; do
+  name=$(basename "${map%.*}")
+  for k in 1 2; do
+    seed=$((seed + 1))
+    clip="$out/train/${name}_extreme${k}.mp4"
+    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile extreme --frames 300 \
+      --size 640x360 --seed "$seed" --preset veryfast --quiet
+  done
+done
+# (The Boruszyn orthomosaic and SOAP_061, a few hundred px once cropped, are too small for the
+# extreme profile's altitude changes at 1280x720.)
+extreme_maps=("${dev_maps[@]:1:3}" "${lowtex_maps[@]}")
+for split in dev test; do
+  for map in "${extreme_maps[@]}"; do
+    name=$(basename "${map%.*}")
+    [ "$name" = frame_0000 ] && name=blacksea
+    seed=$((seed + 1))
+    clip="$out/$split/${name}_extreme.mp4"
+    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile extreme --frames 300 \
+      --size 1280x720 --seed "$seed" --preset veryfast --quiet
+  done
+done
 echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)), $out/dev ($(ls "$out/dev"/*.mp4 | wc -l)) and $out/test ($(ls "$out/test"/*.mp4 | wc -l))"

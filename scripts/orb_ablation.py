@@ -99,7 +99,7 @@ def main() -> None:
             print(f"{Path(flight).stem:20s} {name:18s} MACE {metrics['mace']:6.2f}  corner {metrics['corner_error']:5.2f}  "
                   f"fail {100 * metrics['failure_rate']:4.1f}%  {ms:5.1f} CPU ms/frame", flush=True)
     print()
-    print(f"| variant | mean MACE | median MACE | median corner error | failures | CPU ms/frame (median) |")
+    print("| variant | mean MACE | median MACE | median corner error | failures | CPU ms/frame (median) |")
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
     summary = {}
     for name in names:

@@ -1,5 +1,7 @@
-"""Shared fixtures: procedural textures, virtual camera flights with exact homographies, and
-tiny generated clips.  Everything here is made on the fly, so tests need no data files."""
+"""Shared fixtures and helpers: procedural textures, virtual camera flights with exact
+homographies, tiny generated clips, running the CLI in this process and checking its one-line
+errors, and one torch thread for small-tensor tests.  Everything here is made on the fly, so
+tests need no data files."""
 
 from __future__ import annotations
 
@@ -10,6 +12,8 @@ import cv2
 import imageio_ffmpeg
 import numpy as np
 import pytest
+
+from mosaic_cli.cli import main
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
@@ -90,6 +94,31 @@ def ffmpeg(*args: str) -> None:
     subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", *args], check=True)
 
 
+def cli_exit(args) -> int:
+    """The exit status of ``mosaic ARGS`` run in this process (0: success)."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(a) for a in args])
+    code = exit_info.value.code
+    return 0 if code is None else int(code)
+
+
+def run_cli(capsys, *args) -> tuple[int, str]:
+    """(exit status, stderr) of ``mosaic ARGS`` run in this process."""
+    code = cli_exit(args)
+    return code, capsys.readouterr().err
+
+
+def assert_one_line_error(code: int, err: str, *fragments: str, status: int = 2) -> None:
+    """The CLI's contract for a failure: exit ``status`` and exactly one ``mosaic: error:`` line
+    on stderr (no traceback) that contains every fragment (any case)."""
+    assert code == status, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mosaic: error: "), err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment.lower() in lines[0].lower(), lines[0]
+
+
 class Flight:
     """A rendered virtual-camera flight: frames and the exact pairwise homographies."""
 
@@ -99,6 +128,19 @@ class Flight:
         self.frame_to_map = camera_path(n_frames, frame_size, map_size, seed=seed, step=step * frame_size[0] / 320)
         self.frames = [render(self.map, M, frame_size) for M in self.frame_to_map]
         self.pairwise = true_pairwise(self.frame_to_map)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """For modules of small-tensor tests (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``):
+    one thread is faster, and on a busy machine OpenMP's spin-waiting threads make a 2-thread run
+    up to 50x slower."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

@@ -8,16 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import cli_exit
 from mosaic_cli.bench import run_bench, run_flights, time_estimator
-from mosaic_cli.cli import main
-from mosaic_cli.estimators.base import Estimator, PairEstimate
+from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import LEARNED, learned
+from mosaic_cli.estimators.base import Estimator, PairEstimate, StageTimer
+from mosaic_cli.estimators.learned import default_weights
 from mosaic_cli.simulate import plan_flight, procedural_map, write_flight
-
-
-def run_cli(args):
-    with pytest.raises(SystemExit) as exc:
-        main(args)
-    return exc.value.code
 
 
 @pytest.fixture(scope="module")
@@ -29,11 +26,11 @@ def map_file(tmp_path_factory):
 
 def test_bench_command_small_run(tmp_path, map_file, capsys):
     out = tmp_path / "bench.json"
-    code = run_cli(["bench", "--frames", "40", "--map", str(map_file), "--size", "640x360", "--estimators", "orb,identity", "--json", str(out)])
+    code = cli_exit(["bench", "--frames", "40", "--map", str(map_file), "--size", "640x360", "--estimators", "orb,identity", "--json", str(out)])
     assert code in (0, None)
     report = json.loads(out.read_text())
     assert set(report["estimators"]) == {"orb", "identity"}
-    for name, e in report["estimators"].items():
+    for e in report["estimators"].values():
         assert e["ms_per_frame"] > 0 and e["fps"] > 0 and e["frames"] == 40
         for stage in ("decode", "preprocess", "estimate"):
             assert set(e["stages"][stage]) >= {"p50", "p95"}
@@ -47,11 +44,37 @@ def test_bench_command_small_run(tmp_path, map_file, capsys):
     assert "orb" in text and "identity" in text
 
 
-def test_bench_default_estimators_skip_missing_learned_ones(tmp_path, map_file):
+def shipped_weights(name: str) -> bool:
+    try:
+        default_weights(name)
+    except BadInput:
+        return False
+    return True
+
+
+def test_bench_default_estimators_run_learned_ones_with_weights_and_skip_the_others(tmp_path, map_file):
     report = run_bench(map_path=map_file, frames=6, size=(320, 180), show_progress=False)
     assert {"orb", "identity"} <= set(report["estimators"])
-    for name in ("lstm", "cnn"):
-        assert name in report["estimators"] or any(note.startswith(name) for note in report["notes"])
+    for name in LEARNED:
+        if shipped_weights(name):  # the shipped checkpoint: benchmarked like any other
+            assert report["estimators"][name]["frames"] == 6
+            assert not any(note.startswith(name) for note in report["notes"])
+        else:  # none shipped: a note says why it is missing, and the run still succeeds
+            assert name not in report["estimators"]
+            assert any(note.startswith(f"{name}: skipped") for note in report["notes"])
+
+
+def test_bench_names_a_missing_learned_estimator_when_it_was_asked_for(tmp_path, map_file, monkeypatch):
+    """Skipping is for the defaults only: a learned estimator named with -e must run or fail."""
+    def no_weights(kind):
+        raise BadInput(f"no shipped weights for {kind!r} yet")
+
+    monkeypatch.setattr(learned, "default_weights", no_weights)
+    with pytest.raises(BadInput, match="no shipped weights"):
+        run_bench(map_path=map_file, estimators=["cnn"], frames=6, size=(320, 180), show_progress=False)
+    report = run_bench(map_path=map_file, frames=6, size=(320, 180), estimators=None, show_progress=False)
+    assert not set(LEARNED) & set(report["estimators"])
+    assert sorted(note.split(":")[0] for note in report["notes"] if "skipped" in note) == sorted(LEARNED)
 
 
 def test_bench_on_a_video_reports_latency_only(tmp_path):
@@ -75,9 +98,14 @@ class Batching(Estimator):
     def reset(self, full_size):
         super().reset(full_size)
         self.pending = 0
+        self.prepared_frames = 0
+
+    def prepare(self, frame):
+        self.prepared_frames += 1
+        return super().prepare(frame)
 
     def feed(self, frame):
-        self.prepare(frame)
+        self.prepared(frame)
         self.pending += 1
         if self.pending == 3:
             self.pending = 0
@@ -91,12 +119,29 @@ class Batching(Estimator):
         raise AssertionError
 
 
-def test_time_estimator_spreads_batch_time_and_restores_prepare():
+def test_time_estimator_spreads_batch_time_and_leaves_the_estimator_untimed():
     est = Batching(32)
     frames = [np.zeros((18, 32), np.uint8)] * 8
     pairwise, times = time_estimator(est, frames, (32, 18))
     assert len(pairwise) == 8 and len(times.preprocess) == 8 and len(times.estimate) == 8
-    assert "prepare" not in est.__dict__  # the instance override is gone
+    assert est.prepared_frames == 8  # every frame prepared once, through the estimator's own timer
+    # frames 0-2 and 3-5 come back in batches of 3, frames 6-7 at finish(): each batch's
+    # estimation time is shared evenly by its frames, and nothing is lost in the sharing
+    for batch in (slice(0, 3), slice(3, 6), slice(6, 8)):
+        assert len(set(times.estimate[batch])) == 1 and len(set(times.cpu[batch])) == 1
+    assert all(t >= 0 for t in times.preprocess)
+    assert est.timings is None  # the benchmark's timer is gone with the run
+
+
+def test_stage_timer_records_prepare_calls_only_when_set():
+    est = Batching(32)
+    est.reset((64, 36))
+    est.prepared(np.zeros((36, 64), np.uint8))
+    assert est.timings is None and est.prepared_frames == 1
+    est.timings = StageTimer()
+    for _ in range(3):
+        est.prepared(np.zeros((36, 64), np.uint8))
+    assert len(est.timings.ms["prepare"]) == 3 and est.timings.total("prepare") == sum(est.timings.ms["prepare"])
 
 
 @pytest.mark.parametrize(
@@ -112,7 +157,7 @@ def test_time_estimator_spreads_batch_time_and_restores_prepare():
     ],
 )
 def test_bench_command_errors(args, message, capsys):
-    assert run_cli(["bench", "-q", *args]) == 2
+    assert cli_exit(["bench", "-q", *args]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
 
@@ -143,15 +188,15 @@ def test_flights_pool_what_mosaic_eval_reports_per_flight(tmp_path, flights_dir)
     from mosaic_cli.simulate import load_ground_truth
 
     out = tmp_path / "bench.json"
-    assert run_cli(["bench", "-q", "--flights", str(flights_dir), "-e", "orb,identity", "--json", str(out)]) in (0, None)
+    assert cli_exit(["bench", "-q", "--flights", str(flights_dir), "-e", "orb,identity", "--json", str(out)]) in (0, None)
     report = json.loads(out.read_text())
     assert report["source"]["flights"] == ["a_paper", "b_fast"] and report["source"]["profiles"] == ["paper", "fast"]
     for name in ("orb", "identity"):
         evals, corners = {}, []
         for flight in ("a_paper", "b_fast"):
             track, metrics = tmp_path / f"{flight}.{name}.json", tmp_path / f"{flight}.{name}.eval.json"
-            assert run_cli(["track", str(flights_dir / f"{flight}.mp4"), "-e", name, "-o", str(track), "-q"]) in (0, None)
-            assert run_cli(["eval", str(track), "--gt", str(flights_dir / f"{flight}.gt.json"), "--json", str(metrics), "-q"]) in (0, None)
+            assert cli_exit(["track", str(flights_dir / f"{flight}.mp4"), "-e", name, "-o", str(track), "-q"]) in (0, None)
+            assert cli_exit(["eval", str(track), "--gt", str(flights_dir / f"{flight}.gt.json"), "--json", str(metrics), "-q"]) in (0, None)
             evals[flight] = json.loads(metrics.read_text())
             gt = load_ground_truth(flights_dir / f"{flight}.gt.json")
             pred = np.array(json.loads(track.read_text())["pairwise"])
@@ -177,11 +222,11 @@ def test_flights_estimator_options_and_errors(tmp_path, flights_dir, capsys):
     assert list(report["estimators"]) == ["orb", "orb:refine=none"]
     polished, plain = report["estimators"]["orb"], report["estimators"]["orb:refine=none"]
     assert polished["corner_error"] < plain["corner_error"]  # the option reached the estimator
-    assert run_cli(["bench", "-q", "--flights", str(tmp_path)]) == 2
-    assert "no X.mp4 with an X.gt.json" in capsys.readouterr().err
-    assert run_cli(["bench", "-q", "--flights", str(flights_dir), "-e", "orb:patches=5"]) == 2
+    assert cli_exit(["bench", "-q", "--flights", str(tmp_path)]) == 2
+    assert "with an X.gt.json beside it" in capsys.readouterr().err
+    assert cli_exit(["bench", "-q", "--flights", str(flights_dir), "-e", "orb:patches=5"]) == 2
     assert "has no option 'patches'" in capsys.readouterr().err
-    assert run_cli(["bench", "-q", "--flights", str(flights_dir), "--video", str(flights_dir / "a_paper.mp4")]) == 2
+    assert cli_exit(["bench", "-q", "--flights", str(flights_dir), "--video", str(flights_dir / "a_paper.mp4")]) == 2
     assert "not both" in capsys.readouterr().err
 
 

@@ -13,25 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from conftest import ffmpeg, write_clip
+from conftest import assert_one_line_error, ffmpeg, run_cli, write_clip
 from mosaic_cli.cli import main
-
-
-def run_cli(capsys, *args):
-    """(exit code, stderr) of ``mosaic *args`` run in this process."""
-    with pytest.raises(SystemExit) as exit_info:
-        main([str(a) for a in args])
-    code = exit_info.value.code
-    return (0 if code is None else code), capsys.readouterr().err
-
-
-def assert_one_line_error(code, err, expected_code, *fragments):
-    assert code == expected_code, err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("mosaic: error: "), err
-    assert "Traceback" not in err
-    for fragment in fragments:
-        assert fragment.lower() in lines[0].lower(), lines[0]
 
 
 @pytest.fixture
@@ -100,8 +83,11 @@ def make_bad_input(kind, folder):
 def test_bad_video_is_one_line_exit_2_no_output(capsys, workdir, kind):
     video, message = make_bad_input(kind, workdir / "in")
     out = workdir / "out" / "t.json"
-    code, err = run_cli(capsys, "track", video, "-o", out, "-q")
-    assert_one_line_error(code, err, 2, message, video.name)
+    # A truncated video is refused under --strict (without it the run goes on with a warning:
+    # tests/test_truncated.py).
+    strict = ["--strict"] if kind in ("truncated", "truncated mkv") else []
+    code, err = run_cli(capsys, "track", video, "-o", out, "-q", *strict)
+    assert_one_line_error(code, err, message, video.name)
     assert outputs(workdir) == []
 
 
@@ -118,7 +104,7 @@ def clip(tmp_path_factory):
 ])
 def test_bad_option_values(capsys, workdir, clip, args, message):
     code, err = run_cli(capsys, "track", clip, "-o", workdir / "out" / "t.json", "-q", *args)
-    assert_one_line_error(code, err, 2, message)
+    assert_one_line_error(code, err, message)
     assert outputs(workdir) == []
 
 
@@ -135,7 +121,7 @@ def test_usage_errors_are_one_line_too(capsys, workdir, clip, args, fragments):
     command) keep the one-line form, and say where the help is."""
     out = workdir / "out" / "t.json"
     code, err = run_cli(capsys, *(a.format(clip=clip, out=out) for a in args))
-    assert_one_line_error(code, err, 2, *fragments)
+    assert_one_line_error(code, err, *fragments)
     assert outputs(workdir) == []
 
 
@@ -144,7 +130,7 @@ def test_output_on_a_file_system_that_takes_no_files(capsys, clip):
     if not os.path.isdir("/proc/self"):
         pytest.skip("no /proc here")
     code, err = run_cli(capsys, "track", clip, "-o", "/proc/t.json", "-q")
-    assert_one_line_error(code, err, 2, "/proc", "not writable")
+    assert_one_line_error(code, err, "/proc", "not writable")
 
 
 @pytest.mark.parametrize("args, fragments", [
@@ -165,7 +151,7 @@ def test_more_bad_input_across_commands(capsys, workdir, clip, args, fragments):
     pred = workdir / "in" / "track.npy"
     np.save(pred, np.repeat(np.eye(3)[None], 4, axis=0))
     code, err = run_cli(capsys, *(a.format(clip=clip, out=workdir / "out", folder=folder, pred=pred) for a in args))
-    assert_one_line_error(code, err, 2, *fragments)
+    assert_one_line_error(code, err, *fragments)
     assert outputs(workdir) == []
 
 
@@ -207,7 +193,7 @@ def test_unwritable_output(capsys, workdir, clip, target, message):
     (workdir / "out" / "subdir").mkdir()
     before = outputs(workdir)
     code, err = run_cli(capsys, "track", clip, "-o", workdir / "out" / target, "-q")
-    assert_one_line_error(code, err, 2, message)
+    assert_one_line_error(code, err, message)
     assert outputs(workdir) == before
 
 
@@ -220,7 +206,7 @@ def test_failure_midway_leaves_no_file_and_debug_shows_the_traceback(capsys, wor
     monkeypatch.setattr(OrbEstimator, "_estimate", broken)
     out = workdir / "out" / "t.json"
     code, err = run_cli(capsys, "track", clip, "-o", out, "-e", "orb", "-q")
-    assert_one_line_error(code, err, 1, "estimator exploded", "--debug")
+    assert_one_line_error(code, err, "estimator exploded", "--debug", status=1)
     assert outputs(workdir) == []
     with pytest.raises(RuntimeError, match="exploded"):
         main(["--debug", "track", str(clip), "-o", str(out), "-e", "orb", "-q"])
@@ -258,3 +244,14 @@ def test_all_black_video_gives_identity_with_zero_confidence(capsys, workdir):
     assert code == 0 and data["frames"] == 10
     assert np.array_equal(np.array(data["pairwise"]), np.broadcast_to(np.eye(3), (9, 3, 3)))
     assert data["confidence"] == [0.0] * 9
+
+
+@pytest.mark.parametrize("command", ["track", "stitch", "stabilize"])
+@pytest.mark.parametrize("width", ["16", "100000"])
+def test_work_width_has_one_rule_for_every_command(capsys, tiny_clip, tmp_path, command, width):
+    """--work-width is bounded the same way wherever an estimator is built (stabilize once
+    upsampled every frame to 100000 px)."""
+    out = {"track": ["-o", tmp_path / "t.json"], "stitch": ["-o", tmp_path / "p.png"], "stabilize": [tmp_path / "s.mp4"]}[command]
+    code, err = run_cli(capsys, command, tiny_clip, *out, "-e", "orb", "--work-width", width, "-q")
+    assert_one_line_error(code, err, "--work-width must be in 32..4096")
+    assert not any(tmp_path.iterdir())

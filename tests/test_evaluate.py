@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from mosaic_cli.cli import main
+from conftest import cli_exit
 from mosaic_cli.errors import BadInput
 from mosaic_cli.evaluate import (
     evaluate,
@@ -17,12 +17,6 @@ from mosaic_cli.evaluate import (
     write_annotations,
 )
 from mosaic_cli.simulate import GroundTruth, plan_flight
-
-
-def run_cli(args):
-    with pytest.raises(SystemExit) as exc:
-        main(args)
-    return exc.value.code
 
 
 @pytest.fixture(scope="module")
@@ -143,13 +137,13 @@ def test_eval_command_gt_json_and_npy(tmp_path, gt, capsys):
     track = tmp_path / "pred.json"
     _write_track(track, gt.pairwise, gt.size)
     out = tmp_path / "m.json"
-    assert run_cli(["eval", str(track), "--gt", str(gt_path), "--json", str(out)]) in (0, None)
+    assert cli_exit(["eval", str(track), "--gt", str(gt_path), "--json", str(out)]) in (0, None)
     metrics = json.loads(out.read_text())
     assert metrics["mace"] < 1e-6 and metrics["failure_rate"] == 0 and metrics["pairs"] == 120
     assert "MACE" in capsys.readouterr().out
     npy = tmp_path / "pred.npy"
     np.save(npy, np.tile(np.eye(3), (120, 1, 1)))
-    assert run_cli(["eval", str(npy), "--gt", str(gt_path), "--json", str(out), "-q"]) in (0, None)
+    assert cli_exit(["eval", str(npy), "--gt", str(gt_path), "--json", str(out), "-q"]) in (0, None)
     assert json.loads(out.read_text())["mace"] > 10
 
 
@@ -159,11 +153,11 @@ def test_eval_command_annotations_only(tmp_path, gt):
     npy = tmp_path / "pred.npy"
     np.save(npy, gt.pairwise)
     out = tmp_path / "m.json"
-    assert run_cli(["eval", str(npy), "--annotations", str(ann), "--size", "640x360", "--json", str(out), "-q"]) in (0, None)
+    assert cli_exit(["eval", str(npy), "--annotations", str(ann), "--size", "640x360", "--json", str(out), "-q"]) in (0, None)
     assert json.loads(out.read_text())["mace"] < 1e-3
     track = tmp_path / "pred.json"
     _write_track(track, gt.pairwise, gt.size)
-    assert run_cli(["eval", str(track), "--annotations", str(ann), "--json", str(out), "-q"]) in (0, None)
+    assert cli_exit(["eval", str(track), "--annotations", str(ann), "--json", str(out), "-q"]) in (0, None)
     assert json.loads(out.read_text())["mace"] < 1e-3
 
 
@@ -191,8 +185,14 @@ def test_eval_command_errors(tmp_path, gt, capsys):
     other = tmp_path / "other.json"
     _write_track(other, gt.pairwise, (1280, 720))
     cases.append(([str(other), "--gt", str(gt_path)], "1280x720"))
+    # a track of part of the flight (or of another clip) is refused, not scored on what it covers
+    short = tmp_path / "short.json"
+    _write_track(short, gt.pairwise[:89], gt.size)
+    cases.append(([str(short), "--gt", str(gt_path)], f"covers 90 frames but the ground truth {len(gt.pairwise) + 1}"))
+    np.save(tmp_path / "long.npy", np.tile(np.eye(3), (len(gt.pairwise) + 30, 1, 1)))
+    cases.append(([str(tmp_path / "long.npy"), "--gt", str(gt_path)], f"covers {len(gt.pairwise) + 31} frames"))
     for args, message in cases:
         capsys.readouterr()
-        assert run_cli(["eval", *args]) == 2, args
+        assert cli_exit(["eval", *args]) == 2, args
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, (args, err)

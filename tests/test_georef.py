@@ -16,7 +16,7 @@ from mosaic_cli.geo.fit import SimilarityPrior, fit_similarity
 from mosaic_cli.geo.score import score_files
 from mosaic_cli.geometry import project
 from mosaic_cli.simulate import load_ground_truth
-from tests.conftest import FFMPEG
+from tests.conftest import FFMPEG, assert_one_line_error, run_cli
 
 
 def similarity(scale, angle, tx, ty):
@@ -98,8 +98,8 @@ def test_stitch_with_exact_telemetry_lands_where_the_truth_is(flights, tmp_path)
     assert score.median_m < 2 * frame_gsd and score.max_m < 8 * frame_gsd, score
     assert abs(score.scale_error) < 0.005 and abs(score.heading_error_deg) < 0.3, score
 
-    from rio_cogeo.cogeo import cog_validate
     import rasterio
+    from rio_cogeo.cogeo import cog_validate
 
     valid, errors, _ = cog_validate(str(tif), quiet=True)
     assert valid, errors
@@ -174,6 +174,47 @@ def test_klv_log_gives_the_same_map(flights, tmp_path):
     tr_ts = tmp_path / "t_ts.json"
     mosaic("stitch", ts, "-o", tmp_path / "ts.tif", "--transforms", tr_ts, "-q")
     assert score_files(tr_ts, gt, video.with_name("k.geo.json")).median_m < 0.3
+
+
+def test_live_stitch_with_telemetry_file_is_georeferenced(flights, tmp_path):
+    """The live stitch shares finish_stitch: an explicit log gives it the same COG, footprints
+    and map homographies as the offline one."""
+    video = flights["exact"]
+    tif, tr, fp = tmp_path / "live.tif", tmp_path / "t.json", tmp_path / "f.geojson"
+    mosaic("stitch", video, "--live", "--telemetry", video.with_suffix(".SRT"), "-o", tif, "--transforms", tr,
+           "--footprints", fp, "-q")
+    gt = load_ground_truth(video)
+    score = score_files(tr, gt, video.with_name("exact.geo.json"))
+    frame_gsd = json.loads(tr.read_text())["gsd_m"]
+    assert score.median_m < 2 * frame_gsd and score.max_m < 8 * frame_gsd, score
+    import rasterio
+
+    with rasterio.open(tif) as ds:
+        assert ds.crs is not None and ds.crs.to_epsg() == 32632
+    kinds = [f["properties"]["kind"] for f in json.loads(fp.read_text())["features"]]
+    assert kinds.count("footprint") == len(json.loads(tr.read_text())["frames"])
+
+
+def test_live_stream_footprints_need_a_telemetry_file(capsys, tmp_path):
+    """A stream cannot be searched for an embedded track: --footprints needs --telemetry (said
+    before the stream is read)."""
+    code, err = run_cli(capsys, "stitch", "-", "-o", tmp_path / "m.tif", "--footprints", tmp_path / "f.geojson", "-q",
+                        "--estimator", "orb")
+    assert_one_line_error(code, err, "--footprints", "--telemetry")
+    assert not (tmp_path / "m.tif").exists()
+
+
+def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
+    import cv2
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        cv2.imwrite(str(folder / f"p{k}.png"), rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+    code, err = run_cli(capsys, "stitch", folder, "-o", tmp_path / "m.tif", "--telemetry",
+                        flights["exact"].with_suffix(".SRT"), "-q", "--estimator", "orb")
+    assert_one_line_error(code, err, "photo folders")
 
 
 @pytest.mark.parametrize("case", ["offset", "no-fix", "other-flight", "footprints-without"])

@@ -17,24 +17,15 @@ from torch import nn
 from conftest import textured_image, write_clip
 from mosaic_cli.cli import main
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import estimate_stream, make_estimator
-from mosaic_cli.estimators import learned
+from mosaic_cli.estimators import estimate_stream, learned, make_estimator
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, default_weights, make_learned_estimator
 from mosaic_cli.geometry import corner_error, four_point_to_homography, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig, save_weights
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 FULL, WORK = (640, 360), (320, 180)
 STEP_FULL = (6, -4)  # content moves by this many full-resolution pixels per frame
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
-    threads make a 2-thread run up to 50x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +72,7 @@ class PhaseNet(nn.Module):
 
 def phase_estimator(**kw):
     kw.setdefault("refine", None)  # the network's own estimate (the polish has tests of its own)
+    kw.setdefault("fallback", "none")  # the learned path alone (the fallback has tests of its own)
     return LearnedEstimator(PhaseNet(kw.pop("bias", None)), {"variant": "phase", "work_size": WORK}, "cpu", LearnedConfig(**kw))
 
 
@@ -104,7 +96,7 @@ def reference_lstm(model, frames):
 def test_streaming_equals_one_pass_over_the_video(tmp_path, panning, chunk):
     path, model = checkpoint(tmp_path)
     # A random net's estimates do not register the frames: min_zncc=None keeps them (not failures).
-    estimator = make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(chunk=chunk, refine=None, min_zncc=None))
+    estimator = make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(chunk=chunk, refine=None, min_zncc=None, prior="none"))
     assert estimator.name == "lstm-reg-all" and estimator.input_width == 320
     H, conf = run(estimator, panning)
     assert H.shape == (7, 3, 3) and np.all((conf >= 0) & (conf <= 1))
@@ -116,11 +108,11 @@ def test_streaming_equals_one_pass_over_the_video(tmp_path, panning, chunk):
 
 def test_reset_every_restarts_the_lstm(tmp_path, panning):
     path, model = checkpoint(tmp_path)
-    estimator = make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(chunk=5, reset_every=3, refine=None, min_zncc=None))
+    estimator = make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(chunk=5, reset_every=3, refine=None, min_zncc=None, prior="none"))
     H, _ = run(estimator, panning)
     segments = [reference_lstm(model, panning[s : s + 4]) for s in (0, 3)] + [reference_lstm(model, panning[6:8])]
     np.testing.assert_allclose(H, np.concatenate(segments), rtol=1e-4, atol=1e-4)
-    carried, _ = run(make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(refine=None, min_zncc=None)), panning)
+    carried, _ = run(make_learned_estimator("lstm", weights=path, device="cpu", config=LearnedConfig(refine=None, min_zncc=None, prior="none")), panning)
     assert not np.allclose(carried[3:], H[3:], atol=1e-7)
 
 
@@ -216,6 +208,95 @@ def test_the_shipped_default_is_right_or_says_it_is_unsure_on_spoiled_frames(spo
         assert conf[4] < 0.5  # a sharp frame and a spoiled one do not register as sure
 
 
+# --- the motion prior, the ablation seeds and the classical fallback ------------------------
+
+FAST_FULL = (36, -8)  # full-resolution px per frame: (18, -4) at the working width
+
+
+@pytest.fixture(scope="module")
+def fast_panning():
+    """Ten 640x360 frames panning (36, -8) px a frame: beyond what a polish finds from the identity."""
+    tex = textured_image(1100, 560, seed=5)
+    x0, y0 = 20 + 9 * FAST_FULL[0], 100
+    return [tex[y0 - FAST_FULL[1] * t : y0 - FAST_FULL[1] * t + FULL[1], x0 - FAST_FULL[0] * t : x0 - FAST_FULL[0] * t + FULL[0]]
+            for t in range(10)]
+
+
+def short_sighted(offsets):
+    """A net that, like one trained on slow flights, sees at most 3 working px of motion."""
+    return offsets.clamp(-3.0, 3.0) - offsets
+
+
+def errors_against(H, truth):
+    return np.array([corner_error(h, truth, FULL) for h in H])
+
+
+def test_the_motion_prior_lets_a_short_sighted_net_follow_a_fast_pan(fast_panning):
+    """prior=velocity pre-aligns frame t+1 by the last confirmed motion, so the network only has
+    to see what changed: a net that sees 3 px tracks an 18 px/frame pan once the motion
+    is known (here from the classical fallback on the first chunk), and without the prior it cannot."""
+    truth = translation(*FAST_FULL)
+    with_prior = phase_estimator(bias=short_sighted, prior="velocity", fallback="orb", refine="lk", chunk=3)
+    H, conf = run(with_prior, fast_panning)
+    assert errors_against(H, truth).max() < 0.5 and conf.min() > 0.3
+    # the first chunk (3 pairs) has no prior yet; every later one is pre-aligned by the last motion
+    assert with_prior.path_counts == {"learned": 6, "fallback": 3, "failed": 0}
+    assert sum(with_prior.path_counts.values()) == len(H)
+    alone = phase_estimator(bias=short_sighted, prior="none", fallback="none", refine="lk")
+    H, conf = run(alone, fast_panning)
+    assert np.all(errors_against(H[conf > 0], truth) > 5) or np.all(conf == 0)
+    assert alone.path_counts["failed"] >= 8
+
+
+def test_the_fallback_takes_the_pairs_the_learned_path_cannot_confirm(fast_panning):
+    """A net that predicts no motion at all: every pair goes to ORB, which gets it right, and the
+    counts say so; without the fallback the same pairs are failures (identity, confidence 0)."""
+    def blind(offsets):
+        return -offsets
+
+    truth = translation(*FAST_FULL)
+    est = phase_estimator(bias=blind, prior="none", fallback="orb", refine="lk")
+    H, conf = run(est, fast_panning)
+    assert errors_against(H, truth).max() < 0.5 and conf.min() > 0.3
+    assert est.path_counts == {"learned": 0, "fallback": 9, "failed": 0}
+    est = phase_estimator(bias=blind, prior="none", fallback="none", refine="lk")
+    H, conf = run(est, fast_panning)
+    np.testing.assert_array_equal(H, np.broadcast_to(np.eye(3), H.shape))
+    assert np.all(conf == 0) and est.path_counts["failed"] == 9
+
+
+class ExplodingNet(PhaseNet):
+    def features(self, pairs):
+        raise AssertionError("the network must not run when the seed replaces it")
+
+
+@pytest.mark.parametrize("seed", ["identity", "velocity"])
+def test_ablation_seeds_replace_the_network_and_nothing_else(panning, seed):
+    """seed=identity / seed=velocity: the same polish, confirmation and counts, without the
+    network: on a slow pan both find the motion (from the identity, the polish's own reach)."""
+    est = LearnedEstimator(ExplodingNet(), {"variant": "phase", "work_size": WORK}, "cpu",
+                           LearnedConfig(seed=seed, fallback="none"))
+    H, conf = run(est, panning)
+    assert errors_against(H, translation(*STEP_FULL)).max() < 0.3 and conf.min() > 0.5
+    assert est.path_counts["learned"] == len(H)
+
+
+def test_velocity_seed_starts_each_pair_from_the_last_motion(fast_panning):
+    """From the identity the polish cannot reach an 18 px motion; once the fallback has found
+    it, the velocity seed carries it to every later pair without the fallback."""
+    est = LearnedEstimator(ExplodingNet(), {"variant": "phase", "work_size": WORK}, "cpu", LearnedConfig(seed="velocity"))
+    H, _ = run(est, fast_panning)
+    assert errors_against(H, translation(*FAST_FULL)).max() < 0.5
+    assert est.path_counts["fallback"] == 1 and est.path_counts["learned"] == 8
+
+
+@pytest.mark.parametrize("option,value,message", [("seed", "zero", "seed must be one of"), ("prior", "kalman", "prior must be one of"),
+                                                   ("fallback", "sift", "fallback must be one of")])
+def test_bad_ablation_options_are_refused(option, value, message):
+    with pytest.raises(BadInput, match=message):
+        phase_estimator(**{option: value})
+
+
 def test_frames_smaller_than_the_patch_are_refused():
     estimator = phase_estimator()
     with pytest.raises(BadInput, match="smaller than"):
@@ -227,8 +308,11 @@ def test_frames_smaller_than_the_patch_are_refused():
 
 def test_weights_select_the_estimator(tmp_path):
     path, _ = checkpoint(tmp_path, head="cnn")
-    estimator = make_estimator("orb", weights=str(path), device="cpu")  # --weights wins over the default name
+    estimator = make_estimator(None, weights=str(path), device="cpu")  # no name: the network the weights hold
     assert isinstance(estimator, LearnedEstimator) and estimator.model.head == "cnn" and estimator.name == "reg-all"
+    for classical in ("orb", "orb-ransac", "orb-paper", "identity"):  # never the network instead of what was named
+        with pytest.raises(BadInput, match=f"--weights goes with a learned estimator .* -e {classical} takes no weights"):
+            make_estimator(classical, weights=str(path), device="cpu")
     with pytest.raises(BadInput, match="holds a cnn"):
         make_learned_estimator("lstm", weights=path)
     with pytest.raises(BadInput, match="--device"):
@@ -287,6 +371,7 @@ def test_track_cli_with_weights(tmp_path, panning):
         (["--weights", "{ckpt}", "--device", "tpu"], "--device"),
     ],
 )
+
 def test_track_cli_refuses_bad_weights(tmp_path, panning, capsys, args, message):
     path, _ = checkpoint(tmp_path)
     clip = write_clip(tmp_path / "pan.mp4", panning[:3], fps=10)

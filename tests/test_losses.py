@@ -16,9 +16,10 @@ from torch import nn
 
 from conftest import textured_image
 from mosaic_cli.geometry import chain as np_chain
-from mosaic_cli.model import HomographyNet, LossWeights, NetConfig, Objective
-from mosaic_cli.model.dlt import chain, homography_to_offsets
-from mosaic_cli.model.losses import (
+from mosaic_cli.geometry.tensor import cumulative, frame_corners
+from mosaic_cli.model import VARIANTS, HomographyNet, NetConfig
+from mosaic_cli.model.patches import homography_to_offsets
+from mosaic_cli.train.losses import (
     chain_consistency,
     corner_distance,
     photometric,
@@ -26,21 +27,13 @@ from mosaic_cli.model.losses import (
     spatial_consistency,
     temporal_smoothness,
 )
-from mosaic_cli.model.objective import VARIANTS, frame_corners_tensor
+from mosaic_cli.train.objective import LossWeights, Objective
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 W, H_ = 320, 180
-CORNERS = frame_corners_tensor(W, H_)
+CORNERS = frame_corners(W, H_)
 STEP = (3, -2)  # content moves by (+3, -2) px per frame: H t -> t+1 is a translation by STEP
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
-    threads make a 2-thread run up to 50x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -147,10 +140,10 @@ def test_temporal_smoothness():
 def test_chain_matches_numpy_chain():
     rng = np.random.default_rng(0)
     pairwise = np.eye(3) + rng.normal(0, [[0.01, 0.01, 2], [0.01, 0.01, 2], [1e-5, 1e-5, 0]], (2, 5, 3, 3))
-    chained = chain(torch.tensor(pairwise)).numpy()
+    chained = cumulative(torch.tensor(pairwise)).numpy()
     for b in range(2):
         for s in range(1, 6):
-            np.testing.assert_allclose(chained[b, s - 1], np_chain(list(pairwise[b]), 0, s), rtol=1e-10, atol=1e-10)
+            np.testing.assert_allclose(chained[b, s], np_chain(list(pairwise[b]), 0, s), rtol=1e-10, atol=1e-10)
 
 
 def test_chain_consistency(panning_frames):

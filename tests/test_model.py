@@ -1,4 +1,5 @@
-"""The network, the tensor DLT and warps (against OpenCV), and the checkpoint format."""
+"""The network, the tensor geometry (DLT, projection, chaining) and patch warps (against OpenCV
+and the numpy geometry), and the checkpoint format."""
 
 from __future__ import annotations
 
@@ -12,29 +13,23 @@ from safetensors.torch import load_file, save_file
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import chain as np_chain
-from mosaic_cli.geometry import four_point_to_homography, rect_corners
+from mosaic_cli.geometry import cumulative as np_cumulative
+from mosaic_cli.geometry import four_point_to_homography as np_four_point_to_homography
+from mosaic_cli.geometry import project as np_project
+from mosaic_cli.geometry import rect_corners
+from mosaic_cli.geometry.tensor import cumulative, four_point_to_homography, project
 from mosaic_cli.model import HomographyNet, NetConfig, load_weights, read_metadata, save_weights
-from mosaic_cli.model.dlt import (
-    chain,
+from mosaic_cli.model.network import count_macs, count_parameters, macs_per_pair
+from mosaic_cli.model.patches import (
     crop,
-    dlt,
     homography_to_offsets,
     offsets_to_homography,
     patch_corners,
     sample_patches,
     warp_perspective,
 )
-from mosaic_cli.model.network import count_macs, count_parameters, macs_per_pair
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These tensors are small: one thread is faster, and on a busy machine OpenMP's spin-waiting
-    threads make a 2-thread run up to 50x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_quads(rng, n, spread=8.0):
@@ -54,7 +49,8 @@ def smooth_image(rng, w=320, h=180):
 def test_dlt_matches_opencv():
     rng = np.random.default_rng(0)
     _, src, dst = random_quads(rng, 64)
-    H = dlt(torch.tensor(src, dtype=torch.float32), torch.tensor(dst, dtype=torch.float32)).double().numpy()
+    src_t, dst_t = torch.tensor(src, dtype=torch.float32), torch.tensor(dst, dtype=torch.float32)
+    H = four_point_to_homography(src_t, dst_t - src_t).double().numpy()
     for k in range(len(src)):
         ref = cv2.getPerspectiveTransform(src[k].astype(np.float32), dst[k].astype(np.float32))
         ref = ref / ref[2, 2]
@@ -68,7 +64,7 @@ def test_dlt_batched_any_leading_shape_and_direction():
     positions = torch.tensor(pos).reshape(2, 3, 2)
     H = offsets_to_homography(offsets, positions, 128)
     assert H.shape == (2, 3, 3, 3) and H.dtype == torch.float64
-    exact = four_point_to_homography(src, dst - src).reshape(2, 3, 3, 3)
+    exact = np_four_point_to_homography(src, dst - src).reshape(2, 3, 3, 3)
     np.testing.assert_allclose(H.numpy(), exact, rtol=1e-9, atol=1e-9)
     # H maps the patch corners of frame t onto their displaced positions (t -> t+1), not back
     np.testing.assert_allclose(homography_to_offsets(H, positions, 128).numpy(), offsets.numpy(), atol=1e-8)
@@ -133,9 +129,28 @@ def test_crop_and_chain_match_numpy():
             x, y = pos[n, m].tolist()
             assert torch.equal(out[n, m, 0], imgs[n, 0, y : y + 128, x : x + 128])
     pairwise = np.eye(3) + rng.normal(0, [[0.01, 0.01, 2], [0.01, 0.01, 2], [1e-5, 1e-5, 0]], (7, 3, 3))
-    chained = chain(torch.tensor(pairwise)).numpy()
+    chained = cumulative(torch.tensor(pairwise)).numpy()
+    assert chained.shape == (8, 3, 3)
+    np.testing.assert_array_equal(chained[0], np.eye(3))
     for s in range(1, 8):
-        np.testing.assert_allclose(chained[s - 1], np_chain(list(pairwise), 0, s), rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(chained[s], np_chain(list(pairwise), 0, s), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(chained, np_cumulative(list(pairwise)), rtol=1e-10, atol=1e-10)
+
+
+def test_tensor_project_matches_numpy_and_checks_shapes():
+    rng = np.random.default_rng(6)
+    H = np.eye(3) + rng.normal(0, [[0.02, 0.02, 3], [0.02, 0.02, 3], [1e-4, 1e-4, 0]], (5, 3, 3))
+    points = rng.uniform(-10, 330, (5, 7, 2))
+    got = project(torch.tensor(H), torch.tensor(points)).numpy()
+    np.testing.assert_allclose(got, np_project(H, points), rtol=1e-12, atol=1e-9)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
+        project(torch.eye(2), torch.tensor(points))
+    with pytest.raises(ValueError, match=r"\(\.\.\., N, 2\)"):
+        project(torch.tensor(H), torch.zeros(5, 7, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 4, 2\)"):
+        four_point_to_homography(torch.zeros(3, 2), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="pairwise"):
+        cumulative(torch.eye(3))
 
 
 # --- network -----------------------------------------------------------------------------

@@ -10,19 +10,13 @@ import torch
 from conftest import textured_image
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import make_estimator
-from mosaic_cli.model import HomographyNet, NetConfig, read_metadata, save_weights
-from mosaic_cli.model import quantize
+from mosaic_cli.model import HomographyNet, NetConfig, quantize, read_metadata, save_weights
 
-pytestmark = pytest.mark.skipif(quantize.engine() is None, reason="this PyTorch build has no int8 engine")
+pytestmark = [
+    pytest.mark.skipif(quantize.engine() is None, reason="this PyTorch build has no int8 engine"),
+    pytest.mark.usefixtures("one_torch_thread"),
+]
 PATCH = 128
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def patch_pairs(count: int, seed: int) -> torch.Tensor:

@@ -20,15 +20,9 @@ from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, align_pixel
 from mosaic_cli.geometry import corner_error, four_point_to_homography, frame_corners, project, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig
 
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 FULL, WORK = (640, 360), (320, 180)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -133,6 +127,7 @@ class OracleNet(nn.Module):
 
 
 def oracle_estimator(H_full, bias, **config):
+    config.setdefault("fallback", "none")  # the learned path alone: these tests are about its polish
     H_work = to_resolution(H_full, FULL, WORK)
     cfg = LearnedConfig(**config)
     positions = patch_positions(WORK, 128, cfg.patches)

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import cli_exit
 from mosaic_cli.cli import main
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import project
@@ -26,13 +27,6 @@ from mosaic_cli.simulate import (
 from mosaic_cli.simulate.trajectory import footprints
 
 SIZE = (320, 180)
-
-
-def run_cli(args: list[str]) -> None:
-    """Run the CLI; a successful run exits with status 0."""
-    with pytest.raises(SystemExit) as exc:
-        main(args)
-    assert exc.value.code in (0, None)
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +67,7 @@ def test_plan_api_and_pairwise_definition():
 
 @pytest.mark.parametrize(
     "profile,lo,hi",
-    [("paper", 1.0, 2.0), ("survey", 4.0, 7.0), ("fast", 10.0, 20.0), ("hard", 1.0, 2.0)],
+    [("paper", 1.0, 2.0), ("survey", 4.0, 7.0), ("fast", 10.0, 20.0), ("hard", 1.0, 2.0), ("extreme", 25.0, 60.0)],
 )
 def test_profile_speed_in_range(profile, lo, hi):
     plan = plan_flight((4096, 4096), profile, frames=300, size=SIZE, seed=11)
@@ -206,12 +200,29 @@ def test_hard_profile_effects_only_in_pixels(small_map):
     assert all(np.array_equal(x, y) for x, y in zip(a, again))  # deterministic noise
 
 
+def test_extreme_profile_turns_fast_and_degrades_the_pixels_only():
+    """Yaw turns (degrees a frame well above the paper profile's 0.25), altitude changes, and
+    on a flat gray map the vignetting darkens the corners while the geometry stays exact."""
+    plan = plan_flight((4096, 4096), "extreme", frames=300, size=(1280, 720), seed=4)
+    angles = np.degrees(np.arctan2(plan.pairwise[:, 1, 0], plan.pairwise[:, 0, 0]))
+    assert np.abs(angles).max() > 0.5  # 15 degrees/s at 30 fps
+    scale = np.sqrt(np.abs(np.linalg.det(plan.map_to_frame[:, :2, :2])))
+    assert scale.max() / scale.min() > 1.2  # altitude changes of tens of percent
+    assert {"gain", "noise_sigma", "blur", "vignette", "contrast"} <= set(plan.effects)
+    gray = np.full((2048, 2048, 3), 128, np.uint8)
+    small = plan_flight((2048, 2048), "extreme", frames=3, size=(320, 180), seed=4)
+    frame = next(iter(render_frames(gray, small))).astype(float)
+    centre, corner = frame[70:110, 140:180].mean(), frame[:20, :20].mean()
+    assert corner < centre * (1 - 0.5 * small.effects["vignette"][0])
+    assert PROFILES["extreme"].crf > PROFILES["paper"].crf  # low-bitrate encoding by default
+
+
 def test_write_flight_and_ground_truth_round_trip(tmp_path, small_map):
     from mosaic_cli.video import open_video
 
     plan = plan_flight((1024, 1024), "shaky", frames=10, size=SIZE, seed=4)
     out = tmp_path / "flight.mp4"
-    gt = write_flight(out, small_map, plan, fps=25, map_name="test-map", show_progress=False)
+    write_flight(out, small_map, plan, fps=25, map_name="test-map", show_progress=False)
     gt_path = tmp_path / "flight.gt.json"
     assert out.exists() and gt_path.exists()
     data = json.loads(gt_path.read_text())
@@ -276,7 +287,7 @@ def test_load_map_variants(tmp_path):
 
 def test_simulate_command(tmp_path, capsys):
     out = tmp_path / "f.mp4"
-    run_cli(["simulate", "-o", str(out), "--frames", "8", "--size", "160x96", "--profile", "fast", "--seed", "3", "-q"])
+    assert cli_exit(["simulate", "-o", str(out), "--frames", "8", "--size", "160x96", "--profile", "fast", "--seed", "3", "-q"]) == 0
     gt = load_ground_truth(tmp_path / "f.gt.json")
     assert gt.frames == 8 and gt.size == (160, 96) and gt.profile == "fast" and gt.map_name == "procedural"
 
@@ -284,7 +295,7 @@ def test_simulate_command(tmp_path, capsys):
 def test_simulate_command_over_an_image(tmp_path):
     img = procedural_map((600, 500), seed=2)
     cv2.imwrite(str(tmp_path / "map.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-    run_cli(["simulate", str(tmp_path / "map.jpg"), "-o", str(tmp_path / "f.mp4"), "--frames", "5", "--size", "160x90", "-q"])
+    assert cli_exit(["simulate", str(tmp_path / "map.jpg"), "-o", str(tmp_path / "f.mp4"), "--frames", "5", "--size", "160x90", "-q"]) == 0
     gt = load_ground_truth(tmp_path / "f.gt.json")
     assert gt.map_name == "map.jpg" and gt.map_size == (600, 500)
 

@@ -14,10 +14,9 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import ffmpeg, render, textured_image, write_clip
-from mosaic_cli.cli import main
+from conftest import assert_one_line_error, ffmpeg, render, run_cli, textured_image, write_clip
 from mosaic_cli.geometry import frame_corners, project
-from mosaic_cli.stabilize.crop import output_warps
+from mosaic_cli.stabilize.crop import BORDER_CHUNK, border_fraction, output_warps
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MODELS, camera_motion
 from mosaic_cli.stabilize.render import warp_frame, warp_yuv, yuv_planes
@@ -153,6 +152,17 @@ def test_border_fills():
     assert (warp_frame(frame, perspective, (64, 48), "black")[:, :4] == 0).all()
 
 
+def test_border_fraction_in_chunks_is_each_frames_own():
+    """Measured a chunk of frames at a time (memory bounded), each frame's share is still its own:
+    a shift of d pixels to the right uncovers d columns of the output, here over more frames
+    than one chunk holds."""
+    w, h = 64, 40
+    shifts = np.arange(2 * BORDER_CHUNK + 17) % 20
+    warps = np.stack([np.array([[1, 0, d], [0, 1, 0], [0, 0, 1.0]]) for d in shifts])
+    share = border_fraction(warps, (w, h), grid=w)  # the grid on every pixel centre
+    np.testing.assert_allclose(share, shifts / w, atol=1e-12)
+
+
 def test_yuv_planes_warp_like_rgb():
     """The yuv420p path (chroma warped at half resolution) gives the RGB path's picture."""
     frame = textured_image(160, 96, seed=6)
@@ -177,13 +187,6 @@ def test_yuv_planes_warp_like_rgb():
 
 
 # --- the command, on a rendered shaky clip with sound ------------------------------------------
-
-def run_cli(capsys, *args):
-    with pytest.raises(SystemExit) as exit_info:
-        main([str(a) for a in args])
-    code = exit_info.value.code
-    return (0 if code is None else code), capsys.readouterr().err
-
 
 @pytest.fixture(scope="module")
 def shaky_clip(tmp_path_factory):
@@ -254,7 +257,7 @@ def test_gaussian_option_end_to_end(tmp_path, capsys, shaky_clip):
     assert high_frequency(shaken, smooth, warps) < 0.6 * high_frequency(shaken, smooth)
 
 
-@pytest.mark.parametrize("border", ["black", "replicate"])
+@pytest.mark.parametrize("border", ["black", "replicate", "reflect"])
 def test_full_view_with_border_fill(tmp_path, capsys, shaky_clip, border):
     clip, _, _ = shaky_clip
     out, warps_json = tmp_path / "steady.mp4", tmp_path / "warps.json"
@@ -279,18 +282,10 @@ def test_full_view_with_border_fill(tmp_path, capsys, shaky_clip, border):
     if border == "black":
         assert np.percentile(values, 95) < 30
     else:
-        assert np.median(values) > 60  # replicated edge pixels of the texture, not black
+        assert np.median(values) > 60  # replicated or mirrored pixels of the texture, not black
 
 
 # --- errors ------------------------------------------------------------------------------------
-
-def assert_one_line_error(code, err, *fragments):
-    assert code == 2, err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("mosaic: error: "), err
-    for fragment in fragments:
-        assert fragment.lower() in lines[0].lower(), lines[0]
-
 
 @pytest.mark.parametrize("args, fragment", [
     (["--crop", "1.5"], "--crop"),

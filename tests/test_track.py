@@ -7,8 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import Flight, write_clip
-from mosaic_cli.cli import main
+from conftest import Flight, cli_exit, write_clip
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.geometry import corner_error, to_resolution
 from mosaic_cli.track import load_track
@@ -28,9 +27,7 @@ def hd_clip(tmp_path_factory, hd_flight):
 
 
 def run_track(*args):
-    with pytest.raises(SystemExit) as exit_info:
-        main(["track", *map(str, args), "-q"])
-    assert exit_info.value.code in (0, None)
+    assert cli_exit(["track", *args, "-q"]) == 0
 
 
 def test_track_json_matches_exact_ground_truth(tmp_path, hd_flight, hd_clip):

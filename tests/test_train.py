@@ -25,7 +25,7 @@ from torch.utils.data import default_collate
 
 from conftest import textured_image, write_clip
 from mosaic_cli.errors import BadInput
-from mosaic_cli.model import HomographyNet, NetConfig, Objective, load_weights, quantize
+from mosaic_cli.model import HomographyNet, NetConfig, load_weights, quantize
 from mosaic_cli.train.config import TrainConfig
 from mosaic_cli.train.data import (
     StepBatches,
@@ -37,6 +37,7 @@ from mosaic_cli.train.data import (
     to_model_input,
 )
 from mosaic_cli.train.loop import CALIBRATION_PAIRS, train
+from mosaic_cli.train.objective import Objective
 from mosaic_cli.train.schedule import StepSchedule
 
 WORK = (64, 48)

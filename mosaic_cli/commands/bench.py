@@ -26,6 +26,7 @@ def bench(
     seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated flight."),
     threads: int | None = typer.Option(None, "--threads", help="CPU threads for the learned estimators' network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the full report as JSON."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (use with --json)."),
 ) -> None:
     """Time and score the estimators on a simulated flight, a video or a folder of flights.
@@ -40,7 +41,7 @@ def bench(
 
     from mosaic_cli.atomic import check_writable, write_json
     from mosaic_cli.bench import render_flights_table, render_table, run_bench, run_flights
-    from mosaic_cli.commands.simulate import parse_size
+    from mosaic_cli.inputs import parse_size
     from mosaic_cli.simulate import PROFILES
 
     if profile not in PROFILES:
@@ -67,11 +68,14 @@ def bench(
         torch.set_num_threads(threads)
     names = estimators.split(",") if estimators is not None else None
     weights_file = str(weights) if weights is not None else None
-    if flights is not None:
-        report = run_flights(flights, names, weights_file, work_width, device, show_progress=not quiet)
-    else:
-        report = run_bench(video, map_image, names, profile, frames, parse_size(size), work_width, device, seed,
-                           show_progress=not quiet, weights=weights_file)
+    from mosaic_cli.video.reader import reading_policy
+
+    with reading_policy(strict):
+        if flights is not None:
+            report = run_flights(flights, names, weights_file, work_width, device, show_progress=not quiet)
+        else:
+            report = run_bench(video, map_image, names, profile, frames, parse_size(size, "--size"), work_width, device, seed,
+                               show_progress=not quiet, weights=weights_file)
     if json_out is not None:
         write_json(json_out, report)
     if not quiet:

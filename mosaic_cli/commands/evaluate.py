@@ -24,12 +24,13 @@ def evaluate_command(
     """Score pairwise homographies against ground truth or landmark annotations.
 
     MACE by the paper's protocol (landmarks every 30 frames, chained estimates), corner error
-    and failure rate (corner error > 10 px), all in 1280x720-equivalent pixels."""
+    and failure rate (corner error > 10 px), all in 1280x720-equivalent pixels.  A track of
+    another frame count or frame size than the ground truth is refused."""
     from rich.table import Table
 
     from mosaic_cli.atomic import check_writable, write_json
-    from mosaic_cli.commands.simulate import parse_size
-    from mosaic_cli.evaluate import evaluate, landmarks_from_ground_truth, load_prediction, mace_pairs, read_annotations
+    from mosaic_cli.evaluate import check_same_video, evaluate, landmarks_from_ground_truth, load_prediction, mace_pairs, read_annotations
+    from mosaic_cli.inputs import parse_size
     from mosaic_cli.simulate import load_ground_truth
 
     if gt is None and annotations is None:
@@ -42,14 +43,13 @@ def evaluate_command(
     ann = read_annotations(annotations) if annotations is not None else None
     if gt is not None:
         truth = load_ground_truth(gt)
-        if pred_size is not None and tuple(pred_size) != tuple(truth.size):
-            raise BadInput(f"prediction is for {pred_size[0]}x{pred_size[1]} frames, ground truth for {truth.size[0]}x{truth.size[1]}")
+        check_same_video(pred, pred_size, truth)
         if ann is None and every != 30:
             ann = landmarks_from_ground_truth(truth, every=every)
             ann = ann[ann[:, 3] <= len(pred)]
         metrics = evaluate(pred, truth, ann)
     else:
-        wh = parse_size(size) if size is not None else pred_size
+        wh = parse_size(size, "--size") if size is not None else pred_size
         if wh is None:
             raise BadInput("a .npy prediction scored on annotations needs --size WxH (the video's frame size)")
         _, errors = mace_pairs(pred, ann, wh)

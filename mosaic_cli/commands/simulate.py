@@ -2,36 +2,26 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import typer
 
 from mosaic_cli.cli import app
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m:
-        raise BadInput(f"--size must look like 1280x720, got {text!r}")
-    w, h = int(m.group(1)), int(m.group(2))
-    if w < 16 or h < 16 or w > 8192 or h > 8192:
-        raise BadInput(f"--size must be between 16x16 and 8192x8192, got {w}x{h}")
-    return w, h
 
 
 @app.command()
 def simulate(
     map_image: Path | None = typer.Argument(None, help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map."),
     out: Path = typer.Option(..., "-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it."),
-    profile: str = typer.Option("paper", "--profile", "-p", help="paper, survey, fast, shaky or hard."),
+    profile: str = typer.Option("paper", "--profile", "-p", help="paper, survey, fast, shaky, hard or extreme."),
     frames: int = typer.Option(300, "--frames", "-n", help="Number of frames."),
     size: str = typer.Option("1280x720", "--size", help="Frame size WxH."),
     fps: float = typer.Option(30.0, "--fps", help="Frame rate."),
     seed: int = typer.Option(0, "--seed", min=0, help="Random seed (path, map, effects)."),
-    crf: int = typer.Option(18, "--crf", help="H.264 quality (0-51, lower is better)."),
+    crf: int | None = typer.Option(None, "--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme."),
     preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     telemetry: str | None = typer.Option(None, "--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json."),
@@ -45,7 +35,9 @@ def simulate(
 
     Profiles: paper (1-2 px/frame, slow heading changes, altitude drift), survey (lawnmower
     lines that revisit the ground), fast (10-20 px/frame), shaky (paper + 3-8 Hz shake),
-    hard (paper + exposure drift, noise, motion blur).  Motion is in 1280x720-equivalent px.
+    hard (paper + exposure drift, noise, motion blur), extreme (25-60 px/frame, fast yaw turns
+    and altitude changes, exposure drift and jumps, noise, motion blur, vignetting, haze,
+    low-bitrate H.264).  Motion is in 1280x720-equivalent px.
     The exact homographies go to <stem>.gt.json: map_to_frame per frame and pairwise t -> t+1.
     """
     from mosaic_cli.atomic import check_writable
@@ -57,13 +49,14 @@ def simulate(
         raise BadInput(f"--frames must be at least 2, got {frames}")
     if not 0 < fps <= 1000:
         raise BadInput(f"--fps must be in (0, 1000], got {fps}")
-    wh = parse_size(size)
+    wh = parse_size(size, "--size")
     if out.suffix.lower() not in (".mp4", ".mov", ".mkv"):
         raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
-    check_writable(out)
-    check_writable(ground_truth_path(out))
     if map_image is not None and not map_image.exists():
         raise BadInput(f"{map_image}: no such file")
+    _make_folder(out.parent)  # a flight is often written to a data folder of its own
+    check_writable(out)
+    check_writable(ground_truth_path(out))
     if telemetry is not None:  # checked before rendering: a bad option costs nothing
         from mosaic_cli.simulate.telemetry import prepare_telemetry
 
@@ -81,3 +74,12 @@ def simulate(
             f"{gt.frames} frames {gt.size[0]}x{gt.size[1]} over {gt.map_name} ({gt.map_size[0]}x{gt.map_size[1]}), "
             f"profile {gt.profile} -> {out}, ground truth -> {ground_truth_path(out)}"
         )
+
+
+def _make_folder(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise BadInput(f"output folder {folder} is a file") from None
+    except OSError as exc:
+        raise BadInput(f"cannot make the output folder {folder} ({(exc.strerror or str(exc)).lower()})") from None

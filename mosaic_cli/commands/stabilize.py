@@ -7,14 +7,16 @@ from pathlib import Path
 import typer
 
 from mosaic_cli.cli import app
+from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR
+from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.progress import console
 
 
 @app.command()
 def stabilize(
-    video: Path = typer.Argument(..., help="Input video file or folder of numbered images."),
-    out: Path = typer.Argument(..., help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio."),
+    video: str = typer.Argument(..., help="Input video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
+    out: str = typer.Argument(..., help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://)."),
     smoothing: str = typer.Option("l1", "--smoothing", help="l1 (L1-optimal camera path) or gaussian."),
     radius: int = typer.Option(30, "--radius", min=1, help="Gaussian smoothing radius in frames (sigma = radius / 3)."),
     model: str = typer.Option("similarity", "--model", help="Motion model of the correction: similarity, affine or homography."),
@@ -31,6 +33,9 @@ def stabilize(
                                           "default 640 or the input's width if smaller)."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
+    latency: float | None = typer.Option(None, "--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1."),
+    timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
@@ -43,7 +48,29 @@ def stabilize(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
     )
-    result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
+    from mosaic_cli.live.output import is_stream_output
+
+    if latency is not None or is_live_source(video) or is_stream_output(out):
+        from mosaic_cli.live.stabilize import DEFAULT_LATENCY, stabilize_live
+
+        if timeout <= 0:
+            raise BadInput(f"--timeout must be positive, got {timeout}")
+        if compare is not None:
+            raise BadInput("--compare is not available with --latency or a live input")
+        live = stabilize_live(video, out, options, latency if latency is not None else DEFAULT_LATENCY, timeout,
+                              warps_out=str(warps) if warps else None, show_progress=not quiet)
+        if not quiet:
+            console.print(
+                f"{live.frames_in} frames in, {live.frames_out} out -> {'standard output' if out == '-' else out}: "
+                f"latency p50 {live.latency(50):.2f} s, p95 {live.latency(95):.2f} s, max {live.latency(100):.2f} s "
+                f"(horizon {live.horizon.frames} frames); {live.frames_out / max(live.seconds, 1e-9):.1f} fr/s",
+                soft_wrap=True,
+            )
+        return
+    from mosaic_cli.video.reader import reading_policy
+
+    with reading_policy(strict):
+        result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if not quiet:
         s = result.seconds
         console.print(

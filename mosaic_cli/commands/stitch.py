@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import typer
@@ -13,7 +14,7 @@ from mosaic_cli.progress import console
 
 @app.command()
 def stitch(
-    video: Path = typer.Argument(..., help="Video file or folder of numbered images."),
+    video: str = typer.Argument(..., help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
     out: Path = typer.Option(..., "-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg."),
     transforms: Path | None = typer.Option(
         None, "--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON."
@@ -32,6 +33,11 @@ def stitch(
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
     start: int = typer.Option(0, "--start", help="Skip this many frames first."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
+    live: bool = typer.Option(False, "--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview."),
+    preview: Path | None = typer.Option(None, "--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds."),
+    every: float = typer.Option(2.0, "--every", help="--live: seconds between two previews."),
+    timeout: float = typer.Option(10.0, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     telemetry: str | None = typer.Option(None, "--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any."),
     hfov: float | None = typer.Option(None, "--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV)."),
@@ -56,18 +62,77 @@ def stitch(
     options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
     # Output and option checks come before the estimator is built (a learned one loads weights).
     check_outputs(out, transforms, options.canvas.max_size)
+    from mosaic_cli.live.source import is_live_source
+    from mosaic_cli.stitch.live import PreviewOptions, stitch_live
+
+    live = live or is_live_source(video) or preview is not None
+    preview_options = PreviewOptions(preview, every)
+    if live:
+        from mosaic_cli.errors import BadInput
+
+        if timeout <= 0:
+            raise BadInput(f"--timeout must be positive, got {timeout}")
+        preview_options.validate(out)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
-    result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
+    from mosaic_cli.video.reader import reading_policy
+
+    if live:
+        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, timeout=timeout,
+                             show_progress=not quiet)
+    else:
+        with reading_policy(strict):
+            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""
-        console.print(
-            f"{result.frames} frames -> {len(result.transforms)} keyframes{loops}, "
-            f"{result.canvas_size[0]}x{result.canvas_size[1]} canvas, {result.frames_per_second:.1f} fr/s -> {out}"
+        used = sum(len(p.transforms) for p in result.panoramas)
+        console.print(f"{result.frames} frames -> {used} keyframes{loops}, {result.frames_per_second:.1f} fr/s")
+        for p in result.panoramas:
+            joined = f" ({p.segments} segments joined)" if p.segments > 1 else ""
+            console.print(f"  {p.canvas_size[0]}x{p.canvas_size[1]} panorama of {len(p.transforms)} keyframes{joined} -> {p.path}")
+        on_ground = [(p.path, p.georef) for p in result.panoramas if p.georef is not None]
+        if on_ground:
+            console.print(on_ground[0][1].telemetry.summary())
+        for path, georef in on_ground:
+            console.print(georef.summary() + (f" ({path})" if len(result.panoramas) > 1 else ""))
+    # Said even with -q: nothing leaves the panorama silently.
+    for line in _notices(video, result):
+        print(f"mosaic: warning: {line}", file=sys.stderr)
+
+
+def _notices(video: Path, result) -> list[str]:
+    """A line for each panorama beyond the first and for frames placed nowhere."""
+    lines = []
+    extra = result.panoramas[1:]
+    if extra:
+        firsts = ", ".join(f"frame {p.transforms[0][0]} -> {p.path}" for p in extra)
+        lines.append(
+            f"{len(extra)} part(s) of the flight registered with no other and went to panoramas of their own: {firsts}"
         )
-        if result.georef is not None:
-            console.print(result.georef.telemetry.summary())
-            console.print(result.georef.summary())
+    if result.georef is not None:
+        for p in extra:
+            if p.georef is None:
+                lines.append(f"{p.path}: the telemetry gives its keyframes no position: a plain panorama, not georeferenced")
+    if result.dropped:
+        if result.photos:
+            from mosaic_cli.video.reader import _folder_images
+
+            names = _folder_images(Path(video))
+            for index, why in result.dropped:
+                lines.append(f"photo {names[index].name} not used: {why}")
+        else:
+            lines.append(f"{len(result.dropped)} frame(s) placed nowhere (the flight was lost there): frames {_ranges([i for i, _ in result.dropped])}")
+    return lines
+
+
+def _ranges(indices: list[int]) -> str:
+    runs = []
+    for i in sorted(indices):
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None):

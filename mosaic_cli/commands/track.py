@@ -10,16 +10,17 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.cli import app
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
+from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
+from mosaic_cli.live.track import is_jsonl, track_stream
 from mosaic_cli.progress import console
 from mosaic_cli.track import save_track, track_video
-
-MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096
+from mosaic_cli.video.reader import reading_policy
 
 
 @app.command()
 def track(
-    video: Path = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...) or folder of numbered images."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output .json (documented format) or .npy (pairwise array)."),
+    video: str = typer.Argument(..., help="Video file (mp4, mov, mkv, avi, ...), folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
+    out: str = typer.Option(..., "-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated."),
     estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
     work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
     weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
@@ -30,6 +31,8 @@ def track(
     chunk: int | None = typer.Option(None, "--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU)."),
     threads: int | None = typer.Option(None, "--threads", help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
     max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
+    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
+    timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.
@@ -38,25 +41,35 @@ def track(
     """
     if max_frames is not None and max_frames < 2:
         raise BadInput("--max-frames must be at least 2")
-    if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:
-        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
     if threads is not None and threads < 1:
         raise BadInput(f"--threads must be at least 1, got {threads}")
-    check_writable(out)
-    if out.suffix.lower() not in (".json", ".npy"):
-        raise BadInput(f"output {out} must end in .json or .npy")
+    if timeout <= 0:
+        raise BadInput(f"--timeout must be positive, got {timeout}")
+    streaming = is_live_source(video) or is_jsonl(out)
+    if not is_jsonl(out):
+        check_writable(out)
+        if Path(out).suffix.lower() not in (".json", ".npy"):
+            raise BadInput(f"output {out} must end in .json or .npy (or .jsonl, or be -, for JSON Lines)")
+    elif out != "-":
+        check_writable(out)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     if threads is not None:
         import torch
 
         torch.set_num_threads(threads)
-    result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
-    save_track(result, out)
+    if streaming:
+        result = track_stream(video, est, out, timeout=timeout, max_frames=max_frames, show_progress=not quiet)
+        if not is_jsonl(out):
+            save_track(result, out)
+    else:
+        with reading_policy(strict):
+            result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+        save_track(result, out)
     if not quiet:
         console.print(
             f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
-            f"median confidence {float(_median(result.confidence)):.2f} -> {out}"
+            f"median confidence {float(_median(result.confidence)):.2f} -> {'standard output' if out == '-' else out}"
         )
 
 

@@ -46,7 +46,7 @@ def train(
     Ctrl-C (or SIGTERM) writes a checkpoint and stops; --resume continues at the same step.
     Under torchrun --nproc_per_node=N it trains as DistributedDataParallel.
     """
-    from mosaic_cli.train.config import parse_size
+    from mosaic_cli.inputs import parse_size
     from mosaic_cli.train.loop import plan_run
     from mosaic_cli.train.loop import train as run_training
 
@@ -65,7 +65,7 @@ def train(
         "val_every": val_every,
         "checkpoint_every": checkpoint_every,
         "checkpoint_minutes": checkpoint_minutes,
-        "work_size": parse_size(work_size) if work_size else None,
+        "work_size": parse_size(work_size, "--work-size") if work_size else None,
         "patch": patch,
         "num_workers": num_workers,
         "threads": threads,

@@ -15,15 +15,18 @@ from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
-LEARNED = ("lstm", "cnn")
+LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
 NAMES = (*CLASSICAL, *LEARNED)
+MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096  # estimators work on frames this wide (px)
 # What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
 DEFAULT_ESTIMATOR = "lstm"
 
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
-    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path},
-    "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path},
+    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path,
+             "seed": str, "prior": str, "fallback": str},
+    "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path,
+            "seed": str, "prior": str, "fallback": str},
     "orb": {"refine": str},
     "orb-ransac": {"refine": str},
 }
@@ -75,18 +78,23 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
     """Build the estimator a user named on the command line.
 
     ``name`` (None: :data:`DEFAULT_ESTIMATOR`) may carry options (``cnn:patches=5``, ``lstm:weights=run/weights.safetensors``);
-    keyword ``options`` (from flags, None = not given) add to them.  ``weights`` selects a learned
-    estimator whatever the name (its head then decides lstm or cnn); a ``weights`` option in the
-    name wins over it, so that one benchmark can compare several checkpoints."""
+    keyword ``options`` (from flags, None = not given) add to them.  ``weights`` goes with a
+    learned name or none (the checkpoint's head then decides lstm or cnn); with a classical name
+    it is an error.  A ``weights`` option in the name wins over it, so that one benchmark can
+    compare several checkpoints."""
     if name is None:  # not named: the default, or with ``weights`` whichever network they hold
         name = "" if weights is not None else DEFAULT_ESTIMATOR
     base, spec_options = parse_spec(name)
-    if work_width < 32:
-        raise BadInput(f"--work-width must be at least 32, got {work_width}")
+    if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:  # one rule for track, stitch, stabilize and bench
+        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
     if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):  # checked for every estimator
         raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
+    if weights is not None and base not in (*LEARNED, ""):
+        if base in NAMES:  # running the network instead of what was named would be a silent surprise
+            raise BadInput(f"--weights goes with a learned estimator (lstm or cnn) or none; -e {base} takes no weights")
+        raise BadInput(f"unknown estimator {base!r}: choose one of {', '.join(NAMES)}")
     learned = weights is not None or base in LEARNED
-    kind = base if base in LEARNED or not learned else "lstm"  # --weights with a classical name: any learned option
+    kind = "lstm" if learned and base not in LEARNED else base  # --weights alone: the options any learned one takes
     given = {**spec_options, **{k: v for k, v in options.items() if v is not None}}
     typed = _typed(kind, given) if base in NAMES or learned else {}
     if learned:

@@ -4,12 +4,17 @@ An estimator is stateful: ``reset`` starts a video, ``feed`` takes its frames in
 returns the pairwise estimates that are ready (zero or more: a batched estimator may hold
 frames back to run them together), ``finish`` returns the rest.  Estimate k always maps
 frame k to frame k+1 in full-resolution pixels (see :mod:`mosaic_cli.geometry`).
+
+Stage times, for benchmarks: set ``estimator.timings = StageTimer()`` and every ``prepare``
+(gray, working size: one per frame) that ``feed`` runs is timed into it, call by call; the
+rest of ``feed`` and ``finish`` is estimation.  Nothing is timed while ``timings`` is None.
 """
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
 import cv2
@@ -30,6 +35,21 @@ class PairEstimate:
         return PairEstimate(np.eye(3), 0.0)
 
 
+@dataclass
+class StageTimer:
+    """Wall-clock milliseconds per call of each timed stage (``ms["prepare"]``), in call order."""
+
+    ms: dict[str, list[float]] = field(default_factory=dict)
+
+    def record(self, stage: str, started: float) -> None:
+        """Add the time since ``started`` (a ``time.perf_counter()``) to ``stage``."""
+        self.ms.setdefault(stage, []).append((time.perf_counter() - started) * 1000.0)
+
+    def total(self, stage: str) -> float:
+        """All the milliseconds ``stage`` took so far."""
+        return float(sum(self.ms.get(stage, ())))
+
+
 def to_gray(frame: np.ndarray) -> np.ndarray:
     """(h, w) uint8 from an RGB (h, w, 3) or already-gray frame."""
     return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
@@ -46,6 +66,7 @@ class Estimator(ABC):
     frames, or override ``feed``/``finish`` to batch."""
 
     name: str = "estimator"
+    timings: StageTimer | None = None  # set by a benchmark: see the module doc
 
     def __init__(self, work_width: int = 320):
         if work_width < 32:
@@ -72,10 +93,19 @@ class Estimator(ABC):
             gray = cv2.resize(gray, self.work_size, interpolation=cv2.INTER_AREA)
         return gray
 
+    def prepared(self, frame: np.ndarray) -> np.ndarray:
+        """``prepare(frame)``, timed into :attr:`timings` when it is set: what ``feed`` calls."""
+        if self.timings is None:
+            return self.prepare(frame)
+        started = time.perf_counter()
+        out = self.prepare(frame)
+        self.timings.record("prepare", started)
+        return out
+
     def feed(self, frame: np.ndarray) -> list[PairEstimate]:
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
-        cur = self.prepare(frame)
+        cur = self.prepared(frame)
         prev, self._prev = self._prev, cur
         if prev is None:
             return []

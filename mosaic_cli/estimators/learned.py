@@ -1,22 +1,25 @@
 """The paper's learned estimator at test time: a trained :class:`HomographyNet` run over a video.
 
     frame -> gray, working size (320 px wide), [-1, 1]
-          -> every ``chunk`` frame pairs: cut the patch pairs (the centre 128x128, as the paper,
-             or several places), backbone on the whole chunk in one batch (on a CPU in int8
+          -> every ``chunk`` frame pairs: (with prior=velocity, frame t+1 pre-aligned by the last
+             confirmed motion P), the patch pairs cut (the centre 128x128, as the
+             paper, or several places), backbone on the whole chunk in one batch (on a CPU in int8
              when the weights carry calibrated ranges, see mosaic_cli.model.quantize; else fp32
              channels-last)
           -> LSTM stepped pair by pair with (h, c) carried through the whole video
-          -> offsets -> DLT -> homography of the working frame, frame t -> t+1
+          -> offsets -> DLT -> homography of the working frame, frame t -> t+1 (P @ it with a prior)
           -> several patches: consensus (per-corner median of where the frame corners go)
           -> polish, per pair, seeded by the network (default "lk": Shi-Tomasi corners of frame t
              tracked into frame t+1 by pyramidal Lucas-Kanade on band-passed frames, starting
-             where the network puts them, robust refit; the network's estimate is kept when the
-             polish fails or wanders off; see :mod:`.refine`)
+             where the network puts them, robust refit; see :mod:`.refine`)
+          -> confirmed when the polish agreed and the registered detail correlates (ZNCC); else
+             the classical fallback (ORB + its polish) tries the pair
           -> confidence (ZNCC of the registered patches x agreement between patches x how much
-             of the polish agreed)
+             of the polish agreed), or ORB's when the fallback made the pair
           -> invalid, a frame without texture, or detail that does not correlate once registered
-             (unrelated ground) -> identity with confidence 0; else
+             (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
+    ``path_counts`` says which path made each pair: learned, fallback or failed.
 """
 
 from __future__ import annotations
@@ -30,7 +33,9 @@ import numpy as np
 import torch
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
+from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.estimators.refine import (
     POLISHERS,
     CornerConfig,
@@ -42,12 +47,16 @@ from mosaic_cli.estimators.refine import (
     track_points,
 )
 from mosaic_cli.geometry import frame_corners, is_valid
+from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.dlt import crop, dlt, offsets_to_homography, transform_points
-from mosaic_cli.model.quantize import quantized_features, quantized_head
 from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.model.patches import offsets_to_homography
+from mosaic_cli.model.quantize import quantized_features, quantized_head
 
-KINDS = ("lstm", "cnn")
+SEEDS = ("network", "identity", "velocity")
+PRIORS = ("velocity", "none")
+FALLBACKS = ("orb", "none")
+PATHS = ("learned", "fallback", "failed")  # which path produced a pair, counted in ``path_counts``
 PRECISIONS = ("auto", "int8", "fp32")
 PATCH_LAYOUTS = (1, 5, 9)
 REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -55,43 +64,49 @@ REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
 
 @dataclass
 class LearnedConfig:
+    """The learned estimator's options (``-e lstm:OPTION=VALUE``).  The measurements behind
+    each default are in models/README.md ("Why these defaults")."""
+
     patches: int = 1  # 1: the centre patch (paper); 5: centre + 4 corners; 9: a 3x3 grid
     chunk: int = 16  # frame pairs per backbone batch (larger on a GPU)
     reset_every: int | None = None  # LSTM: restart from a zero state every K pairs (None: never)
     # The network's arithmetic: "auto" is int8 on a CPU when the weights carry calibrated ranges
-    # (4x faster convolutions; offsets within a few hundredths of a working px of fp32's; the
-    # LSTM's weights too, 10x faster), fp32 otherwise and on GPUs.
+    # (the convolutions and the LSTM's weights; offsets stay within hundredths of a working px of
+    # fp32's), fp32 otherwise and on GPUs.
     precision: str = "auto"
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
     refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
-    # The network's estimate is usually within a working px or two, like ORB's feature fit, but
-    # can be several px off: a cheap polish first (1 pyramid level), and where it fails a
-    # deeper pyramid with a longer leash (with only 2 levels and 4 px, the BASE network's worst
-    # pairs on a fast development flight stayed unpolished: MACE 30 -> 1.0 with the retry).
-    # Window and point count: 11 px and 200 corners instead of 15 and 300 cost 1 CPU ms a frame
-    # less (4.4 -> 3.4) for MACE 0.72 -> 0.76 on the development flights.
+    # The network's estimate is usually within a working px or two, but can be several px off: a
+    # cheap polish first (1 pyramid level), and where it fails a deeper pyramid with a longer leash.
     polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
     polish_wide: PolishConfig | None = field(default_factory=lambda: PolishConfig(window=11, levels=3, max_shift=8.0))
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
-    # Chosen on the 15 development flights, seeded by the BASE network (pooled MACE, plain
-    # frames -> band-passed): paper 2.01 -> 0.58, hard 3.24 -> 0.78, fast 1.01 -> 0.79
     # None: plain frames.
     polish_band: tuple[float, float] | None = (1.5, 6.0)
-    # ...but only for video at least this many times wider than the working frame.  Frames that
-    # already are at the working size keep their finest detail, which is then real: on a
-    # 320x180 procedural flight the band-pass left a median pair error of 0.28 px, plain frames
-    # 0.06 px (tests/test_track.py), while the 1280x720 development flights above need it.
+    # ...but only for video at least this many times wider than the working frame: frames that
+    # already are at the working size keep their finest detail, which is then real.
     polish_band_min_downscale: float = 2.0
     corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_points=200))
     unpolished_weight: float = 0.5  # confidence factor of an estimate the polish could not confirm
     # Registered detail that correlates less than this is unrelated ground (a cut, a swapped
     # camera): the pair is reported as failed (identity, confidence 0), as ORB does, so that
-    # stitch and stabilize treat it as one.  On the 15 development flights the lowest ZNCC of a
-    # registered pair was 0.44 (noisy `hard` frames); a cut to unrelated ground scores ~0.001.
+    # stitch and stabilize treat it as one.  Registered noisy frames score far above it, a cut
+    # to unrelated ground far below.
     min_zncc: float | None = 0.1  # None: never
+    # What seeds the polish: "network" (the product), or for the ablations the identity or the
+    # previous pair's motion (constant velocity), with everything else unchanged.
+    seed: str = "network"
+    # A motion prior: "velocity" pre-aligns frame t+1 by the last confirmed motion (as the chunk
+    # starts) before the network reads it, so that the network regresses only what changed;
+    # "none" reads the raw pair, as the paper does.  A network trained on fast flights needs no
+    # prior, and a prior a chunk old misleads it (models/README.md): "none" by default.
+    prior: str = "none"
+    # When the learned path cannot confirm a pair (the polish fails or its detail does not
+    # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
+    fallback: str = "orb"
 
 
 @dataclass
@@ -103,6 +118,8 @@ class WorkFrame:
     textured: bool | None = None
     points: np.ndarray | None = None  # Shi-Tomasi corners to track (LK polish)
     aligned: np.ndarray | None = None  # the image the polish aligns (band-passed gray)
+    detail: np.ndarray | None = None  # fine detail (gray minus its 5x5 mean), for the ZNCC check
+    features: tuple | None = None  # ORB keypoints and descriptors, when the fallback needed them
 
 
 def resolve_device(device: str | None) -> torch.device:
@@ -157,6 +174,12 @@ class LearnedEstimator(Estimator):
             raise BadInput(f"reset-every must be at least 1 frame pair, got {self.config.reset_every}")
         if self.config.precision not in PRECISIONS:
             raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.config.precision!r}")
+        if self.config.seed not in SEEDS:
+            raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.config.seed!r}")
+        if self.config.prior not in PRIORS:
+            raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.config.prior!r}")
+        if self.config.fallback not in FALLBACKS:
+            raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.config.fallback!r}")
         self.device = resolve_device(device)
         self.model = model.to(self.device).eval()
         self.precision = "fp32"
@@ -173,9 +196,13 @@ class LearnedEstimator(Estimator):
                            "(mosaic train writes them; scripts/calibrate_int8.py adds them)")
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
+        self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
+        self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
         self._state = None
         self._pairs_done = 0
+        self._motion = np.eye(3)
+        self.path_counts = dict.fromkeys(PATHS, 0)
 
     def reset(self, full_size: tuple[int, int]) -> None:
         super().reset(full_size)
@@ -193,13 +220,17 @@ class LearnedEstimator(Estimator):
         self._pending = []
         self._state = None
         self._pairs_done = 0
+        self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
+        self.path_counts = dict.fromkeys(PATHS, 0)
+        if self._fallback is not None:
+            self._fallback.reset(full_size)
 
     # Streaming ----------------------------------------------------------------------------
 
     def feed(self, frame: np.ndarray) -> list[PairEstimate]:
         if self.full_size is None:
             raise RuntimeError("call reset(full_size) before feeding frames")
-        self._pending.append(WorkFrame(self.prepare(frame)))
+        self._pending.append(WorkFrame(self.prepared(frame)))
         if len(self._pending) - 1 >= self.config.chunk:
             return self._run_chunk()
         return []
@@ -210,26 +241,61 @@ class LearnedEstimator(Estimator):
     def _run_chunk(self) -> list[PairEstimate]:
         frames = self._pending
         self._pending = [frames[-1]]  # the last frame starts the next chunk's first pair
-        grays = [f.gray for f in frames]
-        H_patches, offsets_ok = self._predict(grays)
-        H_net, agreement = self._consensus(H_patches)
         for f in frames:
             self._describe(f)
-        polished = []
-        for k, (prev, cur) in enumerate(zip(frames[:-1], frames[1:])):
-            usable = offsets_ok[k] and prev.textured and cur.textured
-            valid = usable and is_valid(H_net[k], self.work_size, max_area_ratio=self.config.max_area_ratio)
-            polished.append(self._polish(prev, cur, H_net[k]) if valid else None)
-        zncc = self._zncc(grays, np.stack([p.H if p is not None else np.eye(3) for p in polished]))
-        out = []
-        for k, p in enumerate(polished):
-            unrelated = self.config.min_zncc is not None and zncc[k] < self.config.min_zncc
-            if p is None or unrelated:
-                out.append(PairEstimate.failed())
-                continue
-            confidence = max(0.0, float(zncc[k])) * float(agreement[k]) * self._polish_weight(p)
-            out.append(self._to_full(p.H, confidence))
-        return out
+        pairs = list(zip(frames[:-1], frames[1:]))
+        if self.config.seed == "velocity":  # each pair starts from the one before: no batch
+            return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
+        firsts, seconds = [f.gray for f in frames[:-1]], [f.gray for f in frames[1:]]
+        if self.config.seed == "identity":
+            seeds, offsets_ok, agreement = np.repeat(np.eye(3)[None], len(pairs), 0), np.ones(len(pairs), bool), np.ones(len(pairs))
+        elif self._prior_warp:
+            # The motion prior P (the last confirmed motion when the chunk starts): the network reads
+            # frame t+1 pre-aligned by P and regresses the rest R, so frame t -> t+1 is P @ R.
+            prior = self._motion
+            seconds = [cv2.warpPerspective(g, prior, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                           borderMode=cv2.BORDER_REPLICATE) for g in seconds]
+            residual, offsets_ok, agreement = self._network(firsts, seconds)
+            seeds = prior[None] @ residual
+        else:
+            seeds, offsets_ok, agreement = self._network(firsts, seconds)
+        return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
+
+    def _network(self, firsts: list[np.ndarray], seconds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The network's homographies (n, 3, 3) for the n pairs (firsts[k], seconds[k]), whether
+        its offsets were finite, and how much its patches agreed."""
+        H_patches, offsets_ok = self._predict(firsts, seconds)
+        H_net, agreement = self._consensus(H_patches)
+        return H_net, offsets_ok, agreement
+
+    def _finish_pair(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, offsets_ok: bool, agreement: float) -> PairEstimate:
+        """Polish the seed, confirm it by the correlation of the registered detail, and where the
+        learned path cannot confirm the pair, let the classical fallback try it."""
+        usable = bool(offsets_ok) and prev.textured and cur.textured
+        valid = usable and is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio)
+        polished = self._polish(prev, cur, seed) if valid else None
+        zncc = self._zncc(prev, cur, polished.H) if polished is not None else 0.0
+        related = self.config.min_zncc is None or zncc >= self.config.min_zncc
+        confirmed = polished is not None and related and (polished.refined or self.config.refine is None)
+        if not confirmed and self._fallback is not None and prev.textured and cur.textured:
+            for f in (prev, cur):
+                if f.features is None:
+                    f.features = self._fallback._describe(f.gray)
+            H_orb, orb_confidence = self._fallback.register(prev.gray, cur.gray, prev.features, cur.features)
+            if H_orb is not None and np.all(np.isfinite(H_orb)):
+                return self._result(H_orb, orb_confidence, "fallback")
+        if polished is None or not related:
+            return self._result(None, 0.0, "failed")
+        confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
+        return self._result(polished.H, confidence, "learned")
+
+    def _result(self, H_work: np.ndarray | None, confidence: float, path: str) -> PairEstimate:
+        self.path_counts[path] += 1
+        if H_work is None:
+            return PairEstimate.failed()
+        if confidence > 0:
+            self._motion = H_work
+        return self._to_full(H_work, confidence)
 
     def _describe(self, frame: WorkFrame) -> None:
         """Whether the frame has texture to register (black, blown-out, flat or badly blurred
@@ -268,14 +334,13 @@ class LearnedEstimator(Estimator):
         return w + (1.0 - w) * p.score if p.refined else w
 
     @torch.inference_mode()
-    def _predict(self, frames: list[np.ndarray]):
-        """Working-frame homographies (n, M, 3, 3) of every patch for the n pairs of ``frames``."""
-        stack = torch.from_numpy(np.stack(frames)).to(self.device, non_blocking=True)
-        frames_t = (stack.float() * (2.0 / 255.0) - 1.0).unsqueeze(1)  # (n+1, 1, h, w) in [-1, 1]
-        n, M = len(frames) - 1, len(self.positions)
-        pos = self._positions_t[None].expand(n + 1, M, 2)
-        crops = crop(frames_t, pos, self.patch)  # (n+1, M, 1, P, P)
-        pairs = torch.cat([crops[:-1], crops[1:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P)
+    def _predict(self, firsts: list[np.ndarray], seconds: list[np.ndarray]):
+        """Working-frame homographies (n, M, 3, 3) of every patch for the n pairs (firsts[k], seconds[k])."""
+        n, M, P = len(firsts), len(self.positions), self.patch
+        # Cut the patches before anything else: only they are converted and sent to the device.
+        cut = np.stack([[frame[y : y + P, x : x + P] for x, y in self.positions] for frame in (*firsts, *seconds)])
+        crops = torch.from_numpy(cut).to(self.device, non_blocking=True).float() * (2.0 / 255.0) - 1.0  # (2n, M, P, P)
+        pairs = torch.stack([crops[:n], crops[n:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P) in [-1, 1]
         if self.device.type == "cpu" and self.precision == "fp32":
             pairs = pairs.contiguous(memory_format=torch.channels_last)
         feats = self._features(pairs).unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
@@ -311,34 +376,32 @@ class LearnedEstimator(Estimator):
         if M == 1:
             return H_patches[:, 0].cpu().numpy(), np.ones(n)
         corners = torch.as_tensor(self._corners, dtype=H_patches.dtype, device=H_patches.device)
-        moved = transform_points(H_patches, corners)  # (n, M, 4, 2)
+        moved = project(H_patches, corners)  # (n, M, 4, 2)
         median = moved.median(dim=1).values  # (n, 4, 2)
-        H = dlt(corners.expand(n, 4, 2), median)
+        H = four_point_to_homography(corners.expand(n, 4, 2), median - corners)
         spread = (moved - median[:, None]).norm(dim=-1).mean(-1).median(dim=1).values
         agreement = 1.0 / (1.0 + (spread / self.config.agreement_px) ** 2)
         return H.cpu().numpy(), agreement.cpu().numpy()
 
-    def _zncc(self, frames: list[np.ndarray], H_work: np.ndarray) -> np.ndarray:
-        """Zero-normalised cross-correlation, per pair, between the fine detail (image minus its
-        5x5 mean) of the patches of frame t and of frame t+1 sampled through the estimate, on
-        pixels whose every bilinear tap lies inside frame t+1, averaged over the patches.  Detail
-        decorrelates within a pixel or two of misregistration (measured on a virtual flight: 0.94
-        registered, 0.58 one pixel off, ~0 unregistered), where raw intensities still correlate
-        at 0.5; and a textureless patch scores low, as it should.  On the CPU with OpenCV, per
-        pair, after the polish (cheaper than the network's device for 128x128 patches)."""
-        detail = [frame.astype(np.float32) - cv2.blur(frame.astype(np.float32), (5, 5)) for frame in frames]
-        ones = np.ones(frames[0].shape, np.float32)
+    def _zncc(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
+        """Zero-normalised cross-correlation between the fine detail (image minus its 5x5 mean)
+        of the patches of frame t and of frame t+1 sampled through ``H``, on pixels whose every
+        bilinear tap lies inside frame t+1, over all patches.  Detail decorrelates within a pixel
+        or two of misregistration, where raw intensities still correlate, and a textureless patch
+        scores low, as it should (docs in models/README.md)."""
+        for f in (prev, cur):
+            if f.detail is None:
+                g = f.gray.astype(np.float32)
+                f.detail = g - cv2.blur(g, (5, 5))
+        ones = np.ones(prev.gray.shape, np.float32)
         P = self.patch
-        scores = np.zeros(len(H_work))
-        for k, H in enumerate(H_work):
-            target, warped = [], []
-            for x, y in self.positions:
-                to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-                valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
-                target.append(detail[k][y : y + P, x : x + P][valid])
-                warped.append(_sample(detail[k + 1], to_next, P)[valid])
-            scores[k] = _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
-        return scores
+        target, warped = [], []
+        for x, y in self.positions:
+            to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
+            valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1
+            target.append(prev.detail[y : y + P, x : x + P][valid])
+            warped.append(_sample(cur.detail, to_next, P)[valid])
+        return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
@@ -384,18 +447,17 @@ def make_learned_estimator(
     checkpoint's own preset, head and variant; ``name`` then only has to agree with its head)."""
     name = (name or "").lower()
     if weights is None:
-        if name not in KINDS:
+        if name not in LEARNED:
             raise BadInput(f"unknown learned estimator {name!r}: choose lstm or cnn, or pass --weights FILE")
         weights = default_weights(name)
     resolve_device(device)  # bad --device fails before loading anything
     model, meta = load_weights(weights, device="cpu")
-    if name in KINDS and name != model.config.head:
+    if name in LEARNED and name != model.config.head:
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
     return LearnedEstimator(model, meta, device=device, config=config)
 
 
 __all__ = [
-    "KINDS",
     "PRECISIONS",
     "LearnedConfig",
     "LearnedEstimator",

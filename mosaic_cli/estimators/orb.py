@@ -87,9 +87,15 @@ class OrbEstimator(Estimator):
     def _estimate(self, prev: np.ndarray, cur: np.ndarray):
         if self._prev_features is None:
             self._prev_features = self._describe(prev)
-        prev_pts, prev_desc = self._prev_features
-        cur_pts, cur_desc = self._describe(cur)
-        self._prev_features = (cur_pts, cur_desc)
+        cur_features = self._describe(cur)
+        prev_features, self._prev_features = self._prev_features, cur_features
+        return self.register(prev, cur, prev_features, cur_features)
+
+    def register(self, prev: np.ndarray, cur: np.ndarray, prev_features=None, cur_features=None):
+        """Homography prev -> cur of two working-size gray frames, not necessarily consecutive
+        (the learned estimator's fallback), from their features (described here when not given)."""
+        prev_pts, prev_desc = prev_features if prev_features is not None else self._describe(prev)
+        cur_pts, cur_desc = cur_features if cur_features is not None else self._describe(cur)
         H, confidence, src = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._matcher, self.config, self.work_size)
         if H is not None and self.config.refine == "ecc":
             H = align_pixels(prev, cur, H, self.config.polish).H

@@ -39,8 +39,8 @@ def write_cog(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas
     from rasterio.enums import ColorInterp
     from rasterio.windows import Window
     from rio_cogeo.cogeo import cog_translate
-    from rio_cogeo.utils import get_maximum_overview_level
     from rio_cogeo.profiles import cog_profiles
+    from rio_cogeo.utils import get_maximum_overview_level
 
     out = Path(out)
     height, width = rgba.shape[:2]

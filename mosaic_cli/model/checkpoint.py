@@ -5,7 +5,7 @@ Metadata keys (all strings, as safetensors wants):
 
     format     "mosaic-homography"         version   "1"
     config     NetConfig as JSON (preset, head, patch, dropout, backbone, embed, hidden)
-    variant    one of objective.VARIANTS
+    variant    one of network.VARIANTS
     work_size  "[320, 180]": the working frame the net was trained at
     direction  "t_to_t+1": offsets move patch corners from frame t to frame t+1
     extra      JSON of whatever the trainer adds (step, data, losses, ...)
@@ -23,7 +23,7 @@ from safetensors.torch import save_file
 
 from mosaic_cli.atomic import atomic_path
 from mosaic_cli.errors import BadInput
-from mosaic_cli.model.network import HomographyNet, NetConfig
+from mosaic_cli.model.network import VARIANTS, HomographyNet, NetConfig
 
 FORMAT = "mosaic-homography"
 FORMAT_VERSION = 1
@@ -41,8 +41,6 @@ def save_weights(
 ) -> None:
     """Write ``model``'s weights (fp32, CPU) and metadata to ``path`` atomically; ``int8``: the
     calibrated activation ranges of :func:`mosaic_cli.model.quantize.calibrate`, if any."""
-    from mosaic_cli.model.objective import VARIANTS
-
     config = config or model.config
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")

@@ -9,7 +9,7 @@
       -> offsets (B, T, 4, 2)
 
 The 8 outputs are the displacements, in working-frame pixels, of the patch's four outer corners
-(TL, TR, BR, BL, see :func:`mosaic_cli.model.dlt.patch_corners`) from frame t to frame t+1:
+(TL, TR, BR, BL, see :func:`mosaic_cli.model.patches.patch_corners`) from frame t to frame t+1:
 a corner at ``c`` in frame t shows the ground that is at ``c + offset`` in frame t+1.  The DLT of
 those four correspondences is the homography of the whole working frame, frame t -> frame t+1.
 
@@ -37,6 +37,9 @@ import torch
 from torch import Tensor, nn
 
 HEADS = ("cnn", "lstm")
+# The paper's training variants (Table 2; what each trains: mosaic_cli.train.objective).  A
+# checkpoint records the variant that made it, so the model side knows their names.
+VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": dict(backbone=(64, 64, "M", 64, 64, "M", 128, 128, "M", 128, 128), embed=1024, hidden=1024, dropout=0.5),
@@ -251,6 +254,7 @@ def count_macs(model: HomographyNet) -> int:
 
 __all__ = [
     "HEADS",
+    "VARIANTS",
     "PRESETS",
     "NetConfig",
     "HomographyNet",

@@ -23,7 +23,6 @@ from __future__ import annotations
 import copy
 import warnings
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -133,23 +132,4 @@ def quantized_head(model: HomographyNet) -> HomographyNet | None:
         return quantize_dynamic(model.eval(), {nn.LSTM}, dtype=torch.qint8)  # a copy: not in place
 
 
-def sample_pairs(windows, count: int, seed: int = 0) -> Tensor:
-    """``count`` patch pairs (N, 2, P, P) in [-1, 1] from a training dataset whose items are
-    ``{"frames": (K, 1, h, w) uint8, "positions": (M, 2)}`` windows: consecutive frames, the
-    first position of each window, a random pair of its frames."""
-    from mosaic_cli.model.dlt import crop
-
-    rng = np.random.default_rng(seed)
-    pairs = []
-    patch = windows.patch
-    for index in rng.choice(len(windows), size=count, replace=len(windows) < count):
-        item = windows[int(index)]
-        frames = item["frames"].float() / 127.5 - 1.0  # (K, 1, h, w)
-        t = int(rng.integers(len(frames) - 1))
-        pos = item["positions"][:1][None].expand(2, 1, 2)
-        crops = crop(frames[t : t + 2], pos, patch)  # (2, 1, 1, P, P)
-        pairs.append(crops[:, 0, 0])
-    return torch.stack(pairs)
-
-
-__all__ = ["RANGES_FORMAT", "engine", "calibrate", "quantized_features", "quantized_head", "sample_pairs"]
+__all__ = ["RANGES_FORMAT", "engine", "calibrate", "quantized_features", "quantized_head"]

@@ -43,7 +43,7 @@ def write_flight(
     map_rgb: np.ndarray,
     plan: FlightPlan,
     fps: float | None = None,
-    crf: int = 18,
+    crf: int | None = None,
     map_name: str = "procedural",
     preset: str = "medium",
     show_progress: bool = True,
@@ -61,6 +61,8 @@ def write_flight(
     gt_path = check_writable(ground_truth_path(out))
     rate = float(plan.fps if fps is None else fps)
     gt = GroundTruth.from_plan(plan, fps=rate, map_name=map_name)
+    if crf is None:  # the profile's own quality: degraded flights are low-bitrate too
+        crf = PROFILES[plan.profile].crf if plan.profile in PROFILES else 18
     with VideoWriter(out, plan.size, rate, crf=crf, preset=preset) as writer:
         with progress_task(f"simulate ({plan.profile})", plan.frames, disable=not show_progress) as advance:
             for frame in render_frames(map_rgb, plan):
@@ -78,7 +80,7 @@ def simulate_flight(
     size: tuple[int, int] = (1280, 720),
     fps: float = 30.0,
     seed: int = 0,
-    crf: int = 18,
+    crf: int | None = None,
     preset: str = "medium",
     show_progress: bool = True,
 ) -> GroundTruth:

@@ -194,7 +194,6 @@ def _largest_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
         stack: list[int] = []
         hs = heights.tolist() + [0]
         for col, height in enumerate(hs):
-            start = col
             while stack and hs[stack[-1]] >= height:
                 top = stack.pop()
                 left = stack[-1] + 1 if stack else 0
@@ -202,7 +201,6 @@ def _largest_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
                 if area > best_area:
                     best_area = area
                     best = (left, row - hs[top] + 1, col - left, hs[top])
-                start = left
             stack.append(col)
     return best
 

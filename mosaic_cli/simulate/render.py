@@ -8,6 +8,7 @@ filtering), so down-sampling never aliases and zooming in or out never pops.
 
 from __future__ import annotations
 
+import functools
 from typing import Iterator
 
 import cv2
@@ -80,7 +81,7 @@ def render_view(pyramid: MapPyramid, map_to_frame: np.ndarray, size: tuple[int, 
 
 
 def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, seed: int) -> np.ndarray:
-    """Motion blur, exposure gain and sensor noise of frame ``t`` (the 'hard' profile)."""
+    """Motion blur, contrast, vignetting, exposure gain and sensor noise of frame ``t`` (degraded profiles)."""
     out = frame
     if "blur" in effects:
         bx, by = (float(v) for v in effects["blur"][t])
@@ -102,9 +103,16 @@ def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, see
             out = cv2.filter2D(out, -1, kernel, borderType=cv2.BORDER_REFLECT101)
     gain = float(effects["gain"][t]) if "gain" in effects else 1.0
     sigma = float(effects["noise_sigma"][t]) if "noise_sigma" in effects else 0.0
-    if gain != 1.0 or sigma > 0:
+    contrast = float(effects["contrast"][t]) if "contrast" in effects else 1.0
+    vignette = float(effects["vignette"][t]) if "vignette" in effects else 0.0
+    if gain != 1.0 or sigma > 0 or contrast != 1.0 or vignette > 0:
         h, w = out.shape[:2]
         f = out.astype(np.float32)
+        if contrast != 1.0:  # haze, flat ground: detail fades toward the scene's mean
+            mean = cv2.mean(f)[:3]
+            f = cv2.addWeighted(f, contrast, np.full_like(f, mean), 1.0 - contrast, 0.0)
+        if vignette > 0:
+            f *= vignette_map((w, h), round(vignette, 4))[..., None]
         if sigma > 0:
             # Luma noise at full resolution plus a little blotchy chroma noise, like a small
             # sensor; OpenCV's generator, seeded per frame, is several times faster than numpy's.
@@ -120,6 +128,17 @@ def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, see
             f *= gain
         out = np.clip(f, 0, 255, out=f).astype(np.uint8)
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def vignette_map(size: tuple[int, int], strength: float) -> np.ndarray:
+    """(h, w) float32 brightness factor of a lens's smooth radial falloff: 1 at the centre,
+    ``1 - strength`` at the corners."""
+    w, h = int(size[0]), int(size[1])
+    x = (np.arange(w, dtype=np.float32) - (w - 1) / 2) / max((w - 1) / 2, 1)
+    y = (np.arange(h, dtype=np.float32) - (h - 1) / 2) / max((h - 1) / 2, 1)
+    r2 = (x[None, :] ** 2 * w * w + y[:, None] ** 2 * h * h) / float(w * w + h * h)  # 1 at the corners
+    return (1.0 - strength * r2 * r2 * (3 - 2 * r2)).astype(np.float32)
 
 
 def render_frames(map_rgb: np.ndarray, plan: FlightPlan) -> Iterator[np.ndarray]:

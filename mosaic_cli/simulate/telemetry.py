@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +24,7 @@ from mosaic_cli.geo.crs import Projection
 from mosaic_cli.simulate.groundtruth import GroundTruth
 
 FORMATS = {"srt": ".SRT", "gpx": ".gpx", "csv": ".csv", "klv": ".klv"}
-START_CLOCK = datetime(2026, 6, 1, 10, 0, 0, tzinfo=timezone.utc)  # the flight's (made-up) take-off time
+START_CLOCK = datetime(2026, 6, 1, 10, 0, 0, tzinfo=UTC)  # the flight's (made-up) take-off time
 GROUND_ELEVATION = 120.0  # metres above the ellipsoid of the flat simulated ground
 
 

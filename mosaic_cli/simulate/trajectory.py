@@ -30,6 +30,21 @@ SMALL_MAP_SAMPLE = 0.25  # "small": flying at FOOTPRINT_FRACTION would upsample 
 
 
 @dataclass(frozen=True)
+class Degradation:
+    """What a profile does to the pixels (never to the geometry): the camera and the codec.
+
+    Amplitudes are drawn per flight or vary slowly per frame within these ranges."""
+
+    exposure: float = 0.3  # amplitude of the slow log-gain drift (auto exposure hunting)
+    exposure_jumps: float = 0.0  # size of sudden log-gain steps (auto exposure catching up)
+    noise: tuple[float, float] = (3.0, 6.0)  # sensor noise sigma, gray levels
+    shutter: tuple[float, float] = (0.8, 0.8)  # motion blur length as a fraction of the motion between frames
+    shake_blur_px: float = 6.0  # extra blur episodes (1280x720-equivalent px)
+    vignette: tuple[float, float] = (0.0, 0.0)  # brightness lost at the frame corners, per flight
+    contrast: tuple[float, float] = (1.0, 1.0)  # contrast kept: haze, low-texture ground (fields, sand, water)
+
+
+@dataclass(frozen=True)
 class Profile:
     """What a flight of one kind looks like."""
 
@@ -37,12 +52,16 @@ class Profile:
     description: str
     speed: tuple[float, float]  # 1280x720-equivalent px/frame at the frame centre
     path: str = "wander"  # "wander" (smooth random loop) or "lawnmower"
-    heading_deg: float = 12.0  # amplitude of slow heading changes
+    heading_deg: float = 12.0  # amplitude of heading changes
     tilt_deg: float = 3.0  # constant tilt up to this, plus a slow +-1.5 degree sway
-    altitude_drift: float = 0.06  # relative amplitude of slow altitude changes
+    altitude_drift: float = 0.06  # relative amplitude of altitude changes
     jitter_px: float = 0.0  # 3-8 Hz shake amplitude, 1280x720-equivalent px
     jitter_deg: float = 0.0  # 3-8 Hz shake rotation amplitude
-    effects: bool = False  # exposure drift, sensor noise, motion blur (pixels only)
+    effects: Degradation | None = None  # exposure, noise, blur, vignetting, haze (pixels only)
+    speed_periods: tuple[float, float] = (4.0, 15.0)  # seconds: how fast the speed changes
+    heading_periods: tuple[float, float] = (20.0, 60.0)  # seconds: how fast the heading turns
+    altitude_periods: tuple[float, float] = (20.0, 60.0)
+    crf: int = 18  # H.264 quality the flight is encoded at unless --crf says otherwise
 
 
 PROFILES: dict[str, Profile] = {
@@ -52,7 +71,21 @@ PROFILES: dict[str, Profile] = {
         Profile("survey", "lawnmower back-and-forth lines that revisit the ground, 4-7 px/frame", (4.0, 7.0), path="lawnmower", heading_deg=2.0),
         Profile("fast", "fast flight, 10-20 px/frame", (10.0, 20.0), heading_deg=20.0),
         Profile("shaky", "the paper path plus 3-8 Hz shake (a few px, small rotation)", (1.0, 2.0), jitter_px=3.0, jitter_deg=0.3),
-        Profile("hard", "the paper path with exposure drift, sensor noise and motion blur", (1.0, 2.0), effects=True),
+        Profile("hard", "the paper path with exposure drift, sensor noise and motion blur", (1.0, 2.0), effects=Degradation()),
+        Profile(
+            "extreme",
+            "fast degraded flight: 25-60 px/frame, fast yaw turns and altitude changes, exposure drift and jumps, "
+            "noise, motion blur, vignetting, haze, low-bitrate H.264",
+            (25.0, 60.0),
+            heading_deg=120.0,
+            altitude_drift=0.25,
+            speed_periods=(2.0, 8.0),
+            heading_periods=(6.0, 20.0),
+            altitude_periods=(6.0, 20.0),
+            effects=Degradation(exposure=0.25, exposure_jumps=0.15, noise=(4.0, 8.0), shutter=(0.05, 0.3),
+                                shake_blur_px=3.0, vignette=(0.3, 0.5), contrast=(0.35, 1.0)),
+            crf=30,
+        ),
     )
 }
 
@@ -120,7 +153,8 @@ def _rotation(pitch: float, roll: float, heading: float) -> np.ndarray:
     return Rx @ Ry @ Rz
 
 
-def camera_homography(size, focal, X, Y, s, heading, pitch=0.0, roll=0.0) -> np.ndarray:
+def camera_homography(size: tuple[int, int], focal: float, X: float, Y: float, s: float, heading: float,
+                      pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
     """map_to_frame of a camera above map point (X, Y) with ground sample ``s`` (see module doc)."""
     w, h = size
     K = np.array([[focal, 0, (w - 1) / 2.0], [0, focal, (h - 1) / 2.0], [0, 0, 1.0]])
@@ -130,6 +164,8 @@ def camera_homography(size, focal, X, Y, s, heading, pitch=0.0, roll=0.0) -> np.
 
 # ---------------------------------------------------------------------------------------------
 # paths of the point below the camera, in map pixels
+
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1
 
 
 def _arc_sample(points: np.ndarray, distances: np.ndarray, closed: bool) -> np.ndarray:
@@ -143,7 +179,7 @@ def _arc_sample(points: np.ndarray, distances: np.ndarray, closed: bool) -> np.n
     return np.stack([np.interp(d, cum, points[:, 0]), np.interp(d, cum, points[:, 1])], axis=1)
 
 
-def _wander_path(rng, box, distances) -> np.ndarray:
+def _wander_path(rng: np.random.Generator, box: Box, distances: np.ndarray) -> np.ndarray:
     """A smooth closed loop filling ``box`` (x0, y0, x1, y1), followed from a random point."""
     x0, y0, x1, y1 = box
     u = np.linspace(0, 2 * np.pi, 4096, endpoint=False)
@@ -161,7 +197,7 @@ def _wander_path(rng, box, distances) -> np.ndarray:
     return _arc_sample(pts, start + distances, closed=True)
 
 
-def _lawnmower_path(rng, box, distances, spacing: float) -> np.ndarray:
+def _lawnmower_path(rng: np.random.Generator, box: Box, distances: np.ndarray, spacing: float) -> np.ndarray:
     """Back-and-forth lines along x, ``spacing`` apart, joined by half-circle turns."""
     x0, y0, x1, y1 = box
     total = float(distances[-1]) if len(distances) else 0.0
@@ -236,8 +272,8 @@ def plan_flight(
     pitch = tilt0 * np.cos(tilt_dir) + sway * smooth_signal(rng, n, fps, (30, 90))
     roll = tilt0 * np.sin(tilt_dir) + sway * smooth_signal(rng, n, fps, (30, 90))
     heading0 = rng.uniform(-np.pi, np.pi) if prof.path == "wander" else rng.choice([0.0, np.pi])
-    heading = heading0 + np.radians(prof.heading_deg) * smooth_signal(rng, n, fps, (20, 60))
-    altitude = 1.0 + prof.altitude_drift * smooth_signal(rng, n, fps, (20, 60))
+    heading = heading0 + np.radians(prof.heading_deg) * smooth_signal(rng, n, fps, prof.heading_periods)
+    altitude = 1.0 + prof.altitude_drift * smooth_signal(rng, n, fps, prof.altitude_periods)
 
     # Ground sample from the map size: the footprint's bounding circle at the highest altitude
     # and largest tilt spans FOOTPRINT_FRACTION of the map's shorter side.
@@ -256,7 +292,7 @@ def plan_flight(
 
     # Speed along the ground, from the profile's range at the frame centre.
     lo, hi = prof.speed
-    speed_eq = lo + (hi - lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, (4, 15)))
+    speed_eq = lo + (hi - lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, prof.speed_periods))
     step_map = speed_eq * w / REFERENCE_WIDTH * s
     distances = np.concatenate([[0.0], np.cumsum(step_map[:-1])])
     if prof.path == "lawnmower":
@@ -282,13 +318,13 @@ def plan_flight(
             map_to_frame[t] = normalize(J @ smooth[t])
 
     plan = FlightPlan(map_to_frame, smooth, (w, h), profile, int(seed), (W, H), float(fps))
-    if prof.effects:
-        plan.effects = _effects(rng, plan)
+    if prof.effects is not None:
+        plan.effects = _effects(rng, plan, prof.effects)
     check_inside(plan)
     return plan
 
 
-def _shake(rng, n: int, fps: float) -> np.ndarray:
+def _shake(rng: np.random.Generator, n: int, fps: float) -> np.ndarray:
     """3-8 Hz shake in [-1, 1]: a few sinusoids with drifting amplitude."""
     t = np.arange(n) / fps
     out = np.zeros(n)
@@ -302,12 +338,14 @@ def _shake(rng, n: int, fps: float) -> np.ndarray:
     return out / total
 
 
-def _effects(rng, plan: FlightPlan) -> dict[str, np.ndarray]:
-    """Per-frame exposure gain, noise sigma and motion blur vector for the 'hard' profile."""
+def _effects(rng: np.random.Generator, plan: FlightPlan, deg: Degradation) -> dict[str, np.ndarray]:
+    """Per-frame exposure gain, noise sigma, motion blur vector (and, where the profile has them,
+    contrast and vignetting) of a degraded flight."""
     n, fps = plan.frames, plan.fps
     w, h = plan.size
-    gain = np.exp(0.3 * smooth_signal(rng, n, fps, (3, 12)) + 0.02 * rng.standard_normal(n))
-    noise = 3.0 + 3.0 * (0.5 + 0.5 * smooth_signal(rng, n, fps, (2, 8)))
+    gain = np.exp(deg.exposure * smooth_signal(rng, n, fps, (3, 12)) + 0.02 * rng.standard_normal(n))
+    lo, hi = deg.noise
+    noise = lo + (hi - lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, (2, 8)))
     # blur along the image motion: the motion during the exposure plus episodes of shake blur
     pw = plan.pairwise
     c = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
@@ -316,11 +354,27 @@ def _effects(rng, plan: FlightPlan) -> dict[str, np.ndarray]:
         moved = project(pw, np.broadcast_to(c, (len(pw), 1, 2)))[:, 0] - c
         motion[1:] = moved
         motion[0] = moved[0]
-    extra = np.clip(smooth_signal(rng, n, fps, (1, 5)), 0, None) * 6.0 * w / REFERENCE_WIDTH
+    extra = np.clip(smooth_signal(rng, n, fps, (1, 5)), 0, None) * deg.shake_blur_px * w / REFERENCE_WIDTH
     norm = np.linalg.norm(motion, axis=1, keepdims=True)
     direction = np.where(norm > 1e-9, motion / np.maximum(norm, 1e-9), np.array([[1.0, 0.0]]))
-    blur = motion * 0.8 + direction * extra[:, None]
-    return {"gain": gain, "noise_sigma": noise, "blur": blur}
+    s_lo, s_hi = deg.shutter
+    shutter = s_lo + (s_hi - s_lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, (2, 8))) if s_hi > s_lo else np.full(n, s_lo)
+    blur = motion * shutter[:, None] + direction * extra[:, None]
+    out = {"gain": gain, "noise_sigma": noise, "blur": blur}
+    # Draws for the stronger degradations come last, so that 'hard' flights stay as they were.
+    if deg.exposure_jumps > 0:
+        steps = (rng.random(n) < 1.5 / fps) * rng.normal(0.0, deg.exposure_jumps, n)  # about 1.5 jumps/s
+        # auto exposure corrects a jump over about half a second
+        level = np.zeros(n)
+        for t in range(1, n):
+            level[t] = level[t - 1] * np.exp(-1.0 / (0.5 * fps)) + steps[t]
+        out["gain"] = gain * np.exp(level)
+    if deg.vignette[1] > 0:
+        out["vignette"] = np.full(n, rng.uniform(*deg.vignette))
+    if deg.contrast[0] < 1:
+        c_lo, c_hi = deg.contrast
+        out["contrast"] = c_lo + (c_hi - c_lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, (5, 20)))
+    return out
 
 
 def footprints(plan: FlightPlan) -> np.ndarray:

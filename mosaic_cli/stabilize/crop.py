@@ -78,13 +78,21 @@ def output_warps(V: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return normalize(np.linalg.inv(N) @ np.linalg.inv(V) @ N)
 
 
+BORDER_CHUNK = 256  # frames measured at a time: the sample grid costs about 90 KB a frame
+
+
 def border_fraction(warps: np.ndarray, size: tuple[int, int], grid: int = 64) -> np.ndarray:
     """(N,) the fraction of each output frame that no input pixel covers, sampled on a grid of
-    pixel centres (so a border thinner than half a pixel does not count)."""
+    pixel centres (so a border thinner than half a pixel does not count).  Measured in chunks
+    of frames, so that memory does not grow with the length of the video."""
     w, h = size
     xs = np.linspace(0, w - 1, grid)
     ys = np.linspace(0, h - 1, max(2, int(round(grid * h / w))))
     pts = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    src = project(np.linalg.inv(warps), pts)
-    inside = (src[..., 0] >= -0.5) & (src[..., 0] <= w - 0.5) & (src[..., 1] >= -0.5) & (src[..., 1] <= h - 0.5)
-    return 1.0 - inside.mean(axis=-1)
+    warps = np.asarray(warps, dtype=np.float64).reshape(-1, 3, 3)
+    out = np.empty(len(warps))
+    for start in range(0, len(warps), BORDER_CHUNK):
+        src = project(np.linalg.inv(warps[start:start + BORDER_CHUNK]), pts)
+        inside = (src[..., 0] >= -0.5) & (src[..., 0] <= w - 0.5) & (src[..., 1] >= -0.5) & (src[..., 1] <= h - 0.5)
+        out[start:start + BORDER_CHUNK] = 1.0 - inside.mean(axis=-1)
+    return out

@@ -62,6 +62,7 @@ class StabilizeResult:
     fps: float
     warps: np.ndarray  # (N, 3, 3) input pixels -> output pixels
     seconds: dict[str, float] = field(default_factory=dict)
+    input_meta: dict | None = None  # set when the input decoded short (see video.reader.Shortfall)
 
     @property
     def cropping(self) -> float:
@@ -94,13 +95,20 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     warps = output_warps(views, info.source_size)
     seconds["plan"] = time.perf_counter() - clock - seconds["track"]
 
-    written = plan.renderer.render(video, out, warps, info, compare=compare, show_progress=show_progress)
+    # A truncated input (the track pass read fewer frames than announced) is said in every output.
+    short = track.meta.get("input")
+    tags = {"comment": f"mosaic stabilize: {_shortfall_text(short)}"} if short else None
+    written = plan.renderer.render(video, out, warps, info, compare=compare, show_progress=show_progress, metadata=tags)
     warps = _match_length(warps, written)
     if warps_out is not None:
-        write_warps(warps_out, warps, info.source_size)
+        write_warps(warps_out, warps, info.source_size, input_meta=short)
     seconds["render"] = time.perf_counter() - clock - seconds["track"] - seconds["plan"]
     seconds["total"] = time.perf_counter() - clock
-    return StabilizeResult(written, info.source_size, info.fps, warps, seconds)
+    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short)
+
+
+def _shortfall_text(short: dict) -> str:
+    return f"input truncated or damaged, {short['frames_decoded']} of {short['frames_announced']} announced frames decoded"
 
 
 @dataclass
@@ -154,14 +162,18 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     return info, plan
 
 
-def write_warps(path: str | Path, warps: np.ndarray, size: tuple[int, int]) -> None:
-    """``{"frames": N, "size": [w, h], "warps": [N 3x3]}``, input pixels -> output pixels."""
-    write_json(path, {
+def write_warps(path: str | Path, warps: np.ndarray, size: tuple[int, int], input_meta: dict | None = None) -> None:
+    """``{"frames": N, "size": [w, h], "warps": [N 3x3]}``, input pixels -> output pixels; with
+    ``"input": {"frames_decoded", "frames_announced", "truncated", "reason"}`` when the input decoded short."""
+    doc = {
         "frames": int(len(warps)),
         "size": [int(size[0]), int(size[1])],
         "direction": "input_to_output",
         "warps": [[[float(v) for v in row] for row in W] for W in warps],
-    })
+    }
+    if input_meta:
+        doc["input"] = input_meta
+    write_json(path, doc)
 
 
 def _match_length(warps: np.ndarray, frames: int) -> np.ndarray:

@@ -90,7 +90,8 @@ def _warp_plane(plane: np.ndarray, warp: np.ndarray, size: tuple[int, int], bord
 def _yuv_frames(video: str | Path, size: tuple[int, int]) -> Iterator[np.ndarray]:
     """The frames of a video file as yuv420p arrays (h * 3 // 2, w), upright like open_video's."""
     w, h = size
-    gen = imageio_ffmpeg.read_frames(str(video), pix_fmt="yuv420p", bits_per_pixel=12)
+    gen = imageio_ffmpeg.read_frames(str(video), pix_fmt="yuv420p", bits_per_pixel=12,
+                                     output_params=["-fps_mode", "passthrough"])  # each frame once, as open_video
     try:
         next(gen)  # metadata
         for raw in gen:
@@ -132,7 +133,8 @@ class Renderer:
     preset: str = "veryfast"  # x264 'medium' halves throughput on two cores for a few % of bitrate
 
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray, info: VideoInfo,
-               compare: str | Path | None = None, show_progress: bool = True) -> int:
+               compare: str | Path | None = None, show_progress: bool = True,
+               metadata: dict[str, str] | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         Frames beyond ``len(warps)`` (a decoder that finds one more frame the second time)
@@ -143,10 +145,12 @@ class Renderer:
         pix_fmt = "yuv420p" if yuv else "rgb24"
         warp = warp_yuv if yuv else warp_frame
         join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
-        writers = [VideoWriter(out, size, info.fps, crf=self.crf, preset=self.preset, audio_from=audio, pix_fmt_in=pix_fmt)]
+        # The audio ends with the video (the frames the first pass counted, at the input's rate).
+        common = dict(crf=self.crf, preset=self.preset, audio_from=audio, audio_seconds=len(warps) / info.fps,
+                      pix_fmt_in=pix_fmt, metadata=metadata)
+        writers = [VideoWriter(out, size, info.fps, **common)]
         if compare is not None:
-            writers.append(VideoWriter(compare, compare_size(size), info.fps, crf=self.crf, preset=self.preset,
-                                       audio_from=audio, pix_fmt_in=pix_fmt))
+            writers.append(VideoWriter(compare, compare_size(size), info.fps, **common))
         try:
             source = contextlib.closing(_yuv_frames(video, size)) if yuv else open_video(video)
             with source as frames, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:

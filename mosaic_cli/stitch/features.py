@@ -19,6 +19,8 @@ from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
 @dataclass
 class FeatureOptions:
     width: int = 640  # keyframes are described at this width (the source's if narrower)
+    photo_width: int = 1600  # ... and photos (an image folder), which only features place,
+    photo_features: int = 4000  # ... with more points: 1500 leave a wide photo's pairs with ~40 inliers
     n_features: int = 1500
     # Lower than OpenCV's 0.04: aerial ground is often low in contrast (grass, fields, water);
     # n_features still keeps only the strongest points on rich ground.

@@ -10,6 +10,13 @@ memory grows with the area flown over, not with the number of frames.  Each keyf
 by registering it directly with the previous one (SIFT), not by the dozens of pairwise
 estimates in between; the estimator only tracks the frames from one keyframe to the next.
 
+When the estimator loses the flight, the next frames are registered directly against the last
+keyframes; a frame the estimator follows again but that registers with none of them (a cut)
+starts a new *segment*, with its own world, which the register stage relocalises against the
+keyframes of the others (:mod:`.segments`).  Photos (an image folder) are not video: the
+estimator is not used at all; each photo is registered directly with the previous one (or
+the last few), and a photo that registers with none starts a new segment.
+
 Placements here are "world" transforms: frame pixels -> pixels of the first frame (the
 anchor), full-resolution source pixels.  They are affine: chained homographies accumulate
 perspective error, and far from the anchor that error grows without bound (the estimated
@@ -32,7 +39,7 @@ import numpy as np
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
-from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
 
@@ -56,7 +63,10 @@ class KeyframeOptions:
     # A keyframe's direct registration to the previous one must agree with the chain this well
     # (fraction of the frame diagonal, at the corners) to replace it.
     link_tolerance: float = 0.25
-    max_lost_seconds: float = 2.0  # refuse when the flight cannot be re-found for this long
+    # ... unless it has this many inliers: then the estimator was wrong (frames further apart
+    # than it can follow, say) and the registration overrules the chain.
+    override_inliers: int = 60
+    relocalise_keyframes: int = 3  # a lost frame is registered against this many last keyframes
     quality_width: int = 320
     # The chained placement may make a frame this many times larger/smaller than the anchor.
     max_scale_change: float = 10.0
@@ -94,6 +104,8 @@ class Keyframe:
     image: Pixels | None = None  # RGB at ``scale`` x source size, while it is held (maybe in a file)
     scale: float = 1.0
     composited: bool = False  # drawn in the panorama (else used for registration only)
+    segment: int = 0  # the stretch of flight followed without a break; placements are in its world
+    link_to: int | None = None  # position of the keyframe ``link`` registers this one to
 
 
 @dataclass
@@ -106,6 +118,10 @@ class FlightScan:
     failed_pairs: int = 0
     relocalised: list[int] = field(default_factory=list)
     seconds: float = 0.0
+    # Frames that went into no keyframe's place and why: photos (each is a keyframe unless
+    # named here) and video frames that could not be placed (between a cut and a new segment).
+    dropped: list[tuple[int, str]] = field(default_factory=list)
+    photos: bool = False
 
     @property
     def composited(self) -> list[Keyframe]:
@@ -212,19 +228,20 @@ class FlightScanner:
         self.extract = FeatureExtractor(source_size, feature_options)
         self.matcher = FeatureMatcher(self.extract)
         self.store = KeyframeStore(source_size, decode_size[0] / source_size[0], max_size, spill)
-        self.coverage = CoverageMap(source_size, options.coverage_cells)
+        self.coverage: dict[int, CoverageMap] = {}  # per segment: each has its own world
         self.keyframes: list[Keyframe] = []
         self.placement: np.ndarray | None = None  # of the current frame, None while lost
-        self.lost_since: int | None = None
+        self.segment = 0
+        self.previous: int | None = None  # position of the keyframe new ones are linked to
         self.failed_pairs = 0
         self.relocalised: list[int] = []
+        self.dropped: list[tuple[int, str]] = []
+        self.photos = False
         self._sharpness: deque[float] = deque(maxlen=options.sharpness_window)
         self._candidate: tuple | None = None  # (sharpness, index, frame, quality, placement)
         self._last: tuple | None = None  # the same, of the last sharp and well exposed frame
         self._quality_size = (options.quality_width, max(1, round(source_size[1] * options.quality_width / source_size[0])))
         self._corners = frame_corners(*source_size)
-        self._fit_points = np.vstack([self._corners, [[(source_size[0] - 1) / 2, (source_size[1] - 1) / 2]]])
-        self._fit_design = np.hstack([self._fit_points, np.ones((5, 1))])
 
     # -- per frame -------------------------------------------------------------------
     def first(self, frame: np.ndarray) -> None:
@@ -238,18 +255,47 @@ class FlightScanner:
         self.placement = self._place(frame, estimate)
         if self.placement is not None:
             self._consider(frame, quality)
+        else:
+            self.dropped.append((self.index, "lost: the estimator failed and it registers with no recent keyframe"))
+
+    def photo(self, frame: np.ndarray) -> None:
+        """A photo of a folder: registered directly (features) with the previous keyframe or,
+        failing that, with the last few; every photo becomes a keyframe or is named dropped."""
+        self.photos = True
+        self.index += 1
+        quality = self._quality(frame)
+        if not quality.well_exposed(self.o):
+            self.dropped.append((self.index, _exposure_problem(quality, self.o)))
+            return
+        features = self.extract(frame)
+        if len(features) < self.matcher.options.min_inliers:
+            self.dropped.append((self.index, f"featureless: {len(features)} SIFT features"))
+            return
+        recent = range(len(self.keyframes) - 1, max(-1, len(self.keyframes) - 1 - self.o.relocalise_keyframes), -1)
+        order = ([self.previous] if self.previous is not None else []) + [k for k in recent if k != self.previous]
+        for position in order:
+            key = self.keyframes[position]
+            match = self.matcher.match(features, key.features)
+            if match is not None:
+                self.segment, self.previous = key.segment, position
+                self._add(self.index, frame, quality, key.placement @ self._affine(match.H), features, (position, match))
+                return
+        if self.keyframes:
+            self._new_segment()
+        self._add(self.index, frame, quality, np.eye(3), features)
 
     def finish(self) -> FlightScan:
         # The flight's last ground: the best frame since the last keyframe, if it adds any.
         ending = self._candidate or self._last
-        if ending is not None and self.keyframes and ending[1] > self.keyframes[-1].index:
+        last = self.keyframes[self.previous] if self.previous is not None else None
+        if ending is not None and last is not None and ending[1] > last.index:
             _, index, frame, quality, placement = ending
-            if overlap_fraction(np.linalg.inv(self.keyframes[-1].placement) @ placement, self.size) < self.o.last_overlap:
+            if overlap_fraction(np.linalg.inv(last.placement) @ placement, self.size) < self.o.last_overlap:
                 self._add(index, frame, quality, placement)
         self.store.shrink(self.keyframes)
         return FlightScan(
             self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
-            self.failed_pairs, self.relocalised,
+            self.failed_pairs, self.relocalised, dropped=self.dropped, photos=self.photos,
         )
 
     # -- placement -------------------------------------------------------------------
@@ -265,25 +311,31 @@ class FlightScanner:
             # Nothing placed yet: start the world afresh at this frame.
             self._candidate = None
             return np.eye(3)
-        return self._relocalise(frame)
+        placement = self._relocalise(frame)
+        if placement is None and ok:
+            # The estimator follows this ground but it registers with no recent keyframe: a
+            # cut.  A new segment starts here; the register stage relocalises it.
+            self._new_segment()
+            return np.eye(3)
+        return placement
+
+    def _new_segment(self) -> None:
+        self.segment = 1 + max(k.segment for k in self.keyframes)
+        self.previous = None
+        self._candidate = self._last = None
 
     def _relocalise(self, frame: np.ndarray) -> np.ndarray | None:
         """Register the frame directly against the last keyframes (the estimator lost it)."""
-        if self.lost_since is None:
-            self.lost_since = self.index
         features = self.extract(frame)
-        for key in reversed(self.keyframes[-3:]):
+        first = max(0, len(self.keyframes) - self.o.relocalise_keyframes)
+        for position in range(len(self.keyframes) - 1, first - 1, -1):
+            key = self.keyframes[position]
             match = self.matcher.match(features, key.features)
             if match is not None:
-                self.lost_since = None
                 self.relocalised.append(self.index)
+                # Go on in that keyframe's segment (a short break may have started another).
+                self.segment, self.previous = key.segment, position
                 return key.placement @ self._affine(match.H)
-        if (self.index - self.lost_since) > self.o.max_lost_seconds * self.fps:
-            raise ProcessingError(
-                f"the flight cannot be followed past frame {self.lost_since} ({_timecode(self.lost_since, self.fps)}): "
-                f"the estimator fails there and no later frame re-registers with the panorama so far "
-                f"(a cut, or featureless ground); stitch the parts separately with --start/--max-frames"
-            )
         return None
 
     def _check_chain(self, placement: np.ndarray) -> None:
@@ -311,11 +363,11 @@ class FlightScanner:
         sharp = quality.sharpness >= self.o.sharpness_ratio * float(np.percentile(self._sharpness, self.o.sharpness_percentile))
         if sharp:
             self._last = (quality.sharpness, self.index, frame, quality, self.placement)
-        if not self.keyframes:
+        if self.previous is None:  # the segment's first keyframe
             if sharp:
                 self._add(self.index, frame, quality, self.placement)
             return
-        last = self.keyframes[-1]
+        last = self.keyframes[self.previous]
         overlap = overlap_fraction(np.linalg.inv(last.placement) @ self.placement, self.size)
         if overlap >= self.o.new_ground:
             return
@@ -334,7 +386,11 @@ class FlightScanner:
         so the world placement of a long flight does not drift into perspective nonsense."""
         chained = np.linalg.inv(previous.placement) @ keyframe.placement
         tolerance = self.o.link_tolerance * float(np.hypot(*self.size))
-        keyframe.link = self.matcher.match(keyframe.features, previous.features, chained, tolerance)
+        match = self.matcher.match(keyframe.features, previous.features)
+        if match is not None and corner_distance(match.H, chained, self.size) > tolerance and match.inliers < self.o.override_inliers:
+            match = None  # disagrees with the chain, and not convincingly enough to overrule it
+        keyframe.link = match
+        keyframe.link_to = self.previous
         if keyframe.link is not None:
             anchored = previous.placement @ self._affine(keyframe.link.H)
             # The frames after the keyframe were chained from its old placement: move them too.
@@ -343,24 +399,43 @@ class FlightScanner:
             keyframe.placement = anchored
 
     def _affine(self, H: np.ndarray) -> np.ndarray:
-        """The affine transform closest to ``H`` over the frame (corners and centre)."""
-        target = project(H, self._fit_points)
-        A, *_ = np.linalg.lstsq(self._fit_design, target, rcond=None)
-        return np.vstack([A.T, [0.0, 0.0, 1.0]])
+        return closest_affine(H, self.size)
 
-    def _add(self, index: int, frame: np.ndarray, quality: FrameQuality, placement: np.ndarray) -> None:
+    def _add(self, index, frame, quality, placement, features: Features | None = None, link: tuple | None = None) -> None:
+        """A new keyframe in the current segment: ``link`` (position, match) when it was
+        registered already (photos), else it is anchored to the previous keyframe."""
         self._candidate = self._last = None
-        keyframe = Keyframe(index, placement, self.extract(frame), quality)
-        if self.keyframes:
-            self._anchor(keyframe, self.keyframes[-1])
+        keyframe = Keyframe(index, placement, features if features is not None else self.extract(frame), quality, segment=self.segment)
+        if link is not None:
+            keyframe.link_to, keyframe.link = link
+        elif self.previous is not None:
+            self._anchor(keyframe, self.keyframes[self.previous])
         placement = keyframe.placement
         world = project(placement, self._corners)
-        cells = self.coverage.cells(world)
-        if not self.keyframes or self.coverage.new_fraction(cells) >= self.o.min_new_coverage:
-            self.coverage.add(cells)
+        coverage = self.coverage.setdefault(self.segment, CoverageMap(self.size, self.o.coverage_cells))
+        cells = coverage.cells(world)
+        if not coverage.covered or coverage.new_fraction(cells) >= self.o.min_new_coverage:
+            coverage.add(cells)
             self.store.keep(keyframe, frame, world)
             self.store.shrink(self.keyframes)
         self.keyframes.append(keyframe)
+        self.previous = len(self.keyframes) - 1
+
+
+def closest_affine(H: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """The affine transform closest to ``H`` over a frame of ``size`` (corners and centre)."""
+    points = np.vstack([frame_corners(*size), [[(size[0] - 1) / 2, (size[1] - 1) / 2]]])
+    design = np.hstack([points, np.ones((5, 1))])
+    A, *_ = np.linalg.lstsq(design, project(H, points), rcond=None)
+    return np.vstack([A.T, [0.0, 0.0, 1.0]])
+
+
+def _exposure_problem(quality: FrameQuality, o: KeyframeOptions) -> str:
+    if quality.brightness < o.dark_level:
+        return f"black (mean gray {quality.brightness:.0f})"
+    if quality.brightness > o.bright_level or quality.clipped > o.max_clipped:
+        return f"over-exposed ({quality.clipped:.0%} saturated)"
+    return f"blank (gray contrast {quality.contrast:.1f})"
 
 
 def _timecode(index: int, fps: float) -> str:
@@ -389,6 +464,17 @@ def scan_flight(
         advance(1, status=f"{len(scanner.keyframes)} keyframes")
     for estimate in estimator.finish():
         scanner.step(waiting.popleft(), estimate)
+    scan = scanner.finish()
+    scan.seconds = time.perf_counter() - start
+    return scan
+
+
+def scan_photos(photos: Iterable[np.ndarray], scanner: FlightScanner, advance: Callable[..., None] = lambda *a, **k: None) -> FlightScan:
+    """A folder of photos: no estimator, each photo registered directly (see ``photo``)."""
+    start = time.perf_counter()
+    for photo in photos:
+        scanner.photo(photo)
+        advance(1, status=f"{len(scanner.keyframes)} placed")
     scan = scanner.finish()
     scan.seconds = time.perf_counter() - start
     return scan

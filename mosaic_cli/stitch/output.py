@@ -34,6 +34,13 @@ def check_outputs(out: str | Path, transforms: str | Path | None, max_size: int 
     return fmt
 
 
+def numbered(path: str | Path, number: int) -> Path:
+    """The ``number``-th output (from 0) of a flight stitched into several panoramas:
+    pano.png, pano-2.png, pano-3.png, ..."""
+    path = Path(path)
+    return path if number == 0 else path.with_name(f"{path.stem}-{number + 1}{path.suffix}")
+
+
 def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) -> None:
     """PNG and TIFF keep the alpha channel (transparent where nothing was seen); JPEG has
     none, so uncovered areas are black.  ``rgba`` is turned into BGRA in place: a panorama
@@ -53,14 +60,18 @@ def write_transforms(
     path: str | Path, canvas_size: tuple[int, int], frames: list[tuple[int, np.ndarray]], extra: tuple[dict, list[dict]] | None = None
 ) -> None:
     """``{"canvas_size": [W, H], "frames": [{"index": i, "H": 3x3}, ...]}``: each used frame's
-    homography, frame pixels (full resolution) -> panorama pixels.  ``extra`` (georeferenced
-    stitches) adds top-level keys and per-frame keys: ``crs`` and ``map_H`` (see geo/output.py)."""
+    homography, frame pixels (full resolution) -> panorama pixels; with ``"input": {...}`` when
+    the video decoded to fewer frames than its container announced (video.reader.Shortfall).
+    ``extra`` (georeferenced stitches) adds top-level keys and per-frame keys: ``crs`` and
+    ``map_H`` (see geo/output.py)."""
+    from mosaic_cli.video.reader import shortfalls
+
     top, per_frame = extra if extra is not None else ({}, [{} for _ in frames])
-    write_json(
-        path,
-        {
-            "canvas_size": [int(canvas_size[0]), int(canvas_size[1])],
-            **top,
-            "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H], **more} for (i, H), more in zip(frames, per_frame)],
-        },
-    )
+    doc = {
+        "canvas_size": [int(canvas_size[0]), int(canvas_size[1])],
+        **top,
+        "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H], **more} for (i, H), more in zip(frames, per_frame)],
+    }
+    for short in shortfalls().values():  # one video a run
+        doc["input"] = short.as_meta()
+    write_json(path, doc)

@@ -1,15 +1,24 @@
 """``stitch()``: a video in, a panorama out, in five stages.
 
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
-             placed by direct registration with the previous one
-2. register  close loops, refine all placements jointly (drift control)
+             placed by direct registration with the previous one (photos: registered
+             directly, no estimator); a cut starts a new segment
+2. register  relocalise segments on each other, close loops, refine all placements jointly
+             (drift control); segments that join nothing become panoramas of their own
 3. canvas    pick the reference keyframe, size the canvas (``max_size``), refuse degenerate chains
 4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending
-5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically
+5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically; the panoramas
+             after the first are numbered: pano.png, pano-2.png, ...
+
+With telemetry (``StitchOptions.georef``, see mosaic_cli/geo) the log is read before any work,
+drift control starts from GPS-straightened placements, and each panorama whose keyframes the
+log covers is laid north-up on the ground before its canvas is planned (GeoTIFF, footprints,
+map homographies in the transforms).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -27,9 +36,16 @@ from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
-from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight
-from mosaic_cli.stitch.output import check_outputs, write_panorama, write_transforms
-from mosaic_cli.stitch.registration import RegistrationOptions, RegistrationReport, chain_neighbours, register_keyframes
+from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
+from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
+from mosaic_cli.stitch.registration import (
+    RegistrationOptions,
+    RegistrationReport,
+    chain_sequence,
+    register_keyframes,
+)
+from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
+from mosaic_cli.telemetry import Track
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
@@ -39,6 +55,7 @@ class StitchOptions:
     keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
     features: FeatureOptions = field(default_factory=FeatureOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    joining: JoinOptions = field(default_factory=JoinOptions)
     canvas: CanvasOptions = field(default_factory=CanvasOptions)
     compose: ComposeOptions = field(default_factory=ComposeOptions)
     start: int = 0
@@ -51,15 +68,29 @@ class StitchOptions:
 
 
 @dataclass
-class StitchResult:
+class Panorama:
+    path: Path
+    transforms_path: Path | None
     canvas_size: tuple[int, int]
     transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per keyframe
+    reference_frame: int
+    segments: int  # segments of the flight joined in it
+    georef: Georeference | None = None  # laid on the ground (telemetry covering its keyframes)
+
+
+@dataclass
+class StitchResult:
+    canvas_size: tuple[int, int]  # of the first panorama (the one with the first keyframe)
+    transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per keyframe, ditto
     reference_frame: int
     frames: int
     keyframes: int
     registration: RegistrationReport
     seconds: dict[str, float]
-    georef: "Georeference | None" = None
+    panoramas: list[Panorama] = field(default_factory=list)  # all of them, the first first
+    dropped: list[tuple[int, str]] = field(default_factory=list)  # (frame index, why) not placed anywhere
+    photos: bool = False
+    georef: Georeference | None = None  # the first panorama's, with telemetry
 
     @property
     def frames_per_second(self) -> float:
@@ -80,7 +111,16 @@ def stitch(
     stitched; never leaves a partial file."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options)
-    track = load_track(video, out, options.georef, _time_span(info, options))  # geo hook: before any work
+    if info.is_image_folder:
+        # Photos are registered by features alone: describe them finer than video frames.
+        f = options.features
+        photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features))
+        options = dataclasses.replace(options, features=photo)
+        if options.georef is not None and (options.georef.telemetry is not None or options.georef.footprints is not None):
+            raise BadInput(f"{video}: --telemetry and --footprints apply to videos, not to photo folders")
+        track = None
+    else:
+        track = load_track(video, out, options.georef, _time_span(info, options))  # geo hook: before any work
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -92,41 +132,79 @@ def stitch(
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
+        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, track)
 
-        clock = time.perf_counter()
-        indices = [k.index for k in scan.keyframes]
-        ref = choose_reference(indices, reference, scan.first_index + scan.frames - 1)
-        straighten = None  # geo hook: with telemetry, drift control starts from GPS-straightened placements
-        if track is not None:
-            straighten = gps_straightener(track, ref, indices, scan.source_size, info.fps, options.georef)
-        placements, report = _register(scan, ref, options, show_progress, straighten)
+
+def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
+                  transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
+                  track: Track | None = None) -> StitchResult:
+    """The stages after the scan, shared by the offline and the live stitch: register the
+    keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
+    write each panorama.  ``seconds`` gains each stage's time.  With ``track`` (telemetry, see
+    geo/stitching.py) drift control starts from GPS-straightened placements and each panorama
+    whose keyframes the log covers is laid north-up on the ground (GeoTIFF, footprints, map
+    homographies in the transforms)."""
+    clock = time.perf_counter()
+    groups, report = _register(scan, reference, options, show_progress, track)
+    seconds["register"] = time.perf_counter() - clock
+
+    seconds["compose"] = seconds["write"] = 0.0
+    panoramas = []
+    for number, (members, placements, ref, segments) in enumerate(groups):
+        keyframes = [scan.keyframes[k] for k in members]
+        indices = [k.index for k in keyframes]
         georef = None
         if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
-            georef = georeference(placements, ref, indices, scan.source_size, info.fps, track, options.georef)
-            placements = georef.placements_in_pixels(placements)
-        seconds["register"] = time.perf_counter() - clock
+            clock = time.perf_counter()
+            georef = _georeference(placements, ref, indices, scan, track, options.georef, first=number == 0)
+            if georef is not None:
+                placements = georef.placements_in_pixels(placements)
+            seconds["register"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
-        drawn = [k.composited for k in scan.keyframes]
+        drawn = [k.composited for k in keyframes]
         canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        panorama = _compose(scan, frame_to_canvas, canvas.size, options.compose, show_progress)
-        seconds["compose"] = time.perf_counter() - clock
+        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress)
+        seconds["compose"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
-        extra = None
+        path, json_path = numbered(out, number), numbered(transforms, number) if transforms is not None else None
+        extra, written = None, False
         if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
-            written = write_outputs(out, panorama, georef, options.georef, canvas.to_canvas, frame_to_canvas, scan.source_size, info.fps)
+            assert options.georef is not None
+            footprints = options.georef.footprints
+            own = dataclasses.replace(options.georef, footprints=numbered(footprints, number) if footprints is not None else None)
+            written = write_outputs(path, panorama, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps)
             extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
-        if georef is None or not written:
-            write_panorama(out, panorama)
+        if not written:
+            write_panorama(path, panorama)
         del panorama
         # Every keyframe is reported, also those over ground already drawn (used for registration).
         frames = list(zip(indices, frame_to_canvas))
-        if transforms is not None:
-            write_transforms(transforms, canvas.size, frames, extra)
-        seconds["write"] = time.perf_counter() - clock
-        return StitchResult(canvas.size, frames, indices[ref], scan.frames, len(scan.keyframes), report, seconds, georef)
+        if json_path is not None:
+            write_transforms(json_path, canvas.size, frames, extra)
+        seconds["write"] += time.perf_counter() - clock
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef))
+    first = panoramas[0]
+    return StitchResult(
+        first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
+        seconds, panoramas, scan.dropped, scan.photos, first.georef,
+    )
+
+
+def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, track: Track, options: GeorefOptions | None,
+                  first: bool) -> Georeference | None:
+    """One panorama laid on the ground.  The first panorama must be (the log was checked to
+    cover the video: what is wrong is said); a panorama of a later segment whose keyframes the
+    log does not cover stays a plain one (None)."""
+    assert options is not None
+    try:
+        return georeference(placements, ref, indices, scan.source_size, scan.fps, track, options)
+    except BadInput:
+        if first:
+            raise
+        return None
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
@@ -181,36 +259,83 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
                     return
                 yield frame
 
+        if info.is_image_folder:
+            with progress_task("scan (photos, features)", total, unit="photos/s", disable=not show_progress) as advance:
+                return scan_photos(frames(), scanner, advance)
         with progress_task(f"scan ({estimator.name})", total, disable=not show_progress) as advance:
             return scan_flight(frames(), estimator, scanner, advance)
 
 
-def _register(scan: FlightScan, ref: int, options: StitchOptions, show_progress: bool, straighten=None):
-    """Keyframe -> reference placements: jointly refined, or chained from the neighbours'
-    registrations when drift control is off.  ``straighten`` (telemetry) corrects the scan's
-    placements before loops are looked for."""
+def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: Track | None = None):
+    """The panoramas: for each, its keyframes (positions in ``scan.keyframes``), their
+    keyframe -> reference placements (jointly refined, or chained from the scan's
+    registrations when drift control is off), the reference (a position in the group) and
+    how many segments it joins.  ``track`` (telemetry) straightens each group's placements
+    toward the GPS before loops are looked for."""
     keyframes = scan.keyframes
-    world = [normalize(np.linalg.inv(keyframes[ref].placement) @ k.placement) for k in keyframes]
-    if straighten is not None and options.registration.enabled and len(keyframes) >= 2:
-        world = straighten(world)
-    neighbours = [k.link for k in keyframes[1:]]
-    if not options.registration.enabled or len(keyframes) < 2:
-        return chain_neighbours(neighbours, world, ref), RegistrationReport()
+
+    def progress(description: str, total: int):
+        return progress_task(description, total, unit="pairs/s", disable=not show_progress)
+
     matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features))
     features = [k.features for k in keyframes]
-    with progress_task("register", None, unit="pairs/s", disable=not show_progress) as advance:
-        placements, report = register_keyframes(features, world, neighbours, ref, matcher, options.registration, advance)
-        advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
-    return placements, report
+    segments = [k.segment for k in keyframes]
+    world = [k.placement for k in keyframes]
+    if len(set(segments)) > 1:
+        joined = join_segments(features, world, segments, matcher, options.registration, options.joining, progress)
+    else:
+        joined = Joined(world, [list(range(len(keyframes)))])
+    last_frame = scan.first_index + scan.frames - 1
+    if isinstance(reference, int):
+        choose_reference([k.index for k in keyframes], reference, last_frame)  # refuses a frame past the end
+        nearest = int(np.argmin([abs(k.index - reference) for k in keyframes]))
+    groups, total = [], RegistrationReport()
+    for members in joined.groups:
+        local = {k: i for i, k in enumerate(members)}
+        indices = [keyframes[k].index for k in members]
+        spec = reference if not isinstance(reference, int) or nearest in local else "middle"
+        ref = choose_reference(indices, spec, last_frame)
+        to_ref = np.linalg.inv(joined.placements[members[ref]])
+        placements = [normalize(to_ref @ joined.placements[k]) for k in members]
+        sequence = [
+            (local[k], local[keyframes[k].link_to], keyframes[k].link)
+            for k in members
+            if keyframes[k].link_to is not None and keyframes[k].link_to in local
+        ]
+        extra = [
+            dataclasses.replace(l, a=local[l.a], b=local[l.b]) for l in joined.links if l.a in local and l.b in local
+        ]
+        if not options.registration.enabled or len(members) < 2:
+            placements, report = chain_sequence(sequence, placements, ref), RegistrationReport()
+        else:
+            if track is not None:  # geo hook: drift control starts from GPS-straightened placements
+                assert options.georef is not None
+                straighten = gps_straightener(track, ref, indices, scan.source_size, scan.fps, options.georef)
+                placements = straighten(placements)
+            placements, report = register_keyframes(
+                [features[k] for k in members], placements, sequence, ref, matcher, options.registration, progress, extra
+            )
+        _add_report(total, report)
+        groups.append((members, placements, ref, len({segments[k] for k in members})))
+    return groups, total
 
 
-def _compose(scan: FlightScan, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
+def _add_report(total: RegistrationReport, report: RegistrationReport) -> None:
+    for name in ("sequential", "chained", "loop_candidates", "loops", "loops_dropped"):
+        setattr(total, name, getattr(total, name) + getattr(report, name))
+    total.residual_before = max(total.residual_before, report.residual_before)
+    total.links += report.links
+    if total.links:
+        total.residual_after = float(np.median([l.residual for l in total.links]))
+
+
+def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool):
     placed = []
-    for keyframe, H in zip(scan.keyframes, frame_to_canvas):
+    for keyframe, H in zip(keyframes, frame_to_canvas):
         if not keyframe.composited:
             continue
         image, keyframe.image = keyframe.image, None  # compose() frees each image once drawn
-        to_source = np.linalg.inv(resize_matrix(scan.source_size, (image.shape[1], image.shape[0])))
+        to_source = np.linalg.inv(resize_matrix(source_size, (image.shape[1], image.shape[0])))
         placed.append(PlacedImage(image, normalize(H @ to_source)))
         del image
     with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", canvas_size[1], unit="rows/s", disable=not show_progress) as advance:

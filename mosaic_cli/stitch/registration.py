@@ -4,14 +4,16 @@ Chaining accumulates error: a long flight bends.  Consecutive keyframes were reg
 directly during the scan (one SIFT match instead of dozens of chained estimates); here the
 keyframes that see the same ground again (loops, neighbouring survey lines) are registered as
 well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over the
-inlier correspondences) places every keyframe in the reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
+inlier correspondences, each measured in the keyframes' own pixels) places every keyframe in the
+reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
 again, so one bad match cannot bend the panorama.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, ContextManager
 
 import numpy as np
 import scipy.sparse
@@ -71,56 +73,77 @@ def relative(placements: list[np.ndarray], a: int, b: int) -> np.ndarray:
     return normalize(np.linalg.inv(placements[b]) @ placements[a])
 
 
+# A progress task: ``(description, total)`` -> a context manager yielding ``advance(n)``.
+ProgressFactory = Callable[[str, int], ContextManager[Callable[..., None]]]
+
+
+@contextlib.contextmanager
+def no_progress(description: str, total: int):
+    yield lambda *a, **k: None
+
+
+# (a, b, match): keyframe a was linked to keyframe b during the scan, ``match`` its direct
+# registration (a -> b), None where that failed (the estimator's chain links them then).
+Sequence = list[tuple[int, int, PairMatch | None]]
+
+
 def register_keyframes(
     features: list[Features],
     placements: list[np.ndarray],
-    neighbours: list[PairMatch | None],
+    sequence: Sequence,
     reference: int,
     matcher: FeatureMatcher,
     options: RegistrationOptions,
-    advance: Callable[..., None] = lambda *a, **k: None,
+    progress: ProgressFactory = no_progress,
+    extra_links: list[Link] = (),
 ) -> tuple[list[np.ndarray], RegistrationReport]:
-    """Keyframe -> reference placements refined against direct registrations.
+    """Keyframe -> reference placements refined against direct registrations: the scan's
+    ``sequence`` links, ``extra_links`` (segments relocalised on each other) and loops.
 
-    ``neighbours[k]`` is keyframe k+1 registered to keyframe k during the scan (None where
-    that failed).  Loops are looked for twice: with the scan's placements, then again with the
-    refined ones, which can reveal overlaps that drift had hidden (within ``max_loop_pairs``)."""
+    Loops are looked for twice: with the scan's placements, then again with the refined
+    ones, which can reveal overlaps that drift had hidden (within ``max_loop_pairs``)."""
     size = matcher.source_size
     report = RegistrationReport()
-    report.links = link_neighbours(neighbours, placements, size, options, report)
+    report.links = link_sequence(sequence, placements, size, options, report) + list(extra_links)
     tried: set[tuple[int, int]] = set()
-    for _ in range(options.loop_rounds):
-        candidates = loop_candidates(placements, size, options, tried)
+    linked = {(min(l.a, l.b), max(l.a, l.b)) for l in report.links}
+    for round_ in range(options.loop_rounds):
+        candidates = [c for c in loop_candidates(placements, size, options, tried) if c not in linked]
         if tried and not candidates:
             break
         tried |= set(candidates)
         report.loop_candidates += len(candidates)
-        report.links += link_loops(features, placements, candidates, matcher, options, report, advance)
-        placements = refine_placements(placements, report, reference, size, options)
+        name = "register loops" if round_ == 0 else f"register loops (round {round_ + 1})"
+        with progress(name, len(candidates)) as advance:
+            report.links += link_loops(features, placements, candidates, matcher, options, report, advance)
+            advance(0, status="refining")
+            placements = refine_placements(placements, report, reference, size, options)
+            advance(0, status=f"{report.loops - report.loops_dropped} loops, residual {report.residual_after:.2f} px")
     return placements, report
 
 
-def chain_neighbours(neighbours: list[PairMatch | None], placements: list[np.ndarray], reference: int) -> list[np.ndarray]:
-    """Keyframe -> reference by chaining the neighbours' registrations (full homographies;
-    the scan's placement where a registration failed): plain chaining, no drift control."""
-    chain = [np.eye(3)]
-    for k, match in enumerate(neighbours, start=1):
-        step = match.H if match is not None else relative(placements, k, k - 1)
-        chain.append(normalize(chain[-1] @ step))
+def chain_sequence(sequence: Sequence, placements: list[np.ndarray], reference: int) -> list[np.ndarray]:
+    """Keyframe -> reference by chaining the scan's registrations (full homographies; the
+    scan's placement where a registration failed): plain chaining, no drift control.  A
+    keyframe linked to none (a segment's first) keeps the scan's placement."""
+    chain = [np.asarray(P, float) for P in placements]
+    for a, b, match in sorted(sequence):  # a > b: the linked-to keyframe is placed first
+        step = match.H if match is not None else relative(placements, a, b)
+        chain[a] = normalize(chain[b] @ step)
     to_reference = np.linalg.inv(chain[reference])
     return [normalize(to_reference @ H) for H in chain]
 
 
-def link_neighbours(neighbours, placements, size, options: RegistrationOptions, report) -> list[Link]:
-    """Consecutive keyframes: their direct registration, or the estimator's chain (a weaker
-    link) where that failed or disagreed with the chain."""
+def link_sequence(sequence: Sequence, placements, size, options: RegistrationOptions, report) -> list[Link]:
+    """The scan's links: direct registrations, or the estimator's chain (a weaker link) where
+    that failed or disagreed with the chain."""
     links = []
-    for a, match in enumerate(neighbours):
+    for a, b, match in sequence:
         if match is not None:
-            links.append(_from_match(a + 1, a, match, "sequential", options))
+            links.append(_from_match(a, b, match, "sequential", options))
             report.sequential += 1
         else:
-            links.append(_from_homography(a, a + 1, relative(placements, a, a + 1), size, "chain", options.chain_weight))
+            links.append(_from_homography(a, b, relative(placements, a, b), size, "chain", options.chain_weight))
             report.chained += 1
     return links
 
@@ -199,14 +222,23 @@ def _from_homography(a: int, b: int, H: np.ndarray, size: tuple[int, int], kind:
 class _Problem:
     """Each non-reference keyframe k is placed by G_k = G0_k N^-1 (I + D_k) N, where G0_k is
     its initial placement, N normalises its pixels to about [-1, 1] and D_k (8 numbers, the
-    last entry fixed at 0) is the unknown: well scaled, and 0 at the start."""
+    last entry fixed at 0) is the unknown: well scaled, and 0 at the start.
+
+    A link's residuals are transfer errors measured in the keyframes' own pixels, both ways:
+    point a carried into keyframe b (G_b^-1 G_a) against its match there, and b into a.  Not in
+    the reference keyframe's pixels: there, shrinking the keyframes far from the reference
+    shrinks every residual with them, and a flight that revisits its ground (many links far
+    from the reference) was squashed toward it.  In each keyframe's own pixels a residual does
+    not change when the whole flight is scaled, so the only pull on the scale is the data."""
 
     def __init__(self, initial: list[np.ndarray], links: list[Link], reference: int, size: tuple[int, int]):
         self.K = len(initial)
         self.reference = reference
-        f = max(size) / 2.0
+        self.f = max(size) / 2.0
+        f = self.f
         self.N = np.array([[1 / f, 0, -(size[0] / 2 - 0.5) / f], [0, 1 / f, -(size[1] / 2 - 0.5) / f], [0, 0, 1.0]])
         self.M = np.array([G @ np.linalg.inv(self.N) for G in initial])
+        self.M_inv = np.linalg.inv(self.M)
         self.column = np.full(self.K, -1)
         free = [k for k in range(self.K) if k != reference]
         self.column[free] = np.arange(len(free)) * 8
@@ -217,16 +249,22 @@ class _Problem:
         self.links = links
         counts = [len(l.points_a) for l in links]
         self.owner = np.repeat(np.arange(len(links)), counts)
-        self.ia = np.repeat([l.a for l in links], counts)
-        self.ib = np.repeat([l.b for l in links], counts)
-        self.sqrt_w = np.sqrt(np.repeat([l.weight for l in links], counts))
-        self.pa = self._normalised(np.concatenate([l.points_a for l in links]))
-        self.pb = self._normalised(np.concatenate([l.points_b for l in links]))
-        n = len(self.ia)
+        ia = np.repeat([l.a for l in links], counts)
+        ib = np.repeat([l.b for l in links], counts)
+        w = np.sqrt(np.repeat([l.weight for l in links], counts))
+        pa = self._normalised(np.concatenate([l.points_a for l in links]))
+        pb = self._normalised(np.concatenate([l.points_b for l in links]))
+        # Both directions: "source" points are carried into the "target" keyframe.
+        self.n_points = len(ia)
+        self.src = np.concatenate([ia, ib])
+        self.dst = np.concatenate([ib, ia])
+        self.p_src = np.concatenate([pa, pb])
+        self.p_dst = np.concatenate([pb, pa])[:, :2]
+        self.sqrt_w = np.concatenate([w, w]) * np.sqrt(0.5)
+        n = len(self.src)
         rows = np.arange(2 * n).reshape(n, 2)
-        # Each residual row depends on the 8 parameters of a and of b (when not the reference).
         self._jac_rows, self._jac_cols, self._jac_keep = [], [], []
-        for idx in (self.ia, self.ib):
+        for idx in (self.src, self.dst):
             col = self.column[idx]
             keep = np.repeat(col >= 0, 16)
             r = np.repeat(rows, 8, axis=1)  # (n, 16): row 2i for 8 params, then 2i+1
@@ -248,37 +286,54 @@ class _Problem:
         G = self.M @ (np.eye(3) + self._D(x)) @ self.N
         return G / G[:, 2:3, 2:3]
 
-    def _side(self, x: np.ndarray, idx: np.ndarray, p: np.ndarray):
-        A = self.M @ (np.eye(3) + self._D(x))  # (K, 3, 3)
-        u = np.einsum("nij,nj->ni", A[idx], p)
-        xy = u[:, :2] / u[:, 2:3]
-        return xy, u[:, 2], self.M[idx]
+    def _transfer(self, x: np.ndarray):
+        """Source points carried into their target keyframe (normalised coordinates):
+        u = (I + D_t)^-1 M_t^-1 M_s (I + D_s) p."""
+        A = np.eye(3) + self._D(x)
+        B = np.linalg.inv(A)
+        v = np.einsum("nij,nj->ni", A[self.src], self.p_src)
+        v = np.einsum("nij,nj->ni", self.M[self.src], v)
+        v = np.einsum("nij,nj->ni", self.M_inv[self.dst], v)  # in the target's initial frame
+        u = np.einsum("nij,nj->ni", B[self.dst], v)
+        return u, B
+
+    def _differences(self, x: np.ndarray) -> np.ndarray:
+        u, _ = self._transfer(x)
+        return (u[:, :2] / u[:, 2:3] - self.p_dst) * self.f  # pixels
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        xa, _, _ = self._side(x, self.ia, self.pa)
-        xb, _, _ = self._side(x, self.ib, self.pb)
-        return ((xa - xb) * self.sqrt_w[:, None]).ravel()
+        return (self._differences(x) * self.sqrt_w[:, None]).ravel()
 
     def jacobian(self, x: np.ndarray) -> scipy.sparse.csr_matrix:
-        values = []
-        for sign, idx, p in ((1.0, self.ia, self.pa), (-1.0, self.ib, self.pb)):
-            xy, w, M = self._side(x, idx, p)
-            # d(xy)/d(A[r, c]) for A = M (I + D): d u / d D[r, c] = M[:, r] p[c].
-            J_u = np.stack([M[:, 0, :] - xy[:, :1] * M[:, 2, :], M[:, 1, :] - xy[:, 1:] * M[:, 2, :]], axis=1) / w[:, None, None]
-            J = np.einsum("nkr,nc->nkrc", J_u, p).reshape(len(idx), 2, 9)[:, :, :8]
-            values.append((sign * self.sqrt_w[:, None, None] * J).reshape(len(idx), 16).ravel())
+        u, B = self._transfer(x)
+        w = u[:, 2]
+        xy = u[:, :2] / w[:, None]
+        n = len(u)
+        # d(xy)/du, (n, 2, 3)
+        P = np.zeros((n, 2, 3))
+        P[:, 0, 0] = P[:, 1, 1] = 1 / w
+        P[:, :, 2] = -xy / w[:, None]
+        # Source side: u = C (I + D_s) p with C = B_t M_t^-1 M_s: du/dD_s[r, c] = C[:, r] p[c].
+        C = np.einsum("nij,njk->nik", B[self.dst], np.einsum("nij,njk->nik", self.M_inv[self.dst], self.M[self.src]))
+        J_src = np.einsum("nkr,nc->nkrc", np.einsum("nki,nir->nkr", P, C), self.p_src).reshape(n, 2, 9)[:, :, :8]
+        # Target side: d(I + D_t)^-1 = -B dD B, so du/dD_t[r, c] = -B_t[:, r] u[c].
+        J_dst = -np.einsum("nkr,nc->nkrc", np.einsum("nki,nir->nkr", P, B[self.dst]), u).reshape(n, 2, 9)[:, :, :8]
+        scale = (self.f * self.sqrt_w)[:, None, None]
+        values = [(scale * J_src).reshape(n, 16).ravel(), (scale * J_dst).reshape(n, 16).ravel()]
         keep = np.concatenate(self._jac_keep)
         data = np.concatenate(values)[keep]
         rows = np.concatenate(self._jac_rows)[keep]
         cols = np.concatenate(self._jac_cols)[keep]
-        return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(2 * len(self.ia), self.n_params))
+        return scipy.sparse.csr_matrix((data, (rows, cols)), shape=(2 * n, self.n_params))
 
     def link_residuals(self, x: np.ndarray) -> np.ndarray:
-        """Median distance (pixels, unweighted) per link."""
-        xa, _, _ = self._side(x, self.ia, self.pa)
-        xb, _, _ = self._side(x, self.ib, self.pb)
-        d = np.linalg.norm(xa - xb, axis=1)
-        return np.array([np.median(d[self.owner == k]) for k in range(len(self.links))])
+        """Median transfer distance (pixels, unweighted, both ways) per link."""
+        d = np.linalg.norm(self._differences(x), axis=1)
+        owner = np.concatenate([self.owner, self.owner])
+        order = np.argsort(owner, kind="stable")
+        bounds = np.searchsorted(owner[order], np.arange(len(self.links) + 1))
+        d = d[order]
+        return np.array([np.median(d[bounds[k] : bounds[k + 1]]) for k in range(len(self.links))])
 
 
 def refine_placements(

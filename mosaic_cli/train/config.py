@@ -10,9 +10,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.model.network import PRESETS as NET_PRESETS
+from mosaic_cli.model.network import VARIANTS
 
-VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
-PRESETS = ("compact", "paper")
+PRESETS = tuple(NET_PRESETS)
 DEVICES = ("auto", "cpu", "cuda")
 
 # The paper trains BASE for 300k iterations at batch 64 and fine-tunes the REG-* variants
@@ -33,15 +34,6 @@ def paper_steps(variant: str) -> int:
 
 def paper_batch_size(variant: str) -> int:
     return PAPER_BATCH.get(variant, PAPER_REG_BATCH)
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """'320x180' -> (320, 180)."""
-    try:
-        w, h = (int(v) for v in str(text).lower().split("x"))
-    except ValueError:
-        raise BadInput(f"size {text!r} must look like 320x180") from None
-    return (w, h)
 
 
 @dataclass

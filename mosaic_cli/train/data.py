@@ -37,10 +37,11 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 
 from mosaic_cli.atomic import write_json
 from mosaic_cli.errors import BadInput, MosaicError
+from mosaic_cli.inputs import VIDEO_SUFFIXES
+from mosaic_cli.model.patches import crop
 from mosaic_cli.progress import console, progress_task
 from mosaic_cli.video.reader import IMAGE_SUFFIXES, open_video, probe
 
-VIDEO_SUFFIXES = {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".wmv", ".flv"}
 CACHE_FORMAT = 1
 NPY_HEADER_BYTES = 128  # np.lib.format v1 header length for any (n, h, w) uint8 shape
 SEGMENT_FRAMES = 128  # frames per kept segment when a clip is longer than its cache share
@@ -415,6 +416,23 @@ def make_loader(dataset: WindowDataset, sampler: StepBatches, num_workers: int, 
         prefetch_factor=2 if num_workers else None,
         multiprocessing_context=get_context("fork") if num_workers else None,
     )
+
+
+def sample_pairs(windows, count: int, seed: int = 0) -> torch.Tensor:
+    """``count`` patch pairs (N, 2, P, P) in [-1, 1] from a training dataset whose items are
+    ``{"frames": (K, 1, h, w) uint8, "positions": (M, 2)}`` windows: consecutive frames, the
+    first position of each window, a random pair of its frames."""
+    rng = np.random.default_rng(seed)
+    pairs = []
+    patch = windows.patch
+    for index in rng.choice(len(windows), size=count, replace=len(windows) < count):
+        item = windows[int(index)]
+        frames = item["frames"].float() / 127.5 - 1.0  # (K, 1, h, w)
+        t = int(rng.integers(len(frames) - 1))
+        pos = item["positions"][:1][None].expand(2, 1, 2)
+        crops = crop(frames[t : t + 2], pos, patch)  # (2, 1, 1, P, P)
+        pairs.append(crops[:, 0, 0])
+    return torch.stack(pairs)
 
 
 def to_model_input(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:

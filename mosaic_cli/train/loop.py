@@ -34,7 +34,6 @@ from mosaic_cli.errors import BadInput, Interrupted, MosaicError, ProcessingErro
 from mosaic_cli.model import quantize
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.network import HomographyNet, NetConfig
-from mosaic_cli.model.objective import Objective
 from mosaic_cli.progress import console, progress_task
 from mosaic_cli.train.config import RUN_DEFINING, TrainConfig
 from mosaic_cli.train.data import (
@@ -43,9 +42,11 @@ from mosaic_cli.train.data import (
     build_frame_cache,
     discover_clips,
     make_loader,
+    sample_pairs,
     to_model_input,
 )
 from mosaic_cli.train.distributed import Distributed
+from mosaic_cli.train.objective import Objective
 from mosaic_cli.train.run import (
     CsvLog,
     RunDir,
@@ -227,7 +228,7 @@ def calibrate_int8(net: HomographyNet, dataset: WindowDataset, seed: int) -> dic
     the final weights (None where this PyTorch has no int8 engine)."""
     if quantize.engine() is None:
         return None
-    return quantize.calibrate(net, quantize.sample_pairs(dataset, CALIBRATION_PAIRS, seed=seed))
+    return quantize.calibrate(net, sample_pairs(dataset, CALIBRATION_PAIRS, seed=seed))
 
 
 def compute_gradients(model: nn.Module, objective: Objective, optimizer: torch.optim.Optimizer,

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mosaic_cli import inputs
 from mosaic_cli.errors import BadInput
-from mosaic_cli.evaluate import landmarks_from_ground_truth, mace_pairs
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator
+from mosaic_cli.evaluate import landmarks_from_ground_truth, mace_pairs
 from mosaic_cli.model.network import HomographyNet
-from mosaic_cli.simulate import ground_truth_path, load_ground_truth
+from mosaic_cli.simulate import load_ground_truth
 from mosaic_cli.track import track_video
-from mosaic_cli.train.data import VIDEO_SUFFIXES
 
 
 @dataclass(frozen=True)
@@ -34,19 +34,16 @@ class ValFlight:
 
 
 def find_flights(folder: str | Path) -> list[ValFlight]:
-    """Every video in ``folder`` with a ``.gt.json`` beside it (others are ignored)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise BadInput(f"--val {folder}: no such folder")
+    """Every flight of ``folder`` (:func:`mosaic_cli.inputs.find_flights`) long enough to hold a
+    landmark pair (30+ frames)."""
     flights = []
-    for video in sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES):
-        if ground_truth_path(video).is_file():
-            gt = load_ground_truth(video)
-            landmarks = landmarks_from_ground_truth(gt)
-            if len(landmarks):
-                flights.append(ValFlight(video, gt, landmarks))
+    for video in inputs.find_flights(folder, "--val"):
+        gt = load_ground_truth(video)
+        landmarks = landmarks_from_ground_truth(gt)
+        if len(landmarks):
+            flights.append(ValFlight(video, gt, landmarks))
     if not flights:
-        raise BadInput(f"--val {folder}: no video with a .gt.json beside it and 30+ frames (make some with mosaic simulate)")
+        raise BadInput(f"--val {folder}: no flight of 30+ frames (make some with mosaic simulate)")
     return flights
 
 

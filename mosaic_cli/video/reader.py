@@ -3,9 +3,11 @@ RGB uint8 frames, (h, w, 3), one at a time."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
 import subprocess
+import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
@@ -42,6 +44,7 @@ class VideoInfo:
     rotation: int = 0
     audio_codec: str | None = None
     is_image_folder: bool = False
+    damage: str | None = None  # ffmpeg's complaint when the end of the file does not decode
 
     @property
     def has_audio(self) -> bool:
@@ -66,6 +69,9 @@ class VideoStream:
         self._frames = frames
         self._closer = closer
         self.frames_read = 0
+        self.frames_skipped = 0  # by ``start``: decoded, not yielded
+        self.decode_error: str | None = None  # set when the decoder stopped with an error
+        self.shortfall: Shortfall | None = None  # set when read to the end and short of the count
 
     def __iter__(self) -> Iterator[np.ndarray]:
         for frame in self._frames:
@@ -73,6 +79,7 @@ class VideoStream:
             yield frame
         if self.frames_read == 0:
             raise BadInput(f"{self.info.path}: no decodable frames")
+        self.shortfall = account_for_frames(self.info, self.frames_skipped + self.frames_read, self.decode_error)
 
     def close(self) -> None:
         if self._closer is not None:
@@ -169,8 +176,9 @@ def _ffmpeg_frames(path: str, size: tuple[int, int], source_size: tuple[int, int
         filters.append(f"scale={size[0]}:{size[1]}:flags=area")
     if filters:
         output_params += ["-vf", ",".join(filters)]
-    if start:
-        output_params += ["-fps_mode", "passthrough"]
+    # Every decoded frame exactly once: ffmpeg's default for a pipe would resample a variable
+    # frame rate to a constant one, duplicating and dropping frames.
+    output_params += ["-fps_mode", "passthrough"]
     pix_fmt, bpp = ("gray", 8) if gray else ("rgb24", 24)
     gen = imageio_ffmpeg.read_frames(path, pix_fmt=pix_fmt, bits_per_pixel=bpp, output_params=output_params)
     next(gen)  # metadata, already known
@@ -198,16 +206,49 @@ def probe(path: str | Path) -> VideoInfo:
     size = tuple(int(v) for v in meta["size"])
     duration = float(meta.get("duration") or 0.0)
     tail = _check_tail(str(p), duration)
-    if tail.damage:
-        raise BadInput(f"{p}: truncated or damaged video ({tail.damage})")
     fps = float(meta.get("fps") or 0.0)
     if tail.tbr and not 0.5 < fps / tail.tbr < 2.0:
         # An average rate far from the stream's base rate is a muxing artefact (h264 copied
         # into avi reports 600 fps at 30 tbr); the base rate is the one to play at.
         fps = tail.tbr
     fps = fps or DEFAULT_FOLDER_FPS
+    announced = container_frames(p)
     count = int(round(duration * fps)) if duration > 0 else None
-    return VideoInfo(str(p), size, size, fps, count, duration, tail.rotation, meta.get("audio_codec"))
+    if announced.fps is not None and abs(announced.fps - fps) < 0.01:
+        # The container's figures where its rate is the stream's (an avi of copied h264
+        # announces 600 fps and 20 times the frames): the exact rate (ffmpeg's log rounds to 2
+        # decimals, 23.98 for 24000/1001) and the frame count, which may include frames an
+        # edit list leaves out (a clip cut without re-encoding): the smaller of the two.
+        fps = announced.fps
+        if announced.frames:
+            count = min(announced.frames, count) if count else announced.frames
+    if tail.damage and _policy["strict"]:  # known before any work: refuse at once
+        said = f"; the container announces {count} frames" if count else ""
+        raise BadInput(f"{p}: truncated or damaged video ({tail.damage}{said}); --strict refuses it")
+    return VideoInfo(str(p), size, size, fps, count, duration, tail.rotation, meta.get("audio_codec"),
+                     damage=tail.damage)
+
+
+@dataclass(frozen=True)
+class ContainerCount:
+    """What the container itself says of its video stream."""
+
+    frames: int | None  # the frame count it announces (exact in mp4/mov/avi; else from the duration)
+    fps: float | None  # the average frame rate, unrounded
+
+
+def container_frames(path: str | Path) -> ContainerCount:
+    """The video stream's announced frame count and exact average rate (OpenCV's FFmpeg
+    backend reads them from the stream header; ffmpeg's log prints rounded figures only)."""
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    try:
+        if not capture.isOpened():
+            return ContainerCount(None, None)
+        frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = float(capture.get(cv2.CAP_PROP_FPS))
+    finally:
+        capture.release()
+    return ContainerCount(frames if frames > 0 else None, fps if fps > 0 else None)
 
 
 def open_video(
@@ -240,8 +281,83 @@ def open_video(
         try:
             for raw in gen:
                 yield np.frombuffer(raw, dtype=np.uint8).reshape(shape)
-        except RuntimeError:
-            # A truncated stream: ffmpeg delivered what it could decode; stop there.
+        except RuntimeError as exc:
+            # A truncated stream: ffmpeg delivered what it could decode; stop there (and say so).
+            stream.decode_error = str(exc).strip().splitlines()[-1] if str(exc).strip() else "decoder error"
             return
 
-    return VideoStream(info, frames(), gen.close)
+    stream = VideoStream(info, frames(), gen.close)
+    stream.frames_skipped = int(start)  # (a start past the end reads no frame, and says so)
+    return stream
+
+
+# --- Frames missing at the end: decoded fewer than the container announced -------------------
+# The run goes on with what decoded, after one warning line; under ``reading_policy(strict=True)``
+# (the commands' --strict) it is an error instead.  What was found is kept per path for the
+# outputs' metadata (:func:`shortfalls`).
+
+SHORTFALL_TOLERANCE = 2  # frames: rounding of a duration-based count, an edit list's last frame
+EXACT_COUNT_SUFFIXES = {".mp4", ".mov", ".m4v", ".3gp", ".avi"}  # containers that store the count itself
+_policy: dict = {"strict": False}
+_shortfalls: dict[str, "Shortfall"] = {}
+
+
+@dataclass(frozen=True)
+class Shortfall:
+    """A video that decoded to fewer frames than its container announced."""
+
+    path: str
+    decoded: int
+    announced: int
+    reason: str | None = None  # ffmpeg's complaint, when it made one
+
+    def message(self) -> str:
+        why = f" ({self.reason})" if self.reason else ""
+        return (f"{self.path}: decoded {self.decoded} of the {self.announced} frames the container announces: "
+                f"truncated or damaged{why}")
+
+    def as_meta(self) -> dict:
+        """For the outputs' metadata: ``{"frames_decoded", "frames_announced", "truncated", "reason"}``."""
+        return {"frames_decoded": self.decoded, "frames_announced": self.announced, "truncated": True,
+                "reason": self.reason}
+
+
+@contextlib.contextmanager
+def reading_policy(strict: bool = False) -> Iterator[None]:
+    """For one command's run: whether a short video is an error (``strict``) or a warning; also
+    forgets what earlier runs in this process found."""
+    previous = dict(_policy)
+    _policy["strict"] = bool(strict)
+    _shortfalls.clear()
+    try:
+        yield
+    finally:
+        _policy.update(previous)
+
+
+def shortfalls() -> dict[str, Shortfall]:
+    """Each video of this run found short, by path."""
+    return dict(_shortfalls)
+
+
+def account_for_frames(info: VideoInfo, decoded: int, decode_error: str | None = None) -> Shortfall | None:
+    """Compare the frames decoded to the end with those the container announced.
+
+    Short by more than :data:`SHORTFALL_TOLERANCE`: under --strict a BadInput; else one warning
+    line on stderr (once per video and run) and the :class:`Shortfall`.  A count worked out from
+    the container's duration (mkv, webm) can exceed the video where the audio runs longer, so
+    there a complaint from ffmpeg is also needed."""
+    if info.is_image_folder or not info.frame_count:
+        return None
+    exact = Path(info.path).suffix.lower() in EXACT_COUNT_SUFFIXES
+    reason = info.damage or decode_error
+    if info.frame_count - decoded <= SHORTFALL_TOLERANCE or not (exact or reason or not info.has_audio):
+        return None
+    found = Shortfall(info.path, decoded, info.frame_count, reason)
+    if _policy["strict"]:
+        raise BadInput(f"{found.message()}; --strict refuses it")
+    if info.path not in _shortfalls:
+        _shortfalls[info.path] = found
+        sys.stderr.write(f"mosaic: warning: {found.message()}; going on with the {decoded} decoded\n")
+        sys.stderr.flush()
+    return found

@@ -41,6 +41,9 @@ def audio_stream_codec(path: str | os.PathLike) -> str | None:
 class VideoWriter:
     """Write RGB uint8 frames (h, w, 3) to an H.264 yuv420p file.
 
+    With ``audio_from``, the first audio stream of that file is carried (cut after
+    ``audio_seconds`` when given); the video keeps every frame written whatever the audio's length.
+
     The file appears under its final name only after :meth:`close` succeeds; :meth:`abort`
     (or an exception inside a ``with`` block) removes the partial file.
     """
@@ -55,6 +58,8 @@ class VideoWriter:
         audio_from: str | os.PathLike | None = None,
         audio_codec: str | None = None,
         pix_fmt_in: str = "rgb24",
+        audio_seconds: float | None = None,
+        metadata: dict[str, str] | None = None,
     ):
         if not 0 <= crf <= 51:
             raise BadInput(f"--crf must be in 0..51, got {crf}")
@@ -75,6 +80,10 @@ class VideoWriter:
         self._log = None
         source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
         audio = None if source_audio is None else (str(audio_from), audio_codec or self._audio_codec_for(source_audio))
+        if audio_seconds is not None and audio_seconds <= 0:
+            raise ValueError(f"audio_seconds must be positive, got {audio_seconds}")
+        self.audio_seconds = audio_seconds
+        self.metadata = dict(metadata or {})  # container tags, e.g. {"comment": ...}
         try:  # until the writer is returned, no ``with`` block will remove the file: this one does
             # Signals wait until the file and the encoder are both in hand: a Ctrl-C inside Popen
             # would lose the encoder, which would then make the file again after it was removed.
@@ -97,8 +106,15 @@ class VideoWriter:
         if audio is None:
             cmd += ["-an"]
         else:
-            # The video may be shorter than the source (a --max-frames run): end with it.
-            cmd += ["-i", audio[0], "-map", "0:v:0", "-map", "1:a:0", "-acodec", audio[1], "-shortest"]
+            # Never -shortest: it ends the *video* where a slightly shorter audio track ends (a
+            # camera's AAC often stops a few hundredths of a second early), losing the last
+            # frames.  The audio is cut where the video ends instead, when the caller knows
+            # where that is (-t on the audio input: a stream copy keeps whole packets, so it may
+            # overhang by one AAC frame, 21 ms at 48 kHz).
+            until = ["-t", f"{self.audio_seconds:.6f}"] if self.audio_seconds is not None else []
+            cmd += [*until, "-i", audio[0], "-map", "0:v:0", "-map", "1:a:0", "-acodec", audio[1]]
+        for key, value in self.metadata.items():
+            cmd += ["-metadata", f"{key}={value}"]
         cmd += ["-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-preset", preset,
                 "-movflags", "+faststart", str(self._tmp)]
         self._log = tempfile.TemporaryFile()  # ffmpeg's complaints, for the error message

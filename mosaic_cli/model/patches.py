@@ -1,4 +1,6 @@
-"""Tensor DLT and perspective sampling: batched over leading dimensions, differentiable, any device.
+"""The network's patches: where they sit, their corner offsets as homographies, and cutting and
+sampling them from frames.  Batched over leading dimensions, differentiable, any device; the
+homography algebra itself (DLT, projection, chaining) is :mod:`mosaic_cli.geometry.tensor`.
 
 Conventions (the same as :mod:`mosaic_cli.geometry`):
 
@@ -15,11 +17,10 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.transform import get_perspective_transform
 from kornia.geometry.transform import warp_perspective as _kornia_warp_perspective
 from torch import Tensor
 
-_EPS = 1e-6
+from mosaic_cli.geometry.tensor import four_point_to_homography, homography_to_four_point, project, rect_corners
 
 
 def patch_corners(positions: Tensor, patch: int) -> Tensor:
@@ -27,23 +28,7 @@ def patch_corners(positions: Tensor, patch: int) -> Tensor:
     top-left *pixel* is at ``positions`` (..., 2) = (x, y).  With pixel centres on integers the
     square spans [x - 0.5, x + patch - 0.5], like :func:`mosaic_cli.geometry.rect_corners`."""
     origin = positions.to(torch.float32 if not positions.is_floating_point() else positions.dtype) - 0.5
-    unit = torch.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], dtype=origin.dtype, device=origin.device)
-    return origin.unsqueeze(-2) + patch * unit
-
-
-def dlt(src: Tensor, dst: Tensor) -> Tensor:
-    """4-point DLT: the homography (..., 3, 3) mapping ``src`` (..., 4, 2) onto ``dst`` (..., 4, 2),
-    normalised to H[2, 2] = 1.
-
-    Solved by kornia's ``get_perspective_transform`` in float64 (pixel coordinates of a few
-    hundred make float32 lose ~1e-3 px at the frame corners) and returned in ``dst``'s dtype;
-    autocast never lowers its precision.
-    """
-    batch = dst.shape[:-2]
-    src, dst = torch.broadcast_tensors(src.to(dst.dtype), dst)
-    H = get_perspective_transform(src.reshape(-1, 4, 2).double(), dst.reshape(-1, 4, 2).double())
-    H = H / H[:, 2:3, 2:3]
-    return H.to(dst.dtype).reshape(*batch, 3, 3)
+    return rect_corners(origin, patch, patch)
 
 
 def offsets_to_homography(offsets: Tensor, positions: Tensor, patch: int) -> Tensor:
@@ -54,37 +39,12 @@ def offsets_to_homography(offsets: Tensor, positions: Tensor, patch: int) -> Ten
     """
     if offsets.dtype in (torch.float16, torch.bfloat16):
         offsets = offsets.float()  # half precision cannot even hold the corners (223.5) exactly
-    corners = patch_corners(positions, patch).to(offsets.dtype)
-    return dlt(corners, corners + offsets)
+    return four_point_to_homography(patch_corners(positions, patch).to(offsets.dtype), offsets)
 
 
 def homography_to_offsets(H: Tensor, positions: Tensor, patch: int) -> Tensor:
     """Inverse of :func:`offsets_to_homography`: where ``H`` (..., 3, 3) moves the patch corners."""
-    corners = patch_corners(positions, patch).to(H.dtype)
-    return transform_points(H, corners) - corners
-
-
-def transform_points(H: Tensor, points: Tensor) -> Tensor:
-    """Map ``points`` (..., N, 2) through ``H`` (..., 3, 3).  The projective divisor is kept away
-    from zero (|w| >= 1e-6, sign kept) so that a wild early-training estimate gives large but
-    finite points and gradients, never inf/NaN."""
-    mapped = points @ H[..., :2, :2].transpose(-1, -2) + H[..., None, :2, 2]
-    w = points @ H[..., 2:3, :2].transpose(-1, -2) + H[..., None, 2:3, 2]
-    w = torch.where(w.abs() < _EPS, torch.where(w < 0, -_EPS, _EPS), w)
-    return mapped / w
-
-
-def chain(pairwise: Tensor) -> Tensor:
-    """Cumulative homographies over a window: ``pairwise`` (..., T, 3, 3) with ``pairwise[k]``
-    frame k -> k+1 gives (..., T, 3, 3) whose k-th entry is H_[0,k+1] = H_k @ ... @ H_0 (frame 0 ->
-    frame k+1), each normalised to H[2, 2] = 1."""
-    out = []
-    acc = None
-    for k in range(pairwise.shape[-3]):
-        acc = pairwise[..., k, :, :] if acc is None else pairwise[..., k, :, :] @ acc
-        acc = acc / acc[..., 2:3, 2:3]
-        out.append(acc)
-    return torch.stack(out, dim=-3)
+    return homography_to_four_point(H, patch_corners(positions, patch).to(H.dtype))
 
 
 def pixel_grid(positions: Tensor, size: int) -> Tensor:
@@ -136,7 +96,7 @@ def sample_patches(images: Tensor, H: Tensor, positions: Tensor, size: int) -> t
     """
     N, M = positions.shape[:2]
     grid = pixel_grid(positions, size).to(H.dtype)  # (N, M, S, S, 2)
-    points = transform_points(H, grid.reshape(N, M, size * size, 2)).reshape(N, M, size, size, 2)
+    points = project(H, grid.reshape(N, M, size * size, 2)).reshape(N, M, size, size, 2)
     values, mask = sample(images, points)  # (N, C, M, S, S)
     return values.transpose(1, 2), mask.transpose(1, 2)
 
@@ -151,11 +111,8 @@ def warp_perspective(images: Tensor, H: Tensor, dsize: tuple[int, int]) -> Tenso
 
 __all__ = [
     "patch_corners",
-    "dlt",
     "offsets_to_homography",
     "homography_to_offsets",
-    "transform_points",
-    "chain",
     "pixel_grid",
     "crop",
     "sample",

@@ -30,11 +30,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mosaic_cli.model import losses
-from mosaic_cli.model.dlt import crop, offsets_to_homography, sample_patches
-from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.geometry.tensor import frame_corners
+from mosaic_cli.model.network import VARIANTS, HomographyNet
+from mosaic_cli.model.patches import crop, offsets_to_homography, sample_patches
+from mosaic_cli.train import losses
 
-VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
 TERMS = ("photometric", "spatial", "scale", "temporal1", "temporal2")
 
 _VARIANT_TERMS = {
@@ -64,12 +64,6 @@ class LossWeights:
     def resolved(self) -> dict[str, float]:
         paper = {"photometric": 1.0, "spatial": 1 / 9, "scale": 1 / 9, "temporal1": 1 / 9, "temporal2": 1.0}
         return {k: float(paper[k] if getattr(self, k) is None else getattr(self, k)) for k in TERMS}
-
-
-def frame_corners_tensor(width: int, height: int, device=None) -> Tensor:
-    """The 4 outer corners of a width x height frame (pixel centres on integers), TL TR BR BL."""
-    x0, y0, x1, y1 = -0.5, -0.5, width - 0.5, height - 0.5
-    return torch.tensor([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], device=device)
 
 
 class Objective:
@@ -122,7 +116,7 @@ class Objective:
         crops = self.cut_patches(frames, positions)  # (B, K, M, 1, P, P)
         pairs = torch.cat([crops[:, :-1], crops[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
         H, H_children = self.predict(model, pairs, positions)
-        corners = frame_corners_tensor(w, h, device=frames.device)
+        corners = frame_corners(w, h, device=frames.device)
 
         out: dict[str, Tensor] = {}
         out["photometric"] = self.pair_photometric(frames, crops, H, positions)
@@ -203,4 +197,4 @@ class Objective:
         return losses.photometric(target, warped, mask, self.photometric_norm)
 
 
-__all__ = ["VARIANTS", "TERMS", "PAPER_WINDOW", "LossWeights", "Objective", "frame_corners_tensor"]
+__all__ = ["TERMS", "PAPER_WINDOW", "LossWeights", "Objective"]

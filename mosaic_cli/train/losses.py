@@ -23,7 +23,8 @@ import itertools
 import torch
 from torch import Tensor
 
-from mosaic_cli.model.dlt import chain, crop, sample_patches, transform_points
+from mosaic_cli.geometry.tensor import cumulative, project
+from mosaic_cli.model.patches import crop, sample_patches
 
 PHOTOMETRIC_NORMS = ("l2", "l1")
 
@@ -55,7 +56,7 @@ def corner_distance(H_a: Tensor, H_b: Tensor, points: Tensor) -> Tensor:
     """d(H_a, H_b) = sum_k || H_a(p_k) - H_b(p_k) ||_1 over reference ``points`` (K, 2) (the frame
     corners); broadcast over leading dimensions of H_a, H_b (..., 3, 3) -> (...)."""
     pts = points.to(H_a.dtype)
-    return (transform_points(H_a, pts) - transform_points(H_b, pts)).abs().sum((-1, -2))
+    return (project(H_a, pts) - project(H_b, pts)).abs().sum((-1, -2))
 
 
 def spatial_consistency(H: Tensor, points: Tensor) -> Tensor:
@@ -111,7 +112,7 @@ def chain_consistency(frames: Tensor, H: Tensor, positions: Tensor, patch: int, 
     if K < 3:
         return frames.new_zeros(())
     M = positions.shape[1]
-    chained = chain(H)[:, :, 1:]  # (B, M, K-2, 3, 3): H_[0,s] for s = 2..K-1
+    chained = cumulative(H)[:, :, 2:]  # (B, M, K-2, 3, 3): H_[0,s] for s = 2..K-1
     later = frames[:, 2:].flatten(0, 1)  # (B*(K-2), C, h, w)
     H_flat = chained.transpose(1, 2).flatten(0, 1)  # (B*(K-2), M, 3, 3)
     pos = positions[:, None].expand(B, K - 2, M, 2).flatten(0, 1)

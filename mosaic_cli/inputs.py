@@ -1,0 +1,53 @@
+"""How mosaic recognises its inputs, one rule each: what counts as a video file, where the
+simulated flights of a folder are (``X.<video>`` with ``X.gt.json`` beside it), and how a
+``WxH`` size is written.  Used by every command that takes such an input."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from mosaic_cli.errors import BadInput
+
+# Containers ffmpeg reads that a drone or an editor writes; a folder scan takes these and no others.
+VIDEO_SUFFIXES = frozenset(
+    {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".wmv", ".flv"}
+)
+
+
+def is_video_file(path: str | Path) -> bool:
+    """A visible file whose suffix is one of :data:`VIDEO_SUFFIXES` (any case)."""
+    p = Path(path)
+    return p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")
+
+
+def find_flights(folder: str | Path, flag: str) -> list[Path]:
+    """Every video in ``folder`` (not its subfolders) with a ``.gt.json`` ground truth beside it
+    (``mosaic simulate`` writes both), sorted by name; videos without one are left out.
+    BadInput, naming the user's ``flag``, when ``folder`` is not a folder or holds no flight."""
+    from mosaic_cli.simulate.groundtruth import ground_truth_path
+
+    root = Path(folder)
+    if not root.is_dir():
+        raise BadInput(f"{flag} {root}: not a folder")
+    videos = sorted(p for p in root.iterdir() if is_video_file(p) and p.is_file())
+    flights = [v for v in videos if ground_truth_path(v).is_file()]
+    if not flights:
+        raise BadInput(f"{flag} {root}: no video (X.mp4, X.mov, ...) with an X.gt.json beside it "
+                       "(make some with mosaic simulate)")
+    return flights
+
+
+def parse_size(text: str, flag: str, low: int = 16, high: int = 8192) -> tuple[int, int]:
+    """``"1280x720"`` -> (1280, 720); each side must lie in [``low``, ``high``] pixels.
+    BadInput naming the user's ``flag`` otherwise."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
+    if not m:
+        raise BadInput(f"{flag} must look like 1280x720, got {text!r}")
+    w, h = int(m.group(1)), int(m.group(2))
+    if not (low <= w <= high and low <= h <= high):
+        raise BadInput(f"{flag} must be between {low}x{low} and {high}x{high}, got {w}x{h}")
+    return w, h
+
+
+__all__ = ["VIDEO_SUFFIXES", "find_flights", "is_video_file", "parse_size"]

@@ -1,0 +1,36 @@
+"""Progress of a stream, whose length nobody knows: frames so far, frames per second, elapsed."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Iterator
+
+from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+from mosaic_cli.progress import RateColumn, console
+
+
+@contextlib.contextmanager
+def stream_progress(description: str, disable: bool = False) -> Iterator:
+    """Yields ``advance(n=1, status=None)`` like :func:`mosaic_cli.progress.progress_task`."""
+    progress = Progress(
+        SpinnerColumn(),
+        TextColumn("[bold]{task.description}"),
+        TextColumn("{task.completed:>7.0f} frames"),
+        RateColumn("fr/s"),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[status]}"),
+        console=console,
+        transient=False,
+        disable=disable,
+    )
+    with progress:
+        task = progress.add_task(description, total=None, status="")
+
+        def advance(n: int = 1, status: str | None = None) -> None:
+            if status is None:
+                progress.advance(task, n)
+            else:
+                progress.update(task, advance=n, status=status)
+
+        yield advance

@@ -1,0 +1,106 @@
+"""``track`` as frames arrive: the homographies as JSON Lines, one pair a line, flushed at once.
+
+Each line is ``{"frame": t, "H": [[...], [...], [...]], "confidence": c}``: H maps pixel
+(x, y) of frame t to frame t+1 (full-resolution pixels, OpenCV pixel centres), as ``pairwise[t]``
+of the JSON format.  A program can follow the file (or the pipe) line by line.  From a live
+source a ``.json`` or ``.npy`` output is written once, at the end, from every frame received.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import sys
+import time
+from pathlib import Path
+from typing import IO, Iterator
+
+import numpy as np
+
+from mosaic_cli.atomic import check_writable
+from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.estimators import Estimator, estimate_stream
+from mosaic_cli.live.progress import stream_progress
+from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
+from mosaic_cli.track import TrackResult
+from mosaic_cli.video import open_video
+
+STDOUT = "-"
+JSONL_SUFFIXES = (".jsonl", ".ndjson")
+
+
+def is_jsonl(out: str | Path) -> bool:
+    return str(out) == STDOUT or Path(out).suffix.lower() in JSONL_SUFFIXES
+
+
+def pair_line(index: int, H: np.ndarray, confidence: float) -> str:
+    return json.dumps({"frame": int(index), "H": np.asarray(H, dtype=np.float64).tolist(),
+                       "confidence": float(confidence)}) + "\n"
+
+
+@contextlib.contextmanager
+def _line_sink(out: str | Path, keep_on_failure: bool) -> Iterator[IO[str]]:
+    """Standard output, or the file under its final name (a follower reads it as it grows).
+    A failed or interrupted run removes the file unless ``keep_on_failure`` (a live run:
+    the lines so far are what was received)."""
+    if str(out) == STDOUT:
+        yield sys.stdout
+        return
+    path = check_writable(out)
+    fh = open(path, "w")
+    try:
+        yield fh
+    except BaseException:
+        fh.close()
+        if not keep_on_failure:
+            path.unlink(missing_ok=True)
+        raise
+    fh.close()
+
+
+def track_stream(source: str | Path, estimator: Estimator, out: str | Path, timeout: float = DEFAULT_TIMEOUT,
+                 max_frames: int | None = None, show_progress: bool = True) -> TrackResult:
+    """Track ``source`` (a live source, or a file when ``out`` takes JSON Lines), writing
+    each pair as it is estimated when ``out`` takes JSON Lines; returns everything tracked."""
+    live = is_live_source(source)
+    pairwise: list[np.ndarray] = []
+    confidence: list[float] = []
+    if live:
+        stream = LiveStream(str(source), "gray", width=estimator.input_width, timeout=timeout, quiet=not show_progress)
+    else:
+        stream = open_video(source, width=estimator.input_width, gray=True)
+    lines = is_jsonl(out)
+    with stream, (_line_sink(out, keep_on_failure=live) if lines else contextlib.nullcontext()) as sink:
+        info = stream.info
+
+        def frames():
+            for k, frame in enumerate(stream):
+                if max_frames is not None and k >= max_frames:
+                    return
+                yield frame
+
+        start = time.perf_counter()
+        with stream_progress(f"track ({estimator.name})", disable=not show_progress) as advance:
+            advance(1)  # the first frame yields no pair
+            for t, estimate in enumerate(estimate_stream(estimator, frames(), info.source_size)):
+                pairwise.append(estimate.H)
+                confidence.append(estimate.confidence)
+                if sink is not None:
+                    try:
+                        sink.write(pair_line(t, estimate.H, estimate.confidence))
+                        sink.flush()
+                    except BrokenPipeError:
+                        raise ProcessingError("standard output was closed by the reader") from None
+                advance(1)
+        elapsed = time.perf_counter() - start
+    if not pairwise:
+        raise BadInput(f"{info.path}: fewer than two frames received")
+    n = len(pairwise) + 1
+    meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
+    if live:
+        meta["ended_by"] = stream.ended_by
+    from dataclasses import replace
+
+    info = replace(info, frame_count=n)
+    return TrackResult(info, estimator.name, np.array(pairwise).reshape(-1, 3, 3),
+                       np.array(confidence, dtype=np.float64), meta)

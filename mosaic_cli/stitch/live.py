@@ -1,0 +1,306 @@
+"""``stitch --live``: a panorama that grows while the flight is still arriving.
+
+The scan (stage 1 of :mod:`.pipeline`) runs on frames as they come off a live source; every
+``every`` seconds, when keyframes were added, a preview is drawn and written atomically (a
+viewer reloading the file never sees half an image).  Its cost is bounded: it is drawn at most
+``PREVIEW_SIDE`` pixels on its longest side, from per-keyframe thumbnails made once (and shrunk
+as the area flown grows), each warped only into its own bounding box, later keyframes over
+earlier ones, no seams or blending.  With drift control on, the preview's placements are
+refined incrementally (:class:`IncrementalRegistration`): each preview registers only the loop
+pairs that became candidates since the last one (within the same ``max_loop_pairs`` budget) and
+solves the joint placement again from the previous solution, over every loop closed so far.
+
+When the stream ends (its end, ``--timeout``, Ctrl-C or SIGTERM) stages 2-5 run as they do
+offline on the same keyframes: drift control over every loop closed, the reference frame,
+exposure, seams, blending.  The final panorama is therefore the offline stitch of the frames
+received.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mosaic_cli.atomic import atomic_path, check_writable
+from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.estimators import Estimator
+from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
+from mosaic_cli.live.progress import stream_progress
+from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
+from mosaic_cli.stitch.canvas import CanvasOptions, parse_reference, plan_canvas
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
+from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
+from mosaic_cli.stitch.output import check_outputs
+from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, finish_stitch
+from mosaic_cli.stitch.registration import (
+    Link,
+    RegistrationOptions,
+    RegistrationReport,
+    link_loops,
+    link_sequence,
+    loop_candidates,
+    refine_placements,
+)
+from mosaic_cli.stitch.spill import load_pixels
+from mosaic_cli.video.reader import scaled_size
+
+PREVIEW_SIDE = 1024
+PREVIEW_FORMATS = (".png", ".jpg", ".jpeg")
+DEFAULT_EVERY = 2.0
+
+
+@dataclass
+class PreviewOptions:
+    path: Path | None = None
+    every: float = DEFAULT_EVERY  # seconds between two previews
+    side: int = PREVIEW_SIDE  # longest side, pixels
+
+    def validate(self, out: Path) -> None:
+        if self.path is None:
+            return
+        if Path(self.path).suffix.lower() not in PREVIEW_FORMATS:
+            raise BadInput(f"--preview {self.path} must end in .png, .jpg or .jpeg")
+        check_writable(self.path)
+        if Path(self.path).resolve() == Path(out).resolve():
+            raise BadInput("--preview must differ from the panorama output")
+        if not self.every > 0:
+            raise BadInput(f"--every must be positive, got {self.every}")
+        if self.side < 64:
+            raise BadInput(f"the preview must be at least 64 pixels, got {self.side}")
+
+
+class IncrementalRegistration:
+    """Drift control on the keyframes found so far, for the preview: loop registrations are
+    made once and kept; every :meth:`update` adds the new keyframes (placed from the last
+    refined one by the scan's chain), registers the new loop candidates and refines every
+    placement jointly.  The final panorama does not use it: it runs the offline stage 2."""
+
+    def __init__(self, source_size: tuple[int, int], options: RegistrationOptions, features: FeatureOptions):
+        self.size = source_size
+        self.options = options
+        self.matcher = FeatureMatcher(FeatureExtractor(source_size, features))
+        self.placements: list[np.ndarray] = []  # keyframe -> keyframe 0, refined
+        self.loops: list[Link] = []
+        self.tried: set[tuple[int, int]] = set()
+        self.loops_closed = 0
+
+    def update(self, keyframes: list[Keyframe]) -> list[np.ndarray]:
+        """Keyframe -> keyframe 0 placements of every keyframe in ``keyframes``."""
+        if not keyframes:
+            return []
+        scan = [normalize(np.linalg.inv(keyframes[0].placement) @ k.placement) for k in keyframes]
+        if not self.placements:
+            self.placements = [scan[0]]
+        last = len(self.placements) - 1
+        bridge = self.placements[last] @ np.linalg.inv(scan[last])
+        self.placements += [normalize(bridge @ P) for P in scan[last + 1:]]
+        if len(keyframes) < 2:
+            return list(self.placements)
+        report = RegistrationReport()
+        sequence = [(i, k.link_to, k.link) for i, k in enumerate(keyframes) if k.link_to is not None and k.link_to < len(keyframes)]
+        neighbours = link_sequence(sequence, self.placements, self.size, self.options, report)
+        candidates = loop_candidates(self.placements, self.size, self.options, self.tried)
+        self.tried |= set(candidates)
+        features = [k.features for k in keyframes]
+        self.loops += link_loops(features, self.placements, candidates, self.matcher, self.options, report, lambda *a, **k: None)
+        report.links = neighbours + self.loops
+        self.placements = refine_placements(self.placements, report, 0, self.size, self.options)
+        self.loops = [link for link in report.links if link.kind == "loop"]
+        self.loops_closed = len(self.loops)
+        return list(self.placements)
+
+
+@dataclass
+class _Thumb:
+    image: np.ndarray  # RGB
+    scale: float  # thumbnail pixels per source pixel
+
+
+@dataclass
+class LivePreview:
+    """Draws the keyframes found so far (see the module doc)."""
+
+    options: PreviewOptions
+    source_size: tuple[int, int]
+    registration: IncrementalRegistration | None = None  # None: the scan's placements
+    written: int = 0
+    seconds: float = 0.0  # spent drawing and writing previews
+    _thumbs: dict[int, _Thumb] = field(default_factory=dict)
+    _drawn_keyframes: int = 0
+    _due: float = 0.0
+
+    def maybe_update(self, keyframes: list[Keyframe], now: float | None = None) -> bool:
+        """Draw and write a preview when one is due and keyframes were added since the last."""
+        now = time.monotonic() if now is None else now
+        if self.options.path is None or now < self._due or len(keyframes) == self._drawn_keyframes:
+            return False
+        self.update(keyframes)
+        self._due = time.monotonic() + self.options.every
+        return True
+
+    def update(self, keyframes: list[Keyframe]) -> None:
+        if self.options.path is None:
+            return
+        clock = time.perf_counter()
+        image = self.draw(keyframes)
+        if image is not None:
+            with atomic_path(self.options.path) as tmp:
+                params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if tmp.suffix.lower() == ".png" else [cv2.IMWRITE_JPEG_QUALITY, 85]
+                if not cv2.imwrite(str(tmp), cv2.cvtColor(image, cv2.COLOR_RGBA2BGRA if tmp.suffix.lower() == ".png"
+                                                           else cv2.COLOR_RGBA2BGR), params):
+                    raise ProcessingError(f"{self.options.path}: OpenCV could not write the preview")
+            self.written += 1
+        self._drawn_keyframes = len(keyframes)
+        self.seconds += time.perf_counter() - clock
+
+    def draw(self, keyframes: list[Keyframe]) -> np.ndarray | None:
+        """RGBA preview of the composited keyframes, None while they cannot be drawn sanely."""
+        if self.registration is not None:
+            placements = self.registration.update(keyframes)
+        else:
+            placements = [k.placement for k in keyframes]
+        drawn = [(k, P) for k, P in zip(keyframes, placements)
+                 if k.composited and (k.image is not None or k.index in self._thumbs)]
+        if not drawn:
+            return None
+        try:
+            canvas = plan_canvas([P for _, P in drawn], [k.index for k, _ in drawn], self.source_size,
+                                 CanvasOptions(max_size=self.options.side))
+        except ProcessingError:
+            return None  # a placement degenerated; the final stitch will say so
+        W, H = canvas.size
+        out = np.zeros((H, W, 4), np.uint8)
+        for k, P in drawn:
+            thumb = self._thumb(k, canvas.scale)
+            M = normalize(canvas.frame_to_canvas(P) @ np.linalg.inv(
+                resize_matrix(self.source_size, (thumb.image.shape[1], thumb.image.shape[0]))))
+            self._paste(out, thumb.image, M)
+        return out
+
+    def _thumb(self, keyframe: Keyframe, scale: float) -> _Thumb:
+        """The keyframe at about ``scale`` (never larger than held); made once, shrunk when the
+        canvas scale drops well below it."""
+        thumb = self._thumbs.get(keyframe.index)
+        if thumb is None:
+            image = load_pixels(keyframe.image)
+            thumb = _Thumb(image, image.shape[1] / self.source_size[0])
+        if thumb.scale > 1.5 * scale:
+            w, h = self.source_size
+            size = (max(2, round(w * scale)), max(2, round(h * scale)))
+            thumb = _Thumb(cv2.resize(thumb.image, size, interpolation=cv2.INTER_AREA), size[0] / w)
+        self._thumbs[keyframe.index] = thumb
+        return thumb
+
+    @staticmethod
+    def _paste(out: np.ndarray, image: np.ndarray, M: np.ndarray) -> None:
+        """Warp ``image`` by ``M`` (image pixels -> canvas pixels) into its bounding box of ``out``."""
+        h, w = image.shape[:2]
+        corners = project(M, frame_corners(w, h))
+        x0, y0 = np.floor(corners.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 1
+        x0, y0 = max(x0, 0), max(y0, 0)
+        x1, y1 = min(x1, out.shape[1]), min(y1, out.shape[0])
+        if x1 <= x0 or y1 <= y0:
+            return
+        shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]]) @ M
+        size = (x1 - x0, y1 - y0)
+        rgb = cv2.warpPerspective(image, shift, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        mask = cv2.warpPerspective(np.full((h, w), 255, np.uint8), shift, size, flags=cv2.INTER_NEAREST,
+                                   borderMode=cv2.BORDER_CONSTANT) > 0
+        region = out[y0:y1, x0:x1]
+        region[mask, :3] = rgb[mask]
+        region[mask, 3] = 255
+
+
+def stitch_live(source: str, out: str | Path, estimator: Estimator, options: StitchOptions | None = None,
+                transforms: str | Path | None = None, preview: PreviewOptions | None = None,
+                timeout: float = DEFAULT_TIMEOUT, show_progress: bool = True) -> StitchResult:
+    """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
+    preview on the way when ``preview.path`` is given."""
+    options = options or StitchOptions()
+    preview = preview or PreviewOptions()
+    reference = _check(out, transforms, options, preview)
+    live = is_live_source(source)
+    if not live:
+        from mosaic_cli.video import probe
+
+        probe(source)
+    track = _load_track(source, out, options, live)
+    with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
+        seconds: dict[str, float] = {}
+        clock = time.perf_counter()
+        with LiveStream(str(source), "rgb", timeout=timeout, quiet=not show_progress, live=live) as stream:
+            info = stream.info
+            max_size = options.canvas.max_size
+            width = None
+            if max_size and max(info.source_size) > max_size:
+                width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
+            decode_size = scaled_size(info.source_size, width)
+            stream.info = replace(info, size=decode_size)
+            scanner = FlightScanner(info.source_size, decode_size, info.fps, 0, options.keyframes, options.features,
+                                    max_size, spill if options.spill else None)
+            registration = (IncrementalRegistration(info.source_size, options.registration, options.features)
+                            if options.registration.enabled else None)
+            drawer = LivePreview(preview, info.source_size, registration)
+
+            def frames():
+                for k, frame in enumerate(stream):
+                    if options.max_frames is not None and k >= options.max_frames:
+                        return
+                    yield frame
+
+            with stream_progress(f"scan ({estimator.name}, live)", disable=not show_progress) as advance:
+                def step(n: int = 1, status: str | None = None) -> None:
+                    if drawer.maybe_update(scanner.keyframes):
+                        status = f"{status or ''} preview {drawer.written}"
+                    advance(n, status=status)
+
+                scan = scan_flight(frames(), estimator, scanner, step)
+            drawer.update(scan.keyframes)  # the last ground too, before the long final stages
+        seconds["scan"] = time.perf_counter() - clock
+        if not scan.keyframes:
+            raise BadInput(f"{source}: no frame is usable (all black, blank or over-exposed)")
+        # The stages after the scan as in pipeline.stitch, on the same keyframes.
+        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, track)
+        result.previews = drawer.written  # type: ignore[attr-defined]
+        result.preview_loops = registration.loops_closed if registration else 0  # type: ignore[attr-defined]
+        result.preview_seconds = drawer.seconds  # type: ignore[attr-defined]
+        result.ended_by = stream.ended_by if live else None  # type: ignore[attr-defined]
+        return result
+
+
+def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool):
+    """The telemetry, before any work: an explicit --telemetry file; a file read as live may
+    hold a track of its own, a stream (stdin, URL) cannot be probed for one."""
+    from mosaic_cli.geo.stitching import load_track
+
+    georef = options.georef
+    if georef is None:
+        return None
+    if live and georef.telemetry is None:
+        if georef.footprints is not None:
+            raise BadInput("--footprints with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
+        return None
+    return load_track(source, out, georef)  # the stream's length is unknown: coverage is checked after the scan
+
+
+def _check(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:
+    """The checks of pipeline._check_inputs that need no probe of the input."""
+    check_outputs(out, transforms, options.canvas.max_size)
+    preview.validate(Path(out))
+    reference = parse_reference(options.canvas.reference)
+    options.compose.validate()
+    if options.canvas.max_size is not None and options.canvas.max_size < 64:
+        raise BadInput(f"--max-size must be at least 64 pixels, got {options.canvas.max_size}")
+    if options.start != 0:
+        raise BadInput("--start is not available with --live or a live input")
+    if options.max_frames is not None and options.max_frames < 2:
+        raise BadInput("--max-frames must be at least 2")
+    if options.registration.max_loop_pairs < 0:
+        raise BadInput(f"--max-loop-pairs must be 0 or more, got {options.registration.max_loop_pairs}")
+    return reference

@@ -1,0 +1,339 @@
+#!/usr/bin/env python
+"""Benchmark live processing: a simulated flight served in real time over loopback TCP.
+
+The bundled ffmpeg sends the flight as MPEG-TS at its frame rate (``-re``, H.264 as simulated,
+x264 veryfast) to mosaic, which listens on 127.0.0.1.  Every figure is end to end on this
+machine; say how loaded it was beside it.
+
+    python scripts/bench_live.py track      [--estimator lstm] [--frames 600]
+        lag of each JSON Lines pair (seen in the file) behind the frame's due arrival time
+    python scripts/bench_live.py stitch     [--estimator lstm] [--frames 900]
+        scan backlog when the stream ends, preview cost, placement error of the final panorama
+    python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2]
+        frames in / out (counted by a receiving ffmpeg), latency p50/p95/max, residual jitter
+        against the offline L1 path on the same frames (ground truth from simulate -p shaky)
+    python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
+        the online path over an offline track against the offline L1 path of that track, for
+        several horizons and predicted tails (how the defaults were chosen)
+    python scripts/bench_live.py memory     [--frames 54000]
+        resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
+        sent as fast as mosaic takes it), sampled every second
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import imageio_ffmpeg  # noqa: E402
+
+from mosaic_cli.estimators import make_estimator  # noqa: E402
+from mosaic_cli.simulate import load_ground_truth  # noqa: E402
+
+FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
+WORKDIR = ROOT / ".dev" / "bench_live"
+
+
+def flight(profile: str, frames: int, size: str = "1280x720", seed: int = 0) -> Path:
+    path = WORKDIR / f"{profile}_{size}_{frames}_s{seed}.mp4"
+    if not path.exists():
+        WORKDIR.mkdir(parents=True, exist_ok=True)
+        subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(path), "-p", profile, "-n", str(frames),
+                        "--size", size, "--preset", "veryfast", "--seed", str(seed), "-q"], check=True)
+    return path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_listening(port: int, limit: float = 120.0) -> None:
+    needle = f":{port:04X}"
+    deadline = time.monotonic() + limit
+    while time.monotonic() < deadline:
+        for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[1].upper().endswith(needle) and fields[3] == "0A":
+                return
+        time.sleep(0.02)
+    raise SystemExit(f"nothing listened on {port}")
+
+
+class Sender:
+    """ffmpeg -re serving ``video`` to ``url``; ``started`` and ``ended`` in time.monotonic()."""
+
+    def __init__(self, video: Path, url: str):
+        self.started = time.monotonic()
+        self.proc = subprocess.Popen([FFMPEG, "-v", "error", "-re", "-readrate_initial_burst", "0", "-i", str(video), "-c", "copy", "-f", "mpegts", url])
+        self.ended: float | None = None
+        threading.Thread(target=self._wait, daemon=True).start()
+
+    def _wait(self) -> None:
+        self.proc.wait()
+        self.ended = time.monotonic()
+
+
+def load_note() -> str:
+    return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+
+
+def percentiles(values) -> str:
+    v = np.asarray(values, dtype=float)
+    return f"p50 {np.percentile(v, 50):.2f} s, p95 {np.percentile(v, 95):.2f} s, max {v.max():.2f} s"
+
+
+# -- track --------------------------------------------------------------------------------
+
+def bench_track(args) -> dict:
+    video = flight("paper", args.frames)
+    port, out = free_port(), WORKDIR / "track.jsonl"
+    out.unlink(missing_ok=True)
+    proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "track", f"tcp://127.0.0.1:{port}?listen=1", "-o", str(out),
+                             "-e", args.estimator, "-q"])
+    wait_listening(port)
+    sender = Sender(video, f"tcp://127.0.0.1:{port}")
+    seen: list[float] = []
+    offset = 0
+    while proc.poll() is None or (out.exists() and out.stat().st_size > offset):
+        if out.exists():
+            with open(out) as fh:
+                fh.seek(offset)
+                for line in fh:
+                    if line.endswith("\n"):
+                        seen.append(time.monotonic())
+                        offset += len(line)
+        time.sleep(0.01)
+    fps = 30.0
+    due = sender.started + (np.arange(len(seen)) + 2) / fps  # pair t is complete when frame t+1 has arrived
+    lag = np.array(seen) - due
+    row = {"estimator": args.estimator, "frames in": args.frames, "pairs out": len(seen), "lag": percentiles(lag),
+           "lag first 10%": float(np.mean(lag[: len(lag) // 10])), "lag last 10%": float(np.mean(lag[-len(lag) // 10:])),
+           "load": load_note()}
+    print(f"track ({args.estimator}) 1280x720 30 fps over TCP: {args.frames} frames in, {len(seen)} pairs out; "
+          f"lag behind the frame's due arrival {row['lag']} (first tenth {row['lag first 10%']:.2f} s, last tenth "
+          f"{row['lag last 10%']:.2f} s); {row['load']}", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py track --estimator {args.estimator} --frames {args.frames}")
+    return row
+
+
+# -- stitch -------------------------------------------------------------------------------
+
+def bench_stitch(args) -> dict:
+    from bench_stitch import placement_errors
+
+    from mosaic_cli.stitch import StitchOptions
+    from mosaic_cli.stitch.live import PreviewOptions, stitch_live
+
+    video = flight("survey", args.frames)
+    gt = load_ground_truth(video.with_suffix(".gt.json"))
+    port = free_port()
+    url = f"tcp://127.0.0.1:{port}?listen=1"
+    result: dict = {}
+
+    def run() -> None:
+        estimator = make_estimator(args.estimator)
+        result["r"] = stitch_live(url, WORKDIR / "live_pano.png", estimator, StitchOptions(),
+                                  transforms=WORKDIR / "live_pano.json",
+                                  preview=PreviewOptions(WORKDIR / "live_preview.png", 2.0), show_progress=False)
+
+    # Stitching runs in this process's main thread (it installs its stop handlers there); the
+    # sender starts once the socket listens.
+    def start_sender() -> None:
+        wait_listening(port)
+        result["sender"] = Sender(video, url.split("?")[0])
+
+    threading.Thread(target=start_sender, daemon=True).start()
+    clock = time.monotonic()
+    run()
+    finished = time.monotonic()
+    r, sender = result["r"], result["sender"]
+    while sender.ended is None:
+        time.sleep(0.05)
+    scan_end = clock + r.seconds["scan"]
+    last_due = sender.started + args.frames / 30.0  # -re with no initial burst: frame k leaves at k / fps
+    indices = [i for i, _ in r.transforms]
+    errors = placement_errors(indices, [H for _, H in r.transforms], gt.map_to_frame, gt.size)
+    row = {"estimator": args.estimator, "frames in": args.frames, "frames scanned": r.frames, "keyframes": len(indices),
+           "scan backlog at stream end s": scan_end - last_due, "final stages s": finished - scan_end,
+           "previews": r.previews, "preview s each": r.preview_seconds / max(r.previews, 1),
+           "median placement error px": float(np.median(errors)) if len(errors) else None, "load": load_note()}
+    print(f"stitch --live ({args.estimator}) 1280x720 30 fps survey over TCP: {r.frames}/{args.frames} frames, "
+          f"{len(indices)} keyframes; scan done {row['scan backlog at stream end s']:.2f} s after the last frame was due, "
+          f"final stages {row['final stages s']:.1f} s; {r.previews} previews at {row['preview s each']:.3f} s each; "
+          f"median placement error {row['median placement error px']:.2f} px over {len(errors)} pairs; {row['load']}",
+          flush=True)
+    print(f"  reproduce: python scripts/bench_live.py stitch --estimator {args.estimator} --frames {args.frames}")
+    return row
+
+
+# -- stabilize ----------------------------------------------------------------------------
+
+def bench_stabilize(args) -> list[dict]:
+    from mosaic_cli.live.stabilize import stabilize_live
+    from mosaic_cli.stabilize import StabilizeOptions, stabilize
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+
+    rows = []
+    for seed in range(args.clips):
+        video = flight("shaky", args.frames, seed=seed)
+        gt = load_ground_truth(video.with_suffix(".gt.json"))
+        options = StabilizeOptions(estimator=args.estimator)
+        port, out_port = free_port(), free_port()
+        url = f"tcp://127.0.0.1:{port}?listen=1"
+        received = WORKDIR / "received.ts"
+        receiver = subprocess.Popen([FFMPEG, "-v", "error", "-y", "-timeout", "20000000", "-i", f"udp://127.0.0.1:{out_port}",
+                                     "-c", "copy", str(received)])
+        holder: dict = {}
+        threading.Thread(target=lambda port=port, holder=holder, video=video, url=url: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
+                         daemon=True).start()
+        live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, latency=1.0, show_progress=False)
+        receiver.wait()
+        count = _count_frames(received)
+        offline = stabilize(video, WORKDIR / "offline.mp4", options, show_progress=False)
+        shaky = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps)
+        j_live = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, live.warps)
+        j_off = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, offline.warps)
+        row = {"clip": video.name, "estimator": args.estimator, "frames in": live.frames_in, "frames out": live.frames_out,
+               "frames received": count, "latency": percentiles(live.latencies), "latency p95": live.latency(95),
+               "jitter input": shaky, "jitter live": j_live, "jitter offline": j_off, "ratio": j_live / j_off,
+               "load": load_note()}
+        rows.append(row)
+        print(f"stabilize --latency 1 ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
+              f"{count} received over UDP; latency arrival -> encoder {row['latency']}; residual jitter live "
+              f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; {row['load']}",
+              flush=True)
+    print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} --clips {args.clips}")
+    return rows
+
+
+def _count_frames(video: Path) -> int:
+    run = subprocess.run([FFMPEG, "-hide_banner", "-i", str(video), "-map", "0:v:0", "-f", "null", "-"], capture_output=True)
+    lines = [ln for ln in run.stderr.decode().replace("\r", "\n").splitlines() if ln.startswith("frame=")]
+    return int(lines[-1].split("=")[1].split()[0]) if lines else 0
+
+
+# -- memory -------------------------------------------------------------------------------
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def bench_memory(args) -> list[dict]:
+    clip = flight("shaky", 300, size="320x180")
+    rows = []
+    for name, command in (("track", ["track", "-", "-o", str(WORKDIR / "long.jsonl"), "-e", "orb", "-q"]),
+                          ("stabilize --latency 1", ["stabilize", "-", str(WORKDIR / "long_steady.mp4"), "-e", "orb",
+                                                     "--latency", "1", "-q"])):
+        sender = subprocess.Popen([FFMPEG, "-v", "error", "-stream_loop", "-1", "-i", str(clip), "-frames:v", str(args.frames),
+                                   "-c:v", "libx264", "-preset", "ultrafast", "-f", "mpegts", "pipe:1"],
+                                  stdout=subprocess.PIPE)
+        proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", *command], stdin=sender.stdout)
+        sender.stdout.close()
+        samples = []
+        start = time.monotonic()
+        while proc.poll() is None:
+            value = rss_mb(proc.pid)
+            if value is not None:
+                samples.append((time.monotonic() - start, value))
+            time.sleep(1.0)
+        proc.wait()
+        sender.wait()
+        t, mb = np.array(samples).T
+        n = len(mb)
+        marks = {f"{int(100 * q)}%": float(mb[min(n - 1, int(q * n))]) for q in (0.1, 0.5, 0.99)}
+        row = {"command": name, "frames": args.frames, "seconds": float(t[-1]), "rss MB": marks, "peak MB": float(mb.max()),
+               "load": load_note()}
+        rows.append(row)
+        print(f"memory, live {name}, {args.frames} frames of 320x180 (= {args.frames / 30 / 60:.0f} min at 30 fps) in "
+              f"{t[-1]:.0f} s: resident {marks['10%']:.0f} MB at 10% of the run, {marks['50%']:.0f} MB at 50%, "
+              f"{marks['99%']:.0f} MB at the end, peak {mb.max():.0f} MB; {row['load']}", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py memory --frames {args.frames}")
+    return rows
+
+
+# -- horizon ------------------------------------------------------------------------------
+
+def bench_horizon(args) -> list[dict]:
+    """The online path over an offline track of a shaky flight, against the offline L1 path of
+    the same track: residual jitter (ground truth) for several horizons and predicted tails."""
+    from mosaic_cli.stabilize.crop import output_warps
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import camera_motion, motion_model
+    from mosaic_cli.stabilize.smoothing import L1Smoother
+    from mosaic_cli.track import load_track
+
+    video = flight("shaky", args.frames, size=args.size, seed=args.seed)
+    track_file = video.with_suffix(f".{args.estimator}.json")
+    if not track_file.exists():
+        subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(track_file), "-e", args.estimator, "-q"],
+                       check=True)
+    track, gt = load_track(track_file), load_ground_truth(video.with_suffix(".gt.json"))
+    size, model = gt.size, motion_model("similarity")
+
+    def jitter(views: np.ndarray) -> float:
+        return ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, output_warps(views, size))
+
+    offline = jitter(L1Smoother().smooth(camera_motion(track.pairwise, size, model, track.confidence), size, model, None))
+    rows = []
+    for step, lookahead, predicted in ((9, 10, 0), (5, 14, 0), (5, 17, 0), (5, 17, 8), (5, 17, 17), (5, 17, 34)):
+        path = OnlineL1Path(model, size, None, Horizon(step, lookahead), predicted=predicted)
+        path.push()
+        views = []
+        clock = time.process_time()
+        for H, c in zip(track.pairwise, track.confidence):
+            path.push(H, c)
+            views.append(path.settle())
+        views.append(path.settle(final=True))
+        cpu_ms = 1000 * (time.process_time() - clock) / track.frames
+        ratio = jitter(np.concatenate(views)) / offline
+        rows.append({"step": step, "lookahead": lookahead, "predicted": predicted, "ratio": ratio, "cpu ms": cpu_ms})
+        print(f"{video.name} ({args.estimator}): step {step}, lookahead {lookahead}, predicted {predicted}: "
+              f"jitter {ratio:.2f}x the offline L1 path's ({offline:.3f} px); {cpu_ms:.1f} ms CPU a frame", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py horizon --estimator {args.estimator} --frames {args.frames} "
+          f"--size {args.size} --seed {args.seed}")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon"])
+    parser.add_argument("--size", default="1280x720", help="horizon: the flight's size")
+    parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
+    parser.add_argument("--estimator", default="lstm")
+    parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument("--clips", type=int, default=2)
+    parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
+    args = parser.parse_args()
+    WORKDIR.mkdir(parents=True, exist_ok=True)
+    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600}
+    args.frames = args.frames or defaults[args.what]
+    rows = {"track": bench_track, "stitch": bench_stitch, "stabilize": bench_stabilize, "memory": bench_memory,
+            "horizon": bench_horizon}[args.what](args)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()

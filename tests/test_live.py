@@ -1,0 +1,377 @@
+"""Live inputs over the loopback interface only: the bundled ffmpeg serves a small simulated
+flight in real time (-re, MPEG-TS) over UDP and TCP and through standard input, and each
+command runs against it.  Every run is bounded in time (subprocess timeouts)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import FFMPEG
+
+SIZE = (320, 180)
+FRAMES = 60
+RUN_LIMIT = 300  # seconds any one command may take: far above what it needs, even on a loaded machine
+
+
+@pytest.fixture(scope="module")
+def shaky_flight(tmp_path_factory) -> tuple[Path, dict]:
+    """5 s of a shaky simulated flight (long enough for the jitter's high-pass), exact truth."""
+    folder = tmp_path_factory.mktemp("shaky")
+    video = folder / "shaky.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky", "-n", "150",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    return video, json.loads(video.with_suffix(".gt.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def flight(shaky_flight) -> tuple[Path, dict]:
+    """Its first 2 s, what the real-time tests send; the truth of those frames."""
+    video, truth = shaky_flight
+    short = video.with_name("short.mp4")
+    subprocess.run([FFMPEG, "-v", "error", "-y", "-i", str(video), "-frames:v", str(FRAMES), "-c:v", "libx264",
+                    "-preset", "veryfast", "-crf", "12", "-movflags", "+faststart", str(short)], check=True, timeout=RUN_LIMIT)
+    return short, {"pairwise": truth["pairwise"][:FRAMES - 1]}
+
+
+def free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until_bound(port: int, udp: bool, limit: float = 30.0) -> None:
+    """Wait until something on this machine listens on the port (mosaic's ffmpeg)."""
+    table = Path("/proc/net/udp" if udp else "/proc/net/tcp")
+    needle = f":{port:04X} "
+    deadline = time.monotonic() + limit
+    while time.monotonic() < deadline:
+        for line in table.read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[1].upper().endswith(needle.strip()) and (udp or fields[3] == "0A"):
+                return
+        time.sleep(0.05)
+    raise AssertionError(f"nothing listened on port {port} within {limit} s")
+
+
+def mosaic(*args, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "mosaic_cli", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, **kwargs)
+
+
+def send(video: Path, url: str) -> subprocess.CompletedProcess:
+    """Serve the flight in real time as MPEG-TS (the video stream as it is, no re-encoding)."""
+    return subprocess.run([FFMPEG, "-v", "error", "-re", "-i", str(video), "-c", "copy", "-f", "mpegts", url],
+                          capture_output=True, timeout=RUN_LIMIT)
+
+
+def finish(proc: subprocess.Popen) -> tuple[int, str, str]:
+    out, err = proc.communicate(timeout=RUN_LIMIT)
+    return proc.returncode, out.decode(), err.decode()
+
+
+def offline_track(tmp_path: Path, video: Path) -> np.ndarray:
+    out = tmp_path / "offline.json"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(out), "-e", "orb", "-q"],
+                   check=True, timeout=RUN_LIMIT)
+    return np.array(json.loads(out.read_text())["pairwise"])
+
+
+def corner_error(H: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    w, h = SIZE
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float).T
+    a, b = H @ corners, truth @ corners
+    return np.linalg.norm(a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:], axis=1).max(axis=-1)
+
+
+def read_lines(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def test_track_from_stdin_writes_json_lines_equal_to_the_offline_track(tmp_path, flight):
+    video, truth = flight
+    with open(video, "rb") as stdin:
+        rc, out, err = finish(mosaic("track", "-", "-o", "-", "-e", "orb", "-q", stdin=stdin))
+    assert rc == 0, err
+    lines = read_lines(out)
+    assert [line["frame"] for line in lines] == list(range(FRAMES - 1))
+    H = np.array([line["H"] for line in lines])
+    # The same decoded frames as the file: the same estimates.
+    np.testing.assert_allclose(H, offline_track(tmp_path, video), atol=1e-9)
+    assert np.median(corner_error(H, np.array(truth["pairwise"]))) < 1.0
+    assert all(0.0 <= line["confidence"] <= 1.0 for line in lines)
+
+
+def test_track_over_udp_ends_on_timeout_with_every_frame(tmp_path, flight):
+    video, _ = flight
+    port = free_port(socket.SOCK_DGRAM)
+    out = tmp_path / "udp.json"
+    proc = mosaic("track", f"udp://127.0.0.1:{port}", "-o", out, "-e", "orb", "--timeout", "1.5")
+    wait_until_bound(port, udp=True)
+    sent = time.monotonic()
+    assert send(video, f"udp://127.0.0.1:{port}?pkt_size=1316").returncode == 0
+    stopped = time.monotonic()
+    rc, _, err = finish(proc)
+    assert rc == 0, err
+    assert "sent nothing for 1.5 s (--timeout)" in err
+    assert time.monotonic() - stopped < 30
+    doc = json.loads(out.read_text())
+    assert doc["frames"] == FRAMES  # nothing lost, the decoder's last frames included
+    assert doc["meta"]["ended_by"] == "timeout"
+    assert stopped - sent > 1.0  # it really was served in real time
+
+
+def test_track_over_tcp_listening_follows_the_json_lines_file(tmp_path, flight):
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    out = tmp_path / "pairs.jsonl"
+    proc = mosaic("track", f"tcp://127.0.0.1:{port}?listen=1", "-o", out, "-e", "orb", "-q")
+    wait_until_bound(port, udp=False)
+    sender = subprocess.Popen([FFMPEG, "-v", "error", "-re", "-i", str(video), "-c", "copy", "-f", "mpegts",
+                               f"tcp://127.0.0.1:{port}"])
+    # Lines appear while the flight is still being sent.
+    deadline = time.monotonic() + RUN_LIMIT
+    while sender.poll() is None and time.monotonic() < deadline:
+        if out.exists() and len(read_lines(out.read_text())) >= 5:
+            break
+        time.sleep(0.05)
+    seen_while_sending = sender.poll() is None and out.exists() and len(read_lines(out.read_text())) >= 5
+    sender.wait(timeout=RUN_LIMIT)
+    rc, _, err = finish(proc)
+    assert rc == 0, err
+    assert seen_while_sending
+    assert [line["frame"] for line in read_lines(out.read_text())] == list(range(FRAMES - 1))
+
+
+def test_sigterm_ends_a_live_track_with_what_was_received(tmp_path, flight):
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    out = tmp_path / "stopped.json"
+    proc = mosaic("track", f"tcp://127.0.0.1:{port}?listen=1", "-o", out, "-e", "orb")
+    wait_until_bound(port, udp=False)
+    sender = subprocess.Popen([FFMPEG, "-v", "quiet", "-re", "-i", str(video), "-c", "copy", "-f", "mpegts",
+                               f"tcp://127.0.0.1:{port}"])
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    rc, _, err = finish(proc)
+    sender.wait(timeout=RUN_LIMIT)
+    assert rc == 0, err
+    assert "SIGTERM: ending with the" in err
+    doc = json.loads(out.read_text())
+    assert 2 <= doc["frames"] < FRAMES
+    assert doc["meta"]["ended_by"] == "SIGTERM"
+
+
+def test_no_sender_is_one_clear_error(tmp_path):
+    port = free_port(socket.SOCK_DGRAM)
+    rc, _, err = finish(mosaic("track", f"udp://127.0.0.1:{port}", "-o", tmp_path / "t.json", "-e", "orb", "--timeout", "0.5"))
+    assert rc == 2
+    assert err.strip() == f"mosaic: error: udp://127.0.0.1:{port}: no video arrived within 0.5 s (--timeout)"
+    assert not (tmp_path / "t.json").exists()
+
+
+def test_garbage_on_stdin_is_one_clear_error(tmp_path):
+    rc, _, err = finish(mosaic("track", "-", "-o", tmp_path / "t.jsonl", "-e", "orb", stdin=subprocess.PIPE))
+    assert rc == 2
+    assert err.startswith("mosaic: error: standard input: cannot read a video stream") and err.count("\n") == 1
+
+
+# -- stabilize --latency ------------------------------------------------------------------
+
+def gt_jitter(truth: dict, warps: np.ndarray | None) -> float:
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+
+    return ground_truth_jitter(np.array(truth["map_to_frame"]), np.array(truth["smooth_map_to_frame"]), SIZE,
+                               float(truth.get("fps", 30.0)), warps)
+
+
+def count_frames(video: Path) -> int:
+    run = subprocess.run([FFMPEG, "-hide_banner", "-i", str(video), "-map", "0:v:0", "-f", "null", "-"],
+                         capture_output=True, timeout=RUN_LIMIT)
+    frames = [line for line in run.stderr.decode().replace("\r", "\n").splitlines() if line.startswith("frame=")]
+    return int(frames[-1].split("=")[1].split()[0])
+
+
+def test_stabilize_live_over_tcp_to_a_file_keeps_every_frame_and_steadies(tmp_path, flight):
+    video, truth = flight
+    port = free_port(socket.SOCK_STREAM)
+    out, warps = tmp_path / "steady.mp4", tmp_path / "warps.json"
+    proc = mosaic("stabilize", f"tcp://127.0.0.1:{port}?listen=1", out, "-e", "orb", "--warps", warps)
+    wait_until_bound(port, udp=False)
+    assert send(video, f"tcp://127.0.0.1:{port}").returncode == 0
+    rc, _, err = finish(proc)
+    assert rc == 0, err
+    assert f"{FRAMES} frames in, {FRAMES} out" in err
+    assert count_frames(out) == FRAMES
+    assert len(json.loads(warps.read_text())["warps"]) == FRAMES
+
+
+def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offline(tmp_path, shaky_flight):
+    video, truth = shaky_flight
+    jitter = {}
+    for name, extra in (("live", ["--latency", "1"]), ("offline", [])):
+        warps = tmp_path / f"{name}.json"
+        subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / f"{name}.mp4"), "-e",
+                        "orb", "--warps", str(warps), "-q", *extra], check=True, timeout=RUN_LIMIT)
+        jitter[name] = gt_jitter(truth, np.array(json.loads(warps.read_text())["warps"]))
+    assert jitter["live"] < 0.5 * gt_jitter(truth, None)
+    assert jitter["live"] <= 1.5 * jitter["offline"]
+
+
+def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
+    video, _ = flight
+    with open(video, "rb") as stdin:
+        proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", "-", "-", "-e", "orb", "--latency", "0.5",
+                               "-q"], stdin=stdin, capture_output=True, timeout=RUN_LIMIT)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert proc.stdout[0] == 0x47 and proc.stdout[188] == 0x47  # MPEG-TS sync bytes
+    (tmp_path / "out.ts").write_bytes(proc.stdout)
+    assert count_frames(tmp_path / "out.ts") == FRAMES
+
+
+def test_online_path_waits_at_most_its_horizon_and_equals_the_offline_path_when_it_sees_everything():
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import camera_motion, motion_model
+    from mosaic_cli.stabilize.smoothing import L1Smoother
+
+    rng = np.random.default_rng(1)
+    n, size, model = 50, SIZE, motion_model("similarity")
+    pairwise = np.tile(np.eye(3), (n - 1, 1, 1))
+    pairwise[:, 0, 2] = 2.0 + rng.normal(0, 1.5, n - 1)  # a pan with shake
+    pairwise[:, 1, 2] = rng.normal(0, 1.5, n - 1)
+
+    horizon = Horizon(step=4, lookahead=6)
+    online = OnlineL1Path(model, size, None, horizon)
+    settled_at: list[int] = []
+    for t in range(n):
+        online.push(None if t == 0 else pairwise[t - 1])
+        settled_at += [t] * len(online.settle())
+    settled_at += [n - 1] * len(online.settle(final=True))
+    assert len(settled_at) == n
+    waits = np.array(settled_at) - np.arange(n)
+    assert waits.min() >= 0 and waits.max() <= horizon.frames - 1
+
+    whole = OnlineL1Path(model, size, None, Horizon(step=n, lookahead=n))
+    for t in range(n):
+        whole.push(None if t == 0 else pairwise[t - 1])
+    assert len(whole.settle()) == 0
+    views = whole.settle(final=True)
+    offline = L1Smoother().smooth(camera_motion(pairwise, size, model), size, model, None)
+    np.testing.assert_allclose(views, offline, atol=1e-9)
+
+
+def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, flight):
+    video, _ = flight
+    proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / "o.mp4"), "-e", "orb",
+                           "--latency", "0.1"], capture_output=True, timeout=RUN_LIMIT)
+    assert proc.returncode == 2
+    assert proc.stderr.decode().startswith("mosaic: error: --latency 0.1 s is too short at 30 fps")
+    assert not (tmp_path / "o.mp4").exists()
+
+
+# -- stitch --live ------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("survey")
+    video = folder / "survey.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "survey", "-n", "120",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    return video
+
+
+def test_stitch_live_from_stdin_equals_the_offline_stitch(tmp_path, survey):
+    with open(survey, "rb") as stdin:
+        rc, _, err = finish(mosaic("stitch", "-", "-o", tmp_path / "live.png", "--transforms", tmp_path / "live.json",
+                                   "-e", "orb", "-q", stdin=stdin))
+    assert rc == 0, err
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(survey), "-o", str(tmp_path / "off.png"),
+                    "--transforms", str(tmp_path / "off.json"), "-e", "orb", "-q"], check=True, timeout=RUN_LIMIT)
+    import cv2
+
+    assert json.loads((tmp_path / "live.json").read_text()) == json.loads((tmp_path / "off.json").read_text())
+    np.testing.assert_array_equal(cv2.imread(str(tmp_path / "live.png"), -1), cv2.imread(str(tmp_path / "off.png"), -1))
+
+
+def test_stitch_live_over_udp_writes_a_growing_preview_and_ends_on_timeout(tmp_path, survey):
+    import cv2
+
+    port = free_port(socket.SOCK_DGRAM)
+    preview, out = tmp_path / "preview.png", tmp_path / "pano.png"
+    log = open(tmp_path / "stderr.txt", "w+")  # not a pipe: nobody reads it until the end
+    proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "stitch", f"udp://127.0.0.1:{port}", "-o", str(out),
+                             "--live", "--preview", str(preview), "--every", "0.2", "-e", "orb", "--timeout", "1.5"],
+                            stdout=subprocess.DEVNULL, stderr=log)
+    wait_until_bound(port, udp=True)
+    sender = subprocess.Popen([FFMPEG, "-v", "error", "-re", "-i", str(survey), "-c", "copy", "-f", "mpegts",
+                               f"udp://127.0.0.1:{port}?pkt_size=1316"])
+    sizes = []
+    # Watched until mosaic ends: on a loaded machine the scan (and so the previews) may lag
+    # behind the sender.
+    deadline = time.monotonic() + RUN_LIMIT
+    while proc.poll() is None and time.monotonic() < deadline:
+        if preview.exists():
+            image = cv2.imread(str(preview), cv2.IMREAD_UNCHANGED)
+            assert image is not None  # never a half-written file
+            sizes.append(int((image[..., 3] > 0).sum()))
+        time.sleep(0.1)
+    sender.wait(timeout=RUN_LIMIT)
+    rc = proc.wait(timeout=RUN_LIMIT)
+    final = cv2.imread(str(preview), cv2.IMREAD_UNCHANGED)  # the last one: every keyframe scanned
+    sizes.append(int((final[..., 3] > 0).sum()))
+    log.seek(0)
+    err = log.read()
+    log.close()
+    assert rc == 0, err
+    assert "(--timeout)" in err
+    assert "120 frames ->" in err
+    assert sizes and sizes[-1] > sizes[0]  # the covered area grew as the flight came in
+    pano = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert pano is not None and pano.shape[2] == 4
+    assert not list(tmp_path.glob(".*.part*"))
+
+
+def test_the_previews_incremental_drift_control_places_keyframes_as_well_as_the_final_stitch(tmp_path, survey):
+    from mosaic_cli.estimators import make_estimator
+    from mosaic_cli.geometry import frame_corners, project
+    from mosaic_cli.stitch import StitchOptions
+    from mosaic_cli.stitch.live import IncrementalRegistration, PreviewOptions, stitch_live
+
+    seen = {}
+    update = IncrementalRegistration.update
+
+    def spy(self, keyframes):
+        seen["placements"], seen["indices"] = update(self, keyframes), [k.index for k in keyframes]
+        return seen["placements"]
+
+    IncrementalRegistration.update = spy
+    try:
+        result = stitch_live(str(survey), tmp_path / "p.png", make_estimator("orb"), StitchOptions(),
+                             preview=PreviewOptions(tmp_path / "preview.png", 0.01), show_progress=False)
+    finally:
+        IncrementalRegistration.update = update
+    truth = np.array(json.loads(survey.with_suffix(".gt.json").read_text())["map_to_frame"])
+    indices = [i for i, _ in result.transforms]
+    assert seen["indices"] == indices and result.previews >= 2
+    corners = frame_corners(*SIZE)
+
+    def errors(placements):
+        out = []
+        for a, i in enumerate(indices):
+            for b, j in enumerate(indices):
+                if j - i >= 30:
+                    estimate = np.linalg.inv(placements[b]) @ placements[a]
+                    exact = truth[j] @ np.linalg.inv(truth[i])
+                    out.append(np.abs(project(estimate, corners) - project(exact, corners)).max())
+        return np.median(out)
+
+    final = errors([H for _, H in result.transforms])
+    assert errors(seen["placements"]) <= 1.5 * final + 0.1
