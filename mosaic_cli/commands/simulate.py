@@ -25,6 +25,12 @@ def simulate(
     preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
     overlays: str | None = typer.Option(None, "--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    telemetry: str | None = typer.Option(None, "--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json."),
+    origin: str = typer.Option("47.3977,8.5456", "--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry)."),
+    gsd: float = typer.Option(0.05, "--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry)."),
+    gps_noise: float = typer.Option(3.0, "--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry."),
+    gps_dropouts: float = typer.Option(0.02, "--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry."),
+    telemetry_rate: float = typer.Option(0.0, "--telemetry-rate", help="Log samples per second; 0: one per frame."),
 ) -> None:
     """Render a drone flight over a large aerial image with a virtual nadir camera.
 
@@ -55,8 +61,19 @@ def simulate(
     check_writable(ground_truth_path(out))
     if burned.any:
         check_writable(overlay_mask_path(out))
+    if telemetry is not None:  # checked before rendering: a bad option costs nothing
+        from mosaic_cli.simulate.telemetry import prepare_telemetry
+
+        map_geo, errors = prepare_telemetry(out, map_image, telemetry, origin, gsd, gps_noise, gps_dropouts, telemetry_rate, seed)
     gt = simulate_flight(out, map_image, profile, frames, wh, fps, seed, crf, preset, show_progress=not quiet,
                          overlays=burned)
+    if telemetry is not None:
+        from mosaic_cli.simulate.telemetry import write_telemetry
+
+        geo = map_geo(gt.map_size)
+        log = write_telemetry(out, gt, geo, telemetry, errors, telemetry_rate or None)
+        if not quiet:
+            console.print(f"telemetry ({telemetry}, {geo.crs}, {geo.gsd:g} m per map pixel) -> {log}")
     if not quiet:
         console.print(
             f"{gt.frames} frames {gt.size[0]}x{gt.size[1]} over {gt.map_name} ({gt.map_size[0]}x{gt.map_size[1]}), "

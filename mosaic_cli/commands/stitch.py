@@ -41,6 +41,10 @@ def stitch(
     every: float = typer.Option(2.0, "--every", help="--live: seconds between two previews."),
     timeout: float = typer.Option(10.0, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    telemetry: str | None = typer.Option(None, "--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any."),
+    hfov: float | None = typer.Option(None, "--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV)."),
+    telemetry_offset: float = typer.Option(0.0, "--telemetry-offset", help="Seconds added to the telemetry's times to match the video's."),
+    footprints: Path | None = typer.Option(None, "--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84)."),
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
@@ -57,6 +61,7 @@ def stitch(
         mask=MaskOptions(file=mask, detect=overlay_detect),
         start=start,
         max_frames=max_frames,
+        georef=_georef_options(telemetry, hfov, telemetry_offset, footprints),
     )
     options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
     # Output and option checks come before the estimator is built (a learned one loads weights).
@@ -96,6 +101,11 @@ def stitch(
         for p in result.panoramas:
             joined = f" ({p.segments} segments joined)" if p.segments > 1 else ""
             console.print(f"  {p.canvas_size[0]}x{p.canvas_size[1]} panorama of {len(p.transforms)} keyframes{joined} -> {p.path}")
+        on_ground = [(p.path, p.georef) for p in result.panoramas if p.georef is not None]
+        if on_ground:
+            console.print(on_ground[0][1].telemetry.summary())
+        for path, georef in on_ground:
+            console.print(georef.summary() + (f" ({path})" if len(result.panoramas) > 1 else ""))
     # Said even with -q: nothing leaves the panorama silently.
     for line in _notices(video, result):
         print(f"mosaic: warning: {line}", file=sys.stderr)
@@ -110,6 +120,10 @@ def _notices(video: Path, result) -> list[str]:
         lines.append(
             f"{len(extra)} part(s) of the flight registered with no other and went to panoramas of their own: {firsts}"
         )
+    if result.georef is not None:
+        for p in extra:
+            if p.georef is None:
+                lines.append(f"{p.path}: the telemetry gives its keyframes no position: a plain panorama, not georeferenced")
     if result.dropped:
         if result.photos:
             from mosaic_cli.video.reader import _folder_images
@@ -130,6 +144,19 @@ def _ranges(indices: list[int]) -> str:
         else:
             runs.append([i, i])
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None):
+    from mosaic_cli.errors import BadInput
+    from mosaic_cli.geo.georef import GeorefOptions
+
+    if telemetry is not None and telemetry.strip().lower() == "none":
+        if footprints is not None:
+            raise BadInput("--footprints needs telemetry (--telemetry none was given)")
+        return None
+    options = GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)
+    options.validate()
+    return options
 
 
 def _fraction(name: str, value: float) -> float:

@@ -234,6 +234,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         info = probe(source)
         # A file read as a stream is there whole: its overlays are found before the scan starts.
         masked = frame_mask(source, options.mask, info, show_progress)
+    track = _load_track(source, out, options, live)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
@@ -273,12 +274,27 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         if not scan.keyframes:
             raise BadInput(f"{source}: no frame is usable (all black, blank or over-exposed)")
         # The stages after the scan as in pipeline.stitch, on the same keyframes.
-        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, masked)
+        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, masked, track)
         result.previews = drawer.written  # type: ignore[attr-defined]
         result.preview_loops = registration.loops_closed if registration else 0  # type: ignore[attr-defined]
         result.preview_seconds = drawer.seconds  # type: ignore[attr-defined]
         result.ended_by = stream.ended_by if live else None  # type: ignore[attr-defined]
         return result
+
+
+def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool):
+    """The telemetry, before any work: an explicit --telemetry file; a file read as live may
+    hold a track of its own, a stream (stdin, URL) cannot be probed for one."""
+    from mosaic_cli.geo.stitching import load_track
+
+    georef = options.georef
+    if georef is None:
+        return None
+    if live and georef.telemetry is None:
+        if georef.footprints is not None:
+            raise BadInput("--footprints with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
+        return None
+    return load_track(source, out, georef)  # the stream's length is unknown: coverage is checked after the scan
 
 
 def _check(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:

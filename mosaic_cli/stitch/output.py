@@ -56,15 +56,21 @@ def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) ->
             raise ProcessingError(f"{out}: OpenCV could not write the {fmt.upper()} image")
 
 
-def write_transforms(path: str | Path, canvas_size: tuple[int, int], frames: list[tuple[int, np.ndarray]]) -> None:
+def write_transforms(
+    path: str | Path, canvas_size: tuple[int, int], frames: list[tuple[int, np.ndarray]], extra: tuple[dict, list[dict]] | None = None
+) -> None:
     """``{"canvas_size": [W, H], "frames": [{"index": i, "H": 3x3}, ...]}``: each used frame's
     homography, frame pixels (full resolution) -> panorama pixels; with ``"input": {...}`` when
-    the video decoded to fewer frames than its container announced (video.reader.Shortfall)."""
+    the video decoded to fewer frames than its container announced (video.reader.Shortfall).
+    ``extra`` (georeferenced stitches) adds top-level keys and per-frame keys: ``crs`` and
+    ``map_H`` (see geo/output.py)."""
     from mosaic_cli.video.reader import shortfalls
 
+    top, per_frame = extra if extra is not None else ({}, [{} for _ in frames])
     doc = {
         "canvas_size": [int(canvas_size[0]), int(canvas_size[1])],
-        "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H]} for i, H in frames],
+        **top,
+        "frames": [{"index": int(i), "H": [[float(v) for v in row] for row in H], **more} for (i, H), more in zip(frames, per_frame)],
     }
     for short in shortfalls().values():  # one video a run
         doc["input"] = short.as_meta()

@@ -11,6 +11,11 @@
 4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending
 5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically; the panoramas
              after the first are numbered: pano.png, pano-2.png, ...
+
+With telemetry (``StitchOptions.georef``, see mosaic_cli/geo) the log is read before any work,
+drift control starts from GPS-straightened placements, and each panorama whose keyframes the
+log covers is laid north-up on the ground before its canvas is planned (GeoTIFF, footprints,
+map homographies in the transforms).
 """
 
 from __future__ import annotations
@@ -25,6 +30,9 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
+from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
+from mosaic_cli.geo.output import transforms_extra
+from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import normalize, resize_matrix
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
@@ -40,6 +48,7 @@ from mosaic_cli.stitch.registration import (
     register_keyframes,
 )
 from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
+from mosaic_cli.telemetry import Track
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import scaled_size
 
@@ -58,6 +67,8 @@ class StitchOptions:
     # Hold keyframe pixels in a temporary folder ($TMPDIR) rather than in memory: a survey's
     # held pixels add up to several canvases (see spill.py).
     spill: bool = True
+    # Telemetry to lay the mosaic on the ground with (see mosaic_cli/geo); None: a plain panorama.
+    georef: "GeorefOptions | None" = None
 
 
 @dataclass
@@ -68,6 +79,7 @@ class Panorama:
     transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per keyframe
     reference_frame: int
     segments: int  # segments of the flight joined in it
+    georef: Georeference | None = None  # laid on the ground (telemetry covering its keyframes)
 
 
 @dataclass
@@ -83,6 +95,7 @@ class StitchResult:
     dropped: list[tuple[int, str]] = field(default_factory=list)  # (frame index, why) not placed anywhere
     photos: bool = False
     mask: FrameMask | None = None  # what was kept out of estimation and the panoramas
+    georef: Georeference | None = None  # the first panorama's, with telemetry
 
     @property
     def frames_per_second(self) -> float:
@@ -108,6 +121,11 @@ def stitch(
         f = options.features
         photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features))
         options = dataclasses.replace(options, features=photo)
+        if options.georef is not None and (options.georef.telemetry is not None or options.georef.footprints is not None):
+            raise BadInput(f"{video}: --telemetry and --footprints apply to videos, not to photo folders")
+        track = None
+    else:
+        track = load_track(video, out, options.georef, _time_span(info, options))  # geo hook: before any work
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -124,26 +142,37 @@ def stitch(
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
-        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask)
+        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track)
 
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
                   transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
-                  mask: FrameMask | None = None) -> StitchResult:
+                  mask: FrameMask | None = None, track: Track | None = None) -> StitchResult:
     """The stages after the scan, shared by the offline and the live stitch: register the
     keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
     write each panorama; the overlays of ``scan.use`` are drawn in none (``mask``: what the
-    result reports of them).  ``seconds`` gains each stage's time."""
+    result reports of them).  ``seconds`` gains each stage's time.  With ``track`` (telemetry,
+    see geo/stitching.py) drift control starts from GPS-straightened placements and each
+    panorama whose keyframes the log covers is laid north-up on the ground (GeoTIFF, footprints,
+    map homographies in the transforms)."""
     clock = time.perf_counter()
-    groups, report = _register(scan, reference, options, show_progress)
+    groups, report = _register(scan, reference, options, show_progress, track)
     seconds["register"] = time.perf_counter() - clock
 
     seconds["compose"] = seconds["write"] = 0.0
     panoramas = []
     for number, (members, placements, ref, segments) in enumerate(groups):
-        clock = time.perf_counter()
         keyframes = [scan.keyframes[k] for k in members]
         indices = [k.index for k in keyframes]
+        georef = None
+        if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
+            clock = time.perf_counter()
+            georef = _georeference(placements, ref, indices, scan, track, options.georef, first=number == 0)
+            if georef is not None:
+                placements = georef.placements_in_pixels(placements)
+            seconds["register"] += time.perf_counter() - clock
+
+        clock = time.perf_counter()
         drawn = [k.composited for k in keyframes]
         canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
@@ -152,19 +181,41 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
 
         clock = time.perf_counter()
         path, json_path = numbered(out, number), numbered(transforms, number) if transforms is not None else None
-        write_panorama(path, panorama)
+        extra, written = None, False
+        if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
+            assert options.georef is not None
+            footprints = options.georef.footprints
+            own = dataclasses.replace(options.georef, footprints=numbered(footprints, number) if footprints is not None else None)
+            written = write_outputs(path, panorama, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps)
+            extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
+        if not written:
+            write_panorama(path, panorama)
         del panorama
         # Every keyframe is reported, also those over ground already drawn (used for registration).
         frames = list(zip(indices, frame_to_canvas))
         if json_path is not None:
-            write_transforms(json_path, canvas.size, frames)
+            write_transforms(json_path, canvas.size, frames, extra)
         seconds["write"] += time.perf_counter() - clock
-        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments))
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
-        seconds, panoramas, scan.dropped, scan.photos, mask,
+        seconds, panoramas, scan.dropped, scan.photos, mask, first.georef,
     )
+
+
+def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, track: Track, options: GeorefOptions | None,
+                  first: bool) -> Georeference | None:
+    """One panorama laid on the ground.  The first panorama must be (the log was checked to
+    cover the video: what is wrong is said); a panorama of a later segment whose keyframes the
+    log does not cover stays a plain one (None)."""
+    assert options is not None
+    try:
+        return georeference(placements, ref, indices, scan.source_size, scan.fps, track, options)
+    except BadInput:
+        if first:
+            raise
+        return None
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
@@ -186,6 +237,14 @@ def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[Video
     if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
         raise BadInput(f"--reference {reference} is past the end of {video} ({info.frame_count} frames)")
     return info, reference
+
+
+def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] | None:
+    """Seconds of video the stitch covers, when the frame count is known."""
+    if not info.frame_count or info.fps <= 0:
+        return None
+    end = info.frame_count if options.max_frames is None else min(info.frame_count, options.start + options.max_frames)
+    return options.start / info.fps, (end - 1) / info.fps
 
 
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
@@ -219,11 +278,12 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             return scan_flight(frames(), estimator, scanner, advance)
 
 
-def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool):
+def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: Track | None = None):
     """The panoramas: for each, its keyframes (positions in ``scan.keyframes``), their
     keyframe -> reference placements (jointly refined, or chained from the scan's
     registrations when drift control is off), the reference (a position in the group) and
-    how many segments it joins."""
+    how many segments it joins.  ``track`` (telemetry) straightens each group's placements
+    toward the GPS before loops are looked for."""
     keyframes = scan.keyframes
 
     def progress(description: str, total: int):
@@ -260,6 +320,10 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
         if not options.registration.enabled or len(members) < 2:
             placements, report = chain_sequence(sequence, placements, ref), RegistrationReport()
         else:
+            if track is not None:  # geo hook: drift control starts from GPS-straightened placements
+                assert options.georef is not None
+                straighten = gps_straightener(track, ref, indices, scan.source_size, scan.fps, options.georef)
+                placements = straighten(placements)
             placements, report = register_keyframes(
                 [features[k] for k in members], placements, sequence, ref, matcher, options.registration, progress, extra
             )

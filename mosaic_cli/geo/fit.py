@@ -1,0 +1,200 @@
+"""A robust similarity fit: 2-D points (the mosaic's) onto noisy 2-D positions (GPS).
+
+x' = a x - b y + tx,  y' = b x + a y + ty  (scale sqrt(a^2 + b^2), rotation atan2(b, a)).
+
+Least median of squares over point pairs finds a start that bad fixes cannot pull; iteratively
+reweighted least squares with Huber weights then uses every point in proportion to how well
+it agrees, and the points beyond 3 robust sigmas are reported as outliers.  An optional prior
+on (a, b) (scale from the altitude and field of view, rotation from the compass) keeps the
+fit determined when the track is too short or too straight to fix them itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+HUBER = 1.345  # 95% efficiency under Gaussian noise
+
+
+@dataclass
+class SimilarityPrior:
+    scale: float
+    rotation: float  # radians
+    sigma: float  # relative uncertainty of (a, b), e.g. 0.1 = 10% of the scale
+
+
+@dataclass
+class SimilarityFit:
+    matrix: np.ndarray  # 3x3, source -> target
+    residuals: np.ndarray  # (N,) target units
+    inliers: np.ndarray  # (N,) bool
+    sigma: float  # robust scale of the inliers' residuals
+
+    @property
+    def scale(self) -> float:
+        return float(math.hypot(self.matrix[0, 0], self.matrix[1, 0]))
+
+    @property
+    def rotation(self) -> float:
+        return float(math.atan2(self.matrix[1, 0], self.matrix[0, 0]))
+
+
+def _rows(src: np.ndarray) -> np.ndarray:
+    """Design matrix of (a, b, tx, ty) for the stacked x' and y' equations."""
+    n = len(src)
+    A = np.zeros((2 * n, 4))
+    A[0::2, 0], A[0::2, 1], A[0::2, 2] = src[:, 0], -src[:, 1], 1.0
+    A[1::2, 0], A[1::2, 1], A[1::2, 3] = src[:, 1], src[:, 0], 1.0
+    return A
+
+
+def _matrix(p: np.ndarray) -> np.ndarray:
+    a, b, tx, ty = p
+    return np.array([[a, -b, tx], [b, a, ty], [0, 0, 1.0]])
+
+
+def _residuals(p: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    M = _matrix(p)
+    return np.linalg.norm(src @ M[:2, :2].T + M[:2, 2] - dst, axis=1)
+
+
+def _solve(src, dst, weights, prior: SimilarityPrior | None, prior_weight: float) -> np.ndarray:
+    A = _rows(src)
+    y = dst.reshape(-1)
+    w = np.repeat(np.sqrt(weights), 2)
+    A, y = A * w[:, None], y * w
+    if prior is not None and prior_weight > 0:
+        a0, b0 = prior.scale * math.cos(prior.rotation), prior.scale * math.sin(prior.rotation)
+        P = np.zeros((2, 4))
+        P[0, 0] = P[1, 1] = prior_weight
+        A = np.vstack([A, P])
+        y = np.concatenate([y, [prior_weight * a0, prior_weight * b0]])
+    return np.linalg.lstsq(A, y, rcond=None)[0]
+
+
+def _pair_similarity(s1, s2, d1, d2) -> np.ndarray | None:
+    ds, dd = s2 - s1, d2 - d1
+    n = ds @ ds
+    if n < 1e-12:
+        return None
+    a = (ds @ dd) / n
+    b = (ds[0] * dd[1] - ds[1] * dd[0]) / n
+    tx = d1[0] - (a * s1[0] - b * s1[1])
+    ty = d1[1] - (b * s1[0] + a * s1[1])
+    return np.array([a, b, tx, ty])
+
+
+def fit_similarity(
+    src: np.ndarray, dst: np.ndarray, prior: SimilarityPrior | None = None, min_sigma: float = 0.05, seed: int = 0
+) -> SimilarityFit:
+    """Robust similarity ``src`` -> ``dst`` ((N, 2) each, N >= 2)."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    n = len(src)
+    if n < 2:
+        raise ValueError("a similarity needs at least two points")
+    # Centre both sets: the solve is better conditioned, and translations stay small.
+    cs, cd = src.mean(0), dst.mean(0)
+    s, d = src - cs, dst - cd
+
+    # 1. least median of squares over pairs (all pairs when few, a deterministic sample else)
+    rng = np.random.default_rng(seed)
+    if n <= 40:
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    else:
+        pairs = [tuple(rng.choice(n, 2, replace=False)) for _ in range(600)]
+    best, best_score = None, np.inf
+    spread = np.linalg.norm(s, axis=1).max()
+    for i, j in pairs:
+        if np.linalg.norm(s[i] - s[j]) < 0.2 * spread:  # short baselines: the angle is noise
+            continue
+        p = _pair_similarity(s[i], s[j], d[i], d[j])
+        if p is None:
+            continue
+        score = np.median(_residuals(p, s, d))
+        if score < best_score:
+            best, best_score = p, score
+    if best is None:
+        best = _solve(s, d, np.ones(n), prior, 0.0)
+
+    # 2. IRLS with Huber weights, the prior as two extra equations
+    p = best
+    for _ in range(30):
+        r = _residuals(p, s, d)
+        sigma = max(min_sigma, 1.4826 * float(np.median(r)))
+        k = HUBER * sigma
+        weights = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
+        weights[r > 3.5 * sigma] = 0.0  # bad fixes: out, not merely down-weighted
+        prior_weight = 0.0
+        if prior is not None:
+            # weighted so that the prior's error counts like a point's (sigma) in the solve
+            prior_weight = sigma / max(prior.sigma * prior.scale, 1e-12)
+        new = _solve(s, d, weights, prior, prior_weight)
+        if np.allclose(new, p, rtol=1e-10, atol=1e-10):
+            p = new
+            break
+        p = new
+    r = _residuals(p, s, d)
+    sigma = max(min_sigma, 1.4826 * float(np.median(r)))
+    inliers = r <= 3.5 * sigma
+    M = _matrix(p)
+    # back from centred coordinates: x' = M (x - cs) + cd
+    T_src = np.array([[1, 0, -cs[0]], [0, 1, -cs[1]], [0, 0, 1.0]])
+    T_dst = np.array([[1, 0, cd[0]], [0, 1, cd[1]], [0, 0, 1.0]])
+    return SimilarityFit(T_dst @ M @ T_src, r, inliers, sigma)
+
+
+@dataclass
+class HomographyFit:
+    matrix: np.ndarray  # 3x3, source -> target
+    residuals: np.ndarray
+    inliers: np.ndarray
+    sigma: float
+
+
+def _weighted_dlt(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Homography by the weighted DLT (points already centred and scaled)."""
+    n = len(src)
+    x, y = src[:, 0], src[:, 1]
+    u, v = dst[:, 0], dst[:, 1]
+    A = np.zeros((2 * n, 9))
+    A[0::2, 0:3] = np.stack([x, y, np.ones(n)], 1)
+    A[0::2, 6:9] = -np.stack([u * x, u * y, u], 1)
+    A[1::2, 3:6] = np.stack([x, y, np.ones(n)], 1)
+    A[1::2, 6:9] = -np.stack([v * x, v * y, v], 1)
+    A *= np.repeat(np.sqrt(weights), 2)[:, None]
+    H = np.linalg.svd(A)[2][-1].reshape(3, 3)
+    return H / H[2, 2]
+
+
+def refine_homography(src: np.ndarray, dst: np.ndarray, min_sigma: float = 0.05, iterations: int = 30) -> HomographyFit:
+    """A robust homography ``src`` -> ``dst`` (N >= 8), started from the identity: meant for
+    points already brought close by a similarity, so that only the perspective left over by
+    the images' drift remains to be fitted.  Huber-weighted DLT, fixes beyond 3.5 robust sigmas out."""
+    from mosaic_cli.geometry import project
+
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    c = dst.mean(0)
+    scale = float(np.sqrt(((dst - c) ** 2).sum(1).mean())) or 1.0
+    N = np.array([[1 / scale, 0, -c[0] / scale], [0, 1 / scale, -c[1] / scale], [0, 0, 1.0]])
+    s, d = project(N, src), project(N, dst)
+    H = np.eye(3)
+    for _ in range(iterations):
+        r = np.linalg.norm(project(H, s) - d, axis=1) * scale
+        sigma = max(min_sigma, 1.4826 * float(np.median(r)))
+        k = HUBER * sigma
+        weights = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
+        weights[r > 3.5 * sigma] = 0.0
+        new = _weighted_dlt(s, d, weights)
+        if np.allclose(new, H, atol=1e-12):
+            break
+        H = new
+    M = np.linalg.inv(N) @ H @ N
+    M /= M[2, 2]
+    r = np.linalg.norm(project(M, src) - dst, axis=1)
+    sigma = max(min_sigma, 1.4826 * float(np.median(r)))
+    return HomographyFit(M, r, r <= 3.5 * sigma, sigma)

@@ -1,0 +1,212 @@
+"""Georeferencing a stitched flight: the images fix the mosaic's shape, the telemetry its
+position, scale and heading.
+
+1. align     the track to the keyframes' times (interpolated; outliers, gaps reported)
+2. untilt    the reference view by the gimbal's pitch and roll (with a field of view), so the
+             mosaic's plane is the ground's up to a similarity
+3. fit       the keyframes' nadir points in the mosaic onto their GPS positions in the site's
+             UTM zone: a robust similarity (see fit.py), with the altitude x field of view
+             scale and the compass heading as a weak prior
+4. check     the fit against the images: too few agreeing fixes, or GPS scatter no drone has,
+             mean the telemetry belongs to another flight or clock
+
+Everything here is pure geometry: no file is read or written.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
+from mosaic_cli.geo.crs import Projection
+from mosaic_cli.geo.drift import DriftOptions, drift_shifts
+from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, fit_similarity, refine_homography
+from mosaic_cli.geometry import normalize, project
+from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
+from mosaic_cli.telemetry.track import Track
+
+FLIP = np.diag([1.0, -1.0, 1.0])  # (east, -north) <-> (east, north)
+
+
+@dataclass
+class GeorefOptions:
+    telemetry: Path | None = None  # a file; None: look inside the video
+    hfov: float | None = None  # degrees; overrides the telemetry's
+    offset: float = 0.0  # seconds added to the telemetry's times
+    footprints: Path | None = None
+    align: AlignOptions = field(default_factory=AlignOptions)
+    min_coverage: float = 0.5  # at least this fraction of keyframes must have a fix
+    max_scatter: float = 30.0  # metres: robust GPS scatter about the fit beyond this is no GPS error
+    min_agreeing: float = 0.6  # fraction of fixes that must agree with the images
+    # A long flight's mosaic bends a little (perspective drift): a homography replaces the
+    # similarity when it explains the fixes this much better (robust scatter ratio) ...
+    perspective_gain: float = 0.8
+    min_fixes_for_perspective: int = 12
+    drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
+
+    def validate(self) -> None:
+        if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
+            raise BadInput(f"--hfov must be between 1 and 170 degrees, got {self.hfov}")
+        if not math.isfinite(self.offset):
+            raise BadInput("--telemetry-offset must be a number of seconds")
+        if self.footprints is not None and Path(self.footprints).suffix.lower() not in (".geojson", ".json"):
+            raise BadInput(f"--footprints {self.footprints} must end in .geojson or .json")
+
+
+@dataclass
+class Georeference:
+    projection: Projection
+    mosaic_to_ground: np.ndarray  # reference-frame pixels -> (east, north) metres
+    ground_to_pixels: np.ndarray  # (east, north) -> north-up output pixels of ``gsd`` metres
+    gsd: float
+    fit: SimilarityFit
+    telemetry: AlignedTelemetry
+    frame_indices: list[int]
+    used: np.ndarray  # keyframes whose fix entered the fit
+    shifts: np.ndarray  # (N, 2) per-keyframe ground shifts from the GPS drift prior
+    model: str  # "similarity" or "homography"
+    hfov: float | None
+    track: Track
+    prior: SimilarityPrior | None
+
+    @property
+    def crs(self) -> str:
+        return self.projection.name
+
+    def shift(self, k: int) -> np.ndarray:
+        return np.array([[1.0, 0, self.shifts[k, 0]], [0, 1.0, self.shifts[k, 1]], [0, 0, 1.0]])
+
+    def frame_to_ground(self, k: int, placement: np.ndarray) -> np.ndarray:
+        """Keyframe k's frame pixels -> (east, north), from its placement in the reference frame."""
+        return normalize(self.shift(k) @ self.mosaic_to_ground @ placement)
+
+    def placements_in_pixels(self, placements: list[np.ndarray]) -> list[np.ndarray]:
+        return [normalize(self.ground_to_pixels @ self.frame_to_ground(k, H)) for k, H in enumerate(placements)]
+
+    def straightened(self, placements: list[np.ndarray]) -> list[np.ndarray]:
+        """The placements (in the reference frame) moved by the GPS drift shifts."""
+        back = np.linalg.inv(self.mosaic_to_ground)
+        return [normalize(back @ self.frame_to_ground(k, H)) for k, H in enumerate(placements)]
+
+    def summary(self) -> str:
+        agreeing = int(self.fit.inliers.sum())
+        heading = (math.degrees(self.fit.rotation) + 180.0) % 360.0 - 180.0
+        return (
+            f"georeferenced in {self.crs}: {agreeing} of {len(self.fit.inliers)} keyframe fixes agree "
+            f"(scatter {self.fit.sigma:.1f} m, {self.model}), {self.gsd * 100:.1f} cm per pixel, mosaic heading {heading:+.1f} deg"
+        )
+
+
+def georeference(
+    placements: list[np.ndarray],
+    ref: int,
+    frame_indices: list[int],
+    frame_size: tuple[int, int],
+    fps: float,
+    track: Track,
+    options: GeorefOptions,
+) -> Georeference:
+    """Tie keyframe ``placements`` (frame pixels -> pixels of keyframe ``ref``) to ``track``."""
+    times = np.asarray(frame_indices, dtype=np.float64) / fps
+    aligned = align_to_frames(track.shifted(options.offset), times, options.align)
+    fixes = aligned.fix
+    if not track.has_fix.any():
+        raise BadInput(f"{track.source}: no GPS fix in {len(track)} samples (all without coordinates)")
+    if fixes.sum() < max(2, options.min_coverage * len(times)):
+        raise BadInput(
+            f"{track.source}: the telemetry does not cover the video: fixes span {aligned.span[0]:.1f}-{aligned.span[1]:.1f} s, "
+            f"the stitched frames {times[0]:.1f}-{times[-1]:.1f} s ({int(fixes.sum())} of {len(times)} keyframes have a position); "
+            f"check --telemetry-offset"
+        )
+    hfov = options.hfov
+    if hfov is None and np.isfinite(aligned.hfov).any():
+        hfov = float(np.nanmedian(aligned.hfov))
+
+    # 2. the mosaic's plane made the ground's, and each keyframe's point below the camera
+    w, h = frame_size
+    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    if hfov is not None:
+        f = focal_pixels(w, hfov)
+        flatten = untilt(frame_size, f, aligned.pitch[ref], aligned.roll[ref])
+        nadirs = [nadir_pixel(frame_size, f, aligned.pitch[k], aligned.roll[k]) for k in range(len(placements))]
+    else:
+        f, flatten = None, np.eye(3)
+        nadirs = [centre] * len(placements)
+    mosaic = np.array([project(flatten @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+
+    # 3. the fit, in the site's UTM zone, as (east, -north) so that image y (down) stays y
+    lat0 = float(np.nanmedian(aligned.lat[fixes]))
+    lon0 = float(np.nanmedian(aligned.lon[fixes]))
+    projection = Projection.utm_for(lat0, lon0)
+    ground = projection.to_map(aligned.lat[fixes], aligned.lon[fixes]) * np.array([1.0, -1.0])
+    prior = None
+    if f is not None and np.isfinite(aligned.height[ref]) and aligned.height[ref] > 0 and np.isfinite(aligned.yaw[ref]):
+        # the untilted reference view sees height / f metres per pixel; its top edge points at yaw
+        prior = SimilarityPrior(float(aligned.height[ref]) / f, math.radians(float(aligned.yaw[ref])), 0.05)
+    extent = float(np.linalg.norm(np.ptp(ground, axis=0)))
+    if prior is None and extent < 30.0:
+        raise BadInput(
+            f"{track.source}: the GPS track spans only {extent:.0f} m, too little to fix scale and heading against GPS "
+            f"noise; the telemetry needs a height, a heading and a field of view (--hfov) to place such a short flight"
+        )
+    # GPS is never better than about a metre: a floor under the robust scale keeps a short,
+    # exact track from calling every fix but the best few an outlier
+    fit = fit_similarity(mosaic[fixes], ground, prior, min_sigma=1.0)
+
+    # 4. does the telemetry belong to these images?
+    agreeing = float(fit.inliers.mean())
+    if fit.sigma > options.max_scatter or agreeing < options.min_agreeing:
+        raise BadInput(
+            f"{track.source}: the telemetry disagrees with the images: only {agreeing:.0%} of the fixes agree with the "
+            f"mosaic's shape (scatter {fit.sigma:.0f} m); wrong log, wrong clock (--telemetry-offset), or a lost track; "
+            f"stitch without --telemetry for a plain panorama"
+        )
+    if prior is not None and not 0.5 < fit.scale / prior.scale < 2.0:
+        raise BadInput(
+            f"{track.source}: the telemetry disagrees with the images: the GPS track implies {fit.scale * 100:.1f} cm per pixel, "
+            f"the height and field of view {prior.scale * 100:.1f} cm; check --hfov and the log"
+        )
+    to_ground = fit.matrix
+    model = "similarity"
+    inliers, sigma = fit.inliers, fit.sigma
+    if fixes.sum() >= options.min_fixes_for_perspective:
+        # the perspective a long flight's chained registrations bend the mosaic with
+        placed = project(fit.matrix, mosaic[fixes])
+        better = refine_homography(placed, ground, min_sigma=1.0)
+        if better.sigma < options.perspective_gain * fit.sigma and better.inliers.mean() >= options.min_agreeing:
+            to_ground, model = better.matrix @ fit.matrix, "homography"
+            inliers, sigma = better.inliers, better.sigma
+    mosaic_to_ground = FLIP @ to_ground @ flatten
+    used = np.zeros(len(placements), bool)
+    used[np.nonzero(fixes)[0][inliers]] = True
+
+    # what bending is left: GPS shifts per keyframe, stiffly linked by the images (drift.py)
+    nadir_ground = np.array([project(mosaic_to_ground @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    all_fixes = np.full((len(placements), 2), np.nan)
+    all_fixes[fixes] = ground * np.array([1.0, -1.0])
+    footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
+    # sigma is 1.4826 x the median residual distance; a 2-D Gaussian's per-axis sigma is that / 1.75
+    shifts = drift_shifts(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(sigma / 1.75, 0.5), options.drift)
+
+    # Output pixels: north-up at the keyframes' median ground sample, anchored at the reference's centre.
+    gsd = footprint_m / max(w, h)
+    anchor = project(mosaic_to_ground, centre[None])[0]
+    ground_to_pixels = np.array([[1 / gsd, 0, -anchor[0] / gsd], [0, -1 / gsd, anchor[1] / gsd], [0, 0, 1.0]])
+    fit.sigma = sigma
+    fit.inliers = inliers
+    return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
+                        hfov, track, prior)
+
+
+def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """2x2 derivative of the homography ``H`` at ``point``."""
+    x, y = point
+    den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
+    return np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]], [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / den

@@ -1,0 +1,113 @@
+"""Georeferenced outputs, written atomically: a Cloud Optimized GeoTIFF with alpha, the
+keyframes' ground footprints and the flight track as GeoJSON (WGS84), and the map
+homographies for the transforms JSON."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.atomic import atomic_path, signals_held, temporary_beside, write_json
+from mosaic_cli.errors import ProcessingError
+from mosaic_cli.geo.georef import Georeference
+from mosaic_cli.geometry import frame_corners, normalize, project
+
+BLOCK = 512
+ROWS_PER_WRITE = 1024  # strips keep the extra memory of the write to a few rows
+
+
+def canvas_to_ground(georef: Georeference, to_canvas: np.ndarray) -> np.ndarray:
+    """Panorama pixel centres -> (east, north): north-up, so an axis-aligned scale and shift."""
+    return np.linalg.inv(georef.ground_to_pixels) @ np.linalg.inv(to_canvas)
+
+
+def geotransform(georef: Georeference, to_canvas: np.ndarray):
+    """rasterio's Affine (pixel corners -> CRS) of the panorama."""
+    from affine import Affine
+
+    G = canvas_to_ground(georef, to_canvas) @ np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]])
+    G = G / G[2, 2]
+    return Affine(G[0, 0], G[0, 1], G[0, 2], G[1, 0], G[1, 1], G[1, 2])
+
+
+def write_cog(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray) -> None:
+    """RGBA panorama -> Cloud Optimized GeoTIFF: 512-px internal tiles, deflate, overviews
+    (averaged), transparency as an alpha band."""
+    import rasterio
+    from rasterio.enums import ColorInterp
+    from rasterio.windows import Window
+    from rio_cogeo.cogeo import cog_translate
+    from rio_cogeo.profiles import cog_profiles
+    from rio_cogeo.utils import get_maximum_overview_level
+
+    out = Path(out)
+    height, width = rgba.shape[:2]
+    transform = geotransform(georef, to_canvas)
+    staging = None
+    try:
+        with signals_held():
+            staging = temporary_beside(out, ".staging.tif")
+        profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8", crs=georef.projection.crs.to_wkt(),
+                       transform=transform, tiled=True, blockxsize=BLOCK, blockysize=BLOCK, compress="deflate",
+                       photometric="RGB", ALPHA="YES", BIGTIFF="IF_SAFER")
+        with rasterio.open(staging, "w", **profile) as dst:
+            dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+            for r0 in range(0, height, ROWS_PER_WRITE):
+                r1 = min(height, r0 + ROWS_PER_WRITE)
+                dst.write(np.ascontiguousarray(rgba[r0:r1].transpose(2, 0, 1)), window=Window(0, r0, width, r1 - r0))
+        cog = cog_profiles.get("deflate")
+        cog.update(blockxsize=BLOCK, blockysize=BLOCK, BIGTIFF="IF_SAFER")
+        with atomic_path(out) as tmp:
+            # at least one overview level, also for a panorama smaller than a tile
+            levels = max(1, get_maximum_overview_level(width, height, minsize=BLOCK))
+            cog_translate(str(staging), str(tmp), cog, overview_level=levels, overview_resampling="average", quiet=True,
+                          in_memory=False, use_cog_driver=False)
+    except rasterio.errors.RasterioError as exc:
+        raise ProcessingError(f"{out}: could not write the GeoTIFF ({exc})") from None
+    finally:
+        if staging is not None:
+            with contextlib.suppress(FileNotFoundError):
+                staging.unlink()
+
+
+def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> None:
+    """GeoJSON (RFC 7946, WGS84 lon/lat): a Polygon per keyframe's ground footprint (``gps``:
+    whether its fix agreed with the images, was an outlier, or was missing), the GPS track as
+    read (every fix), and the camera path as placed."""
+    corners = frame_corners(*frame_size)
+    proj = georef.projection
+
+    def lonlat(points: np.ndarray) -> list[list[float]]:
+        return [[round(float(x), 9), round(float(y), 9)] for x, y in proj.to_wgs84(points[:, 0], points[:, 1])]
+
+    features = []
+    for k, (index, M) in enumerate(zip(georef.frame_indices, map_h)):
+        ring = project(M, corners)
+        gps = "agrees" if georef.used[k] else ("outlier" if georef.telemetry.fix[k] else "none")
+        features.append({
+            "type": "Feature",
+            "geometry": {"type": "Polygon", "coordinates": [lonlat(np.vstack([ring, ring[:1]]))]},
+            "properties": {"kind": "footprint", "frame": int(index), "time": round(index / fps, 4), "gps": gps},
+        })
+    track = georef.track
+    fixed = track.has_fix
+    if fixed.sum() >= 2:
+        coords = [[round(float(lon), 9), round(float(lat), 9)] for lat, lon in zip(track.lat[fixed], track.lon[fixed])]
+        features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
+                         "properties": {"kind": "gps track", "source": track.source}})
+    w, h = frame_size
+    centre = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
+    if len(map_h) >= 2:
+        path_ground = np.array([project(M, centre)[0] for M in map_h])
+        features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": lonlat(path_ground)},
+                         "properties": {"kind": "frame centres"}})
+    write_json(path, {"type": "FeatureCollection", "features": features})
+
+
+def transforms_extra(georef: Georeference, map_h: list[np.ndarray]) -> tuple[dict, list[dict]]:
+    """The transforms JSON's additions: the CRS at the top, each keyframe's ``map_H`` (frame
+    pixels -> east, north metres in that CRS)."""
+    top = {"crs": georef.crs, "gsd_m": georef.gsd}
+    return top, [{"map_H": [[float(v) for v in row] for row in normalize(M)]} for M in map_h]

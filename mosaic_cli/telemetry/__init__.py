@@ -1,0 +1,63 @@
+"""Drone telemetry: DJI SRT, GPX, CSV and MISB ST 0601 KLV, read into one ``Track`` and
+aligned to the video's frames.
+
+    track = read_telemetry("flight.SRT")          # or find_telemetry("flight.mp4") for an embedded track
+    aligned = align_to_frames(track, frame_times)  # per-frame interpolated fixes + a report
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.telemetry.align import AlignedTelemetry, align_to_frames
+from mosaic_cli.telemetry.track import Track
+
+__all__ = ["Track", "AlignedTelemetry", "align_to_frames", "read_telemetry", "find_telemetry"]
+
+VIDEO_SUFFIXES = {".mp4", ".mov", ".mkv", ".ts", ".m2ts", ".mts", ".mpg", ".mpeg", ".avi"}
+
+
+def read_telemetry(path: str | Path) -> Track:
+    """Read a telemetry file, its format from the extension (or its content)."""
+    from mosaic_cli.telemetry.klv import UAS_LS_KEY, read_klv
+    from mosaic_cli.telemetry.logs import read_csv, read_gpx
+    from mosaic_cli.telemetry.srt import looks_like_srt, read_srt
+
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(f"--telemetry {p}: no such file")
+    if p.is_dir():
+        raise BadInput(f"--telemetry {p}: a folder, not a telemetry file")
+    suffix = p.suffix.lower()
+    if suffix in VIDEO_SUFFIXES:
+        track = find_telemetry(p)
+        if track is None:
+            raise BadInput(f"--telemetry {p}: the video holds no subtitle (SRT) or KLV telemetry stream")
+        return track
+    readers = {".srt": read_srt, ".gpx": read_gpx, ".csv": read_csv, ".klv": read_klv, ".bin": read_klv}
+    if suffix in readers:
+        return readers[suffix](p)
+    head = p.read_bytes()[:4096]
+    if UAS_LS_KEY in head:
+        return read_klv(p)
+    text = head.decode("utf-8", "replace")
+    if "<gpx" in text:
+        return read_gpx(p)
+    if looks_like_srt(text):
+        return read_srt(p)
+    if "," in text.splitlines()[0] if text.strip() else False:
+        return read_csv(p)
+    raise BadInput(f"--telemetry {p}: not a telemetry format mosaic reads (DJI .SRT, .gpx, .csv or MISB .klv)")
+
+
+def find_telemetry(video: str | Path) -> Track | None:
+    """The first telemetry stream inside ``video`` that holds any, else None."""
+    from mosaic_cli.telemetry.embedded import find_streams, read_embedded
+
+    for stream in find_streams(video):
+        try:
+            return read_embedded(video, stream)
+        except BadInput:
+            continue  # a subtitle track without telemetry (captions): look further
+    return None

@@ -1,0 +1,269 @@
+"""Georeferenced stitching: the robust fit, the camera model, and ``mosaic stitch --telemetry``
+end to end against the simulator's exact truth (COG, CRS, bounds, footprints, map homographies)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mosaic_cli.geo.camera import focal_pixels, intrinsics, nadir_pixel, tilt_rotation, untilt
+from mosaic_cli.geo.fit import SimilarityPrior, fit_similarity
+from mosaic_cli.geo.score import score_files
+from mosaic_cli.geometry import project
+from mosaic_cli.simulate import load_ground_truth
+from tests.conftest import FFMPEG, assert_one_line_error, run_cli
+
+
+def similarity(scale, angle, tx, ty):
+    c, s = scale * math.cos(angle), scale * math.sin(angle)
+    return np.array([[c, -s, tx], [s, c, ty], [0, 0, 1.0]])
+
+
+def test_fit_ignores_bad_fixes_and_averages_noise():
+    rng = np.random.default_rng(4)
+    src = rng.uniform(0, 4000, (120, 2))
+    M = similarity(0.05, 0.7, 465_000.0, -5_249_000.0)
+    dst = project(M, src) + rng.normal(0, 2.0, (120, 2))
+    bad = rng.choice(120, 8, replace=False)
+    dst[bad] += rng.uniform(30, 80, (8, 2))
+    fit = fit_similarity(src, dst)
+    assert set(np.nonzero(~fit.inliers)[0]) == set(bad)
+    assert fit.scale == pytest.approx(0.05, rel=0.01)
+    assert fit.rotation == pytest.approx(0.7, abs=math.radians(0.3))
+    centre = src.mean(0)[None]
+    assert np.linalg.norm(project(fit.matrix, centre) - project(M, centre)) < 0.8
+    plain = np.linalg.lstsq(np.c_[src, np.ones(120)], dst, rcond=None)[0]  # what bad fixes do to least squares
+    assert np.linalg.norm(np.c_[centre, [[1]]] @ plain - project(M, centre)) > 2 * np.linalg.norm(project(fit.matrix, centre) - project(M, centre))
+
+
+def test_fit_prior_fixes_a_hovering_track():
+    rng = np.random.default_rng(5)
+    src = rng.uniform(0, 40, (30, 2))  # 2 m of ground: GPS noise alone says nothing about rotation
+    M = similarity(0.05, -1.2, 1000.0, 2000.0)
+    dst = project(M, src) + rng.normal(0, 2.0, (30, 2))
+    fit = fit_similarity(src, dst, SimilarityPrior(0.051, -1.2 + math.radians(2), 0.1))
+    assert fit.scale == pytest.approx(0.051, rel=0.02)
+    assert fit.rotation == pytest.approx(-1.2 + math.radians(2), abs=math.radians(1))
+
+
+def test_untilt_makes_a_tilted_view_of_the_ground_a_similarity():
+    size, hfov = (640, 360), 70.0
+    f = focal_pixels(size[0], hfov)
+    K = intrinsics(size, f)
+    R = tilt_rotation(-84.0, 3.0)
+    ground_to_frame = K @ R @ np.array([[1, 0, -5], [0, 1, 7], [0, 0, 40.0]])  # camera 40 units up
+    flat = untilt(size, f, -84.0, 3.0) @ ground_to_frame
+    flat /= flat[2, 2]
+    assert abs(flat[2, 0]) < 1e-12 and abs(flat[2, 1]) < 1e-12  # affine ...
+    np.testing.assert_allclose(flat[:2, :2] / flat[0, 0], np.eye(2), atol=1e-12)  # ... and a similarity
+    below = project(ground_to_frame, np.array([[5.0, -7.0]]))[0]
+    np.testing.assert_allclose(below, nadir_pixel(size, f, -84.0, 3.0), atol=1e-9)
+    # -84: tilted toward the frame's top, so the point below shows under the centre
+    assert below[1] > (size[1] - 1) / 2
+
+
+def mosaic(*args, check=True):
+    run = subprocess.run([sys.executable, "-m", "mosaic_cli", *map(str, args)], capture_output=True, text=True)
+    if check:
+        assert run.returncode == 0, run.stderr
+    return run
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    d = tmp_path_factory.mktemp("georef")
+    out = {}
+    for name, noise in (("exact", "0"), ("noisy", "3")):
+        video = d / f"{name}.mp4"
+        mosaic("simulate", "-o", video, "-p", "survey", "-n", "150", "--size", "320x180", "--preset", "ultrafast", "-q",
+               "--seed", "2", "--telemetry", "srt", "--gps-noise", noise, "--gps-dropouts", "0.02" if name == "noisy" else "0",
+               "--gsd", "0.05")
+        out[name] = video
+    return out
+
+
+def test_stitch_with_exact_telemetry_lands_where_the_truth_is(flights, tmp_path):
+    """Without GPS error the whole chain (SRT, UTM, tilt, fit, COG) must land within centimetres."""
+    video = flights["exact"]
+    tif, tr, fp = tmp_path / "map.tif", tmp_path / "t.json", tmp_path / "f.geojson"
+    mosaic("stitch", video, "--telemetry", video.with_suffix(".SRT"), "-o", tif, "--transforms", tr, "--footprints", fp, "-q")
+    gt = load_ground_truth(video)
+    score = score_files(tr, gt, video.with_name("exact.geo.json"))
+    frame_gsd = json.loads(tr.read_text())["gsd_m"]
+    assert score.median_m < 2 * frame_gsd and score.max_m < 8 * frame_gsd, score
+    assert abs(score.scale_error) < 0.005 and abs(score.heading_error_deg) < 0.3, score
+
+    import rasterio
+    from rio_cogeo.cogeo import cog_validate
+
+    valid, errors, _ = cog_validate(str(tif), quiet=True)
+    assert valid, errors
+    truth = json.loads(video.with_name("exact.geo.json").read_text())
+    with rasterio.open(tif) as ds:
+        assert ds.crs.to_epsg() == int(truth["crs"].split(":")[1])
+        assert ds.count == 4 and ds.colorinterp[3].name == "alpha" and ds.overviews(1)
+        assert ds.block_shapes[0] == (512, 512)
+        bounds = ds.bounds
+        alpha = ds.read(4)
+        # every true ground position of every frame's centre lies inside the map and is covered
+        M = np.array(truth["map_to_crs"])
+        w, h = gt.size
+        for t in range(0, gt.frames, 10):
+            east, north = project(M @ np.linalg.inv(gt.map_to_frame[t]), np.array([[(w - 1) / 2, (h - 1) / 2]]))[0]
+            assert bounds.left < east < bounds.right and bounds.bottom < north < bounds.top
+            row, col = ds.index(east, north)
+            assert alpha[row, col] == 255
+
+    data = json.loads(tr.read_text())
+    assert data["crs"] == truth["crs"] and all("map_H" in f for f in data["frames"])
+    geo = json.loads(fp.read_text())
+    kinds = [f["properties"]["kind"] for f in geo["features"]]
+    assert kinds.count("footprint") == len(data["frames"]) and "gps track" in kinds
+    lon, lat = geo["features"][0]["geometry"]["coordinates"][0][0]
+    assert abs(lat - 47.3977) < 0.01 and abs(lon - 8.5456) < 0.01  # WGS84, lon/lat order, near the origin
+
+
+def test_stitch_with_noisy_gps_keeps_shape_and_place(flights, tmp_path):
+    video = flights["noisy"]
+    tr = tmp_path / "t.json"
+    run = mosaic("stitch", video, "--telemetry", video.with_suffix(".SRT"), "-o", tmp_path / "m.tif", "--transforms", tr)
+    assert "georeferenced in EPSG:32632" in run.stdout + run.stderr
+    score = score_files(tr, load_ground_truth(video), video.with_name("noisy.geo.json"))
+    # a 5-second flight: the GPS error (3 m RMS, correlated over 2 s) barely averages out
+    assert score.median_m < 4.0 and abs(score.heading_error_deg) < 5, score
+
+
+def test_embedded_track_is_used_without_telemetry_option(flights, tmp_path):
+    video = flights["exact"]
+    muxed = tmp_path / "with_srt.mkv"
+    subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-i", str(video), "-i", str(video.with_suffix(".SRT")),
+                    "-map", "0:v", "-map", "1:0", "-c", "copy", str(muxed)], check=True)
+    import rasterio
+
+    mosaic("stitch", muxed, "-o", tmp_path / "auto.tif", "-q")
+    with rasterio.open(tmp_path / "auto.tif") as ds:
+        assert ds.crs is not None and ds.crs.to_epsg() == 32632
+    mosaic("stitch", muxed, "-o", tmp_path / "plain.tif", "-q", "--telemetry", "none")
+    with rasterio.open(tmp_path / "plain.tif") as ds:
+        assert ds.crs is None
+
+
+def test_klv_log_gives_the_same_map(flights, tmp_path):
+    from mosaic_cli.simulate.telemetry import GpsErrors, MapGeo, write_telemetry
+
+    video = tmp_path / "k.mp4"
+    for suffix in (".mp4", ".gt.json"):
+        (tmp_path / f"k{suffix}").write_bytes(flights["exact"].with_name("exact" + suffix).read_bytes())
+    gt = load_ground_truth(video)
+    truth = json.loads(flights["exact"].with_name("exact.geo.json").read_text())
+    geo = MapGeo(truth["crs"], np.array(truth["map_to_crs"]), truth["gsd"])
+    log = write_telemetry(video, gt, geo, "klv", GpsErrors(rms=0.0, dropouts=0.0, bad_fixes=0.0))
+    tr = tmp_path / "t.json"
+    mosaic("stitch", video, "--telemetry", log, "-o", tmp_path / "m.tif", "--transforms", tr, "-q")
+    score = score_files(tr, gt, video.with_name("k.geo.json"))
+    assert score.median_m < 0.3, score  # KLV altitudes are 0.3 m steps: a little less exact than SRT
+    # the same KLV as a data stream of an MPEG-TS, found without --telemetry
+    ts = tmp_path / "k.ts"
+    subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-i", str(video), "-f", "data", "-i", str(log),
+                    "-map", "0:v", "-map", "1:0", "-c", "copy", "-f", "mpegts", str(ts)], check=True)
+    tr_ts = tmp_path / "t_ts.json"
+    mosaic("stitch", ts, "-o", tmp_path / "ts.tif", "--transforms", tr_ts, "-q")
+    assert score_files(tr_ts, gt, video.with_name("k.geo.json")).median_m < 0.3
+
+
+def test_live_stitch_with_telemetry_file_is_georeferenced(flights, tmp_path):
+    """The live stitch shares finish_stitch: an explicit log gives it the same COG, footprints
+    and map homographies as the offline one."""
+    video = flights["exact"]
+    tif, tr, fp = tmp_path / "live.tif", tmp_path / "t.json", tmp_path / "f.geojson"
+    mosaic("stitch", video, "--live", "--telemetry", video.with_suffix(".SRT"), "-o", tif, "--transforms", tr,
+           "--footprints", fp, "-q")
+    gt = load_ground_truth(video)
+    score = score_files(tr, gt, video.with_name("exact.geo.json"))
+    frame_gsd = json.loads(tr.read_text())["gsd_m"]
+    assert score.median_m < 2 * frame_gsd and score.max_m < 8 * frame_gsd, score
+    import rasterio
+
+    with rasterio.open(tif) as ds:
+        assert ds.crs is not None and ds.crs.to_epsg() == 32632
+    kinds = [f["properties"]["kind"] for f in json.loads(fp.read_text())["features"]]
+    assert kinds.count("footprint") == len(json.loads(tr.read_text())["frames"])
+
+
+def test_live_stream_footprints_need_a_telemetry_file(capsys, tmp_path):
+    """A stream cannot be searched for an embedded track: --footprints needs --telemetry (said
+    before the stream is read)."""
+    code, err = run_cli(capsys, "stitch", "-", "-o", tmp_path / "m.tif", "--footprints", tmp_path / "f.geojson", "-q",
+                        "--estimator", "orb")
+    assert_one_line_error(code, err, "--footprints", "--telemetry")
+    assert not (tmp_path / "m.tif").exists()
+
+
+def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
+    import cv2
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        cv2.imwrite(str(folder / f"p{k}.png"), rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
+    code, err = run_cli(capsys, "stitch", folder, "-o", tmp_path / "m.tif", "--telemetry",
+                        flights["exact"].with_suffix(".SRT"), "-q", "--estimator", "orb")
+    assert_one_line_error(code, err, "photo folders")
+
+
+@pytest.mark.parametrize("case", ["offset", "no-fix", "other-flight", "footprints-without"])
+def test_unusable_telemetry_is_one_clear_line(flights, tmp_path, case):
+    video = flights["exact"]
+    srt = video.with_suffix(".SRT")
+    args = ["stitch", video, "-o", tmp_path / "m.tif", "-q"]
+    if case == "offset":
+        args += ["--telemetry", srt, "--telemetry-offset", "600"]
+        expect = "does not cover the video"
+    elif case == "no-fix":
+        text = srt.read_text()
+        import re
+
+        text = re.sub(r"\[latitude: [-\d.]+\] \[longitude: [-\d.]+\]", "[latitude: 0.000000] [longitude: 0.000000]", text)
+        (tmp_path / "nofix.SRT").write_text(text)
+        args += ["--telemetry", tmp_path / "nofix.SRT"]
+        expect = "no GPS fix"
+    elif case == "other-flight":
+        # another flight's log: 300 m in these 5 seconds at 30 m above ground (the images: a few metres)
+        (tmp_path / "other.csv").write_text("time,lat,lon,alt,height,yaw,hfov\n" + "".join(
+            f"{t / 10:.2f},{47.3977 + 0.00005 * t:.7f},{8.5456 + 0.00002 * t:.7f},400,30,0,53.13\n" for t in range(60)))
+        args += ["--telemetry", tmp_path / "other.csv"]
+        expect = "disagrees with the images"
+    else:
+        args += ["--telemetry", "none", "--footprints", tmp_path / "f.geojson"]
+        expect = "--footprints needs telemetry"
+    run = mosaic(*args, check=False)
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mosaic: error:") and expect in lines[0], run.stderr
+    assert not (tmp_path / "m.tif").exists()
+
+
+def test_drift_shifts_remove_slow_bending_but_not_follow_gps_noise():
+    from mosaic_cli.geo.drift import drift_shifts
+    from mosaic_cli.simulate.telemetry import gauss_markov
+
+    rng = np.random.default_rng(7)
+    times = np.arange(0, 240, 2.0)  # a keyframe every 2 s, 4 minutes
+    truth = np.stack([3.0 * times, np.zeros_like(times)], 1)  # 720 m straight line
+    bend = np.stack([np.zeros_like(times), 15.0 * np.sin(np.pi * times / 240)], 1)  # the images bent it 15 m
+    gps = truth + np.stack([gauss_markov(rng, times, 2.1, 2.0), gauss_markov(rng, times, 2.1, 2.0)], 1)
+    weights = np.ones(len(times))
+    shifts = drift_shifts(truth + bend, gps, weights, times, 30.0, 2.1)
+    after = np.linalg.norm(truth + bend + shifts - truth, axis=1)
+    assert np.median(after) < 1.0 and after.max() < 4.0  # from 15 m
+    # an unbent mosaic stays put: the shifts stay well under the GPS noise
+    still = drift_shifts(truth, gps, weights, times, 30.0, 2.1)
+    assert np.median(np.linalg.norm(still, axis=1)) < 1.0
+    # consecutive keyframes (6 m apart) move together to decimetres: no GPS jitter in the mosaic
+    assert np.abs(np.diff(shifts, axis=0)).max() < 0.6
