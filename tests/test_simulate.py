@@ -307,6 +307,7 @@ def test_simulate_command_over_an_image(tmp_path):
         (["--frames", "1"], "at least 2"),
         (["--size", "big"], "--size"),
         (["--fps", "0"], "--fps"),
+        (["--crf", "60"], "--crf must be in 0..51"),
     ],
 )
 def test_simulate_command_errors(tmp_path, capsys, args, message):

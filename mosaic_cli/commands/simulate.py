@@ -50,6 +50,8 @@ def simulate(
         raise BadInput(f"--frames must be at least 2, got {frames}")
     if not 0 < fps <= 1000:
         raise BadInput(f"--fps must be in (0, 1000], got {fps}")
+    if crf is not None and not 0 <= crf <= 51:
+        raise BadInput(f"--crf must be in 0..51, got {crf}")
     wh = parse_size(size, "--size")
     if out.suffix.lower() not in (".mp4", ".mov", ".mkv"):
         raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
