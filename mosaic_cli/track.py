@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from dataclasses import dataclass, field
@@ -72,16 +73,10 @@ def track_video(
         info = stream.info
         total = info.frame_count if max_frames is None else min(max_frames, info.frame_count or max_frames)
 
-        def frames():
-            for k, frame in enumerate(stream):
-                if max_frames is not None and k >= max_frames:
-                    return
-                yield frame
-
         start = time.perf_counter()
         with progress_task(f"track ({estimator.name})", total, disable=not show_progress) as advance:
             advance(1)  # the first frame yields no pair
-            for estimate in estimate_stream(estimator, frames(), info.source_size):
+            for estimate in estimate_stream(estimator, itertools.islice(stream, max_frames), info.source_size):
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
                 advance(1)

@@ -9,6 +9,7 @@ source a ``.json`` or ``.npy`` output is written once, at the end, from every fr
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import sys
 import time
@@ -81,16 +82,10 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
             masked = live_mask(mask, info.source_size, show_progress)
             estimator.set_mask(masked.use)
 
-        def frames():
-            for k, frame in enumerate(stream):
-                if max_frames is not None and k >= max_frames:
-                    return
-                yield frame
-
         start = time.perf_counter()
         with stream_progress(f"track ({estimator.name})", disable=not show_progress) as advance:
             advance(1)  # the first frame yields no pair
-            for t, estimate in enumerate(estimate_stream(estimator, frames(), info.source_size)):
+            for t, estimate in enumerate(estimate_stream(estimator, itertools.islice(stream, max_frames), info.source_size)):
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
                 if sink is not None:
@@ -105,6 +100,8 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
         raise BadInput(f"{info.path}: fewer than two frames received")
     n = len(pairwise) + 1
     meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
+    if getattr(estimator, "path_counts", None):  # the learned estimator: which path made each pair
+        meta["paths"] = dict(estimator.path_counts)
     if live:
         meta["ended_by"] = stream.ended_by
     if masked is not None:

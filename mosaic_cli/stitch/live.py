@@ -18,6 +18,7 @@ received.
 
 from __future__ import annotations
 
+import itertools
 import tempfile
 import time
 from dataclasses import dataclass, field, replace
@@ -255,19 +256,13 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
                             if options.registration.enabled else None)
             drawer = LivePreview(preview, info.source_size, registration)
 
-            def frames():
-                for k, frame in enumerate(stream):
-                    if options.max_frames is not None and k >= options.max_frames:
-                        return
-                    yield frame
-
             with stream_progress(f"scan ({estimator.name}, live)", disable=not show_progress) as advance:
                 def step(n: int = 1, status: str | None = None) -> None:
                     if drawer.maybe_update(scanner.keyframes):
                         status = f"{status or ''} preview {drawer.written}"
                     advance(n, status=status)
 
-                scan = scan_flight(frames(), estimator, scanner, step)
+                scan = scan_flight(itertools.islice(stream, options.max_frames), estimator, scanner, step)
             drawer.update(scan.keyframes)  # the last ground too, before the long final stages
         seconds["scan"] = time.perf_counter() - clock
         seconds["overlays"] = masked.seconds

@@ -21,6 +21,7 @@ map homographies in the transforms).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -265,17 +266,11 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill, use
         )
 
-        def frames():
-            for k, frame in enumerate(stream):
-                if options.max_frames is not None and k >= options.max_frames:
-                    return
-                yield frame
-
         if info.is_image_folder:
             with progress_task("scan (photos, features)", total, unit="photos/s", disable=not show_progress) as advance:
-                return scan_photos(frames(), scanner, advance)
+                return scan_photos(itertools.islice(stream, options.max_frames), scanner, advance)
         with progress_task(f"scan ({estimator.name})", total, disable=not show_progress) as advance:
-            return scan_flight(frames(), estimator, scanner, advance)
+            return scan_flight(itertools.islice(stream, options.max_frames), estimator, scanner, advance)
 
 
 def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: Track | None = None):
