@@ -7,12 +7,17 @@ from typing import Iterator
 
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-from mosaic_cli.progress import RateColumn, console
+from mosaic_cli.progress import RateColumn, console, progress_task
 
 
 @contextlib.contextmanager
 def stream_progress(description: str, disable: bool = False) -> Iterator:
-    """Yields ``advance(n=1, status=None)`` like :func:`mosaic_cli.progress.progress_task`."""
+    """Yields ``advance(n=1, status=None)`` like :func:`mosaic_cli.progress.progress_task`; when
+    stderr is not a terminal, it is that task (plain lines: frames so far, rate, elapsed)."""
+    if disable or not console.is_terminal:
+        with progress_task(description, None, disable=disable) as advance:
+            yield advance
+        return
     progress = Progress(
         SpinnerColumn(),
         TextColumn("[bold]{task.description}"),
