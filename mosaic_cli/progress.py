@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from typing import Iterator
+from typing import Callable, Iterator
 
 from rich.console import Console
 from rich.progress import (
@@ -40,6 +40,18 @@ class RateColumn(ProgressColumn):
     def render(self, task: Task) -> Text:
         speed = task.finished_speed or task.speed
         return Text("-" if speed is None else f"{speed:6.1f} {self.unit}", style="progress.data.speed")
+
+
+def advancer(progress: Progress, task) -> Callable[..., None]:
+    """``advance(n=1, status=None)`` for one task of a rich ``progress``."""
+
+    def advance(n: int = 1, status: str | None = None) -> None:
+        if status is None:
+            progress.advance(task, n)
+        else:
+            progress.update(task, advance=n, status=status)
+
+    return advance
 
 
 def make_progress(unit: str = "fr/s", disable: bool = False) -> Progress:
@@ -107,12 +119,4 @@ def progress_task(description: str, total: int | None, unit: str = "fr/s", disab
         lines._write(lines.line(final=True))
         return
     with make_progress(unit, disable) as progress:
-        task = progress.add_task(description, total=total, status="")
-
-        def advance(n: int = 1, status: str | None = None) -> None:
-            if status is None:
-                progress.advance(task, n)
-            else:
-                progress.update(task, advance=n, status=status)
-
-        yield advance
+        yield advancer(progress, progress.add_task(description, total=total, status=""))

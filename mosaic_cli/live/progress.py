@@ -7,7 +7,7 @@ from typing import Iterator
 
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-from mosaic_cli.progress import RateColumn, console, progress_task
+from mosaic_cli.progress import RateColumn, advancer, console, progress_task
 
 
 @contextlib.contextmanager
@@ -30,12 +30,4 @@ def stream_progress(description: str, disable: bool = False) -> Iterator:
         disable=disable,
     )
     with progress:
-        task = progress.add_task(description, total=None, status="")
-
-        def advance(n: int = 1, status: str | None = None) -> None:
-            if status is None:
-                progress.advance(task, n)
-            else:
-                progress.update(task, advance=n, status=status)
-
-        yield advance
+        yield advancer(progress, progress.add_task(description, total=None, status=""))
