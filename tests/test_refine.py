@@ -153,6 +153,33 @@ def test_network_estimate_polished_to_subpixel(ground, refine):
     assert conf.min() > 0.5 and conf.min() > raw_conf.max()  # registered pairs are trusted more
 
 
+def spoiled(frame: np.ndarray, seed: int) -> np.ndarray:
+    """A fast flight's frame: blurred along the motion, with sensor noise (sigma 6 gray levels)."""
+    kernel = np.zeros((1, 9), np.float32)
+    kernel[0, :] = 1 / 9
+    blurred = cv2.filter2D(frame.astype(np.float32), -1, kernel)
+    noise = np.random.default_rng(seed).normal(0, 6, frame.shape)
+    return np.clip(blurred + noise, 0, 255).astype(np.uint8)
+
+
+def test_a_far_seed_on_degraded_frames_is_found_by_the_wide_polish_then_placed_by_the_fine_one(ground):
+    """A network 6-8 working px off (as on fast flights over ground unlike its training sites),
+    on blurred, noisy frames: the cheap polish's leash is too short, the wide one finds the
+    basin, and the cheap one seeded by it places the pair as precisely as from a close seed."""
+    H_full = true_motion(5)
+    frames = [spoiled(f, k) for k, f in enumerate(flight(ground, H_full, n=4))]
+    far = np.array([[7.0, -4.0], [6.0, -3.5], [7.5, -4.5], [6.5, -3.0]])
+    close = far / 10
+    no_wide, no_wide_conf = run(oracle_estimator(H_full, far, polish_wide=None), frames)
+    assert corner_error(no_wide, H_full, FULL).min() > 5 and no_wide_conf.max() < 0.3  # unconfirmed, several px off
+    cascade, conf = run(oracle_estimator(H_full, far), frames)
+    reference, _ = run(oracle_estimator(H_full, close), frames)
+    err, ref_err = corner_error(cascade, H_full, FULL), corner_error(reference, H_full, FULL)
+    assert err.max() < 0.5, err
+    assert err.max() < ref_err.max() + 0.1, (err, ref_err)  # as precise as from a close seed
+    assert conf.min() > 0.3
+
+
 def test_network_estimate_kept_when_the_polish_cannot_confirm_it(ground):
     """When the polish fails (here: it is never allowed to succeed), the output is exactly the
     network's own estimate, with a discounted confidence."""

@@ -78,10 +78,14 @@ class LearnedConfig:
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
     refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
-    # The network's estimate is usually within a working px or two, but can be several px off: a
-    # cheap polish first (1 pyramid level), and where it fails a deeper pyramid with a longer leash.
+    # The network's estimate is usually within a working px or two, but on fast, degraded flights
+    # over ground unlike its training sites it can be 5-15 px off: a cheap polish first (1 pyramid
+    # level), and where it fails a deep pyramid with large windows and a long leash, which finds
+    # the basin on blurred, noisy frames; its result then seeds the cheap polish again, whose
+    # small windows and tight refit place it precisely.
     polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
-    polish_wide: PolishConfig | None = field(default_factory=lambda: PolishConfig(window=11, levels=3, max_shift=8.0))
+    polish_wide: PolishConfig | None = field(
+        default_factory=lambda: PolishConfig(window=31, levels=4, max_shift=20.0, threshold=1.5))
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
@@ -320,15 +324,19 @@ class LearnedEstimator(Estimator):
         c = self.config
         if c.refine is None:
             return Polish(H, False, 1.0)
-        result = Polish(H, False, 0.0)
-        for config in (c.polish, c.polish_wide):
-            if config is None or result.refined:
-                break
-            if c.refine == "lk":
-                result = track_points(prev.aligned, cur.aligned, H, prev.points, config, self.work_mask)
-            else:
-                result = align_pixels(prev.aligned, cur.aligned, H, config, self.work_mask)
-        return result
+        result = self._polish_once(prev, cur, H, c.polish)
+        if result.refined or c.polish_wide is None:
+            return result
+        wide = self._polish_once(prev, cur, H, c.polish_wide)
+        if not wide.refined:
+            return wide
+        fine = self._polish_once(prev, cur, wide.H, c.polish)
+        return fine if fine.refined else wide
+
+    def _polish_once(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray, config: PolishConfig) -> Polish:
+        if self.config.refine == "lk":
+            return track_points(prev.aligned, cur.aligned, H, prev.points, config, self.work_mask)
+        return align_pixels(prev.aligned, cur.aligned, H, config, self.work_mask)
 
     def _polish_weight(self, p: Polish) -> float:
         """The polish's say in the confidence: its score when it confirmed the network's estimate,
