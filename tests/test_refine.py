@@ -15,7 +15,7 @@ from torch import nn
 
 from conftest import render, textured_image
 from mosaic_cli.estimators import estimate_stream
-from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, patch_positions
+from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, WorkFrame, patch_positions
 from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, align_pixels, band_pass, points_to_track, track_points
 from mosaic_cli.geometry import corner_error, four_point_to_homography, frame_corners, project, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig
@@ -178,6 +178,41 @@ def test_a_far_seed_on_degraded_frames_is_found_by_the_wide_polish_then_placed_b
     assert err.max() < 0.5, err
     assert err.max() < ref_err.max() + 0.1, (err, ref_err)  # as precise as from a close seed
     assert conf.min() > 0.3
+
+
+def test_band_passed_agreement_ranks_registrations_of_a_degraded_pair(ground):
+    """What chooses between the wide polish and ORB: on blurred, noisy frames the correlation of
+    the band-passed frames falls as a registration moves away from the truth."""
+    H_full = true_motion(6)
+    frames = [spoiled(f, k) for k, f in enumerate(flight(ground, H_full, n=2))]
+    estimator = oracle_estimator(H_full, np.zeros((4, 2)))
+    estimator.reset(FULL)
+    prev, cur = (WorkFrame(estimator.prepared(f)) for f in frames)
+    for f in (prev, cur):
+        estimator._describe(f)
+    H_true = to_resolution(H_full, FULL, WORK)
+    scores = [estimator._agreement(prev, cur, perturbed(H_true, px)) for px in (0.0, 1.5, 4.0)]
+    assert scores[0] > scores[1] > scores[2], scores
+    assert scores[0] > 0.8
+
+
+def test_a_pair_only_the_wide_polish_placed_is_contested_by_the_fallback(ground):
+    """The cheap polish never succeeds here, so every pair is the wide polish's alone: ORB then
+    registers it too, and the better-agreeing registration is kept; every pair is right either way."""
+    H_full = true_motion(7)
+    frames = [spoiled(f, k) for k, f in enumerate(flight(ground, H_full, n=5))]
+    far = np.array([[6.0, -4.0], [6.5, -3.5], [7.0, -4.5], [6.0, -3.0]])
+    never = PolishConfig(min_inliers=100000)
+    estimator = oracle_estimator(H_full, far, fallback="orb", polish=never)
+    asked, register = [], estimator._fallback.register
+    estimator._fallback.register = lambda *a: asked.append(1) or register(*a)
+    H, conf = run(estimator, frames)
+    assert len(asked) == 4  # ORB was asked about every pair the wide polish placed alone
+    assert corner_error(H, H_full, FULL).max() < 1.0
+    assert estimator.path_counts["failed"] == 0 and sum(estimator.path_counts.values()) == 4
+    alone = oracle_estimator(H_full, far, fallback="none", polish=never)
+    run(alone, frames)
+    assert alone.path_counts == {"learned": 4, "fallback": 0, "failed": 0}
 
 
 def test_network_estimate_kept_when_the_polish_cannot_confirm_it(ground):

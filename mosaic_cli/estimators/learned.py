@@ -282,16 +282,19 @@ class LearnedEstimator(Estimator):
         learned path cannot confirm the pair, let the classical fallback try it."""
         usable = bool(offsets_ok) and prev.textured and cur.textured
         valid = usable and is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio)
-        polished = self._polish(prev, cur, seed) if valid else None
+        polished, settled = self._polish(prev, cur, seed) if valid else (None, False)
         zncc = self._zncc(prev, cur, polished.H) if polished is not None else 0.0
         related = self.config.min_zncc is None or zncc >= self.config.min_zncc
         confirmed = polished is not None and related and (polished.refined or self.config.refine is None)
-        if not confirmed and self._fallback is not None and prev.textured and cur.textured:
+        if (not confirmed or not settled) and self._fallback is not None and prev.textured and cur.textured:
             for f in (prev, cur):
                 if f.features is None:
                     f.features = self._fallback._describe(f.gray)
             H_orb, orb_confidence = self._fallback.register(prev.gray, cur.gray, prev.features, cur.features)
-            if H_orb is not None and np.all(np.isfinite(H_orb)):
+            orb_ok = H_orb is not None and np.all(np.isfinite(H_orb))
+            # Only the wide polish placed the pair: where its large windows were fooled, ORB's
+            # features may do better; the registration whose band-passed frames agree more wins.
+            if orb_ok and (not confirmed or self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H)):
                 return self._result(H_orb, orb_confidence, "fallback")
         if polished is None or not related:
             return self._result(None, 0.0, "failed")
@@ -320,18 +323,20 @@ class LearnedEstimator(Estimator):
         if c.refine is not None and frame.textured:
             frame.aligned = band_pass(frame.gray, *self._band) if self._band else frame.gray
 
-    def _polish(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> Polish:
+    def _polish(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> tuple[Polish, bool]:
+        """The polished estimate, and whether the cheap polish settled it (from the seed, or from
+        where the wide polish found the basin): the wide polish alone is less sure."""
         c = self.config
         if c.refine is None:
-            return Polish(H, False, 1.0)
+            return Polish(H, False, 1.0), True
         result = self._polish_once(prev, cur, H, c.polish)
         if result.refined or c.polish_wide is None:
-            return result
+            return result, True
         wide = self._polish_once(prev, cur, H, c.polish_wide)
         if not wide.refined:
-            return wide
+            return wide, True
         fine = self._polish_once(prev, cur, wide.H, c.polish)
-        return fine if fine.refined else wide
+        return (fine, True) if fine.refined else (wide, False)
 
     def _polish_once(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray, config: PolishConfig) -> Polish:
         if self.config.refine == "lk":
@@ -421,6 +426,20 @@ class LearnedEstimator(Estimator):
             target.append(prev.detail[y : y + P, x : x + P][valid])
             warped.append(_sample(cur.detail, to_next, P)[valid])
         return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
+
+    def _agreement(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
+        """ZNCC of the images the polish aligns (band-passed), frame t against frame t+1 sampled
+        through ``H``, over the pixels both frames see (and the mask allows): to choose between
+        two registrations of one pair.  Band-passed frames keep the coarse detail that noise and
+        compression spare, where the fine detail of :meth:`_zncc` is mostly noise."""
+        a = prev.aligned.astype(np.float32)
+        inside = cv2.warpPerspective(np.ones_like(a) if self.work_mask is None else (self.work_mask > 0).astype(np.float32), H,
+                                     self.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+        b = cv2.warpPerspective(cur.aligned.astype(np.float32), H, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        use = inside > 0
+        if self.work_mask is not None:
+            use &= self.work_mask > 0
+        return _zncc(a[use], b[use], a.size)
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
