@@ -3,31 +3,33 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
+from mosaic_cli.commands.options import Device, Strict, Threads, quiet_option
 from mosaic_cli.errors import BadInput
 from mosaic_cli.progress import console
 
+Quiet = quiet_option("No progress and no table (use with --json).")
 
-@app.command()
+
 def bench(
-    video: Path | None = typer.Option(None, "--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it)."),
-    flights: Path | None = typer.Option(None, "--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile)."),
-    map_image: Path | None = typer.Option(None, "--map", help="Simulate the flight over this aerial image (default: procedural map)."),
-    estimators: str | None = typer.Option(None, "--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped)."),
-    weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn)."),
-    profile: str = typer.Option("paper", "--profile", "-p", help="Flight profile of the simulated clip."),
-    frames: int = typer.Option(300, "--frames", "-n", help="Frames to simulate (or to read from --video)."),
-    size: str = typer.Option("1280x720", "--size", help="Frame size of the simulated clip, WxH."),
-    work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators work at."),
-    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated flight."),
-    threads: int | None = typer.Option(None, "--threads", help="CPU threads for the learned estimators' network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
-    json_out: Path | None = typer.Option(None, "--json", help="Write the full report as JSON."),
-    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (use with --json)."),
+    video: Annotated[Path | None, typer.Option("--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it).")] = None,
+    flights: Annotated[Path | None, typer.Option("--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile).")] = None,
+    map_image: Annotated[Path | None, typer.Option("--map", help="Simulate the flight over this aerial image (default: procedural map).")] = None,
+    estimators: Annotated[str | None, typer.Option("--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped).")] = None,
+    weights: Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn).")] = None,
+    profile: Annotated[str, typer.Option("--profile", "-p", help="Flight profile of the simulated clip.")] = "paper",
+    frames: Annotated[int, typer.Option("--frames", "-n", help="Frames to simulate (or to read from --video).")] = 300,
+    size: Annotated[str, typer.Option("--size", help="Frame size of the simulated clip, WxH.")] = "1280x720",
+    work_width: Annotated[int, typer.Option("--work-width", help="Width the classical estimators work at.")] = 320,
+    device: Device = "auto",
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the simulated flight.")] = 0,
+    threads: Threads = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the full report as JSON.")] = None,
+    strict: Strict = False,
+    quiet: Quiet = False,
 ) -> None:
     """Time and score the estimators on a simulated flight, a video or a folder of flights.
 

@@ -3,34 +3,36 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
+from mosaic_cli.commands.options import quiet_option
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
 
+Quiet = quiet_option("No progress bar.")
 
-@app.command()
+
 def simulate(
-    map_image: Path | None = typer.Argument(None, help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it."),
-    profile: str = typer.Option("paper", "--profile", "-p", help="paper, survey, fast, shaky, hard or extreme."),
-    frames: int = typer.Option(300, "--frames", "-n", help="Number of frames."),
-    size: str = typer.Option("1280x720", "--size", help="Frame size WxH."),
-    fps: float = typer.Option(30.0, "--fps", help="Frame rate."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Random seed (path, map, effects)."),
-    crf: int | None = typer.Option(None, "--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme."),
-    preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
-    overlays: str | None = typer.Option(None, "--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
-    telemetry: str | None = typer.Option(None, "--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json."),
-    origin: str = typer.Option("47.3977,8.5456", "--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry)."),
-    gsd: float = typer.Option(0.05, "--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry)."),
-    gps_noise: float = typer.Option(3.0, "--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry."),
-    gps_dropouts: float = typer.Option(0.02, "--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry."),
-    telemetry_rate: float = typer.Option(0.0, "--telemetry-rate", help="Log samples per second; 0: one per frame."),
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it.")],
+    map_image: Annotated[Path | None, typer.Argument(help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map.")] = None,
+    profile: Annotated[str, typer.Option("--profile", "-p", help="paper, survey, fast, shaky, hard or extreme.")] = "paper",
+    frames: Annotated[int, typer.Option("--frames", "-n", help="Number of frames.")] = 300,
+    size: Annotated[str, typer.Option("--size", help="Frame size WxH.")] = "1280x720",
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate.")] = 30.0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Random seed (path, map, effects).")] = 0,
+    crf: Annotated[int | None, typer.Option("--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme.")] = None,
+    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast ... veryslow).")] = "medium",
+    overlays: Annotated[str | None, typer.Option("--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png.")] = None,
+    quiet: Quiet = False,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json.")] = None,
+    origin: Annotated[str, typer.Option("--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry).")] = "47.3977,8.5456",
+    gsd: Annotated[float, typer.Option("--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry).")] = 0.05,
+    gps_noise: Annotated[float, typer.Option("--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry.")] = 3.0,
+    gps_dropouts: Annotated[float, typer.Option("--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry.")] = 0.02,
+    telemetry_rate: Annotated[float, typer.Option("--telemetry-rate", help="Log samples per second; 0: one per frame.")] = 0.0,
 ) -> None:
     """Render a drone flight over a large aerial image with a virtual nadir camera.
 
