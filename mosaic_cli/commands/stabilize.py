@@ -14,12 +14,13 @@ from mosaic_cli.commands.options import (
     Strict,
     Timeout,
     Weights,
+    mask_options,
     overlay_detect_option,
     quiet_option,
 )
-from mosaic_cli.errors import BadInput
-from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
+from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("the motion estimate (the output keeps every pixel)")
 Quiet = quiet_option("No progress bars or summary.")
@@ -29,7 +30,7 @@ def stabilize(
     video: Annotated[str, typer.Argument(help="Input video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
     out: Annotated[str, typer.Argument(help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://).")],
     smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.")] = "l1",
-    radius: Annotated[int, typer.Option("--radius", min=1, help="Gaussian smoothing radius in frames (sigma = radius / 3).")] = 30,
+    radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).")] = 30,
     model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.")] = "similarity",
     crop: Annotated[str, typer.Option("--crop", help="auto (zoom just enough that no border shows) or the share of "
                                       "width and height to keep, 0.5..1 (borders may then show, filled as --border says).")] = "auto",
@@ -54,26 +55,18 @@ def stabilize(
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
-    from mosaic_cli.overlay import MaskOptions
+    from mosaic_cli.live.stabilize import is_live_request, stabilize_live
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
 
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
-        mask=MaskOptions(file=mask, detect=overlay_detect),
+        mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout,
     )
-    from mosaic_cli.live.output import is_stream_output
-
-    if latency is not None or is_live_source(video) or is_stream_output(out):
-        from mosaic_cli.live.stabilize import DEFAULT_LATENCY, stabilize_live
-
-        if timeout <= 0:
-            raise BadInput(f"--timeout must be positive, got {timeout}")
-        if compare is not None:
-            raise BadInput("--compare is not available with --latency or a live input")
-        live = stabilize_live(video, out, options, latency if latency is not None else DEFAULT_LATENCY, timeout,
-                              warps_out=str(warps) if warps else None, show_progress=not quiet)
+    if is_live_request(video, out, options):
+        live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
+                              compare=str(compare) if compare else None, show_progress=not quiet)
         if not quiet:
             console.print(
                 f"{live.frames_in} frames in, {live.frames_out} out -> {'standard output' if out == '-' else out}: "
@@ -82,8 +75,6 @@ def stabilize(
                 soft_wrap=True,
             )
         return
-    from mosaic_cli.video.reader import reading_policy
-
     with reading_policy(strict):
         result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if not quiet:
