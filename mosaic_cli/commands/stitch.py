@@ -17,12 +17,15 @@ from mosaic_cli.commands.options import (
     Timeout,
     Weights,
     WorkWidth,
+    check_mask_file,
+    mask_options,
     overlay_detect_option,
     quiet_option,
 )
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
+from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("estimation and the panorama")
 Quiet = quiet_option("No progress bars.")
@@ -61,46 +64,34 @@ def stitch(
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
-    from mosaic_cli.overlay import MaskOptions
+    from mosaic_cli.live.source import is_live_source
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
+    from mosaic_cli.stitch.live import PreviewOptions, check_live_request, stitch_live
     from mosaic_cli.stitch.output import check_outputs
 
     options = StitchOptions(
-        keyframes=KeyframeOptions(new_ground=_fraction("--overlap", overlap)),
+        keyframes=KeyframeOptions(new_ground=overlap),
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
         canvas=CanvasOptions(reference=reference, max_size=max_size or None),
         compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure),
-        mask=MaskOptions(file=mask, detect=overlay_detect),
+        mask=mask_options(mask, overlay_detect),
         start=start,
         max_frames=max_frames,
         georef=_georef_options(telemetry, hfov, telemetry_offset, footprints),
+        timeout=timeout,
     )
-    options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
-    # Output and option checks come before the estimator is built (a learned one loads weights).
-    check_outputs(out, transforms, options.canvas.max_size)
-    from mosaic_cli.live.source import is_live_source
-    from mosaic_cli.stitch.live import PreviewOptions, stitch_live
-
     live = live or is_live_source(video) or preview is not None
-    preview_options = PreviewOptions(preview, every)
+    preview_options = PreviewOptions(preview, every) if live else None
+    # Output checks come before the estimator is built (a learned one loads weights).
     if live:
-        from mosaic_cli.errors import BadInput
-
-        if timeout <= 0:
-            raise BadInput(f"--timeout must be positive, got {timeout}")
-        preview_options.validate(out)
-    if mask is not None and not is_live_source(video):  # a bad --mask fails before the estimator loads its weights
-        from mosaic_cli.overlay import load_mask
-        from mosaic_cli.video import probe
-
-        load_mask(mask, probe(video).source_size)
+        check_live_request(out, transforms, options, preview_options)
+    else:
+        check_outputs(out, transforms, options.canvas.max_size)
+    check_mask_file(video, options.mask)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
-    from mosaic_cli.video.reader import reading_policy
-
     if live:
-        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, timeout=timeout,
-                             show_progress=not quiet)
+        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, show_progress=not quiet)
     else:
         with reading_policy(strict):
             result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
@@ -160,6 +151,8 @@ def _ranges(indices: list[int]) -> str:
 
 
 def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None):
+    """``--telemetry FILE|none``, ``--hfov``, ``--telemetry-offset``, ``--footprints``; None:
+    no georeferencing (``--telemetry none``)."""
     from mosaic_cli.errors import BadInput
     from mosaic_cli.geo.georef import GeorefOptions
 
@@ -167,14 +160,4 @@ def _georef_options(telemetry: str | None, hfov: float | None, offset: float, fo
         if footprints is not None:
             raise BadInput("--footprints needs telemetry (--telemetry none was given)")
         return None
-    options = GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)
-    options.validate()
-    return options
-
-
-def _fraction(name: str, value: float) -> float:
-    from mosaic_cli.errors import BadInput
-
-    if not 0.05 <= value <= 0.95:
-        raise BadInput(f"{name} must be between 0.05 and 0.95, got {value}")
-    return value
+    return GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)
