@@ -30,7 +30,7 @@ from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
 from mosaic_cli.overlay import frame_mask
 from mosaic_cli.progress import console
-from mosaic_cli.track import save_track, track_video
+from mosaic_cli.track import TrackOptions, save_track, track_video
 from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("estimation")
@@ -60,13 +60,7 @@ def track(
 
     pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
     """
-    if max_frames is not None and max_frames < 2:
-        raise BadInput("--max-frames must be at least 2")
-    if threads is not None and threads < 1:
-        raise BadInput(f"--threads must be at least 1, got {threads}")
-    if timeout <= 0:
-        raise BadInput(f"--timeout must be positive, got {timeout}")
-    streaming = is_live_source(video) or is_jsonl(out)
+    options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect))
     if not is_jsonl(out):
         check_writable(out)
         if Path(out).suffix.lower() not in (".json", ".npy"):
@@ -74,25 +68,24 @@ def track(
     elif out != "-":
         check_writable(out)
     live = is_live_source(video)
-    masking = mask_options(mask, overlay_detect)
-    check_mask_file(video, mask)
+    check_mask_file(video, options.mask)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
-    use_threads(threads)
+    use_threads(options.threads)
     masked = None
     if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
-        masked = frame_mask(video, masking, show_progress=not quiet)
+        masked = frame_mask(video, options.mask, show_progress=not quiet)
         est.set_mask(masked.use)
-    if streaming:
-        result = track_stream(video, est, out, timeout=timeout, max_frames=max_frames, show_progress=not quiet,
-                              mask=masking if live else None)
+    if live or is_jsonl(out):
+        result = track_stream(video, est, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
+                              mask=options.mask if live else None)
         if masked is not None:
             result.meta["mask"] = masked.to_json()
         if not is_jsonl(out):
             save_track(result, out)
     else:
         with reading_policy(strict):
-            result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+            result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
     if not quiet:
