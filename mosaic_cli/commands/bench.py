@@ -7,9 +7,10 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.commands.options import Device, Strict, Threads, quiet_option
-from mosaic_cli.errors import BadInput
+from mosaic_cli.commands.options import Device, Strict, Threads, check_json_report, quiet_option, use_threads
+from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
+from mosaic_cli.video.reader import reading_policy
 
 Quiet = quiet_option("No progress and no table (use with --json).")
 
@@ -25,7 +26,7 @@ def bench(
     size: Annotated[str, typer.Option("--size", help="Frame size of the simulated clip, WxH.")] = "1280x720",
     work_width: Annotated[int, typer.Option("--work-width", help="Width the classical estimators work at.")] = 320,
     device: Device = "auto",
-    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the simulated flight.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated flight.")] = 0,
     threads: Threads = None,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the full report as JSON.")] = None,
     strict: Strict = False,
@@ -41,53 +42,30 @@ def bench(
     rate and ms per frame (p50), every flight decoded once for all the estimators."""
     from rich.console import Console
 
-    from mosaic_cli.atomic import check_writable, write_json
-    from mosaic_cli.bench import render_flights_table, render_table, run_bench, run_flights
-    from mosaic_cli.inputs import parse_size
-    from mosaic_cli.simulate import PROFILES
+    from mosaic_cli.atomic import write_json
+    from mosaic_cli.bench import BenchOptions, render_flights_table, render_table
+    from mosaic_cli.bench import bench as run
+    from mosaic_cli.simulate import SimulateOptions
 
-    if profile not in PROFILES:
-        raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
-    if json_out is not None:
-        check_writable(json_out)
-        if json_out.suffix.lower() != ".json":
-            raise BadInput(f"--json {json_out} must end in .json")
-    if video is not None and not video.exists():
-        raise BadInput(f"{video}: no such file or folder")
-    if flights is not None and (video is not None or map_image is not None):
-        raise BadInput("give --flights or --video/--map, not both")
-    if flights is not None and not flights.is_dir():
-        raise BadInput(f"--flights {flights}: no such folder")
-    if weights is not None and not weights.is_file():
-        raise BadInput(f"{weights}: no such weights file")
-    if map_image is not None and not map_image.exists():
-        raise BadInput(f"{map_image}: no such file")
-    if threads is not None:
-        if threads < 1:
-            raise BadInput(f"--threads must be at least 1, got {threads}")
-        import torch
-
-        torch.set_num_threads(threads)
-    names = estimators.split(",") if estimators is not None else None
-    weights_file = str(weights) if weights is not None else None
-    from mosaic_cli.video.reader import reading_policy
-
+    flight = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), seed=seed, crf=18, preset="veryfast")
+    options = BenchOptions(estimators=estimators.split(",") if estimators is not None else None, video=video, flights=flights,
+                           map_image=map_image, flight=flight, weights=str(weights) if weights is not None else None,
+                           work_width=work_width, device=device, threads=threads)
+    check_json_report(json_out)
+    use_threads(options.threads)
     with reading_policy(strict):
-        if flights is not None:
-            report = run_flights(flights, names, weights_file, work_width, device, show_progress=not quiet)
-        else:
-            report = run_bench(video, map_image, names, profile, frames, parse_size(size, "--size"), work_width, device, seed,
-                               show_progress=not quiet, weights=weights_file)
+        report = run(options, show_progress=not quiet)
     if json_out is not None:
         write_json(json_out, report)
-    if not quiet:
-        out = Console()
-        if not out.is_terminal:
-            out = Console(width=max(out.width, 132))  # logs and pipes: keep the table on one line per row
-        out.print(render_flights_table(report) if flights is not None else render_table(report))
-        for note in report["notes"]:
-            console.print(f"[yellow]note:[/yellow] {note}")
-        if flights is not None:
-            console.print("[dim]pixels are 1280x720-equivalent; ms/frame = preprocess + estimate (decoding excluded: shared by all)[/dim]")
-        else:
-            console.print("[dim]pixels are 1280x720-equivalent; ms/frame = decode + preprocess + estimate[/dim]")
+    if quiet:
+        return
+    out = Console()
+    if not out.is_terminal:
+        out = Console(width=max(out.width, 132))  # logs and pipes: keep the table on one line per row
+    out.print(render_flights_table(report) if flights is not None else render_table(report))
+    for note in report["notes"]:
+        console.print(f"[yellow]note:[/yellow] {note}")
+    if flights is not None:
+        console.print("[dim]pixels are 1280x720-equivalent; ms/frame = preprocess + estimate (decoding excluded: shared by all)[/dim]")
+    else:
+        console.print("[dim]pixels are 1280x720-equivalent; ms/frame = decode + preprocess + estimate[/dim]")

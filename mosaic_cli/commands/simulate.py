@@ -8,7 +8,6 @@ from typing import Annotated
 import typer
 
 from mosaic_cli.commands.options import quiet_option
-from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
 
@@ -22,7 +21,7 @@ def simulate(
     frames: Annotated[int, typer.Option("--frames", "-n", help="Number of frames.")] = 300,
     size: Annotated[str, typer.Option("--size", help="Frame size WxH.")] = "1280x720",
     fps: Annotated[float, typer.Option("--fps", help="Frame rate.")] = 30.0,
-    seed: Annotated[int, typer.Option("--seed", min=0, help="Random seed (path, map, effects).")] = 0,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed (path, map, effects).")] = 0,
     crf: Annotated[int | None, typer.Option("--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme.")] = None,
     preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast ... veryslow).")] = "medium",
     overlays: Annotated[str | None, typer.Option("--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png.")] = None,
@@ -43,52 +42,26 @@ def simulate(
     low-bitrate H.264).  Motion is in 1280x720-equivalent px.
     The exact homographies go to <stem>.gt.json: map_to_frame per frame and pairwise t -> t+1.
     """
-    from mosaic_cli.atomic import check_writable
-    from mosaic_cli.simulate import PROFILES, OverlaySpec, ground_truth_path, overlay_mask_path, simulate_flight
+    from mosaic_cli.simulate import OverlaySpec, SimulateOptions, check_outputs, ground_truth_path, simulate_flight
+    from mosaic_cli.simulate.telemetry import GpsErrors, TelemetryOptions, prepare_telemetry, write_telemetry
 
-    if profile not in PROFILES:
-        raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
-    if frames < 2:
-        raise BadInput(f"--frames must be at least 2, got {frames}")
-    if not 0 < fps <= 1000:
-        raise BadInput(f"--fps must be in (0, 1000], got {fps}")
-    if crf is not None and not 0 <= crf <= 51:
-        raise BadInput(f"--crf must be in 0..51, got {crf}")
-    wh = parse_size(size, "--size")
-    if out.suffix.lower() not in (".mp4", ".mov", ".mkv"):
-        raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
-    if map_image is not None and not map_image.exists():
-        raise BadInput(f"{map_image}: no such file")
-    burned = OverlaySpec.parse(overlays)
-    _make_folder(out.parent)  # a flight is often written to a data folder of its own
-    check_writable(out)
-    check_writable(ground_truth_path(out))
-    if burned.any:
-        check_writable(overlay_mask_path(out))
-    if telemetry is not None:  # checked before rendering: a bad option costs nothing
-        from mosaic_cli.simulate.telemetry import prepare_telemetry
-
-        map_geo, errors = prepare_telemetry(out, map_image, telemetry, origin, gsd, gps_noise, gps_dropouts, telemetry_rate, seed)
-    gt = simulate_flight(out, map_image, profile, frames, wh, fps, seed, crf, preset, show_progress=not quiet,
-                         overlays=burned)
+    options = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), fps=fps, seed=seed, crf=crf,
+                              preset=preset, overlays=OverlaySpec.parse(overlays))
+    log = None
     if telemetry is not None:
-        from mosaic_cli.simulate.telemetry import write_telemetry
-
+        log = TelemetryOptions(format=telemetry, origin=origin, gsd=gsd, rate=telemetry_rate,
+                               errors=GpsErrors(rms=gps_noise, dropouts=gps_dropouts, seed=seed))
+    check_outputs(out, map_image, options)
+    if log is not None:  # checked before rendering: a bad option costs nothing
+        map_geo = prepare_telemetry(out, map_image, log)
+    gt = simulate_flight(out, map_image, options, show_progress=not quiet)
+    if log is not None:
         geo = map_geo(gt.map_size)
-        log = write_telemetry(out, gt, geo, telemetry, errors, telemetry_rate or None)
+        written = write_telemetry(out, gt, geo, log.format, log.errors, log.rate or None)
         if not quiet:
-            console.print(f"telemetry ({telemetry}, {geo.crs}, {geo.gsd:g} m per map pixel) -> {log}")
+            console.print(f"telemetry ({log.format}, {geo.crs}, {geo.gsd:g} m per map pixel) -> {written}")
     if not quiet:
         console.print(
             f"{gt.frames} frames {gt.size[0]}x{gt.size[1]} over {gt.map_name} ({gt.map_size[0]}x{gt.map_size[1]}), "
             f"profile {gt.profile} -> {out}, ground truth -> {ground_truth_path(out)}"
         )
-
-
-def _make_folder(folder: Path) -> None:
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
-        raise BadInput(f"output folder {folder} is a file") from None
-    except OSError as exc:
-        raise BadInput(f"cannot make the output folder {folder} ({(exc.strerror or str(exc)).lower()})") from None

@@ -30,7 +30,7 @@ def train(
     lr: Annotated[float | None, typer.Option("--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps (default: 1e-3).")] = None,
     device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda (default: auto).")] = None,
     amp: Annotated[bool | None, typer.Option("--amp/--no-amp", help="Mixed precision on CUDA (default: amp).")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Random seed: initial weights, samples, dropout (default: 0).")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Random seed: initial weights, samples, dropout (default: 0).")] = None,
     val: Annotated[Path | None, typer.Option("--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on.")] = None,
     val_every: Annotated[int | None, typer.Option("--val-every", help="Validate every N steps (default: 1000).")] = None,
     checkpoint_every: Annotated[int | None, typer.Option("--checkpoint-every", help="Checkpoint every N steps (default: 500).")] = None,
