@@ -35,6 +35,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput, MosaicError
 from mosaic_cli.estimators import LEARNED
+from mosaic_cli.simulate import SimulateOptions
 
 DEFAULT_ESTIMATORS = (*LEARNED, "orb", "orb-paper", "identity")
 MAX_DECODED_BYTES = 1_500_000_000  # frames kept in memory for one input width
@@ -154,10 +155,6 @@ def build_estimators(labels: list[str], work_width: int, device: str, weights: s
     skipped with a note instead of failing."""
     from mosaic_cli.estimators import make_estimator
 
-    if not labels:
-        raise BadInput("--estimators is empty")
-    if len(set(labels)) != len(labels):
-        raise BadInput("--estimators names an estimator twice")
     built = {}
     for label in labels:
         learned = _learned(label)
@@ -205,29 +202,80 @@ def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np
     return out
 
 
-def run_bench(
-    video: str | Path | None = None,
-    map_path: str | Path | None = None,
-    estimators: list[str] | None = None,
-    profile: str = "paper",
-    frames: int = 300,
-    size: tuple[int, int] = (1280, 720),
-    work_width: int = 320,
-    device: str = "auto",
-    seed: int = 0,
-    show_progress: bool = True,
-    weights: str | None = None,
-) -> dict:
-    """Benchmark ``estimators`` on ``video`` (or a simulated flight) and return the report dict."""
+def _simulated_flight() -> SimulateOptions:
+    # A short clip encoded fast: the benchmark times the estimators, not the encoder.
+    return SimulateOptions(crf=18, preset="veryfast")
+
+
+@dataclass
+class BenchOptions:
+    """What ``mosaic bench`` times and scores: a simulated flight (``flight``), a ``video``
+    (at most ``flight.frames`` of it) or a folder of ``flights``."""
+
+    estimators: list[str] | None = None  # as on the command line, options included; None: DEFAULT_ESTIMATORS
+    video: Path | None = None
+    flights: Path | None = None
+    map_image: Path | None = None  # the simulated flight's map; None: procedural
+    flight: SimulateOptions = field(default_factory=_simulated_flight)
+    weights: str | None = None  # for the learned estimators
+    work_width: int = 320  # of the classical estimators
+    device: str = "auto"
+    threads: int | None = None  # torch's CPU threads for the learned estimators
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """The flags (the simulated flight's checked themselves); the paths are the request's (:func:`check_request`)."""
+        from mosaic_cli.estimators import check_device, check_work_width
+        from mosaic_cli.inputs import check_threads
+
+        if self.estimators is not None:
+            labels = _labels(self.estimators)
+            if not labels:
+                raise BadInput("--estimators is empty")
+            if len(set(labels)) != len(labels):
+                raise BadInput("--estimators names an estimator twice")
+        if self.flights is not None and (self.video is not None or self.map_image is not None):
+            raise BadInput("give --flights or --video/--map, not both")
+        if self.video is not None and self.map_image is not None:
+            raise BadInput("give --video or --map, not both")
+        check_work_width(self.work_width)
+        check_device(self.device)
+        check_threads(self.threads)
+
+    @property
+    def labels(self) -> list[str]:
+        return _labels(self.estimators)
+
+
+def check_request(options: BenchOptions) -> None:
+    """The inputs exist, before any estimator is built or frame decoded."""
+    if options.video is not None and not options.video.exists():
+        raise BadInput(f"{options.video}: no such file or folder")
+    if options.flights is not None and not options.flights.is_dir():
+        raise BadInput(f"--flights {options.flights}: no such folder")
+    if options.weights is not None and not Path(options.weights).is_file():
+        raise BadInput(f"{options.weights}: no such weights file")
+    if options.map_image is not None and not options.map_image.exists():
+        raise BadInput(f"{options.map_image}: no such file")
+
+
+def bench(options: BenchOptions, show_progress: bool = True) -> dict:
+    """``mosaic bench``: :func:`run_flights` with ``options.flights``, else :func:`run_bench`."""
+    check_request(options)
+    return run_flights(options, show_progress) if options.flights is not None else run_bench(options, show_progress)
+
+
+def run_bench(options: BenchOptions, show_progress: bool = True) -> dict:
+    """Benchmark the estimators on ``options.video`` (or a simulated flight) and return the report dict."""
     from mosaic_cli.evaluate import evaluate
     from mosaic_cli.progress import console
 
-    if video is not None and map_path is not None:
-        raise BadInput("give --video or --map, not both")
-    if frames < 2:
-        raise BadInput(f"--frames must be at least 2, got {frames}")
+    video, map_path, frames = options.video, options.map_image, options.flight.frames
+    work_width, device, weights = options.work_width, options.device, options.weights
     notes: list[str] = []
-    built = build_estimators(_labels(estimators), work_width, device, weights, estimators is not None, notes)
+    built = build_estimators(options.labels, work_width, device, weights, options.estimators is not None, notes)
 
     report: dict = {
         "version": 1,
@@ -242,9 +290,10 @@ def run_bench(
 
             clip = Path(tmp) / "bench.mp4"
             t0 = time.perf_counter()
-            gt = simulate_flight(clip, map_path, profile, frames, size, 30.0, seed, crf=18, preset="veryfast", show_progress=show_progress)
+            gt = simulate_flight(clip, map_path, options.flight, show_progress=show_progress)
             simulate_seconds = time.perf_counter() - t0
-            source = {"kind": "simulated", "profile": profile, "frames": frames, "size": list(size), "map": gt.map_name, "seed": seed}
+            f = options.flight
+            source = {"kind": "simulated", "profile": f.profile, "frames": frames, "size": list(f.size), "map": gt.map_name, "seed": f.seed}
         else:
             clip = Path(video)
             from mosaic_cli.simulate import ground_truth_path, load_ground_truth
@@ -372,21 +421,16 @@ def pool(scores: list[FlightScore]) -> dict:
     }
 
 
-def run_flights(
-    folder: str | Path,
-    estimators: list[str] | None = None,
-    weights: str | None = None,
-    work_width: int = 320,
-    device: str = "auto",
-    show_progress: bool = True,
-) -> dict:
-    """Score ``estimators`` over every flight of ``folder``; returns the report dict (see the
-    module doc).  Memory: one flight's decoded frames at a time."""
+def run_flights(options: BenchOptions, show_progress: bool = True) -> dict:
+    """Score the estimators over every flight of ``options.flights``; returns the report dict
+    (see the module doc).  Memory: one flight's decoded frames at a time."""
     from mosaic_cli.progress import progress_task
 
+    folder, work_width, device, weights = options.flights, options.work_width, options.device, options.weights
+    assert folder is not None
     flights = find_flights(folder)
     notes: list[str] = []
-    built = build_estimators(_labels(estimators), work_width, device, weights, estimators is not None, notes)
+    built = build_estimators(options.labels, work_width, device, weights, options.estimators is not None, notes)
     widths: dict[int, list[str]] = {}
     for label, est in built.items():
         widths.setdefault(est.input_width, []).append(label)

@@ -1,4 +1,4 @@
-"""The ``mosaic`` command line: thin wrappers that parse options and call the pipelines.
+"""The ``mosaic`` command line: the typer app and the table of its commands (mosaic_cli/commands).
 
 Every user mistake ends as one line on stderr and a non-zero exit (2 for bad input);
 ``--debug`` shows the traceback instead.
@@ -22,6 +22,7 @@ if hasattr(typer, "TyperException"):
 else:  # pragma: no cover - older typer, with click installed beside it
     from click.exceptions import ClickException as UsageProblem
 
+from mosaic_cli.commands import bench, evaluate, simulate, stabilize, stitch, track, train
 from mosaic_cli.errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, MosaicError
 
 app = typer.Typer(
@@ -162,5 +163,16 @@ def _flags_take_no_value_in_help() -> None:
 
 _flags_take_no_value_in_help()
 
-# Commands register themselves on ``app``; import them last.
-from mosaic_cli.commands import bench, evaluate, simulate, stabilize, stitch, track, train  # noqa: E402,F401
+# The commands, in the order ``mosaic --help`` lists them: plain functions whose parameters
+# declare their flags; each is registered here and imports nothing of this module.
+COMMANDS = {
+    "bench": bench.bench,
+    "eval": evaluate.evaluate,
+    "simulate": simulate.simulate,
+    "stabilize": stabilize.stabilize,
+    "stitch": stitch.stitch,
+    "track": track.track,
+    "train": train.train,
+}
+for _name, _command in COMMANDS.items():
+    app.command(_name)(_command)

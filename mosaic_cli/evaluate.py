@@ -14,6 +14,7 @@ exceeds :data:`FAILURE_PX`.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,8 +38,6 @@ def landmarks_from_ground_truth(gt, every: int = LANDMARK_EVERY, grid: tuple[int
     points spread over the central area of frame f1 (the middle 60 % in each direction) is
     mapped to f2 = f1 + every by the true homography; points landing outside frame f2 (less a
     ``margin`` of its size) are left out."""
-    if every < 1:
-        raise BadInput(f"landmark spacing must be at least 1 frame, got {every}")
     w, h = gt.size
     M = np.asarray(gt.map_to_frame, dtype=np.float64)
     xs = np.linspace(0.2 * (w - 1), 0.8 * (w - 1), grid[0])
@@ -160,11 +159,12 @@ def check_same_video(pairwise_pred: np.ndarray, pred_size: tuple[int, int] | Non
                        f"(track the whole clip the ground truth came with)")
 
 
-def evaluate(pairwise_pred: np.ndarray, gt, annotations: np.ndarray | None = None) -> dict:
+def evaluate(pairwise_pred: np.ndarray, gt, annotations: np.ndarray | None = None, every: int = LANDMARK_EVERY) -> dict:
     """All metrics of a prediction against a ground truth.
 
-    ``annotations`` default to :func:`landmarks_from_ground_truth`.  A prediction shorter than
-    the flight (e.g. ``mosaic track --max-frames``) is scored on the frames it covers."""
+    ``annotations`` default to :func:`landmarks_from_ground_truth` (a pair every ``every``
+    frames).  A prediction shorter than the flight (e.g. ``mosaic track --max-frames``) is
+    scored on the frames it covers."""
     P = np.asarray(pairwise_pred, dtype=np.float64).reshape(-1, 3, 3)
     T = np.asarray(gt.pairwise, dtype=np.float64)
     if len(P) == 0:
@@ -173,7 +173,7 @@ def evaluate(pairwise_pred: np.ndarray, gt, annotations: np.ndarray | None = Non
         raise BadInput(f"the prediction has {len(P)} pairwise homographies but the ground truth only {len(T)} ({gt.frames} frames)")
     n = len(P)
     if annotations is None:
-        annotations = landmarks_from_ground_truth(gt)
+        annotations = landmarks_from_ground_truth(gt, every=every)
         annotations = annotations[annotations[:, 3] <= n]
     ann = np.asarray(annotations, dtype=np.float64).reshape(-1, 6)
     cerr = corner_errors(P, T[:n], gt.size)
@@ -213,3 +213,45 @@ def load_prediction(path: str | Path) -> tuple[np.ndarray, tuple[int, int] | Non
 
     _, arr, size = read_track_file(p)
     return arr, size
+
+
+@dataclass
+class EvalOptions:
+    """What ``mosaic eval`` scores a prediction against."""
+
+    gt: Path | None = None  # a simulated flight's ground truth (<stem>.gt.json)
+    annotations: Path | None = None  # landmark annotations, 'f1 x1 y1 f2 x2 y2' per line
+    size: tuple[int, int] | None = None  # frame size (w, h) of a .npy prediction scored on annotations
+    every: int = LANDMARK_EVERY  # frames between the landmark pairs made from the ground truth
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if self.gt is None and self.annotations is None:
+            raise BadInput("give --gt GROUND_TRUTH.json and/or --annotations ANNOTATIONS.txt")
+        if self.every < 1:
+            raise BadInput(f"--every must be at least 1 frame, got {self.every}")
+
+
+def score(prediction: str | Path, options: EvalOptions) -> dict:
+    """The metrics of the prediction file ``prediction`` (see :func:`load_prediction`): against
+    the ground truth when ``options`` has one (on its annotations if given, else on landmarks
+    made from the truth), else MACE on the annotations alone."""
+    from mosaic_cli.simulate.groundtruth import load_ground_truth
+
+    pred, pred_size = load_prediction(prediction)
+    ann = read_annotations(options.annotations) if options.annotations is not None else None
+    if options.gt is not None:
+        truth = load_ground_truth(options.gt)
+        check_same_video(pred, pred_size, truth)
+        metrics = evaluate(pred, truth, ann, every=options.every)
+    else:
+        size = options.size or pred_size
+        if size is None:
+            raise BadInput("a .npy prediction scored on annotations needs --size WxH (the video's frame size)")
+        _, errors = mace_pairs(pred, ann, size)
+        metrics = {"mace": float(errors.mean()), "landmark_pairs": int(len(errors)), "landmarks": int(len(ann)),
+                   "pairs": int(len(pred)), "frames": int(len(pred) + 1), "units": "1280x720-equivalent px"}
+    metrics["prediction"] = str(prediction)
+    return metrics

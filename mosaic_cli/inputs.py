@@ -1,6 +1,7 @@
 """How mosaic recognises its inputs, one rule each: what counts as a video file, where the
-simulated flights of a folder are (``X.<video>`` with ``X.gt.json`` beside it), and how a
-``WxH`` size is written.  Used by every command that takes such an input."""
+simulated flights of a folder are (``X.<video>`` with ``X.gt.json`` beside it), how a
+``WxH`` size is written, and the bounds of the flags several commands share (``--max-frames``,
+``--threads``, ``--timeout``, ``--crf``, ``--preset``), which their options' ``validate()`` apply."""
 
 from __future__ import annotations
 
@@ -50,4 +51,33 @@ def parse_size(text: str, flag: str, low: int = 16, high: int = 8192) -> tuple[i
     return w, h
 
 
-__all__ = ["VIDEO_SUFFIXES", "find_flights", "is_video_file", "parse_size"]
+def check_max_frames(frames: int | None) -> None:
+    """``--max-frames``: None (every frame) or at least a pair."""
+    if frames is not None and frames < 2:
+        raise BadInput(f"--max-frames must be at least 2, got {frames}")
+
+
+def check_threads(threads: int | None) -> None:
+    """``--threads``: None (torch's default) or at least one."""
+    if threads is not None and threads < 1:
+        raise BadInput(f"--threads must be at least 1, got {threads}")
+
+
+def check_timeout(seconds: float) -> None:
+    """``--timeout`` of a live input: a positive number of seconds."""
+    if not seconds > 0:
+        raise BadInput(f"--timeout must be positive, got {seconds}")
+
+
+def check_encoder(crf: int | None, preset: str) -> None:
+    """``--crf`` (None: the command's default) and ``--preset`` of the H.264 encoder."""
+    from mosaic_cli.video.writer import PRESETS
+
+    if crf is not None and not 0 <= crf <= 51:
+        raise BadInput(f"--crf must be in 0..51, got {crf}")
+    if preset not in PRESETS:
+        raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+
+
+__all__ = ["VIDEO_SUFFIXES", "check_encoder", "check_max_frames", "check_threads", "check_timeout", "find_flights", "is_video_file",
+           "parse_size"]

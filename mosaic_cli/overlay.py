@@ -61,11 +61,14 @@ class OverlayOptions:
     max_bar: float = 0.25  # letterbox bars cover at most this share of each side
     max_static: float = 0.3  # more of the frame static: the ground did not move, mask nothing
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> None:
         if self.samples < 4:
-            raise BadInput(f"overlay detection needs at least 4 sample frames, got {self.samples}")
+            raise ValueError(f"overlay detection needs at least 4 sample frames, got {self.samples}")
         if self.width < 32:
-            raise BadInput(f"overlay detection width must be at least 32, got {self.width}")
+            raise ValueError(f"overlay detection width must be at least 32, got {self.width}")
 
 
 @dataclass(frozen=True)
@@ -363,6 +366,20 @@ class MaskOptions:
     file_margin: int = 2
     overlay: OverlayOptions = field(default_factory=OverlayOptions)
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """The ``--mask`` path (what the image holds is read against the video: :func:`load_mask`)."""
+        if self.file is not None:
+            p = Path(self.file)
+            if not p.exists():
+                raise BadInput(f"--mask {p}: no such file")
+            if p.is_dir():
+                raise BadInput(f"--mask {p}: is a folder, not an image")
+        if self.file_margin < 0:
+            raise BadInput(f"the --mask margin must be 0 or more pixels, got {self.file_margin}")
+
 
 @dataclass
 class FrameMask:
@@ -409,12 +426,9 @@ class FrameMask:
 
 def load_mask(path: str | Path, full_size: tuple[int, int]) -> np.ndarray:
     """A ``--mask`` image as a use mask at ``full_size``: white (>= 128) = use.  A mask of
-    another size but the same aspect ratio is scaled; any other is refused (BadInput)."""
+    another size but the same aspect ratio is scaled; any other is refused (BadInput).  The
+    path itself was checked by :class:`MaskOptions`."""
     p = Path(path)
-    if not p.exists():
-        raise BadInput(f"--mask {p}: no such file")
-    if p.is_dir():
-        raise BadInput(f"--mask {p}: is a folder, not an image")
     image = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise BadInput(f"--mask {p}: not an image OpenCV can read")
@@ -454,7 +468,6 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     use = _file_mask(options, info.source_size)
     detection = None
     if options.detect:
-        options.overlay.validate()
         width = min(options.overlay.width, info.source_size[0])
         if show_progress:
             from mosaic_cli.progress import progress_task

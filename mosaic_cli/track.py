@@ -13,10 +13,31 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, estimate_stream
+from mosaic_cli.inputs import check_max_frames, check_threads, check_timeout
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
+from mosaic_cli.overlay import MaskOptions
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
 
 TRACK_FORMAT_VERSION = 1
+
+
+@dataclass
+class TrackOptions:
+    """``mosaic track``'s options besides the estimator's (see :func:`mosaic_cli.estimators.make_estimator`)."""
+
+    max_frames: int | None = None  # None: every frame
+    threads: int | None = None  # torch's CPU threads for a learned estimator; None: torch's default
+    timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
+    mask: MaskOptions = field(default_factory=MaskOptions)  # --mask, burned-in overlays
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        check_max_frames(self.max_frames)
+        check_threads(self.threads)
+        check_timeout(self.timeout)
 
 
 @dataclass

@@ -192,7 +192,7 @@ def bench_stabilize(args) -> list[dict]:
     for seed in range(args.clips):
         video = flight("shaky", args.frames, seed=seed)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
-        options = StabilizeOptions(estimator=args.estimator)
+        options = StabilizeOptions(estimator=args.estimator, latency=1.0)  # the offline run ignores the latency
         port, out_port = free_port(), free_port()
         url = f"tcp://127.0.0.1:{port}?listen=1"
         received = WORKDIR / "received.ts"
@@ -201,7 +201,7 @@ def bench_stabilize(args) -> list[dict]:
         holder: dict = {}
         threading.Thread(target=lambda port=port, holder=holder, video=video, url=url: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
                          daemon=True).start()
-        live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, latency=1.0, show_progress=False)
+        live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, show_progress=False)
         receiver.wait()
         count = _count_frames(received)
         offline = stabilize(video, WORKDIR / "offline.mp4", options, show_progress=False)

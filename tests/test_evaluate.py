@@ -196,3 +196,31 @@ def test_eval_command_errors(tmp_path, gt, capsys):
         assert cli_exit(["eval", *args]) == 2, args
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, (args, err)
+
+
+def test_score_is_what_eval_reports_and_every_spaces_the_landmarks(tmp_path, gt):
+    """The library's ``score`` (what the command prints) against the metrics computed here from
+    their parts: with the ground truth, on landmarks every ``every`` frames; with annotations
+    alone, MACE at the track's own frame size."""
+    from mosaic_cli.evaluate import EvalOptions, mace_pairs, score
+
+    gt_path = tmp_path / "f.gt.json"
+    gt.save(gt_path)
+    track = tmp_path / "pred.json"
+    identity = np.tile(np.eye(3), (gt.frames - 1, 1, 1))
+    _write_track(track, identity, gt.size)
+    for every in (30, 20):
+        ann = landmarks_from_ground_truth(gt, every=every)
+        metrics = score(track, EvalOptions(gt=gt_path, every=every))
+        assert metrics["mace"] == pytest.approx(mace(identity, ann, gt.size), rel=1e-12)
+        assert metrics["landmarks"] == len(ann) and metrics["prediction"] == str(track)
+    assert set(landmarks_from_ground_truth(gt, every=20)[:, 0].astype(int)) == {0, 20, 40, 60, 80, 100}
+    annotations = tmp_path / "ann.txt"
+    write_annotations(annotations, landmarks_from_ground_truth(gt))
+    alone = score(track, EvalOptions(annotations=annotations))
+    pairs, errors = mace_pairs(identity, read_annotations(annotations), gt.size)
+    assert alone["mace"] == pytest.approx(errors.mean(), rel=1e-12) and alone["landmark_pairs"] == len(pairs)
+    np.save(tmp_path / "pred.npy", identity)
+    with pytest.raises(BadInput, match="--size"):
+        score(tmp_path / "pred.npy", EvalOptions(annotations=annotations))
+    assert score(tmp_path / "pred.npy", EvalOptions(annotations=annotations, size=gt.size))["mace"] == pytest.approx(alone["mace"])

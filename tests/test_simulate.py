@@ -303,7 +303,7 @@ def test_simulate_command_over_an_image(tmp_path):
 @pytest.mark.parametrize(
     "args,message",
     [
-        (["--profile", "wobbly"], "unknown profile"),
+        (["--profile", "wobbly"], "--profile must be one of"),
         (["--frames", "1"], "at least 2"),
         (["--size", "big"], "--size"),
         (["--fps", "0"], "--fps"),

@@ -400,10 +400,10 @@ def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pa
 
 def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan_clips):
     from mosaic_cli.evaluate import landmarks_from_ground_truth, mace
-    from mosaic_cli.simulate import simulate_flight
+    from mosaic_cli.simulate import SimulateOptions, simulate_flight
     from mosaic_cli.train.validate import find_flights, validation_mace
 
-    gt = simulate_flight(tmp_path / "f.mp4", frames=40, size=(128, 96), preset="ultrafast", show_progress=False)
+    gt = simulate_flight(tmp_path / "f.mp4", options=SimulateOptions(frames=40, size=(128, 96), preset="ultrafast"), show_progress=False)
     flights = find_flights(tmp_path)
     net = HomographyNet(NetConfig(preset="compact", head="lstm", patch=PATCH))
     with torch.no_grad():
@@ -427,14 +427,14 @@ def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan
 
 
 def test_trains_on_a_flight_rendered_from_real_aerial_imagery(tmp_path, shared_data):
-    from mosaic_cli.simulate import simulate_flight
+    from mosaic_cli.simulate import SimulateOptions, simulate_flight
 
     still = shared_data / "aerial_stills" / "opencv_aero" / "aero1.jpg"
     if not still.is_file():
         pytest.skip(f"{still} is not present")
     clips = tmp_path / "clips"
     clips.mkdir()
-    simulate_flight(clips / "aero.mp4", still, frames=24, size=(128, 72), preset="ultrafast", show_progress=False)
+    simulate_flight(clips / "aero.mp4", still, SimulateOptions(frames=24, size=(128, 72), preset="ultrafast"), show_progress=False)
     cfg = TrainConfig(clips=str(clips), out=str(tmp_path / "run"), steps=3, batch_size=2, work_size=(64, 36),
                       patch=PATCH, num_workers=1, threads=1).resolved()
     summary = train(cfg, show_progress=False)

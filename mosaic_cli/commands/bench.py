@@ -3,31 +3,34 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
-from mosaic_cli.errors import BadInput
+from mosaic_cli.commands.options import Device, Strict, Threads, check_json_report, quiet_option, use_threads
+from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
+from mosaic_cli.video.reader import reading_policy
+
+Quiet = quiet_option("No progress and no table (use with --json).")
 
 
-@app.command()
 def bench(
-    video: Path | None = typer.Option(None, "--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it)."),
-    flights: Path | None = typer.Option(None, "--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile)."),
-    map_image: Path | None = typer.Option(None, "--map", help="Simulate the flight over this aerial image (default: procedural map)."),
-    estimators: str | None = typer.Option(None, "--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped)."),
-    weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn)."),
-    profile: str = typer.Option("paper", "--profile", "-p", help="Flight profile of the simulated clip."),
-    frames: int = typer.Option(300, "--frames", "-n", help="Frames to simulate (or to read from --video)."),
-    size: str = typer.Option("1280x720", "--size", help="Frame size of the simulated clip, WxH."),
-    work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators work at."),
-    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated flight."),
-    threads: int | None = typer.Option(None, "--threads", help="CPU threads for the learned estimators' network (default: torch's, one per core; 1 is cheaper on a busy machine)."),
-    json_out: Path | None = typer.Option(None, "--json", help="Write the full report as JSON."),
-    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no table (use with --json)."),
+    video: Annotated[Path | None, typer.Option("--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it).")] = None,
+    flights: Annotated[Path | None, typer.Option("--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile).")] = None,
+    map_image: Annotated[Path | None, typer.Option("--map", help="Simulate the flight over this aerial image (default: procedural map).")] = None,
+    estimators: Annotated[str | None, typer.Option("--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped).")] = None,
+    weights: Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn).")] = None,
+    profile: Annotated[str, typer.Option("--profile", "-p", help="Flight profile of the simulated clip.")] = "paper",
+    frames: Annotated[int, typer.Option("--frames", "-n", help="Frames to simulate (or to read from --video).")] = 300,
+    size: Annotated[str, typer.Option("--size", help="Frame size of the simulated clip, WxH.")] = "1280x720",
+    work_width: Annotated[int, typer.Option("--work-width", help="Width the classical estimators work at.")] = 320,
+    device: Device = "auto",
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated flight.")] = 0,
+    threads: Threads = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the full report as JSON.")] = None,
+    strict: Strict = False,
+    quiet: Quiet = False,
 ) -> None:
     """Time and score the estimators on a simulated flight, a video or a folder of flights.
 
@@ -39,53 +42,30 @@ def bench(
     rate and ms per frame (p50), every flight decoded once for all the estimators."""
     from rich.console import Console
 
-    from mosaic_cli.atomic import check_writable, write_json
-    from mosaic_cli.bench import render_flights_table, render_table, run_bench, run_flights
-    from mosaic_cli.inputs import parse_size
-    from mosaic_cli.simulate import PROFILES
+    from mosaic_cli.atomic import write_json
+    from mosaic_cli.bench import BenchOptions, render_flights_table, render_table
+    from mosaic_cli.bench import bench as run
+    from mosaic_cli.simulate import SimulateOptions
 
-    if profile not in PROFILES:
-        raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
-    if json_out is not None:
-        check_writable(json_out)
-        if json_out.suffix.lower() != ".json":
-            raise BadInput(f"--json {json_out} must end in .json")
-    if video is not None and not video.exists():
-        raise BadInput(f"{video}: no such file or folder")
-    if flights is not None and (video is not None or map_image is not None):
-        raise BadInput("give --flights or --video/--map, not both")
-    if flights is not None and not flights.is_dir():
-        raise BadInput(f"--flights {flights}: no such folder")
-    if weights is not None and not weights.is_file():
-        raise BadInput(f"{weights}: no such weights file")
-    if map_image is not None and not map_image.exists():
-        raise BadInput(f"{map_image}: no such file")
-    if threads is not None:
-        if threads < 1:
-            raise BadInput(f"--threads must be at least 1, got {threads}")
-        import torch
-
-        torch.set_num_threads(threads)
-    names = estimators.split(",") if estimators is not None else None
-    weights_file = str(weights) if weights is not None else None
-    from mosaic_cli.video.reader import reading_policy
-
+    flight = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), seed=seed, crf=18, preset="veryfast")
+    options = BenchOptions(estimators=estimators.split(",") if estimators is not None else None, video=video, flights=flights,
+                           map_image=map_image, flight=flight, weights=str(weights) if weights is not None else None,
+                           work_width=work_width, device=device, threads=threads)
+    check_json_report(json_out)
+    use_threads(options.threads)
     with reading_policy(strict):
-        if flights is not None:
-            report = run_flights(flights, names, weights_file, work_width, device, show_progress=not quiet)
-        else:
-            report = run_bench(video, map_image, names, profile, frames, parse_size(size, "--size"), work_width, device, seed,
-                               show_progress=not quiet, weights=weights_file)
+        report = run(options, show_progress=not quiet)
     if json_out is not None:
         write_json(json_out, report)
-    if not quiet:
-        out = Console()
-        if not out.is_terminal:
-            out = Console(width=max(out.width, 132))  # logs and pipes: keep the table on one line per row
-        out.print(render_flights_table(report) if flights is not None else render_table(report))
-        for note in report["notes"]:
-            console.print(f"[yellow]note:[/yellow] {note}")
-        if flights is not None:
-            console.print("[dim]pixels are 1280x720-equivalent; ms/frame = preprocess + estimate (decoding excluded: shared by all)[/dim]")
-        else:
-            console.print("[dim]pixels are 1280x720-equivalent; ms/frame = decode + preprocess + estimate[/dim]")
+    if quiet:
+        return
+    out = Console()
+    if not out.is_terminal:
+        out = Console(width=max(out.width, 132))  # logs and pipes: keep the table on one line per row
+    out.print(render_flights_table(report) if flights is not None else render_table(report))
+    for note in report["notes"]:
+        console.print(f"[yellow]note:[/yellow] {note}")
+    if flights is not None:
+        console.print("[dim]pixels are 1280x720-equivalent; ms/frame = preprocess + estimate (decoding excluded: shared by all)[/dim]")
+    else:
+        console.print("[dim]pixels are 1280x720-equivalent; ms/frame = decode + preprocess + estimate[/dim]")

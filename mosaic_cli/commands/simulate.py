@@ -3,34 +3,35 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
-from mosaic_cli.errors import BadInput
+from mosaic_cli.commands.options import quiet_option
 from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
 
+Quiet = quiet_option("No progress bar.")
 
-@app.command()
+
 def simulate(
-    map_image: Path | None = typer.Argument(None, help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map."),
-    out: Path = typer.Option(..., "-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it."),
-    profile: str = typer.Option("paper", "--profile", "-p", help="paper, survey, fast, shaky, hard or extreme."),
-    frames: int = typer.Option(300, "--frames", "-n", help="Number of frames."),
-    size: str = typer.Option("1280x720", "--size", help="Frame size WxH."),
-    fps: float = typer.Option(30.0, "--fps", help="Frame rate."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Random seed (path, map, effects)."),
-    crf: int | None = typer.Option(None, "--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme."),
-    preset: str = typer.Option("medium", "--preset", help="x264 preset (ultrafast ... veryslow)."),
-    overlays: str | None = typer.Option(None, "--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
-    telemetry: str | None = typer.Option(None, "--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json."),
-    origin: str = typer.Option("47.3977,8.5456", "--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry)."),
-    gsd: float = typer.Option(0.05, "--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry)."),
-    gps_noise: float = typer.Option(3.0, "--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry."),
-    gps_dropouts: float = typer.Option(0.02, "--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry."),
-    telemetry_rate: float = typer.Option(0.0, "--telemetry-rate", help="Log samples per second; 0: one per frame."),
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it.")],
+    map_image: Annotated[Path | None, typer.Argument(help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map.")] = None,
+    profile: Annotated[str, typer.Option("--profile", "-p", help="paper, survey, fast, shaky, hard or extreme.")] = "paper",
+    frames: Annotated[int, typer.Option("--frames", "-n", help="Number of frames.")] = 300,
+    size: Annotated[str, typer.Option("--size", help="Frame size WxH.")] = "1280x720",
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate.")] = 30.0,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed (path, map, effects).")] = 0,
+    crf: Annotated[int | None, typer.Option("--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme.")] = None,
+    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast ... veryslow).")] = "medium",
+    overlays: Annotated[str | None, typer.Option("--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png.")] = None,
+    quiet: Quiet = False,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json.")] = None,
+    origin: Annotated[str, typer.Option("--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry).")] = "47.3977,8.5456",
+    gsd: Annotated[float, typer.Option("--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry).")] = 0.05,
+    gps_noise: Annotated[float, typer.Option("--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry.")] = 3.0,
+    gps_dropouts: Annotated[float, typer.Option("--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry.")] = 0.02,
+    telemetry_rate: Annotated[float, typer.Option("--telemetry-rate", help="Log samples per second; 0: one per frame.")] = 0.0,
 ) -> None:
     """Render a drone flight over a large aerial image with a virtual nadir camera.
 
@@ -41,52 +42,26 @@ def simulate(
     low-bitrate H.264).  Motion is in 1280x720-equivalent px.
     The exact homographies go to <stem>.gt.json: map_to_frame per frame and pairwise t -> t+1.
     """
-    from mosaic_cli.atomic import check_writable
-    from mosaic_cli.simulate import PROFILES, OverlaySpec, ground_truth_path, overlay_mask_path, simulate_flight
+    from mosaic_cli.simulate import OverlaySpec, SimulateOptions, check_outputs, ground_truth_path, simulate_flight
+    from mosaic_cli.simulate.telemetry import GpsErrors, TelemetryOptions, prepare_telemetry, write_telemetry
 
-    if profile not in PROFILES:
-        raise BadInput(f"unknown profile {profile!r}: choose one of {', '.join(PROFILES)}")
-    if frames < 2:
-        raise BadInput(f"--frames must be at least 2, got {frames}")
-    if not 0 < fps <= 1000:
-        raise BadInput(f"--fps must be in (0, 1000], got {fps}")
-    if crf is not None and not 0 <= crf <= 51:
-        raise BadInput(f"--crf must be in 0..51, got {crf}")
-    wh = parse_size(size, "--size")
-    if out.suffix.lower() not in (".mp4", ".mov", ".mkv"):
-        raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
-    if map_image is not None and not map_image.exists():
-        raise BadInput(f"{map_image}: no such file")
-    burned = OverlaySpec.parse(overlays)
-    _make_folder(out.parent)  # a flight is often written to a data folder of its own
-    check_writable(out)
-    check_writable(ground_truth_path(out))
-    if burned.any:
-        check_writable(overlay_mask_path(out))
-    if telemetry is not None:  # checked before rendering: a bad option costs nothing
-        from mosaic_cli.simulate.telemetry import prepare_telemetry
-
-        map_geo, errors = prepare_telemetry(out, map_image, telemetry, origin, gsd, gps_noise, gps_dropouts, telemetry_rate, seed)
-    gt = simulate_flight(out, map_image, profile, frames, wh, fps, seed, crf, preset, show_progress=not quiet,
-                         overlays=burned)
+    options = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), fps=fps, seed=seed, crf=crf,
+                              preset=preset, overlays=OverlaySpec.parse(overlays))
+    log = None
     if telemetry is not None:
-        from mosaic_cli.simulate.telemetry import write_telemetry
-
+        log = TelemetryOptions(format=telemetry, origin=origin, gsd=gsd, rate=telemetry_rate,
+                               errors=GpsErrors(rms=gps_noise, dropouts=gps_dropouts, seed=seed))
+    check_outputs(out, map_image, options)
+    if log is not None:  # checked before rendering: a bad option costs nothing
+        map_geo = prepare_telemetry(out, map_image, log)
+    gt = simulate_flight(out, map_image, options, show_progress=not quiet)
+    if log is not None:
         geo = map_geo(gt.map_size)
-        log = write_telemetry(out, gt, geo, telemetry, errors, telemetry_rate or None)
+        written = write_telemetry(out, gt, geo, log.format, log.errors, log.rate or None)
         if not quiet:
-            console.print(f"telemetry ({telemetry}, {geo.crs}, {geo.gsd:g} m per map pixel) -> {log}")
+            console.print(f"telemetry ({log.format}, {geo.crs}, {geo.gsd:g} m per map pixel) -> {written}")
     if not quiet:
         console.print(
             f"{gt.frames} frames {gt.size[0]}x{gt.size[1]} over {gt.map_name} ({gt.map_size[0]}x{gt.map_size[1]}), "
             f"profile {gt.profile} -> {out}, ground truth -> {ground_truth_path(out)}"
         )
-
-
-def _make_folder(folder: Path) -> None:
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
-        raise BadInput(f"output folder {folder} is a file") from None
-    except OSError as exc:
-        raise BadInput(f"cannot make the output folder {folder} ({(exc.strerror or str(exc)).lower()})") from None

@@ -3,66 +3,70 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
-from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR
-from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
+from mosaic_cli.commands.options import (
+    Device,
+    EstimatorName,
+    Mask,
+    Strict,
+    Timeout,
+    Weights,
+    mask_options,
+    overlay_detect_option,
+    quiet_option,
+)
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
+from mosaic_cli.video.reader import reading_policy
+
+OverlayDetect = overlay_detect_option("the motion estimate (the output keeps every pixel)")
+Quiet = quiet_option("No progress bars or summary.")
 
 
-@app.command()
 def stabilize(
-    video: str = typer.Argument(..., help="Input video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
-    out: str = typer.Argument(..., help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://)."),
-    smoothing: str = typer.Option("l1", "--smoothing", help="l1 (L1-optimal camera path) or gaussian."),
-    radius: int = typer.Option(30, "--radius", min=1, help="Gaussian smoothing radius in frames (sigma = radius / 3)."),
-    model: str = typer.Option("similarity", "--model", help="Motion model of the correction: similarity, affine or homography."),
-    crop: str = typer.Option("auto", "--crop", help="auto (zoom just enough that no border shows) or the share of "
-                             "width and height to keep, 0.5..1 (borders may then show, filled as --border says)."),
-    border: str | None = typer.Option(None, "--border", help="Fill of uncovered areas with a fixed --crop: black "
-                                      "(default), replicate or reflect."),
-    crf: int = typer.Option(18, "--crf", help="x264 quality, 0 (lossless) .. 51."),
-    preset: str = typer.Option("veryfast", "--preset", help="x264 preset (ultrafast .. veryslow)."),
-    warps: Path | None = typer.Option(None, "--warps", help="Write the per-frame warps (input -> output pixels) as JSON."),
-    compare: Path | None = typer.Option(None, "--compare", help="Also write input and output side by side to this video."),
-    estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, identity, lstm or cnn. Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
-    work_width: int | None = typer.Option(None, "--work-width", help="Width the classical estimators work at (pixels; the learned ones use their weights' size; "
-                                          "default 640 or the input's width if smaller)."),
-    weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
-    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
-    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
-    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of the motion estimate (the output keeps every pixel)."),
-    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
-    latency: float | None = typer.Option(None, "--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1."),
-    timeout: float = typer.Option(DEFAULT_TIMEOUT, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars or summary."),
+    video: Annotated[str, typer.Argument(help="Input video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
+    out: Annotated[str, typer.Argument(help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://).")],
+    smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.")] = "l1",
+    radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).")] = 30,
+    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.")] = "similarity",
+    crop: Annotated[str, typer.Option("--crop", help="auto (zoom just enough that no border shows) or the share of "
+                                      "width and height to keep, 0.5..1 (borders may then show, filled as --border says).")] = "auto",
+    border: Annotated[str | None, typer.Option("--border", help="Fill of uncovered areas with a fixed --crop: black "
+                                               "(default), replicate or reflect.")] = None,
+    crf: Annotated[int, typer.Option("--crf", help="x264 quality, 0 (lossless) .. 51.")] = 18,
+    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast .. veryslow).")] = "veryfast",
+    warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.")] = None,
+    compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.")] = None,
+    estimator: EstimatorName = None,
+    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators work at (pixels; the learned ones use their weights' size; "
+                                                  "default 640 or the input's width if smaller).")] = None,
+    weights: Weights = None,
+    device: Device = "auto",
+    mask: Mask = None,
+    overlay_detect: OverlayDetect = True,
+    strict: Strict = False,
+    latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.")] = None,
+    timeout: Timeout = DEFAULT_TIMEOUT,
+    quiet: Quiet = False,
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
-    from mosaic_cli.overlay import MaskOptions
+    from mosaic_cli.live.stabilize import is_live_request, stabilize_live
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
 
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
-        mask=MaskOptions(file=mask, detect=overlay_detect),
+        mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout,
     )
-    from mosaic_cli.live.output import is_stream_output
-
-    if latency is not None or is_live_source(video) or is_stream_output(out):
-        from mosaic_cli.live.stabilize import DEFAULT_LATENCY, stabilize_live
-
-        if timeout <= 0:
-            raise BadInput(f"--timeout must be positive, got {timeout}")
-        if compare is not None:
-            raise BadInput("--compare is not available with --latency or a live input")
-        live = stabilize_live(video, out, options, latency if latency is not None else DEFAULT_LATENCY, timeout,
-                              warps_out=str(warps) if warps else None, show_progress=not quiet)
+    if is_live_request(video, out, options):
+        live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
+                              compare=str(compare) if compare else None, show_progress=not quiet)
         if not quiet:
             console.print(
                 f"{live.frames_in} frames in, {live.frames_out} out -> {'standard output' if out == '-' else out}: "
@@ -71,8 +75,6 @@ def stabilize(
                 soft_wrap=True,
             )
         return
-    from mosaic_cli.video.reader import reading_policy
-
     with reading_policy(strict):
         result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if not quiet:

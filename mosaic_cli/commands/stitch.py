@@ -4,90 +4,94 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
+from mosaic_cli.commands.options import (
+    Device,
+    EstimatorName,
+    Mask,
+    MaxFrames,
+    Strict,
+    Timeout,
+    Weights,
+    WorkWidth,
+    check_mask_file,
+    mask_options,
+    overlay_detect_option,
+    quiet_option,
+)
+from mosaic_cli.estimators import make_estimator
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
+from mosaic_cli.video.reader import reading_policy
+
+OverlayDetect = overlay_detect_option("estimation and the panorama")
+Quiet = quiet_option("No progress bars.")
 
 
-@app.command()
 def stitch(
-    video: str = typer.Argument(..., help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://)."),
-    out: Path = typer.Option(..., "-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg."),
-    transforms: Path | None = typer.Option(
-        None, "--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON."
-    ),
-    reference: str = typer.Option("middle", "--reference", help="Frame the panorama is drawn in: first, middle or a frame number."),
-    max_size: int = typer.Option(8000, "--max-size", help="Longest side of the panorama in pixels (larger canvases are scaled down); 0: no limit."),
-    drift_control: bool = typer.Option(True, "--drift-control/--no-drift-control", help="Register revisited ground and refine all placements jointly."),
-    max_loop_pairs: int = typer.Option(300, "--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost)."),
-    overlap: float = typer.Option(0.6, "--overlap", help="A new keyframe is due when its overlap with the last one drops below this."),
-    blend: str = typer.Option("multiband", "--blend", help="multiband, feather or none."),
-    seam: str = typer.Option("dp", "--seam", help="Seam finder: dp, graphcut, voronoi or none."),
-    exposure: str = typer.Option("gain-blocks", "--exposure", help="Exposure compensation: gain-blocks, gain or none."),
-    estimator: str | None = typer.Option(None, "--estimator", "-e", help=f"orb, orb-ransac, identity, lstm or cnn. Default: {DEFAULT_ESTIMATOR} (with --weights: the network they hold)."),
-    work_width: int = typer.Option(320, "--work-width", help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size their weights were trained for."),
-    weights: Path | None = typer.Option(None, "--weights", help="A trained checkpoint (.safetensors) to run."),
-    device: str = typer.Option("auto", "--device", help="auto, cpu or cuda (learned estimators)."),
-    mask: Path | None = typer.Option(None, "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses."),
-    overlay_detect: bool = typer.Option(True, "--overlay-detect/--no-overlay-detect", help="Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of estimation and the panorama."),
-    start: int = typer.Option(0, "--start", help="Skip this many frames first."),
-    max_frames: int | None = typer.Option(None, "--max-frames", help="Stop after this many frames."),
-    strict: bool = typer.Option(False, "--strict", help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning."),
-    live: bool = typer.Option(False, "--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview."),
-    preview: Path | None = typer.Option(None, "--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds."),
-    every: float = typer.Option(2.0, "--every", help="--live: seconds between two previews."),
-    timeout: float = typer.Option(10.0, "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
-    telemetry: str | None = typer.Option(None, "--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any."),
-    hfov: float | None = typer.Option(None, "--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV)."),
-    telemetry_offset: float = typer.Option(0.0, "--telemetry-offset", help="Seconds added to the telemetry's times to match the video's."),
-    footprints: Path | None = typer.Option(None, "--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84)."),
+    video: Annotated[str, typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg.")],
+    transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.")] = None,
+    reference: Annotated[str, typer.Option("--reference", help="Frame the panorama is drawn in: first, middle or a frame number.")] = "middle",
+    max_size: Annotated[int, typer.Option("--max-size", help="Longest side of the panorama in pixels (larger canvases are scaled down); 0: no limit.")] = 8000,
+    drift_control: Annotated[bool, typer.Option("--drift-control/--no-drift-control", help="Register revisited ground and refine all placements jointly.")] = True,
+    max_loop_pairs: Annotated[int, typer.Option("--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost).")] = 300,
+    overlap: Annotated[float, typer.Option("--overlap", help="A new keyframe is due when its overlap with the last one drops below this.")] = 0.6,
+    blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.")] = "multiband",
+    seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.")] = "dp",
+    exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.")] = "gain-blocks",
+    estimator: EstimatorName = None,
+    work_width: WorkWidth = 320,
+    weights: Weights = None,
+    device: Device = "auto",
+    mask: Mask = None,
+    overlay_detect: OverlayDetect = True,
+    start: Annotated[int, typer.Option("--start", help="Skip this many frames first.")] = 0,
+    max_frames: MaxFrames = None,
+    strict: Strict = False,
+    live: Annotated[bool, typer.Option("--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview.")] = False,
+    preview: Annotated[Path | None, typer.Option("--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds.")] = None,
+    every: Annotated[float, typer.Option("--every", help="--live: seconds between two previews.")] = 2.0,
+    timeout: Timeout = DEFAULT_TIMEOUT,
+    quiet: Quiet = False,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.")] = None,
+    hfov: Annotated[float | None, typer.Option("--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV).")] = None,
+    telemetry_offset: Annotated[float, typer.Option("--telemetry-offset", help="Seconds added to the telemetry's times to match the video's.")] = 0.0,
+    footprints: Annotated[Path | None, typer.Option("--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84).")] = None,
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
-    from mosaic_cli.overlay import MaskOptions
+    from mosaic_cli.live.source import is_live_source
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
+    from mosaic_cli.stitch.live import PreviewOptions, check_live_request, stitch_live
     from mosaic_cli.stitch.output import check_outputs
 
     options = StitchOptions(
-        keyframes=KeyframeOptions(new_ground=_fraction("--overlap", overlap)),
+        keyframes=KeyframeOptions(new_ground=overlap),
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
         canvas=CanvasOptions(reference=reference, max_size=max_size or None),
         compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure),
-        mask=MaskOptions(file=mask, detect=overlay_detect),
+        mask=mask_options(mask, overlay_detect),
         start=start,
         max_frames=max_frames,
         georef=_georef_options(telemetry, hfov, telemetry_offset, footprints),
+        timeout=timeout,
     )
-    options.keyframes.force_overlap = min(options.keyframes.force_overlap, options.keyframes.new_ground)
-    # Output and option checks come before the estimator is built (a learned one loads weights).
-    check_outputs(out, transforms, options.canvas.max_size)
-    from mosaic_cli.live.source import is_live_source
-    from mosaic_cli.stitch.live import PreviewOptions, stitch_live
-
     live = live or is_live_source(video) or preview is not None
-    preview_options = PreviewOptions(preview, every)
+    preview_options = PreviewOptions(preview, every) if live else None
+    # Output checks come before the estimator is built (a learned one loads weights).
     if live:
-        from mosaic_cli.errors import BadInput
-
-        if timeout <= 0:
-            raise BadInput(f"--timeout must be positive, got {timeout}")
-        preview_options.validate(out)
-    if mask is not None and not is_live_source(video):  # a bad --mask fails before the estimator loads its weights
-        from mosaic_cli.overlay import load_mask
-        from mosaic_cli.video import probe
-
-        load_mask(mask, probe(video).source_size)
+        check_live_request(out, transforms, options, preview_options)
+    else:
+        check_outputs(out, transforms, options.canvas.max_size)
+    check_mask_file(video, options.mask)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
-    from mosaic_cli.video.reader import reading_policy
-
     if live:
-        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, timeout=timeout,
-                             show_progress=not quiet)
+        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, show_progress=not quiet)
     else:
         with reading_policy(strict):
             result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
@@ -147,6 +151,8 @@ def _ranges(indices: list[int]) -> str:
 
 
 def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None):
+    """``--telemetry FILE|none``, ``--hfov``, ``--telemetry-offset``, ``--footprints``; None:
+    no georeferencing (``--telemetry none``)."""
     from mosaic_cli.errors import BadInput
     from mosaic_cli.geo.georef import GeorefOptions
 
@@ -154,14 +160,4 @@ def _georef_options(telemetry: str | None, hfov: float | None, offset: float, fo
         if footprints is not None:
             raise BadInput("--footprints needs telemetry (--telemetry none was given)")
         return None
-    options = GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)
-    options.validate()
-    return options
-
-
-def _fraction(name: str, value: float) -> float:
-    from mosaic_cli.errors import BadInput
-
-    if not 0.05 <= value <= 0.95:
-        raise BadInput(f"{name} must be between 0.05 and 0.95, got {value}")
-    return value
+    return GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)

@@ -8,38 +8,40 @@ variant (or, with ``--resume``, the run's saved value).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
-from mosaic_cli.cli import app
+from mosaic_cli.commands.options import quiet_option
 from mosaic_cli.progress import console
 
+Quiet = quiet_option("No progress bar.")
 
-@app.command()
+
 def train(
-    clips: Path = typer.Argument(..., help="Folder of training clips (video files and/or folders of frames), or one clip."),
-    out: Path | None = typer.Option(None, "-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache (default: runs/VARIANT)."),
-    variant: str | None = typer.Option(None, "--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm or lstm-reg-all (default: base)."),
-    preset: str | None = typer.Option(None, "--preset", help="Network size: compact (CPU) or paper (Table 1) (default: compact)."),
-    init: Path | None = typer.Option(None, "--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors)."),
-    freeze: bool | None = typer.Option(None, "--freeze/--no-freeze", help="LSTM from a CNN --init: keep backbone + first Linear fixed (default: freeze)."),
-    steps: int | None = typer.Option(None, "--steps", help="Training steps (paper: 300k BASE, 90k fine-tunes); more on --resume extends."),
-    batch_size: int | None = typer.Option(None, "--batch-size", help="Windows per step per process (paper: 64 BASE, 32 REG-*, 8 LSTM)."),
-    lr: float | None = typer.Option(None, "--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps (default: 1e-3)."),
-    device: str | None = typer.Option(None, "--device", help="auto, cpu or cuda (default: auto)."),
-    amp: bool | None = typer.Option(None, "--amp/--no-amp", help="Mixed precision on CUDA (default: amp)."),
-    seed: int | None = typer.Option(None, "--seed", min=0, help="Random seed: initial weights, samples, dropout (default: 0)."),
-    val: Path | None = typer.Option(None, "--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on."),
-    val_every: int | None = typer.Option(None, "--val-every", help="Validate every N steps (default: 1000)."),
-    checkpoint_every: int | None = typer.Option(None, "--checkpoint-every", help="Checkpoint every N steps (default: 500)."),
-    checkpoint_minutes: float | None = typer.Option(None, "--checkpoint-minutes", help="...and whenever this many minutes have passed (default: 15)."),
-    work_size: str | None = typer.Option(None, "--work-size", help="Working frame size WxH (default: 320x180)."),
-    patch: int | None = typer.Option(None, "--patch", help="Patch side in working pixels (default: 128)."),
-    num_workers: int | None = typer.Option(None, "--num-workers", help="Loader / decoder worker processes (default: 1)."),
-    threads: int | None = typer.Option(None, "--threads", help="Torch CPU threads per process (default: all cores; 1 under torchrun)."),
-    cache_gb: float | None = typer.Option(None, "--cache-gb", help="Disk budget of the decoded-frame cache in RUN_DIR/cache (default: 8)."),
-    resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    clips: Annotated[Path, typer.Argument(help="Folder of training clips (video files and/or folders of frames), or one clip.")],
+    out: Annotated[Path | None, typer.Option("-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache (default: runs/VARIANT).")] = None,
+    variant: Annotated[str | None, typer.Option("--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm or lstm-reg-all (default: base).")] = None,
+    preset: Annotated[str | None, typer.Option("--preset", help="Network size: compact (CPU) or paper (Table 1) (default: compact).")] = None,
+    init: Annotated[Path | None, typer.Option("--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors).")] = None,
+    freeze: Annotated[bool | None, typer.Option("--freeze/--no-freeze", help="LSTM from a CNN --init: keep backbone + first Linear fixed (default: freeze).")] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="Training steps (paper: 300k BASE, 90k fine-tunes); more on --resume extends.")] = None,
+    batch_size: Annotated[int | None, typer.Option("--batch-size", help="Windows per step per process (paper: 64 BASE, 32 REG-*, 8 LSTM).")] = None,
+    lr: Annotated[float | None, typer.Option("--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps (default: 1e-3).")] = None,
+    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda (default: auto).")] = None,
+    amp: Annotated[bool | None, typer.Option("--amp/--no-amp", help="Mixed precision on CUDA (default: amp).")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Random seed: initial weights, samples, dropout (default: 0).")] = None,
+    val: Annotated[Path | None, typer.Option("--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on.")] = None,
+    val_every: Annotated[int | None, typer.Option("--val-every", help="Validate every N steps (default: 1000).")] = None,
+    checkpoint_every: Annotated[int | None, typer.Option("--checkpoint-every", help="Checkpoint every N steps (default: 500).")] = None,
+    checkpoint_minutes: Annotated[float | None, typer.Option("--checkpoint-minutes", help="...and whenever this many minutes have passed (default: 15).")] = None,
+    work_size: Annotated[str | None, typer.Option("--work-size", help="Working frame size WxH (default: 320x180).")] = None,
+    patch: Annotated[int | None, typer.Option("--patch", help="Patch side in working pixels (default: 128).")] = None,
+    num_workers: Annotated[int | None, typer.Option("--num-workers", help="Loader / decoder worker processes (default: 1).")] = None,
+    threads: Annotated[int | None, typer.Option("--threads", help="Torch CPU threads per process (default: all cores; 1 under torchrun).")] = None,
+    cache_gb: Annotated[float | None, typer.Option("--cache-gb", help="Disk budget of the decoded-frame cache in RUN_DIR/cache (default: 8).")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
+    quiet: Quiet = False,
 ) -> None:
     """Train the homography network unsupervised on raw clips (photometric loss + the paper's priors).
 

@@ -73,6 +73,19 @@ def _typed(name: str, options: dict) -> dict:
     return out
 
 
+def check_work_width(width: int) -> None:
+    """``--work-width``: one rule for track, stitch, stabilize and bench."""
+    if not MIN_WORK_WIDTH <= width <= MAX_WORK_WIDTH:
+        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {width}")
+
+
+def check_device(device: str | None) -> None:
+    """``--device``: auto, cpu, cuda or cuda:N (whether that GPU exists is found when a learned
+    estimator moves its network there)."""
+    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):
+        raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
+
+
 def make_estimator(name: str | None = None, work_width: int = 320, weights: str | None = None, device: str = "auto",
                    **options) -> Estimator:
     """Build the estimator a user named on the command line.
@@ -85,10 +98,8 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
     if name is None:  # not named: the default, or with ``weights`` whichever network they hold
         name = "" if weights is not None else DEFAULT_ESTIMATOR
     base, spec_options = parse_spec(name)
-    if not MIN_WORK_WIDTH <= work_width <= MAX_WORK_WIDTH:  # one rule for track, stitch, stabilize and bench
-        raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {work_width}")
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):  # checked for every estimator
-        raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
+    check_work_width(work_width)
+    check_device(device)
     if weights is not None and base not in (*LEARNED, ""):
         if base in NAMES:  # running the network instead of what was named would be a silent surprise
             raise BadInput(f"--weights goes with a learned estimator (lstm or cnn) or none; -e {base} takes no weights")
@@ -103,12 +114,7 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
         weights = typed.pop("weights", weights)
         return make_learned_estimator(base, weights=weights, device=device, config=LearnedConfig(**typed))
     if base in ("orb", "orb-ransac"):
-        config = OrbConfig(method="ransac" if base == "orb-ransac" else "usac")
-        if "refine" in typed:
-            if typed["refine"] not in (None, "lk", "ecc"):
-                raise BadInput(f"refine must be one of lk, ecc or none, got {typed['refine']!r}")
-            config.refine = typed["refine"]
-        return OrbEstimator(work_width, config)
+        return OrbEstimator(work_width, OrbConfig(method="ransac" if base == "orb-ransac" else "usac", **typed))
     if base == "orb-paper":
         return PaperOrbEstimator(work_width)
     if base == "identity":
@@ -121,6 +127,8 @@ __all__ = [
     "DEFAULT_ESTIMATOR",
     "LEARNED",
     "NAMES",
+    "check_device",
+    "check_work_width",
     "Estimator",
     "IdentityEstimator",
     "OrbConfig",

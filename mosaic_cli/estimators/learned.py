@@ -113,6 +113,28 @@ class LearnedConfig:
     # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
     fallback: str = "orb"
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """The options a user sets (``--patches``, ``-e lstm:reset-every=K`` ...), named as written."""
+        if self.chunk < 1:
+            raise BadInput(f"chunk must be at least 1 frame pair, got {self.chunk}")
+        if self.patches not in PATCH_LAYOUTS:
+            raise BadInput(f"patches must be one of {', '.join(map(str, PATCH_LAYOUTS))}, got {self.patches}")
+        if self.refine not in (None, *POLISHERS):
+            raise BadInput(f"refine must be one of {', '.join(POLISHERS)} or none, got {self.refine!r}")
+        if self.reset_every is not None and self.reset_every < 1:
+            raise BadInput(f"reset-every must be at least 1 frame pair, got {self.reset_every}")
+        if self.precision not in PRECISIONS:
+            raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
+        if self.seed not in SEEDS:
+            raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.seed!r}")
+        if self.prior not in PRIORS:
+            raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
+        if self.fallback not in FALLBACKS:
+            raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.fallback!r}")
+
 
 @dataclass
 class WorkFrame:
@@ -169,22 +191,6 @@ class LearnedEstimator(Estimator):
         self.work_size_trained = tuple(int(v) for v in meta.get("work_size", (320, 180)))
         super().__init__(self.work_size_trained[0])
         self.config = config or LearnedConfig()
-        if self.config.chunk < 1:
-            raise BadInput("chunk must be at least 1 frame pair")
-        if self.config.patches not in PATCH_LAYOUTS:
-            raise BadInput(f"patches must be one of {', '.join(map(str, PATCH_LAYOUTS))}, got {self.config.patches}")
-        if self.config.refine not in (None, *POLISHERS):
-            raise BadInput(f"refine must be one of {', '.join(POLISHERS)} or none, got {self.config.refine!r}")
-        if self.config.reset_every is not None and self.config.reset_every < 1:
-            raise BadInput(f"reset-every must be at least 1 frame pair, got {self.config.reset_every}")
-        if self.config.precision not in PRECISIONS:
-            raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.config.precision!r}")
-        if self.config.seed not in SEEDS:
-            raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.config.seed!r}")
-        if self.config.prior not in PRIORS:
-            raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.config.prior!r}")
-        if self.config.fallback not in FALLBACKS:
-            raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.config.fallback!r}")
         self.device = resolve_device(device)
         self.model = model.to(self.device).eval()
         self.precision = "fp32"

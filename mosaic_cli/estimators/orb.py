@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator
 from mosaic_cli.estimators.refine import PolishConfig, align_pixels, erode_mask, track_points
 from mosaic_cli.geometry import is_valid
@@ -46,10 +47,14 @@ class OrbConfig:
     max_refine_shift: float = 2.0
 
     def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        # The method is the estimator's name (orb: usac, orb-ransac: ransac), never a user's value.
         if self.method not in ROBUST_METHODS:
             raise ValueError(f"method must be one of {', '.join(ROBUST_METHODS)}, got {self.method!r}")
-        if self.refine not in REFINERS:
-            raise ValueError(f"refine must be one of {REFINERS}, got {self.refine!r}")
+        if self.refine not in REFINERS:  # -e orb:refine=VALUE, track --refine
+            raise BadInput(f"refine must be one of lk, ecc or none, got {self.refine!r}")
 
     @property
     def polish(self) -> PolishConfig:

@@ -25,6 +25,14 @@ class PaperOrbConfig:
     wta_k: int = 2
     reproj_threshold: float = 5.0  # working pixels
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these (the baseline runs as the paper's code does): a bad value is a bug."""
+        if self.n_features < 4 or self.wta_k not in (2, 3, 4) or self.reproj_threshold <= 0:
+            raise ValueError(f"n_features >= 4, wta_k in 2..4, reproj_threshold > 0 expected: {self}")
+
 
 class PaperOrbEstimator(Estimator):
     name = "orb-paper"

@@ -39,6 +39,16 @@ class PolishConfig:
     ecc_iterations: int = 20
     max_shift: float = 2.0  # a polished fit further than this (working px, at any corner) from the seed is a divergence
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if self.window < 3 or self.levels < 0 or self.max_iters < 1 or self.min_inliers < 4 or self.ecc_iterations < 1:
+            raise ValueError(f"window >= 3, levels >= 0, max_iters, ecc_iterations >= 1, min_inliers >= 4 expected: {self}")
+        if self.threshold <= 0 or self.max_shift <= 0:
+            raise ValueError(f"threshold and max_shift must be positive: {self}")
+
 
 @dataclass(frozen=True)
 class Polish:
@@ -164,6 +174,14 @@ class CornerConfig:
     # texture: measured 0.004-0.018 on the development flights (the 'hard' ones included),
     # 2e-5-3e-5 on flat, heavily blurred (sigma 8) or nearly black (3 %) frames.
     min_response: float = 2e-4
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if self.max_points < 4 or not 0 < self.quality < 1 or self.min_distance < 0 or self.block_size < 1 or self.min_response < 0:
+            raise ValueError(f"max_points >= 4, 0 < quality < 1, min_distance >= 0, block_size >= 1, min_response >= 0 expected: {self}")
 
 
 def points_to_track(gray: np.ndarray, config: CornerConfig, mask: np.ndarray | None = None) -> np.ndarray:

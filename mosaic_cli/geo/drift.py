@@ -32,6 +32,14 @@ class DriftOptions:
     correlation: float = 2.0  # seconds over which GPS errors are taken as one
     revisit: float = 10.0  # seconds: keyframes this far apart in time over the same ground are a revisit
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if min(self.link_fraction, self.link_floor, self.correlation, self.revisit) <= 0:
+            raise ValueError(f"drift options must be positive: {self}")
+
 
 def drift_shifts(
     positions: np.ndarray,  # (N, 2) keyframe nadir points on the ground after the global fit

@@ -49,6 +49,9 @@ class GeorefOptions:
     min_fixes_for_perspective: int = 12
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> None:
         if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
             raise BadInput(f"--hfov must be between 1 and 170 degrees, got {self.hfov}")

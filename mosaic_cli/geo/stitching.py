@@ -20,7 +20,6 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
     of video to stitch, when known, to refuse a log that misses them before any work."""
     if options is None:
         return None
-    options.validate()
     if options.footprints is not None:
         check_writable(options.footprints)
         if Path(options.footprints).resolve() == Path(out).resolve():

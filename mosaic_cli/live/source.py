@@ -129,8 +129,6 @@ class LiveStream:
                  live: bool = True):
         if pixels not in ("gray", "rgb", "yuv420p"):
             raise ValueError(f"pixels must be gray, rgb or yuv420p, got {pixels}")
-        if timeout <= 0:
-            raise BadInput(f"--timeout must be positive, got {timeout}")
         self.source = source
         # live=False: a file read the same way (one pass, frames as they are decoded), which
         # neither times out nor outlives a Ctrl-C: an interrupted file run leaves nothing.

@@ -27,7 +27,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
-from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, gray_of_yuv, is_live_source, note, source_name
+from mosaic_cli.live.source import LiveStream, gray_of_yuv, is_live_source, note, source_name
 from mosaic_cli.overlay import frame_mask, live_mask, load_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
@@ -59,10 +59,13 @@ class LiveStabilizeResult:
         return float(np.percentile(self.latencies, q)) if len(self.latencies) else 0.0
 
 
-def check_live_request(source: str, out: str, options: StabilizeOptions, latency: float,
-                       warps_out: str | None, compare: str | None) -> None:
-    if latency <= 0:
-        raise BadInput(f"--latency must be positive, got {latency}")
+def is_live_request(source: str, out: str, options: StabilizeOptions) -> bool:
+    """Stabilised in one pass: asked for (``--latency``), or the input or the output is live."""
+    return options.latency is not None or is_live_source(source) or is_stream_output(out)
+
+
+def check_live_request(source: str, out: str, options: StabilizeOptions, warps_out: str | None, compare: str | None) -> None:
+    """The checks of a one-pass run that the options cannot make alone."""
     if compare is not None:
         raise BadInput("--compare is not available with --latency or a live input")
     if options.smoothing.lower() != "l1":
@@ -77,17 +80,18 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, latency
             load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
 
 
-def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: float = DEFAULT_LATENCY,
-                   timeout: float = DEFAULT_TIMEOUT, warps_out: str | None = None, show_progress: bool = True
-                   ) -> LiveStabilizeResult:
-    """Stabilise ``source`` (live, or a file read in one pass) into ``out`` within ``latency``."""
-    check_live_request(source, out, options, latency, warps_out, None)
+def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: str | None = None,
+                   compare: str | None = None, show_progress: bool = True) -> LiveStabilizeResult:
+    """Stabilise ``source`` (live, or a file read in one pass) into ``out`` within
+    ``options.latency`` seconds (:data:`DEFAULT_LATENCY` when None)."""
+    check_live_request(source, out, options, warps_out, compare)
+    latency = options.latency if options.latency is not None else DEFAULT_LATENCY
     model = motion_model(options.model)
     crop = parse_crop(options.crop)
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
     live = is_live_source(source)
     notes: list[str] = []
-    with LiveStream(source, "yuv420p", timeout=timeout, quiet=not show_progress, live=live) as stream:
+    with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         width = options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0])

@@ -65,12 +65,17 @@ class NetConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}: choose one of {', '.join(PRESETS)}")
-        if self.head not in HEADS:
-            raise ValueError(f"unknown head {self.head!r}: choose one of {', '.join(HEADS)}")
         for key, value in PRESETS[self.preset].items():
             if getattr(self, key) is None:
                 setattr(self, key, value)
         self.backbone = tuple(tuple(b) if isinstance(b, list) else b for b in self.backbone)
+        self.validate()
+
+    def validate(self) -> None:
+        """A checkpoint's or a training run's config (``mosaic train`` checks its flags first:
+        train/config.py), so a bad value here is a bad file or a bug: ValueError."""
+        if self.head not in HEADS:
+            raise ValueError(f"unknown head {self.head!r}: choose one of {', '.join(HEADS)}")
         if self.patch % self.downsampling:
             raise ValueError(f"patch {self.patch} is not a multiple of the backbone's stride {self.downsampling}")
 

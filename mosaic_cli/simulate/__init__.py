@@ -9,11 +9,13 @@ aerial image (or a procedural one), rendered anti-aliased and encoded as H.264.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import check_encoder
 from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load_ground_truth
 from mosaic_cli.simulate.maps import load_map, procedural_map
 from mosaic_cli.simulate.overlay import OverlayBurner, OverlaySpec, overlay_mask_path, write_mask
@@ -36,6 +38,8 @@ __all__ = [
     "MapPyramid",
     "centre_motion",
     "simulate_flight",
+    "SimulateOptions",
+    "check_outputs",
     "OverlaySpec",
     "overlay_mask_path",
 ]
@@ -81,22 +85,65 @@ def write_flight(
     return gt
 
 
-def simulate_flight(
-    out_path: str | Path,
-    map_path: str | Path | None = None,
-    profile: str = "paper",
-    frames: int = 300,
-    size: tuple[int, int] = (1280, 720),
-    fps: float = 30.0,
-    seed: int = 0,
-    crf: int | None = None,
-    preset: str = "medium",
-    show_progress: bool = True,
-    overlays: "OverlaySpec | None" = None,
-) -> GroundTruth:
+VIDEO_OUTPUTS = (".mp4", ".mov", ".mkv")
+
+
+@dataclass
+class SimulateOptions:
+    """The flight ``mosaic simulate`` renders (and ``mosaic bench`` times the estimators on)."""
+
+    profile: str = "paper"  # one of PROFILES
+    frames: int = 300
+    size: tuple[int, int] = (1280, 720)  # (w, h)
+    fps: float = 30.0
+    seed: int = 0  # path, map and effects
+    crf: int | None = None  # None: the profile's own (degraded flights are low-bitrate too)
+    preset: str = "medium"  # x264's
+    overlays: OverlaySpec = field(default_factory=OverlaySpec)  # burned in, with their exact mask
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if self.profile not in PROFILES:
+            raise BadInput(f"--profile must be one of {', '.join(PROFILES)}, got {self.profile!r}")
+        if self.frames < 2:
+            raise BadInput(f"--frames must be at least 2, got {self.frames}")
+        if not 0 < self.fps <= 1000:
+            raise BadInput(f"--fps must be in (0, 1000], got {self.fps}")
+        if self.seed < 0:
+            raise BadInput(f"--seed must be 0 or more, got {self.seed}")
+        check_encoder(self.crf, self.preset)
+
+
+def check_outputs(out_path: str | Path, map_path: str | Path | None, options: SimulateOptions) -> None:
+    """The map exists; the video, its ground truth (and overlay mask) can be written, in an
+    output folder made if missing (a flight is often written to a data folder of its own)."""
+    from mosaic_cli.atomic import check_writable
+
+    out = Path(out_path)
+    if out.suffix.lower() not in VIDEO_OUTPUTS:
+        raise BadInput(f"output {out} must end in .mp4, .mov or .mkv")
+    if map_path is not None and not Path(map_path).exists():
+        raise BadInput(f"{map_path}: no such file")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise BadInput(f"output folder {out.parent} is a file") from None
+    except OSError as exc:
+        raise BadInput(f"cannot make the output folder {out.parent} ({(exc.strerror or str(exc)).lower()})") from None
+    check_writable(out)
+    check_writable(ground_truth_path(out))
+    if options.overlays.any:
+        check_writable(overlay_mask_path(out))
+
+
+def simulate_flight(out_path: str | Path, map_path: str | Path | None = None, options: SimulateOptions | None = None,
+                    show_progress: bool = True) -> GroundTruth:
     """Everything ``mosaic simulate`` does: load (or make) the map, plan, render, encode."""
-    map_rgb = load_map(map_path, seed=seed)
-    plan = plan_flight((map_rgb.shape[1], map_rgb.shape[0]), profile, frames, size, seed, fps)
+    o = options or SimulateOptions()
+    map_rgb = load_map(map_path, seed=o.seed)
+    plan = plan_flight((map_rgb.shape[1], map_rgb.shape[0]), o.profile, o.frames, o.size, o.seed, o.fps)
     name = "procedural" if map_path is None else Path(map_path).name
-    return write_flight(out_path, map_rgb, plan, fps=fps, crf=crf, map_name=name, preset=preset, show_progress=show_progress,
-                       overlays=overlays)
+    return write_flight(out_path, map_rgb, plan, fps=o.fps, crf=o.crf, map_name=name, preset=o.preset, show_progress=show_progress,
+                        overlays=o.overlays)

@@ -11,7 +11,7 @@ single-sample bad fixes 20-60 m off, and dropouts (samples without a fix).  The 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -28,6 +28,14 @@ START_CLOCK = datetime(2026, 6, 1, 10, 0, 0, tzinfo=UTC)  # the flight's (made-u
 GROUND_ELEVATION = 120.0  # metres above the ellipsoid of the flat simulated ground
 
 
+def check_origin(lat: float, lon: float, gsd: float) -> None:
+    """``--origin`` within the UTM zones, ``--gsd`` a plausible ground sample distance."""
+    if not (-80 <= lat <= 84 and -180 <= lon <= 180):
+        raise BadInput(f"--origin {lat},{lon} is outside the UTM zones (latitude -80..84, longitude -180..180)")
+    if not 0.001 <= gsd <= 100:
+        raise BadInput(f"--gsd must be between 0.001 and 100 metres per map pixel, got {gsd}")
+
+
 @dataclass
 class MapGeo:
     """Where a map lies: map pixel centre (x, y, 1) -> projected (east, north) by ``map_to_crs``."""
@@ -39,10 +47,7 @@ class MapGeo:
     @classmethod
     def from_origin(cls, lat: float, lon: float, gsd: float, map_size: tuple[int, int]) -> "MapGeo":
         """A north-up map of ``gsd`` m/px whose centre lies at (lat, lon), in that site's UTM zone."""
-        if not (-80 <= lat <= 84 and -180 <= lon <= 180):
-            raise BadInput(f"--origin {lat},{lon} is outside the UTM zones (latitude -80..84, longitude -180..180)")
-        if not 0.001 <= gsd <= 100:
-            raise BadInput(f"--gsd must be between 0.001 and 100 metres per map pixel, got {gsd}")
+        check_origin(lat, lon, gsd)
         proj = Projection.utm_for(lat, lon)
         east, north = proj.to_map([lat], [lon])[0]
         cx, cy = (map_size[0] - 1) / 2.0, (map_size[1] - 1) / 2.0
@@ -130,6 +135,9 @@ class GpsErrors:
     bad_fixes: float = 0.005  # fraction of samples 20-60 m off
     height_rms: float = 0.3  # barometric height error, metres
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        self.validate()
 
     def validate(self) -> None:
         if not 0 <= self.rms <= 1000:
@@ -313,26 +321,45 @@ def write_telemetry(video: str | Path, gt: GroundTruth, geo: MapGeo, fmt: str, e
     return path
 
 
-def prepare_telemetry(video, map_image, fmt, origin, gsd, noise, dropouts, rate, seed):
-    """Check ``simulate --telemetry``'s options and find the map's geotransform before rendering;
-    returns (a function of the map size giving its ``MapGeo``, the GPS errors)."""
+@dataclass
+class TelemetryOptions:
+    """``simulate --telemetry FORMAT`` and the flags that shape the log."""
+
+    format: str = "srt"  # one of FORMATS
+    origin: str = "47.3977,8.5456"  # LAT,LON of the map's centre, when the map carries no geotransform
+    gsd: float = 0.05  # metres per map pixel, likewise
+    rate: float = 0.0  # log samples per second; 0: one per frame
+    errors: GpsErrors = field(default_factory=GpsErrors)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if self.format not in FORMATS:
+            raise BadInput(f"--telemetry must be one of {', '.join(FORMATS)}, got {self.format!r}")
+        if not 0 <= self.rate <= 1000:
+            raise BadInput(f"--telemetry-rate must be between 0 and 1000 samples per second, got {self.rate}")
+        check_origin(*self.lat_lon, self.gsd)
+
+    @property
+    def lat_lon(self) -> tuple[float, float]:
+        try:
+            lat, lon = (float(v) for v in str(self.origin).split(","))
+        except ValueError:
+            raise BadInput(f"--origin must look like 47.3977,8.5456 (latitude,longitude), got {self.origin!r}") from None
+        return lat, lon
+
+
+def prepare_telemetry(video, map_image, options: TelemetryOptions):
+    """Before rendering: the log's outputs can be written; the map's geotransform (a GeoTIFF's,
+    else ``options.origin`` and ``options.gsd``) as a function of the map size giving its ``MapGeo``."""
     from mosaic_cli.atomic import check_writable
 
-    if fmt not in FORMATS:
-        raise BadInput(f"--telemetry must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    if rate < 0 or rate > 1000:
-        raise BadInput(f"--telemetry-rate must be between 0 and 1000 samples per second, got {rate}")
-    errors = GpsErrors(rms=noise, dropouts=dropouts, seed=seed)
-    errors.validate()
-    check_writable(telemetry_path(video, fmt))
+    check_writable(telemetry_path(video, options.format))
     check_writable(geo_truth_path(video))
     if map_image is not None and Path(map_image).suffix.lower() in (".tif", ".tiff"):
         geo = MapGeo.from_geotiff(map_image)
         if geo is not None:
-            return (lambda size: geo), errors
-    try:
-        lat, lon = (float(v) for v in str(origin).split(","))
-    except ValueError:
-        raise BadInput(f"--origin must look like 47.3977,8.5456 (latitude,longitude), got {origin!r}") from None
-    MapGeo.from_origin(lat, lon, gsd, (64, 64))  # checks the values
-    return (lambda size: MapGeo.from_origin(lat, lon, gsd, size)), errors
+            return lambda size: geo
+    lat, lon = options.lat_lon
+    return lambda size: MapGeo.from_origin(lat, lon, options.gsd, size)

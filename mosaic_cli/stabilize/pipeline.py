@@ -19,7 +19,9 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.estimators import Estimator, check_device, check_work_width, make_estimator
+from mosaic_cli.inputs import check_encoder, check_timeout
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.overlay import MaskOptions, frame_mask, load_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
@@ -29,7 +31,6 @@ from mosaic_cli.stabilize.render import Renderer, parse_border
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.track import track_video
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.writer import PRESETS
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
@@ -57,6 +58,31 @@ class StabilizeOptions:
     # Burned-in overlays and --mask: kept out of the motion estimate only (the output is the
     # whole frame, overlays included, as the input has them).
     mask: MaskOptions = field(default_factory=MaskOptions)
+    # One pass, each frame out within this many seconds (mosaic_cli/live/stabilize.py); None:
+    # two passes, unless the input or the output is live (then DEFAULT_LATENCY there).
+    latency: float | None = None
+    timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Each flag, by the rule of the stage that uses it (the smoother, the motion model,
+        the crop, the renderer, the estimator)."""
+        if self.work_width is not None:
+            check_work_width(self.work_width)
+        check_device(self.device)
+        if self.radius < 1:  # checked whichever the smoother: a value no smoother takes is a typo
+            raise BadInput(f"--radius must be at least 1, got {self.radius}")
+        make_smoother(self.smoothing, self.radius)
+        motion_model(self.model)
+        parse_crop(self.crop)
+        if self.border is not None:
+            parse_border(self.border)
+        check_encoder(self.crf, self.preset)
+        if self.latency is not None and not self.latency > 0:
+            raise BadInput(f"--latency must be positive, got {self.latency}")
+        check_timeout(self.timeout)
 
 
 @dataclass
@@ -128,7 +154,8 @@ class _Plan:
 
 
 def check_request(video, out, options: StabilizeOptions, warps_out=None, compare=None) -> tuple[VideoInfo, _Plan]:
-    """Every check that can fail on the user's input, before any long work."""
+    """Every check of the input and the outputs, before any long work (the options checked
+    themselves when they were made)."""
     outputs = {"output": out, "--warps": warps_out, "--compare": compare}
     given = {name: Path(p) for name, p in outputs.items() if p is not None}
     for path in given.values():
@@ -148,10 +175,6 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
         if resolved in seen:
             raise BadInput(f"{name} and {seen[resolved]} are the same file {path}")
         seen[resolved] = name
-    if not 0 <= options.crf <= 51:
-        raise BadInput(f"--crf must be in 0..51, got {options.crf}")
-    if options.preset not in PRESETS:
-        raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {options.preset!r}")
     crop = parse_crop(options.crop)
     border = options.border if options.border is not None else ("replicate" if crop is None else "black")
     plan = _Plan(

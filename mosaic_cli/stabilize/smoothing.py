@@ -265,8 +265,6 @@ class GaussianSmoother:
 
     def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None,
                advance: Callable[[int], None] | None = None) -> np.ndarray:
-        if self.radius < 1:
-            raise BadInput(f"--radius must be at least 1, got {self.radius}")
         corners = rect_corners_normalized(size)
         smoothed = neighbour_mean(motion, corners, gaussian_weights(self.radius))
         V = fit_model(four_point_to_homography(corners, smoothed - corners), model)
@@ -285,7 +283,5 @@ def make_smoother(name: str, radius: int = 30) -> L1Smoother | GaussianSmoother:
     if name == "l1":
         return L1Smoother()
     if name == "gaussian":
-        if radius < 1:
-            raise BadInput(f"--radius must be at least 1, got {radius}")
-        return GaussianSmoother(radius=radius)
+        return GaussianSmoother(radius=radius)  # --radius: checked by StabilizeOptions
     raise BadInput(f"--smoothing must be one of {', '.join(SMOOTHERS)}, got {name!r}")

@@ -10,6 +10,8 @@ import numpy as np
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.geometry import frame_corners, is_valid, normalize, project
 
+MIN_SIZE = 64  # --max-size: a smaller panorama shows nothing
+
 
 @dataclass
 class CanvasOptions:
@@ -18,6 +20,14 @@ class CanvasOptions:
     # A keyframe drawn larger/smaller than this (area ratio) against the reference is a sign
     # of a degenerate chain, not of a real change of altitude.
     max_area_ratio: float = 25.0
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        parse_reference(self.reference)
+        if self.max_size is not None and self.max_size < MIN_SIZE:
+            raise BadInput(f"--max-size must be at least {MIN_SIZE} pixels, got {self.max_size}")
 
 
 @dataclass

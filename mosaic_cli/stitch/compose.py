@@ -45,6 +45,9 @@ class ComposeOptions:
     strip_megapix: float = 4.0  # the blender works on horizontal strips of about this size
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
 
+    def __post_init__(self) -> None:
+        self.validate()
+
     def validate(self) -> None:
         if self.blend not in BLENDS:
             raise BadInput(f"--blend must be one of {', '.join(BLENDS)}, got {self.blend!r}")

@@ -35,6 +35,18 @@ class FeatureOptions:
     # A registered pair may change a frame's area by at most this factor (keyframes of one flight).
     max_area_ratio: float = 4.0
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if min(self.width, self.photo_width) < 32 or min(self.n_features, self.photo_features) < 4:
+            raise ValueError(f"feature widths must be at least 32 px and counts at least 4: {self}")
+        if not 0 < self.ratio <= 1 or not 0 <= self.min_inlier_ratio <= 1:
+            raise ValueError(f"ratio and min_inlier_ratio must be fractions, got {self.ratio}, {self.min_inlier_ratio}")
+        if self.min_inliers < 4 or self.reproj_threshold <= 0 or self.max_area_ratio < 1:
+            raise ValueError(f"min_inliers >= 4, reproj_threshold > 0, max_area_ratio >= 1 expected: {self}")
+
 
 @dataclass
 class Features:

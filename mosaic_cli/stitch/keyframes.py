@@ -36,7 +36,7 @@ from typing import Callable, Iterable
 import cv2
 import numpy as np
 
-from mosaic_cli.errors import ProcessingError
+from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
 from mosaic_cli.overlay import fill_masked
@@ -71,6 +71,15 @@ class KeyframeOptions:
     quality_width: int = 320
     # The chained placement may make a frame this many times larger/smaller than the anchor.
     max_scale_change: float = 10.0
+
+    def __post_init__(self) -> None:
+        self.validate()
+        # A keyframe is forced no later than it is due: a lower --overlap lowers both.
+        self.force_overlap = min(self.force_overlap, self.new_ground)
+
+    def validate(self) -> None:
+        if not 0.05 <= self.new_ground <= 0.95:
+            raise BadInput(f"--overlap must be between 0.05 and 0.95, got {self.new_ground}")
 
 
 @dataclass(frozen=True)

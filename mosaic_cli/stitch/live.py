@@ -32,9 +32,9 @@ from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
 from mosaic_cli.live.progress import stream_progress
-from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
+from mosaic_cli.live.source import LiveStream, is_live_source
 from mosaic_cli.overlay import frame_mask, live_mask
-from mosaic_cli.stitch.canvas import CanvasOptions, parse_reference, plan_canvas
+from mosaic_cli.stitch.canvas import MIN_SIZE, CanvasOptions, parse_reference, plan_canvas
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
 from mosaic_cli.stitch.output import check_outputs
@@ -62,18 +62,16 @@ class PreviewOptions:
     every: float = DEFAULT_EVERY  # seconds between two previews
     side: int = PREVIEW_SIDE  # longest side, pixels
 
-    def validate(self, out: Path) -> None:
-        if self.path is None:
-            return
-        if Path(self.path).suffix.lower() not in PREVIEW_FORMATS:
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if self.path is not None and Path(self.path).suffix.lower() not in PREVIEW_FORMATS:
             raise BadInput(f"--preview {self.path} must end in .png, .jpg or .jpeg")
-        check_writable(self.path)
-        if Path(self.path).resolve() == Path(out).resolve():
-            raise BadInput("--preview must differ from the panorama output")
         if not self.every > 0:
             raise BadInput(f"--every must be positive, got {self.every}")
-        if self.side < 64:
-            raise BadInput(f"the preview must be at least 64 pixels, got {self.side}")
+        if self.side < MIN_SIZE:
+            raise BadInput(f"the preview must be at least {MIN_SIZE} pixels, got {self.side}")
 
 
 class IncrementalRegistration:
@@ -221,12 +219,12 @@ class LivePreview:
 
 def stitch_live(source: str, out: str | Path, estimator: Estimator, options: StitchOptions | None = None,
                 transforms: str | Path | None = None, preview: PreviewOptions | None = None,
-                timeout: float = DEFAULT_TIMEOUT, show_progress: bool = True) -> StitchResult:
+                show_progress: bool = True) -> StitchResult:
     """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
     preview on the way when ``preview.path`` is given."""
     options = options or StitchOptions()
     preview = preview or PreviewOptions()
-    reference = _check(out, transforms, options, preview)
+    reference = check_live_request(out, transforms, options, preview)
     live = is_live_source(source)
     masked = None
     if not live:
@@ -239,7 +237,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        with LiveStream(str(source), "rgb", timeout=timeout, quiet=not show_progress, live=live) as stream:
+        with LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live) as stream:
             info = stream.info
             max_size = options.canvas.max_size
             width = None
@@ -292,18 +290,14 @@ def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool
     return load_track(source, out, georef)  # the stream's length is unknown: coverage is checked after the scan
 
 
-def _check(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:
-    """The checks of pipeline._check_inputs that need no probe of the input."""
+def check_live_request(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:
+    """The checks of pipeline._check_inputs that need no probe of the input, and the preview's;
+    the reference (see canvas.parse_reference)."""
     check_outputs(out, transforms, options.canvas.max_size)
-    preview.validate(Path(out))
-    reference = parse_reference(options.canvas.reference)
-    options.compose.validate()
-    if options.canvas.max_size is not None and options.canvas.max_size < 64:
-        raise BadInput(f"--max-size must be at least 64 pixels, got {options.canvas.max_size}")
+    if preview.path is not None:
+        check_writable(preview.path)
+        if Path(preview.path).resolve() == Path(out).resolve():
+            raise BadInput("--preview must differ from the panorama output")
     if options.start != 0:
         raise BadInput("--start is not available with --live or a live input")
-    if options.max_frames is not None and options.max_frames < 2:
-        raise BadInput("--max-frames must be at least 2")
-    if options.registration.max_loop_pairs < 0:
-        raise BadInput(f"--max-loop-pairs must be 0 or more, got {options.registration.max_loop_pairs}")
-    return reference
+    return parse_reference(options.canvas.reference)

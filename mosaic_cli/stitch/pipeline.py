@@ -35,6 +35,8 @@ from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import normalize, resize_matrix
+from mosaic_cli.inputs import check_max_frames, check_timeout
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -70,6 +72,17 @@ class StitchOptions:
     spill: bool = True
     # Telemetry to lay the mosaic on the ground with (see mosaic_cli/geo); None: a plain panorama.
     georef: "GeorefOptions | None" = None
+    timeout: float = DEFAULT_TIMEOUT  # a live input (stitch/live.py) ends when it sends nothing for this long
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Its own fields; the stages' options checked themselves when they were made."""
+        if self.start < 0:
+            raise BadInput(f"--start must be 0 or more, got {self.start}")
+        check_max_frames(self.max_frames)
+        check_timeout(self.timeout)
 
 
 @dataclass
@@ -220,18 +233,10 @@ def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, tr
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
-    """Every check that can fail fast, before decoding a single frame."""
+    """Every check of the input and the outputs that can fail fast, before decoding a single
+    frame (the options checked themselves when they were made)."""
     check_outputs(out, transforms, options.canvas.max_size)
     reference = parse_reference(options.canvas.reference)
-    options.compose.validate()
-    if options.canvas.max_size is not None and options.canvas.max_size < 64:
-        raise BadInput(f"--max-size must be at least 64 pixels, got {options.canvas.max_size}")
-    if options.start < 0:
-        raise BadInput(f"--start must be 0 or more, got {options.start}")
-    if options.max_frames is not None and options.max_frames < 2:
-        raise BadInput("--max-frames must be at least 2")
-    if options.registration.max_loop_pairs < 0:
-        raise BadInput(f"--max-loop-pairs must be 0 or more, got {options.registration.max_loop_pairs}")
     info = probe(video)
     if info.frame_count is not None and options.start >= info.frame_count > 0:
         raise BadInput(f"--start {options.start} is past the end of {video} ({info.frame_count} frames)")

@@ -20,6 +20,7 @@ import scipy.sparse
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.stitch.features import FeatureMatcher, Features, PairMatch
 from mosaic_cli.stitch.keyframes import overlap_fraction
@@ -41,6 +42,13 @@ class RegistrationOptions:
     outlier_residual: float = 5.0  # pixels: median residual above which a loop pair is dropped
     max_evaluations: int = 200
     loop_rounds: int = 2  # look for loops again once the placements are refined
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        if self.max_loop_pairs < 0:
+            raise BadInput(f"--max-loop-pairs must be 0 or more, got {self.max_loop_pairs}")
 
 
 @dataclass

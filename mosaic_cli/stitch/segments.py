@@ -27,6 +27,16 @@ class JoinOptions:
     min_confirm_overlap: float = 0.2  # predicted overlap of the pair that confirms a join
     strong_inliers: int = 40  # a join nothing else can confirm needs this many inliers
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if self.picks < 1 or self.max_pairs < 1 or self.strong_inliers < 4:
+            raise ValueError(f"picks and max_pairs >= 1, strong_inliers >= 4 expected: {self}")
+        if not 0 < self.min_confirm_overlap <= 1:
+            raise ValueError(f"min_confirm_overlap must be a fraction, got {self.min_confirm_overlap}")
+
 
 @dataclass
 class Joined:

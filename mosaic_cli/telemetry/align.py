@@ -18,6 +18,14 @@ class AlignOptions:
     outlier_metres: float = 15.0  # a fix this far from its neighbours' median track is an outlier
     outlier_window: float = 2.0  # seconds each side for that median
 
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if min(self.max_gap, self.outlier_metres, self.outlier_window) <= 0:
+            raise ValueError(f"alignment options must be positive: {self}")
+
 
 @dataclass
 class AlignedTelemetry:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import check_threads
 from mosaic_cli.model.network import PRESETS as NET_PRESETS
 from mosaic_cli.model.network import VARIANTS
 
@@ -63,41 +64,48 @@ class TrainConfig:
     cache_gb: float = 8.0  # disk budget of the decoded-frame cache in RUN_DIR/cache
     extra: dict = field(default_factory=dict)  # free-form notes kept with the run
 
-    def resolved(self) -> "TrainConfig":
-        """A copy with the paper's defaults filled in and every value checked."""
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Every value, by the flag that sets it (``steps`` and ``batch_size`` may still be None:
+        the paper's, filled in by :meth:`resolved`)."""
         if self.variant not in VARIANTS:
             raise BadInput(f"unknown --variant {self.variant!r}: choose one of {', '.join(VARIANTS)}")
         if self.preset not in PRESETS:
             raise BadInput(f"unknown --preset {self.preset!r}: choose one of {', '.join(PRESETS)}")
         if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
             raise BadInput(f"unknown --device {self.device!r}: choose one of {', '.join(DEVICES)}")
-        cfg = replace(
+        checks = [
+            (self.steps is None or self.steps >= 1, f"--steps must be at least 1, got {self.steps}"),
+            (self.batch_size is None or self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
+            (self.lr > 0, f"--lr must be positive, got {self.lr}"),
+            (0 < self.lr_decay <= 1, f"the learning-rate decay must be in (0, 1], got {self.lr_decay}"),
+            (all(0 < m < 1 for m in self.lr_milestones), "learning-rate milestones must be fractions in (0, 1)"),
+            (self.seed >= 0, f"--seed must be 0 or more, got {self.seed}"),
+            (self.patch >= 16, f"--patch must be at least 16, got {self.patch}"),
+            (min(self.work_size) >= self.patch,
+             f"--work-size {self.work_size[0]}x{self.work_size[1]} is smaller than a {self.patch}px patch"),
+            (self.num_workers >= 0, f"--num-workers must be 0 or more, got {self.num_workers}"),
+            (self.checkpoint_every >= 1, f"--checkpoint-every must be at least 1, got {self.checkpoint_every}"),
+            (self.val_every >= 1, f"--val-every must be at least 1, got {self.val_every}"),
+            (self.checkpoint_minutes > 0, f"--checkpoint-minutes must be positive, got {self.checkpoint_minutes}"),
+            (self.cache_gb > 0, f"--cache-gb must be positive, got {self.cache_gb}"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise BadInput(message)
+        check_threads(self.threads)
+
+    def resolved(self) -> "TrainConfig":
+        """A copy with the paper's defaults filled in for the variant."""
+        return replace(
             self,
             steps=paper_steps(self.variant) if self.steps is None else int(self.steps),
             batch_size=paper_batch_size(self.variant) if self.batch_size is None else int(self.batch_size),
             work_size=tuple(int(v) for v in self.work_size),
             lr_milestones=tuple(float(m) for m in self.lr_milestones),
         )
-        checks = [
-            (cfg.steps >= 1, f"--steps must be at least 1, got {cfg.steps}"),
-            (cfg.batch_size >= 1, f"--batch-size must be at least 1, got {cfg.batch_size}"),
-            (cfg.lr > 0, f"--lr must be positive, got {cfg.lr}"),
-            (0 < cfg.lr_decay <= 1, f"the learning-rate decay must be in (0, 1], got {cfg.lr_decay}"),
-            (all(0 < m < 1 for m in cfg.lr_milestones), "learning-rate milestones must be fractions in (0, 1)"),
-            (cfg.patch >= 16, f"--patch must be at least 16, got {cfg.patch}"),
-            (min(cfg.work_size) >= cfg.patch,
-             f"--work-size {cfg.work_size[0]}x{cfg.work_size[1]} is smaller than a {cfg.patch}px patch"),
-            (cfg.threads is None or cfg.threads >= 1, f"--threads must be at least 1, got {cfg.threads}"),
-            (cfg.num_workers >= 0, f"--num-workers must be 0 or more, got {cfg.num_workers}"),
-            (cfg.checkpoint_every >= 1, f"--checkpoint-every must be at least 1, got {cfg.checkpoint_every}"),
-            (cfg.val_every >= 1, f"--val-every must be at least 1, got {cfg.val_every}"),
-            (cfg.checkpoint_minutes > 0, f"--checkpoint-minutes must be positive, got {cfg.checkpoint_minutes}"),
-            (cfg.cache_gb > 0, f"--cache-gb must be positive, got {cfg.cache_gb}"),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise BadInput(message)
-        return cfg
 
     def to_dict(self) -> dict:
         data = asdict(self)

@@ -1,0 +1,99 @@
+"""The flags several commands share, declared once, and how a command turns them into library calls.
+
+Each alias is a typer option with its name and help, used as a parameter's annotation
+(``weights: Weights = None``); the default stays with the parameter.  The values are checked by
+the options dataclasses the commands build (see docs/architecture.md), not here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR
+
+# -- the estimator (track, stitch, stabilize) -----------------------------------------------------
+
+EstimatorName = Annotated[str | None, typer.Option(
+    "--estimator", "-e",
+    help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} "
+         "(with --weights: the network they hold).")]
+WorkWidth = Annotated[int, typer.Option(
+    "--work-width",
+    help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size "
+         "their weights were trained for.")]
+Weights = Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) to run.")]
+Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda (learned estimators).")]
+Threads = Annotated[int | None, typer.Option(
+    "--threads",
+    help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine).")]
+
+# -- the input ------------------------------------------------------------------------------------
+
+Mask = Annotated[Path | None, typer.Option(
+    "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses.")]
+
+
+def overlay_detect_option(kept_out_of: str):
+    """``--overlay-detect/--no-overlay-detect``; ``kept_out_of`` says what the command keeps
+    the overlays out of."""
+    return Annotated[bool, typer.Option(
+        "--overlay-detect/--no-overlay-detect",
+        help=f"Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of {kept_out_of}.")]
+
+
+MaxFrames = Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames.")]
+Strict = Annotated[bool, typer.Option(
+    "--strict",
+    help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning.")]
+Timeout = Annotated[float, typer.Option(
+    "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds.")]
+
+def quiet_option(help: str):
+    """``--quiet/-q``: what it silences differs from command to command."""
+    return Annotated[bool, typer.Option("--quiet", "-q", help=help)]
+
+
+# -- turning flags into library calls -------------------------------------------------------------
+
+
+def mask_options(mask: Path | None, detect: bool):
+    """``--mask`` and ``--overlay-detect/--no-overlay-detect`` as the pipelines take them."""
+    from mosaic_cli.overlay import MaskOptions
+
+    return MaskOptions(file=mask, detect=detect)
+
+
+def check_mask_file(video: str, mask) -> None:
+    """A bad ``--mask`` image (``mask``: the MaskOptions) fails before the estimator loads its
+    weights; a live input's is checked when its first frame gives the size."""
+    from mosaic_cli.live.source import is_live_source
+
+    if mask.file is None or is_live_source(video):
+        return
+    from mosaic_cli.overlay import load_mask
+    from mosaic_cli.video import probe
+
+    load_mask(mask.file, probe(video).source_size)
+
+
+def use_threads(threads: int | None) -> None:
+    """``--threads``: torch's CPU threads for the network (checked by the command's options)."""
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+def check_json_report(path: Path | None) -> None:
+    """``--json REPORT.json``: writable, and a .json file."""
+    from mosaic_cli.atomic import check_writable
+    from mosaic_cli.errors import BadInput
+
+    if path is None:
+        return
+    check_writable(path)
+    if path.suffix.lower() != ".json":
+        raise BadInput(f"--json {path} must end in .json")

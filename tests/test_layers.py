@@ -1,0 +1,72 @@
+"""The command line's layer rule (docs/architecture.md): ``cli.py`` registers the commands; a
+command imports neither ``mosaic_cli.cli`` nor another command, only the flags they share
+(``commands/options.py``) and the library.  Checked on the source with ``ast``, so that an
+import inside a function counts as much as one at the top."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+import mosaic_cli.commands
+from mosaic_cli.cli import COMMANDS, app
+
+COMMANDS_DIR = Path(mosaic_cli.commands.__file__).parent
+PACKAGE = "mosaic_cli.commands"
+SHARED = {f"{PACKAGE}.options"}  # what every command may import from its own package
+
+
+def imported_modules(source: str, module: str) -> set[str]:
+    """Every module ``source`` (the text of ``module``) imports, with ``from PACKAGE import name``
+    counted as the module ``PACKAGE.name`` (a command is imported that way too)."""
+    package = module.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: from the package up (level - 1) packages
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+            found.add(base)
+            found |= {f"{base}.{alias.name}" for alias in node.names}
+    return found
+
+
+def forbidden(source: str, module: str) -> set[str]:
+    """The imports of ``module`` that break the rule."""
+    names = imported_modules(source, module)
+    cli = {n for n in names if n == "mosaic_cli.cli" or n.startswith("mosaic_cli.cli.")}
+    commands = {n for n in names if n.startswith(f"{PACKAGE}.") and n not in SHARED and n != module
+                and n.count(".") == PACKAGE.count(".") + 1}
+    return cli | commands
+
+
+def test_the_rule_catches_each_kind_of_forbidden_import():
+    module = f"{PACKAGE}.stitch"
+    assert forbidden("from mosaic_cli.cli import app", module) == {"mosaic_cli.cli", "mosaic_cli.cli.app"}
+    assert forbidden("import mosaic_cli.cli", module) == {"mosaic_cli.cli"}
+    assert forbidden("def f():\n    from mosaic_cli.commands.track import _median", module) == {f"{PACKAGE}.track"}
+    assert forbidden("from mosaic_cli.commands import track", module) == {f"{PACKAGE}.track"}
+    assert forbidden("from . import track", module) == {f"{PACKAGE}.track"}
+    assert forbidden("from .track import track", module) == {f"{PACKAGE}.track"}
+    allowed = "from mosaic_cli.commands.options import Device\nfrom .options import Mask\nfrom mosaic_cli.stitch import stitch"
+    assert forbidden(allowed, module) == set()
+
+
+@pytest.mark.parametrize("path", sorted(COMMANDS_DIR.glob("*.py")), ids=lambda p: p.name)
+def test_a_command_imports_neither_the_cli_nor_another_command(path):
+    module = f"{PACKAGE}.{path.stem}" if path.stem != "__init__" else PACKAGE
+    assert forbidden(path.read_text(), module) == set()
+
+
+def test_every_command_module_is_registered_once_under_its_name():
+    """cli.py's table names one function of each command module, and typer lists those."""
+    modules = {p.stem for p in COMMANDS_DIR.glob("*.py")} - {"__init__", "options"}
+    registered = {function.__module__.rpartition(".")[2] for function in COMMANDS.values()}
+    assert registered == modules
+    assert [c.name for c in app.registered_commands] == list(COMMANDS)
+    assert [c.callback for c in app.registered_commands] == list(COMMANDS.values())
