@@ -12,8 +12,11 @@
           -> polish, per pair, seeded by the network (default "lk": Shi-Tomasi corners of frame t
              tracked into frame t+1 by pyramidal Lucas-Kanade on band-passed frames, starting
              where the network puts them, robust refit; see :mod:`.refine`)
+          -> where that cheap polish fails, a wide one (a deep pyramid, large windows) looks for
+             the basin and the cheap one places the pair from there
           -> confirmed when the polish agreed and the registered detail correlates (ZNCC); else
-             the classical fallback (ORB + its polish) tries the pair
+             the classical fallback (ORB + its polish) tries the pair; a pair only the wide
+             polish could place is contested by ORB (the better band-passed correlation wins)
           -> confidence (ZNCC of the registered patches x agreement between patches x how much
              of the polish agreed), or ORB's when the fallback made the pair
           -> invalid, a frame without texture, or detail that does not correlate once registered
