@@ -77,20 +77,24 @@ def stitch(
         if timeout <= 0:
             raise BadInput(f"--timeout must be positive, got {timeout}")
         preview_options.validate(out)
-    if mask is not None and not is_live_source(video):  # a bad --mask fails before the estimator loads its weights
-        from mosaic_cli.overlay import load_mask
+    info = None
+    if not is_live_source(video):  # the input's one probe, passed down
         from mosaic_cli.video import probe
 
-        load_mask(mask, probe(video).source_size)
+        info = probe(video)
+    if mask is not None and info is not None:  # a bad --mask fails before the estimator loads its weights
+        from mosaic_cli.overlay import load_mask
+
+        load_mask(mask, info.source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
     from mosaic_cli.video.reader import reading_policy
 
     if live:
         result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, timeout=timeout,
-                             show_progress=not quiet)
+                             show_progress=not quiet, info=info)
     else:
         with reading_policy(strict):
-            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
+            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet, info=info)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

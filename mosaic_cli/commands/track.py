@@ -58,8 +58,9 @@ def track(
         check_writable(out)
     live = is_live_source(video)
     mask_options = MaskOptions(file=mask, detect=overlay_detect)
-    if mask is not None and not live:  # a bad --mask fails before the estimator loads its weights
-        load_mask(mask, probe(video).source_size)
+    info = None if live else probe(video)  # the input's one probe, passed down
+    if mask is not None and info is not None:  # a bad --mask fails before the estimator loads its weights
+        load_mask(mask, info.source_size)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     if threads is not None:
@@ -68,18 +69,18 @@ def track(
         torch.set_num_threads(threads)
     masked = None
     if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
-        masked = frame_mask(video, mask_options, show_progress=not quiet)
+        masked = frame_mask(video, mask_options, info, show_progress=not quiet)
         est.set_mask(masked.use)
     if streaming:
         result = track_stream(video, est, out, timeout=timeout, max_frames=max_frames, show_progress=not quiet,
-                              mask=mask_options if live else None)
+                              mask=mask_options if live else None, info=info)
         if masked is not None:
             result.meta["mask"] = masked.to_json()
         if not is_jsonl(out):
             save_track(result, out)
     else:
         with reading_policy(strict):
-            result = track_video(video, est, max_frames=max_frames, show_progress=not quiet)
+            result = track_video(video, est, max_frames=max_frames, show_progress=not quiet, info=info)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
     if not quiet:

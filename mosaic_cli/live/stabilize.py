@@ -35,7 +35,7 @@ from mosaic_cli.stabilize.path import motion_model
 from mosaic_cli.stabilize.pipeline import VIDEO_SUFFIXES, WORK_WIDTH, StabilizeOptions, write_warps
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
 from mosaic_cli.stabilize.smoothing import L1Smoother
-from mosaic_cli.video import VideoWriter, probe
+from mosaic_cli.video import VideoInfo, VideoWriter, probe
 from mosaic_cli.video.reader import scaled_size
 
 DEFAULT_LATENCY = 1.0
@@ -60,7 +60,8 @@ class LiveStabilizeResult:
 
 
 def check_live_request(source: str, out: str, options: StabilizeOptions, latency: float,
-                       warps_out: str | None, compare: str | None) -> None:
+                       warps_out: str | None, compare: str | None) -> VideoInfo | None:
+    """Every check that can fail before any work; returns a file's probe (None for a live input)."""
     if latency <= 0:
         raise BadInput(f"--latency must be positive, got {latency}")
     if compare is not None:
@@ -75,13 +76,15 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, latency
         info = probe(source)  # the file checks of every command: missing, empty, damaged
         if options.mask.file is not None:
             load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
+        return info
+    return None
 
 
 def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: float = DEFAULT_LATENCY,
                    timeout: float = DEFAULT_TIMEOUT, warps_out: str | None = None, show_progress: bool = True
                    ) -> LiveStabilizeResult:
     """Stabilise ``source`` (live, or a file read in one pass) into ``out`` within ``latency``."""
-    check_live_request(source, out, options, latency, warps_out, None)
+    probed = check_live_request(source, out, options, latency, warps_out, None)  # a file's probe; None for a live input
     model = motion_model(options.model)
     crop = parse_crop(options.crop)
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
@@ -97,7 +100,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
         horizon = Horizon.for_latency(latency, fps, estimator_delay=max(0, chunk - 1))
         # After the option checks: a file's overlays are found as offline (it is there whole);
         # a live input has only --mask.
-        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, None, show_progress)
+        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, probed, show_progress)
         estimator.set_mask(masked.use)
         path = OnlineL1Path(model, size, crop, horizon, L1Smoother())
         gray_size = scaled_size(size, estimator.input_width)
