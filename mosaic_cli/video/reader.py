@@ -10,6 +10,7 @@ mosaic works on this one (docs/architecture.md has the measured rates of both wa
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import re
 import subprocess
 import sys
@@ -373,6 +374,7 @@ class Decoder:
         except OSError as exc:
             self._log.close()
             raise BadInput(f"{info.path}: cannot start ffmpeg ({exc.strerror})") from None
+        _widen_pipe(self._proc.stdout, int(np.prod(self.shape)))
 
     def __iter__(self) -> Iterator[np.ndarray]:
         assert self._proc is not None and self._proc.stdout is not None
@@ -420,6 +422,21 @@ class Decoder:
         self.close()
 
 
+def _widen_pipe(pipe, frame_bytes: int) -> None:
+    """A pipe buffer of a whole frame where Linux allows it (up to /proc/sys/fs/pipe-max-size,
+    1 MiB by default) rather than 64 KiB: ffmpeg then hands over a 720p gray frame in one write
+    instead of 15, each a wait for the reader to be scheduled on a busy machine."""
+    setpipe = getattr(fcntl, "F_SETPIPE_SZ", None)
+    if setpipe is None or pipe is None:
+        return
+    try:
+        limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+    except (OSError, ValueError):
+        limit = 1 << 20
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(pipe.fileno(), setpipe, min(max(frame_bytes, 1 << 16), limit))
+
+
 def open_video(
     path: str | Path,
     width: int | None = None,
@@ -451,7 +468,7 @@ def open_video(
     else:
         refuse_damaged(info)  # probed before the command's --strict took effect
     pixels = "yuv420p" if yuv420p else "gray" if gray else "rgb"
-    size = info.source_size if yuv420p else scaled_size(info.source_size, width)
+    size = scaled_size(info.source_size, width)  # (yuv420p: the Decoder refuses a downscale)
     info = replace(info, size=size)
     decoder = Decoder(info, pixels, size, select=f"select=gte(n\\,{int(start)})" if start else None)
 
