@@ -90,7 +90,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
     live = is_live_source(source)
     notes: list[str] = []
-    with LiveStream(source, "yuv420p", timeout=timeout, quiet=not show_progress, live=live) as stream:
+    with LiveStream(source, "yuv420p", timeout=timeout, quiet=not show_progress, live=live, info=probed) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         width = options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0])

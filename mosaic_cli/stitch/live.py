@@ -237,7 +237,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        with LiveStream(str(source), "rgb", timeout=timeout, quiet=not show_progress, live=live) as stream:
+        with LiveStream(str(source), "rgb", timeout=timeout, quiet=not show_progress, live=live, info=info) as stream:
             info = stream.info
             max_size = options.canvas.max_size
             width = None
