@@ -290,7 +290,7 @@ def _sample_by_decoding(video, count: int, width: int, info: VideoInfo) -> list[
     with open_video(video, width=width, info=info) as stream:
         for k, frame in enumerate(stream):
             if k % step == 0:
-                kept.append((k, frame.copy()))
+                kept.append((k, frame))  # (a fresh array: the reader reuses no buffer)
                 if len(kept) >= 2 * count:
                     kept, step = kept[::2], step * 2
     return [f for _, f in kept][:: max(1, len(kept) // count)][:count]
