@@ -27,7 +27,6 @@ than ``max_static`` of the frame found static is taken for that and nothing is m
 
 from __future__ import annotations
 
-import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +36,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.video import VideoInfo, open_video, probe
-from mosaic_cli.video.reader import scaled_size
+from mosaic_cli.video.reader import frame_at, frames_at, scaled_size
 
 # Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
 LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
@@ -263,10 +262,10 @@ def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | N
     if info.is_image_folder:
         return _sample_folder(Path(video), count, width)
     if total is None or info.duration <= 0:
-        return _sample_by_decoding(video, count, width)
+        return _sample_by_decoding(video, count, width, info)
     if total <= DECODE_ALL_BELOW:
-        return _sample_by_selecting(video, count, width, info)
-    return _sample_by_seeking(video, count, width, info)
+        return frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
+    return _sample_by_seeking(count, width, info)
 
 
 def _picked(total: int, count: int) -> np.ndarray:
@@ -286,70 +285,34 @@ def _sample_folder(folder: Path, count: int, width: int) -> list[np.ndarray]:
     return frames if len(sizes) <= 1 else []  # photos of several sizes: the reader refuses them anyway
 
 
-def _sample_by_decoding(video, count: int, width: int) -> list[np.ndarray]:
+def _sample_by_decoding(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
     """Unknown length: decode everything, keep an even spread (bounded memory: every other
     kept frame is dropped whenever twice ``count`` are held)."""
     kept: list[tuple[int, np.ndarray]] = []
     step = 1
-    with open_video(video, width=width) as stream:
+    with open_video(video, width=width, info=info) as stream:
         for k, frame in enumerate(stream):
             if k % step == 0:
-                kept.append((k, frame.copy()))
+                kept.append((k, frame))  # (a fresh array: the reader reuses no buffer)
                 if len(kept) >= 2 * count:
                     kept, step = kept[::2], step * 2
     return [f for _, f in kept][:: max(1, len(kept) // count)][:count]
 
 
-def _sample_by_selecting(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
-    """One decoder pass; only the picked frames are scaled and piped (ffmpeg's select filter)."""
-    import imageio_ffmpeg
-
-    size = scaled_size(info.source_size, width)
-    picks = "+".join(f"eq(n\\,{k})" for k in _picked(info.frame_count, count))
-    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error", "-i", str(video), "-map", "0:v:0",
-           "-vf", f"select='{picks}',scale={size[0]}:{size[1]}:flags=area", "-fps_mode", "passthrough",
-           "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
-    try:
-        run = subprocess.run(cmd, capture_output=True, timeout=600)
-    except (OSError, subprocess.TimeoutExpired):
-        return []
-    n = size[0] * size[1] * 3
-    return [np.frombuffer(run.stdout[k : k + n], np.uint8).reshape(size[1], size[0], 3).copy()
-            for k in range(0, len(run.stdout) - n + 1, n)]
-
-
-def _sample_by_seeking(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
     """One decoder start per picked frame, seeking to it: each decodes from the keyframe
     before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
-    size = scaled_size(info.source_size, width)
     fps = info.fps if info.fps > 0 else 30.0
     frames: list[np.ndarray] = []
     for index in _picked(info.frame_count, count):
         # A seek past the last decodable frame (the container's duration can run a little
         # long) steps back a frame or two.
         for back in (0, 1, 2):
-            frame = _frame_at(video, max(0.0, (index - back - 0.25) / fps), size)  # the first frame at or after
+            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width)  # the first frame at or after
             if frame is not None:
                 frames.append(frame)
                 break
     return frames
-
-
-def _frame_at(video, seconds: float, size: tuple[int, int]) -> np.ndarray | None:
-    """The first frame at or after ``seconds`` (RGB, ``size``)."""
-    import imageio_ffmpeg
-
-    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error",
-           "-ss", f"{seconds:.4f}", "-i", str(video), "-map", "0:v:0", "-frames:v", "1",
-           "-vf", f"scale={size[0]}:{size[1]}:flags=area", "-f", "rawvideo", "-pix_fmt", "rgb24", "-"]
-    try:
-        run = subprocess.run(cmd, capture_output=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    n = size[0] * size[1] * 3
-    if len(run.stdout) < n:
-        return None
-    return np.frombuffer(run.stdout[:n], np.uint8).reshape(size[1], size[0], 3).copy()
 
 
 # -- the user's mask and the merged result -------------------------------------------------------

@@ -86,11 +86,13 @@ def track_video(
     estimator: Estimator,
     max_frames: int | None = None,
     show_progress: bool = True,
+    info: VideoInfo | None = None,
 ) -> TrackResult:
-    """Estimate the pairwise homographies of a whole video, holding one or two frames at a time."""
+    """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
+    ``info``: the video's probe, when the caller has it."""
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
-    with open_video(path, width=estimator.input_width, gray=True) as stream:
+    with open_video(path, width=estimator.input_width, gray=True, info=info) as stream:
         info = stream.info
         total = info.frame_count if max_frames is None else min(max_frames, info.frame_count or max_frames)
 

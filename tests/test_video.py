@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from fractions import Fraction
 
 import cv2
 import numpy as np
@@ -266,3 +267,167 @@ def test_writer_shorter_than_audio_ends_with_the_video(tmp_path):
         for _ in range(25):
             writer.write(np.zeros((72, 128, 3), np.uint8))
     assert probe(out).duration < 1.5
+
+
+# ---------------------------------------------------------------- probe
+
+
+def opencv_count(path) -> int:
+    """Frames OpenCV's own FFmpeg build decodes from ``path`` (each coded frame once)."""
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    count = 0
+    while capture.grab():
+        count += 1
+    capture.release()
+    return count
+
+
+def lavfi_clip(path, rate: str, frames: int, audio: str | None = None, audio_seconds: float | None = None,
+               codec: str = "libx264", extra: tuple[str, ...] = ()) -> None:
+    """``frames`` frames of testsrc2 (160x90) at ``rate``, with a sine track in ``audio``'s codec."""
+    args = ["-f", "lavfi", "-i", f"testsrc2=size=160x90:rate={rate}"]
+    if audio is not None:
+        seconds = audio_seconds if audio_seconds is not None else frames * float(Fraction(rate))
+        args += ["-f", "lavfi", "-i", f"sine=frequency=440:sample_rate=48000:duration={seconds:.4f}", "-map", "0:v", "-map", "1:a",
+                 "-c:a", audio]
+    video = ["-c:v", codec, "-pix_fmt", "yuv420p"] + (["-preset", "ultrafast"] if codec == "libx264" else ["-deadline", "realtime"])
+    ffmpeg(*args, "-frames:v", str(frames), *video, *extra, str(path))
+
+
+# (file, rate as ffmpeg takes it, frames, audio codec or None, rotation written, clockwise rotation read)
+PROBE_CASES = [
+    ("ntsc.mp4", "30000/1001", 45, "aac", None, 0),
+    ("film.mkv", "24000/1001", 36, None, None, 0),
+    ("pal.mov", "25", 30, "pcm_s16le", None, 0),
+    ("vp9.webm", "30", 30, "libopus", None, 0),  # (the stderr-scraping probe read the codec as "opus,")
+    ("turned.mp4", "30", 30, None, 90, 270),  # display matrix: counter-clockwise 90 = clockwise 270
+    ("turned.mov", "30", 30, "aac", -90, 90),
+    ("turned.mkv", "25", 25, None, 180, 180),
+]
+
+
+@pytest.mark.parametrize("name, rate, frames, audio, turn, clockwise", PROBE_CASES, ids=[c[0] for c in PROBE_CASES])
+def test_probe_reads_what_the_file_was_made_with(tmp_path, name, rate, frames, audio, turn, clockwise):
+    clip = tmp_path / name
+    if turn is None:
+        lavfi_clip(clip, rate, frames, audio, codec="libvpx-vp9" if name.endswith(".webm") else "libx264")
+    else:
+        plain = tmp_path / f"plain{clip.suffix}"
+        lavfi_clip(plain, rate, frames, audio)
+        ffmpeg("-display_rotation", str(turn), "-i", str(plain), "-c", "copy", str(clip))
+    info = probe(clip)
+    assert info.fps == pytest.approx(float(Fraction(rate)), rel=1e-9)  # exact, not ffmpeg's rounded 29.97
+    assert info.frame_count == frames == opencv_count(clip)
+    assert info.duration == pytest.approx(frames / float(Fraction(rate)), abs=0.05)
+    assert info.rotation == clockwise
+    assert info.source_size == ((90, 160) if clockwise in (90, 270) else (160, 90))
+    assert info.audio_codec == {"libopus": "opus"}.get(audio, audio)
+    assert [s.kind for s in info.streams] == (["audio"] if audio else [])
+    assert info.damage is None
+    with open_video(clip, width=48, info=info) as stream:
+        decoded = list(stream)
+    assert len(decoded) == frames and decoded[0].shape == (stream.info.size[1], stream.info.size[0], 3)
+    assert stream.shortfall is None
+
+
+def test_probe_of_a_variable_rate_video_counts_its_frames(tmp_path):
+    """Frames 30 fps apart, then a half-second gap: the average rate, every frame counted."""
+    clip = tmp_path / "vfr.mp4"
+    ffmpeg("-f", "lavfi", "-i", "testsrc2=size=160x90:rate=30", "-frames:v", "60",
+           "-vf", "setpts='N/30/TB+if(gte(N,30),0.5/TB,0)'", "-fps_mode", "passthrough", "-c:v", "libx264",
+           "-preset", "ultrafast", "-pix_fmt", "yuv420p", str(clip))
+    info = probe(clip)
+    assert info.frame_count == 60 == opencv_count(clip)
+    assert info.duration == pytest.approx(2.5, abs=0.01) and info.fps == pytest.approx(60 / 2.5, rel=0.01)
+
+
+def test_probe_of_audio_longer_than_the_video_is_not_damage(tmp_path):
+    """The container lasts as long as its audio: no frame in its last half second is no damage."""
+    for suffix in (".mkv", ".mp4"):
+        clip = tmp_path / f"long_audio{suffix}"
+        ffmpeg("-f", "lavfi", "-t", "1", "-i", "testsrc2=size=160x90:rate=30", "-f", "lavfi", "-i",
+               "sine=frequency=440:sample_rate=48000:duration=4", "-map", "0:v", "-map", "1:a", "-c:v", "libx264",
+               "-preset", "ultrafast", "-pix_fmt", "yuv420p", "-c:a", "aac", str(clip))
+        info = probe(clip)
+        assert info.damage is None and info.has_audio and info.duration > 3.5
+        with open_video(clip, info=info) as stream:
+            assert sum(1 for _ in stream) == 30 == opencv_count(clip)
+
+
+def test_reader_yuv420p_planes_are_the_rgb_frames_upright(tmp_path):
+    """stabilize's render pass reads yuv420p planes: the same frames as RGB, turned upright too."""
+    plain = tmp_path / "plain.mp4"
+    lavfi_clip(plain, "30", 6)
+    clip = tmp_path / "turned.mp4"
+    ffmpeg("-display_rotation", "90", "-i", str(plain), "-c", "copy", str(clip))
+    info = probe(clip)
+    w, h = info.source_size
+    with open_video(clip, yuv420p=True, info=info) as planes, open_video(clip, info=info) as rgb:
+        pairs = list(zip(planes, rgb))
+    assert len(pairs) == 6
+    for yuv, frame in pairs:
+        assert yuv.shape == (h * 3 // 2, w)
+        as_rgb = cv2.cvtColor(yuv, cv2.COLOR_YUV2RGB_I420)
+        assert np.abs(as_rgb.astype(np.float32) - frame).mean() < 3.0
+    with pytest.raises(ValueError):
+        open_video(clip, width=32, yuv420p=True, info=info)
+
+
+# ---------------------------------------------------------------- one probe per command
+
+
+@pytest.fixture
+def media_starts(monkeypatch):
+    """Every file libav opens in this process (the probe) and every ffmpeg process started, by argv."""
+    import subprocess
+
+    import av
+
+    opened: list[str] = []
+    started: list[list[str]] = []
+    real_open, real_popen = av.open, subprocess.Popen
+
+    def counting_open(file, *args, **kwargs):
+        opened.append(str(file))
+        return real_open(file, *args, **kwargs)
+
+    class CountingPopen(real_popen):  # type: ignore[misc, valid-type]
+        def __init__(self, args, *rest, **kwargs):
+            if isinstance(args, (list, tuple)) and args and "ffmpeg" in os.path.basename(str(args[0])):
+                started.append([str(a) for a in args])
+            super().__init__(args, *rest, **kwargs)
+
+    monkeypatch.setattr(av, "open", counting_open)
+    monkeypatch.setattr(subprocess, "Popen", CountingPopen)
+    return opened, started
+
+
+def decoders(started: list[list[str]]) -> list[list[str]]:
+    """The ffmpeg processes that decode a file to raw frames on a pipe."""
+    return [cmd for cmd in started if cmd[-5:-2] == ["-f", "rawvideo", "-pix_fmt"] and cmd[-1] == "pipe:1"]
+
+
+def encoders(started: list[list[str]]) -> list[list[str]]:
+    """The ffmpeg processes that encode raw frames from a pipe."""
+    return [cmd for cmd in started if "rawvideo" in cmd and cmd[cmd.index("-i") + 1] == "-"]
+
+
+@pytest.mark.parametrize("command, decodes, encodes", [
+    ("track", 2, 0),  # overlays sampled, then every frame
+    ("stitch", 2, 0),  # overlays sampled, then the scan
+    ("stabilize", 3, 1),  # overlays sampled, the track pass, the render pass; one encoder
+])
+def test_each_command_probes_its_input_once(tmp_path, capsys, flight_clip, media_starts, command, decodes, encodes):
+    """No second probe, no ffmpeg run only to read metadata: one libav open of the input, and
+    ffmpeg started only to decode (once per pass) or to encode."""
+    from conftest import cli_exit
+
+    mask = tmp_path / "mask.png"
+    cv2.imwrite(str(mask), np.full((180, 320), 255, np.uint8))  # --mask: the commands' other early use of the size
+    out = {"track": ["-o", tmp_path / "t.json"], "stitch": ["-o", tmp_path / "p.png"], "stabilize": [tmp_path / "s.mp4"]}[command]
+    code = cli_exit([command, flight_clip, *out, "-e", "orb", "-q", "--mask", mask])
+    assert code == 0, capsys.readouterr().err
+    opened, started = media_starts
+    assert opened == [str(flight_clip)]
+    assert len(decoders(started)) == decodes and len(encoders(started)) == encodes
+    assert len(started) == decodes + encodes, started

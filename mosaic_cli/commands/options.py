@@ -66,17 +66,15 @@ def mask_options(mask: Path | None, detect: bool):
     return MaskOptions(file=mask, detect=detect)
 
 
-def check_mask_file(video: str, mask) -> None:
+def check_mask_file(mask, info) -> None:
     """A bad ``--mask`` image (``mask``: the MaskOptions) fails before the estimator loads its
-    weights; a live input's is checked when its first frame gives the size."""
-    from mosaic_cli.live.source import is_live_source
-
-    if mask.file is None or is_live_source(video):
+    weights, against the input's probe ``info``; a live input (no probe) has its mask checked
+    when its first frame gives the size."""
+    if mask.file is None or info is None:
         return
     from mosaic_cli.overlay import load_mask
-    from mosaic_cli.video import probe
 
-    load_mask(mask.file, probe(video).source_size)
+    load_mask(mask.file, info.source_size)
 
 
 def use_threads(threads: int | None) -> None:

@@ -25,6 +25,7 @@ from mosaic_cli.commands.options import (
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
+from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("estimation and the panorama")
@@ -88,13 +89,15 @@ def stitch(
         check_live_request(out, transforms, options, preview_options)
     else:
         check_outputs(out, transforms, options.canvas.max_size)
-    check_mask_file(video, options.mask)
+    info = None if is_live_source(video) else probe(video)  # the input's one probe, passed down
+    check_mask_file(options.mask, info)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
     if live:
-        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, show_progress=not quiet)
+        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, show_progress=not quiet,
+                             info=info)
     else:
         with reading_policy(strict):
-            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet)
+            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet, info=info)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

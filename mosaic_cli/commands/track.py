@@ -31,6 +31,7 @@ from mosaic_cli.live.track import is_jsonl, track_stream
 from mosaic_cli.overlay import frame_mask
 from mosaic_cli.progress import console
 from mosaic_cli.track import TrackOptions, save_track, track_video
+from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("estimation")
@@ -68,24 +69,25 @@ def track(
     elif out != "-":
         check_writable(out)
     live = is_live_source(video)
-    check_mask_file(video, options.mask)
+    info = None if live else probe(video)  # the input's one probe, passed down
+    check_mask_file(options.mask, info)
     est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     use_threads(options.threads)
     masked = None
     if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
-        masked = frame_mask(video, options.mask, show_progress=not quiet)
+        masked = frame_mask(video, options.mask, info, show_progress=not quiet)
         est.set_mask(masked.use)
     if live or is_jsonl(out):
         result = track_stream(video, est, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
-                              mask=options.mask if live else None)
+                              mask=options.mask if live else None, info=info)
         if masked is not None:
             result.meta["mask"] = masked.to_json()
         if not is_jsonl(out):
             save_track(result, out)
     else:
         with reading_policy(strict):
-            result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet)
+            result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
     if not quiet:

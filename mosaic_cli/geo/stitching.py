@@ -12,12 +12,15 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.geo.georef import Georeference, GeorefOptions
 from mosaic_cli.geometry import normalize
 from mosaic_cli.telemetry import Track, find_telemetry, read_telemetry
+from mosaic_cli.video import VideoInfo
 
 
-def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None, span: tuple[float, float] | None = None) -> Track | None:
+def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None, span: tuple[float, float] | None = None,
+               info: VideoInfo | None = None) -> Track | None:
     """The telemetry to georeference with: the file given, else a track inside the video
     (None when there is none, or when it holds no GPS, e.g. captions).  ``span``: the seconds
-    of video to stitch, when known, to refuse a log that misses them before any work."""
+    of video to stitch, when known, to refuse a log that misses them before any work;
+    ``info``: the video's probe (its streams are where an embedded track is looked for)."""
     if options is None:
         return None
     if options.footprints is not None:
@@ -27,7 +30,7 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
     if options.telemetry is not None:
         track = read_telemetry(options.telemetry)
     else:
-        track = find_telemetry(video)
+        track = find_telemetry(video, info)
     if track is None and options.footprints is not None:
         raise BadInput(f"--footprints needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
     if track is not None and not track.has_fix.any():

@@ -122,11 +122,15 @@ _END = object()
 class LiveStream:
     """Frames of a live source, iterated as :class:`Arrival` (see :meth:`arrivals`) or as plain
     frames (``for frame in stream``).  ``pixels``: "gray" (h, w) at ``size``, "rgb" (h, w, 3)
-    at ``size``, or "yuv420p" (h * 3 // 2, w) at the source size.  Use as a context manager."""
+    at ``size``, or "yuv420p" (h * 3 // 2, w) at the source size.  Use as a context manager.
+
+    A live stream can be read only once, so nothing probes it: its size, rate and audio are
+    read from the decoder's own log as it starts.  A file read this way (``live=False``) passes
+    its probe as ``info`` instead."""
 
     def __init__(self, source: str, pixels: str = "gray", width: int | None = None,
                  timeout: float = DEFAULT_TIMEOUT, stop: StopRequest | None = None, quiet: bool = False,
-                 live: bool = True):
+                 live: bool = True, info: VideoInfo | None = None):
         if pixels not in ("gray", "rgb", "yuv420p"):
             raise ValueError(f"pixels must be gray, rgb or yuv420p, got {pixels}")
         self.source = source
@@ -146,6 +150,7 @@ class LiveStream:
         self._fps: float | None = None
         self._audio: str | None = None
         self._queue: queue.Queue | None = None
+        self._probed = info
         self._proc = self._start()
         try:
             self.info = self._wait_for_header(width)
@@ -167,8 +172,9 @@ class LiveStream:
         # ffmpeg looks at 5 s of a stream by default before the first frame comes out: half a
         # second finds the video of any stream mosaic can use, and a live run waits less.
         cmd += ["-analyzeduration", str(int(PROBE_SECONDS * 1_000_000)), "-probesize", str(PROBE_BYTES)]
+        probed = self._probed.stream_index if self._probed is not None else None
         cmd += ["-i", "pipe:0" if self.source == STDIN else self.source,
-                "-map", "0:v:0", "-an", "-sn", "-fps_mode", "passthrough",
+                "-map", f"0:{probed}" if probed is not None else "0:v:0", "-an", "-sn", "-fps_mode", "passthrough",
                 "-f", "rawvideo", "-pix_fmt", pix_fmt, "pipe:1"]
         stdin = sys.stdin.buffer if self.source == STDIN else subprocess.DEVNULL
         if self.source == STDIN:
@@ -223,7 +229,10 @@ class LiveStream:
         return f"ffmpeg exited with status {self._proc.poll()}"
 
     def _wait_for_header(self, width: int | None) -> VideoInfo:
-        """Wait for ffmpeg to have found the video (at most ``timeout`` s, or a stop request)."""
+        """Wait for ffmpeg to have found the video (at most ``timeout`` s, or a stop request);
+        a probed file's header is its probe."""
+        if self._probed is not None:
+            return self._begin(self._probed.source_size, self._probed.fps, self._probed.audio_codec, width)
         deadline = time.monotonic() + (self.timeout if self.live else 3600.0)
         if self._own_stop:
             self.stop.install()
@@ -237,7 +246,10 @@ class LiveStream:
             if self._timed_out():
                 raise BadInput(f"{source_name(self.source)}: no video arrived within {self.timeout:g} s (--timeout)")
             raise BadInput(f"{source_name(self.source)}: cannot read a video stream ({self._complaint()})")
-        source_size = self._out_size
+        return self._begin(self._out_size, self._fps or 30.0, self._audio, width)
+
+    def _begin(self, source_size: tuple[int, int], fps: float, audio: str | None, width: int | None) -> VideoInfo:
+        """Start moving frames of ``source_size`` into the queue; the stream's :class:`VideoInfo`."""
         size = source_size if self.pixels == "yuv420p" else scaled_size(source_size, width)
         w, h = source_size
         if self.pixels == "yuv420p" and (w % 2 or h % 2):
@@ -246,8 +258,7 @@ class LiveStream:
         frame_bytes = int(np.prod(self._frame_shape))
         self._queue = queue.Queue(maxsize=max(QUEUE_MIN_FRAMES, QUEUE_BYTES // frame_bytes))
         threading.Thread(target=self._read_frames, args=(frame_bytes,), daemon=True).start()
-        fps = self._fps or 30.0
-        return VideoInfo(source_name(self.source), size, source_size, fps, None, 0.0, 0, self._audio)
+        return VideoInfo(source_name(self.source), size, source_size, fps, None, 0.0, 0, audio)
 
     def _read_frames(self, frame_bytes: int) -> None:
         pipe = self._proc.stdout

@@ -35,7 +35,7 @@ from mosaic_cli.stabilize.path import motion_model
 from mosaic_cli.stabilize.pipeline import VIDEO_SUFFIXES, WORK_WIDTH, StabilizeOptions, write_warps
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
 from mosaic_cli.stabilize.smoothing import L1Smoother
-from mosaic_cli.video import VideoWriter, probe
+from mosaic_cli.video import VideoInfo, VideoWriter, probe
 from mosaic_cli.video.reader import scaled_size
 
 DEFAULT_LATENCY = 1.0
@@ -64,8 +64,10 @@ def is_live_request(source: str, out: str, options: StabilizeOptions) -> bool:
     return options.latency is not None or is_live_source(source) or is_stream_output(out)
 
 
-def check_live_request(source: str, out: str, options: StabilizeOptions, warps_out: str | None, compare: str | None) -> None:
-    """The checks of a one-pass run that the options cannot make alone."""
+def check_live_request(source: str, out: str, options: StabilizeOptions, warps_out: str | None,
+                       compare: str | None) -> VideoInfo | None:
+    """The checks of a one-pass run that the options cannot make alone; returns a file's probe
+    (None for a live input)."""
     if compare is not None:
         raise BadInput("--compare is not available with --latency or a live input")
     if options.smoothing.lower() != "l1":
@@ -78,20 +80,22 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, warps_o
         info = probe(source)  # the file checks of every command: missing, empty, damaged
         if options.mask.file is not None:
             load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
+        return info
+    return None
 
 
 def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: str | None = None,
                    compare: str | None = None, show_progress: bool = True) -> LiveStabilizeResult:
     """Stabilise ``source`` (live, or a file read in one pass) into ``out`` within
     ``options.latency`` seconds (:data:`DEFAULT_LATENCY` when None)."""
-    check_live_request(source, out, options, warps_out, compare)
+    probed = check_live_request(source, out, options, warps_out, compare)  # a file's probe; None for a live input
     latency = options.latency if options.latency is not None else DEFAULT_LATENCY
     model = motion_model(options.model)
     crop = parse_crop(options.crop)
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
     live = is_live_source(source)
     notes: list[str] = []
-    with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live) as stream:
+    with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live, info=probed) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         width = options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0])
@@ -101,7 +105,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         horizon = Horizon.for_latency(latency, fps, estimator_delay=max(0, chunk - 1))
         # After the option checks: a file's overlays are found as offline (it is there whole);
         # a live input has only --mask.
-        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, None, show_progress)
+        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, probed, show_progress)
         estimator.set_mask(masked.use)
         path = OnlineL1Path(model, size, crop, horizon, L1Smoother())
         gray_size = scaled_size(size, estimator.input_width)

@@ -25,7 +25,7 @@ from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
 from mosaic_cli.overlay import MaskOptions, live_mask
 from mosaic_cli.track import TrackResult
-from mosaic_cli.video import open_video
+from mosaic_cli.video import VideoInfo, open_video
 
 STDOUT = "-"
 JSONL_SUFFIXES = (".jsonl", ".ndjson")
@@ -61,19 +61,20 @@ def _line_sink(out: str | Path, keep_on_failure: bool) -> Iterator[IO[str]]:
 
 
 def track_stream(source: str | Path, estimator: Estimator, out: str | Path, timeout: float = DEFAULT_TIMEOUT,
-                 max_frames: int | None = None, show_progress: bool = True, mask: MaskOptions | None = None) -> TrackResult:
+                 max_frames: int | None = None, show_progress: bool = True, mask: MaskOptions | None = None,
+                 info: VideoInfo | None = None) -> TrackResult:
     """Track ``source`` (a live source, or a file when ``out`` takes JSON Lines), writing
     each pair as it is estimated when ``out`` takes JSON Lines; returns everything tracked.
     ``mask``: the ``--mask`` of a live input, applied once the stream gives the frame size
     (overlay detection is skipped: see :func:`mosaic_cli.overlay.live_mask`); a file's mask
-    is set on the estimator beforehand."""
+    is set on the estimator beforehand; ``info``: a file's probe, when the caller has it."""
     live = is_live_source(source)
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
     if live:
         stream = LiveStream(str(source), "gray", width=estimator.input_width, timeout=timeout, quiet=not show_progress)
     else:
-        stream = open_video(source, width=estimator.input_width, gray=True)
+        stream = open_video(source, width=estimator.input_width, gray=True, info=info)
     lines = is_jsonl(out)
     with stream, (_line_sink(out, keep_on_failure=live) if lines else contextlib.nullcontext()) as sink:
         info = stream.info

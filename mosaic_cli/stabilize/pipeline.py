@@ -117,7 +117,7 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     clock = time.perf_counter()
 
     plan.estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
-    track = track_video(video, plan.estimator, show_progress=show_progress)
+    track = track_video(video, plan.estimator, show_progress=show_progress, info=info)
     seconds = {"track": time.perf_counter() - clock}
 
     motion = camera_motion(track.pairwise, info.source_size, plan.model, track.confidence)

@@ -1,6 +1,6 @@
 """Second pass: decode the input again at full resolution, warp every frame, encode.
 
-Decoding (an ffmpeg pipe), warping (OpenCV) and encoding (an x264 pipe) all release the GIL, so
+Decoding (the reader's ffmpeg pipe), warping (OpenCV) and encoding (an x264 pipe) all release the GIL, so
 each runs in its own thread with small bounded queues between them: on two cores the three
 overlap instead of taking turns, and at most a handful of frames are in memory.
 
@@ -11,7 +11,6 @@ warp, 27 instead of 37 ms of CPU a 1280x720 frame.  Image folders and odd sizes 
 
 from __future__ import annotations
 
-import contextlib
 import queue
 import threading
 from dataclasses import dataclass
@@ -19,7 +18,6 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 import cv2
-import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput
@@ -87,21 +85,6 @@ def _warp_plane(plane: np.ndarray, warp: np.ndarray, size: tuple[int, int], bord
     return cv2.warpPerspective(plane, warp, size, flags=cv2.INTER_LINEAR, borderMode=mode, borderValue=black)
 
 
-def _yuv_frames(video: str | Path, size: tuple[int, int]) -> Iterator[np.ndarray]:
-    """The frames of a video file as yuv420p arrays (h * 3 // 2, w), upright like open_video's."""
-    w, h = size
-    gen = imageio_ffmpeg.read_frames(str(video), pix_fmt="yuv420p", bits_per_pixel=12,
-                                     output_params=["-fps_mode", "passthrough"])  # each frame once, as open_video
-    try:
-        next(gen)  # metadata
-        for raw in gen:
-            yield np.frombuffer(raw, dtype=np.uint8).reshape(h * 3 // 2, w)
-    except RuntimeError:
-        return  # a truncated stream: what ffmpeg could decode (as open_video does)
-    finally:
-        gen.close()
-
-
 def _yuv_possible(info: VideoInfo, compare: bool) -> bool:
     w, h = info.source_size
     sizes = [info.source_size] + ([compare_size(info.source_size)] if compare else [])
@@ -140,20 +123,19 @@ class Renderer:
         Frames beyond ``len(warps)`` (a decoder that finds one more frame the second time)
         reuse the last warp."""
         size = info.source_size
-        audio = str(video) if info.has_audio else None
         yuv = _yuv_possible(info, compare is not None)
         pix_fmt = "yuv420p" if yuv else "rgb24"
         warp = warp_yuv if yuv else warp_frame
         join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
         # The audio ends with the video (the frames the first pass counted, at the input's rate).
-        common = dict(crf=self.crf, preset=self.preset, audio_from=audio, audio_seconds=len(warps) / info.fps,
+        common = dict(crf=self.crf, preset=self.preset, audio_from=info if info.has_audio else None, audio_seconds=len(warps) / info.fps,
                       pix_fmt_in=pix_fmt, metadata=metadata)
         writers = [VideoWriter(out, size, info.fps, **common)]
         if compare is not None:
             writers.append(VideoWriter(compare, compare_size(size), info.fps, **common))
         try:
-            source = contextlib.closing(_yuv_frames(video, size)) if yuv else open_video(video)
-            with source as frames, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:
+            # The frames of the first pass, upright, each once; yuv420p planes when they can stay so.
+            with open_video(video, yuv420p=yuv, info=info) as frames, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
                     for t, frame in enumerate(_background(frames)):
                         result = warp(frame, warps[min(t, len(warps) - 1)], size, self.border)

@@ -49,7 +49,7 @@ from mosaic_cli.stitch.registration import (
     refine_placements,
 )
 from mosaic_cli.stitch.spill import load_pixels
-from mosaic_cli.video.reader import scaled_size
+from mosaic_cli.video.reader import VideoInfo, probe, scaled_size
 
 PREVIEW_SIDE = 1024
 PREVIEW_FORMATS = (".png", ".jpg", ".jpeg")
@@ -219,25 +219,23 @@ class LivePreview:
 
 def stitch_live(source: str, out: str | Path, estimator: Estimator, options: StitchOptions | None = None,
                 transforms: str | Path | None = None, preview: PreviewOptions | None = None,
-                show_progress: bool = True) -> StitchResult:
+                show_progress: bool = True, info: VideoInfo | None = None) -> StitchResult:
     """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
-    preview on the way when ``preview.path`` is given."""
+    preview on the way when ``preview.path`` is given.  ``info``: a file's probe, when the caller has it."""
     options = options or StitchOptions()
     preview = preview or PreviewOptions()
     reference = check_live_request(out, transforms, options, preview)
     live = is_live_source(source)
     masked = None
     if not live:
-        from mosaic_cli.video import probe
-
-        info = probe(source)
+        info = info if info is not None else probe(source)
         # A file read as a stream is there whole: its overlays are found before the scan starts.
         masked = frame_mask(source, options.mask, info, show_progress)
-    track = _load_track(source, out, options, live)
+    track = _load_track(source, out, options, live, info)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        with LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live) as stream:
+        with LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live, info=info) as stream:
             info = stream.info
             max_size = options.canvas.max_size
             width = None
@@ -275,7 +273,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         return result
 
 
-def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool):
+def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
     """The telemetry, before any work: an explicit --telemetry file; a file read as live may
     hold a track of its own, a stream (stdin, URL) cannot be probed for one."""
     from mosaic_cli.geo.stitching import load_track
@@ -287,7 +285,7 @@ def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool
         if georef.footprints is not None:
             raise BadInput("--footprints with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
         return None
-    return load_track(source, out, georef)  # the stream's length is unknown: coverage is checked after the scan
+    return load_track(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan
 
 
 def check_live_request(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:

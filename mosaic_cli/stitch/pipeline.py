@@ -53,7 +53,7 @@ from mosaic_cli.stitch.registration import (
 from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
 from mosaic_cli.telemetry import Track
 from mosaic_cli.video import VideoInfo, open_video, probe
-from mosaic_cli.video.reader import scaled_size
+from mosaic_cli.video.reader import refuse_damaged, scaled_size
 
 
 @dataclass
@@ -123,13 +123,14 @@ def stitch(
     options: StitchOptions | None = None,
     transforms: str | Path | None = None,
     show_progress: bool = True,
+    info: VideoInfo | None = None,
 ) -> StitchResult:
     """Stitch ``video`` into the panorama ``out`` (format by extension), optionally writing
     every keyframe's frame -> panorama homography to ``transforms``.  Raises ``BadInput``
     before any work for unusable input, ``ProcessingError`` when the flight cannot be
-    stitched; never leaves a partial file."""
+    stitched; never leaves a partial file.  ``info``: the video's probe, when the caller has it."""
     options = options or StitchOptions()
-    info, reference = _check_inputs(video, out, transforms, options)
+    info, reference = _check_inputs(video, out, transforms, options, info)
     if info.is_image_folder:
         # Photos are registered by features alone: describe them finer than video frames.
         f = options.features
@@ -139,7 +140,7 @@ def stitch(
             raise BadInput(f"{video}: --telemetry and --footprints apply to videos, not to photo folders")
         track = None
     else:
-        track = load_track(video, out, options.georef, _time_span(info, options))  # geo hook: before any work
+        track = load_track(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -232,12 +233,15 @@ def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, tr
         return None
 
 
-def _check_inputs(video, out, transforms, options: StitchOptions) -> tuple[VideoInfo, str | int]:
+def _check_inputs(video, out, transforms, options: StitchOptions, info: VideoInfo | None = None) -> tuple[VideoInfo, str | int]:
     """Every check of the input and the outputs that can fail fast, before decoding a single
-    frame (the options checked themselves when they were made)."""
+    frame (the options checked themselves when they were made).  ``info``: the caller's probe."""
     check_outputs(out, transforms, options.canvas.max_size)
     reference = parse_reference(options.canvas.reference)
-    info = probe(video)
+    if info is None:
+        info = probe(video)
+    else:
+        refuse_damaged(info)
     if info.frame_count is not None and options.start >= info.frame_count > 0:
         raise BadInput(f"--start {options.start} is past the end of {video} ({info.frame_count} frames)")
     if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
@@ -261,7 +265,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
     if max_size and max(info.source_size) > max_size:
         width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
     decode_size = scaled_size(info.source_size, width)
-    with open_video(video, width=width, start=options.start) as stream:
+    with open_video(video, width=width, start=options.start, info=info) as stream:
         total = stream.info.frame_count
         if total is not None:
             total = max(0, total - options.start)

@@ -51,11 +51,12 @@ def read_telemetry(path: str | Path) -> Track:
     raise BadInput(f"--telemetry {p}: not a telemetry format mosaic reads (DJI .SRT, .gpx, .csv or MISB .klv)")
 
 
-def find_telemetry(video: str | Path) -> Track | None:
-    """The first telemetry stream inside ``video`` that holds any, else None."""
+def find_telemetry(video: str | Path, info=None) -> Track | None:
+    """The first telemetry stream inside ``video`` that holds any, else None.  ``info``: the
+    video's probe (:func:`mosaic_cli.video.probe`), when the caller has it."""
     from mosaic_cli.telemetry.embedded import find_streams, read_embedded
 
-    for stream in find_streams(video):
+    for stream in find_streams(video, info):
         try:
             return read_embedded(video, stream)
         except BadInput:

@@ -40,7 +40,7 @@ from mosaic_cli.errors import BadInput, MosaicError
 from mosaic_cli.inputs import VIDEO_SUFFIXES
 from mosaic_cli.model.patches import crop
 from mosaic_cli.progress import console, progress_task
-from mosaic_cli.video.reader import IMAGE_SUFFIXES, open_video, probe
+from mosaic_cli.video.reader import IMAGE_SUFFIXES, VideoInfo, open_video, probe
 
 CACHE_FORMAT = 1
 NPY_HEADER_BYTES = 128  # np.lib.format v1 header length for any (n, h, w) uint8 shape
@@ -130,6 +130,7 @@ class DecodeJob:
     work_size: tuple[int, int]
     keep: tuple[tuple[int, int], ...] | None  # frame ranges to keep; None keeps all
     max_frames: int
+    info: VideoInfo  # the clip's probe, from planning the cache
 
 
 def _cache_key(clip: Path, work_size: tuple[int, int], cap: int) -> str:
@@ -214,8 +215,7 @@ def decode_clip(job: DecodeJob) -> tuple[str, CachedClip | None, str | None]:
 
     tmp = target.with_name(f".{target.name}.part")
     try:
-        info = probe(clip)
-        with open_video(clip, width=decode_width(info.source_size, job.work_size), gray=True) as stream:
+        with open_video(clip, width=decode_width(job.info.source_size, job.work_size), gray=True, info=job.info) as stream:
             n = _write_npy_stream(tmp, kept_frames(stream), job.work_size)
     except (MosaicError, OSError, RuntimeError, ValueError) as exc:
         tmp.unlink(missing_ok=True)
@@ -237,9 +237,9 @@ def _load_entry(target: Path) -> CachedClip | None:
         return None
 
 
-def _probe_frames(clip: str) -> tuple[str, int | None, str | None]:
+def _probe(clip: str) -> tuple[str, VideoInfo | None, str | None]:
     try:
-        return clip, probe(clip).frame_count, None
+        return clip, probe(clip), None
     except (MosaicError, OSError, RuntimeError, ValueError) as exc:
         return clip, None, _reason(clip, exc)
 
@@ -289,9 +289,9 @@ def build_frame_cache(
     if budget_frames < window * len(clips):
         raise BadInput(f"--cache-gb {budget_bytes / 1e9:g} cannot hold even one {window}-frame window per clip")
 
-    estimates, problems = {}, {}
-    for clip, count, error in _map(_probe_frames, [str(c) for c in clips], workers):
-        estimates[clip], problems[clip] = count, error
+    infos, estimates, problems = {}, {}, {}
+    for clip, info, error in _map(_probe, [str(c) for c in clips], workers):
+        infos[clip], estimates[clip], problems[clip] = info, info.frame_count if info is not None else None, error
     readable = [str(c) for c in clips if problems[str(c)] is None]
     caps = dict(zip(readable, share_budget([estimates[c] for c in readable], budget_frames)))
 
@@ -304,7 +304,7 @@ def build_frame_cache(
         if entry is not None:
             entries[clip] = entry
         else:
-            jobs.append(DecodeJob(clip, str(target), work_size, _keep_ranges(estimates[clip], caps[clip]), caps[clip]))
+            jobs.append(DecodeJob(clip, str(target), work_size, _keep_ranges(estimates[clip], caps[clip]), caps[clip], infos[clip]))
 
     if jobs:
         total = sum(min(estimates[j.clip] or 0, j.max_frames) for j in jobs) or None

@@ -1,17 +1,25 @@
-"""Read a video file (anything ffmpeg decodes) or a folder of numbered images as a stream of
-RGB uint8 frames, (h, w, 3), one at a time."""
+"""Every video file mosaic reads goes through here: :func:`probe` says what a file holds,
+:func:`open_video` streams its frames (or a folder of numbered images' frames), one at a time.
+
+Probing opens the file in-process with PyAV (libav's own structures: the exact rates, the
+display matrix, every stream and its codec), once per command: the :class:`VideoInfo` is passed
+down to whatever reads the file next, so nothing probes it again.  Decoding runs the bundled
+ffmpeg (imageio-ffmpeg's binary) on a pipe: a process of its own decodes the next frame while
+mosaic works on this one (docs/video.md has the measured rates of both ways)."""
 
 from __future__ import annotations
 
 import contextlib
-import logging
+import fcntl
 import re
 import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Sequence
 
+import av
 import cv2
 import imageio_ffmpeg
 import numpy as np
@@ -20,9 +28,17 @@ from mosaic_cli.errors import BadInput
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 DEFAULT_FOLDER_FPS = 30.0
+PIXELS = ("rgb", "gray", "yuv420p")
 
-# imageio-ffmpeg warns on every downscaled read; the size change is what we asked for.
-logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)
+
+@dataclass(frozen=True)
+class StreamMeta:
+    """A stream of the file other than the video read (audio, subtitles, data)."""
+
+    index: int  # in the file, as ffmpeg's -map 0:INDEX counts
+    kind: str  # "audio", "subtitle", "data", "attachment", "video"
+    codec: str  # libav's codec name ("aac", "mov_text", "klv", "bin_data", ...; "none" when unknown)
+    tag: str = ""  # the container's codec tag (fourcc), e.g. "KLVA"
 
 
 @dataclass(frozen=True)
@@ -31,9 +47,10 @@ class VideoInfo:
 
     ``size`` is the (w, h) of the frames the reader yields (after rotation and any downscale);
     ``source_size`` the (w, h) at full resolution after rotation, which is the resolution every
-    homography mosaic reports is expressed in.  ``frame_count`` is an estimate from the
-    container's duration (None when unknown).  ``rotation`` is the clockwise turn (0, 90,
-    180, 270) the file asks for on display; frames are always yielded upright."""
+    homography mosaic reports is expressed in.  ``frame_count`` is the container's count (the
+    smaller of its frame count and its duration times the rate: an edit list may leave frames
+    out) or an estimate from the duration (None when unknown).  ``rotation`` is the clockwise
+    turn (0, 90, 180, 270) the file asks for on display; frames are always yielded upright."""
 
     path: str
     size: tuple[int, int]
@@ -44,7 +61,9 @@ class VideoInfo:
     rotation: int = 0
     audio_codec: str | None = None
     is_image_folder: bool = False
-    damage: str | None = None  # ffmpeg's complaint when the end of the file does not decode
+    damage: str | None = None  # libav's complaint when the end of the file does not decode
+    stream_index: int | None = None  # of the video stream read, in the file
+    streams: tuple[StreamMeta, ...] = ()  # the file's other streams, in file order
 
     @property
     def has_audio(self) -> bool:
@@ -78,7 +97,8 @@ class VideoStream:
             self.frames_read += 1
             yield frame
         if self.frames_read == 0:
-            raise BadInput(f"{self.info.path}: no decodable frames")
+            why = f" ({self.decode_error})" if self.decode_error else ""
+            raise BadInput(f"{self.info.path}: no decodable frames{why}")
         self.shortfall = account_for_frames(self.info, self.frames_skipped + self.frames_read, self.decode_error)
 
     def close(self) -> None:
@@ -93,11 +113,15 @@ class VideoStream:
         self.close()
 
 
+# --- A folder of numbered images -------------------------------------------------------------
+
+
 def _natural_key(path: Path) -> list:
     return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", path.name)]
 
 
 def _folder_images(folder: Path) -> list[Path]:
+    """The images of ``folder`` in natural order (frame_2 before frame_10)."""
     return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()), key=_natural_key)
 
 
@@ -130,64 +154,18 @@ def _open_folder(folder: Path, width: int | None, fps: float | None, gray: bool)
     return VideoStream(info, frames())
 
 
-TBR = re.compile(r"Stream #.*Video: .* ([0-9]+(?:\.[0-9]+)?) tbr")
-DISPLAY_MATRIX = re.compile(r"Display Matrix: rotation of (-?[0-9.]+) degrees")
-# What ffmpeg says when the data ends before the container says it should.
+# --- Probing: what a file holds, read once ---------------------------------------------------
+
+# The end of the file is decoded from this long before it, to catch a truncated file before any work.
+TAIL_SECONDS = 0.5
+# What libav says when the data ends before the container says it should.
 DAMAGE_SIGNS = ("partial file", "ended prematurely", "invalid data", "invalid nal", "corrupt", "truncat", "error while decoding")
 
 
-@dataclass(frozen=True)
-class _TailCheck:
-    rotation: int  # clockwise degrees, like the old ``rotate`` tag phones write
-    damage: str | None  # ffmpeg's complaint when the last half second does not decode
-    tbr: float | None  # ffmpeg's guess of the stream's base frame rate
-
-
-def _check_tail(path: str, duration: float) -> _TailCheck:
-    """Decode one frame near the end (cheap: ffmpeg seeks there) to catch truncated files
-    before any long work, and read the display rotation from ffmpeg's stream header
-    (imageio-ffmpeg only knows the old ``rotate`` tag, which ffmpeg no longer prints)."""
-    seek = ["-sseof", "-0.5"] if duration > 0.5 else []
-    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", *seek, "-i", path,
-           "-map", "0:v:0", "-frames:v", "1", "-f", "rawvideo", "-pix_fmt", "gray", "-"]
-    try:
-        run = subprocess.run(cmd, capture_output=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return _TailCheck(0, None, None)
-    log = run.stderr.decode("utf-8", "replace")
-    match = DISPLAY_MATRIX.search(log)
-    # ffmpeg's display matrix angle is counter-clockwise; report the clockwise rotation.
-    rotation = int(round(-float(match.group(1)))) % 360 if match else 0
-    damage = None
-    if not run.stdout:
-        lines = [ln.strip() for ln in log.splitlines() if any(sign in ln.lower() for sign in DAMAGE_SIGNS)]
-        if lines:
-            damage = re.sub(r"^(\[[^]]*\] ?)+", "", lines[0])
-    tbr = TBR.search(log)
-    return _TailCheck(rotation, damage, float(tbr.group(1)) if tbr else None)
-
-
-def _ffmpeg_frames(path: str, size: tuple[int, int], source_size: tuple[int, int], gray: bool, start: int = 0):
-    output_params: list[str] = []
-    filters = []
-    if start:
-        filters.append(f"select=gte(n\\,{int(start)})")
-    if size != source_size:
-        filters.append(f"scale={size[0]}:{size[1]}:flags=area")
-    if filters:
-        output_params += ["-vf", ",".join(filters)]
-    # Every decoded frame exactly once: ffmpeg's default for a pipe would resample a variable
-    # frame rate to a constant one, duplicating and dropping frames.
-    output_params += ["-fps_mode", "passthrough"]
-    pix_fmt, bpp = ("gray", 8) if gray else ("rgb24", 24)
-    gen = imageio_ffmpeg.read_frames(path, pix_fmt=pix_fmt, bits_per_pixel=bpp, output_params=output_params)
-    next(gen)  # metadata, already known
-    shape = (size[1], size[0]) if gray else (size[1], size[0], 3)
-    return gen, shape
-
-
 def probe(path: str | Path) -> VideoInfo:
-    """Metadata of a video file or image folder, with user-facing errors for bad input."""
+    """What a video file or image folder holds, with user-facing errors for bad input.
+
+    A command probes its input once and passes the result down (``info=`` of the readers)."""
     p = Path(path)
     if not p.exists():
         raise BadInput(f"{p}: no such file or folder")
@@ -197,58 +175,266 @@ def probe(path: str | Path) -> VideoInfo:
     if p.stat().st_size == 0:
         raise BadInput(f"{p}: file is empty")
     try:
-        gen = imageio_ffmpeg.read_frames(str(p))
-        meta = next(gen)
-        gen.close()
-    except (OSError, RuntimeError, IndexError, AttributeError, ValueError, StopIteration) as exc:
+        container = av.open(str(p), metadata_errors="replace")
+    except (av.error.FFmpegError, OSError, ValueError) as exc:
         raise BadInput(f"{p}: not a video ffmpeg can read") from exc
-    # ffmpeg applies the display rotation while decoding: "size" is already upright.
-    size = tuple(int(v) for v in meta["size"])
-    duration = float(meta.get("duration") or 0.0)
-    tail = _check_tail(str(p), duration)
-    fps = float(meta.get("fps") or 0.0)
-    if tail.tbr and not 0.5 < fps / tail.tbr < 2.0:
-        # An average rate far from the stream's base rate is a muxing artefact (h264 copied
-        # into avi reports 600 fps at 30 tbr); the base rate is the one to play at.
-        fps = tail.tbr
-    fps = fps or DEFAULT_FOLDER_FPS
-    announced = container_frames(p)
+    with container:
+        info = _probe_container(p, container)
+    refuse_damaged(info)
+    return info
+
+
+def refuse_damaged(info: VideoInfo) -> None:
+    """Under --strict (:func:`reading_policy`), a video whose end the probe found damaged is
+    refused before any work; otherwise nothing (the shortfall is said once decoded)."""
+    if info.damage and _policy["strict"]:
+        said = f"; the container announces {info.frame_count} frames" if info.frame_count else ""
+        raise BadInput(f"{info.path}: truncated or damaged video ({info.damage}{said}); --strict refuses it")
+
+
+def _probe_container(p: Path, container) -> VideoInfo:
+    video = _main_video_stream(container)
+    if video is None:
+        raise BadInput(f"{p}: not a video ffmpeg can read (no video stream)")
+    first, complaint = _first_frame(container, video)
+    if first is None:
+        why = f": {complaint}" if complaint else ""
+        raise BadInput(f"{p}: not a video ffmpeg can read (no frame decodes{why})")
+    # ffmpeg turns the frames upright while decoding (its display-matrix angle is counter-clockwise).
+    rotation = int(round(-first.rotation)) % 360
+    w, h = first.width, first.height
+    size = (h, w) if rotation in (90, 270) else (w, h)
+    fps, average_is_real = _frame_rate(video)
+    start = container.start_time / av.time_base if container.start_time is not None else 0.0
+    if container.duration:
+        duration = container.duration / av.time_base
+    elif video.duration and video.time_base:
+        duration = float(video.duration * video.time_base)
+    else:
+        duration = 0.0
     count = int(round(duration * fps)) if duration > 0 else None
-    if announced.fps is not None and abs(announced.fps - fps) < 0.01:
-        # The container's figures where its rate is the stream's (an avi of copied h264
-        # announces 600 fps and 20 times the frames): the exact rate (ffmpeg's log rounds to 2
-        # decimals, 23.98 for 24000/1001) and the frame count, which may include frames an
-        # edit list leaves out (a clip cut without re-encoding): the smaller of the two.
-        fps = announced.fps
-        if announced.frames:
-            count = min(announced.frames, count) if count else announced.frames
-    if tail.damage and _policy["strict"]:  # known before any work: refuse at once
-        said = f"; the container announces {count} frames" if count else ""
-        raise BadInput(f"{p}: truncated or damaged video ({tail.damage}{said}); --strict refuses it")
-    return VideoInfo(str(p), size, size, fps, count, duration, tail.rotation, meta.get("audio_codec"),
-                     damage=tail.damage)
+    if average_is_real and video.frames > 0:
+        # The container's own count (exact in mp4/mov/avi) may include frames an edit list
+        # leaves out (a clip cut without re-encoding): the smaller of the two.
+        count = min(video.frames, count) if count else video.frames
+    damage = _damage_at_the_end(container, video, start + duration, fps) if duration > 0 else None
+    others = tuple(_stream_meta(s) for s in container.streams if s.index != video.index)
+    audio = next((s.codec for s in others if s.kind == "audio"), None)
+    return VideoInfo(str(p), size, size, fps, count, duration, rotation, audio, damage=damage,
+                     stream_index=video.index, streams=others)
 
 
-@dataclass(frozen=True)
-class ContainerCount:
-    """What the container itself says of its video stream."""
-
-    frames: int | None  # the frame count it announces (exact in mp4/mov/avi; else from the duration)
-    fps: float | None  # the average frame rate, unrounded
-
-
-def container_frames(path: str | Path) -> ContainerCount:
-    """The video stream's announced frame count and exact average rate (OpenCV's FFmpeg
-    backend reads them from the stream header; ffmpeg's log prints rounded figures only)."""
-    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+def audio_codec_of(path: str | Path) -> str | None:
+    """The codec of the first audio stream of any media file (a sound file too); None when it
+    has none or libav cannot open it."""
     try:
-        if not capture.isOpened():
-            return ContainerCount(None, None)
-        frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        fps = float(capture.get(cv2.CAP_PROP_FPS))
+        with av.open(str(path), metadata_errors="replace") as container:
+            return next((s.codec_context.name for s in container.streams.audio if s.codec_context is not None), None)
+    except (av.error.FFmpegError, OSError, ValueError):
+        return None
+
+
+def _main_video_stream(container):
+    """The video stream ffmpeg would pick: the largest picture, cover art (attached pictures) last."""
+    streams = [s for s in container.streams.video if s.codec_context is not None]
+    if not streams:
+        return None
+
+    def score(s) -> tuple:
+        cover = bool(s.disposition & av.stream.Disposition.attached_pic)
+        return (not cover, (s.codec_context.width or 0) * (s.codec_context.height or 0), -s.index)
+
+    return max(streams, key=score)
+
+
+def _frame_rate(video) -> tuple[float, bool]:
+    """(the rate to play at, whether it is the average rate): the average rate, unless it is
+    far from the stream's base rate, which is then a muxing artefact (h264 copied into avi
+    averages 600 fps at a 30 fps base rate)."""
+    average = float(video.average_rate) if video.average_rate else 0.0
+    base = float(video.base_rate) if video.base_rate else 0.0
+    if average and (not base or 0.5 < average / base < 2.0):
+        return average, True
+    return (base or DEFAULT_FOLDER_FPS), False
+
+
+@contextlib.contextmanager
+def _libav_log() -> Iterator[list]:
+    """libav's warnings and errors meanwhile, as (level, context, message) tuples, instead of
+    nowhere (PyAV's default) and instead of Python's logging (which would print them)."""
+    level, repeated = av.logging.get_level(), av.logging.get_skip_repeated()
+    try:
+        with av.logging.Capture(local=False) as logs:
+            av.logging.set_skip_repeated(False)
+            av.logging.set_level(av.logging.WARNING)
+            yield logs
     finally:
-        capture.release()
-    return ContainerCount(frames if frames > 0 else None, fps if fps > 0 else None)
+        av.logging.set_level(level)
+        av.logging.set_skip_repeated(repeated)
+
+
+def _complaint(logs: list, error: Exception | None, signs: Sequence[str] = ()) -> str | None:
+    """The first logged line that says what went wrong (one with a damage sign when ``signs``),
+    else the error raised."""
+    for _, _, message in logs:
+        text = message.strip()
+        if text and (not signs or any(sign in text.lower() for sign in signs)):
+            return text
+    if error is not None:
+        return getattr(error, "strerror", None) or str(error)
+    return None
+
+
+def _first_frame(container, video):
+    """(the first decodable frame or None, libav's complaint when there is none)."""
+    error: Exception | None = None
+    with _libav_log() as logs:
+        try:
+            for frame in container.decode(video):
+                return frame, None
+        except av.error.FFmpegError as exc:
+            error = exc
+    return None, _complaint(logs, error)
+
+
+def _damage_at_the_end(container, video, end: float, fps: float) -> str | None:
+    """libav's complaint when no frame decodes in the last :data:`TAIL_SECONDS` the container
+    announces (cheap: a seek there, then at most a keyframe interval decoded); None when one does."""
+    target = end - TAIL_SECONDS
+    error: Exception | None = None
+    with _libav_log() as logs:
+        try:
+            if target > 0 and video.time_base:
+                container.seek(int(target / video.time_base), stream=video, backward=True)
+            else:
+                container.seek(0)
+            for frame in container.decode(video):
+                if frame.time is None or frame.time >= target - 0.5 / fps:
+                    return None
+        except av.error.FFmpegError as exc:
+            error = exc
+    # No frame there and no complaint: the container's duration is another stream's (a longer audio track).
+    return _complaint(logs, error, DAMAGE_SIGNS)
+
+
+def _stream_meta(stream) -> StreamMeta:
+    context = stream.codec_context  # (none for a data stream, whose codec only has a name)
+    codec = (context.name if context is not None else None) or getattr(stream, "name", None) or "none"
+    tag = getattr(stream, "codec_tag", "") or ""
+    return StreamMeta(stream.index, stream.type, codec, tag.strip("\x00"))
+
+
+# --- Decoding: the bundled ffmpeg on a pipe --------------------------------------------------
+
+_PIX_FMT = {"rgb": "rgb24", "gray": "gray", "yuv420p": "yuv420p"}
+
+
+def frame_shape(pixels: str, size: tuple[int, int]) -> tuple[int, ...]:
+    """The array shape of one frame of ``size`` (w, h): gray (h, w), rgb (h, w, 3), yuv420p
+    the three planes one after the other, (h * 3 // 2, w)."""
+    w, h = size
+    return {"gray": (h, w), "rgb": (h, w, 3), "yuv420p": (h * 3 // 2, w)}[pixels]
+
+
+class Decoder:
+    """One ffmpeg process decoding a file's video stream to raw frames on its standard output.
+
+    Iterate for the frames (each a new writable array); :attr:`error` then holds ffmpeg's first
+    complaint, if it made one.  Close (or use as a context manager) to stop it early."""
+
+    def __init__(self, info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None,
+                 select: str | None = None, seek: float | None = None, frames: int | None = None):
+        if pixels not in PIXELS:
+            raise ValueError(f"pixels must be one of {', '.join(PIXELS)}, got {pixels}")
+        self.size = size or info.source_size
+        if pixels == "yuv420p" and (self.size != info.source_size or self.size[0] % 2 or self.size[1] % 2):
+            raise ValueError(f"yuv420p frames are read at the source size, even only; got {self.size}")
+        self.shape = frame_shape(pixels, self.size)
+        self.error: str | None = None
+        cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error"]
+        if seek is not None:
+            cmd += ["-ss", f"{seek:.4f}"]
+        stream = f"0:{info.stream_index}" if info.stream_index is not None else "0:v:0"
+        cmd += ["-i", info.path, "-map", stream]
+        filters = [select] if select else []
+        if self.size != info.source_size:
+            filters.append(f"scale={self.size[0]}:{self.size[1]}:flags=area")
+        if filters:
+            cmd += ["-vf", ",".join(filters)]
+        if frames is not None:
+            cmd += ["-frames:v", str(int(frames))]
+        # Every decoded frame exactly once: ffmpeg's default for a pipe would resample a
+        # variable frame rate to a constant one, duplicating and dropping frames.
+        cmd += ["-fps_mode", "passthrough", "-f", "rawvideo", "-pix_fmt", _PIX_FMT[pixels], "pipe:1"]
+        self._log = tempfile.TemporaryFile()  # ffmpeg's complaints
+        try:
+            # Its own session: the terminal's Ctrl-C reaches mosaic alone, which then stops it.
+            self._proc: subprocess.Popen | None = subprocess.Popen(
+                cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._log, start_new_session=True, bufsize=0)
+        except OSError as exc:
+            self._log.close()
+            raise BadInput(f"{info.path}: cannot start ffmpeg ({exc.strerror})") from None
+        _widen_pipe(self._proc.stdout, int(np.prod(self.shape)))
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        assert self._proc is not None and self._proc.stdout is not None
+        pipe = self._proc.stdout
+        nbytes = int(np.prod(self.shape))
+        got = 0
+        while True:
+            frame = np.empty(self.shape, np.uint8)
+            view = memoryview(frame.reshape(-1))
+            got = 0
+            while got < nbytes:
+                n = pipe.readinto(view[got:])
+                if not n:
+                    break
+                got += n
+            if got < nbytes:
+                break
+            yield frame
+        status = self._proc.wait()
+        self._log.seek(0)
+        lines = [re.sub(r"^(\[[^]]*\] ?)+", "", ln).strip() for ln in self._log.read().decode("utf-8", "replace").splitlines()]
+        lines = [ln for ln in lines if ln]
+        if lines:
+            self.error = lines[0]
+        elif status != 0:
+            self.error = f"ffmpeg exited with status {status}"
+        elif got:
+            self.error = "the last frame ends early"
+
+    def close(self) -> None:
+        if self._proc is not None:
+            if self._proc.poll() is None:
+                with contextlib.suppress(OSError):
+                    self._proc.kill()
+            self._proc.wait()
+            if self._proc.stdout is not None:
+                self._proc.stdout.close()
+            self._proc = None
+        self._log.close()
+
+    def __enter__(self) -> "Decoder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _widen_pipe(pipe, frame_bytes: int) -> None:
+    """A pipe buffer of a whole frame where Linux allows it (up to /proc/sys/fs/pipe-max-size,
+    1 MiB by default) rather than 64 KiB: ffmpeg then hands over a 720p gray frame in one write
+    instead of 15, each a wait for the reader to be scheduled on a busy machine."""
+    setpipe = getattr(fcntl, "F_SETPIPE_SZ", None)
+    if setpipe is None or pipe is None:
+        return
+    try:
+        limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+    except (OSError, ValueError):
+        limit = 1 << 20
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(pipe.fileno(), setpipe, min(max(frame_bytes, 1 << 16), limit))
 
 
 def open_video(
@@ -257,38 +443,57 @@ def open_video(
     gray: bool = False,
     fps: float | None = None,
     start: int = 0,
+    *,
+    yuv420p: bool = False,
+    info: VideoInfo | None = None,
 ) -> VideoStream:
     """Open ``path`` (a video file or a folder of numbered images) as a stream of frames.
 
     ``width`` downscales inside the decoder (aspect kept); ``gray`` yields (h, w) uint8 frames
-    instead of RGB; ``fps`` overrides the frame rate of an image folder; ``start`` skips frames.
+    instead of RGB; ``yuv420p`` (video files of even size, no ``width``) the planes as ffmpeg
+    decodes them, (h * 3 // 2, w), with no conversion; ``fps`` overrides the frame rate of an
+    image folder; ``start`` skips frames.  ``info``: the file's :func:`probe`, when the caller
+    has it (else it is probed here).
     """
     p = Path(path)
     if p.is_dir():
+        if yuv420p:
+            raise ValueError("yuv420p frames are read from video files only")
         stream = _open_folder(p, width, fps, gray)
         if start:
             stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
         return stream
-    info = probe(p)
-    size = scaled_size(info.source_size, width)
+    if info is None:
+        info = probe(p)
+    else:
+        refuse_damaged(info)  # probed before the command's --strict took effect
+    pixels = "yuv420p" if yuv420p else "gray" if gray else "rgb"
+    size = scaled_size(info.source_size, width)  # (yuv420p: the Decoder refuses a downscale)
     info = replace(info, size=size)
-    try:
-        gen, shape = _ffmpeg_frames(str(p), size, info.source_size, gray, start)
-    except (OSError, RuntimeError, StopIteration) as exc:
-        raise BadInput(f"{p}: not a video ffmpeg can read") from exc
+    decoder = Decoder(info, pixels, size, select=f"select=gte(n\\,{int(start)})" if start else None)
 
     def frames() -> Iterator[np.ndarray]:
-        try:
-            for raw in gen:
-                yield np.frombuffer(raw, dtype=np.uint8).reshape(shape)
-        except RuntimeError as exc:
-            # A truncated stream: ffmpeg delivered what it could decode; stop there (and say so).
-            stream.decode_error = str(exc).strip().splitlines()[-1] if str(exc).strip() else "decoder error"
-            return
+        yield from decoder
+        stream.decode_error = decoder.error
 
-    stream = VideoStream(info, frames(), gen.close)
+    stream = VideoStream(info, frames(), decoder.close)
     stream.frames_skipped = int(start)  # (a start past the end reads no frame, and says so)
     return stream
+
+
+def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None) -> list[np.ndarray]:
+    """The RGB frames of ``indices`` (sorted), in one decoder pass that converts and pipes only
+    those (ffmpeg's select filter); fewer when the file ends first."""
+    picks = "+".join(f"eq(n\\,{int(k)})" for k in indices)
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'") as decoder:
+        return list(decoder)
+
+
+def frame_at(info: VideoInfo, seconds: float, width: int | None = None) -> np.ndarray | None:
+    """The first RGB frame at or after ``seconds`` (ffmpeg seeks to the keyframe before it and
+    decodes from there), None when there is none."""
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), seek=seconds, frames=1) as decoder:
+        return next(iter(decoder), None)
 
 
 # --- Frames missing at the end: decoded fewer than the container announced -------------------

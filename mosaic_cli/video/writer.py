@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import subprocess
 import tempfile
 from fractions import Fraction
@@ -15,11 +14,11 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.video.reader import VideoInfo, audio_codec_of
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 # Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
 MP4_AUDIO = {"aac", "mp3", "ac3", "eac3", "alac"}
-AUDIO_STREAM = re.compile(r"Stream #\S+.*?: Audio: (\w+)")
 
 
 def even_size(size: tuple[int, int]) -> tuple[int, int]:
@@ -27,22 +26,12 @@ def even_size(size: tuple[int, int]) -> tuple[int, int]:
     return (size[0] + size[0] % 2, size[1] + size[1] % 2)
 
 
-def audio_stream_codec(path: str | os.PathLike) -> str | None:
-    """The codec of the first audio stream of ``path`` (None when it has none or is unreadable)."""
-    try:
-        run = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-i", str(path)],
-                             capture_output=True, timeout=60)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    match = AUDIO_STREAM.search(run.stderr.decode("utf-8", "replace"))
-    return match.group(1) if match else None
-
-
 class VideoWriter:
     """Write RGB uint8 frames (h, w, 3) to an H.264 yuv420p file.
 
-    With ``audio_from``, the first audio stream of that file is carried (cut after
-    ``audio_seconds`` when given); the video keeps every frame written whatever the audio's length.
+    With ``audio_from`` (a video's :func:`~mosaic_cli.video.reader.probe`, or the path of
+    any media file), the first audio stream of that file is carried (cut after ``audio_seconds``
+    when given); the video keeps every frame written whatever the audio's length.
 
     The file appears under its final name only after :meth:`close` succeeds; :meth:`abort`
     (or an exception inside a ``with`` block) removes the partial file.
@@ -55,7 +44,7 @@ class VideoWriter:
         fps: float,
         crf: int = 18,
         preset: str = "medium",
-        audio_from: str | os.PathLike | None = None,
+        audio_from: VideoInfo | str | os.PathLike | None = None,
         audio_codec: str | None = None,
         pix_fmt_in: str = "rgb24",
         audio_seconds: float | None = None,
@@ -78,7 +67,10 @@ class VideoWriter:
         self._tmp: Path | None = None
         self._encoder: subprocess.Popen | None = None
         self._log = None
-        source_audio = audio_stream_codec(audio_from) if audio_from is not None else None
+        if isinstance(audio_from, VideoInfo):
+            source_audio, audio_from = audio_from.audio_codec, audio_from.path
+        else:
+            source_audio = audio_codec_of(audio_from) if audio_from is not None else None
         audio = None if source_audio is None else (str(audio_from), audio_codec or self._audio_codec_for(source_audio))
         if audio_seconds is not None and audio_seconds <= 0:
             raise ValueError(f"audio_seconds must be positive, got {audio_seconds}")
