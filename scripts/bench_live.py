@@ -195,30 +195,117 @@ def bench_stabilize(args) -> list[dict]:
         options = StabilizeOptions(estimator=args.estimator)
         port, out_port = free_port(), free_port()
         url = f"tcp://127.0.0.1:{port}?listen=1"
-        received = WORKDIR / "received.ts"
-        receiver = subprocess.Popen([FFMPEG, "-v", "error", "-y", "-timeout", "20000000", "-i", f"udp://127.0.0.1:{out_port}",
-                                     "-c", "copy", str(received)])
+        received, left = WORKDIR / "received.ts", WORKDIR / "received_times.npy"
+        receiver = subprocess.Popen([sys.executable, __file__, "receive", "--port", str(out_port), "--ts", str(received),
+                                     "--times", str(left)])
         holder: dict = {}
         threading.Thread(target=lambda port=port, holder=holder, video=video, url=url: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
                          daemon=True).start()
-        live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, latency=1.0, show_progress=False)
+        loads = [os.getloadavg()[0]]
+        # --hog N: N busy processes at mosaic's own priority for the whole run, a loaded machine
+        # on demand (on top of whatever else runs).
+        hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hog)]
+        try:
+            live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, latency=args.latency, show_progress=False)
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        loads.append(os.getloadavg()[0])
         receiver.wait()
         count = _count_frames(received)
+        out_times = np.load(left)
+        timeline = live.timeline
+        arrived = timeline.times("arrived")
+        n = min(len(arrived), len(out_times))
+        leave = out_times[:n] - arrived[:n]
         offline = stabilize(video, WORKDIR / "offline.mp4", options, show_progress=False)
         shaky = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps)
         j_live = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, live.warps)
         j_off = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, offline.warps)
         row = {"clip": video.name, "estimator": args.estimator, "frames in": live.frames_in, "frames out": live.frames_out,
-               "frames received": count, "latency": percentiles(live.latencies), "latency p95": live.latency(95),
+               "frames received": count, "encoded frames timed": n, "latency to encoder": percentiles(live.latencies),
+               "latency to encoded output": percentiles(leave), "latency p95": float(np.percentile(leave, 95)),
                "jitter input": shaky, "jitter live": j_live, "jitter offline": j_off, "ratio": j_live / j_off,
+               "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "breakdown": breakdown(live, out_times),
                "load": load_note()}
         rows.append(row)
-        print(f"stabilize --latency 1 ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
-              f"{count} received over UDP; latency arrival -> encoder {row['latency']}; residual jitter live "
-              f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; {row['load']}",
-              flush=True)
-    print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} --clips {args.clips}")
+        print(f"stabilize --latency {args.latency:g} ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
+              f"{count} received over UDP; latency arrival -> encoded output received {row['latency to encoded output']} "
+              f"(arrival -> hand-over to the encoder {row['latency to encoder']}); residual jitter live "
+              f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; load average "
+              f"{row['load during']} (start -> end of the live run) on {os.cpu_count()} cores", flush=True)
+        for line in row["breakdown"]:
+            print("   ", line)
+    print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
+          f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
+          + (f" --hog {args.hog}" if args.hog else ""))
     return rows
+
+
+def breakdown(live, out_times: np.ndarray) -> list[str]:
+    """Where the time went, stage by stage (p50 / p95 / max of each wait), and CPU per frame."""
+    timeline = live.timeline
+    lines = []
+    stages = list(timeline.stages)
+    times = {stage: timeline.times(stage) for stage in stages}
+    times["encoded"] = out_times
+    order = stages + ["encoded"]
+    for first, then in zip(order, order[1:]):
+        a, b = times[first], times[then]
+        n = min(len(a), len(b))
+        if n:
+            w = 1000 * (b[:n] - a[:n])
+            lines.append(f"{first:>9} -> {then:<9} p50 {np.percentile(w, 50):7.1f} ms  p95 {np.percentile(w, 95):7.1f} ms  "
+                         f"max {w.max():7.1f} ms")
+    lines.append(f"solves {live.solves} ({live.stale} stale), frames settled at their deadline {live.late} "
+                 f"({live.held} beyond the plan), shortest lookahead {live.lookahead_min} of {live.horizon.lookahead}")
+    frames = max(live.frames_in, 1)
+    cpu = ", ".join(f"{job} {1000 * seconds / frames:.1f} ms" for job, seconds in timeline.cpu.items())
+    lines.append(f"CPU a frame (this process's threads): {cpu}")
+    for job, count in timeline.counts.items():
+        if job.startswith("solve"):
+            lines.append(f"{job}: {count} solves, {1000 * timeline.cpu[job] / max(count, 1):.1f} ms each")
+    if timeline.gc_pauses:
+        g = 1000 * np.array(timeline.gc_pauses)
+        lines.append(f"GC: {len(g)} collections, p95 {np.percentile(g, 95):.1f} ms, max {g.max():.1f} ms")
+    return lines
+
+
+def receive(args) -> None:
+    """Receive MPEG-TS over UDP; save it, and the time.monotonic() at which each encoded video
+    frame (one PES packet) had fully arrived: its last datagram."""
+    import select
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 * 2**20)
+    sock.bind(("127.0.0.1", args.port))
+    times: list[float] = []
+    started = False
+    with open(args.ts, "wb") as out:
+        while True:
+            ready, _, _ = select.select([sock], [], [], 20.0 if not started else 5.0)
+            if not ready:
+                break
+            data = sock.recv(65536)
+            now = time.monotonic()
+            started = True
+            out.write(data)
+            for i in range(0, len(data) - 187, 188):
+                packet = data[i:i + 188]
+                if packet[0] != 0x47:
+                    continue
+                start = bool(packet[1] & 0x40)
+                adaptation = (packet[3] >> 4) & 3
+                payload = 4 + (1 + packet[4] if adaptation & 2 else 0)
+                video_start = start and packet[payload:payload + 3] == b"\x00\x00\x01" and 0xE0 <= packet[payload + 3] <= 0xEF
+                pid = ((packet[1] & 0x1F) << 8) | packet[2]
+                if video_start:
+                    times.append(now)
+                    video_pid = pid
+                elif times and pid == video_pid:
+                    times[-1] = now
+    np.save(args.times, np.array(times))
 
 
 def _count_frames(video: Path) -> int:
@@ -318,7 +405,12 @@ def bench_horizon(args) -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon"])
+    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "receive"])
+    parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
+    parser.add_argument("--hog", type=int, default=0, help="stabilize: busy processes at the same priority during the run")
+    parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--ts", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--times", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--size", default="1280x720", help="horizon: the flight's size")
     parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
@@ -326,6 +418,9 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
     args = parser.parse_args()
+    if args.what == "receive":  # the stabilize benchmark's receiver, in a process of its own
+        receive(args)
+        return
     WORKDIR.mkdir(parents=True, exist_ok=True)
     defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600}
     args.frames = args.frames or defaults[args.what]

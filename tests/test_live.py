@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -235,6 +236,34 @@ def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
     assert proc.stdout[0] == 0x47 and proc.stdout[188] == 0x47  # MPEG-TS sync bytes
     (tmp_path / "out.ts").write_bytes(proc.stdout)
     assert count_frames(tmp_path / "out.ts") == FRAMES
+
+
+def test_a_solver_slower_than_the_latency_holds_no_frame_back_and_drops_none(tmp_path, flight, monkeypatch):
+    """Every solve of the path takes longer than the whole budget (fault injected): the frames
+    leave at their deadline on the path planned so far, every one of them."""
+    from mosaic_cli.live.stabilize import stabilize_live
+    from mosaic_cli.stabilize import StabilizeOptions
+    from mosaic_cli.stabilize.online import OnlineL1Path
+
+    solve = OnlineL1Path.solve
+
+    def slow(self, window):
+        time.sleep(1.5)
+        return solve(self, window)
+
+    monkeypatch.setattr(OnlineL1Path, "solve", slow)
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
+                              daemon=True)
+    sender.start()
+    out = tmp_path / "steady.mp4"
+    result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(out), StabilizeOptions(estimator="orb"), latency=1.0,
+                            show_progress=False)
+    sender.join(RUN_LIMIT)
+    assert result.frames_in == result.frames_out == len(result.warps) == FRAMES
+    assert count_frames(out) == FRAMES
+    assert result.late >= 1 and result.notes and "left at their deadline" in result.notes[-1]
 
 
 def test_online_path_waits_at_most_its_horizon_and_equals_the_offline_path_when_it_sees_everything():
