@@ -7,11 +7,15 @@ machine; say how loaded it was beside it.
 
     python scripts/bench_live.py track      [--estimator lstm] [--frames 600]
         lag of each JSON Lines pair (seen in the file) behind the frame's due arrival time
-    python scripts/bench_live.py stitch     [--estimator lstm] [--frames 900]
-        scan backlog when the stream ends, preview cost, placement error of the final panorama
-    python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2]
-        frames in / out (counted by a receiving ffmpeg), latency p50/p95/max, residual jitter
-        against the offline L1 path on the same frames (ground truth from simulate -p shaky)
+    python scripts/bench_live.py stitch     [--estimator lstm] [--frames 900] [--no-preview] [--hog N]
+        scan lag of each frame behind the sender, backlog when the stream ends, preview cost,
+        placement error of the final panorama
+    python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2] [--latency 1] [--hog N]
+        frames in / out / received, latency p50/p95/max from arrival off the decoder to the
+        encoded frame's last UDP datagram received (and to the hand-over to the encoder), the
+        time of each stage, residual jitter against the offline L1 path on the same frames
+        (ground truth from simulate -p shaky)
+    --hog N runs N busy processes at the benchmark's priority during the run: a loaded machine
     python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
         the online path over an offline track against the offline L1 path of that track, for
         several horizons and predicted tails (how the defaults were chosen)
@@ -136,6 +140,7 @@ def bench_track(args) -> dict:
 def bench_stitch(args) -> dict:
     from bench_stitch import placement_errors
 
+    import mosaic_cli.stitch.live as live_stitch
     from mosaic_cli.stitch import StitchOptions
     from mosaic_cli.stitch.live import PreviewOptions, stitch_live
 
@@ -144,12 +149,24 @@ def bench_stitch(args) -> dict:
     port = free_port()
     url = f"tcp://127.0.0.1:{port}?listen=1"
     result: dict = {}
+    preview = None if args.no_preview else PreviewOptions(WORKDIR / "live_preview.png", args.every)
+
+    # When the scan was done with each frame (its progress call), however stitch_live is built.
+    scanned: list[float] = []
+    scan_flight = live_stitch.scan_flight
+
+    def timed_scan(frames, estimator, scanner, advance):
+        def timed(n=1, status=None):
+            scanned.extend([time.monotonic()] * n)
+            advance(n, status=status)
+        return scan_flight(frames, estimator, scanner, timed)
+
+    live_stitch.scan_flight = timed_scan  # type: ignore[assignment]
 
     def run() -> None:
         estimator = make_estimator(args.estimator)
         result["r"] = stitch_live(url, WORKDIR / "live_pano.png", estimator, StitchOptions(),
-                                  transforms=WORKDIR / "live_pano.json",
-                                  preview=PreviewOptions(WORKDIR / "live_preview.png", 2.0), show_progress=False)
+                                  transforms=WORKDIR / "live_pano.json", preview=preview, show_progress=False)
 
     # Stitching runs in this process's main thread (it installs its stop handlers there); the
     # sender starts once the socket listens.
@@ -158,26 +175,38 @@ def bench_stitch(args) -> dict:
         result["sender"] = Sender(video, url.split("?")[0])
 
     threading.Thread(target=start_sender, daemon=True).start()
-    clock = time.monotonic()
-    run()
-    finished = time.monotonic()
+    loads = [os.getloadavg()[0]]
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hog)]
+    try:
+        run()
+        finished = time.monotonic()
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    loads.append(os.getloadavg()[0])
     r, sender = result["r"], result["sender"]
     while sender.ended is None:
         time.sleep(0.05)
-    scan_end = clock + r.seconds["scan"]
-    last_due = sender.started + args.frames / 30.0  # -re with no initial burst: frame k leaves at k / fps
+    # Lag of each frame: done by the scan, behind the time the sender was due to send it (-re
+    # with no initial burst: frame k leaves at k / fps).
+    lag = np.array(scanned) - (sender.started + (np.arange(len(scanned)) + 1) / 30.0)
     indices = [i for i, _ in r.transforms]
     errors = placement_errors(indices, [H for _, H in r.transforms], gt.map_to_frame, gt.size)
     row = {"estimator": args.estimator, "frames in": args.frames, "frames scanned": r.frames, "keyframes": len(indices),
-           "scan backlog at stream end s": scan_end - last_due, "final stages s": finished - scan_end,
+           "scan lag": percentiles(lag), "scan lag p95": float(np.percentile(lag, 95)),
+           "scan backlog at stream end s": float(lag[-1]), "final stages s": finished - scanned[-1],
            "previews": r.previews, "preview s each": r.preview_seconds / max(r.previews, 1),
-           "median placement error px": float(np.median(errors)) if len(errors) else None, "load": load_note()}
+           "median placement error px": float(np.median(errors)) if len(errors) else None,
+           "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "load": load_note()}
     print(f"stitch --live ({args.estimator}) 1280x720 30 fps survey over TCP: {r.frames}/{args.frames} frames, "
-          f"{len(indices)} keyframes; scan done {row['scan backlog at stream end s']:.2f} s after the last frame was due, "
-          f"final stages {row['final stages s']:.1f} s; {r.previews} previews at {row['preview s each']:.3f} s each; "
-          f"median placement error {row['median placement error px']:.2f} px over {len(errors)} pairs; {row['load']}",
-          flush=True)
-    print(f"  reproduce: python scripts/bench_live.py stitch --estimator {args.estimator} --frames {args.frames}")
+          f"{len(indices)} keyframes; scan lag behind the sender {row['scan lag']}; scan done "
+          f"{row['scan backlog at stream end s']:.2f} s after the last frame was due, final stages "
+          f"{row['final stages s']:.1f} s; {r.previews} previews at {row['preview s each']:.3f} s each; "
+          f"median placement error {row['median placement error px']:.2f} px over {len(errors)} pairs; load average "
+          f"{row['load during']} (start -> end of the run) on {os.cpu_count()} cores", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py stitch --estimator {args.estimator} --frames {args.frames}"
+          + (" --no-preview" if args.no_preview else f" --every {args.every:g}") + (f" --hog {args.hog}" if args.hog else ""))
     return row
 
 
@@ -407,6 +436,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "receive"])
     parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
+    parser.add_argument("--no-preview", action="store_true", help="stitch: no --preview")
+    parser.add_argument("--every", type=float, default=2.0, help="stitch: seconds between previews")
     parser.add_argument("--hog", type=int, default=0, help="stabilize: busy processes at the same priority during the run")
     parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--ts", type=Path, help=argparse.SUPPRESS)
