@@ -53,7 +53,7 @@ def solve(s: LiveSchedule, job) -> np.ndarray:
 def take_ready(s: LiveSchedule) -> list:
     """The frames the renderer may take now (settled, or due by the clock), without waiting."""
     taken = []
-    while s._frames and (s._frames[0].warp is not None or (s.realtime and s.clock() >= s.deadline(s._frames[0].arrived))):
+    while s._frames and (s._frames[0].warp is not None or (s.realtime and s.clock() >= s.deadline(s._frames[0]))):
         taken.append(s.next_frame())
     return taken
 
@@ -73,7 +73,7 @@ def test_a_late_solve_leaves_frames_on_the_last_plan_and_drops_none():
 
     arrive(s, clock, pairwise, range(30, 40))
     late_job = s.next_window()  # posed now, and its solve comes back too late:
-    clock.now = s.deadline(s._frames[0].arrived)  # the next frame's deadline has come
+    clock.now = s.deadline(s._frames[0])  # the next frame's deadline has come
     forced = take_ready(s)
     assert s.late >= 1 and len(forced) == s.late
     # Those frames left with the views of the last plan, its predicted frames included.

@@ -10,15 +10,17 @@ Stages, each in a thread of its own, with the shared state in a :class:`LiveSche
 4. render   warp each settled frame and hand it to the encoder: a file (atomic, at the end),
             standard output or a URL (MPEG-TS, :mod:`.output`).
 
-**Deadlines** (live sources).  A frame is due at the encoder ``latency`` seconds after it
-arrived, less a reserve for warping and encoding (what they took lately).  A frame that is not
-settled by then, because a solve or the tracker ran late, leaves with the best path known: the
-last plan's view of it, predicted frames included, or past that plan's end the last settled
+**Deadlines** (live sources).  A frame is due at the encoder ``latency`` seconds after it was
+taken off the decoder's queue (when it arrived, unless mosaic is behind the stream), less a
+reserve for warping and encoding (what they took lately).  A frame that is not settled by then,
+because a solve ran late or the tracker stalled, leaves with the best path known: the last
+plan's view of it, predicted frames included, or past that plan's end the last settled
 transform held.  Warping and encoding therefore never wait for the solver, and no frame is
 dropped.  The lookahead adapts: it shrinks (down to ``MIN_LOOKAHEAD``) while tracking and
-solving take longer, so that frames normally settle before their deadline, and grows back to the
-horizon's when they are quick again.  A file read in one pass has no deadlines: its frames come
-only as fast as they are used.
+solving take longer, so that frames normally settle before their deadline, and grows back to
+the horizon's when they are quick again.  Frames are taken at the tracker's pace (a short
+queue): a stream faster than real time, such as a file piped in, is held back as before rather
+than sent on unsteadied.  A file read in one pass has no deadlines.
 
 Latency is measured per frame from its arrival off the decoder to its hand-over to the encoder;
 :attr:`LiveStabilizeResult.timeline` has every stage's time stamps (scripts/bench_live.py).
@@ -65,6 +67,7 @@ LIVE_CHUNK = 4  # a learned estimator's frame pairs per batch: its answer comes 
 # Kept at the end of every frame's budget for x264 (zerolatency: it holds no frame back) and the
 # muxer, beyond the warping and hand-over that are measured.
 ENCODE_RESERVE = 0.05
+TRACK_QUEUE = 2 * LIVE_CHUNK  # gray images waiting for the tracker: two of a learned estimator's batches
 RECENT = 60  # the adaptive figures are the 90th percentile of this many recent samples
 STAGES = ("arrived", "taken", "estimated", "settled", "render", "handed")
 
@@ -108,7 +111,8 @@ class Recent:
 @dataclass
 class _Frame:
     pixels: np.ndarray
-    arrived: float
+    arrived: float  # off the decoder
+    taken: float  # by the stabiliser: its deadline counts from here
     warp: np.ndarray | None = None
 
 
@@ -136,7 +140,7 @@ class LiveSchedule:
         self.timeline = timeline or Timeline(STAGES)
         self.cond = threading.Condition()
         self._frames: deque[_Frame] = deque()  # frames rendered .. arrived - 1
-        self._untracked: deque[float] = deque()  # arrival times of the frames with no motion yet
+        self._untracked: deque[float] = deque()  # when the frames with no motion yet were taken
         self.arrived = 0
         self.rendered = 0  # frames taken by the renderer
         self.tracked_all = False
@@ -148,7 +152,7 @@ class LiveSchedule:
         self.stale = 0
         self.lookahead_min = path.horizon.lookahead
         self.solve_seconds = Recent()
-        self.track_lag = Recent()  # arrival -> motion known
+        self.track_lag = Recent()  # taken -> motion known
         self.render_seconds = Recent()  # taken by the renderer -> handed to the encoder
 
     # -- decode (the main thread) ---------------------------------------------------------
@@ -156,8 +160,9 @@ class LiveSchedule:
         with self.cond:
             while len(self._frames) >= self.capacity:
                 self._wait()
-            self._frames.append(_Frame(pixels, arrived))
-            self._untracked.append(arrived)
+            taken = self.clock()
+            self._frames.append(_Frame(pixels, arrived, taken))
+            self._untracked.append(taken)
             self.arrived += 1
             self.cond.notify_all()
 
@@ -234,8 +239,8 @@ class LiveSchedule:
         """Seconds kept at the end of a frame's budget: warping and hand-over, then encoding."""
         return self.render_seconds.percentile() + ENCODE_RESERVE
 
-    def deadline(self, arrived: float) -> float:
-        return arrived + self.latency - self.reserve()
+    def deadline(self, frame: _Frame) -> float:
+        return frame.taken + self.latency - self.reserve()
 
     def next_frame(self) -> _Frame | None:
         """The next frame to render, with its warp; None when every frame has been.  A live
@@ -250,7 +255,7 @@ class LiveSchedule:
                     return None
                 if self._frames and self.realtime:
                     now = self.clock()
-                    due = self.deadline(self._frames[0].arrived)
+                    due = self.deadline(self._frames[0])
                     if now >= due:
                         self._settle_late(now)
                         continue
@@ -263,7 +268,7 @@ class LiveSchedule:
         now could end (so that the solve is not stale at once)."""
         ahead = now + self.solve_seconds.percentile() + 1.0 / self.fps
         count = 1  # the next frame to render is the first unsettled one
-        while count < len(self._frames) and self.deadline(self._frames[count].arrived) <= ahead:
+        while count < len(self._frames) and self.deadline(self._frames[count]) <= ahead:
             count += 1
         self.late += count
         self._commit(self.path.settled + count)
@@ -346,9 +351,10 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
         timeline = schedule.timeline
         writer = (StreamWriter(out, size, fps, options.crf, options.preset) if is_stream_output(out)
                   else VideoWriter(out, size, fps, crf=options.crf, preset=options.preset, pix_fmt_in="yuv420p"))
-        # Gray images the tracker has yet to take: it may fall behind the frames, which then
-        # leave at their deadline; bounded like the decoder's queue.
-        inbox: queue.Queue = queue.Queue(maxsize=max(schedule.capacity, QUEUE_BYTES // (gray_size[0] * gray_size[1])))
+        # Gray images the tracker has yet to take: a short queue, so that frames are taken (and
+        # their deadlines start) at the tracker's pace.  A stream faster than real time (a file
+        # piped in) is then held back, as by a slow consumer, rather than leaving unsteadied.
+        inbox: queue.Queue = queue.Queue(maxsize=TRACK_QUEUE)
         latencies: list[float] = []
         start = time.monotonic()
         stages = [threading.Thread(target=_stage, args=(schedule, job), daemon=True, name=f"stabilize-{name}")
