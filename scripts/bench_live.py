@@ -19,6 +19,9 @@ machine; say how loaded it was beside it.
     python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
         the online path over an offline track against the offline L1 path of that track, for
         several horizons and predicted tails (how the defaults were chosen)
+    python scripts/bench_live.py stalls     [--estimator lstm] [--frames 600] [--clips 2] [--recover 0.15]
+        the live schedule on a test clock over an offline track, with solves that stall now and
+        then: residual jitter against the offline L1 path, frames settled at their deadline
     python scripts/bench_live.py memory     [--frames 54000]
         resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
         sent as fast as mosaic takes it), sampled every second
@@ -287,8 +290,9 @@ def breakdown(live, out_times: np.ndarray) -> list[str]:
             w = 1000 * (b[:n] - a[:n])
             lines.append(f"{first:>9} -> {then:<9} p50 {np.percentile(w, 50):7.1f} ms  p95 {np.percentile(w, 95):7.1f} ms  "
                          f"max {w.max():7.1f} ms")
-    lines.append(f"solves {live.solves} ({live.stale} stale), frames settled at their deadline {live.late} "
-                 f"({live.held} beyond the plan), shortest lookahead {live.lookahead_min} of {live.horizon.lookahead}")
+    lines.append(f"solves {live.solves} ({live.rejoined} joined to frames settled meanwhile, {live.stale} unused), frames "
+                 f"settled at their deadline {live.late} ({live.held} past the plan's end), shortest lookahead "
+                 f"{live.lookahead_min} of {live.horizon.lookahead}")
     frames = max(live.frames_in, 1)
     cpu = ", ".join(f"{job} {1000 * seconds / frames:.1f} ms" for job, seconds in timeline.cpu.items())
     lines.append(f"CPU a frame (this process's threads): {cpu}")
@@ -439,9 +443,94 @@ def bench_horizon(args) -> list[dict]:
     return rows
 
 
+# -- stalls -------------------------------------------------------------------------------
+
+def bench_stalls(args) -> list[dict]:
+    """The live schedule on a test clock over an offline track of a shaky flight, with solves
+    that stall now and then: residual jitter against the offline L1 path of the same track.
+    Frames arrive at 30 fps; the tracker answers 4 frames at a time 50 ms after the last; a
+    solve takes 20 ms, or ``stall`` s with probability ``p``; the renderer takes each frame as
+    soon as it is settled or due.  No thread and no real time: the same run every time."""
+    import random
+
+    from mosaic_cli.live.stabilize import LiveSchedule
+    from mosaic_cli.stabilize.crop import output_warps
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import camera_motion, motion_model
+    from mosaic_cli.stabilize.smoothing import L1Smoother
+    from mosaic_cli.track import load_track
+
+    rows = []
+    for seed in range(args.clips):
+        video = flight("shaky", args.frames, size=args.size, seed=seed)
+        track_file = video.with_suffix(f".{args.estimator}.json")
+        if not track_file.exists():
+            subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(track_file), "-e",
+                            args.estimator, "-q"], check=True)
+        track, gt = load_track(track_file), load_ground_truth(video.with_suffix(".gt.json"))
+        size, model, fps, n = gt.size, motion_model("similarity"), 30.0, track.frames
+        offline = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, output_warps(
+            L1Smoother().smooth(camera_motion(track.pairwise, size, model, track.confidence), size, model, None), size))
+        for p, stall in ((0.0, 0.0), (0.03, 0.7), (0.15, 0.3), (0.15, 0.7), (0.05, 1.5)):
+            clock = [0.0]
+            path = OnlineL1Path(model, size, None, Horizon.for_latency(1.0, fps, 3), recover=args.recover)
+            schedule = LiveSchedule(path, size, fps, 1.0, True, 10_000, clock=lambda clock=clock: clock[0])
+            rng = random.Random(1)
+            arrived = tracked = 0
+            solving = None
+            out = 0
+            step = 1 / 600
+            while out < n:
+                now = clock[0]
+                while arrived < n and arrived / fps <= now:
+                    schedule.add_frame(np.zeros((1, 1), np.uint8), now)
+                    arrived += 1
+                while tracked < n:
+                    last = min(n - 1, -(-tracked // 4) * 4)  # the chunk of 4 pairs this frame is in
+                    if arrived <= last or now < last / fps + 0.05:
+                        break
+                    schedule.add_motion(*((None, 1.0) if tracked == 0 else (track.pairwise[tracked - 1],
+                                                                           track.confidence[tracked - 1])))
+                    tracked += 1
+                if tracked == n and not schedule.tracked_all:
+                    schedule.end_motion()
+                if solving is None:
+                    due = (schedule.tracked_all and path.settled < path.frames) or (
+                        path.frames - path.settled >= path.horizon.step + schedule.lookahead())
+                    if due:
+                        job = schedule.next_window()
+                        took = stall if rng.random() < p else 0.02
+                        solving = (job, path.solve(job[0]), now + took, took)
+                elif now >= solving[2]:
+                    (window, final), params, _, took = solving
+                    schedule.solved(window, params, final, took)
+                    solving = None
+                while schedule._frames and (schedule._frames[0].warp is not None
+                                            or now >= schedule.deadline(schedule._frames[0])):
+                    schedule.next_frame()
+                    out += 1
+                if schedule.tracked_all and solving is None and path.settled >= path.frames and schedule._frames:
+                    schedule.next_frame()
+                    out += 1
+                clock[0] += step
+            jitter = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, np.array(schedule.warps))
+            row = {"clip": video.name, "stall probability": p, "stall s": stall, "ratio": jitter / offline,
+                   "late": schedule.late, "past the plan": path.held, "joined": path.rejoined, "unused": schedule.stale}
+            rows.append(row)
+            print(f"{video.name} ({args.estimator}): solves stalling {stall:g} s with probability {p:g}: jitter "
+                  f"{jitter / offline:.2f}x the offline L1 path's ({offline:.3f} px); {schedule.late} of {n} frames settled "
+                  f"at their deadline ({path.held} past the plan's end); {path.rejoined} plans joined, {schedule.stale} "
+                  f"unused", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py stalls --estimator {args.estimator} --frames {args.frames} "
+          f"--clips {args.clips} --recover {args.recover:g}")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "receive"])
+    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "stalls", "receive"])
+    parser.add_argument("--recover", type=float, default=0.15, help="stalls: OnlineL1Path.recover")
     parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
     parser.add_argument("--no-preview", action="store_true", help="stitch: no --preview")
     parser.add_argument("--every", type=float, default=2.0, help="stitch: seconds between previews")
@@ -460,10 +549,10 @@ def main() -> None:
         receive(args)
         return
     WORKDIR.mkdir(parents=True, exist_ok=True)
-    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600}
+    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600, "stalls": 600}
     args.frames = args.frames or defaults[args.what]
     rows = {"track": bench_track, "stitch": bench_stitch, "stabilize": bench_stabilize, "memory": bench_memory,
-            "horizon": bench_horizon}[args.what](args)
+            "horizon": bench_horizon, "stalls": bench_stalls}[args.what](args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str) + "\n")
 

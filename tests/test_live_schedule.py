@@ -81,8 +81,15 @@ def test_a_late_solve_leaves_frames_on_the_last_plan_and_drops_none():
     expected = output_warps(s.path.model.matrices(plan[settled_normally - window.first:][:len(forced)]), SIZE)
     np.testing.assert_allclose([f.warp for f in forced], expected, atol=1e-12)
     out += forced
-    solve(s, late_job)
-    assert s.stale == 1  # its start no longer matches what was settled: not used
+    late_plan = solve(s, late_job)
+    # Its start no longer matches what was settled: it is joined to the last settled frame,
+    # the offset fading out, and it plans what follows.
+    assert s.stale == 0 and s.path.rejoined == 1
+    last = s.path.settled - 1
+    window, _ = late_job
+    np.testing.assert_allclose(s.path._plan[last - window.first], s.path._tail[-1], atol=1e-12)
+    far = last + s.path.rejoin
+    np.testing.assert_allclose(s.path._plan[far - window.first:], late_plan[far - window.first:], atol=1e-12)
 
     # The rest of the stream, then its end: every frame out once, in order.
     arrive(s, clock, pairwise, range(40, n))
@@ -134,3 +141,46 @@ def test_the_lookahead_shrinks_while_tracking_is_slow_and_comes_back():
         s.track_lag.add(0.05)
     assert s.lookahead() == 17
     assert s.reserve() == ENCODE_RESERVE  # nothing rendered yet
+
+
+def test_a_frame_settled_past_the_plans_known_motion_keeps_the_planned_path():
+    """The plan predicted frames N.. with the recent mean motion; they really shook.  Settled
+    from that plan, their views must put the output where the plan's path is (camera @
+    transform), not where its transforms would with the predicted camera."""
+    from mosaic_cli.stabilize.path import fit_model, to_normalized
+
+    n, model = 30, motion_model("similarity")
+    pairwise = shaky_pan(n + 8, seed=5)
+    path = OnlineL1Path(model, SIZE, None, Horizon(step=4, lookahead=10), recover=0.0)
+    for t in range(n):
+        path.push(None if t == 0 else pairwise[t - 1])
+    window = path.pose()
+    plan = path.solve(window)
+    assert path.adopt(window, plan)
+    for t in range(n, n + 6):  # their motion arrives, different from the prediction
+        path.push(pairwise[t - 1])
+    views = path.commit(n + 6)  # frames 0 .. n + 5 (no --crop: the views are the transforms)
+    first = window.first
+    real = np.eye(3)
+    predicted = np.eye(3)
+    for t in range(n, n + 6):
+        real = real @ fit_model(np.linalg.inv(to_normalized(pairwise[t - 1], SIZE)), model)
+        predicted = predicted @ window.motion[t - 1 - first]
+        np.testing.assert_allclose(real @ views[t], predicted @ model.matrices(plan[t - first]), atol=1e-9)
+    assert path.held == 0
+
+
+def test_a_frame_settled_past_the_plans_known_motion_returns_to_the_last_planned_transform():
+    """``recover`` pulls such a frame's transform towards the plan's last known frame's: with
+    1, the transform is that one (the output moves with the camera from there)."""
+    n, model = 30, motion_model("similarity")
+    pairwise = shaky_pan(n + 8, seed=5)
+    path = OnlineL1Path(model, SIZE, None, Horizon(step=4, lookahead=10), recover=1.0)
+    for t in range(n + 6):
+        path.push(None if t == 0 else pairwise[t - 1])
+        if t == n - 1:
+            window = path.pose()
+            plan = path.solve(window)
+            assert path.adopt(window, plan)
+    views = path.commit(n + 6)
+    np.testing.assert_allclose(views[n:], np.repeat(model.matrices(plan[n - 1 - window.first])[None], 6, axis=0), atol=1e-9)

@@ -87,9 +87,10 @@ class LiveStabilizeResult:
     late: int = 0  # frames settled at their deadline, before a window saw their lookahead
     held: int = 0  # of which beyond the last plan: the last settled transform held
     solves: int = 0
-    stale: int = 0  # solves not used: a deadline settled frames while they ran
+    stale: int = 0  # solves not used: frames settled at their deadline went past their end
     lookahead_min: int = 0  # the shortest lookahead the adaptation chose
     timeline: Timeline | None = None
+    rejoined: int = 0  # plans joined to frames settled at their deadline while they were solved
 
     def latency(self, q: float) -> float:
         return float(np.percentile(self.latencies, q)) if len(self.latencies) else 0.0
@@ -190,7 +191,9 @@ class LiveSchedule:
         horizon = self.path.horizon
         if not self.realtime:
             return horizon.lookahead
-        spare = self.latency - self.reserve() - self.track_lag.percentile() - self.solve_seconds.percentile()
+        # The typical times (medians): a stall now and then is the deadlines' business, and
+        # shortening every view's lookahead for it would cost more steadiness than it saves.
+        spare = self.latency - self.reserve() - self.track_lag.percentile(50) - self.solve_seconds.percentile(50)
         frames = math.floor(spare * self.fps) - (horizon.step - 1)
         return max(MIN_LOOKAHEAD, min(horizon.lookahead, frames))
 
@@ -264,11 +267,10 @@ class LiveSchedule:
                     self._wait()
 
     def _settle_late(self, now: float) -> None:
-        """Settle the next frame, whose deadline has come, with those due before a solve started
-        now could end (so that the solve is not stale at once)."""
-        ahead = now + self.solve_seconds.percentile() + 1.0 / self.fps
-        count = 1  # the next frame to render is the first unsettled one
-        while count < len(self._frames) and self.deadline(self._frames[count]) <= ahead:
+        """Settle the frames whose deadline has come from the plan (the next frame to render
+        is the first unsettled one).  A solve under way is joined to them when it ends."""
+        count = 1
+        while count < len(self._frames) and self.deadline(self._frames[count]) <= now:
             count += 1
         self.late += count
         self._commit(self.path.settled + count)
@@ -414,7 +416,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
     return LiveStabilizeResult(frames_in, len(latencies), size, fps, horizon, np.array(latencies),
                                stream.ended_by if live else None, warps_array, time.monotonic() - start, notes,
                                schedule.late, schedule.path.held, schedule.solves, schedule.stale,
-                               schedule.lookahead_min, timeline)
+                               schedule.lookahead_min, timeline, schedule.path.rejoined)
 
 
 _END = object()

@@ -91,18 +91,25 @@ class OnlineL1Path:
     # ahead of the motion (a deadline).
     predicted: int | None = None  # None: as many as the lookahead
     recent: int = 15  # frames whose mean motion is carried on
+    # A frame settled past the plan's known motion (a deadline) follows the planned path, and
+    # its transform returns by this fraction a frame towards the last planned one (see commit).
+    recover: float = 0.15
+    rejoin: int = 10  # frames over which a late plan is joined to the frames settled meanwhile
 
     def __post_init__(self) -> None:
         if self.horizon.step < CARRIED:
             raise ValueError(f"step must be at least {CARRIED}")
         self.frames = 0  # frames pushed
         self.settled = 0  # frames whose view has been committed
-        self.held = 0  # frames committed beyond the plan (or before any): the last transform held
+        self.held = 0  # frames committed past the plan's end, or before any plan
+        self.rejoined = 0  # plans joined to frames settled while they were solved
         self._start = 0  # first frame of the next window
         self._motion: list[np.ndarray] = []  # F_t (t -> t-1) for t > _start
         self._tail: list[np.ndarray] = []  # parameters of the last CARRIED settled frames
         self._plan_first = 0
         self._plan: np.ndarray | None = None  # parameters of frames _plan_first onwards
+        self.plan_frames = 0  # frames the plan knew the motion of (it predicted the rest)
+        self._plan_motion = np.zeros((0, 3, 3))  # the motion it was solved with, predicted included
         self._last_good: np.ndarray | None = None
         self._zoom = zoom_matrix(1.0 if self.crop is None else self.crop)
 
@@ -148,10 +155,24 @@ class OnlineL1Path:
         return _solve_window(window.motion, self.model, window.fixed, self.size, self.crop, self.options)
 
     def adopt(self, window: Window, params: np.ndarray) -> bool:
-        """Make a solved window the plan; False (and nothing changes) when it is stale."""
+        """Make a solved window the plan.  When frames were settled while it was solved (a
+        deadline), it is joined to them: its transforms are moved to meet the last settled
+        one, by an offset that fades out over ``rejoin`` frames (a smooth step, so that the
+        path's speed does not jump either).  False, and nothing changes, when the window ends
+        before the frames settled since."""
+        end = window.first + len(params)
         if window.settled != self.settled:
-            return False
+            last = self.settled - 1
+            if last >= end or not self._tail:
+                return False
+            params = params.copy()
+            offset = self._tail[-1] - params[last - window.first]
+            k = np.arange(end - last)
+            fade = np.where(k < self.rejoin, 0.5 * (1 + np.cos(np.pi * np.minimum(k, self.rejoin) / self.rejoin)), 0.0)
+            params[last - window.first:] += fade[:, None] * offset
+            self.rejoined += 1
         self._plan_first, self._plan = window.first, params
+        self.plan_frames, self._plan_motion = window.frames, window.motion
         return True
 
     @property
@@ -160,14 +181,22 @@ class OnlineL1Path:
         return 0 if self._plan is None else self._plan_first + len(self._plan)
 
     def commit(self, upto: int) -> np.ndarray:
-        """Settle frames up to ``upto`` (exclusive) from the plan: their (n, 3, 3) views."""
-        params = []
+        """Settle frames up to ``upto`` (exclusive) from the plan: their (n, 3, 3) views.
+
+        A frame the plan knew the motion of gets the plan's transform.  Past that (a deadline
+        came first), it follows the plan's *path*, what the output shows, with the camera's
+        real motion where it is known by now (see :meth:`_follow_path`).  Past the plan's end,
+        or before any plan, a frame keeps the last settled transform (or none): the output
+        then moves with the camera."""
+        params: list[np.ndarray] = []
         for t in range(self.settled, upto):
-            if self._plan is not None and self._plan_first <= t < self.planned:
-                p = self._plan[t - self._plan_first]
-            else:  # beyond the plan, or before the first: hold the last settled transform
+            if self._plan is None or not self._plan_first <= t < self.planned:
                 p = self._tail[-1] if self._tail else self.model.identity
                 self.held += 1
+            elif t < self.plan_frames:
+                p = self._plan[t - self._plan_first]
+            else:
+                p = self._follow_path(t, params[-1] if params else self._tail[-1])
             params.append(p)
         if not params:
             return np.zeros((0, 3, 3))
@@ -177,6 +206,30 @@ class OnlineL1Path:
         del self._motion[:start - self._start]
         self._start = start
         return self.model.matrices(np.array(params)) @ self._zoom
+
+    def _follow_path(self, t: int, previous: np.ndarray) -> np.ndarray:
+        """Parameters for frame ``t`` past the plan's known motion, ``previous`` those of
+        frame t - 1.
+
+        The output takes the plan's step from frame t - 1 to t (the path is camera @
+        transform), with the camera's real motion F_t when it is known by now rather than the
+        plan's prediction.  The transform then returns towards the one of the plan's last
+        known frame by ``recover`` a frame, so that the output follows the camera's slow motion
+        where the prediction drifts from it (0.15 left the least jitter in simulated stalls of
+        the solver: docs/live.md)."""
+        assert self._plan is not None
+        first, matrices = self._plan_first, self.model.matrices
+        predicted = self._plan_motion[t - 1 - first]
+        step = np.linalg.inv(matrices(self._plan[t - 1 - first])) @ predicted @ matrices(self._plan[t - first])
+        real = self._motion[t - 1 - self._start] if self._start < t < self.frames else predicted
+        followed = self._parameters(np.linalg.inv(real) @ matrices(previous) @ step)
+        anchor = self._plan[self.plan_frames - 1 - first]
+        return followed + self.recover * (anchor - followed)
+
+    def _parameters(self, M: np.ndarray) -> np.ndarray:
+        """The model's parameters of matrix ``M`` (least squares over its entries)."""
+        basis = self.model.basis.reshape(self.model.n_params, 9).T
+        return np.linalg.lstsq(basis, (M / M[2, 2] - self.model.offset).ravel(), rcond=None)[0]
 
     def settle(self, final: bool = False) -> np.ndarray:
         """(n, 3, 3) views of the frames settled by this call: ``step`` frames for each window
