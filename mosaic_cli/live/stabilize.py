@@ -410,7 +410,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, latency: fl
         write_warps(warps_out, warps_array, size)
     if schedule.late:
         notes.append(f"{schedule.late} of {frames_in} frames left at their deadline on the path planned so far "
-                     f"({schedule.path.held} of them beyond it); tracking or solving ran late")
+                     f"({schedule.path.held} of them past its end, moving with the camera): tracking or solving ran late")
         if show_progress:
             note(notes[-1])
     return LiveStabilizeResult(frames_in, len(latencies), size, fps, horizon, np.array(latencies),

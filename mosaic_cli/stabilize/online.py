@@ -7,7 +7,8 @@ solve settles the next ``step`` frames, planned with ``lookahead`` more frames o
 view whose transforms stay free (the window's tail is not held to anything), and the next
 window starts from the settled frames' last three transforms.  A frame therefore waits for at
 most ``step + lookahead`` frames after its own arrival before its view is known; memory is the
-window's motions, whatever the length of the stream.
+window's motions, whatever the length of the stream.  A live run may also settle a frame
+sooner, at its deadline, from the plan it has (:meth:`OnlineL1Path.commit`).
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ class Window:
     it while frames keep arriving."""
 
     first: int  # the frame its first transform belongs to
-    settled: int  # frames settled when it was posed: once more are, it is stale
+    settled: int  # frames settled when it was posed (more may be by the time it is solved)
     frames: int  # frames first .. frames - 1 are real; the motion beyond them is predicted
     motion: np.ndarray  # (n - 1, 3, 3) over its n frames, predicted ones included
     fixed: np.ndarray | None  # parameters of the settled frames it starts from
@@ -74,9 +75,9 @@ class OnlineL1Path:
     over the frames so far, :meth:`solve` it (the costly part, with no state touched) and
     :meth:`adopt` the solution as the plan; :meth:`commit` then settles frames from the plan.
     A frame may be committed before any window has seen ``lookahead`` frames beyond it (a
-    deadline): it gets the plan's view, predicted part included, or past the plan's end the
-    last settled transform held.  A window posed before such a commit is stale and not adopted,
-    since its fixed start no longer matches what was settled."""
+    deadline): see :meth:`commit` for the view it gets.  A window posed before such a commit
+    starts from transforms that are no longer the settled ones: :meth:`adopt` joins it to
+    them."""
 
     model: MotionModel
     size: tuple[int, int]
