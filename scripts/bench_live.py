@@ -7,14 +7,21 @@ machine; say how loaded it was beside it.
 
     python scripts/bench_live.py track      [--estimator lstm] [--frames 600]
         lag of each JSON Lines pair (seen in the file) behind the frame's due arrival time
-    python scripts/bench_live.py stitch     [--estimator lstm] [--frames 900]
-        scan backlog when the stream ends, preview cost, placement error of the final panorama
-    python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2]
-        frames in / out (counted by a receiving ffmpeg), latency p50/p95/max, residual jitter
-        against the offline L1 path on the same frames (ground truth from simulate -p shaky)
+    python scripts/bench_live.py stitch     [--estimator lstm] [--frames 900] [--no-preview] [--hog N]
+        scan lag of each frame behind the sender, backlog when the stream ends, preview cost,
+        placement error of the final panorama
+    python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2] [--latency 1] [--hog N]
+        frames in / out / received, latency p50/p95/max from arrival off the decoder to the
+        encoded frame's last UDP datagram received (and to the hand-over to the encoder), the
+        time of each stage, residual jitter against the offline L1 path on the same frames
+        (ground truth from simulate -p shaky)
+    --hog N runs N busy processes at the benchmark's priority during the run: a loaded machine
     python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
         the online path over an offline track against the offline L1 path of that track, for
         several horizons and predicted tails (how the defaults were chosen)
+    python scripts/bench_live.py stalls     [--estimator lstm] [--frames 600] [--clips 2] [--recover 0.15]
+        the live schedule on a test clock over an offline track, with solves that stall now and
+        then: residual jitter against the offline L1 path, frames settled at their deadline
     python scripts/bench_live.py memory     [--frames 54000]
         resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
         sent as fast as mosaic takes it), sampled every second
@@ -136,6 +143,7 @@ def bench_track(args) -> dict:
 def bench_stitch(args) -> dict:
     from bench_stitch import placement_errors
 
+    import mosaic_cli.stitch.live as live_stitch
     from mosaic_cli.stitch import StitchOptions
     from mosaic_cli.stitch.live import PreviewOptions, stitch_live
 
@@ -144,12 +152,24 @@ def bench_stitch(args) -> dict:
     port = free_port()
     url = f"tcp://127.0.0.1:{port}?listen=1"
     result: dict = {}
+    preview = None if args.no_preview else PreviewOptions(WORKDIR / "live_preview.png", args.every)
+
+    # When the scan was done with each frame (its progress call), however stitch_live is built.
+    scanned: list[float] = []
+    scan_flight = live_stitch.scan_flight
+
+    def timed_scan(frames, estimator, scanner, advance):
+        def timed(n=1, status=None):
+            scanned.extend([time.monotonic()] * n)
+            advance(n, status=status)
+        return scan_flight(frames, estimator, scanner, timed)
+
+    live_stitch.scan_flight = timed_scan  # type: ignore[assignment]
 
     def run() -> None:
         estimator = make_estimator(args.estimator)
         result["r"] = stitch_live(url, WORKDIR / "live_pano.png", estimator, StitchOptions(),
-                                  transforms=WORKDIR / "live_pano.json",
-                                  preview=PreviewOptions(WORKDIR / "live_preview.png", 2.0), show_progress=False)
+                                  transforms=WORKDIR / "live_pano.json", preview=preview, show_progress=False)
 
     # Stitching runs in this process's main thread (it installs its stop handlers there); the
     # sender starts once the socket listens.
@@ -158,26 +178,38 @@ def bench_stitch(args) -> dict:
         result["sender"] = Sender(video, url.split("?")[0])
 
     threading.Thread(target=start_sender, daemon=True).start()
-    clock = time.monotonic()
-    run()
-    finished = time.monotonic()
+    loads = [os.getloadavg()[0]]
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hog)]
+    try:
+        run()
+        finished = time.monotonic()
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    loads.append(os.getloadavg()[0])
     r, sender = result["r"], result["sender"]
     while sender.ended is None:
         time.sleep(0.05)
-    scan_end = clock + r.seconds["scan"]
-    last_due = sender.started + args.frames / 30.0  # -re with no initial burst: frame k leaves at k / fps
+    # Lag of each frame: done by the scan, behind the time the sender was due to send it (-re
+    # with no initial burst: frame k leaves at k / fps).
+    lag = np.array(scanned) - (sender.started + (np.arange(len(scanned)) + 1) / 30.0)
     indices = [i for i, _ in r.transforms]
     errors = placement_errors(indices, [H for _, H in r.transforms], gt.map_to_frame, gt.size)
     row = {"estimator": args.estimator, "frames in": args.frames, "frames scanned": r.frames, "keyframes": len(indices),
-           "scan backlog at stream end s": scan_end - last_due, "final stages s": finished - scan_end,
+           "scan lag": percentiles(lag), "scan lag p95": float(np.percentile(lag, 95)),
+           "scan backlog at stream end s": float(lag[-1]), "final stages s": finished - scanned[-1],
            "previews": r.previews, "preview s each": r.preview_seconds / max(r.previews, 1),
-           "median placement error px": float(np.median(errors)) if len(errors) else None, "load": load_note()}
+           "median placement error px": float(np.median(errors)) if len(errors) else None,
+           "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "load": load_note()}
     print(f"stitch --live ({args.estimator}) 1280x720 30 fps survey over TCP: {r.frames}/{args.frames} frames, "
-          f"{len(indices)} keyframes; scan done {row['scan backlog at stream end s']:.2f} s after the last frame was due, "
-          f"final stages {row['final stages s']:.1f} s; {r.previews} previews at {row['preview s each']:.3f} s each; "
-          f"median placement error {row['median placement error px']:.2f} px over {len(errors)} pairs; {row['load']}",
-          flush=True)
-    print(f"  reproduce: python scripts/bench_live.py stitch --estimator {args.estimator} --frames {args.frames}")
+          f"{len(indices)} keyframes; scan lag behind the sender {row['scan lag']}; scan done "
+          f"{row['scan backlog at stream end s']:.2f} s after the last frame was due, final stages "
+          f"{row['final stages s']:.1f} s; {r.previews} previews at {row['preview s each']:.3f} s each; "
+          f"median placement error {row['median placement error px']:.2f} px over {len(errors)} pairs; load average "
+          f"{row['load during']} (start -> end of the run) on {os.cpu_count()} cores", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py stitch --estimator {args.estimator} --frames {args.frames}"
+          + (" --no-preview" if args.no_preview else f" --every {args.every:g}") + (f" --hog {args.hog}" if args.hog else ""))
     return row
 
 
@@ -192,33 +224,121 @@ def bench_stabilize(args) -> list[dict]:
     for seed in range(args.clips):
         video = flight("shaky", args.frames, seed=seed)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
-        options = StabilizeOptions(estimator=args.estimator, latency=1.0)  # the offline run ignores the latency
+        options = StabilizeOptions(estimator=args.estimator, latency=args.latency)  # the offline run ignores the latency
         port, out_port = free_port(), free_port()
         url = f"tcp://127.0.0.1:{port}?listen=1"
-        received = WORKDIR / "received.ts"
-        receiver = subprocess.Popen([FFMPEG, "-v", "error", "-y", "-timeout", "20000000", "-i", f"udp://127.0.0.1:{out_port}",
-                                     "-c", "copy", str(received)])
+        received, left = WORKDIR / "received.ts", WORKDIR / "received_times.npy"
+        receiver = subprocess.Popen([sys.executable, __file__, "receive", "--port", str(out_port), "--ts", str(received),
+                                     "--times", str(left)])
         holder: dict = {}
         threading.Thread(target=lambda port=port, holder=holder, video=video, url=url: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
                          daemon=True).start()
-        live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, show_progress=False)
+        loads = [os.getloadavg()[0]]
+        # --hog N: N busy processes at mosaic's own priority for the whole run, a loaded machine
+        # on demand (on top of whatever else runs).
+        hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hog)]
+        try:
+            live = stabilize_live(url, f"udp://127.0.0.1:{out_port}", options, show_progress=False)
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+        loads.append(os.getloadavg()[0])
         receiver.wait()
         count = _count_frames(received)
+        out_times = np.load(left)
+        timeline = live.timeline
+        arrived = timeline.times("arrived")
+        n = min(len(arrived), len(out_times))
+        leave = out_times[:n] - arrived[:n]
         offline = stabilize(video, WORKDIR / "offline.mp4", options, show_progress=False)
         shaky = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps)
         j_live = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, live.warps)
         j_off = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, offline.warps)
         row = {"clip": video.name, "estimator": args.estimator, "frames in": live.frames_in, "frames out": live.frames_out,
-               "frames received": count, "latency": percentiles(live.latencies), "latency p95": live.latency(95),
+               "frames received": count, "encoded frames timed": n, "latency to encoder": percentiles(live.latencies),
+               "latency to encoded output": percentiles(leave), "latency p95": float(np.percentile(leave, 95)),
                "jitter input": shaky, "jitter live": j_live, "jitter offline": j_off, "ratio": j_live / j_off,
+               "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "breakdown": breakdown(live, out_times),
                "load": load_note()}
         rows.append(row)
-        print(f"stabilize --latency 1 ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
-              f"{count} received over UDP; latency arrival -> encoder {row['latency']}; residual jitter live "
-              f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; {row['load']}",
-              flush=True)
-    print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} --clips {args.clips}")
+        print(f"stabilize --latency {args.latency:g} ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
+              f"{count} received over UDP; latency arrival -> encoded output received {row['latency to encoded output']} "
+              f"(arrival -> hand-over to the encoder {row['latency to encoder']}); residual jitter live "
+              f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; load average "
+              f"{row['load during']} (start -> end of the live run) on {os.cpu_count()} cores", flush=True)
+        for line in row["breakdown"]:
+            print("   ", line)
+    print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
+          f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
+          + (f" --hog {args.hog}" if args.hog else ""))
     return rows
+
+
+def breakdown(live, out_times: np.ndarray) -> list[str]:
+    """Where the time went, stage by stage (p50 / p95 / max of each wait), and CPU per frame."""
+    timeline = live.timeline
+    lines = []
+    stages = list(timeline.stages)
+    times = {stage: timeline.times(stage) for stage in stages}
+    times["encoded"] = out_times
+    order = stages + ["encoded"]
+    for first, then in zip(order, order[1:]):
+        a, b = times[first], times[then]
+        n = min(len(a), len(b))
+        if n:
+            w = 1000 * (b[:n] - a[:n])
+            lines.append(f"{first:>9} -> {then:<9} p50 {np.percentile(w, 50):7.1f} ms  p95 {np.percentile(w, 95):7.1f} ms  "
+                         f"max {w.max():7.1f} ms")
+    lines.append(f"solves {live.solves} ({live.rejoined} joined to frames settled meanwhile, {live.stale} unused), frames "
+                 f"settled at their deadline {live.late} ({live.held} past the plan's end), shortest lookahead "
+                 f"{live.lookahead_min} of {live.horizon.lookahead}")
+    frames = max(live.frames_in, 1)
+    cpu = ", ".join(f"{job} {1000 * seconds / frames:.1f} ms" for job, seconds in timeline.cpu.items())
+    lines.append(f"CPU a frame (this process's threads): {cpu}")
+    for job, count in timeline.counts.items():
+        if job.startswith("solve"):
+            lines.append(f"{job}: {count} solves, {1000 * timeline.cpu[job] / max(count, 1):.1f} ms each")
+    if timeline.gc_pauses:
+        g = 1000 * np.array(timeline.gc_pauses)
+        lines.append(f"GC: {len(g)} collections, p95 {np.percentile(g, 95):.1f} ms, max {g.max():.1f} ms")
+    return lines
+
+
+def receive(args) -> None:
+    """Receive MPEG-TS over UDP; save it, and the time.monotonic() at which each encoded video
+    frame (one PES packet) had fully arrived: its last datagram."""
+    import select
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 * 2**20)
+    sock.bind(("127.0.0.1", args.port))
+    times: list[float] = []
+    started = False
+    with open(args.ts, "wb") as out:
+        while True:
+            ready, _, _ = select.select([sock], [], [], 20.0 if not started else 5.0)
+            if not ready:
+                break
+            data = sock.recv(65536)
+            now = time.monotonic()
+            started = True
+            out.write(data)
+            for i in range(0, len(data) - 187, 188):
+                packet = data[i:i + 188]
+                if packet[0] != 0x47:
+                    continue
+                start = bool(packet[1] & 0x40)
+                adaptation = (packet[3] >> 4) & 3
+                payload = 4 + (1 + packet[4] if adaptation & 2 else 0)
+                video_start = start and packet[payload:payload + 3] == b"\x00\x00\x01" and 0xE0 <= packet[payload + 3] <= 0xEF
+                pid = ((packet[1] & 0x1F) << 8) | packet[2]
+                if video_start:
+                    times.append(now)
+                    video_pid = pid
+                elif times and pid == video_pid:
+                    times[-1] = now
+    np.save(args.times, np.array(times))
 
 
 def _count_frames(video: Path) -> int:
@@ -297,8 +417,14 @@ def bench_horizon(args) -> list[dict]:
 
     offline = jitter(L1Smoother().smooth(camera_motion(track.pairwise, size, model, track.confidence), size, model, None))
     rows = []
-    for step, lookahead, predicted in ((9, 10, 0), (5, 14, 0), (5, 17, 0), (5, 17, 8), (5, 17, 17), (5, 17, 34)):
-        path = OnlineL1Path(model, size, None, Horizon(step, lookahead), predicted=predicted)
+    # (step, lookahead, predicted, solver): how the defaults were chosen; the default with the
+    # offline windows' interior point solver; then the shorter lookaheads a loaded machine
+    # adapts to (docs/live.md), predicted frames kept at the horizon's.
+    runs = [(9, 10, 0, "highs-ds"), (5, 14, 0, "highs-ds"), (5, 17, 0, "highs-ds"), (5, 17, 8, "highs-ds"),
+            (5, 17, 17, "highs-ds"), (5, 17, 34, "highs-ds"), (5, 17, 17, "highs-ipm"),
+            (5, 14, 17, "highs-ds"), (5, 11, 17, "highs-ds"), (5, 8, 17, "highs-ds"), (5, 4, 17, "highs-ds")]
+    for step, lookahead, predicted, solver in runs:
+        path = OnlineL1Path(model, size, None, Horizon(step, lookahead), L1Smoother(method=solver), predicted=predicted)
         path.push()
         views = []
         clock = time.process_time()
@@ -308,17 +434,110 @@ def bench_horizon(args) -> list[dict]:
         views.append(path.settle(final=True))
         cpu_ms = 1000 * (time.process_time() - clock) / track.frames
         ratio = jitter(np.concatenate(views)) / offline
-        rows.append({"step": step, "lookahead": lookahead, "predicted": predicted, "ratio": ratio, "cpu ms": cpu_ms})
-        print(f"{video.name} ({args.estimator}): step {step}, lookahead {lookahead}, predicted {predicted}: "
+        rows.append({"step": step, "lookahead": lookahead, "predicted": predicted, "solver": solver, "ratio": ratio,
+                     "cpu ms": cpu_ms})
+        print(f"{video.name} ({args.estimator}): step {step}, lookahead {lookahead}, predicted {predicted}, {solver}: "
               f"jitter {ratio:.2f}x the offline L1 path's ({offline:.3f} px); {cpu_ms:.1f} ms CPU a frame", flush=True)
     print(f"  reproduce: python scripts/bench_live.py horizon --estimator {args.estimator} --frames {args.frames} "
           f"--size {args.size} --seed {args.seed}")
     return rows
 
 
+# -- stalls -------------------------------------------------------------------------------
+
+def bench_stalls(args) -> list[dict]:
+    """The live schedule on a test clock over an offline track of a shaky flight, with solves
+    that stall now and then: residual jitter against the offline L1 path of the same track.
+    Frames arrive at 30 fps; the tracker answers 4 frames at a time 50 ms after the last; a
+    solve takes 20 ms, or ``stall`` s with probability ``p``; the renderer takes each frame as
+    soon as it is settled or due.  No thread and no real time: the same run every time."""
+    import random
+
+    from mosaic_cli.live.stabilize import LiveSchedule
+    from mosaic_cli.stabilize.crop import output_warps
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import camera_motion, motion_model
+    from mosaic_cli.stabilize.smoothing import L1Smoother
+    from mosaic_cli.track import load_track
+
+    rows = []
+    for seed in range(args.clips):
+        video = flight("shaky", args.frames, size=args.size, seed=seed)
+        track_file = video.with_suffix(f".{args.estimator}.json")
+        if not track_file.exists():
+            subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(track_file), "-e",
+                            args.estimator, "-q"], check=True)
+        track, gt = load_track(track_file), load_ground_truth(video.with_suffix(".gt.json"))
+        size, model, fps, n = gt.size, motion_model("similarity"), 30.0, track.frames
+        offline = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, output_warps(
+            L1Smoother().smooth(camera_motion(track.pairwise, size, model, track.confidence), size, model, None), size))
+        for p, stall in ((0.0, 0.0), (0.03, 0.7), (0.15, 0.3), (0.15, 0.7), (0.05, 1.5)):
+            clock = [0.0]
+            path = OnlineL1Path(model, size, None, Horizon.for_latency(1.0, fps, 3), recover=args.recover)
+            schedule = LiveSchedule(path, size, fps, 1.0, True, 10_000, clock=lambda clock=clock: clock[0])
+            rng = random.Random(1)
+            arrived = tracked = 0
+            solving = None
+            out = 0
+            step = 1 / 600
+            while out < n:
+                now = clock[0]
+                while arrived < n and arrived / fps <= now:
+                    schedule.add_frame(np.zeros((1, 1), np.uint8), now)
+                    arrived += 1
+                while tracked < n:
+                    last = min(n - 1, -(-tracked // 4) * 4)  # the chunk of 4 pairs this frame is in
+                    if arrived <= last or now < last / fps + 0.05:
+                        break
+                    schedule.add_motion(*((None, 1.0) if tracked == 0 else (track.pairwise[tracked - 1],
+                                                                           track.confidence[tracked - 1])))
+                    tracked += 1
+                if tracked == n and not schedule.tracked_all:
+                    schedule.end_motion()
+                if solving is None:
+                    due = (schedule.tracked_all and path.settled < path.frames) or (
+                        path.frames - path.settled >= path.horizon.step + schedule.lookahead())
+                    if due:
+                        job = schedule.next_window()
+                        took = stall if rng.random() < p else 0.02
+                        solving = (job, path.solve(job[0]), now + took, took)
+                elif now >= solving[2]:
+                    (window, final), params, _, took = solving
+                    schedule.solved(window, params, final, took)
+                    solving = None
+                while schedule._frames and (schedule._frames[0].warp is not None
+                                            or now >= schedule.deadline(schedule._frames[0])):
+                    schedule.next_frame()
+                    out += 1
+                if schedule.tracked_all and solving is None and path.settled >= path.frames and schedule._frames:
+                    schedule.next_frame()
+                    out += 1
+                clock[0] += step
+            jitter = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, np.array(schedule.warps))
+            row = {"clip": video.name, "stall probability": p, "stall s": stall, "ratio": jitter / offline,
+                   "late": schedule.late, "past the plan": path.held, "joined": path.rejoined, "unused": schedule.stale}
+            rows.append(row)
+            print(f"{video.name} ({args.estimator}): solves stalling {stall:g} s with probability {p:g}: jitter "
+                  f"{jitter / offline:.2f}x the offline L1 path's ({offline:.3f} px); {schedule.late} of {n} frames settled "
+                  f"at their deadline ({path.held} past the plan's end); {path.rejoined} plans joined, {schedule.stale} "
+                  f"unused", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py stalls --estimator {args.estimator} --frames {args.frames} "
+          f"--clips {args.clips} --recover {args.recover:g}")
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon"])
+    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "stalls", "receive"])
+    parser.add_argument("--recover", type=float, default=0.15, help="stalls: OnlineL1Path.recover")
+    parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
+    parser.add_argument("--no-preview", action="store_true", help="stitch: no --preview")
+    parser.add_argument("--every", type=float, default=2.0, help="stitch: seconds between previews")
+    parser.add_argument("--hog", type=int, default=0, help="stabilize: busy processes at the same priority during the run")
+    parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--ts", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--times", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--size", default="1280x720", help="horizon: the flight's size")
     parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
@@ -326,11 +545,14 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
     args = parser.parse_args()
+    if args.what == "receive":  # the stabilize benchmark's receiver, in a process of its own
+        receive(args)
+        return
     WORKDIR.mkdir(parents=True, exist_ok=True)
-    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600}
+    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600, "stalls": 600}
     args.frames = args.frames or defaults[args.what]
     rows = {"track": bench_track, "stitch": bench_stitch, "stabilize": bench_stabilize, "memory": bench_memory,
-            "horizon": bench_horizon}[args.what](args)
+            "horizon": bench_horizon, "stalls": bench_stalls}[args.what](args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str) + "\n")
 

@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -217,13 +218,18 @@ def test_stabilize_live_over_tcp_to_a_file_keeps_every_frame_and_steadies(tmp_pa
 def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offline(tmp_path, shaky_flight):
     video, truth = shaky_flight
     jitter = {}
-    for name, extra in (("live", ["--latency", "1"]), ("offline", [])):
+    # The file read in one pass; the same piped in faster than real time (a live input, held
+    # back at the tracker's pace: its frames must not leave unsteadied at their deadlines).
+    for name, source, extra in (("live", str(video), ["--latency", "1"]), ("piped", "-", ["--latency", "1"]),
+                                ("offline", str(video), [])):
         warps = tmp_path / f"{name}.json"
-        subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / f"{name}.mp4"), "-e",
-                        "orb", "--warps", str(warps), "-q", *extra], check=True, timeout=RUN_LIMIT)
+        with open(video, "rb") as stdin:
+            subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", source, str(tmp_path / f"{name}.mp4"), "-e",
+                            "orb", "--warps", str(warps), "-q", *extra], stdin=stdin, check=True, timeout=RUN_LIMIT)
         jitter[name] = gt_jitter(truth, np.array(json.loads(warps.read_text())["warps"]))
-    assert jitter["live"] < 0.5 * gt_jitter(truth, None)
-    assert jitter["live"] <= 1.5 * jitter["offline"]
+    for name in ("live", "piped"):
+        assert jitter[name] < 0.5 * gt_jitter(truth, None)
+        assert jitter[name] <= 1.5 * jitter["offline"]
 
 
 def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
@@ -235,6 +241,34 @@ def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
     assert proc.stdout[0] == 0x47 and proc.stdout[188] == 0x47  # MPEG-TS sync bytes
     (tmp_path / "out.ts").write_bytes(proc.stdout)
     assert count_frames(tmp_path / "out.ts") == FRAMES
+
+
+def test_a_solver_slower_than_the_latency_holds_no_frame_back_and_drops_none(tmp_path, flight, monkeypatch):
+    """Every solve of the path takes longer than the whole budget (fault injected): the frames
+    leave at their deadline on the path planned so far, every one of them."""
+    from mosaic_cli.live.stabilize import stabilize_live
+    from mosaic_cli.stabilize import StabilizeOptions
+    from mosaic_cli.stabilize.online import OnlineL1Path
+
+    solve = OnlineL1Path.solve
+
+    def slow(self, window):
+        time.sleep(1.5)
+        return solve(self, window)
+
+    monkeypatch.setattr(OnlineL1Path, "solve", slow)
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
+                              daemon=True)
+    sender.start()
+    out = tmp_path / "steady.mp4"
+    result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(out), StabilizeOptions(estimator="orb", latency=1.0),
+                            show_progress=False)
+    sender.join(RUN_LIMIT)
+    assert result.frames_in == result.frames_out == len(result.warps) == FRAMES
+    assert count_frames(out) == FRAMES
+    assert result.late >= 1 and result.notes and "left at their deadline" in result.notes[-1]
 
 
 def test_online_path_waits_at_most_its_horizon_and_equals_the_offline_path_when_it_sees_everything():

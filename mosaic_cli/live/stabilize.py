@@ -1,45 +1,74 @@
 """``stabilize --latency``: one pass, each frame out at most ``latency`` seconds after it came in.
 
-Stages, as frames arrive:
+Stages, each in a thread of its own, with the shared state in a :class:`LiveSchedule`:
 
-1. decode   one ffmpeg, yuv420p at full size (:class:`~mosaic_cli.live.source.LiveStream`);
-2. track    the estimator on the Y plane, downscaled to its working width;
-3. plan     the lookahead-bounded L1 path (:mod:`mosaic_cli.stabilize.online`): the views of the
-            frames whose horizon has arrived;
-4. render   (a second thread) warp each settled frame, hand it to the encoder: a file (atomic,
-            at the end), standard output or a URL (MPEG-TS, :mod:`.output`).
+1. decode   one ffmpeg, yuv420p at full size (:class:`~mosaic_cli.live.source.LiveStream`); the
+            main thread takes each frame as it comes and makes the estimator's gray image;
+2. track    the estimator on the gray images: the camera motion, pushed into the path;
+3. plan     the lookahead-bounded L1 path (:mod:`mosaic_cli.stabilize.online`), solved in the
+            background: each solve settles the frames it sees ``lookahead`` frames beyond;
+4. render   warp each settled frame and hand it to the encoder: a file (atomic, at the end),
+            standard output or a URL (MPEG-TS, :mod:`.output`).
 
-Latency is measured per frame from its arrival off the decoder to its hand-over to the encoder.
+**Deadlines** (live sources).  A frame is due at the encoder ``latency`` seconds after it was
+taken off the decoder's queue (when it arrived, unless mosaic is behind the stream), less a
+reserve for warping and encoding (what they took lately).  A frame that is not settled by then,
+because a solve ran late or the tracker stalled, leaves with the best path known: the last
+plan's view of it, predicted frames included, or past that plan's end the last settled
+transform held.  Warping and encoding therefore never wait for the solver, and no frame is
+dropped.  The lookahead adapts: it shrinks (down to ``MIN_LOOKAHEAD``) while tracking and
+solving take longer, so that frames normally settle before their deadline, and grows back to
+the horizon's when they are quick again.  Frames are taken at the tracker's pace (a short
+queue): a stream faster than real time, such as a file piped in, is held back as before rather
+than sent on unsteadied.  A file read in one pass has no deadlines.
+
+Latency is measured per frame from its arrival off the decoder to its hand-over to the encoder;
+:attr:`LiveStabilizeResult.timeline` has every stage's time stamps (scripts/bench_live.py).
 """
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import make_estimator
+from mosaic_cli.estimators import Estimator, make_estimator
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
-from mosaic_cli.live.source import LiveStream, gray_of_yuv, is_live_source, note, source_name
+from mosaic_cli.live.source import (
+    QUEUE_BYTES,
+    LiveStream,
+    gray_of_yuv,
+    is_live_source,
+    note,
+    source_name,
+)
+from mosaic_cli.live.timeline import Timeline
 from mosaic_cli.overlay import frame_mask, live_mask, load_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
-from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path, Window
 from mosaic_cli.stabilize.path import motion_model
 from mosaic_cli.stabilize.pipeline import VIDEO_SUFFIXES, WORK_WIDTH, StabilizeOptions, write_warps
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
-from mosaic_cli.stabilize.smoothing import L1Smoother
 from mosaic_cli.video import VideoInfo, VideoWriter, probe
 from mosaic_cli.video.reader import scaled_size
 
 DEFAULT_LATENCY = 1.0
 LIVE_CHUNK = 4  # a learned estimator's frame pairs per batch: its answer comes 3 frames late at most
+# Kept at the end of every frame's budget for x264 (zerolatency: it holds no frame back) and the
+# muxer, beyond the warping and hand-over that are measured.
+ENCODE_RESERVE = 0.05
+TRACK_QUEUE = 2 * LIVE_CHUNK  # gray images waiting for the tracker: two of a learned estimator's batches
+RECENT = 60  # the adaptive figures are the 90th percentile of this many recent samples
+STAGES = ("arrived", "taken", "estimated", "settled", "render", "handed")
 
 
 @dataclass
@@ -54,6 +83,13 @@ class LiveStabilizeResult:
     warps: np.ndarray
     seconds: float
     notes: list[str] = field(default_factory=list)
+    late: int = 0  # frames settled at their deadline, before a window saw their lookahead
+    held: int = 0  # of which beyond the last plan: the last settled transform held
+    solves: int = 0
+    stale: int = 0  # solves not used: frames settled at their deadline went past their end
+    lookahead_min: int = 0  # the shortest lookahead the adaptation chose
+    timeline: Timeline | None = None
+    rejoined: int = 0  # plans joined to frames settled at their deadline while they were solved
 
     def latency(self, q: float) -> float:
         return float(np.percentile(self.latencies, q)) if len(self.latencies) else 0.0
@@ -62,6 +98,204 @@ class LiveStabilizeResult:
 def is_live_request(source: str, out: str, options: StabilizeOptions) -> bool:
     """Stabilised in one pass: asked for (``--latency``), or the input or the output is live."""
     return options.latency is not None or is_live_source(source) or is_stream_output(out)
+
+
+class Recent:
+    """The last ``RECENT`` values of a duration; its percentiles steer the schedule."""
+
+    def __init__(self, size: int = RECENT):
+        self._values: deque[float] = deque(maxlen=size)
+
+    def add(self, value: float) -> None:
+        self._values.append(value)
+
+    def percentile(self, q: float = 90) -> float:
+        return float(np.percentile(self._values, q)) if self._values else 0.0
+
+
+@dataclass
+class _Frame:
+    pixels: np.ndarray
+    arrived: float  # off the decoder
+    taken: float  # by the stabiliser: its deadline counts from here
+    warp: np.ndarray | None = None
+
+
+class Abandoned(RuntimeError):
+    """Another stage failed, or the run was abandoned: this stage stops."""
+
+
+class LiveSchedule:
+    """What the stages share, under one condition variable: the frames in flight (arrived and
+    not yet rendered), the path, the deadlines and the recent timings the lookahead adapts to.
+
+    ``realtime`` False (a file): no deadlines and the horizon's lookahead.  ``capacity``: frames
+    in flight at most; the decoding stage waits beyond it (back pressure, never a dropped frame).
+    ``clock`` is ``time.monotonic``, or a test's."""
+
+    def __init__(self, path: OnlineL1Path, size: tuple[int, int], fps: float, latency: float, realtime: bool,
+                 capacity: int, clock: Callable[[], float] = time.monotonic, timeline: Timeline | None = None):
+        self.path = path
+        self.size = size
+        self.fps = fps
+        self.latency = latency
+        self.realtime = realtime
+        self.capacity = max(capacity, 2 * path.horizon.frames + LIVE_CHUNK)
+        self.clock = clock
+        self.timeline = timeline or Timeline(STAGES)
+        self.cond = threading.Condition()
+        self._frames: deque[_Frame] = deque()  # frames rendered .. arrived - 1
+        self._untracked: deque[float] = deque()  # when the frames with no motion yet were taken
+        self.arrived = 0
+        self.rendered = 0  # frames taken by the renderer
+        self.tracked_all = False
+        self.planned_all = False
+        self.failed: BaseException | None = None
+        self.warps: list[np.ndarray] = []  # of the settled frames, in order
+        self.late = 0
+        self.solves = 0
+        self.stale = 0
+        self.lookahead_min = path.horizon.lookahead
+        self.solve_seconds = Recent()
+        self.track_lag = Recent()  # taken -> motion known
+        self.render_seconds = Recent()  # taken by the renderer -> handed to the encoder
+
+    # -- decode (the main thread) ---------------------------------------------------------
+    def add_frame(self, pixels: np.ndarray, arrived: float) -> None:
+        with self.cond:
+            while len(self._frames) >= self.capacity:
+                self._wait()
+            taken = self.clock()
+            self._frames.append(_Frame(pixels, arrived, taken))
+            self._untracked.append(taken)
+            self.arrived += 1
+            self.cond.notify_all()
+
+    # -- track ----------------------------------------------------------------------------
+    def add_motion(self, pairwise: np.ndarray | None = None, confidence: float = 1.0) -> None:
+        """The next frame's motion from the previous one (None for the first frame)."""
+        with self.cond:
+            self.path.push(pairwise, confidence)
+            now = self.clock()
+            self.track_lag.add(now - self._untracked.popleft())
+            self.timeline.stamp("estimated", now)
+            self.cond.notify_all()
+
+    def end_motion(self) -> None:
+        """Every frame's motion has been pushed: the stream is over."""
+        with self.cond:
+            self.tracked_all = True
+            self.cond.notify_all()
+
+    # -- plan -----------------------------------------------------------------------------
+    def lookahead(self) -> int:
+        """Frames a view waits for beyond its own, so that it normally settles before its
+        deadline: a frame settles about (lookahead + step - 1) frames after it arrived, plus
+        the tracker's lag and a solve."""
+        horizon = self.path.horizon
+        if not self.realtime:
+            return horizon.lookahead
+        # The typical times (medians): a stall now and then is the deadlines' business, and
+        # shortening every view's lookahead for it would cost more steadiness than it saves.
+        spare = self.latency - self.reserve() - self.track_lag.percentile(50) - self.solve_seconds.percentile(50)
+        frames = math.floor(spare * self.fps) - (horizon.step - 1)
+        return max(MIN_LOOKAHEAD, min(horizon.lookahead, frames))
+
+    def next_window(self) -> tuple[Window, bool] | None:
+        """The next window to solve, and whether it is the final one; None when all is settled."""
+        with self.cond:
+            while True:
+                path = self.path
+                final = self.tracked_all
+                if final and path.settled >= path.frames:
+                    self.planned_all = True
+                    self.cond.notify_all()
+                    return None
+                if final or path.frames - path.settled >= path.horizon.step + self.lookahead():
+                    window = path.pose(final)
+                    assert window is not None  # frames > settled
+                    return window, final
+                self._wait()
+
+    def solved(self, window: Window, params: np.ndarray, final: bool, seconds: float) -> None:
+        with self.cond:
+            self.solves += 1
+            self.solve_seconds.add(seconds)
+            if not self.path.adopt(window, params):
+                self.stale += 1
+                self.cond.notify_all()
+                return
+            lookahead = 0 if final else self.lookahead()
+            if not final:
+                self.lookahead_min = min(self.lookahead_min, lookahead)
+            self._commit(window.frames - lookahead)
+
+    def _commit(self, upto: int) -> None:
+        first = self.path.settled
+        if upto <= first:
+            return
+        warps = output_warps(self.path.commit(upto), self.size)
+        for k, warp in enumerate(warps, start=first - self.rendered):
+            self._frames[k].warp = warp
+        self.warps += list(warps)
+        self.timeline.stamp("settled", self.clock(), frames=len(warps))
+        self.cond.notify_all()
+
+    # -- render ---------------------------------------------------------------------------
+    def reserve(self) -> float:
+        """Seconds kept at the end of a frame's budget: warping and hand-over, then encoding."""
+        return self.render_seconds.percentile() + ENCODE_RESERVE
+
+    def deadline(self, frame: _Frame) -> float:
+        return frame.taken + self.latency - self.reserve()
+
+    def next_frame(self) -> _Frame | None:
+        """The next frame to render, with its warp; None when every frame has been.  A live
+        frame whose deadline has come is settled from the last plan (see the module doc)."""
+        with self.cond:
+            while True:
+                if self._frames and self._frames[0].warp is not None:
+                    self.rendered += 1
+                    self.cond.notify_all()
+                    return self._frames.popleft()
+                if not self._frames and self.planned_all:
+                    return None
+                if self._frames and self.realtime:
+                    now = self.clock()
+                    due = self.deadline(self._frames[0])
+                    if now >= due:
+                        self._settle_late(now)
+                        continue
+                    self._wait(due - now)
+                else:
+                    self._wait()
+
+    def _settle_late(self, now: float) -> None:
+        """Settle the frames whose deadline has come from the plan (the next frame to render
+        is the first unsettled one).  A solve under way is joined to them when it ends."""
+        count = 1
+        while count < len(self._frames) and self.deadline(self._frames[count]) <= now:
+            count += 1
+        self.late += count
+        self._commit(self.path.settled + count)
+
+    def rendered_one(self, seconds: float) -> None:
+        with self.cond:
+            self.render_seconds.add(seconds)
+
+    # -- failures -------------------------------------------------------------------------
+    def fail(self, exc: BaseException) -> None:
+        with self.cond:
+            if self.failed is None:
+                self.failed = exc
+            self.cond.notify_all()
+
+    def _wait(self, timeout: float | None = None) -> None:
+        if self.failed is not None:
+            raise Abandoned()
+        self.cond.wait(timeout)
+        if self.failed is not None:
+            raise Abandoned()
 
 
 def check_live_request(source: str, out: str, options: StabilizeOptions, warps_out: str | None,
@@ -88,69 +322,188 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
                    compare: str | None = None, show_progress: bool = True) -> LiveStabilizeResult:
     """Stabilise ``source`` (live, or a file read in one pass) into ``out`` within
     ``options.latency`` seconds (:data:`DEFAULT_LATENCY` when None)."""
-    probed = check_live_request(source, out, options, warps_out, compare)  # a file's probe; None for a live input
+    file_info = check_live_request(source, out, options, warps_out, compare)  # a file's probe; None for a live input
     latency = options.latency if options.latency is not None else DEFAULT_LATENCY
     model = motion_model(options.model)
     crop = parse_crop(options.crop)
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
     live = is_live_source(source)
     notes: list[str] = []
-    with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live, info=probed) as stream:
+    # Loading a network takes seconds: before the stream opens, so that no frame waits for it.
+    estimator = _estimator(options, options.work_width or WORK_WIDTH) if _learned(options) else None
+    masked = None
+    if file_info is not None:
+        Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
+        # A file's overlays are found as offline (it is there whole); a live input has only --mask.
+        masked = frame_mask(source, options.mask, file_info, show_progress)
+    with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live, info=file_info) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
-        width = options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0])
-        estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device,
-                                   **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
-        chunk = getattr(getattr(estimator, "config", None), "chunk", 1)
-        horizon = Horizon.for_latency(latency, fps, estimator_delay=max(0, chunk - 1))
-        # After the option checks: a file's overlays are found as offline (it is there whole);
-        # a live input has only --mask.
-        masked = live_mask(options.mask, size, show_progress) if live else frame_mask(source, options.mask, probed, show_progress)
+        if estimator is None:
+            estimator = _estimator(options, options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0]))
+        horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
+        if masked is None:
+            masked = live_mask(options.mask, size, show_progress)
         estimator.set_mask(masked.use)
-        path = OnlineL1Path(model, size, crop, horizon, L1Smoother())
+        estimator.reset(size)
         gray_size = scaled_size(size, estimator.input_width)
         if info.has_audio:
             notes.append(f"{source_name(source)}: the audio ({info.audio_codec}) is not carried by a --latency run")
             if show_progress:
                 note(notes[-1])
+        frame_bytes = size[0] * size[1] * 3 // 2
+        schedule = LiveSchedule(OnlineL1Path(model, size, crop, horizon), size, fps, latency, live,
+                                capacity=QUEUE_BYTES // frame_bytes)
+        timeline = schedule.timeline
         writer = (StreamWriter(out, size, fps, options.crf, options.preset) if is_stream_output(out)
                   else VideoWriter(out, size, fps, crf=options.crf, preset=options.preset, pix_fmt_in="yuv420p"))
-        renderer = _RenderThread(writer, size, border)
-        waiting: deque = deque()  # (frame, arrival time) of frames whose view is not settled
-        warps: list[np.ndarray] = []
+        # Gray images the tracker has yet to take: a short queue, so that frames are taken (and
+        # their deadlines start) at the tracker's pace.  A stream faster than real time (a file
+        # piped in) is then held back, as by a slow consumer, rather than leaving unsteadied.
+        inbox: queue.Queue = queue.Queue(maxsize=TRACK_QUEUE)
+        latencies: list[float] = []
         start = time.monotonic()
+        stages = [threading.Thread(target=_stage, args=(schedule, job), daemon=True, name=f"stabilize-{name}")
+                  for name, job in (("track", lambda: _track(schedule, estimator, inbox)),
+                                    ("plan", lambda: _plan(schedule)),
+                                    ("render", lambda: _render(schedule, writer, size, border, latencies)))]
+        timeline.watch_gc()
         try:
             with stream_progress("stabilize (live)", disable=not show_progress) as advance:
-                def hand_over(views: np.ndarray) -> None:
-                    for W in output_warps(views, size) if len(views) else ():
-                        frame, arrived = waiting.popleft()
-                        warps.append(W)
-                        renderer.put(frame, W, arrived)
-                        advance(1)
+                shown = 0
 
-                estimator.reset(size)
+                def show() -> None:
+                    nonlocal shown
+                    done = schedule.rendered
+                    if done > shown:
+                        advance(done - shown)
+                        shown = done
+
+                for thread in stages:
+                    thread.start()
                 for arrival in stream.arrivals():
-                    if not waiting and path.frames == 0:
-                        path.push()
-                    waiting.append((arrival.frame, arrival.time))
-                    for estimate in estimator.feed(gray_of_yuv(arrival.frame, size, gray_size)):
-                        path.push(estimate.H, estimate.confidence)
-                    hand_over(path.settle())
-                for estimate in estimator.finish():
-                    path.push(estimate.H, estimate.confidence)
-                hand_over(path.settle(final=True))
-                latencies = renderer.finish()
-        except BaseException:
-            renderer.abandon()
+                    timeline.stamp("arrived", arrival.time)
+                    timeline.stamp("taken")
+                    cpu = time.thread_time()
+                    gray = gray_of_yuv(arrival.frame, size, gray_size)
+                    timeline.add_cpu("gray", time.thread_time() - cpu)
+                    schedule.add_frame(arrival.frame, arrival.time)
+                    _put(schedule, inbox, gray)
+                    show()
+                _put(schedule, inbox, _END)
+                for thread in stages:
+                    while thread.is_alive():
+                        thread.join(0.1)
+                        show()
+                if schedule.failed is not None:
+                    raise schedule.failed
+        except Abandoned:  # a stage failed while this thread waited on it: its error
+            writer.abort()
+            assert schedule.failed is not None
+            raise schedule.failed from None
+        except BaseException as exc:
+            schedule.fail(exc)
             writer.abort()
             raise
+        finally:
+            timeline.unwatch_gc()
         writer.close()
         frames_in = stream.frames_read
-    warps_array = np.array(warps).reshape(-1, 3, 3)
+    warps_array = np.array(schedule.warps).reshape(-1, 3, 3)
     if warps_out is not None:
         write_warps(warps_out, warps_array, size)
-    return LiveStabilizeResult(frames_in, renderer.written, size, fps, horizon, np.array(latencies),
-                               stream.ended_by if live else None, warps_array, time.monotonic() - start, notes)
+    if schedule.late:
+        notes.append(f"{schedule.late} of {frames_in} frames left at their deadline on the path planned so far "
+                     f"({schedule.path.held} of them past its end, moving with the camera): tracking or solving ran late")
+        if show_progress:
+            note(notes[-1])
+    return LiveStabilizeResult(frames_in, len(latencies), size, fps, horizon, np.array(latencies),
+                               stream.ended_by if live else None, warps_array, time.monotonic() - start, notes,
+                               schedule.late, schedule.path.held, schedule.solves, schedule.stale,
+                               schedule.lookahead_min, timeline, schedule.path.rejoined)
+
+
+_END = object()
+
+
+def _stage(schedule: LiveSchedule, job: Callable[[], None]) -> None:
+    try:
+        job()
+    except Abandoned:
+        pass
+    except BaseException as exc:  # handed to the main thread
+        schedule.fail(exc)
+
+
+def _put(schedule: LiveSchedule, inbox: queue.Queue, item: object) -> None:
+    while True:
+        if schedule.failed is not None:
+            raise schedule.failed
+        try:
+            inbox.put(item, timeout=0.1)
+            return
+        except queue.Full:
+            continue
+
+
+def _track(schedule: LiveSchedule, estimator: Estimator, inbox: queue.Queue) -> None:
+    first = True
+    while True:
+        try:
+            gray = inbox.get(timeout=0.1)
+        except queue.Empty:
+            if schedule.failed is not None:
+                return
+            continue
+        if gray is _END:
+            break
+        if first:
+            schedule.add_motion()
+            first = False
+        cpu = time.thread_time()
+        estimates = estimator.feed(gray)
+        schedule.timeline.add_cpu("estimator", time.thread_time() - cpu)
+        for estimate in estimates:
+            schedule.add_motion(estimate.H, estimate.confidence)
+    for estimate in estimator.finish():
+        schedule.add_motion(estimate.H, estimate.confidence)
+    schedule.end_motion()
+
+
+def _plan(schedule: LiveSchedule) -> None:
+    while (job := schedule.next_window()) is not None:
+        window, final = job
+        clock, cpu = time.monotonic(), time.thread_time()
+        params = schedule.path.solve(window)  # no lock held: tracking and rendering go on
+        schedule.timeline.add_cpu("solve", time.thread_time() - cpu)
+        schedule.solved(window, params, final, time.monotonic() - clock)
+
+
+def _render(schedule: LiveSchedule, writer: StreamWriter | VideoWriter, size: tuple[int, int], border: str, latencies: list[float]) -> None:
+    timeline = schedule.timeline
+    while (frame := schedule.next_frame()) is not None:
+        assert frame.warp is not None
+        clock, cpu = time.monotonic(), time.thread_time()
+        timeline.stamp("render", clock)
+        warped = warp_yuv(frame.pixels, frame.warp, size, border)
+        cpu2 = time.thread_time()
+        writer.write(warped)
+        handed = time.monotonic()
+        timeline.add_cpu("warp", cpu2 - cpu)
+        timeline.add_cpu("hand-over", time.thread_time() - cpu2)
+        timeline.stamp("handed", handed)
+        schedule.rendered_one(handed - clock)
+        latencies.append(handed - frame.arrived)
+
+
+def _estimator(options: StabilizeOptions, width: int) -> Estimator:
+    return make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device,
+                          **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
+
+
+def _delay(estimator: Estimator | None) -> int:
+    """Frames an estimator answers late at most: a batching one answers a chunk at a time."""
+    return max(0, getattr(getattr(estimator, "config", None), "chunk", 1) - 1)
 
 
 def _learned(options: StabilizeOptions) -> bool:
@@ -158,60 +511,3 @@ def _learned(options: StabilizeOptions) -> bool:
 
     name = options.estimator if options.estimator is not None else ("" if options.weights else DEFAULT_ESTIMATOR)
     return options.weights is not None or parse_spec(name)[0] in LEARNED
-
-
-_DONE = object()
-
-
-class _RenderThread:
-    """Warps and encodes settled frames in a second thread (OpenCV and the encoder pipe release
-    the GIL, so on two cores this overlaps the tracking).  The queue is short: a renderer that
-    falls behind holds the main thread back, which shows as latency, never as lost frames."""
-
-    DEPTH = 8
-
-    def __init__(self, writer, size: tuple[int, int], border: str):
-        self.writer = writer
-        self.size = size
-        self.border = border
-        self.written = 0
-        self.latencies: list[float] = []
-        self._queue: queue.Queue = queue.Queue(maxsize=self.DEPTH)
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def put(self, frame: np.ndarray, warp: np.ndarray, arrived: float) -> None:
-        if self._error is not None:
-            raise self._error
-        self._queue.put((frame, warp, arrived))
-
-    def _run(self) -> None:
-        while True:
-            item = self._queue.get()
-            if item is _DONE:
-                return
-            if self._error is not None:
-                continue
-            frame, warp, arrived = item
-            try:
-                self.writer.write(warp_yuv(frame, warp, self.size, self.border))
-            except BaseException as exc:  # handed to the main thread
-                self._error = exc
-                continue
-            self.latencies.append(time.monotonic() - arrived)
-            self.written += 1
-
-    def finish(self) -> list[float]:
-        self._queue.put(_DONE)
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self.latencies
-
-    def abandon(self) -> None:
-        self._error = self._error or RuntimeError("abandoned")
-        try:
-            self._queue.put_nowait(_DONE)
-        except queue.Full:
-            pass

@@ -55,6 +55,9 @@ class L1Smoother:
     max_shift: float = 0.5  # normalised units of correction (0.5 = a quarter of the width)
     max_anisotropy: float = 0.02  # |a - d| and |b + c| of affine and homography corrections
     max_perspective: float = 0.05  # |g|, |h| of homography corrections (normalised)
+    # HiGHS's interior point method is the faster on the long offline windows; the dual simplex
+    # on the short windows of a live path (stabilize/online.py).
+    method: str = "highs-ipm"
 
     def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None,
                advance: Callable[[int], None] | None = None) -> np.ndarray:
@@ -140,12 +143,12 @@ class _Program:
             mats.append(m)
         return sp.vstack(mats, format="csr"), np.concatenate([rhs for _, rhs in self.rows[kind]])
 
-    def solve(self) -> np.ndarray:
+    def solve(self, method: str = "highs-ipm") -> np.ndarray:
         A_ub, b_ub = self._matrix("ub")
         A_eq, b_eq = self._matrix("eq")
         problem = dict(c=np.concatenate(self.costs), A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=self.bounds)
-        # The interior point method is the faster on these banded programs; simplex the fallback.
-        result = linprog(method="highs-ipm", **problem)
+        # The method asked for first (L1Smoother.method); the dual simplex the fallback.
+        result = linprog(method=method, **problem)
         if result.status != 0 or result.x is None:
             result = linprog(method="highs-ds", **problem)
         if result.status != 0 or result.x is None:
@@ -191,7 +194,7 @@ def _solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | No
         lp.at_most([(p, scale_rows), (u, -eye)], np.ones(L))
         lp.at_most([(p, -scale_rows), (u, -eye)], -np.ones(L))
 
-    return lp.solve()[p].reshape(L, K)
+    return lp.solve(opts.method)[p].reshape(L, K)
 
 
 def _derivatives(motion: np.ndarray, model: MotionModel, weights) -> list[tuple[sp.csr_matrix, np.ndarray, np.ndarray]]:

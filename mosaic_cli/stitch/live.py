@@ -1,8 +1,9 @@
 """``stitch --live``: a panorama that grows while the flight is still arriving.
 
 The scan (stage 1 of :mod:`.pipeline`) runs on frames as they come off a live source; every
-``every`` seconds, when keyframes were added, a preview is drawn and written atomically (a
-viewer reloading the file never sees half an image).  Its cost is bounded: it is drawn at most
+``every`` seconds, when keyframes were added, a preview is drawn in a background thread (the
+scan goes on meanwhile; one preview at a time) and written atomically (a viewer reloading the
+file never sees half an image).  Its cost is bounded: it is drawn at most
 ``PREVIEW_SIDE`` pixels on its longest side, from per-keyframe thumbnails made once (and shrunk
 as the area flown grows), each warped only into its own bounding box, later keyframes over
 earlier ones, no seams or blending.  With drift control on, the preview's placements are
@@ -18,11 +19,14 @@ received.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -33,6 +37,7 @@ from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import LiveStream, is_live_source
+from mosaic_cli.live.timeline import Timeline
 from mosaic_cli.overlay import frame_mask, live_mask
 from mosaic_cli.stitch.canvas import MIN_SIZE, CanvasOptions, parse_reference, plan_canvas
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
@@ -117,13 +122,20 @@ class IncrementalRegistration:
 
 @dataclass
 class _Thumb:
-    image: np.ndarray  # RGB
+    image: np.ndarray  # RGBA, opaque
     scale: float  # thumbnail pixels per source pixel
 
 
 @dataclass
 class LivePreview:
-    """Draws the keyframes found so far (see the module doc)."""
+    """Draws the keyframes found so far (see the module doc), in a thread of its own.
+
+    :meth:`maybe_update`, called by the scan, starts a preview in the background when one is due
+    and none is being drawn; the scan goes on meanwhile.  The preview works on a snapshot of the
+    keyframes taken then: copies, with the pixels of those it has not seen yet loaded at once
+    (the scan may later shrink or drop what it holds).  The thumbnails, the incremental
+    registration and the written file belong to the drawing thread; :meth:`finish` waits for
+    it and draws the last preview."""
 
     options: PreviewOptions
     source_size: tuple[int, int]
@@ -131,22 +143,76 @@ class LivePreview:
     written: int = 0
     seconds: float = 0.0  # spent drawing and writing previews
     _thumbs: dict[int, _Thumb] = field(default_factory=dict)
+    _images: dict[int, np.ndarray] = field(default_factory=dict)  # pixels not yet made thumbnails
+    _sent: set[int] = field(default_factory=set)  # keyframes whose pixels a snapshot carried
     _drawn_keyframes: int = 0
     _due: float = 0.0
+    _worker: threading.Thread | None = None
+    _error: BaseException | None = None
 
     def maybe_update(self, keyframes: list[Keyframe], now: float | None = None) -> bool:
-        """Draw and write a preview when one is due and keyframes were added since the last."""
+        """Start a preview when one is due, keyframes were added since the last and the last is
+        written (a preview that comes due while one is being drawn waits for it: one at a time)."""
+        self._raise()
         now = time.monotonic() if now is None else now
         if self.options.path is None or now < self._due or len(keyframes) == self._drawn_keyframes:
             return False
-        self.update(keyframes)
-        self._due = time.monotonic() + self.options.every
+        if self.busy:
+            return False
+        snapshot = self._snapshot(keyframes)
+        self._drawn_keyframes = len(keyframes)
+        self._worker = threading.Thread(target=self._draw_in_background, args=(snapshot,), daemon=True,
+                                        name="stitch-preview")
+        self._worker.start()
         return True
 
+    @property
+    def busy(self) -> bool:
+        return self._worker is not None and self._worker.is_alive()
+
+    def finish(self, keyframes: list[Keyframe]) -> None:
+        """Wait for the preview being drawn, then draw the last one here."""
+        self.wait()
+        self.update(self._snapshot(keyframes))
+
+    def wait(self) -> None:
+        if self._worker is not None:
+            self._worker.join()
+            self._worker = None
+        self._raise()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def _snapshot(self, keyframes: list[Keyframe]) -> list[Keyframe]:
+        shots = []
+        for k in keyframes:
+            image = None
+            if k.composited and k.image is not None and k.index not in self._sent:
+                image = load_pixels(k.image)
+                self._sent.add(k.index)
+            shots.append(replace(k, image=image))
+        return shots
+
+    def _draw_in_background(self, snapshot: list[Keyframe]) -> None:
+        try:
+            self.update(snapshot)
+        except BaseException as exc:  # raised in the scan's thread at its next call
+            self._error = exc
+        # The next one is due a period after this one is written: at most one preview at a
+        # time, and a pause between two however long each takes.
+        self._due = time.monotonic() + self.options.every
+
     def update(self, keyframes: list[Keyframe]) -> None:
+        """Draw ``keyframes`` (a snapshot) and write the preview atomically."""
         if self.options.path is None:
             return
         clock = time.perf_counter()
+        for k in keyframes:
+            if k.image is not None:
+                self._images[k.index] = load_pixels(k.image)
         image = self.draw(keyframes)
         if image is not None:
             with atomic_path(self.options.path) as tmp:
@@ -155,7 +221,6 @@ class LivePreview:
                                                            else cv2.COLOR_RGBA2BGR), params):
                     raise ProcessingError(f"{self.options.path}: OpenCV could not write the preview")
             self.written += 1
-        self._drawn_keyframes = len(keyframes)
         self.seconds += time.perf_counter() - clock
 
     def draw(self, keyframes: list[Keyframe]) -> np.ndarray | None:
@@ -165,7 +230,7 @@ class LivePreview:
         else:
             placements = [k.placement for k in keyframes]
         drawn = [(k, P) for k, P in zip(keyframes, placements)
-                 if k.composited and (k.image is not None or k.index in self._thumbs)]
+                 if k.composited and (k.index in self._images or k.index in self._thumbs)]
         if not drawn:
             return None
         try:
@@ -187,7 +252,7 @@ class LivePreview:
         canvas scale drops well below it."""
         thumb = self._thumbs.get(keyframe.index)
         if thumb is None:
-            image = load_pixels(keyframe.image)
+            image = cv2.cvtColor(self._images.pop(keyframe.index), cv2.COLOR_RGB2RGBA)  # opaque
             thumb = _Thumb(image, image.shape[1] / self.source_size[0])
         if thumb.scale > 1.5 * scale:
             w, h = self.source_size
@@ -198,7 +263,8 @@ class LivePreview:
 
     @staticmethod
     def _paste(out: np.ndarray, image: np.ndarray, M: np.ndarray) -> None:
-        """Warp ``image`` by ``M`` (image pixels -> canvas pixels) into its bounding box of ``out``."""
+        """Warp ``image`` (RGBA, opaque) by ``M`` (image pixels -> canvas pixels) over ``out``,
+        within its bounding box: the pixels it does not reach are left as they are."""
         h, w = image.shape[:2]
         corners = project(M, frame_corners(w, h))
         x0, y0 = np.floor(corners.min(axis=0)).astype(int)
@@ -208,13 +274,10 @@ class LivePreview:
         if x1 <= x0 or y1 <= y0:
             return
         shift = np.array([[1, 0, -x0], [0, 1, -y0], [0, 0, 1.0]]) @ M
-        size = (x1 - x0, y1 - y0)
-        rgb = cv2.warpPerspective(image, shift, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        mask = cv2.warpPerspective(np.full((h, w), 255, np.uint8), shift, size, flags=cv2.INTER_NEAREST,
-                                   borderMode=cv2.BORDER_CONSTANT) > 0
-        region = out[y0:y1, x0:x1]
-        region[mask, :3] = rgb[mask]
-        region[mask, 3] = 255
+        region = np.ascontiguousarray(out[y0:y1, x0:x1])
+        cv2.warpPerspective(image, shift, (x1 - x0, y1 - y0), dst=region, flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_TRANSPARENT)
+        out[y0:y1, x0:x1] = region
 
 
 def stitch_live(source: str, out: str | Path, estimator: Estimator, options: StitchOptions | None = None,
@@ -251,15 +314,29 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
             registration = (IncrementalRegistration(info.source_size, options.registration, options.features)
                             if options.registration.enabled else None)
             drawer = LivePreview(preview, info.source_size, registration)
+            # When each frame came off the decoder and when the scan was done with it: how far
+            # the scan falls behind the stream (scripts/bench_live.py).
+            timeline = Timeline(("arrived", "scanned"))
 
-            with stream_progress(f"scan ({estimator.name}, live)", disable=not show_progress) as advance:
-                def step(n: int = 1, status: str | None = None) -> None:
-                    if drawer.maybe_update(scanner.keyframes):
-                        status = f"{status or ''} preview {drawer.written}"
-                    advance(n, status=status)
+            def frames() -> Iterator[np.ndarray]:
+                for arrival in stream.arrivals():
+                    timeline.stamp("arrived", arrival.time)
+                    yield arrival.frame
 
-                scan = scan_flight(itertools.islice(stream, options.max_frames), estimator, scanner, step)
-            drawer.update(scan.keyframes)  # the last ground too, before the long final stages
+            try:
+                with stream_progress(f"scan ({estimator.name}, live)", disable=not show_progress) as advance:
+                    def step(n: int = 1, status: str | None = None) -> None:
+                        timeline.stamp("scanned", frames=n)
+                        if drawer.maybe_update(scanner.keyframes):
+                            status = f"{status or ''} preview {drawer.written + 1}"
+                        advance(n, status=status)
+
+                    scan = scan_flight(itertools.islice(frames(), options.max_frames), estimator, scanner, step)
+            except BaseException:
+                with contextlib.suppress(Exception):
+                    drawer.wait()  # its file written or removed, not left half-way
+                raise
+            drawer.finish(scan.keyframes)  # the last ground too, before the long final stages
         seconds["scan"] = time.perf_counter() - clock
         seconds["overlays"] = masked.seconds
         if not scan.keyframes:
@@ -270,6 +347,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         result.preview_loops = registration.loops_closed if registration else 0  # type: ignore[attr-defined]
         result.preview_seconds = drawer.seconds  # type: ignore[attr-defined]
         result.ended_by = stream.ended_by if live else None  # type: ignore[attr-defined]
+        result.timeline = timeline  # type: ignore[attr-defined]
         return result
 
 
