@@ -364,7 +364,11 @@ def bench_memory(args) -> list[dict]:
     rows = []
     for name, command in (("track", ["track", "-", "-o", str(WORKDIR / "long.jsonl"), "-e", "orb", "-q"]),
                           ("stabilize --latency 1", ["stabilize", "-", str(WORKDIR / "long_steady.mp4"), "-e", "orb",
-                                                     "--latency", "1", "-q"])):
+                                                     "--latency", "1", "-q"]),
+                          ("stitch --live", ["stitch", "-", "-o", str(WORKDIR / "long_pano.png"), "--live", "-e", "orb",
+                                             "-q"])):
+        if args.only and not name.startswith(args.only):
+            continue
         sender = subprocess.Popen([FFMPEG, "-v", "error", "-stream_loop", "-1", "-i", str(clip), "-frames:v", str(args.frames),
                                    "-c:v", "libx264", "-preset", "ultrafast", "-f", "mpegts", "pipe:1"],
                                   stdout=subprocess.PIPE)
@@ -532,6 +536,7 @@ def main() -> None:
     parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "stalls", "receive"])
     parser.add_argument("--recover", type=float, default=0.15, help="stalls: OnlineL1Path.recover")
     parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
+    parser.add_argument("--only", default=None, help="memory: only the command starting with this (track, stabilize, stitch)")
     parser.add_argument("--no-preview", action="store_true", help="stitch: no --preview")
     parser.add_argument("--every", type=float, default=2.0, help="stitch: seconds between previews")
     parser.add_argument("--hog", type=int, default=0, help="stabilize: busy processes at the same priority during the run")

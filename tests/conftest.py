@@ -90,6 +90,16 @@ def write_clip(path: Path, frames, fps: float = 30.0, codec: str = "libx264", pi
     return path
 
 
+def opencv_count(path) -> int:
+    """Frames OpenCV's own FFmpeg build decodes from ``path`` (each coded frame once)."""
+    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    count = 0
+    while capture.grab():
+        count += 1
+    capture.release()
+    return count
+
+
 def ffmpeg(*args: str) -> None:
     subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", *args], check=True)
 

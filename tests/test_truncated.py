@@ -7,10 +7,9 @@ from __future__ import annotations
 
 import json
 
-import cv2
 import pytest
 
-from conftest import ffmpeg
+from conftest import ffmpeg, opencv_count
 from mosaic_cli.cli import main
 
 FRAMES = 90
@@ -21,15 +20,6 @@ def run_cli(capsys, *args):
         main([str(a) for a in args])
     code = exit_info.value.code
     return (0 if code is None else code), capsys.readouterr().err
-
-
-def decodable(path) -> int:
-    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    count = 0
-    while capture.grab():
-        count += 1
-    capture.release()
-    return count
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +45,7 @@ def clips(tmp_path_factory):
 def test_truncated_track_warns_once_and_records_it(tmp_path, capsys, clips):
     _, cut, cut_mkv, _ = clips
     for video in (cut, cut_mkv):
-        decoded = decodable(video)
+        decoded = opencv_count(video)
         assert 0 < decoded < FRAMES * 0.8
         out = tmp_path / f"{video.stem}.json"
         code, err = run_cli(capsys, "track", video, "-o", out, "-e", "orb", "-q")
@@ -85,11 +75,11 @@ def test_strict_refuses_a_truncated_video_in_every_command(tmp_path, capsys, cli
 
 def test_stabilize_and_stitch_record_the_shortfall(tmp_path, capsys, clips):
     _, cut, _, _ = clips
-    decoded = decodable(cut)
+    decoded = opencv_count(cut)
     code, err = run_cli(capsys, "stabilize", cut, tmp_path / "s.mp4", "--warps", tmp_path / "w.json", "-e", "orb", "-q")
     assert code == 0 and err.count("mosaic: warning: ") == 1, err
     warps = json.loads((tmp_path / "w.json").read_text())
-    assert warps["frames"] == decoded == decodable(tmp_path / "s.mp4")
+    assert warps["frames"] == decoded == opencv_count(tmp_path / "s.mp4")
     assert warps["input"]["frames_decoded"] == decoded and warps["input"]["frames_announced"] == FRAMES
     # testsrc2 is no flight: overlay detection would mask its static pattern and leave the
     # moving box to stitch, in pieces; the shortfall is what is checked here.
@@ -101,13 +91,13 @@ def test_stabilize_and_stitch_record_the_shortfall(tmp_path, capsys, clips):
 
 def test_whole_and_edit_list_clips_are_not_called_truncated(tmp_path, capsys, clips):
     whole, _, _, trimmed = clips
-    assert decodable(trimmed) < FRAMES  # the container still lists the frames the edit list leaves out
+    assert opencv_count(trimmed) < FRAMES  # the container still lists the frames the edit list leaves out
     for video in (whole, trimmed):
         out = tmp_path / f"{video.stem}.json"
         code, err = run_cli(capsys, "track", video, "-o", out, "-e", "orb", "-q", "--strict")
         assert code == 0 and err == "", err
         data = json.loads(out.read_text())
-        assert data["frames"] == decodable(video) and "input" not in data["meta"]
+        assert data["frames"] == opencv_count(video) and "input" not in data["meta"]
     # frames skipped by --start count as decoded
     code, err = run_cli(capsys, "stitch", whole, "--start", "30", "-o", tmp_path / "p.png", "-e", "orb", "-q", "--strict")
     assert code == 0 and err == "", err

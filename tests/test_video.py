@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import ffmpeg, textured_image, write_clip
+from conftest import ffmpeg, opencv_count, textured_image, write_clip
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.geometry import project, resize_matrix
 from mosaic_cli.video import VideoWriter, open_video, probe
@@ -270,16 +270,6 @@ def test_writer_shorter_than_audio_ends_with_the_video(tmp_path):
 
 
 # ---------------------------------------------------------------- probe
-
-
-def opencv_count(path) -> int:
-    """Frames OpenCV's own FFmpeg build decodes from ``path`` (each coded frame once)."""
-    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
-    count = 0
-    while capture.grab():
-        count += 1
-    capture.release()
-    return count
 
 
 def lavfi_clip(path, rate: str, frames: int, audio: str | None = None, audio_seconds: float | None = None,

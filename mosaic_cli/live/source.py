@@ -32,7 +32,7 @@ import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.reader import VideoInfo, scaled_size
+from mosaic_cli.video.reader import VideoInfo, read_into, scaled_size
 
 STDIN = "-"
 URL_SCHEMES = ("udp", "tcp", "rtp", "rtsp", "rtsps", "srt", "http", "https", "rtmp", "rist")
@@ -265,14 +265,7 @@ class LiveStream:
         try:
             while True:
                 buffer = bytearray(frame_bytes)
-                view = memoryview(buffer)
-                got = 0
-                while got < frame_bytes:
-                    n = pipe.readinto(view[got:])
-                    if not n:
-                        break
-                    got += n
-                if got < frame_bytes:
+                if read_into(pipe, memoryview(buffer)) < frame_bytes:
                     break  # the end (a partial last frame is not a frame)
                 arrival = Arrival(np.frombuffer(buffer, np.uint8).reshape(self._frame_shape), time.monotonic())
                 self._queue.put(arrival)

@@ -162,6 +162,18 @@ TAIL_SECONDS = 0.5
 DAMAGE_SIGNS = ("partial file", "ended prematurely", "invalid data", "invalid nal", "corrupt", "truncat", "error while decoding")
 
 
+def read_into(pipe, view: memoryview) -> int:
+    """Fill ``view`` from ``pipe`` (a raw-frame pipe: reads may return less than asked); the
+    bytes read, fewer than ``len(view)`` only at the end of the stream."""
+    got = 0
+    while got < len(view):
+        n = pipe.readinto(view[got:])
+        if not n:
+            break
+        got += n
+    return got
+
+
 def probe(path: str | Path) -> VideoInfo:
     """What a video file or image folder holds, with user-facing errors for bad input.
 
@@ -383,14 +395,7 @@ class Decoder:
         got = 0
         while True:
             frame = np.empty(self.shape, np.uint8)
-            view = memoryview(frame.reshape(-1))
-            got = 0
-            while got < nbytes:
-                n = pipe.readinto(view[got:])
-                if not n:
-                    break
-                got += n
-            if got < nbytes:
+            if read_into(pipe, memoryview(frame.reshape(-1))) < nbytes:
                 break
             yield frame
         status = self._proc.wait()
