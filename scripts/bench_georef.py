@@ -94,7 +94,9 @@ def run_stitch(video: Path, telemetry: Path, extra: list[str] = ()) -> dict:
     tif = video.with_suffix(".map.tif")
     transforms = video.with_suffix(".map.json")
     footprints = video.with_suffix(".footprints.geojson")
-    cmd = [sys.executable, "-m", "mosaic_cli", "stitch", str(video), "--telemetry", str(telemetry), "-o", str(tif),
+    # the stitch runs through this script so that the registered placements are kept for refit
+    cmd = [sys.executable, str(Path(__file__).resolve()), "record-stitch", str(video.with_suffix(".placements.npz")),
+           "stitch", str(video), "--telemetry", str(telemetry), "-o", str(tif),
            "--transforms", str(transforms), "--footprints", str(footprints), "-q", *extra]
     clock = time.perf_counter()
     subprocess.run(cmd, check=True)
@@ -123,11 +125,12 @@ def report(rows, command: str) -> None:
 
 def bench_mapping(args) -> None:
     rows = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = mapping_flight(args.workdir, seed)
         rows.append((f"mapping seed {seed}", run_stitch(video, video.with_suffix(".SRT"))))
         report(rows[-1:], "(progress)")
-    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}")
+    first = f" --first-seed {args.first_seed}" if args.first_seed else ""
+    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}{first}")
 
 
 def bench_short(args) -> None:
@@ -143,23 +146,23 @@ def bench_short(args) -> None:
 
 def bench_refit(args) -> None:
     """Georeference again, with the current code, the placements a finished mapping stitch
-    registered (read back from its transforms: placement_k = inv(map_H[ref]) @ map_H[k])."""
+    registered (kept by ``record-stitch`` in ``mapping_s<seed>.placements.npz``): the
+    georeferencing alone, without re-stitching."""
     from mosaic_cli.geo.georef import GeorefOptions, georeference
     from mosaic_cli.geo.score import score_map_homographies
     from mosaic_cli.telemetry import read_telemetry
 
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = args.workdir / f"mapping_s{seed}.mp4"
-        transforms = video.with_suffix(".map.json")
-        if not transforms.exists():
+        record = video.with_suffix(".placements.npz")
+        if not record.exists():
+            print(f"mapping seed {seed}: no {record.name} (run the mapping bench first)")
             continue
         gt = load_ground_truth(video)
-        data = json.loads(transforms.read_text())
-        indices = [f["index"] for f in data["frames"]]
-        map_h = [np.array(f["map_H"]) for f in data["frames"]]
-        ref = (len(indices) - 1) // 2
-        placements = [np.linalg.inv(map_h[ref]) @ H for H in map_h]
-        g = georeference(placements, ref, indices, gt.size, gt.fps, read_telemetry(video.with_suffix(".SRT")), GeorefOptions())
+        kept = np.load(record)
+        placements, ref, indices = list(kept["placements"]), int(kept["ref"]), [int(i) for i in kept["indices"]]
+        g = georeference(placements, ref, indices, tuple(int(v) for v in kept["size"]), float(kept["fps"]),
+                         read_telemetry(video.with_suffix(".SRT")), GeorefOptions())
         truth = json.loads(video.with_name(video.stem + ".geo.json").read_text())
         score = score_map_homographies({i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))},
                                        gt, np.array(truth["map_to_crs"]))
@@ -168,11 +171,33 @@ def bench_refit(args) -> None:
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
 
 
+def record_stitch(record: Path, argv: list[str]) -> None:
+    """Run ``mosaic <argv>`` in this process, keeping the first panorama's registered keyframe
+    placements (before georeferencing) in ``record`` (.npz), for ``refit``."""
+    from mosaic_cli import cli
+    from mosaic_cli.stitch import pipeline
+
+    georeference = pipeline._georeference
+
+    def recording(placements, ref, indices, scan, track, options, first):
+        if first:
+            np.savez(record, placements=np.array(placements), ref=ref, indices=np.array(indices),
+                     size=np.array(scan.source_size), fps=scan.fps)
+        return georeference(placements, ref, indices, scan, track, options, first)
+
+    pipeline._georeference = recording
+    cli.main(argv)
+
+
 def main() -> None:
+    if len(sys.argv) > 2 and sys.argv[1] == "record-stitch":
+        record_stitch(Path(sys.argv[2]), sys.argv[3:])
+        return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("what", choices=["mapping", "short", "all", "refit"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
-    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=3, help="how many mapping flights (seeds) to run")
+    parser.add_argument("--first-seed", type=int, default=0)
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
