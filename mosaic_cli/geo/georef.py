@@ -9,6 +9,11 @@ position, scale and heading.
              scale and the compass heading as a weak prior
 4. check     the fit against the images: too few agreeing fixes, or GPS scatter no drone has,
              mean the telemetry belongs to another flight or clock
+5. adjust    with the gimbal's pitch of the keyframes, one adjustment (adjust.py): the tilt and
+             shear the chained registrations left in the mosaic from every keyframe's attitude,
+             position, scale and heading from the GPS and the prior; without it a homography
+             from the GPS alone where it explains the fixes clearly better
+6. shifts    per keyframe for what bending is left, held stiff by the images (drift.py)
 
 Everything here is pure geometry: no file is read or written.
 """
@@ -22,11 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
 from mosaic_cli.geo.drift import DriftOptions, drift_shifts
 from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, fit_similarity, refine_homography
-from mosaic_cli.geometry import normalize, project
+from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
 from mosaic_cli.telemetry.track import Track
 
@@ -47,9 +53,14 @@ class GeorefOptions:
     # similarity when it explains the fixes this much better (robust scatter ratio) ...
     perspective_gain: float = 0.8
     min_fixes_for_perspective: int = 12
+    # With the gimbal's pitch and roll the tilt comes from them instead (adjust.py): how far
+    # the gimbal's reported attitude may be off, degrees
+    attitude_accuracy: float = 1.0
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
 
     def validate(self) -> None:
+        if not 0 < self.attitude_accuracy <= 90:
+            raise BadInput(f"the gimbal's attitude accuracy must be between 0 and 90 degrees, got {self.attitude_accuracy}")
         if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
             raise BadInput(f"--hfov must be between 1 and 170 degrees, got {self.hfov}")
         if not math.isfinite(self.offset):
@@ -174,7 +185,19 @@ def georeference(
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
-    if fixes.sum() >= options.min_fixes_for_perspective:
+    attitude = _attitude_views(placements, flatten, frame_size, f, aligned, options.attitude_accuracy)
+    if attitude is not None:
+        # the tilt the images leave open from every keyframe's gimbal, the rest from the GPS (adjust.py)
+        views, known = attitude
+        prior_view = int(np.searchsorted(known, ref)) if ref in known else None
+        adjusted = adjust_to_ground(mosaic[fixes], ground, times[fixes], fit.matrix, views, prior, prior_view,
+                                    correlation=options.drift.correlation)
+        to_ground, model = adjusted.matrix, "homography levelled by the gimbal"
+        inliers, sigma = adjusted.inliers, adjusted.sigma
+        a, b = adjusted.scale * math.cos(adjusted.rotation), adjusted.scale * math.sin(adjusted.rotation)
+        level = np.array([[a, -b, fit.matrix[0, 2]], [b, a, fit.matrix[1, 2]], [0, 0, 1.0]])  # its scale and heading
+        fit = SimilarityFit(level, adjusted.residuals, inliers, sigma)
+    elif fixes.sum() >= options.min_fixes_for_perspective:
         # the perspective a long flight's chained registrations bend the mosaic with
         placed = project(fit.matrix, mosaic[fixes])
         better = refine_homography(placed, ground, min_sigma=1.0)
@@ -201,6 +224,21 @@ def georeference(
     fit.inliers = inliers
     return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
                         hfov, track, prior)
+
+
+def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float | None,
+                    aligned: AlignedTelemetry, accuracy: float) -> tuple[AttitudeViews, np.ndarray] | None:
+    """The keyframes of known pitch (and a field of view) as seen undone of their tilt, in the
+    flattened mosaic, with their positions among all keyframes; None when none is known."""
+    if focal is None:
+        return None
+    known = np.nonzero(np.isfinite(aligned.pitch))[0]
+    if len(known) == 0:
+        return None
+    corners = frame_corners(*frame_size)
+    unt = [untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) for k in known]
+    views = np.stack([normalize(flatten @ placements[k] @ np.linalg.inv(U)) for k, U in zip(known, unt)])
+    return AttitudeViews(views, np.stack([project(U, corners) for U in unt]), attitude_sigma(frame_size, focal, accuracy)), known
 
 
 def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
