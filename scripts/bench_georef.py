@@ -5,6 +5,7 @@
     python scripts/bench_georef.py all
     python scripts/bench_georef.py refit     # the current georeferencing re-applied to the last
                                              # mapping stitch's registered placements (no re-stitch)
+    python scripts/bench_georef.py gps-limit # the scale and heading the GPS alone allows on that flight
 
 A mapping flight: a procedural map of 8192x1536 px at 5 cm per pixel (410 x 77 m), a 640x360
 camera (focal length = frame width, so 32 m above the ground for 5 cm per frame pixel) flying
@@ -171,6 +172,39 @@ def bench_refit(args) -> None:
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
 
 
+def bench_gps_limit(args) -> None:
+    """What the GPS alone can tell of the mapping flight's scale and heading: the similarity
+    between the true camera positions at keyframe times (every 2.1 s) and the same positions
+    with the simulator's GPS error (3 m RMS, correlated over 2 s), over many error draws."""
+    from mosaic_cli.simulate.telemetry import camera_poses, gauss_markov
+
+    video = mapping_flight(args.workdir, 0)
+    gt = load_ground_truth(video)
+    truth = json.loads(video.with_name(video.stem + ".geo.json").read_text())
+    poses = camera_poses(gt)
+    camera = (np.stack([poses.x, poses.y, np.ones(gt.frames)], 1) @ np.array(truth["map_to_crs"]).T)[:, :2]
+    times = np.arange(gt.frames) / gt.fps
+    keyframes = np.arange(0, gt.frames, 21)
+    centred = camera[keyframes] - camera[keyframes].mean(0)
+    truth_z = centred[:, 0] + 1j * centred[:, 1]
+    scale, heading = [], []
+    for draw in range(args.draws):
+        rng = np.random.default_rng([draw, 77])
+        sigma = 3.0 / math.sqrt(2.0)
+        error = np.stack([gauss_markov(rng, times, sigma, 2.0), gauss_markov(rng, times, sigma, 2.0)], 1)[keyframes]
+        gps = centred + error - error.mean(0)
+        gps_z = gps[:, 0] + 1j * gps[:, 1]
+        ratio = np.vdot(truth_z, gps_z) / np.vdot(truth_z, truth_z)
+        scale.append(100 * (abs(ratio) - 1))
+        heading.append(math.degrees(np.angle(ratio)))
+    scale, heading = np.abs(scale), np.abs(heading)
+    print(f"\n$ python scripts/bench_georef.py gps-limit --draws {args.draws}")
+    print(f"GPS scale error over the mapping flight ({len(keyframes)} keyframe fixes, {args.draws} draws): RMS "
+          f"{np.sqrt(np.mean(scale**2)):.2f}%, 95th percentile {np.percentile(scale, 95):.2f}%, beyond 0.5%: {np.mean(scale > 0.5):.1%} of flights")
+    print(f"GPS heading error: RMS {np.sqrt(np.mean(heading**2)):.2f} deg, 95th percentile {np.percentile(heading, 95):.2f} deg, "
+          f"beyond 0.5 deg: {np.mean(heading > 0.5):.1%}")
+
+
 def record_stitch(record: Path, argv: list[str]) -> None:
     """Run ``mosaic <argv>`` in this process, keeping the first panorama's registered keyframe
     placements (before georeferencing) in ``record`` (.npz), for ``refit``."""
@@ -194,10 +228,11 @@ def main() -> None:
         record_stitch(Path(sys.argv[2]), sys.argv[3:])
         return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["mapping", "short", "all", "refit"])
+    parser.add_argument("what", choices=["mapping", "short", "all", "refit", "gps-limit"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     parser.add_argument("--seeds", type=int, default=3, help="how many mapping flights (seeds) to run")
     parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--draws", type=int, default=1000, help="gps-limit: GPS error draws")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -207,6 +242,8 @@ def main() -> None:
         bench_short(args)
     if args.what == "refit":
         bench_refit(args)
+    if args.what == "gps-limit":
+        bench_gps_limit(args)
 
 
 if __name__ == "__main__":
