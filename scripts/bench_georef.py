@@ -148,11 +148,17 @@ def bench_short(args) -> None:
 def bench_refit(args) -> None:
     """Georeference again, with the current code, the placements a finished mapping stitch
     registered (kept by ``record-stitch`` in ``mapping_s<seed>.placements.npz``): the
-    georeferencing alone, without re-stitching."""
+    georeferencing alone, without re-stitching.  ``--detail`` says where the error lies."""
+    from dataclasses import replace
+
+    from mosaic_cli.geo.drift import DriftOptions
     from mosaic_cli.geo.georef import GeorefOptions, georeference
     from mosaic_cli.geo.score import score_map_homographies
     from mosaic_cli.telemetry import read_telemetry
 
+    options = GeorefOptions(attitude_accuracy=None if args.no_gimbal else args.gimbal_accuracy)
+    if args.link_fraction is not None:
+        options = replace(options, drift=DriftOptions(link_fraction=args.link_fraction))
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = args.workdir / f"mapping_s{seed}.mp4"
         record = video.with_suffix(".placements.npz")
@@ -163,13 +169,53 @@ def bench_refit(args) -> None:
         kept = np.load(record)
         placements, ref, indices = list(kept["placements"]), int(kept["ref"]), [int(i) for i in kept["indices"]]
         g = georeference(placements, ref, indices, tuple(int(v) for v in kept["size"]), float(kept["fps"]),
-                         read_telemetry(video.with_suffix(".SRT")), GeorefOptions())
+                         read_telemetry(video.with_suffix(".SRT")), options)
         truth = json.loads(video.with_name(video.stem + ".geo.json").read_text())
-        score = score_map_homographies({i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))},
-                                       gt, np.array(truth["map_to_crs"]))
+        map_to_crs = np.array(truth["map_to_crs"])
+        map_h = {i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))}
+        score = score_map_homographies(map_h, gt, map_to_crs)
         print(f"mapping seed {seed}: {g.summary()}")
         print(f"| mapping seed {seed} (refit) | {gt.frames} | {score.keyframes} | {score.median_m:.2f} | {score.max_m:.2f} | "
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
+        if args.detail:
+            refit_detail(g, placements, indices, gt, map_to_crs)
+
+
+def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
+    """Where a georeferenced mapping stitch is wrong: the keyframe of the largest error, how
+    far each keyframe's map is from a similarity of the truth (turned, scaled, tilted), and
+    what the best homography of the registered mosaic onto the truth would leave (the images'
+    own share of the error)."""
+    import cv2
+
+    from mosaic_cli.geometry import project
+
+    w, h = gt.size
+    xs, ys = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    grid = np.stack([xs.ravel(), ys.ravel()], 1)
+    got = np.stack([project(g.frame_to_ground(k, P), grid) for k, P in enumerate(placements)])
+    true = np.stack([project(map_to_crs @ np.linalg.inv(gt.map_to_frame[i]), grid) for i in indices])
+    error = np.linalg.norm(got - true, axis=2)  # (keyframes, 25)
+    worst = int(np.argmax(error.max(1)))
+    centres = true.mean(1)
+    gps = "agrees" if g.used[worst] else ("outlier" if g.telemetry.fix[worst] else "none")
+    print(f"  largest error {error[worst].max():.2f} m at keyframe {worst} (frame {indices[worst]}, {indices[worst] / gt.fps:.1f} s), "
+          f"{np.linalg.norm(centres[worst] - centres.mean(0)):.0f} m from the flight's centre, its centre {error[worst, 12]:.2f} m off; "
+          f"its GPS fix: {gps}")
+    # each keyframe's map against the best similarity of it onto the truth
+    za = got[..., 0] + 1j * got[..., 1]
+    zb = true[..., 0] + 1j * true[..., 1]
+    za, zb = za - za.mean(1, keepdims=True), zb - zb.mean(1, keepdims=True)
+    ratio = (np.conj(za) * zb).sum(1) / (np.abs(za) ** 2).sum(1)
+    left = np.abs(ratio[:, None] * za - zb).max(1)
+    print(f"  keyframes' maps against the truth: turned {np.median(np.abs(np.degrees(np.angle(ratio)))):.2f} deg, "
+          f"scaled {100 * np.median(np.abs(1 / np.abs(ratio) - 1)):.2f}% (medians), non-similar {np.median(left):.2f} m "
+          f"(median, max over the frame)")
+    src = np.concatenate([project(P, grid) for P in placements])
+    best, _ = cv2.findHomography(src, true.reshape(-1, 2), 0)
+    d = np.linalg.norm(project(best, src) - true.reshape(-1, 2), axis=1)
+    print(f"  the best homography of the registered mosaic onto the truth leaves {np.median(d):.2f} m median, {d.max():.2f} m max; "
+          f"GPS drift shifts move keyframes by {np.linalg.norm(g.shifts - g.shifts.mean(0), axis=1).max():.2f} m at most")
 
 
 def bench_gps_limit(args) -> None:
@@ -233,6 +279,10 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3, help="how many mapping flights (seeds) to run")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--draws", type=int, default=1000, help="gps-limit: GPS error draws")
+    parser.add_argument("--detail", action="store_true", help="refit: where the error lies")
+    parser.add_argument("--gimbal-accuracy", type=float, default=1.0, help="refit: degrees (GeorefOptions.attitude_accuracy)")
+    parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
+    parser.add_argument("--link-fraction", type=float, help="refit: DriftOptions.link_fraction of the GPS drift shifts")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -159,6 +159,10 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     to_ground = np.array([[1.0, 0, origin[0]], [0, -1.0, origin[1]], [0, 0, 1.0]])  # synthetic (x, y south) -> east, north
     err = ground_errors(np.eye(3), [g.frame_to_ground(k, P) for k, P in enumerate(placements)], [to_ground @ T for T in truth])
     assert np.median(err) < 0.8 and err.max() < 1.5, (np.median(err), err.max())
+    # the gimbal not used: the tilt from the GPS alone
+    gps_only = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, track,
+                            GeorefOptions(attitude_accuracy=None))
+    assert gps_only.model in ("similarity", "homography")
     # the reference's tilt alone, then a similarity to the GPS: the drift shows at the ends
     flat = untilt(SIZE, FOCAL, pitch[ref], roll[ref])
     nadirs = np.array([project(flat @ P, nadir_pixel(SIZE, FOCAL, p, r)[None])[0] for P, p, r in zip(placements, pitch, roll)])

@@ -54,12 +54,12 @@ class GeorefOptions:
     perspective_gain: float = 0.8
     min_fixes_for_perspective: int = 12
     # With the gimbal's pitch and roll the tilt comes from them instead (adjust.py): how far
-    # the gimbal's reported attitude may be off, degrees
-    attitude_accuracy: float = 1.0
+    # the gimbal's reported attitude may be off, degrees (None: not used, the tilt from the GPS)
+    attitude_accuracy: float | None = 1.0
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
 
     def validate(self) -> None:
-        if not 0 < self.attitude_accuracy <= 90:
+        if self.attitude_accuracy is not None and not 0 < self.attitude_accuracy <= 90:
             raise BadInput(f"the gimbal's attitude accuracy must be between 0 and 90 degrees, got {self.attitude_accuracy}")
         if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
             raise BadInput(f"--hfov must be between 1 and 170 degrees, got {self.hfov}")
@@ -227,10 +227,11 @@ def georeference(
 
 
 def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float | None,
-                    aligned: AlignedTelemetry, accuracy: float) -> tuple[AttitudeViews, np.ndarray] | None:
+                    aligned: AlignedTelemetry, accuracy: float | None) -> tuple[AttitudeViews, np.ndarray] | None:
     """The keyframes of known pitch (and a field of view) as seen undone of their tilt, in the
-    flattened mosaic, with their positions among all keyframes; None when none is known."""
-    if focal is None:
+    flattened mosaic, with their positions among all keyframes; None when none is known (or
+    the gimbal is not to be used)."""
+    if focal is None or accuracy is None:
         return None
     known = np.nonzero(np.isfinite(aligned.pitch))[0]
     if len(known) == 0:
