@@ -211,6 +211,18 @@ def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
     print(f"  keyframes' maps against the truth: turned {np.median(np.abs(np.degrees(np.angle(ratio)))):.2f} deg, "
           f"scaled {100 * np.median(np.abs(1 / np.abs(ratio) - 1)):.2f}% (medians), non-similar {np.median(left):.2f} m "
           f"(median, max over the frame)")
+    # the GPS log itself at the keyframes against the true camera positions
+    from mosaic_cli.simulate.telemetry import camera_poses
+
+    poses = camera_poses(gt)
+    cameras = (np.stack([poses.x, poses.y, np.ones(gt.frames)], 1) @ map_to_crs.T)[np.array(indices), :2]
+    fix = g.telemetry.fix
+    logged = g.projection.to_map(g.telemetry.lat[fix], g.telemetry.lon[fix])
+    zt, zg = cameras[fix, 0] + 1j * cameras[fix, 1], logged[:, 0] + 1j * logged[:, 1]
+    zt, zg = zt - zt.mean(), zg - zg.mean()
+    r = np.vdot(zt, zg) / np.vdot(zt, zt)
+    print(f"  the GPS log at the keyframes against the true camera positions: scale {100 * (abs(r) - 1):+.2f}%, "
+          f"heading {np.degrees(np.angle(r)):+.2f} deg (as the mosaic's scale and heading are scored)")
     src = np.concatenate([project(P, grid) for P in placements])
     best, _ = cv2.findHomography(src, true.reshape(-1, 2), 0)
     d = np.linalg.norm(project(best, src) - true.reshape(-1, 2), axis=1)
