@@ -168,8 +168,13 @@ def bench_refit(args) -> None:
         gt = load_ground_truth(video)
         kept = np.load(record)
         placements, ref, indices = list(kept["placements"]), int(kept["ref"]), [int(i) for i in kept["indices"]]
-        g = georeference(placements, ref, indices, tuple(int(v) for v in kept["size"]), float(kept["fps"]),
-                         read_telemetry(video.with_suffix(".SRT")), options)
+        track = read_telemetry(video.with_suffix(".SRT"))
+        if args.gimbal_noise or args.gimbal_bias:
+            # a gimbal less exact than the simulator's log: white noise per sample and a bias
+            rng = np.random.default_rng([seed, 5])
+            for angles in (track.pitch, track.roll):
+                angles += args.gimbal_bias * rng.choice([-1.0, 1.0]) + args.gimbal_noise * rng.standard_normal(len(angles))
+        g = georeference(placements, ref, indices, tuple(int(v) for v in kept["size"]), float(kept["fps"]), track, options)
         truth = json.loads(video.with_name(video.stem + ".geo.json").read_text())
         map_to_crs = np.array(truth["map_to_crs"])
         map_h = {i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))}
@@ -295,6 +300,8 @@ def main() -> None:
     parser.add_argument("--gimbal-accuracy", type=float, default=1.0, help="refit: degrees (GeorefOptions.attitude_accuracy)")
     parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
     parser.add_argument("--link-fraction", type=float, help="refit: DriftOptions.link_fraction of the GPS drift shifts")
+    parser.add_argument("--gimbal-noise", type=float, default=0.0, help="refit: degrees of white noise added to the log's pitch and roll")
+    parser.add_argument("--gimbal-bias", type=float, default=0.0, help="refit: degrees of bias added to the log's pitch and roll")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma
+from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic
 from mosaic_cli.geo.camera import focal_pixels, intrinsics, nadir_pixel, tilt_rotation, untilt
 from mosaic_cli.geo.fit import SimilarityPrior, fit_similarity, refine_homography
 from mosaic_cli.geometry import frame_corners, project
@@ -83,6 +83,25 @@ def test_attitude_sigma_is_the_non_similarity_of_a_tilt():
             rms.append(np.linalg.norm(left))
         assert attitude_sigma(SIZE, FOCAL, degrees) == pytest.approx(np.mean(rms), rel=1e-6)
     assert attitude_sigma(SIZE, FOCAL, 2.0) == pytest.approx(4 * attitude_sigma(SIZE, FOCAL, 0.5), rel=0.02)  # linear
+
+
+def test_levelling_undoes_the_bend_exactly_and_refuses_a_gimbal_that_disagrees():
+    centres, pitch, roll, truth, placements, nadirs, times, rng = flight(4)
+    bend = placements[0] @ np.linalg.inv(truth[0])
+    level = level_mosaic(views_of(placements, pitch, roll))
+    assert level.agrees() and level.residual < 1e-6
+    L = level.matrix @ bend  # ground metres -> levelled mosaic: a similarity again
+    L = L / L[2, 2]
+    scale = math.hypot(L[0, 0], L[1, 0])
+    assert np.abs(L[2, :2]).max() < 1e-9
+    assert abs(L[0, 0] - L[1, 1]) < 1e-6 * scale and abs(L[0, 1] + L[1, 0]) < 1e-6 * scale
+    # one keyframe misread by 10 degrees: Huber keeps it from bending the levelling
+    misread = level_mosaic(views_of(placements, np.where(np.arange(len(pitch)) == 17, pitch + 10.0, pitch), roll))
+    moved = ground_errors(misread.matrix, placements, [level.matrix @ P for P in placements])  # levelled pixels
+    assert moved.max() < 1e-4 * scale * 180, moved.max() / scale  # under a ten-thousandth of the flight's length
+    # angles 20 degrees off at random: they and the images tell no one story
+    n = len(pitch)
+    assert not level_mosaic(views_of(placements, pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n))).agrees()
 
 
 def test_adjustment_takes_the_tilt_from_the_gimbal_and_the_place_from_gps():
@@ -163,6 +182,11 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     gps_only = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, track,
                             GeorefOptions(attitude_accuracy=None))
     assert gps_only.model in ("similarity", "homography")
+    # a gimbal whose angles are 20 degrees off: said, and not used
+    wild = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
+                 pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n), np.full(n, hfov_degrees(SIZE[0], FOCAL)))
+    unused = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, wild, GeorefOptions())
+    assert unused.model in ("similarity", "homography") and "gimbal's angles disagree with the images" in unused.summary()
     # the reference's tilt alone, then a similarity to the GPS: the drift shows at the ends
     flat = untilt(SIZE, FOCAL, pitch[ref], roll[ref])
     nadirs = np.array([project(flat @ P, nadir_pixel(SIZE, FOCAL, p, r)[None])[0] for P, p, r in zip(placements, pitch, roll)])

@@ -104,6 +104,54 @@ def _normaliser(points: np.ndarray) -> np.ndarray:
     return np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1.0]])
 
 
+@dataclass
+class Levelling:
+    matrix: np.ndarray  # 3x3, mosaic pixels -> levelled mosaic pixels
+    residual: float  # median non-similarity of the keyframes after it, in attitude sigmas
+    spread: float  # min / max of its projective denominator over the keyframes: 1 for an affine levelling
+
+    def agrees(self, max_residual: float = 3.0, min_spread: float = 0.25) -> bool:
+        """Whether the gimbal and the images tell one story: the keyframes levelled to within
+        a few times the gimbal's accuracy, without a projective stretch no chain of
+        registrations drifts by (a quarter of the scale at one end of the mosaic)."""
+        return self.residual <= max_residual and self.spread >= min_spread
+
+
+def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
+    """The homography (mosaic pixels -> levelled mosaic pixels) that makes every keyframe of
+    known attitude, undone of its tilt, a similarity in the mosaic again: the mosaic made the
+    ground's up to a similarity by all keyframes' gimbals at once (robustly: Huber per
+    keyframe), not by one keyframe's.  Only the tilt and shear are chosen (4 parameters); the
+    similarity left is the GPS's to fix."""
+    corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
+    to_unit = _normaliser(corners.reshape(-1, 2))
+    unit = project(to_unit, corners.reshape(-1, 2))
+
+    def matrix(p: np.ndarray) -> np.ndarray:
+        shear = np.array([[math.exp(p[0]), p[1], 0.0], [0.0, math.exp(-p[0]), 0.0], [0.0, 0.0, 1.0]])
+        return shear @ np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [p[2], p[3], 1.0]])
+
+    def nonsimilar(p: np.ndarray) -> np.ndarray:
+        return _nonsimilar(project(matrix(p), unit).reshape(corners.shape), attitude.corners) / attitude.sigma
+
+    def residuals(p: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        return (nonsimilar(p) * np.sqrt(weights)[:, None]).ravel()
+
+    p = np.zeros(4)
+    for _ in range(rounds):
+        a = np.linalg.norm(nonsimilar(p), axis=1)
+        weights = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        new = least_squares(residuals, p, args=(weights,), method="trf", xtol=1e-12, ftol=1e-12).x
+        done = np.allclose(new, p, rtol=0, atol=1e-9)
+        p = new
+        if done:
+            break
+    denominator = unit @ np.array([p[2], p[3]]) + 1.0
+    spread = float(denominator.min() / denominator.max()) if denominator.max() > 0 else -1.0
+    return Levelling(normalize(np.linalg.inv(to_unit) @ matrix(p) @ to_unit),
+                     float(np.median(np.linalg.norm(nonsimilar(p), axis=1))), spread)
+
+
 def adjust_to_ground(
     nadirs: np.ndarray,  # (F, 2) mosaic pixels of the keyframes with a fix: the points below the camera
     fixes: np.ndarray,  # (F, 2) their GPS positions, ground metres

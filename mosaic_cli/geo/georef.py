@@ -3,7 +3,8 @@ position, scale and heading.
 
 1. align     the track to the keyframes' times (interpolated; outliers, gaps reported)
 2. untilt    the reference view by the gimbal's pitch and roll (with a field of view), so the
-             mosaic's plane is the ground's up to a similarity
+             mosaic's plane is the ground's up to a similarity; with the pitch of every
+             keyframe, the mosaic levelled by all of them (adjust.level_mosaic)
 3. fit       the keyframes' nadir points in the mosaic onto their GPS positions in the site's
              UTM zone: a robust similarity (see fit.py), with the altitude x field of view
              scale and the compass heading as a weak prior
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma
+from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
 from mosaic_cli.geo.drift import DriftOptions, drift_shifts
@@ -80,10 +81,11 @@ class Georeference:
     frame_indices: list[int]
     used: np.ndarray  # keyframes whose fix entered the fit
     shifts: np.ndarray  # (N, 2) per-keyframe ground shifts from the GPS drift prior
-    model: str  # "similarity" or "homography"
+    model: str  # "similarity", "homography" (from the GPS) or "homography levelled by the gimbal"
     hfov: float | None
     track: Track
     prior: SimilarityPrior | None
+    notes: list[str] = field(default_factory=list)  # what the summary should say besides
 
     @property
     def crs(self) -> str:
@@ -110,6 +112,7 @@ class Georeference:
         return (
             f"georeferenced in {self.crs}: {agreeing} of {len(self.fit.inliers)} keyframe fixes agree "
             f"(scatter {self.fit.sigma:.1f} m, {self.model}), {self.gsd * 100:.1f} cm per pixel, mosaic heading {heading:+.1f} deg"
+            + "".join(f"; {note}" for note in self.notes)
         )
 
 
@@ -148,6 +151,17 @@ def georeference(
     else:
         f, flatten = None, np.eye(3)
         nadirs = [centre] * len(placements)
+    attitude = _attitude_views(placements, flatten, frame_size, f, aligned, options.attitude_accuracy)
+    notes: list[str] = []
+    if attitude is not None:
+        # levelled by every keyframe's gimbal, not by the reference's alone (adjust.py) ...
+        level = level_mosaic(attitude[0])
+        if level.agrees():
+            flatten = level.matrix @ flatten
+            attitude[0].views = np.stack([normalize(level.matrix @ V) for V in attitude[0].views])
+        else:  # ... unless its angles and the images disagree: then none is used, the tilt is the GPS's
+            attitude, flatten, nadirs = None, np.eye(3), [centre] * len(placements)
+            notes.append(f"the gimbal's angles disagree with the images ({level.residual:.1f} x its accuracy): not used")
     mosaic = np.array([project(flatten @ H, n[None])[0] for H, n in zip(placements, nadirs)])
 
     # 3. the fit, in the site's UTM zone, as (east, -north) so that image y (down) stays y
@@ -185,7 +199,6 @@ def georeference(
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
-    attitude = _attitude_views(placements, flatten, frame_size, f, aligned, options.attitude_accuracy)
     if attitude is not None:
         # the tilt the images leave open from every keyframe's gimbal, the rest from the GPS (adjust.py)
         views, known = attitude
@@ -195,8 +208,8 @@ def georeference(
         to_ground, model = adjusted.matrix, "homography levelled by the gimbal"
         inliers, sigma = adjusted.inliers, adjusted.sigma
         a, b = adjusted.scale * math.cos(adjusted.rotation), adjusted.scale * math.sin(adjusted.rotation)
-        level = np.array([[a, -b, fit.matrix[0, 2]], [b, a, fit.matrix[1, 2]], [0, 0, 1.0]])  # its scale and heading
-        fit = SimilarityFit(level, adjusted.residuals, inliers, sigma)
+        scale_and_heading = np.array([[a, -b, fit.matrix[0, 2]], [b, a, fit.matrix[1, 2]], [0, 0, 1.0]])
+        fit = SimilarityFit(scale_and_heading, adjusted.residuals, inliers, sigma)
     elif fixes.sum() >= options.min_fixes_for_perspective:
         # the perspective a long flight's chained registrations bend the mosaic with
         placed = project(fit.matrix, mosaic[fixes])
@@ -223,7 +236,7 @@ def georeference(
     fit.sigma = sigma
     fit.inliers = inliers
     return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
-                        hfov, track, prior)
+                        hfov, track, prior, notes)
 
 
 def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float | None,
