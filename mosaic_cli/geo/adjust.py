@@ -17,7 +17,9 @@ reading bends nothing.  ``G`` minimises
 
 with robust weights: Huber on both (``w_k``, ``v_k``), fixes beyond 3.5 robust sigmas out, and
 the GPS weight shared among the fixes of each correlation time (GPS errors are correlated over
-seconds: ten fixes in two seconds are worth about one).  Pure geometry: no I/O.
+seconds: ten fixes in two seconds are worth about one).  ``level_mosaic`` is the attitude
+term alone: it levels the mosaic before the robust similarity fit that starts the adjustment,
+and says when the gimbal's angles and the images tell no one story.  Pure geometry: no I/O.
 """
 
 from __future__ import annotations
