@@ -5,6 +5,7 @@
     python scripts/bench_georef.py all
     python scripts/bench_georef.py refit     # the current georeferencing re-applied to the last
                                              # mapping stitch's registered placements (no re-stitch)
+    python scripts/bench_georef.py gps-limit # the scale and heading the GPS alone allows on that flight
 
 A mapping flight: a procedural map of 8192x1536 px at 5 cm per pixel (410 x 77 m), a 640x360
 camera (focal length = frame width, so 32 m above the ground for 5 cm per frame pixel) flying
@@ -94,7 +95,9 @@ def run_stitch(video: Path, telemetry: Path, extra: list[str] = ()) -> dict:
     tif = video.with_suffix(".map.tif")
     transforms = video.with_suffix(".map.json")
     footprints = video.with_suffix(".footprints.geojson")
-    cmd = [sys.executable, "-m", "mosaic_cli", "stitch", str(video), "--telemetry", str(telemetry), "-o", str(tif),
+    # the stitch runs through this script so that the registered placements are kept for refit
+    cmd = [sys.executable, str(Path(__file__).resolve()), "record-stitch", str(video.with_suffix(".placements.npz")),
+           "stitch", str(video), "--telemetry", str(telemetry), "-o", str(tif),
            "--transforms", str(transforms), "--footprints", str(footprints), "-q", *extra]
     clock = time.perf_counter()
     subprocess.run(cmd, check=True)
@@ -123,11 +126,12 @@ def report(rows, command: str) -> None:
 
 def bench_mapping(args) -> None:
     rows = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = mapping_flight(args.workdir, seed)
         rows.append((f"mapping seed {seed}", run_stitch(video, video.with_suffix(".SRT"))))
         report(rows[-1:], "(progress)")
-    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}")
+    first = f" --first-seed {args.first_seed}" if args.first_seed else ""
+    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}{first}")
 
 
 def bench_short(args) -> None:
@@ -143,36 +147,161 @@ def bench_short(args) -> None:
 
 def bench_refit(args) -> None:
     """Georeference again, with the current code, the placements a finished mapping stitch
-    registered (read back from its transforms: placement_k = inv(map_H[ref]) @ map_H[k])."""
+    registered (kept by ``record-stitch`` in ``mapping_s<seed>.placements.npz``): the
+    georeferencing alone, without re-stitching.  ``--detail`` says where the error lies."""
+    from dataclasses import replace
+
+    from mosaic_cli.geo.drift import DriftOptions
     from mosaic_cli.geo.georef import GeorefOptions, georeference
     from mosaic_cli.geo.score import score_map_homographies
     from mosaic_cli.telemetry import read_telemetry
 
-    for seed in range(args.seeds):
+    options = GeorefOptions(attitude_accuracy=None if args.no_gimbal else args.gimbal_accuracy)
+    if args.link_fraction is not None:
+        options = replace(options, drift=DriftOptions(link_fraction=args.link_fraction))
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = args.workdir / f"mapping_s{seed}.mp4"
-        transforms = video.with_suffix(".map.json")
-        if not transforms.exists():
+        record = video.with_suffix(".placements.npz")
+        if not record.exists():
+            print(f"mapping seed {seed}: no {record.name} (run the mapping bench first)")
             continue
         gt = load_ground_truth(video)
-        data = json.loads(transforms.read_text())
-        indices = [f["index"] for f in data["frames"]]
-        map_h = [np.array(f["map_H"]) for f in data["frames"]]
-        ref = (len(indices) - 1) // 2
-        placements = [np.linalg.inv(map_h[ref]) @ H for H in map_h]
-        g = georeference(placements, ref, indices, gt.size, gt.fps, read_telemetry(video.with_suffix(".SRT")), GeorefOptions())
+        kept = np.load(record)
+        placements, ref, indices = list(kept["placements"]), int(kept["ref"]), [int(i) for i in kept["indices"]]
+        track = read_telemetry(video.with_suffix(".SRT"))
+        if args.gimbal_noise or args.gimbal_bias:
+            # a gimbal less exact than the simulator's log: white noise per sample and a bias
+            rng = np.random.default_rng([seed, 5])
+            for angles in (track.pitch, track.roll):
+                angles += args.gimbal_bias * rng.choice([-1.0, 1.0]) + args.gimbal_noise * rng.standard_normal(len(angles))
+        g = georeference(placements, ref, indices, tuple(int(v) for v in kept["size"]), float(kept["fps"]), track, options)
         truth = json.loads(video.with_name(video.stem + ".geo.json").read_text())
-        score = score_map_homographies({i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))},
-                                       gt, np.array(truth["map_to_crs"]))
+        map_to_crs = np.array(truth["map_to_crs"])
+        map_h = {i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))}
+        score = score_map_homographies(map_h, gt, map_to_crs)
         print(f"mapping seed {seed}: {g.summary()}")
         print(f"| mapping seed {seed} (refit) | {gt.frames} | {score.keyframes} | {score.median_m:.2f} | {score.max_m:.2f} | "
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
+        if args.detail:
+            refit_detail(g, placements, indices, gt, map_to_crs)
+
+
+def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
+    """Where a georeferenced mapping stitch is wrong: the keyframe of the largest error, how
+    far each keyframe's map is from a similarity of the truth (turned, scaled, tilted), and
+    what the best homography of the registered mosaic onto the truth would leave (the images'
+    own share of the error)."""
+    import cv2
+
+    from mosaic_cli.geometry import project
+
+    w, h = gt.size
+    xs, ys = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
+    grid = np.stack([xs.ravel(), ys.ravel()], 1)
+    got = np.stack([project(g.frame_to_ground(k, P), grid) for k, P in enumerate(placements)])
+    true = np.stack([project(map_to_crs @ np.linalg.inv(gt.map_to_frame[i]), grid) for i in indices])
+    error = np.linalg.norm(got - true, axis=2)  # (keyframes, 25)
+    worst = int(np.argmax(error.max(1)))
+    centres = true.mean(1)
+    gps = "agrees" if g.used[worst] else ("outlier" if g.telemetry.fix[worst] else "none")
+    print(f"  largest error {error[worst].max():.2f} m at keyframe {worst} (frame {indices[worst]}, {indices[worst] / gt.fps:.1f} s), "
+          f"{np.linalg.norm(centres[worst] - centres.mean(0)):.0f} m from the flight's centre, its centre {error[worst, 12]:.2f} m off; "
+          f"its GPS fix: {gps}")
+    # each keyframe's map against the best similarity of it onto the truth
+    za = got[..., 0] + 1j * got[..., 1]
+    zb = true[..., 0] + 1j * true[..., 1]
+    za, zb = za - za.mean(1, keepdims=True), zb - zb.mean(1, keepdims=True)
+    ratio = (np.conj(za) * zb).sum(1) / (np.abs(za) ** 2).sum(1)
+    left = np.abs(ratio[:, None] * za - zb).max(1)
+    print(f"  keyframes' maps against the truth: turned {np.median(np.abs(np.degrees(np.angle(ratio)))):.2f} deg, "
+          f"scaled {100 * np.median(np.abs(1 / np.abs(ratio) - 1)):.2f}% (medians), non-similar {np.median(left):.2f} m "
+          f"(median, max over the frame)")
+    # the GPS log itself at the keyframes against the true camera positions
+    from mosaic_cli.simulate.telemetry import camera_poses
+
+    poses = camera_poses(gt)
+    cameras = (np.stack([poses.x, poses.y, np.ones(gt.frames)], 1) @ map_to_crs.T)[np.array(indices), :2]
+    fix = g.telemetry.fix
+    logged = g.projection.to_map(g.telemetry.lat[fix], g.telemetry.lon[fix])
+    zt, zg = cameras[fix, 0] + 1j * cameras[fix, 1], logged[:, 0] + 1j * logged[:, 1]
+    zt, zg = zt - zt.mean(), zg - zg.mean()
+    r = np.vdot(zt, zg) / np.vdot(zt, zt)
+    print(f"  the GPS log at the keyframes against the true camera positions: scale {100 * (abs(r) - 1):+.2f}%, "
+          f"heading {np.degrees(np.angle(r)):+.2f} deg (as the mosaic's scale and heading are scored)")
+    src = np.concatenate([project(P, grid) for P in placements])
+    best, _ = cv2.findHomography(src, true.reshape(-1, 2), 0)
+    d = np.linalg.norm(project(best, src) - true.reshape(-1, 2), axis=1)
+    print(f"  the best homography of the registered mosaic onto the truth leaves {np.median(d):.2f} m median, {d.max():.2f} m max; "
+          f"GPS drift shifts move keyframes by {np.linalg.norm(g.shifts - g.shifts.mean(0), axis=1).max():.2f} m at most")
+
+
+def bench_gps_limit(args) -> None:
+    """What the GPS alone can tell of the mapping flight's scale and heading: the similarity
+    between the true camera positions at keyframe times (every 2.1 s) and the same positions
+    with the simulator's GPS error (3 m RMS, correlated over 2 s), over many error draws."""
+    from mosaic_cli.simulate.telemetry import camera_poses, gauss_markov
+
+    video = mapping_flight(args.workdir, 0)
+    gt = load_ground_truth(video)
+    truth = json.loads(video.with_name(video.stem + ".geo.json").read_text())
+    poses = camera_poses(gt)
+    camera = (np.stack([poses.x, poses.y, np.ones(gt.frames)], 1) @ np.array(truth["map_to_crs"]).T)[:, :2]
+    times = np.arange(gt.frames) / gt.fps
+    keyframes = np.arange(0, gt.frames, 21)
+    centred = camera[keyframes] - camera[keyframes].mean(0)
+    truth_z = centred[:, 0] + 1j * centred[:, 1]
+    scale, heading = [], []
+    for draw in range(args.draws):
+        rng = np.random.default_rng([draw, 77])
+        sigma = 3.0 / math.sqrt(2.0)
+        error = np.stack([gauss_markov(rng, times, sigma, 2.0), gauss_markov(rng, times, sigma, 2.0)], 1)[keyframes]
+        gps = centred + error - error.mean(0)
+        gps_z = gps[:, 0] + 1j * gps[:, 1]
+        ratio = np.vdot(truth_z, gps_z) / np.vdot(truth_z, truth_z)
+        scale.append(100 * (abs(ratio) - 1))
+        heading.append(math.degrees(np.angle(ratio)))
+    scale, heading = np.abs(scale), np.abs(heading)
+    print(f"\n$ python scripts/bench_georef.py gps-limit --draws {args.draws}")
+    print(f"GPS scale error over the mapping flight ({len(keyframes)} keyframe fixes, {args.draws} draws): RMS "
+          f"{np.sqrt(np.mean(scale**2)):.2f}%, 95th percentile {np.percentile(scale, 95):.2f}%, beyond 0.5%: {np.mean(scale > 0.5):.1%} of flights")
+    print(f"GPS heading error: RMS {np.sqrt(np.mean(heading**2)):.2f} deg, 95th percentile {np.percentile(heading, 95):.2f} deg, "
+          f"beyond 0.5 deg: {np.mean(heading > 0.5):.1%}")
+
+
+def record_stitch(record: Path, argv: list[str]) -> None:
+    """Run ``mosaic <argv>`` in this process, keeping the first panorama's registered keyframe
+    placements (before georeferencing) in ``record`` (.npz), for ``refit``."""
+    from mosaic_cli import cli
+    from mosaic_cli.stitch import pipeline
+
+    georeference = pipeline._georeference
+
+    def recording(placements, ref, indices, scan, track, options, first):
+        if first:
+            np.savez(record, placements=np.array(placements), ref=ref, indices=np.array(indices),
+                     size=np.array(scan.source_size), fps=scan.fps)
+        return georeference(placements, ref, indices, scan, track, options, first)
+
+    pipeline._georeference = recording
+    cli.main(argv)
 
 
 def main() -> None:
+    if len(sys.argv) > 2 and sys.argv[1] == "record-stitch":
+        record_stitch(Path(sys.argv[2]), sys.argv[3:])
+        return
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["mapping", "short", "all", "refit"])
+    parser.add_argument("what", choices=["mapping", "short", "all", "refit", "gps-limit"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
-    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seeds", type=int, default=3, help="how many mapping flights (seeds) to run")
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--draws", type=int, default=1000, help="gps-limit: GPS error draws")
+    parser.add_argument("--detail", action="store_true", help="refit: where the error lies")
+    parser.add_argument("--gimbal-accuracy", type=float, default=1.0, help="refit: degrees (GeorefOptions.attitude_accuracy)")
+    parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
+    parser.add_argument("--link-fraction", type=float, help="refit: DriftOptions.link_fraction of the GPS drift shifts")
+    parser.add_argument("--gimbal-noise", type=float, default=0.0, help="refit: degrees of white noise added to the log's pitch and roll")
+    parser.add_argument("--gimbal-bias", type=float, default=0.0, help="refit: degrees of bias added to the log's pitch and roll")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -182,6 +311,8 @@ def main() -> None:
         bench_short(args)
     if args.what == "refit":
         bench_refit(args)
+    if args.what == "gps-limit":
+        bench_gps_limit(args)
 
 
 if __name__ == "__main__":

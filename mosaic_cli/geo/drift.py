@@ -61,7 +61,10 @@ def drift_shifts(
     per_window = np.array([np.sum(np.abs(t - ti) <= o.correlation) for ti in t], dtype=float)
     w = np.zeros(n)
     w[has] = weights[has] / per_window / gps_sigma**2
-    rows, cols, vals, rhs_weight = [], [], [], []
+    rows: list[int] = []
+    cols: list[int] = []
+    vals: list[float] = []
+    rhs_weight: list[float] = []
     # consecutive keyframes: the shift may bend slowly (a second difference per triple) ...
     for i in range(1, n - 1):
         dist = float(np.linalg.norm(positions[i + 1] - positions[i - 1]))

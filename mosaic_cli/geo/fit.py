@@ -61,7 +61,7 @@ def _residuals(p: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.linalg.norm(src @ M[:2, :2].T + M[:2, 2] - dst, axis=1)
 
 
-def _solve(src, dst, weights, prior: SimilarityPrior | None, prior_weight: float) -> np.ndarray:
+def _solve(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, prior: SimilarityPrior | None, prior_weight: float) -> np.ndarray:
     A = _rows(src)
     y = dst.reshape(-1)
     w = np.repeat(np.sqrt(weights), 2)
@@ -75,7 +75,7 @@ def _solve(src, dst, weights, prior: SimilarityPrior | None, prior_weight: float
     return np.linalg.lstsq(A, y, rcond=None)[0]
 
 
-def _pair_similarity(s1, s2, d1, d2) -> np.ndarray | None:
+def _pair_similarity(s1: np.ndarray, s2: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray | None:
     ds, dd = s2 - s1, d2 - d1
     n = ds @ ds
     if n < 1e-12:

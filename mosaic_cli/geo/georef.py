@@ -3,12 +3,18 @@ position, scale and heading.
 
 1. align     the track to the keyframes' times (interpolated; outliers, gaps reported)
 2. untilt    the reference view by the gimbal's pitch and roll (with a field of view), so the
-             mosaic's plane is the ground's up to a similarity
+             mosaic's plane is the ground's up to a similarity; with the pitch of every
+             keyframe, the mosaic levelled by all of them (adjust.level_mosaic)
 3. fit       the keyframes' nadir points in the mosaic onto their GPS positions in the site's
              UTM zone: a robust similarity (see fit.py), with the altitude x field of view
              scale and the compass heading as a weak prior
 4. check     the fit against the images: too few agreeing fixes, or GPS scatter no drone has,
              mean the telemetry belongs to another flight or clock
+5. adjust    with the gimbal's pitch of the keyframes, one adjustment (adjust.py): the tilt and
+             shear the chained registrations left in the mosaic from every keyframe's attitude,
+             position, scale and heading from the GPS and the prior; without it a homography
+             from the GPS alone where it explains the fixes clearly better
+6. shifts    per keyframe for what bending is left, held stiff by the images (drift.py)
 
 Everything here is pure geometry: no file is read or written.
 """
@@ -22,11 +28,12 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
 from mosaic_cli.geo.drift import DriftOptions, drift_shifts
 from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, fit_similarity, refine_homography
-from mosaic_cli.geometry import normalize, project
+from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
 from mosaic_cli.telemetry.track import Track
 
@@ -47,12 +54,17 @@ class GeorefOptions:
     # similarity when it explains the fixes this much better (robust scatter ratio) ...
     perspective_gain: float = 0.8
     min_fixes_for_perspective: int = 12
+    # With the gimbal's pitch and roll the tilt comes from them instead (adjust.py): how far
+    # the gimbal's reported attitude may be off, degrees (None: not used, the tilt from the GPS)
+    attitude_accuracy: float | None = 1.0
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
+        if self.attitude_accuracy is not None and not 0 < self.attitude_accuracy <= 90:
+            raise BadInput(f"the gimbal's attitude accuracy must be between 0 and 90 degrees, got {self.attitude_accuracy}")
         if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
             raise BadInput(f"--hfov must be between 1 and 170 degrees, got {self.hfov}")
         if not math.isfinite(self.offset):
@@ -72,10 +84,11 @@ class Georeference:
     frame_indices: list[int]
     used: np.ndarray  # keyframes whose fix entered the fit
     shifts: np.ndarray  # (N, 2) per-keyframe ground shifts from the GPS drift prior
-    model: str  # "similarity" or "homography"
+    model: str  # "similarity", "homography" (from the GPS) or "homography levelled by the gimbal"
     hfov: float | None
     track: Track
     prior: SimilarityPrior | None
+    notes: list[str] = field(default_factory=list)  # what the summary should say besides
 
     @property
     def crs(self) -> str:
@@ -102,6 +115,7 @@ class Georeference:
         return (
             f"georeferenced in {self.crs}: {agreeing} of {len(self.fit.inliers)} keyframe fixes agree "
             f"(scatter {self.fit.sigma:.1f} m, {self.model}), {self.gsd * 100:.1f} cm per pixel, mosaic heading {heading:+.1f} deg"
+            + "".join(f"; {note}" for note in self.notes)
         )
 
 
@@ -140,6 +154,17 @@ def georeference(
     else:
         f, flatten = None, np.eye(3)
         nadirs = [centre] * len(placements)
+    attitude = _attitude_views(placements, flatten, frame_size, f, aligned, options.attitude_accuracy)
+    notes: list[str] = []
+    if attitude is not None:
+        # levelled by every keyframe's gimbal, not by the reference's alone (adjust.py) ...
+        level = level_mosaic(attitude[0])
+        if level.agrees():
+            flatten = level.matrix @ flatten
+            attitude[0].views = np.stack([normalize(level.matrix @ V) for V in attitude[0].views])
+        else:  # ... unless its angles and the images disagree: then none is used, the tilt is the GPS's
+            attitude, flatten, nadirs = None, np.eye(3), [centre] * len(placements)
+            notes.append(f"the gimbal's angles disagree with the images ({level.residual:.1f} x its accuracy): not used")
     mosaic = np.array([project(flatten @ H, n[None])[0] for H, n in zip(placements, nadirs)])
 
     # 3. the fit, in the site's UTM zone, as (east, -north) so that image y (down) stays y
@@ -177,7 +202,18 @@ def georeference(
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
-    if fixes.sum() >= options.min_fixes_for_perspective:
+    if attitude is not None:
+        # the tilt the images leave open from every keyframe's gimbal, the rest from the GPS (adjust.py)
+        views, known = attitude
+        prior_view = int(np.searchsorted(known, ref)) if ref in known else None
+        adjusted = adjust_to_ground(mosaic[fixes], ground, times[fixes], fit.matrix, views, prior, prior_view,
+                                    correlation=options.drift.correlation)
+        to_ground, model = adjusted.matrix, "homography levelled by the gimbal"
+        inliers, sigma = adjusted.inliers, adjusted.sigma
+        a, b = adjusted.scale * math.cos(adjusted.rotation), adjusted.scale * math.sin(adjusted.rotation)
+        scale_and_heading = np.array([[a, -b, fit.matrix[0, 2]], [b, a, fit.matrix[1, 2]], [0, 0, 1.0]])
+        fit = SimilarityFit(scale_and_heading, adjusted.residuals, inliers, sigma)
+    elif fixes.sum() >= options.min_fixes_for_perspective:
         # the perspective a long flight's chained registrations bend the mosaic with
         placed = project(fit.matrix, mosaic[fixes])
         better = refine_homography(placed, ground, min_sigma=1.0)
@@ -203,7 +239,23 @@ def georeference(
     fit.sigma = sigma
     fit.inliers = inliers
     return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
-                        hfov, track, prior)
+                        hfov, track, prior, notes)
+
+
+def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float | None,
+                    aligned: AlignedTelemetry, accuracy: float | None) -> tuple[AttitudeViews, np.ndarray] | None:
+    """The keyframes of known pitch (and a field of view) as seen undone of their tilt, in the
+    flattened mosaic, with their positions among all keyframes; None when none is known (or
+    the gimbal is not to be used)."""
+    if focal is None or accuracy is None:
+        return None
+    known = np.nonzero(np.isfinite(aligned.pitch))[0]
+    if len(known) == 0:
+        return None
+    corners = frame_corners(*frame_size)
+    unt = [untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) for k in known]
+    views = np.stack([normalize(flatten @ placements[k] @ np.linalg.inv(U)) for k, U in zip(known, unt)])
+    return AttitudeViews(views, np.stack([project(U, corners) for U in unt]), attitude_sigma(frame_size, focal, accuracy)), known
 
 
 def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:

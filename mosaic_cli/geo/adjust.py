@@ -1,0 +1,231 @@
+"""The mosaic laid on the ground by one adjustment of GPS, camera attitude and the images.
+
+The registered mosaic is the ground seen through one homography ``G`` (mosaic pixels ->
+ground metres): the images fix its shape up to ``G``.  Four of ``G``'s eight degrees of
+freedom are a similarity (position, scale, heading): the GPS fixes them.  The other four
+(tilt and shear) are what chained registrations get slightly wrong, and GPS errors of metres
+over a narrow survey strip barely see them; fitted from GPS alone they tilt every frame of
+the map by a degree.  The camera's attitude sees them: keyframe ``k``, undone of its own
+gimbal pitch and roll (``U_k``), looks straight down, so ``G P_k U_k^-1`` must be a
+similarity on the ground.  A wrong tilt in ``G`` shows in every keyframe, more the farther
+it lies from the mosaic's centre, so many keyframes pin it down and one keyframe's bad
+reading bends nothing.  ``G`` minimises
+
+    sum_k  w_k |G(n_k) - g_k|^2 / s_gps^2           GPS fix g_k of keyframe k's nadir point n_k
+  + sum_k  v_k |nonsimilar(G P_k U_k^-1)|^2 / s_att^2   attitude, in the keyframe's own pixels
+  + |(a, b) - (a0, b0)|^2 / s_prior^2                  scale and heading of the altitude and compass
+
+with robust weights: Huber on both (``w_k``, ``v_k``), fixes beyond 3.5 robust sigmas out, and
+the GPS weight shared among the fixes of each correlation time (GPS errors are correlated over
+seconds: ten fixes in two seconds are worth about one).  ``level_mosaic`` is the attitude
+term alone: it levels the mosaic before the robust similarity fit that starts the adjustment,
+and says when the gimbal's angles and the images tell no one story.  Pure geometry: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from mosaic_cli.geo.fit import HUBER, SimilarityPrior
+from mosaic_cli.geometry import normalize, project
+
+OUTLIER = 3.5  # robust sigmas: a fix this far from the adjusted mosaic is a bad fix
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median distance / per-axis sigma of 2-D Gaussian errors
+SCATTER = 1.4826  # robust scatter = this x the median distance (what fit.py reports and checks)
+
+
+@dataclass
+class AttitudeViews:
+    """Keyframes whose attitude is known: ``views[m]`` maps the m-th one's pixels undone of its
+    tilt (a nadir view) into the mosaic; ``corners[m]`` are its frame corners in that view."""
+
+    views: np.ndarray  # (M, 3, 3) untilted keyframe pixels -> mosaic pixels (P_k U_k^-1)
+    corners: np.ndarray  # (M, 4, 2) untilted keyframe pixels
+    sigma: float  # pixels: the non-similarity of one keyframe from an attitude error of the gimbal's accuracy
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+
+@dataclass
+class GroundFit:
+    matrix: np.ndarray  # 3x3, mosaic pixels -> ground (x, y) metres
+    residuals: np.ndarray  # (F,) metres, per fix
+    inliers: np.ndarray  # (F,) bool
+    sigma: float  # robust scatter of the fixes about the fit (1.4826 x median distance)
+    scale: float  # metres per untilted pixel of the prior's view (the reference keyframe)
+    rotation: float  # radians, of that view
+    attitude_residual: float  # median non-similarity of the keyframes, pixels (as attitude_sigma)
+
+
+def attitude_sigma(size: tuple[int, int], focal: float, degrees: float) -> float:
+    """The non-similarity (pixels, the length of the four corners' residuals) that a pitch or
+    roll error of ``degrees`` gives one frame of ``size`` and focal length ``focal``: the unit
+    of the attitude terms, so that a keyframe off by that much costs as much as one GPS sigma."""
+    from mosaic_cli.geo.camera import untilt
+    from mosaic_cli.geometry import frame_corners
+
+    corners = frame_corners(*size)
+    errors = [_nonsimilar(project(untilt(size, focal, -90.0 + pitch, roll), corners)[None], corners[None])
+              for pitch, roll in ((degrees, 0.0), (0.0, degrees))]
+    return float(np.mean([np.linalg.norm(e) for e in errors]))
+
+
+def _similarity_to(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(M,) complex ratios r of the least-squares similarities dst ~ r src + t, for (M, P, 2) point sets."""
+    zs = src[..., 0] + 1j * src[..., 1]
+    zd = dst[..., 0] + 1j * dst[..., 1]
+    zs = zs - zs.mean(1, keepdims=True)
+    zd = zd - zd.mean(1, keepdims=True)
+    return (np.conj(zs) * zd).sum(1) / (np.abs(zs) ** 2).sum(1)
+
+
+def _nonsimilar(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(M, 2P) what of dst (M, P, 2) no similarity from src explains, in src's units."""
+    r = _similarity_to(src, dst)
+    zs = src[..., 0] + 1j * src[..., 1]
+    zd = dst[..., 0] + 1j * dst[..., 1]
+    left = (zd - zd.mean(1, keepdims=True)) - r[:, None] * (zs - zs.mean(1, keepdims=True))
+    left = left / np.abs(r)[:, None]
+    return np.concatenate([left.real, left.imag], axis=1)
+
+
+def _shared(times: np.ndarray, used: np.ndarray, correlation: float) -> np.ndarray:
+    """How many of the fixes in use lie within ``correlation`` seconds of each fix."""
+    t = np.sort(times[used])
+    return (np.searchsorted(t, times + correlation, "right") - np.searchsorted(t, times - correlation, "left")).astype(float)
+
+
+def _normaliser(points: np.ndarray) -> np.ndarray:
+    c = points.mean(0)
+    s = float(np.sqrt(((points - c) ** 2).sum(1).mean())) or 1.0
+    return np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1.0]])
+
+
+@dataclass
+class Levelling:
+    matrix: np.ndarray  # 3x3, mosaic pixels -> levelled mosaic pixels
+    residual: float  # median non-similarity of the keyframes after it, in attitude sigmas
+    spread: float  # min / max of its projective denominator over the keyframes: 1 for an affine levelling
+
+    def agrees(self, max_residual: float = 3.0, min_spread: float = 0.25) -> bool:
+        """Whether the gimbal and the images tell one story: the keyframes levelled to within
+        a few times the gimbal's accuracy, without a projective stretch no chain of
+        registrations drifts by (a quarter of the scale at one end of the mosaic)."""
+        return self.residual <= max_residual and self.spread >= min_spread
+
+
+def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
+    """The homography (mosaic pixels -> levelled mosaic pixels) that makes every keyframe of
+    known attitude, undone of its tilt, a similarity in the mosaic again: the mosaic made the
+    ground's up to a similarity by all keyframes' gimbals at once (robustly: Huber per
+    keyframe), not by one keyframe's.  Only the tilt and shear are chosen (4 parameters); the
+    similarity left is the GPS's to fix."""
+    corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
+    to_unit = _normaliser(corners.reshape(-1, 2))
+    unit = project(to_unit, corners.reshape(-1, 2))
+
+    def matrix(p: np.ndarray) -> np.ndarray:
+        shear = np.array([[math.exp(p[0]), p[1], 0.0], [0.0, math.exp(-p[0]), 0.0], [0.0, 0.0, 1.0]])
+        return shear @ np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [p[2], p[3], 1.0]])
+
+    def nonsimilar(p: np.ndarray) -> np.ndarray:
+        return _nonsimilar(project(matrix(p), unit).reshape(corners.shape), attitude.corners) / attitude.sigma
+
+    def residuals(p: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        return (nonsimilar(p) * np.sqrt(weights)[:, None]).ravel()
+
+    p = np.zeros(4)
+    for _ in range(rounds):
+        a = np.linalg.norm(nonsimilar(p), axis=1)
+        weights = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        new = least_squares(residuals, p, args=(weights,), method="trf", xtol=1e-12, ftol=1e-12).x
+        done = np.allclose(new, p, rtol=0, atol=1e-9)
+        p = new
+        if done:
+            break
+    denominator = unit @ np.array([p[2], p[3]]) + 1.0
+    spread = float(denominator.min() / denominator.max()) if denominator.max() > 0 else -1.0
+    return Levelling(normalize(np.linalg.inv(to_unit) @ matrix(p) @ to_unit),
+                     float(np.median(np.linalg.norm(nonsimilar(p), axis=1))), spread)
+
+
+def adjust_to_ground(
+    nadirs: np.ndarray,  # (F, 2) mosaic pixels of the keyframes with a fix: the points below the camera
+    fixes: np.ndarray,  # (F, 2) their GPS positions, ground metres
+    times: np.ndarray,  # (F,) seconds
+    start: np.ndarray,  # 3x3 mosaic -> ground to start from (a robust similarity fit)
+    attitude: AttitudeViews,
+    prior: SimilarityPrior | None = None,
+    prior_view: int | None = None,  # the attitude view the prior's scale and heading are of
+    correlation: float = 2.0,  # seconds over which GPS errors are taken as one
+    min_sigma: float = 1.0,
+    rounds: int = 10,
+) -> GroundFit:
+    """The homography mosaic -> ground that the fixes, the attitudes and the prior agree on best (module doc)."""
+    nadirs = np.asarray(nadirs, np.float64)
+    fixes = np.asarray(fixes, np.float64)
+    times = np.asarray(times, np.float64)
+    if len(attitude) == 0:
+        raise ValueError("the adjustment needs at least one keyframe of known attitude")
+    # Normalised coordinates on both sides: the parameters are of order one.
+    to_unit = _normaliser(nadirs)
+    from_unit = np.linalg.inv(_normaliser(fixes)) if len(fixes) else np.eye(3)
+    unit_start = normalize(np.linalg.inv(from_unit) @ start @ np.linalg.inv(to_unit))
+    mosaic_corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
+    unit_corners = project(to_unit, mosaic_corners.reshape(-1, 2)).reshape(mosaic_corners.shape)
+    unit_nadirs = project(to_unit, nadirs)
+    prior_ab = None
+    if prior is not None and prior_view is not None:
+        prior_ab = np.array([prior.scale * math.cos(prior.rotation), prior.scale * math.sin(prior.rotation)])
+        prior_scale = max(prior.sigma * prior.scale, 1e-12)
+
+    def matrix(p: np.ndarray) -> np.ndarray:
+        return from_unit @ np.append(p, 1.0).reshape(3, 3)
+
+    def attitude_residuals(G: np.ndarray) -> np.ndarray:
+        on_ground = project(G, unit_corners.reshape(-1, 2)).reshape(unit_corners.shape)
+        return _nonsimilar(on_ground, attitude.corners) / attitude.sigma  # (M, 8)
+
+    def prior_residual(G: np.ndarray) -> np.ndarray:
+        on_ground = project(G, unit_corners[prior_view])[None]
+        r = _similarity_to(attitude.corners[prior_view][None], on_ground)[0]
+        return (np.array([r.real, r.imag]) - prior_ab) / prior_scale
+
+    def residuals(p: np.ndarray, gps_w: np.ndarray, att_w: np.ndarray, gps_sigma: float) -> np.ndarray:
+        G = matrix(p)
+        parts = [((project(G, unit_nadirs) - fixes) * np.sqrt(gps_w)[:, None] / gps_sigma).ravel(),
+                 (attitude_residuals(G) * np.sqrt(att_w)[:, None]).ravel()]
+        if prior_ab is not None:
+            parts.append(prior_residual(G))
+        return np.concatenate(parts)
+
+    p = unit_start.ravel()[:8]
+    for _ in range(rounds):
+        G = matrix(p)
+        r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
+        sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
+        gps_w = np.where(r <= HUBER * sigma, 1.0, HUBER * sigma / np.maximum(r, 1e-12))
+        gps_w[r > OUTLIER * sigma] = 0.0
+        gps_w /= np.maximum(_shared(times, gps_w > 0, correlation), 1.0)
+        a = np.linalg.norm(attitude_residuals(G), axis=1)  # per keyframe, in attitude sigmas
+        att_w = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        # sigma is the scatter of distances; the per-axis sigma of 2-D Gaussian errors is smaller
+        axis_sigma = sigma / SCATTER / RAYLEIGH_MEDIAN
+        new = least_squares(residuals, p, args=(gps_w, att_w, axis_sigma), method="lm", xtol=1e-12, ftol=1e-12).x
+        done = np.allclose(new, p, rtol=0, atol=1e-9)
+        p = new
+        if done:
+            break
+    G = matrix(p)
+    r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
+    sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
+    view = prior_view if prior_view is not None else 0
+    ratio = _similarity_to(attitude.corners[view][None], project(G, unit_corners[view])[None])[0]
+    att = np.linalg.norm(attitude_residuals(G), axis=1) * attitude.sigma
+    return GroundFit(normalize(G @ to_unit), r, r <= OUTLIER * sigma, sigma, float(abs(ratio)), float(np.angle(ratio)),
+                     float(np.median(att)))

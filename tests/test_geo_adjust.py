@@ -1,0 +1,194 @@
+"""The ground adjustment (geo/adjust.py) against exact synthetic truth: keyframes of a
+lawnmower flight seen by a tilted pinhole camera, a mosaic bent by a known homography (what
+chained registrations leave), GPS with 3 m correlated error and bad fixes, gimbal attitudes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic
+from mosaic_cli.geo.camera import focal_pixels, intrinsics, nadir_pixel, tilt_rotation, untilt
+from mosaic_cli.geo.fit import SimilarityPrior, fit_similarity, refine_homography
+from mosaic_cli.geometry import frame_corners, project
+from mosaic_cli.simulate.telemetry import gauss_markov
+
+SIZE = (640, 360)
+FOCAL = focal_pixels(SIZE[0], 53.13)  # focal = width: 5 cm per pixel from 32 m
+HEIGHT = 32.0
+
+
+def ground_to_frame(centre, heading, pitch, roll):
+    """The camera model of geo/camera.py: ground (x, y metres, y down like the frame) -> pixels."""
+    c, s = math.cos(heading), math.sin(heading)
+    R = np.array([[c, s], [-s, c]])
+    S = np.eye(3)
+    S[:2, :2], S[:2, 2], S[2, 2] = R, -R @ centre, HEIGHT
+    return intrinsics(SIZE, FOCAL) @ tilt_rotation(pitch, roll) @ S
+
+
+def flight(seed=0):
+    """60 keyframes over 4 lines of 180 m, 9 m apart; the truth and the bent mosaic."""
+    rng = np.random.default_rng(seed)
+    centres, headings = [], []
+    for line in range(4):
+        xs = np.linspace(0.0, 180.0, 15)
+        centres += [(x, 9.0 * line) for x in (xs if line % 2 == 0 else xs[::-1])]
+        headings += [math.pi / 2 if line % 2 == 0 else -math.pi / 2] * 15
+    centres = np.array(centres)
+    pitch = -90.0 + rng.uniform(-1.5, 1.5, len(centres))
+    roll = rng.uniform(-1.5, 1.5, len(centres))
+    frame_to_ground = [np.linalg.inv(ground_to_frame(c, h, p, r)) for c, h, p, r in zip(centres, headings, pitch, roll)]
+    # the mosaic: the ground through a homography with tilt and shear (40 px per metre, turned)
+    bend = np.array([[40.0, 3.0, 100.0], [-2.0, 41.0, -50.0], [4e-4, -6e-4, 1.0]])
+    placements = [bend @ T for T in frame_to_ground]
+    nadirs = np.array([project(P, nadir_pixel(SIZE, FOCAL, p, r)[None])[0] for P, p, r in zip(placements, pitch, roll)])
+    times = np.arange(len(centres)) * 2.0
+    return centres, pitch, roll, frame_to_ground, placements, nadirs, times, rng
+
+
+def views_of(placements, pitch, roll):
+    corners = frame_corners(*SIZE)
+    unt = [untilt(SIZE, FOCAL, p, r) for p, r in zip(pitch, roll)]
+    return AttitudeViews(np.stack([P @ np.linalg.inv(U) for P, U in zip(placements, unt)]),
+                         np.stack([project(U, corners) for U in unt]), attitude_sigma(SIZE, FOCAL, 1.0))
+
+
+def ground_errors(G, placements, frame_to_ground):
+    """Metres between where G lays each keyframe's corners and centre and where they are."""
+    pts = np.vstack([frame_corners(*SIZE), [[(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2]]])
+    return np.concatenate([np.linalg.norm(project(G @ P, pts) - project(T, pts), axis=1)
+                           for P, T in zip(placements, frame_to_ground)])
+
+
+def noisy_gps(centres, times, rng, rms=3.0):
+    sigma = rms / math.sqrt(2)
+    return centres + np.stack([gauss_markov(rng, times, sigma, 2.0), gauss_markov(rng, times, sigma, 2.0)], 1)
+
+
+def test_attitude_sigma_is_the_non_similarity_of_a_tilt():
+    """Against a plain least-squares similarity of the tilted frame's corners (numpy lstsq)."""
+    corners = frame_corners(*SIZE)
+    for degrees in (0.5, 2.0):
+        rms = []  # the length of the corners' residuals
+        for pitch, roll in ((degrees, 0.0), (0.0, degrees)):
+            tilted = project(untilt(SIZE, FOCAL, -90.0 + pitch, roll), corners)
+            A = np.zeros((8, 4))
+            A[0::2] = np.c_[corners[:, 0], -corners[:, 1], np.ones(4), np.zeros(4)]
+            A[1::2] = np.c_[corners[:, 1], corners[:, 0], np.zeros(4), np.ones(4)]
+            p = np.linalg.lstsq(A, tilted.ravel(), rcond=None)[0]
+            left = (A @ p - tilted.ravel()) / math.hypot(p[0], p[1])
+            rms.append(np.linalg.norm(left))
+        assert attitude_sigma(SIZE, FOCAL, degrees) == pytest.approx(np.mean(rms), rel=1e-6)
+    assert attitude_sigma(SIZE, FOCAL, 2.0) == pytest.approx(4 * attitude_sigma(SIZE, FOCAL, 0.5), rel=0.02)  # linear
+
+
+def test_levelling_undoes_the_bend_exactly_and_refuses_a_gimbal_that_disagrees():
+    centres, pitch, roll, truth, placements, nadirs, times, rng = flight(4)
+    bend = placements[0] @ np.linalg.inv(truth[0])
+    level = level_mosaic(views_of(placements, pitch, roll))
+    assert level.agrees() and level.residual < 1e-6
+    L = level.matrix @ bend  # ground metres -> levelled mosaic: a similarity again
+    L = L / L[2, 2]
+    scale = math.hypot(L[0, 0], L[1, 0])
+    assert np.abs(L[2, :2]).max() < 1e-9
+    assert abs(L[0, 0] - L[1, 1]) < 1e-6 * scale and abs(L[0, 1] + L[1, 0]) < 1e-6 * scale
+    # one keyframe misread by 10 degrees: Huber keeps it from bending the levelling
+    misread = level_mosaic(views_of(placements, np.where(np.arange(len(pitch)) == 17, pitch + 10.0, pitch), roll))
+    moved = ground_errors(misread.matrix, placements, [level.matrix @ P for P in placements])  # levelled pixels
+    assert moved.max() < 1e-4 * scale * 180, moved.max() / scale  # under a ten-thousandth of the flight's length
+    # angles 20 degrees off at random: they and the images tell no one story
+    n = len(pitch)
+    assert not level_mosaic(views_of(placements, pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n))).agrees()
+
+
+def test_adjustment_takes_the_tilt_from_the_gimbal_and_the_place_from_gps():
+    centres, pitch, roll, truth, placements, nadirs, times, rng = flight()
+    gps = noisy_gps(centres, times, rng)
+    start = fit_similarity(nadirs, gps, min_sigma=1.0)
+    fit = adjust_to_ground(nadirs, gps, times, start.matrix, views_of(placements, pitch, roll))
+    err = ground_errors(fit.matrix, placements, truth)
+    assert np.median(err) < 0.8 and err.max() < 1.5, (np.median(err), err.max())  # GPS: 3 m RMS
+    assert fit.attitude_residual < 0.1  # every keyframe untilted is a similarity on the ground again
+    # GPS alone cannot see the tilt over a 27 m wide strip: the homography from the fixes is far worse
+    gps_only = refine_homography(project(start.matrix, nadirs), gps, min_sigma=1.0).matrix @ start.matrix
+    assert ground_errors(gps_only, placements, truth).max() > 2 * err.max()
+
+
+def test_bad_fixes_and_a_bad_gimbal_reading_do_not_bend_the_adjustment():
+    centres, pitch, roll, truth, placements, nadirs, times, rng = flight(1)
+    gps = noisy_gps(centres, times, rng)
+    views = views_of(placements, pitch, roll)
+    wrong = [5, 22, 40, 51]
+    good = np.setdiff1d(np.arange(len(gps)), wrong)
+    clean = adjust_to_ground(nadirs[good], gps[good], times[good], fit_similarity(nadirs, gps, min_sigma=1.0).matrix, views)
+    bad = gps.copy()
+    angles = rng.uniform(0, 2 * np.pi, len(wrong))
+    bad[wrong] += 50.0 * np.stack([np.cos(angles), np.sin(angles)], 1)
+    misread = views_of(placements, np.where(np.arange(len(pitch)) == 30, pitch + 10.0, pitch), roll)  # one gimbal 10 deg off
+    fit = adjust_to_ground(nadirs, bad, times, fit_similarity(nadirs, bad, min_sigma=1.0).matrix, misread)
+    assert set(np.nonzero(~fit.inliers)[0]) == set(wrong)
+    moved = ground_errors(fit.matrix, placements, [clean.matrix @ P for P in placements])
+    assert moved.max() < 0.05, moved.max()  # as if the bad fixes were not there: 50 m off, they move it by centimetres
+
+
+def test_adjustment_prior_decides_scale_and_heading_of_a_short_hover():
+    """A few metres of GPS track say nothing of scale and heading: the prior (altitude x field
+    of view, compass) does, through the prior view's untilted similarity."""
+    centres, pitch, roll, truth, placements, nadirs, times, rng = flight(2)
+    keep = np.arange(3)  # 3 keyframes along 26 m: GPS noise of 3 m is 10% of it
+    gps = noisy_gps(centres[keep], times[keep], rng)
+    views = views_of([placements[k] for k in keep], pitch[keep], roll[keep])
+    # the true scale and heading of view 0: metres per untilted pixel, and its rotation
+    true_ratio = HEIGHT / FOCAL
+    heading = math.pi / 2
+    prior = SimilarityPrior(true_ratio * 1.01, -heading + math.radians(0.5), 0.05)
+    fit = adjust_to_ground(nadirs[keep], gps, times[keep], fit_similarity(nadirs[keep], gps, min_sigma=1.0).matrix, views, prior, 0)
+    assert fit.scale == pytest.approx(prior.scale, rel=0.02)
+    assert math.degrees(fit.rotation) == pytest.approx(math.degrees(prior.rotation), abs=1.0)
+
+
+def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
+    """georeference() end to end on a synthetic track: a mosaic whose chained registrations left
+    a slight projective drift (invisible within a frame, metres at the flight's ends) lands on
+    the true ground; the old similarity from the reference's own tilt does not."""
+    from mosaic_cli.geo.camera import hfov_degrees
+    from mosaic_cli.geo.crs import Projection
+    from mosaic_cli.geo.georef import GeorefOptions, georeference
+    from mosaic_cli.telemetry.track import Track
+
+    centres, pitch, roll, truth, _, _, times, rng = flight(3)
+    ref = 30
+    centre = np.array([[1, 0, -(SIZE[0] - 1) / 2], [0, 1, -(SIZE[1] - 1) / 2], [0, 0, 1.0]])
+    drift = np.linalg.inv(centre) @ np.array([[1.0, 0.003, 0], [0, 1.0, 0], [1.2e-5, -1.5e-5, 1.0]]) @ centre
+    placements = [drift @ np.linalg.inv(truth[ref]) @ T for T in truth]
+    projection = Projection.utm_for(47.3977, 8.5456)
+    origin = projection.to_map([47.3977], [8.5456])[0]
+    gps = noisy_gps(centres, times, rng)
+    lonlat = projection.to_wgs84(origin[0] + gps[:, 0], origin[1] - gps[:, 1])  # y runs south
+    n = len(times)
+    headings = np.where((np.arange(n) // 15) % 2 == 0, 90.0, -90.0)
+    track = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
+                  pitch, roll, np.full(n, hfov_degrees(SIZE[0], FOCAL)))
+    frame_rate = 10.0
+    g = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, track, GeorefOptions())
+    assert g.model == "homography levelled by the gimbal"
+    to_ground = np.array([[1.0, 0, origin[0]], [0, -1.0, origin[1]], [0, 0, 1.0]])  # synthetic (x, y south) -> east, north
+    err = ground_errors(np.eye(3), [g.frame_to_ground(k, P) for k, P in enumerate(placements)], [to_ground @ T for T in truth])
+    assert np.median(err) < 0.8 and err.max() < 1.5, (np.median(err), err.max())
+    # the gimbal not used: the tilt from the GPS alone
+    gps_only = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, track,
+                            GeorefOptions(attitude_accuracy=None))
+    assert gps_only.model in ("similarity", "homography")
+    # a gimbal whose angles are 20 degrees off: said, and not used
+    wild = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
+                 pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n), np.full(n, hfov_degrees(SIZE[0], FOCAL)))
+    unused = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, wild, GeorefOptions())
+    assert unused.model in ("similarity", "homography") and "gimbal's angles disagree with the images" in unused.summary()
+    # the reference's tilt alone, then a similarity to the GPS: the drift shows at the ends
+    flat = untilt(SIZE, FOCAL, pitch[ref], roll[ref])
+    nadirs = np.array([project(flat @ P, nadir_pixel(SIZE, FOCAL, p, r)[None])[0] for P, p, r in zip(placements, pitch, roll)])
+    similarity = fit_similarity(nadirs, gps, min_sigma=1.0).matrix @ flat
+    assert ground_errors(similarity, placements, truth).max() > 2 * err.max()
