@@ -4,8 +4,8 @@ Chaining accumulates error: a long flight bends.  Consecutive keyframes were reg
 directly during the scan (one SIFT match instead of dozens of chained estimates); here the
 keyframes that see the same ground again (loops, neighbouring survey lines) are registered as
 well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over the
-inlier correspondences, each measured in the keyframes' own pixels) places every keyframe in the
-reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
+inlier correspondences, each measured in the keyframes' own pixels, each pair weighted by its
+inlier count) places every keyframe in the reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
 again, so one bad match cannot bend the panorama.
 """
 
