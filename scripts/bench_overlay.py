@@ -79,15 +79,19 @@ def accuracy(args, clean: Path, burned: Path, estimator: str) -> list[dict]:
     gt = load_ground_truth(clean.with_suffix(".gt.json"))
     rows = []
     for label, is_burned, detect in RUNS:
+        if label not in args.runs:
+            continue
         video = burned if is_burned else clean
         row = {"flight": clean.stem, "estimator": estimator, "run": label}
         est = make_estimator(estimator)
         mask = frame_mask(video, MaskOptions(detect=detect))
         row["masked %"] = 100 * mask.excluded
         est.set_mask(mask.use)
-        track = track_video(video, est, show_progress=False)
-        scores = evaluate(track.pairwise, gt)
-        row["MACE"], row["pair error"] = scores["mace"], scores["corner_error"]
+        row["MACE"] = row["pair error"] = float("nan")
+        if not args.no_track:
+            track = track_video(video, est, show_progress=False)
+            scores = evaluate(track.pairwise, gt)
+            row["MACE"], row["pair error"] = scores["mace"], scores["corner_error"]
         out = args.workdir / f"{video.stem}_{estimator}_{'det' if detect else 'nodet'}.png"
         result = stitch(video, out, make_estimator(estimator), StitchOptions(mask=MaskOptions(detect=detect)), show_progress=False)
         indices = [i for i, _ in result.transforms]
@@ -100,6 +104,20 @@ def accuracy(args, clean: Path, burned: Path, estimator: str) -> list[dict]:
               f"placement median {row['placement median']:.2f} p90 {row['placement p90']:.2f} px  overlay px {row['overlay px in panorama']}  "
               f"canvas {row['canvas']}", flush=True)
     return rows
+
+
+def _paired_summary(rows: list[dict]) -> None:
+    """Burned-in (detected) against clean, flight by flight: is the difference a bias or noise?"""
+    by = {}
+    for row in rows:
+        by.setdefault((row["estimator"], row["flight"]), {})[row["run"]] = row
+    for estimator in sorted({e for e, _ in by}):
+        for stat in ("placement median", "placement p90"):
+            diffs = [runs["burned"][stat] - runs["clean"][stat] for (e, _), runs in by.items() if e == estimator and {"clean", "burned"} <= set(runs)]
+            if diffs:
+                d = np.array(diffs)
+                print(f"{estimator:5s} {stat}: burned minus clean over {len(d)} flights: mean {d.mean():+.3f} px, median {np.median(d):+.3f}, "
+                      f"worse on {int((d > 0).sum())} of {len(d)}, range {d.min():+.2f} .. {d.max():+.2f}", flush=True)
 
 
 def cpu_seconds() -> float:
@@ -161,8 +179,12 @@ def main() -> None:
     parser.add_argument("--overlays", default="logo,timestamp")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--cost-only", action="store_true", help="only the detector's cost (on the first seed's flight)")
+    parser.add_argument("--no-cost", action="store_true", help="skip the detector's cost")
+    parser.add_argument("--no-track", action="store_true", help="stitch only: skip the pairwise track and its MACE")
+    parser.add_argument("--runs", default=",".join(r[0] for r in RUNS), help="which of the runs: " + ", ".join(r[0] for r in RUNS))
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
+    args.runs = [r.strip() for r in args.runs.split(",")]
     args.workdir.mkdir(parents=True, exist_ok=True)
     results: dict = {"load_average_at_start": os.getloadavg()[0], "rows": []}
     burned = None
@@ -172,10 +194,15 @@ def main() -> None:
             break
         for estimator in args.estimators:
             results["rows"] += accuracy(args, clean, burned, estimator)
-    results["detector cost"] = detector_cost(args, burned)
+    if not args.no_cost:
+        results["detector cost"] = detector_cost(args, burned)
+    else:
+        _paired_summary(results["rows"])
+    runs = "" if args.runs == [r[0] for r in RUNS] else f" --runs '{','.join(args.runs)}'"
+    flags = "".join(f" --{f}" for f in ("no-track", "no-cost") if getattr(args, f.replace("-", "_")))
     command = (f"python scripts/bench_overlay.py --frames {args.frames} --seeds {' '.join(map(str, args.seeds))} "
                + (f"--cost-only --repeat {args.repeat}" if args.cost_only else f"--estimators {' '.join(args.estimators)}")
-               + f" --overlays {args.overlays}")
+               + f" --overlays {args.overlays}{runs}{flags}")
     print(f"  reproduce: {command}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=float))

@@ -22,7 +22,8 @@ from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
 from mosaic_cli.stitch.spill import SpilledImage
-from mosaic_cli.stitch.registration import Link, RegistrationReport, refine_placements
+from mosaic_cli.stitch.features import PairMatch
+from mosaic_cli.stitch.registration import Link, RegistrationReport, _from_match, refine_placements
 from mosaic_cli.video import VideoWriter, open_video
 
 SIZE = (256, 144)
@@ -367,6 +368,76 @@ def test_joint_refinement_removes_drift_and_ignores_a_wrong_loop_closure():
     assert before > 5.0 and after < 0.3
     assert report.loops_dropped == 1 and all(not (l.a == 2 and l.b == 9) for l in report.links)
     assert np.allclose(refined[reference], np.eye(3))
+
+
+def _strip(count: int = 7) -> list[np.ndarray]:
+    """Exact placements (frame -> reference) of a strip of overlapping photos."""
+    return [
+        normalize(np.array([[np.cos(0.02 * k), -np.sin(0.02 * k), 110.0 * k], [np.sin(0.02 * k), np.cos(0.02 * k), 3.0 * k], [0, 0, 1]]))
+        for k in range(count)
+    ]
+
+
+def _registration(truth, a, b, inliers, rng, size, bias=np.eye(3)) -> PairMatch:
+    """A direct registration a -> b on ``inliers`` correspondences (0.3 px of noise), of the
+    exact homography or, with ``bias``, of what a camera sees of ground that is not flat."""
+    H = bias @ np.linalg.inv(truth[b]) @ truth[a]
+    points = rng.uniform([0, 0], size, (inliers, 2))
+    return PairMatch(H, points, project(H, points) + rng.normal(0, 0.3, (inliers, 2)), 0.5)
+
+
+def test_a_loop_counts_as_its_inliers_so_a_weak_loop_cannot_pull_consecutive_photos_off():
+    """Photos over ground with relief: the pairs 2 apart (a longer baseline, more parallax)
+    see a slightly different plane than consecutive ones, so no placement satisfies every
+    registration.  Consecutive photos overlap most (1000 inliers); the loops over a corner have
+    100.  Each link counts as all its inliers (not 60 points each, as before), so the loops
+    move the consecutive photos much less from their exact relative placement."""
+    size = (320, 240)
+    truth = _strip()
+    parallax = np.array([[1.0, 0, -3.0], [0, 1.0, 2.0], [0, 0, 1]])
+    options = RegistrationOptions()
+
+    def refined_errors(equal_weights: bool) -> np.ndarray:
+        rng = np.random.default_rng(0)
+        links = [_from_match(k + 1, k, _registration(truth, k + 1, k, 1000, rng, size), "sequential", options) for k in range(6)]
+        links += [_from_match(k, k + 2, _registration(truth, k, k + 2, 100, rng, size, parallax), "loop", options) for k in range(5)]
+        assert links[0].weight == pytest.approx(1000 / options.points_per_pair) and len(links[0].points_a) == options.points_per_pair
+        if equal_weights:  # what the refinement did before: every pair 60 points of weight 1
+            for link in links:
+                link.weight = 1.0
+        report = RegistrationReport(links=links)
+        refined = refine_placements(list(truth), report, 3, size, options)
+        assert report.loops_dropped == 0
+        # Where the panorama puts each consecutive photo's pixels in the next, against the truth.
+        grid = np.array([(x, y) for x in np.linspace(0, size[0] - 1, 9) for y in np.linspace(0, size[1] - 1, 7)])
+        return np.array([
+            np.median(np.linalg.norm(project(np.linalg.inv(refined[k + 1]) @ refined[k], grid) - project(np.linalg.inv(truth[k + 1]) @ truth[k], grid), axis=1))
+            for k in range(6)
+        ])
+
+    weighted, equal = refined_errors(False), refined_errors(True)
+    assert np.median(weighted) < 0.9 < np.median(equal)
+    assert np.median(weighted) < 0.6 * np.median(equal)
+
+
+def test_a_weighted_point_counts_as_that_many_copies_of_it():
+    """The loss is weighted, not the residuals: a point of weight 3 pulls exactly as three
+    copies of it do, and the soft-L1 turn stays at ``loss_scale`` pixels for every link."""
+    size = (320, 240)
+    truth = _strip(4)
+    rng = np.random.default_rng(1)
+    matches = [_registration(truth, k + 1, k, 40, rng, size) for k in range(3)]
+    loop = _registration(truth, 0, 2, 40, rng, size, np.array([[1, 0, 6.0], [0, 1, -4.0], [0, 0, 1]]))
+    weighted = [Link(k + 1, k, m.points_a, m.points_b, "sequential", 3.0) for k, m in enumerate(matches)]
+    copied = [Link(k + 1, k, np.tile(m.points_a, (3, 1)), np.tile(m.points_b, (3, 1)), "sequential") for k, m in enumerate(matches)]
+    results = []
+    for links in (weighted, copied):
+        loops = [Link(0, 2, loop.points_a, loop.points_b, "loop")]
+        results.append(refine_placements(list(truth), RegistrationReport(links=links + loops), 1, size, RegistrationOptions(outlier_residual=100.0)))
+    for a, b in zip(*results):
+        assert corner_error(a, b, size) < 1e-3
+    # The 7 px loop moved the photos (so the comparison above is not trivially true).
+    assert max(corner_error(a, t, size) for a, t in zip(results[0], truth)) > 0.5
 
 
 def test_keyframe_store_shrinks_held_pixels_as_the_flown_area_grows():

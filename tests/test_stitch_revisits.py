@@ -212,7 +212,7 @@ ODM = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "aerial_s
 def test_real_photo_folders_use_every_photo_or_name_it(tmp_path, capsys, name):
     """The real ODM photos, downscaled to 800 px to stay fast: every photo is in a panorama or
     named; consecutive photos of a panorama are placed where a direct registration of the two
-    (OpenCV SIFT on the whole image, RANSAC) puts them: the median distance over its inliers."""
+    puts them (as scripts/bench_stitch.py photos measures at full resolution)."""
     import cv2
 
     folder = tmp_path / name
@@ -231,23 +231,25 @@ def test_real_photo_folders_use_every_photo_or_name_it(tmp_path, capsys, name):
         _, indices, H = load(json_path)
         used += indices
         for (i, Hi), (j, Hj) in zip(zip(indices, H), list(zip(indices, H))[1:]):
-            points_i, points_j = direct_registration(images[i], images[j])
-            if points_i is None:
+            direct, points_i = direct_registration(images[i], images[j])
+            if direct is None:
                 continue
-            ours = project(np.linalg.inv(Hj) @ Hi, points_i)
-            # 2 px is the goal; Garfield's woodland (tall trees: parallax) misses it by a few
-            # tenths with drift control: the loops between photos pull each pair off its own
-            # homography (docs/stitch.md gives the figures).
-            assert np.median(np.linalg.norm(ours - points_j, axis=1)) < 2.5, (i, j)
+            gap = np.median(np.linalg.norm(project(np.linalg.inv(Hj) @ Hi, points_i) - project(direct, points_i), axis=1))
+            # 2 px at 4000 px is the goal: 0.4 px here.  Garfield's woodland is not one plane:
+            # its pairs' registrations disagree by several pixels, so no placement is that
+            # close to all of them (docs/stitch.md, photo folders).
+            assert gap < (2.5 if name == "odm_garfield_msp_rgb" else 0.4), (i, j)
     named = [int(i) for i, p in enumerate(sources) if f"photo {p.stem}.png not used" in err]
     assert sorted(used + named) == list(range(len(sources)))
 
 
 def direct_registration(a: np.ndarray, b: np.ndarray):
-    """Inlier correspondences of a full-resolution SIFT + RANSAC registration, or None."""
+    """(H a -> b, its inliers in a) of a direct registration of the whole images: OpenCV SIFT
+    (contrast threshold 0.01: hazy aerial ground keeps its points), ratio 0.75, MAGSAC++ at
+    1 px; (None, None) with fewer than 30 inliers."""
     import cv2
 
-    sift = cv2.SIFT_create(4000)
+    sift = cv2.SIFT_create(6000, contrastThreshold=0.01)
     ka, da = sift.detectAndCompute(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY), None)
     kb, db = sift.detectAndCompute(cv2.cvtColor(b, cv2.COLOR_BGR2GRAY), None)
     pairs = [m for m, n in cv2.BFMatcher().knnMatch(da, db, k=2) if m.distance < 0.75 * n.distance]
@@ -255,11 +257,10 @@ def direct_registration(a: np.ndarray, b: np.ndarray):
         return None, None
     pa = np.float64([ka[m.queryIdx].pt for m in pairs])
     pb = np.float64([kb[m.trainIdx].pt for m in pairs])
-    H, mask = cv2.findHomography(pa, pb, cv2.RANSAC, 2.0)
+    H, mask = cv2.findHomography(pa, pb, cv2.USAC_MAGSAC, 1.0, maxIters=10000, confidence=0.9999)
     if H is None or mask.sum() < 30:
         return None, None
-    keep = mask.ravel().astype(bool)
-    return pa[keep], pb[keep]
+    return H, pa[mask.ravel().astype(bool)]
 
 
 def test_every_progress_stage_has_a_total_and_keeps_within_it(tmp_path, forward, monkeypatch):

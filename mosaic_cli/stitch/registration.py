@@ -4,8 +4,8 @@ Chaining accumulates error: a long flight bends.  Consecutive keyframes were reg
 directly during the scan (one SIFT match instead of dozens of chained estimates); here the
 keyframes that see the same ground again (loops, neighbouring survey lines) are registered as
 well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over the
-inlier correspondences, each measured in the keyframes' own pixels) places every keyframe in the
-reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
+inlier correspondences, each measured in the keyframes' own pixels, each pair weighted by its
+inlier count) places every keyframe in the reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
 again, so one bad match cannot bend the panorama.
 """
 
@@ -36,8 +36,10 @@ class RegistrationOptions:
     # A loop registration must agree with the predicted placement this well (fraction of the
     # frame diagonal at the corners): a wrong loop closure costs more than a missing one.
     loop_tolerance: float = 0.5
-    points_per_pair: int = 60  # inlier correspondences kept per pair
-    chain_weight: float = 0.3  # weight of a chained (estimator-only) link against a registered one
+    # Inlier correspondences kept per pair (bounds the cost); a pair still counts as all of its
+    # inliers: each kept point stands for inliers / kept of them.
+    points_per_pair: int = 60
+    chain_weight: float = 0.3  # weight of a point of a chained (estimator-only) link against a registered one
     loss_scale: float = 1.5  # pixels: soft-L1 turns from quadratic to linear here
     outlier_residual: float = 5.0  # pixels: median residual above which a loop pair is dropped
     max_evaluations: int = 200
@@ -59,8 +61,8 @@ class Link:
     b: int
     points_a: np.ndarray
     points_b: np.ndarray
-    kind: str  # "sequential" (registered), "chain" (estimator only), "loop"
-    weight: float = 1.0
+    kind: str  # "sequential" (registered), "chain" (estimator only), "loop", "relocalised"
+    weight: float = 1.0  # of each point: the correspondences it stands for, times the trust in them
     residual: float = 0.0  # median after refinement, pixels
 
 
@@ -209,10 +211,14 @@ def loop_candidates(
 
 
 def _from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
+    """A registered pair, at most ``points_per_pair`` of its inliers (a repeatable random
+    pick), weighted so that the link counts as all of them: a pair registered on 1000
+    inliers (two photos that overlap by 80%) outweighs one registered on 100 (a loop over a
+    corner), as the evidence does."""
     n = match.inliers
     if n > options.points_per_pair:
         pick = np.random.default_rng(a * 100003 + b).choice(n, options.points_per_pair, replace=False)
-        return Link(a, b, match.points_a[pick], match.points_b[pick], kind)
+        return Link(a, b, match.points_a[pick], match.points_b[pick], kind, n / options.points_per_pair)
     return Link(a, b, match.points_a, match.points_b, kind)
 
 
@@ -259,7 +265,7 @@ class _Problem:
         self.owner = np.repeat(np.arange(len(links)), counts)
         ia = np.repeat([l.a for l in links], counts)
         ib = np.repeat([l.b for l in links], counts)
-        w = np.sqrt(np.repeat([l.weight for l in links], counts))
+        w = np.repeat([l.weight for l in links], counts)
         pa = self._normalised(np.concatenate([l.points_a for l in links]))
         pb = self._normalised(np.concatenate([l.points_b for l in links]))
         # Both directions: "source" points are carried into the "target" keyframe.
@@ -268,7 +274,8 @@ class _Problem:
         self.dst = np.concatenate([ib, ia])
         self.p_src = np.concatenate([pa, pb])
         self.p_dst = np.concatenate([pb, pa])[:, :2]
-        self.sqrt_w = np.concatenate([w, w]) * np.sqrt(0.5)
+        # Per residual (x and y of each point, both directions, each direction half).
+        self.weight = np.repeat(np.concatenate([w, w]) * 0.5, 2)
         n = len(self.src)
         rows = np.arange(2 * n).reshape(n, 2)
         self._jac_rows, self._jac_cols, self._jac_keep = [], [], []
@@ -310,7 +317,20 @@ class _Problem:
         return (u[:, :2] / u[:, 2:3] - self.p_dst) * self.f  # pixels
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        return (self._differences(x) * self.sqrt_w[:, None]).ravel()
+        return self._differences(x).ravel()
+
+    def loss(self, z: np.ndarray, scale: float) -> np.ndarray:
+        """Weighted soft-L1 of the squared residuals ``z`` (pixels^2): sum of w s^2 rho(z / s^2)
+        with rho(t) = 2 (sqrt(1 + t) - 1), and its first two derivatives (scipy's callable-loss
+        form).  Weighting the loss, not the residuals, keeps the quadratic-to-linear turn at
+        ``scale`` pixels for every link, however many correspondences a point stands for."""
+        t = z / scale**2
+        root = np.sqrt(1 + t)
+        rho = np.empty((3, len(z)))
+        rho[0] = self.weight * scale**2 * 2 * (root - 1)
+        rho[1] = self.weight / root
+        rho[2] = -0.5 * self.weight / (root * (1 + t)) / scale**2
+        return rho
 
     def jacobian(self, x: np.ndarray) -> scipy.sparse.csr_matrix:
         u, B = self._transfer(x)
@@ -326,7 +346,7 @@ class _Problem:
         J_src = np.einsum("nkr,nc->nkrc", np.einsum("nki,nir->nkr", P, C), self.p_src).reshape(n, 2, 9)[:, :, :8]
         # Target side: d(I + D_t)^-1 = -B dD B, so du/dD_t[r, c] = -B_t[:, r] u[c].
         J_dst = -np.einsum("nkr,nc->nkrc", np.einsum("nki,nir->nkr", P, B[self.dst]), u).reshape(n, 2, 9)[:, :, :8]
-        scale = (self.f * self.sqrt_w)[:, None, None]
+        scale = self.f
         values = [(scale * J_src).reshape(n, 16).ravel(), (scale * J_dst).reshape(n, 16).ravel()]
         keep = np.concatenate(self._jac_keep)
         data = np.concatenate(values)[keep]
@@ -381,8 +401,7 @@ def _solve(problem: _Problem, x0: np.ndarray, options: RegistrationOptions) -> n
         x0,
         jac=problem.jacobian,
         method="trf",
-        loss="soft_l1",
-        f_scale=options.loss_scale,
+        loss=lambda z: problem.loss(z, options.loss_scale),
         x_scale="jac",
         tr_solver="lsmr",
         max_nfev=options.max_evaluations,
