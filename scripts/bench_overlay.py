@@ -74,17 +74,17 @@ def overlay_coloured(path: Path) -> int:
     return int(np.count_nonzero(hit & (a > 0)))
 
 
-# (label, flight, mask): "detect" (the default), "off" (--no-overlay-detect), "exact" (the
+# (name, flight, mask): "detect" (the default), "off" (--no-overlay-detect), "exact" (the
 # simulator's mask of what it drew, as --mask), "burned's" (the mask detected on the burned
 # flight, as --mask with no margin).
 RUNS = (
     ("clean", "clean", "detect"),
     ("burned", "burned", "detect"),
-    ("burned, detection off", "burned", "off"),
-    ("burned, exact mask", "burned", "exact"),
-    ("clean, burned's mask", "clean", "burned's"),
+    ("burned-nodetect", "burned", "off"),
+    ("burned-exactmask", "burned", "exact"),
+    ("clean-burnedmask", "clean", "burned's"),
 )
-DEFAULT_RUNS = ("clean", "burned", "burned, detection off")
+DEFAULT_RUNS = ("clean", "burned", "burned-nodetect")
 
 
 def mask_options(kind: str, burned: Path, workdir: Path) -> MaskOptions:
@@ -208,10 +208,13 @@ def main() -> None:
     parser.add_argument("--cost-only", action="store_true", help="only the detector's cost (on the first seed's flight)")
     parser.add_argument("--no-cost", action="store_true", help="skip the detector's cost")
     parser.add_argument("--no-track", action="store_true", help="stitch only: skip the pairwise track and its MACE")
-    parser.add_argument("--runs", default=",".join(DEFAULT_RUNS), help="which of the runs, comma-separated: " + "; ".join(r[0] for r in RUNS))
+    parser.add_argument("--runs", default=",".join(DEFAULT_RUNS), help="which of the runs, comma-separated: " + ", ".join(r[0] for r in RUNS))
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     args.runs = [r.strip() for r in args.runs.split(",")]
+    unknown = set(args.runs) - {r[0] for r in RUNS}
+    if unknown:
+        parser.error(f"unknown --runs {', '.join(sorted(unknown))}")
     args.workdir.mkdir(parents=True, exist_ok=True)
     results: dict = {"load_average_at_start": os.getloadavg()[0], "rows": []}
     burned = None
@@ -224,7 +227,7 @@ def main() -> None:
     _paired_summary(results["rows"])
     if not args.no_cost:
         results["detector cost"] = detector_cost(args, burned)
-    runs = "" if tuple(args.runs) == DEFAULT_RUNS else f" --runs \"{','.join(args.runs)}\""
+    runs = "" if tuple(args.runs) == DEFAULT_RUNS else f" --runs {','.join(args.runs)}"
     flags = "".join(f" --{f}" for f in ("no-track", "no-cost") if getattr(args, f.replace("-", "_")))
     command = (f"python scripts/bench_overlay.py --frames {args.frames} --seeds {' '.join(map(str, args.seeds))} "
                + (f"--cost-only --repeat {args.repeat}" if args.cost_only else f"--estimators {' '.join(args.estimators)}")
