@@ -11,7 +11,9 @@ a procedural map otherwise) is rendered twice from one plan: clean, and with ove
 For each estimator:
 
 * track: the pairwise estimates' MACE and median corner error against the exact homographies
-  (clean flight; burned flight with detection; burned flight with detection off);
+  (clean flight; burned flight with detection; burned flight with detection off; and on
+  request, to tell the overlays' pixels from the ground their mask hides: the burned flight
+  with the simulator's exact mask, the clean flight with the mask detected on the burned one);
 * stitch: the placement error of used frames at least 60 frames apart (median and 90th
   percentile, 1280x720 px) and the panorama pixels in the overlays' colours, same three runs.
 
@@ -72,19 +74,43 @@ def overlay_coloured(path: Path) -> int:
     return int(np.count_nonzero(hit & (a > 0)))
 
 
-RUNS = (("clean", False, True), ("burned", True, True), ("burned, detection off", True, False))
+# (name, flight, mask): "detect" (the default), "off" (--no-overlay-detect), "exact" (the
+# simulator's mask of what it drew, as --mask), "burned's" (the mask detected on the burned
+# flight, as --mask with no margin).
+RUNS = (
+    ("clean", "clean", "detect"),
+    ("burned", "burned", "detect"),
+    ("burned-nodetect", "burned", "off"),
+    ("burned-exactmask", "burned", "exact"),
+    ("clean-burnedmask", "clean", "burned's"),
+)
+DEFAULT_RUNS = ("clean", "burned", "burned-nodetect")
+
+
+def mask_options(kind: str, burned: Path, workdir: Path) -> MaskOptions:
+    if kind == "detect":
+        return MaskOptions()
+    if kind == "off":
+        return MaskOptions(detect=False)
+    if kind == "exact":
+        return MaskOptions(file=burned.with_suffix(".mask.png"), detect=False)
+    detected = workdir / f"{burned.stem}.detected.png"
+    if not detected.exists():
+        cv2.imwrite(str(detected), frame_mask(burned, MaskOptions()).use)
+    return MaskOptions(file=detected, detect=False, file_margin=0)
 
 
 def accuracy(args, clean: Path, burned: Path, estimator: str) -> list[dict]:
     gt = load_ground_truth(clean.with_suffix(".gt.json"))
     rows = []
-    for label, is_burned, detect in RUNS:
+    for label, flight, kind in RUNS:
         if label not in args.runs:
             continue
-        video = burned if is_burned else clean
+        video = burned if flight == "burned" else clean
+        masking = mask_options(kind, burned, args.workdir)
         row = {"flight": clean.stem, "estimator": estimator, "run": label}
         est = make_estimator(estimator)
-        mask = frame_mask(video, MaskOptions(detect=detect))
+        mask = frame_mask(video, masking)
         row["masked %"] = 100 * mask.excluded
         est.set_mask(mask.use)
         row["MACE"] = row["pair error"] = float("nan")
@@ -92,8 +118,8 @@ def accuracy(args, clean: Path, burned: Path, estimator: str) -> list[dict]:
             track = track_video(video, est, show_progress=False)
             scores = evaluate(track.pairwise, gt)
             row["MACE"], row["pair error"] = scores["mace"], scores["corner_error"]
-        out = args.workdir / f"{video.stem}_{estimator}_{'det' if detect else 'nodet'}.png"
-        result = stitch(video, out, make_estimator(estimator), StitchOptions(mask=MaskOptions(detect=detect)), show_progress=False)
+        out = args.workdir / f"{video.stem}_{estimator}_{kind.replace(chr(39), '')}.png"
+        result = stitch(video, out, make_estimator(estimator), StitchOptions(mask=masking), show_progress=False)
         indices = [i for i, _ in result.transforms]
         errors = placement_errors(indices, [H for _, H in result.transforms], gt.map_to_frame, gt.size)
         row["placement median"], row["placement p90"] = float(np.median(errors)), float(np.percentile(errors, 90))
@@ -107,17 +133,18 @@ def accuracy(args, clean: Path, burned: Path, estimator: str) -> list[dict]:
 
 
 def _paired_summary(rows: list[dict]) -> None:
-    """Burned-in (detected) against clean, flight by flight: is the difference a bias or noise?"""
-    by = {}
+    """Each run against the clean flight, flight by flight: is a difference a bias or noise?"""
+    by: dict = {}
     for row in rows:
         by.setdefault((row["estimator"], row["flight"]), {})[row["run"]] = row
     for estimator in sorted({e for e, _ in by}):
-        for stat in ("placement median", "placement p90"):
-            diffs = [runs["burned"][stat] - runs["clean"][stat] for (e, _), runs in by.items() if e == estimator and {"clean", "burned"} <= set(runs)]
-            if diffs:
-                d = np.array(diffs)
-                print(f"{estimator:5s} {stat}: burned minus clean over {len(d)} flights: mean {d.mean():+.3f} px, median {np.median(d):+.3f}, "
-                      f"worse on {int((d > 0).sum())} of {len(d)}, range {d.min():+.2f} .. {d.max():+.2f}", flush=True)
+        for label, _, _ in RUNS[1:]:
+            for stat in ("placement median", "placement p90"):
+                diffs = [runs[label][stat] - runs["clean"][stat] for (e, _), runs in by.items() if e == estimator and {"clean", label} <= set(runs)]
+                if diffs:
+                    d = np.array(diffs)
+                    print(f"{estimator:5s} {stat}, {label} minus clean over {len(d)} flights: mean {d.mean():+.3f} px, median {np.median(d):+.3f}, "
+                          f"worse on {int((d > 0).sum())} of {len(d)}, range {d.min():+.2f} .. {d.max():+.2f}", flush=True)
 
 
 def cpu_seconds() -> float:
@@ -181,10 +208,13 @@ def main() -> None:
     parser.add_argument("--cost-only", action="store_true", help="only the detector's cost (on the first seed's flight)")
     parser.add_argument("--no-cost", action="store_true", help="skip the detector's cost")
     parser.add_argument("--no-track", action="store_true", help="stitch only: skip the pairwise track and its MACE")
-    parser.add_argument("--runs", default=",".join(r[0] for r in RUNS), help="which of the runs: " + ", ".join(r[0] for r in RUNS))
+    parser.add_argument("--runs", default=",".join(DEFAULT_RUNS), help="which of the runs, comma-separated: " + ", ".join(r[0] for r in RUNS))
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     args.runs = [r.strip() for r in args.runs.split(",")]
+    unknown = set(args.runs) - {r[0] for r in RUNS}
+    if unknown:
+        parser.error(f"unknown --runs {', '.join(sorted(unknown))}")
     args.workdir.mkdir(parents=True, exist_ok=True)
     results: dict = {"load_average_at_start": os.getloadavg()[0], "rows": []}
     burned = None
@@ -194,11 +224,10 @@ def main() -> None:
             break
         for estimator in args.estimators:
             results["rows"] += accuracy(args, clean, burned, estimator)
+    _paired_summary(results["rows"])
     if not args.no_cost:
         results["detector cost"] = detector_cost(args, burned)
-    else:
-        _paired_summary(results["rows"])
-    runs = "" if args.runs == [r[0] for r in RUNS] else f" --runs '{','.join(args.runs)}'"
+    runs = "" if tuple(args.runs) == DEFAULT_RUNS else f" --runs {','.join(args.runs)}"
     flags = "".join(f" --{f}" for f in ("no-track", "no-cost") if getattr(args, f.replace("-", "_")))
     command = (f"python scripts/bench_overlay.py --frames {args.frames} --seeds {' '.join(map(str, args.seeds))} "
                + (f"--cost-only --repeat {args.repeat}" if args.cost_only else f"--estimators {' '.join(args.estimators)}")
