@@ -238,7 +238,7 @@ class LearnedEstimator(Estimator):
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
         self.path_counts = dict.fromkeys(PATHS, 0)
-        self._zncc_use = None  # the ZNCC's valid-pixel image (work size), made at the first pair
+        self._zncc_use = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
         if self._fallback is not None:
             self._fallback.set_mask(self.mask)  # the fallback's ORB keypoints and polish skip overlays too
             self._fallback.reset(full_size)
@@ -421,10 +421,7 @@ class LearnedEstimator(Estimator):
             if f.detail is None:
                 g = f.gray.astype(np.float32)
                 f.detail = g - cv2.blur(g, (5, 5))
-        if self._zncc_use is None:
-            self._zncc_use = (np.ones(prev.gray.shape, np.float32) if self.work_mask is None
-                              else (self.work_mask > 0).astype(np.float32))
-        ones = self._zncc_use
+        ones = self._valid_pixels()
         P = self.patch
         target, warped = [], []
         for x, y in self.positions:
@@ -436,14 +433,21 @@ class LearnedEstimator(Estimator):
             warped.append(_sample(cur.detail, to_next, P)[valid])
         return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
 
+    def _valid_pixels(self) -> np.ndarray:
+        """1 where a pixel of a working frame may be used (the mask allows it), 0 elsewhere;
+        made once per video."""
+        if self._zncc_use is None:
+            self._zncc_use = (np.ones(self.work_size[::-1], np.float32) if self.work_mask is None
+                              else (self.work_mask > 0).astype(np.float32))
+        return self._zncc_use
+
     def _agreement(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
         """ZNCC of the images the polish aligns (band-passed), frame t against frame t+1 sampled
         through ``H``, over the pixels both frames see (and the mask allows): to choose between
         two registrations of one pair.  Band-passed frames keep the coarse detail that noise and
         compression spare, where the fine detail of :meth:`_zncc` is mostly noise."""
         a = prev.aligned.astype(np.float32)
-        inside = cv2.warpPerspective(np.ones_like(a) if self.work_mask is None else (self.work_mask > 0).astype(np.float32), H,
-                                     self.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
+        inside = cv2.warpPerspective(self._valid_pixels(), H, self.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
         b = cv2.warpPerspective(cur.aligned.astype(np.float32), H, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         use = inside > 0
         if self.work_mask is not None:
