@@ -429,7 +429,7 @@ def photos(args) -> dict:
         size = (size[0] * 8, size[1] * 8)
         row = {"folder": folder.name, "photos": len(files)}
         for label, enabled in (("dc", True), ("no-dc", False)):
-            options = StitchOptions(registration=RegistrationOptions(enabled=enabled))
+            options = StitchOptions(registration=RegistrationOptions(enabled=enabled, max_loop_pairs=args.max_loop_pairs))
             start = time.perf_counter()
             result = stitch(folder, args.workdir / f"{folder.name}_{label}.png", make_estimator(args.estimator), options, show_progress=False)
             seconds = time.perf_counter() - start
@@ -457,7 +457,8 @@ def photos(args) -> dict:
                 flush=True,
             )
     names = f" --folders {' '.join(args.folders)}" if args.folders else ""
-    print(f"  reproduce: {here(args, 'photos')}{names}")
+    loops = f" --max-loop-pairs {args.max_loop_pairs}" if args.max_loop_pairs != RegistrationOptions.max_loop_pairs else ""
+    print(f"  reproduce: {here(args, 'photos')}{names}{loops}")
     return {"photos": rows}
 
 
@@ -597,6 +598,8 @@ def main() -> None:
     parser.add_argument("--figure-width", type=int, default=1400)
     parser.add_argument("--figure-map", type=Path, default=FIGURE_MAP, help="the image the README figure's flight flies over")
     parser.add_argument("--folders", nargs="*", default=[], help="photos: only these ODM folders (all by default)")
+    parser.add_argument("--max-loop-pairs", type=int, default=RegistrationOptions.max_loop_pairs,
+                        help="photos: drift control's loop pairs (0: the refinement of the consecutive registrations alone)")
     parser.add_argument("--json", type=Path, help="also write the numbers here")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)

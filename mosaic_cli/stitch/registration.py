@@ -3,10 +3,11 @@
 Chaining accumulates error: a long flight bends.  Consecutive keyframes were registered
 directly during the scan (one SIFT match instead of dozens of chained estimates); here the
 keyframes that see the same ground again (loops, neighbouring survey lines) are registered as
-well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over the
-inlier correspondences, each measured in the keyframes' own pixels, each pair weighted by its
-inlier count) places every keyframe in the reference keyframe's frame at once.  A loop closure that disagrees with the rest is dropped and the problem solved
-again, so one bad match cannot bend the panorama.
+well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over each
+registration's homography at its inlier locations, measured in the keyframes' own pixels, each
+pair weighted by its inlier count) places every keyframe in the reference keyframe's frame at
+once.  A loop closure that disagrees with the rest is dropped and the problem solved again, so
+one bad match cannot bend the panorama.
 """
 
 from __future__ import annotations
@@ -211,15 +212,24 @@ def loop_candidates(
 
 
 def _from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
-    """A registered pair, at most ``points_per_pair`` of its inliers (a repeatable random
-    pick), weighted so that the link counts as all of them: a pair registered on 1000
-    inliers (two photos that overlap by 80%) outweighs one registered on 100 (a loop over a
-    corner), as the evidence does."""
+    """A registered pair as the refinement takes it: its homography ``match.H`` at up to
+    ``points_per_pair`` of its inlier locations (a repeatable random pick), weighted so that
+    the link counts as all of its inliers: a pair registered on 1000 inliers (two photos that
+    overlap by 80%) outweighs one registered on 100 (a loop over a corner), as the evidence does.
+
+    The points in b are where ``H`` puts the points of a, not the matched points: the
+    registration (MAGSAC over all of its inliers) is the measurement, and the picked points
+    say where in the frames it holds.  With the matched points themselves, a pair over ground
+    that is not one plane (relief, trees: the inliers scatter a pixel or two about any
+    homography) was fitted again from 60 of its points, to a homography up to a pixel from its
+    own registration, and drift control moved consecutive photos that far off even where no
+    loop pulled them."""
     n = match.inliers
+    weight, points = 1.0, match.points_a
     if n > options.points_per_pair:
         pick = np.random.default_rng(a * 100003 + b).choice(n, options.points_per_pair, replace=False)
-        return Link(a, b, match.points_a[pick], match.points_b[pick], kind, n / options.points_per_pair)
-    return Link(a, b, match.points_a, match.points_b, kind)
+        weight, points = n / options.points_per_pair, match.points_a[pick]
+    return Link(a, b, points, project(match.H, points), kind, weight)
 
 
 def _from_homography(a: int, b: int, H: np.ndarray, size: tuple[int, int], kind: str, weight: float) -> Link:
