@@ -55,7 +55,17 @@ class OverlayOptions:
     close_px: int = 5  # closing radius joining an overlay's edges (working px)
     min_isotropy: float = 0.1  # a region's static edges must run more than one way (see _static_structure)
     min_area: int = 12  # static regions smaller than this (working px) are noise
-    margin_px: float = 2.0  # the mask is grown by this much (working px) before scaling up
+    margin_px: float = 2.0  # the regions are traced this far beyond (working px)
+    # The samples are read this wide (at most the source's width): regions are found at
+    # ``width`` and traced pixel by pixel at this resolution.
+    trace_width: int = 1280
+    colour_tolerance: float = 20.0  # a sample's colour this close to the pixel's usual one is the same
+    ground_share: float = 0.002  # colours this share of the ground has are no evidence of an overlay
+    min_hits: int = 2  # a pixel in the overlay's colours in at least this many samples is overlay
+    hit_support: int = 5  # ... with at least this many of its 3x3 neighbours (itself included) in them too
+    min_explained: float = 0.9  # a region is traced when its traced pixels explain this share of its static edges
+    trace_close_px: int = 2  # closing of the traced pixels (at the trace resolution)
+    smear_px: float = 2.0  # the traced mask is grown by this much (full-resolution px): H.264's colour smear
     bar_range: float = 10.0  # letterbox: an edge row/column within this gray range in every sample
     max_bar: float = 0.25  # letterbox bars cover at most this share of each side
     max_static: float = 0.3  # more of the frame static: the ground did not move, mask nothing
@@ -100,25 +110,37 @@ class Detection:
 
 def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], options: OverlayOptions | None = None) -> Detection:
     """Pure detector: ``frames`` are RGB (or gray) frames of one clip spread over it, any one
-    size; the mask comes back at ``full_size`` (w, h).  Fewer than ``min_samples`` frames
-    (a short photo folder) cannot tell a fixed edge from a coincidence: nothing is detected."""
+    size (regions are found at ``width``, then traced at the frames' own resolution); the mask
+    comes back at ``full_size`` (w, h).  Fewer than ``min_samples`` frames (a short photo
+    folder) cannot tell a fixed edge from a coincidence: nothing is detected."""
     o = options or OverlayOptions()
     if len(frames) < o.min_samples:
         return Detection(None, samples=len(frames), too_few=True)
-    h, w = frames[0].shape[:2]
-    box = _letterbox(frames, o)
-    static = _static_structure(frames, box, o)
+    fine_h, fine_w = frames[0].shape[:2]
+    work = frames
+    if fine_w > o.width:
+        size = scaled_size((fine_w, fine_h), o.width)
+        work = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames]
+    h, w = work[0].shape[:2]
+    box = _letterbox(work, o)
+    static, edges = _static_structure(work, box, o)
     fraction = float(np.count_nonzero(static)) / static.size
     rejected = fraction > o.max_static
     if rejected:
         static[:] = False
         fraction = 0.0
-    exclude = static.astype(np.uint8) * 255
-    if o.margin_px > 0 and exclude.any():
-        r = int(np.ceil(o.margin_px))
-        exclude = cv2.dilate(exclude, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    full = _exclude_at(exclude, full_size)
-    bars = _bars_at(box, (w, h), full_size)
+    # Bars found at the working width are measured again at the frames' own.
+    bars = _bars_at(_letterbox(frames, o) if any(box) and work is not frames else box, (fine_w, fine_h), full_size)
+    full = np.zeros((full_size[1], full_size[0]), np.uint8)
+    if static.any():
+        reach = _reach(static, o)
+        traced = _trace(frames, work, reach, edges, o).astype(np.uint8) * 255
+        if o.smear_px > 0:
+            r = max(1, int(np.ceil(o.smear_px * fine_w / full_size[0])))
+            traced = cv2.dilate(traced, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        # Never beyond the regions' reach: where the trace cannot tell overlay from ground
+        # (flat ground around it), the mask is the region and its margin.
+        full = np.minimum(_exclude_at(traced, full_size), _exclude_at(reach, full_size))
     full[: bars.top] = 255
     full[full.shape[0] - bars.bottom :] = 255
     full[:, : bars.left] = 255
@@ -151,9 +173,10 @@ def _letterbox(frames: list[np.ndarray], o: OverlayOptions) -> tuple[int, int, i
     )
 
 
-def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], o: OverlayOptions) -> np.ndarray:
-    """(h, w) bool: pixels whose edge keeps one orientation in every sample (see the module
-    doc), grouped into regions with edges of several orientations."""
+def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], o: OverlayOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) bool twice: regions of pixels whose edge keeps one orientation in every sample
+    (see the module doc), with edges of several orientations, holes filled; and the static
+    edge pixels inside them."""
     h, w = frames[0].shape[:2]
     # The orientation is compared through the doubled angle (gx^2 - gy^2, 2 gx gy): an overlay's
     # edge against changing ground flips its sign whenever the ground is brighter than the
@@ -205,7 +228,133 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
     # Fill holes: a logo's flat inside has no gradient to be found by.
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     cv2.drawContours(mask, contours, -1, 255, thickness=cv2.FILLED)
-    return mask > 0
+    return mask > 0, static & (mask > 0)
+
+
+def _reach(regions: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """uint8 (h, w), 255 = the regions (working resolution) grown by the margin: where their
+    overlays' pixels are traced."""
+    reach = regions.astype(np.uint8) * 255
+    r = int(np.ceil(o.margin_px))
+    if r > 0:
+        reach = cv2.dilate(reach, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return reach
+
+
+def _trace(frames: list[np.ndarray], work: list[np.ndarray], reach_work: np.ndarray, edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """(H, W) bool at the frames' resolution: the overlay pixels within ``reach_work`` (the
+    regions found in ``work``, the same samples at the working resolution, and their margin),
+    traced pixel by pixel.  A region whose static ``edges`` the traced pixels do not explain
+    (a semi-transparent overlay: neither steady nor of fixed colours) keeps all of its reach."""
+    fine_h, fine_w = frames[0].shape[:2]
+    work_h, work_w = reach_work.shape
+    r = int(np.ceil(o.margin_px))
+    common = _ground_colours(work, reach_work, o)
+    reach = _exclude_at(reach_work, (fine_w, fine_h))
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(reach, connectivity=8)
+    out = np.zeros((fine_h, fine_w), bool)
+    # An edge pixel (working resolution) is explained when a traced pixel lies within the
+    # margin of it: an overlay's edge runs along its border (blurred by a pixel or two).
+    near = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    for k in range(1, count):
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        inside = labels[y : y + h, x : x + w] == k
+        stack = np.stack([f[y : y + h, x : x + w] for f in frames])
+        found = _pixel_evidence(stack, common, o) & inside
+        region_edges = edges & (cv2.resize(np.where(labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
+        traced_work = np.zeros((fine_h, fine_w), np.uint8)
+        traced_work[y : y + h, x : x + w] = found
+        traced_work = cv2.dilate(cv2.resize(traced_work * 255, (work_w, work_h), interpolation=cv2.INTER_AREA), near) > 0
+        if np.count_nonzero(region_edges & ~traced_work) > (1 - o.min_explained) * np.count_nonzero(region_edges):
+            out[y : y + h, x : x + w] |= inside
+            continue
+        mask = found.astype(np.uint8) * 255
+        if o.trace_close_px > 0:
+            c = o.trace_close_px
+            mask = cv2.copyMakeBorder(mask, c, c, c, c, cv2.BORDER_CONSTANT, value=0)
+            mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * c + 1, 2 * c + 1)))[c:-c, c:-c]
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(mask, contours, -1, 255, thickness=cv2.FILLED)
+        out[y : y + h, x : x + w] |= (mask > 0) & inside
+    return out
+
+
+def _ground_colours(work: list[np.ndarray], reach: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """Flat bool over the colour bins (``PALETTE_BIN`` levels per channel): colours that at
+    least ``ground_share`` of the ground's pixels (outside ``reach``) have, in every other
+    sample.  A steady pixel of such a colour may be flat ground, not an overlay."""
+    channels = 1 if work[0].ndim == 2 else work[0].shape[2]
+    bins = 256 // PALETTE_BIN
+    counts = np.zeros(bins**channels, np.int64)
+    outside = reach == 0
+    for frame in work[::2]:
+        counts += np.bincount(_colour_bin(frame)[outside], minlength=counts.size)
+    return counts >= o.ground_share * max(1, counts.sum())
+
+
+def _colour_bin(image: np.ndarray) -> np.ndarray:
+    """(h, w) intp: each pixel's colour bin (``PALETTE_BIN`` levels per channel)."""
+    bins = 256 // PALETTE_BIN
+    if image.ndim == 2:
+        return (image // PALETTE_BIN).astype(np.intp)
+    index = np.zeros(image.shape[:2], np.intp)
+    for c in range(image.shape[2]):
+        index = index * bins + (image[..., c] // PALETTE_BIN)
+    return index
+
+
+def _pixel_evidence(stack: np.ndarray, common: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """(h, w) bool: pixels of a crop (``stack``: K samples, RGB or gray) that show an overlay:
+    **steady** (one colour in ``persistence`` of the samples: a logo, the glyphs of a text that
+    do not change) in a colour the ground is not often (``common``: flat ground is steady
+    too), or **in the overlay's colours** now and then (the steady pixels', in at least
+    ``min_hits`` samples: glyphs that change, as a running timestamp's digits)."""
+    k = len(stack)
+    if stack.ndim == 3:
+        stack = stack[..., None]
+    h, w, channels = stack.shape[1:]
+    # The pixel's usual colour: the median of its samples, channel by channel.
+    middle = k // 2
+    typical = np.partition(np.ascontiguousarray(stack.reshape(k, -1).T), middle, axis=1)[:, middle].reshape(h, w, channels)
+    steady_count = np.zeros((h, w), np.uint8)
+    for frame in stack:
+        steady_count += _channel_max(cv2.absdiff(frame, typical)) <= o.colour_tolerance
+    steady = steady_count >= o.persistence * k
+    steady &= ~common[_colour_bin(typical)]
+    if not steady.any():
+        return steady
+    # The overlay's colours: the steady pixels', in bins of ``PALETTE_BIN`` levels per channel
+    # and the bins beside them (a colour on a bin's border, compression noise).
+    bins = 256 // PALETTE_BIN
+    palette = np.zeros((bins,) * channels, bool)
+    palette[tuple((typical[steady] // PALETTE_BIN).astype(np.intp).T)] = True
+    for axis in range(channels):
+        palette |= np.roll(palette, 1, axis) | np.roll(palette, -1, axis)  # (wraps: 0 and 255 are far apart anyway)
+    palette = palette.ravel() & ~common
+    hits = np.zeros((h, w), np.uint8)
+    box = np.ones((3, 3), np.uint8)
+    for frame in stack:
+        inked = palette[_colour_bin(frame)].view(np.uint8)
+        if o.hit_support > 1:
+            # A glyph is a stroke a few pixels wide: a lone pixel of ground in one of the
+            # overlay's colours is not.
+            support = cv2.filter2D(inked, -1, box, borderType=cv2.BORDER_REPLICATE)
+            inked = inked & (support >= o.hit_support)
+        hits += inked
+    return steady | (hits >= o.min_hits)
+
+
+def _channel_max(image: np.ndarray) -> np.ndarray:
+    """The largest channel value of each pixel of an (h, w, c) uint8 image."""
+    if image.ndim == 2 or image.shape[2] == 1:
+        return image.reshape(image.shape[:2])
+    out = image[..., 0].copy()
+    for c in range(1, image.shape[2]):
+        np.maximum(out, image[..., c], out=out)
+    return out
+
+
+PALETTE_BIN = 8  # gray levels per channel bin of the overlay's colours
 
 
 def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -216,7 +365,8 @@ def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
     xx, yy, xy = gx * gx, gy * gy, gx * gy
     if frame.ndim == 3:
-        xx, yy, xy = xx.mean(axis=2), yy.mean(axis=2), xy.mean(axis=2)
+        mean = np.full((1, frame.shape[2]), 1.0 / frame.shape[2], np.float32)
+        xx, yy, xy = cv2.transform(xx, mean), cv2.transform(yy, mean), cv2.transform(xy, mean)
     return xx - yy, 2.0 * xy, xx + yy
 
 
@@ -431,13 +581,12 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     use = _file_mask(options, info.source_size)
     detection = None
     if options.detect:
-        width = min(options.overlay.width, info.source_size[0])
+        width = min(options.overlay.trace_width, info.source_size[0])
         if show_progress:
             from mosaic_cli.progress import progress_task
 
             with progress_task("overlays", None, unit="fr/s") as advance:
-                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size,
-                                            options.overlay)
+                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
                 advance(detection.samples, status=f"{100 * detection.excluded:.1f}% masked")  # frames sampled
         else:
             detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
