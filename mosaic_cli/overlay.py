@@ -60,9 +60,9 @@ class OverlayOptions:
     # ``width`` and traced pixel by pixel at this resolution.
     trace_width: int = 1280
     colour_tolerance: float = 20.0  # a sample's colour this close to the pixel's usual one is the same
-    ground_share: float = 0.002  # colours this share of the ground has are no evidence of an overlay
+    palette_ratio: float = 4.0  # the overlay's colours: this many times more frequent among steady pixels than on the ground
     min_hits: int = 2  # a pixel in the overlay's colours in at least this many samples is overlay
-    hit_support: int = 5  # ... with at least this many of its 3x3 neighbours (itself included) in them too
+    hit_support: int = 3  # ... with at least this many of its 3x3 neighbours (itself included) in them too
     min_explained: float = 0.9  # a region is traced when its traced pixels explain this share of its static edges
     trace_close_px: int = 2  # closing of the traced pixels (at the trace resolution)
     smear_px: float = 2.0  # the traced mask is grown by this much (full-resolution px): H.264's colour smear
@@ -134,7 +134,7 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
     full = np.zeros((full_size[1], full_size[0]), np.uint8)
     if static.any():
         reach = _reach(static, o)
-        traced = _trace(frames, work, reach, edges, o).astype(np.uint8) * 255
+        traced = _trace(frames, work, reach, box, edges, o).astype(np.uint8) * 255
         if o.smear_px > 0:
             r = max(1, int(np.ceil(o.smear_px * fine_w / full_size[0])))
             traced = cv2.dilate(traced, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
@@ -241,15 +241,20 @@ def _reach(regions: np.ndarray, o: OverlayOptions) -> np.ndarray:
     return reach
 
 
-def _trace(frames: list[np.ndarray], work: list[np.ndarray], reach_work: np.ndarray, edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
+def _trace(frames: list[np.ndarray], work: list[np.ndarray], reach_work: np.ndarray, box: tuple[int, int, int, int],
+           edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
     """(H, W) bool at the frames' resolution: the overlay pixels within ``reach_work`` (the
     regions found in ``work``, the same samples at the working resolution, and their margin),
-    traced pixel by pixel.  A region whose static ``edges`` the traced pixels do not explain
+    traced pixel by pixel; the ground is what lies outside them and the letterbox ``box``.  A region whose static ``edges`` the traced pixels do not explain
     (a semi-transparent overlay: neither steady nor of fixed colours) keeps all of its reach."""
     fine_h, fine_w = frames[0].shape[:2]
     work_h, work_w = reach_work.shape
     r = int(np.ceil(o.margin_px))
-    common = _ground_colours(work, reach_work, o)
+    not_ground = reach_work.copy()
+    top, bottom, left, right = (k + BAR_MARGIN if k else 0 for k in box)
+    not_ground[:top] = not_ground[work_h - bottom :] = 255
+    not_ground[:, :left] = not_ground[:, work_w - right :] = 255
+    ground = _ground_colours(work, not_ground)
     reach = _exclude_at(reach_work, (fine_w, fine_h))
     count, labels, stats, _ = cv2.connectedComponentsWithStats(reach, connectivity=8)
     out = np.zeros((fine_h, fine_w), bool)
@@ -260,7 +265,7 @@ def _trace(frames: list[np.ndarray], work: list[np.ndarray], reach_work: np.ndar
         x, y, w, h = (int(v) for v in stats[k, :4])
         inside = labels[y : y + h, x : x + w] == k
         stack = np.stack([f[y : y + h, x : x + w] for f in frames])
-        found = _pixel_evidence(stack, common, o) & inside
+        found = _pixel_evidence(stack, ground, o) & inside
         region_edges = edges & (cv2.resize(np.where(labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
         traced_work = np.zeros((fine_h, fine_w), np.uint8)
         traced_work[y : y + h, x : x + w] = found
@@ -279,17 +284,32 @@ def _trace(frames: list[np.ndarray], work: list[np.ndarray], reach_work: np.ndar
     return out
 
 
-def _ground_colours(work: list[np.ndarray], reach: np.ndarray, o: OverlayOptions) -> np.ndarray:
-    """Flat bool over the colour bins (``PALETTE_BIN`` levels per channel): colours that at
-    least ``ground_share`` of the ground's pixels (outside ``reach``) have, in every other
-    sample.  A steady pixel of such a colour may be flat ground, not an overlay."""
+def _ground_colours(work: list[np.ndarray], not_ground: np.ndarray) -> np.ndarray:
+    """Flat float over the colour bins (``PALETTE_BIN`` levels per channel, each with the bins
+    beside it): the share of the ground's pixels (where ``not_ground`` is 0, in every other
+    sample) of each colour."""
     channels = 1 if work[0].ndim == 2 else work[0].shape[2]
     bins = 256 // PALETTE_BIN
-    counts = np.zeros(bins**channels, np.int64)
-    outside = reach == 0
+    counts = np.zeros(bins**channels, np.float64)
+    outside = not_ground == 0
     for frame in work[::2]:
         counts += np.bincount(_colour_bin(frame)[outside], minlength=counts.size)
-    return counts >= o.ground_share * max(1, counts.sum())
+    return _spread_bins(counts, channels) / max(1.0, counts.sum())
+
+
+def _spread_bins(counts: np.ndarray, channels: int) -> np.ndarray:
+    """Flat counts over colour bins, each summed with the bins beside it (3 per channel): a
+    colour on a bin's border, compression noise."""
+    bins = 256 // PALETTE_BIN
+    out = counts.reshape((bins,) * channels)
+    for axis in range(channels):
+        spread = out.copy()
+        lower, upper = [slice(None)] * channels, [slice(None)] * channels
+        lower[axis], upper[axis] = slice(None, -1), slice(1, None)
+        spread[tuple(lower)] += out[tuple(upper)]
+        spread[tuple(upper)] += out[tuple(lower)]
+        out = spread
+    return out.ravel()
 
 
 def _colour_bin(image: np.ndarray) -> np.ndarray:
@@ -303,12 +323,15 @@ def _colour_bin(image: np.ndarray) -> np.ndarray:
     return index
 
 
-def _pixel_evidence(stack: np.ndarray, common: np.ndarray, o: OverlayOptions) -> np.ndarray:
-    """(h, w) bool: pixels of a crop (``stack``: K samples, RGB or gray) that show an overlay:
-    **steady** (one colour in ``persistence`` of the samples: a logo, the glyphs of a text that
-    do not change) in a colour the ground is not often (``common``: flat ground is steady
-    too), or **in the overlay's colours** now and then (the steady pixels', in at least
-    ``min_hits`` samples: glyphs that change, as a running timestamp's digits)."""
+def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """(h, w) bool: pixels of a crop (``stack``: K samples, RGB or gray) that show an overlay.
+
+    The overlay's colours (its palette) are those of the crop's **steady** pixels (one colour
+    in ``persistence`` of the samples) that are ``palette_ratio`` times more frequent among
+    them than on the ground (``ground``: shares per colour bin); flat ground is steady too, but
+    in the ground's own colours.  A pixel is overlay when it is steady in a palette colour (a
+    logo, the glyphs of a text that do not change), or shows palette colours, in strokes, in at
+    least ``min_hits`` samples (glyphs that change, as a running timestamp's digits)."""
     k = len(stack)
     if stack.ndim == 3:
         stack = stack[..., None]
@@ -320,28 +343,25 @@ def _pixel_evidence(stack: np.ndarray, common: np.ndarray, o: OverlayOptions) ->
     for frame in stack:
         steady_count += _channel_max(cv2.absdiff(frame, typical)) <= o.colour_tolerance
     steady = steady_count >= o.persistence * k
-    steady &= ~common[_colour_bin(typical)]
     if not steady.any():
         return steady
-    # The overlay's colours: the steady pixels', in bins of ``PALETTE_BIN`` levels per channel
-    # and the bins beside them (a colour on a bin's border, compression noise).
-    bins = 256 // PALETTE_BIN
-    palette = np.zeros((bins,) * channels, bool)
-    palette[tuple((typical[steady] // PALETTE_BIN).astype(np.intp).T)] = True
-    for axis in range(channels):
-        palette |= np.roll(palette, 1, axis) | np.roll(palette, -1, axis)  # (wraps: 0 and 255 are far apart anyway)
-    palette = palette.ravel() & ~common
+    usual = _colour_bin(typical)
+    counts = _spread_bins(np.bincount(usual[steady], minlength=ground.size).astype(np.float64), channels)
+    palette = (counts >= o.palette_ratio * ground * counts.sum()) & (counts >= PALETTE_MIN_PIXELS)
+    evidence = steady & palette[usual]
     hits = np.zeros((h, w), np.uint8)
     box = np.ones((3, 3), np.uint8)
     for frame in stack:
         inked = palette[_colour_bin(frame)].view(np.uint8)
         if o.hit_support > 1:
-            # A glyph is a stroke a few pixels wide: a lone pixel of ground in one of the
-            # overlay's colours is not.
+            # A glyph is a stroke: a lone pixel of ground in one of the overlay's colours is not.
             support = cv2.filter2D(inked, -1, box, borderType=cv2.BORDER_REPLICATE)
             inked = inked & (support >= o.hit_support)
         hits += inked
-    return steady | (hits >= o.min_hits)
+    return evidence | (hits >= o.min_hits)
+
+
+PALETTE_MIN_PIXELS = 4  # steady pixels (with the bins beside theirs) that make a colour the overlay's
 
 
 def _channel_max(image: np.ndarray) -> np.ndarray:
