@@ -3,20 +3,30 @@ own ``--mask``, as one "use" mask (uint8, full resolution, 255 = ground to use).
 
 Logos, OSD text, timestamps and letterbox bars do not move with the ground.  Left in, they
 pull frame-to-frame estimates toward zero motion and get stitched into the panorama once per
-keyframe.  The detector looks at a few dozen frames spread over the whole clip, gray, at a
-small working width, in colour:
+keyframe.  The detector looks at a few dozen frames spread over the whole clip, read at up to
+``trace_width`` (1280 px), in two passes:
 
-* **static structure**: at a ground pixel the image gradient points a different way in every
-  sampled frame (the ground under it changes), at an overlay pixel it keeps its orientation
-  (its sign flips with the ground behind the overlay's edge).  A pixel that has an edge along
-  its dominant orientation in most samples (``persistence``) is overlay, in regions whose
-  edges run more than one way (a straight road the camera follows slides along itself and
-  keeps its orientation too, but only one).
-  Closing joins a logo's or a text line's edges into one region, holes are filled (a logo's
-  flat inside has no gradient), and the region is grown by a margin (glyphs of a running
-  timestamp that change between samples sit between the digits that do not);
-* **letterbox bars**: rows or columns at the frame's edges that hold one flat value in every
-  sample.
+1. **Regions**, on the frames scaled to a small working width (320 px), in colour:
+
+   * static structure: at a ground pixel the image gradient points a different way in every
+     sampled frame (the ground under it changes), at an overlay pixel it keeps its orientation
+     (its sign flips with the ground behind the overlay's edge).  A pixel that has an edge along
+     its dominant orientation in most samples (``persistence``) is static, in regions whose
+     edges run more than one way (a straight road the camera follows slides along itself and
+     keeps its orientation too, but only one).  Closing joins a logo's or a text line's edges
+     into one region, and holes are filled (a logo's flat inside has no gradient);
+   * letterbox bars: rows or columns at the frame's edges that hold one flat value in every
+     sample (measured again at the read resolution).
+
+2. **Tracing**, at the read resolution, within each region and its margin: the pixels that are
+   **steady** (one colour in most samples) in colours that are far more frequent there than on
+   the ground (the overlay's palette: flat ground is steady too, but in the ground's colours),
+   and the pixels that show the palette's colours, in strokes, in a few samples (the glyphs of
+   a running timestamp that change between samples).  A short closing and hole filling make
+   them whole; the result is grown by ``smear_px`` (H.264 smears an overlay's colours a pixel
+   or two past its edge) and never goes beyond the region's margin.  A region whose static
+   edges the traced pixels do not explain (a semi-transparent overlay: neither steady nor of
+   fixed colours) is masked whole, as the first pass found it.
 
 When the ground hardly moves over the clip (a hovering camera) everything looks static; more
 than ``max_static`` of the frame found static is taken for that and nothing is masked.
@@ -46,7 +56,7 @@ LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samp
 class OverlayOptions:
     samples: int = 32  # frames spread over the clip
     min_samples: int = 8  # fewer frames than this (a short photo folder): no detection
-    width: int = 320  # the detector works on gray frames this wide
+    width: int = 320  # the regions are found on the samples scaled to this width
     # A pixel is static when it has an edge of one orientation in at least this share of the
     # samples (ground: only while an edge happens to pass by).
     persistence: float = 0.7
@@ -78,6 +88,12 @@ class OverlayOptions:
             raise ValueError(f"overlay detection needs at least 4 sample frames, got {self.samples}")
         if self.width < 32:
             raise ValueError(f"overlay detection width must be at least 32, got {self.width}")
+        if self.trace_width < self.width:
+            raise ValueError(f"the overlay trace width ({self.trace_width}) must be at least the working width ({self.width})")
+        if not 1 <= self.hit_support <= 9 or self.min_hits < 1:
+            raise ValueError(f"overlay hits need min_hits >= 1 and hit_support in 1..9, got {self.min_hits}, {self.hit_support}")
+        if not 0.0 <= self.min_explained <= 1.0 or self.palette_ratio <= 0 or self.smear_px < 0 or self.trace_close_px < 0:
+            raise ValueError("overlay tracing: min_explained in [0, 1], palette_ratio > 0, smear_px and trace_close_px >= 0")
 
 
 @dataclass(frozen=True)
