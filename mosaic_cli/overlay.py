@@ -74,6 +74,7 @@ class OverlayOptions:
     min_hits: int = 2  # a pixel in the overlay's colours in at least this many samples is overlay
     hit_support: int = 3  # ... with at least this many of its 3x3 neighbours (itself included) in them too
     min_explained: float = 0.9  # a region is traced when its traced pixels explain this share of its static edges
+    min_covered: float = 0.5  # ... and this share of its steady pixels (else it is masked whole)
     trace_close_px: int = 2  # closing of the traced pixels (at the trace resolution)
     smear_px: float = 2.0  # the traced mask is grown by this much (full-resolution px): H.264's colour smear
     bar_range: float = 10.0  # letterbox: an edge row/column within this gray range in every sample
@@ -92,8 +93,8 @@ class OverlayOptions:
             raise ValueError(f"the overlay trace width ({self.trace_width}) must be at least the working width ({self.width})")
         if not 1 <= self.hit_support <= 9 or self.min_hits < 1:
             raise ValueError(f"overlay hits need min_hits >= 1 and hit_support in 1..9, got {self.min_hits}, {self.hit_support}")
-        if not 0.0 <= self.min_explained <= 1.0 or self.palette_ratio <= 0 or self.smear_px < 0 or self.trace_close_px < 0:
-            raise ValueError("overlay tracing: min_explained in [0, 1], palette_ratio > 0, smear_px and trace_close_px >= 0")
+        if not 0.0 <= self.min_explained <= 1.0 or not 0.0 <= self.min_covered <= 1.0 or self.palette_ratio <= 0 or self.smear_px < 0 or self.trace_close_px < 0:
+            raise ValueError("overlay tracing: min_explained and min_covered in [0, 1], palette_ratio > 0, smear_px and trace_close_px >= 0")
 
 
 @dataclass(frozen=True)
@@ -150,7 +151,7 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
     full = np.zeros((full_size[1], full_size[0]), np.uint8)
     if static.any():
         reach = _reach(static, o)
-        traced = _trace(frames, work, reach, box, edges, o).astype(np.uint8) * 255
+        traced = _trace(frames, work, static, box, edges, o).astype(np.uint8) * 255
         if o.smear_px > 0:
             r = max(1, int(np.ceil(o.smear_px * fine_w / full_size[0])))
             traced = cv2.dilate(traced, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
@@ -257,47 +258,60 @@ def _reach(regions: np.ndarray, o: OverlayOptions) -> np.ndarray:
     return reach
 
 
-def _trace(frames: list[np.ndarray], work: list[np.ndarray], reach_work: np.ndarray, box: tuple[int, int, int, int],
+def _trace(frames: list[np.ndarray], work: list[np.ndarray], regions: np.ndarray, box: tuple[int, int, int, int],
            edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
-    """(H, W) bool at the frames' resolution: the overlay pixels within ``reach_work`` (the
-    regions found in ``work``, the same samples at the working resolution, and their margin),
-    traced pixel by pixel; the ground is what lies outside them and the letterbox ``box``.  A region whose static ``edges`` the traced pixels do not explain
-    (a semi-transparent overlay: neither steady nor of fixed colours) keeps all of its reach."""
+    """(H, W) bool at the frames' resolution: the overlay pixels of ``regions`` (found in
+    ``work``, the same samples at the working resolution), traced pixel by pixel within each
+    region's reach (the region grown by the margin, less the letterbox ``box``).  The ground
+    is what lies outside the reaches and the bars.  A region whose traced pixels do not
+    explain it keeps its whole reach: when they leave more than ``1 - min_explained`` of its
+    static ``edges`` farther than the margin from any (an overlay neither steady nor of fixed
+    colours, as some semi-transparent ones), or cover less than ``min_covered`` of its steady
+    pixels (an overlay in the ground's own colours)."""
     fine_h, fine_w = frames[0].shape[:2]
-    work_h, work_w = reach_work.shape
-    r = int(np.ceil(o.margin_px))
-    not_ground = reach_work.copy()
+    work_h, work_w = regions.shape
+    reach_work = _reach(regions, o)
     top, bottom, left, right = (k + BAR_MARGIN if k else 0 for k in box)
-    not_ground[:top] = not_ground[work_h - bottom :] = 255
-    not_ground[:, :left] = not_ground[:, work_w - right :] = 255
-    ground = _ground_colours(work, not_ground)
-    reach = _exclude_at(reach_work, (fine_w, fine_h))
+    bars = np.zeros((work_h, work_w), np.uint8)
+    bars[:top] = bars[work_h - bottom :] = 255
+    bars[:, :left] = bars[:, work_w - right :] = 255
+    ground = _ground_colours(work, np.maximum(reach_work, bars))
+    reach = np.minimum(_exclude_at(reach_work, (fine_w, fine_h)), 255 - _exclude_at(bars, (fine_w, fine_h)))
+    region_fine = _exclude_at(regions.astype(np.uint8) * 255, (fine_w, fine_h)) > 0
     count, labels, stats, _ = cv2.connectedComponentsWithStats(reach, connectivity=8)
     out = np.zeros((fine_h, fine_w), bool)
     # An edge pixel (working resolution) is explained when a traced pixel lies within the
     # margin of it: an overlay's edge runs along its border (blurred by a pixel or two).
+    r = int(np.ceil(o.margin_px))
     near = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     for k in range(1, count):
         x, y, w, h = (int(v) for v in stats[k, :4])
         inside = labels[y : y + h, x : x + w] == k
         stack = np.stack([f[y : y + h, x : x + w] for f in frames])
-        found = _pixel_evidence(stack, ground, o) & inside
-        region_edges = edges & (cv2.resize(np.where(labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
-        traced_work = np.zeros((fine_h, fine_w), np.uint8)
-        traced_work[y : y + h, x : x + w] = found
-        traced_work = cv2.dilate(cv2.resize(traced_work * 255, (work_w, work_h), interpolation=cv2.INTER_AREA), near) > 0
-        if np.count_nonzero(region_edges & ~traced_work) > (1 - o.min_explained) * np.count_nonzero(region_edges):
-            out[y : y + h, x : x + w] |= inside
-            continue
-        mask = found.astype(np.uint8) * 255
-        if o.trace_close_px > 0:
-            c = o.trace_close_px
-            mask = cv2.copyMakeBorder(mask, c, c, c, c, cv2.BORDER_CONSTANT, value=0)
-            mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * c + 1, 2 * c + 1)))[c:-c, c:-c]
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        cv2.drawContours(mask, contours, -1, 255, thickness=cv2.FILLED)
-        out[y : y + h, x : x + w] |= (mask > 0) & inside
+        evidence, steady = _pixel_evidence(stack, ground, o)
+        traced = _closed_and_filled(evidence & inside, o.trace_close_px) & inside
+        on_work = np.zeros((fine_h, fine_w), np.uint8)
+        on_work[y : y + h, x : x + w] = traced * 255
+        on_work = cv2.dilate(np.maximum(cv2.resize(on_work, (work_w, work_h), interpolation=cv2.INTER_AREA), bars), near) > 0
+        own_edges = edges & (cv2.resize(np.where(labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
+        explained = np.count_nonzero(own_edges & ~on_work) <= (1 - o.min_explained) * np.count_nonzero(own_edges)
+        still = steady & inside & region_fine[y : y + h, x : x + w]
+        covered = np.count_nonzero(still & traced) >= o.min_covered * np.count_nonzero(still)
+        out[y : y + h, x : x + w] |= traced if explained and covered else inside
     return out
+
+
+def _closed_and_filled(mask: np.ndarray, radius: int) -> np.ndarray:
+    """bool ``mask`` closed with a disc of ``radius`` px (nothing beyond its border), its holes
+    filled."""
+    out = mask.astype(np.uint8) * 255
+    if radius > 0 and out.any():
+        out = cv2.copyMakeBorder(out, radius, radius, radius, radius, cv2.BORDER_CONSTANT, value=0)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, disc)[radius:-radius, radius:-radius].copy()
+    contours, _ = cv2.findContours(out, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(out, contours, -1, 255, thickness=cv2.FILLED)
+    return out > 0
 
 
 def _ground_colours(work: list[np.ndarray], not_ground: np.ndarray) -> np.ndarray:
@@ -339,8 +353,9 @@ def _colour_bin(image: np.ndarray) -> np.ndarray:
     return index
 
 
-def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) -> np.ndarray:
-    """(h, w) bool: pixels of a crop (``stack``: K samples, RGB or gray) that show an overlay.
+def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) bool twice: the pixels of a crop (``stack``: K samples, RGB or gray) that show an
+    overlay, and the steady ones (in any colour).
 
     The overlay's colours (its palette) are those of the crop's **steady** pixels (one colour
     in ``persistence`` of the samples) that are ``palette_ratio`` times more frequent among
@@ -360,7 +375,7 @@ def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) ->
         steady_count += _channel_max(cv2.absdiff(frame, typical)) <= o.colour_tolerance
     steady = steady_count >= o.persistence * k
     if not steady.any():
-        return steady
+        return steady, steady
     usual = _colour_bin(typical)
     counts = _spread_bins(np.bincount(usual[steady], minlength=ground.size).astype(np.float64), channels)
     palette = (counts >= o.palette_ratio * ground * counts.sum()) & (counts >= PALETTE_MIN_PIXELS)
@@ -374,7 +389,7 @@ def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) ->
             support = cv2.filter2D(inked, -1, box, borderType=cv2.BORDER_REPLICATE)
             inked = inked & (support >= o.hit_support)
         hits += inked
-    return evidence | (hits >= o.min_hits)
+    return evidence | (hits >= o.min_hits), steady
 
 
 PALETTE_MIN_PIXELS = 4  # steady pixels (with the bins beside theirs) that make a colour the overlay's

@@ -149,11 +149,32 @@ def test_a_region_the_trace_cannot_explain_keeps_its_whole_reach(sharp, monkeypa
 
     frames = sample_frames(sharp.burned, 32, 640)
     traced = overlay.detect_overlays(frames, (640, 360)).use == 0
-    monkeypatch.setattr(overlay, "_pixel_evidence", lambda stack, ground, o: np.zeros(stack.shape[1:3], bool))
+    monkeypatch.setattr(overlay, "_pixel_evidence", lambda stack, ground, o: (np.zeros(stack.shape[1:3], bool),) * 2)
     untraced = overlay.detect_overlays(frames, (640, 360)).use == 0
     for kind in ("logo", "timestamp"):
         assert np.count_nonzero(sharp.kinds[kind] & ~untraced) == 0
     assert np.count_nonzero(untraced) > np.count_nonzero(traced) + 0.5 * sharp.kinds["logo"].sum()
+
+
+def test_a_region_traced_to_a_part_of_its_steady_pixels_is_masked_whole(sharp, monkeypatch):
+    """An overlay in the ground's own colours (a gray logo in gray footage) traces only by
+    pieces of its rim, not by its steady inside (a gap in the rim wider than the closing
+    leaves the inside unfilled): the region is then masked whole, never traced to its rim."""
+    import mosaic_cli.overlay as overlay
+
+    trace = overlay._pixel_evidence
+
+    def broken_rim_only(stack, ground, o):
+        """The traced pixels' rim, 3 px wide, broken every 6 px (wider than the closing)."""
+        evidence, steady = trace(stack, ground, o)
+        inside = cv2.erode(evidence.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+        rim = evidence & ~inside
+        rim[:, (np.arange(rim.shape[1]) // 6) % 2 == 1] = False
+        return rim, steady
+
+    monkeypatch.setattr(overlay, "_pixel_evidence", broken_rim_only)
+    masked = detect_overlays(sample_frames(sharp.burned, 32, 640), (640, 360)).use == 0
+    assert all(np.count_nonzero(d & ~masked) == 0 for d in sharp.kinds.values())
 
 
 def test_a_hovering_camera_or_too_few_frames_masks_nothing():
