@@ -78,6 +78,7 @@ class OverlayOptions:
     trace_close_px: int = 2  # closing of the traced pixels (at the trace resolution)
     smear_px: float = 2.0  # the traced mask is grown by this much (full-resolution px): H.264's colour smear
     bar_range: float = 10.0  # letterbox: an edge row/column within this gray range in every sample
+    bar_ring: float = 64.0  # ... and the rows after them within this one (ringing near the bar's inner edge)
     max_bar: float = 0.25  # letterbox bars cover at most this share of each side
     max_static: float = 0.3  # more of the frame static: the ground did not move, mask nothing
 
@@ -167,18 +168,22 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
 
 
 def _letterbox(frames: list[np.ndarray], o: OverlayOptions) -> tuple[int, int, int, int]:
-    """(top, bottom, left, right) rows/columns, working px, flat in every sample.  Judged in
-    gray: H.264's chroma, at half resolution, rings a few pixels into a bar."""
+    """(top, bottom, left, right) rows/columns, at the frames' resolution, flat in every
+    sample, with the rows next to them that hold within ``bar_ring`` (the codec rings a few
+    rows into a bar near its inner edge, far less than the ground varies).  Judged in gray:
+    H.264's chroma, at half resolution, rings a few pixels into a bar."""
     stack = np.stack([f if f.ndim == 2 else cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames])
     lo, hi = stack.min(axis=0).astype(np.int16), stack.max(axis=0).astype(np.int16)
     h, w = lo.shape
 
-    def flat(lo_line: np.ndarray, hi_line: np.ndarray) -> bool:
-        return int(hi_line.max()) - int(lo_line.min()) <= o.bar_range
+    def spread(lo_line: np.ndarray, hi_line: np.ndarray) -> int:
+        return int(hi_line.max()) - int(lo_line.min())
 
     def run(n: int, line) -> int:
-        k = 0
-        while k < int(o.max_bar * n) and flat(*line(k)):
+        k, limit = 0, int(o.max_bar * n)
+        while k < limit and spread(*line(k)) <= o.bar_range:
+            k += 1
+        while 0 < k < limit and spread(*line(k)) <= o.bar_ring:
             k += 1
         return k
 

@@ -107,7 +107,8 @@ def cost(path: Path, repeat: int) -> dict:
         wall.append(time.perf_counter() - clock)
         cpu.append(cpu_seconds() - used)
     o = OverlayOptions()
-    frames = sample_frames(path, o.samples, min(o.width, info.source_size[0]), info)
+    read_width = getattr(o, "trace_width", o.width)  # (the detector before tracing read them at its working width)
+    frames = sample_frames(path, o.samples, min(read_width, info.source_size[0]), info)
     alone, alone_cpu = [], []
     for _ in range(repeat):
         clock, used = time.perf_counter(), time.process_time()
