@@ -161,7 +161,8 @@ def detector_cost(args, burned: Path) -> dict:
         frame_mask(burned, MaskOptions(), info)
         times.append(time.perf_counter() - clock)
         cpu.append(cpu_seconds() - used)
-    frames = sample_frames(burned, OverlayOptions().samples, OverlayOptions().width, info)
+    o = OverlayOptions()
+    frames = sample_frames(burned, o.samples, min(o.trace_width, info.source_size[0]), info)  # as frame_mask reads them
     detect, detect_cpu = [], []
     for _ in range(args.repeat):
         clock, used = time.perf_counter(), time.process_time()
