@@ -139,7 +139,6 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
     if fine_w > o.width:
         size = scaled_size((fine_w, fine_h), o.width)
         work = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames]
-    h, w = work[0].shape[:2]
     box = _letterbox(work, o)
     static, edges = _static_structure(work, box, o)
     fraction = float(np.count_nonzero(static)) / static.size
@@ -375,7 +374,7 @@ def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) ->
     # The pixel's usual colour: the median of its samples, channel by channel.
     middle = k // 2
     typical = np.partition(np.ascontiguousarray(stack.reshape(k, -1).T), middle, axis=1)[:, middle].reshape(h, w, channels)
-    steady_count = np.zeros((h, w), np.uint8)
+    steady_count = np.zeros((h, w), np.uint16)
     for frame in stack:
         steady_count += _channel_max(cv2.absdiff(frame, typical)) <= o.colour_tolerance
     steady = steady_count >= o.persistence * k
@@ -385,7 +384,7 @@ def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) ->
     counts = _spread_bins(np.bincount(usual[steady], minlength=ground.size).astype(np.float64), channels)
     palette = (counts >= o.palette_ratio * ground * counts.sum()) & (counts >= PALETTE_MIN_PIXELS)
     evidence = steady & palette[usual]
-    hits = np.zeros((h, w), np.uint8)
+    hits = np.zeros((h, w), np.uint16)
     box = np.ones((3, 3), np.uint8)
     for frame in stack:
         inked = palette[_colour_bin(frame)].view(np.uint8)
@@ -397,6 +396,7 @@ def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) ->
     return evidence | (hits >= o.min_hits), steady
 
 
+PALETTE_BIN = 8  # gray levels per channel bin of the overlay's colours
 PALETTE_MIN_PIXELS = 4  # steady pixels (with the bins beside theirs) that make a colour the overlay's
 
 
@@ -409,8 +409,6 @@ def _channel_max(image: np.ndarray) -> np.ndarray:
         np.maximum(out, image[..., c], out=out)
     return out
 
-
-PALETTE_BIN = 8  # gray levels per channel bin of the overlay's colours
 
 
 def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
