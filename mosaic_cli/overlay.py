@@ -4,7 +4,7 @@ own ``--mask``, as one "use" mask (uint8, full resolution, 255 = ground to use).
 Logos, OSD text, timestamps and letterbox bars do not move with the ground.  Left in, they
 pull frame-to-frame estimates toward zero motion and get stitched into the panorama once per
 keyframe.  The detector looks at a few dozen frames spread over the whole clip, read at up to
-``trace_width`` (1280 px), in two passes:
+``trace_pixels`` (1280x720), in two passes:
 
 1. **Regions**, on the frames scaled to a small working width (320 px), in colour:
 
@@ -66,9 +66,9 @@ class OverlayOptions:
     min_isotropy: float = 0.1  # a region's static edges must run more than one way (see _static_structure)
     min_area: int = 12  # static regions smaller than this (working px) are noise
     margin_px: float = 2.0  # the regions are traced this far beyond (working px)
-    # The samples are read this wide (at most the source's width): regions are found at
-    # ``width`` and traced pixel by pixel at this resolution.
-    trace_width: int = 1280
+    # The samples are read with at most this many pixels (and never above the source's size):
+    # regions are found at ``width`` and traced pixel by pixel at this resolution.
+    trace_pixels: int = 1280 * 720
     colour_tolerance: float = 20.0  # a sample's colour this close to the pixel's usual one is the same
     palette_ratio: float = 4.0  # the overlay's colours: this many times more frequent among steady pixels than on the ground
     min_hits: int = 2  # a pixel in the overlay's colours in at least this many samples is overlay
@@ -90,8 +90,8 @@ class OverlayOptions:
             raise ValueError(f"overlay detection needs at least 4 sample frames, got {self.samples}")
         if self.width < 32:
             raise ValueError(f"overlay detection width must be at least 32, got {self.width}")
-        if self.trace_width < self.width:
-            raise ValueError(f"the overlay trace width ({self.trace_width}) must be at least the working width ({self.width})")
+        if self.trace_pixels < self.width * self.width:
+            raise ValueError(f"overlay tracing needs at least {self.width}x{self.width} pixels, got {self.trace_pixels}")
         if not 1 <= self.hit_support <= 9 or self.min_hits < 1:
             raise ValueError(f"overlay hits need min_hits >= 1 and hit_support in 1..9, got {self.min_hits}, {self.hit_support}")
         if not 0.0 <= self.min_explained <= 1.0 or not 0.0 <= self.min_covered <= 1.0 or self.palette_ratio <= 0 or self.smear_px < 0 or self.trace_close_px < 0:
@@ -472,6 +472,15 @@ def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | N
     return _sample_by_seeking(count, width, info)
 
 
+def sample_width(source_size: tuple[int, int], options: OverlayOptions | None = None) -> int:
+    """The width the detector's samples are read at: the source's, scaled down to at most
+    ``trace_pixels`` pixels (a portrait 1080x1920 clip: 720 wide), never below ``width``."""
+    o = options or OverlayOptions()
+    w, h = source_size
+    fit = int(w * min(1.0, float(np.sqrt(o.trace_pixels / max(1, w * h)))))
+    return min(w, max(fit, o.width))
+
+
 def _picked(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
 
@@ -635,7 +644,7 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     use = _file_mask(options, info.source_size)
     detection = None
     if options.detect:
-        width = min(options.overlay.trace_width, info.source_size[0])
+        width = sample_width(info.source_size, options.overlay)
         if show_progress:
             from mosaic_cli.progress import progress_task
 
@@ -716,5 +725,6 @@ __all__ = [
     "frame_mask",
     "load_mask",
     "sample_frames",
+    "sample_width",
     "work_mask",
 ]

@@ -107,8 +107,11 @@ def cost(path: Path, repeat: int) -> dict:
         wall.append(time.perf_counter() - clock)
         cpu.append(cpu_seconds() - used)
     o = OverlayOptions()
-    read_width = getattr(o, "trace_width", o.width)  # (the detector before tracing read them at its working width)
-    frames = sample_frames(path, o.samples, min(read_width, info.source_size[0]), info)
+    import mosaic_cli.overlay as overlay
+
+    # As frame_mask reads them (the detector before tracing read them at its working width).
+    width = overlay.sample_width(info.source_size, o) if hasattr(overlay, "sample_width") else min(o.width, info.source_size[0])
+    frames = sample_frames(path, o.samples, width, info)
     alone, alone_cpu = [], []
     for _ in range(repeat):
         clock, used = time.perf_counter(), time.process_time()

@@ -177,6 +177,15 @@ def test_a_region_traced_to_a_part_of_its_steady_pixels_is_masked_whole(sharp, m
     assert all(np.count_nonzero(d & ~masked) == 0 for d in sharp.kinds.values())
 
 
+def test_samples_are_read_at_most_at_720p_whatever_the_shape():
+    from mosaic_cli.overlay import sample_width
+
+    for size, width in (((1280, 720), 1280), ((3840, 2160), 1280), ((1080, 1920), 720), ((320, 180), 320)):
+        assert sample_width(size) == width
+        h = round(width * size[1] / size[0])
+        assert width * h <= 1280 * 720 + width
+
+
 def test_a_hovering_camera_or_too_few_frames_masks_nothing():
     rng = np.random.default_rng(0)
     still = cv2.GaussianBlur(rng.integers(0, 255, (180, 320), dtype=np.uint8), (0, 0), 1.5)
