@@ -3,20 +3,30 @@ own ``--mask``, as one "use" mask (uint8, full resolution, 255 = ground to use).
 
 Logos, OSD text, timestamps and letterbox bars do not move with the ground.  Left in, they
 pull frame-to-frame estimates toward zero motion and get stitched into the panorama once per
-keyframe.  The detector looks at a few dozen frames spread over the whole clip, gray, at a
-small working width, in colour:
+keyframe.  The detector looks at a few dozen frames spread over the whole clip, read at up to
+``trace_pixels`` (1280x720), in two passes:
 
-* **static structure**: at a ground pixel the image gradient points a different way in every
-  sampled frame (the ground under it changes), at an overlay pixel it keeps its orientation
-  (its sign flips with the ground behind the overlay's edge).  A pixel that has an edge along
-  its dominant orientation in most samples (``persistence``) is overlay, in regions whose
-  edges run more than one way (a straight road the camera follows slides along itself and
-  keeps its orientation too, but only one).
-  Closing joins a logo's or a text line's edges into one region, holes are filled (a logo's
-  flat inside has no gradient), and the region is grown by a margin (glyphs of a running
-  timestamp that change between samples sit between the digits that do not);
-* **letterbox bars**: rows or columns at the frame's edges that hold one flat value in every
-  sample.
+1. **Regions**, on the frames scaled to a small working width (320 px), in colour:
+
+   * static structure: at a ground pixel the image gradient points a different way in every
+     sampled frame (the ground under it changes), at an overlay pixel it keeps its orientation
+     (its sign flips with the ground behind the overlay's edge).  A pixel that has an edge along
+     its dominant orientation in most samples (``persistence``) is static, in regions whose
+     edges run more than one way (a straight road the camera follows slides along itself and
+     keeps its orientation too, but only one).  Closing joins a logo's or a text line's edges
+     into one region, and holes are filled (a logo's flat inside has no gradient);
+   * letterbox bars: rows or columns at the frame's edges that hold one flat value in every
+     sample (measured again at the read resolution).
+
+2. **Tracing**, at the read resolution, within each region and its margin: the pixels that are
+   **steady** (one colour in most samples) in colours that are far more frequent there than on
+   the ground (the overlay's palette: flat ground is steady too, but in the ground's colours),
+   and the pixels that show the palette's colours, in strokes, in a few samples (the glyphs of
+   a running timestamp that change between samples).  A short closing and hole filling make
+   them whole; the result is grown by ``smear_px`` (H.264 smears an overlay's colours a pixel
+   or two past its edge) and never goes beyond the region's margin.  A region whose static
+   edges the traced pixels do not explain (a semi-transparent overlay: neither steady nor of
+   fixed colours) is masked whole, as the first pass found it.
 
 When the ground hardly moves over the clip (a hovering camera) everything looks static; more
 than ``max_static`` of the frame found static is taken for that and nothing is masked.
@@ -46,7 +56,7 @@ LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samp
 class OverlayOptions:
     samples: int = 32  # frames spread over the clip
     min_samples: int = 8  # fewer frames than this (a short photo folder): no detection
-    width: int = 320  # the detector works on gray frames this wide
+    width: int = 320  # the regions are found on the samples scaled to this width
     # A pixel is static when it has an edge of one orientation in at least this share of the
     # samples (ground: only while an edge happens to pass by).
     persistence: float = 0.7
@@ -55,8 +65,20 @@ class OverlayOptions:
     close_px: int = 5  # closing radius joining an overlay's edges (working px)
     min_isotropy: float = 0.1  # a region's static edges must run more than one way (see _static_structure)
     min_area: int = 12  # static regions smaller than this (working px) are noise
-    margin_px: float = 2.0  # the mask is grown by this much (working px) before scaling up
+    margin_px: float = 2.0  # the regions are traced this far beyond (working px)
+    # The samples are read with at most this many pixels (and never above the source's size):
+    # regions are found at ``width`` and traced pixel by pixel at this resolution.
+    trace_pixels: int = 1280 * 720
+    colour_tolerance: float = 20.0  # a sample's colour this close to the pixel's usual one is the same
+    palette_ratio: float = 4.0  # the overlay's colours: this many times more frequent among steady pixels than on the ground
+    min_hits: int = 2  # a pixel in the overlay's colours in at least this many samples is overlay
+    hit_support: int = 3  # ... with at least this many of its 3x3 neighbours (itself included) in them too
+    min_explained: float = 0.9  # a region is traced when its traced pixels explain this share of its static edges
+    min_covered: float = 0.5  # ... and this share of its steady pixels (else it is masked whole)
+    trace_close_px: int = 2  # closing of the traced pixels (at the trace resolution)
+    smear_px: float = 2.0  # the traced mask is grown by this much (full-resolution px): H.264's colour smear
     bar_range: float = 10.0  # letterbox: an edge row/column within this gray range in every sample
+    bar_ring: float = 64.0  # ... and the rows after them within this one (ringing near the bar's inner edge)
     max_bar: float = 0.25  # letterbox bars cover at most this share of each side
     max_static: float = 0.3  # more of the frame static: the ground did not move, mask nothing
 
@@ -68,6 +90,12 @@ class OverlayOptions:
             raise ValueError(f"overlay detection needs at least 4 sample frames, got {self.samples}")
         if self.width < 32:
             raise ValueError(f"overlay detection width must be at least 32, got {self.width}")
+        if self.trace_pixels < self.width * self.width:
+            raise ValueError(f"overlay tracing needs at least {self.width}x{self.width} pixels, got {self.trace_pixels}")
+        if not 1 <= self.hit_support <= 9 or self.min_hits < 1:
+            raise ValueError(f"overlay hits need min_hits >= 1 and hit_support in 1..9, got {self.min_hits}, {self.hit_support}")
+        if not 0.0 <= self.min_explained <= 1.0 or not 0.0 <= self.min_covered <= 1.0 or self.palette_ratio <= 0 or self.smear_px < 0 or self.trace_close_px < 0:
+            raise ValueError("overlay tracing: min_explained and min_covered in [0, 1], palette_ratio > 0, smear_px and trace_close_px >= 0")
 
 
 @dataclass(frozen=True)
@@ -100,25 +128,36 @@ class Detection:
 
 def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], options: OverlayOptions | None = None) -> Detection:
     """Pure detector: ``frames`` are RGB (or gray) frames of one clip spread over it, any one
-    size; the mask comes back at ``full_size`` (w, h).  Fewer than ``min_samples`` frames
-    (a short photo folder) cannot tell a fixed edge from a coincidence: nothing is detected."""
+    size (regions are found at ``width``, then traced at the frames' own resolution); the mask
+    comes back at ``full_size`` (w, h).  Fewer than ``min_samples`` frames (a short photo
+    folder) cannot tell a fixed edge from a coincidence: nothing is detected."""
     o = options or OverlayOptions()
     if len(frames) < o.min_samples:
         return Detection(None, samples=len(frames), too_few=True)
-    h, w = frames[0].shape[:2]
-    box = _letterbox(frames, o)
-    static = _static_structure(frames, box, o)
+    fine_h, fine_w = frames[0].shape[:2]
+    work = frames
+    if fine_w > o.width:
+        size = scaled_size((fine_w, fine_h), o.width)
+        work = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames]
+    box = _letterbox(work, o)
+    static, edges = _static_structure(work, box, o)
     fraction = float(np.count_nonzero(static)) / static.size
     rejected = fraction > o.max_static
     if rejected:
         static[:] = False
         fraction = 0.0
-    exclude = static.astype(np.uint8) * 255
-    if o.margin_px > 0 and exclude.any():
-        r = int(np.ceil(o.margin_px))
-        exclude = cv2.dilate(exclude, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    full = _exclude_at(exclude, full_size)
-    bars = _bars_at(box, (w, h), full_size)
+    # Bars found at the working width are measured again at the frames' own.
+    bars = _bars_at(_letterbox(frames, o) if any(box) and work is not frames else box, (fine_w, fine_h), full_size)
+    full = np.zeros((full_size[1], full_size[0]), np.uint8)
+    if static.any():
+        reach = _reach(static, o)
+        traced = _trace(frames, work, static, box, edges, o).astype(np.uint8) * 255
+        if o.smear_px > 0:
+            r = max(1, int(np.ceil(o.smear_px * fine_w / full_size[0])))
+            traced = cv2.dilate(traced, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        # Never beyond the regions' reach: where the trace cannot tell overlay from ground
+        # (flat ground around it), the mask is the region and its margin.
+        full = np.minimum(_exclude_at(traced, full_size), _exclude_at(reach, full_size))
     full[: bars.top] = 255
     full[full.shape[0] - bars.bottom :] = 255
     full[:, : bars.left] = 255
@@ -128,18 +167,22 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
 
 
 def _letterbox(frames: list[np.ndarray], o: OverlayOptions) -> tuple[int, int, int, int]:
-    """(top, bottom, left, right) rows/columns, working px, flat in every sample.  Judged in
-    gray: H.264's chroma, at half resolution, rings a few pixels into a bar."""
+    """(top, bottom, left, right) rows/columns, at the frames' resolution, flat in every
+    sample, with the rows next to them that hold within ``bar_ring`` (the codec rings a few
+    rows into a bar near its inner edge, far less than the ground varies).  Judged in gray:
+    H.264's chroma, at half resolution, rings a few pixels into a bar."""
     stack = np.stack([f if f.ndim == 2 else cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames])
     lo, hi = stack.min(axis=0).astype(np.int16), stack.max(axis=0).astype(np.int16)
     h, w = lo.shape
 
-    def flat(lo_line: np.ndarray, hi_line: np.ndarray) -> bool:
-        return int(hi_line.max()) - int(lo_line.min()) <= o.bar_range
+    def spread(lo_line: np.ndarray, hi_line: np.ndarray) -> int:
+        return int(hi_line.max()) - int(lo_line.min())
 
     def run(n: int, line) -> int:
-        k = 0
-        while k < int(o.max_bar * n) and flat(*line(k)):
+        k, limit = 0, int(o.max_bar * n)
+        while k < limit and spread(*line(k)) <= o.bar_range:
+            k += 1
+        while 0 < k < limit and spread(*line(k)) <= o.bar_ring:
             k += 1
         return k
 
@@ -151,9 +194,10 @@ def _letterbox(frames: list[np.ndarray], o: OverlayOptions) -> tuple[int, int, i
     )
 
 
-def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], o: OverlayOptions) -> np.ndarray:
-    """(h, w) bool: pixels whose edge keeps one orientation in every sample (see the module
-    doc), grouped into regions with edges of several orientations."""
+def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], o: OverlayOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) bool twice: regions of pixels whose edge keeps one orientation in every sample
+    (see the module doc), with edges of several orientations, holes filled; and the static
+    edge pixels inside them."""
     h, w = frames[0].shape[:2]
     # The orientation is compared through the doubled angle (gx^2 - gy^2, 2 gx gy): an overlay's
     # edge against changing ground flips its sign whenever the ground is brighter than the
@@ -205,7 +249,166 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
     # Fill holes: a logo's flat inside has no gradient to be found by.
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     cv2.drawContours(mask, contours, -1, 255, thickness=cv2.FILLED)
-    return mask > 0
+    return mask > 0, static & (mask > 0)
+
+
+def _reach(regions: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """uint8 (h, w), 255 = the regions (working resolution) grown by the margin: where their
+    overlays' pixels are traced."""
+    reach = regions.astype(np.uint8) * 255
+    r = int(np.ceil(o.margin_px))
+    if r > 0:
+        reach = cv2.dilate(reach, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return reach
+
+
+def _trace(frames: list[np.ndarray], work: list[np.ndarray], regions: np.ndarray, box: tuple[int, int, int, int],
+           edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """(H, W) bool at the frames' resolution: the overlay pixels of ``regions`` (found in
+    ``work``, the same samples at the working resolution), traced pixel by pixel within each
+    region's reach (the region grown by the margin, less the letterbox ``box``).  The ground
+    is what lies outside the reaches and the bars.  A region whose traced pixels do not
+    explain it keeps its whole reach: when they leave more than ``1 - min_explained`` of its
+    static ``edges`` farther than the margin from any (an overlay neither steady nor of fixed
+    colours, as some semi-transparent ones), or cover less than ``min_covered`` of its steady
+    pixels (an overlay in the ground's own colours)."""
+    fine_h, fine_w = frames[0].shape[:2]
+    work_h, work_w = regions.shape
+    reach_work = _reach(regions, o)
+    top, bottom, left, right = (k + BAR_MARGIN if k else 0 for k in box)
+    bars = np.zeros((work_h, work_w), np.uint8)
+    bars[:top] = bars[work_h - bottom :] = 255
+    bars[:, :left] = bars[:, work_w - right :] = 255
+    ground = _ground_colours(work, np.maximum(reach_work, bars))
+    reach = np.minimum(_exclude_at(reach_work, (fine_w, fine_h)), 255 - _exclude_at(bars, (fine_w, fine_h)))
+    region_fine = _exclude_at(regions.astype(np.uint8) * 255, (fine_w, fine_h)) > 0
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(reach, connectivity=8)
+    out = np.zeros((fine_h, fine_w), bool)
+    # An edge pixel (working resolution) is explained when a traced pixel lies within the
+    # margin of it: an overlay's edge runs along its border (blurred by a pixel or two).
+    r = int(np.ceil(o.margin_px))
+    near = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    for k in range(1, count):
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        inside = labels[y : y + h, x : x + w] == k
+        stack = np.stack([f[y : y + h, x : x + w] for f in frames])
+        evidence, steady = _pixel_evidence(stack, ground, o)
+        traced = _closed_and_filled(evidence & inside, o.trace_close_px) & inside
+        on_work = np.zeros((fine_h, fine_w), np.uint8)
+        on_work[y : y + h, x : x + w] = traced * 255
+        on_work = cv2.dilate(np.maximum(cv2.resize(on_work, (work_w, work_h), interpolation=cv2.INTER_AREA), bars), near) > 0
+        own_edges = edges & (cv2.resize(np.where(labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
+        explained = np.count_nonzero(own_edges & ~on_work) <= (1 - o.min_explained) * np.count_nonzero(own_edges)
+        still = steady & inside & region_fine[y : y + h, x : x + w]
+        covered = np.count_nonzero(still & traced) >= o.min_covered * np.count_nonzero(still)
+        out[y : y + h, x : x + w] |= traced if explained and covered else inside
+    return out
+
+
+def _closed_and_filled(mask: np.ndarray, radius: int) -> np.ndarray:
+    """bool ``mask`` closed with a disc of ``radius`` px (nothing beyond its border), its holes
+    filled."""
+    out = mask.astype(np.uint8) * 255
+    if radius > 0 and out.any():
+        out = cv2.copyMakeBorder(out, radius, radius, radius, radius, cv2.BORDER_CONSTANT, value=0)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, disc)[radius:-radius, radius:-radius].copy()
+    contours, _ = cv2.findContours(out, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(out, contours, -1, 255, thickness=cv2.FILLED)
+    return out > 0
+
+
+def _ground_colours(work: list[np.ndarray], not_ground: np.ndarray) -> np.ndarray:
+    """Flat float over the colour bins (``PALETTE_BIN`` levels per channel, each with the bins
+    beside it): the share of the ground's pixels (where ``not_ground`` is 0, in every other
+    sample) of each colour."""
+    channels = 1 if work[0].ndim == 2 else work[0].shape[2]
+    bins = 256 // PALETTE_BIN
+    counts = np.zeros(bins**channels, np.float64)
+    outside = not_ground == 0
+    for frame in work[::2]:
+        counts += np.bincount(_colour_bin(frame)[outside], minlength=counts.size)
+    return _spread_bins(counts, channels) / max(1.0, counts.sum())
+
+
+def _spread_bins(counts: np.ndarray, channels: int) -> np.ndarray:
+    """Flat counts over colour bins, each summed with the bins beside it (3 per channel): a
+    colour on a bin's border, compression noise."""
+    bins = 256 // PALETTE_BIN
+    out = counts.reshape((bins,) * channels)
+    for axis in range(channels):
+        spread = out.copy()
+        lower, upper = [slice(None)] * channels, [slice(None)] * channels
+        lower[axis], upper[axis] = slice(None, -1), slice(1, None)
+        spread[tuple(lower)] += out[tuple(upper)]
+        spread[tuple(upper)] += out[tuple(lower)]
+        out = spread
+    return out.ravel()
+
+
+def _colour_bin(image: np.ndarray) -> np.ndarray:
+    """(h, w) intp: each pixel's colour bin (``PALETTE_BIN`` levels per channel)."""
+    bins = 256 // PALETTE_BIN
+    if image.ndim == 2:
+        return (image // PALETTE_BIN).astype(np.intp)
+    index = np.zeros(image.shape[:2], np.intp)
+    for c in range(image.shape[2]):
+        index = index * bins + (image[..., c] // PALETTE_BIN)
+    return index
+
+
+def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(h, w) bool twice: the pixels of a crop (``stack``: K samples, RGB or gray) that show an
+    overlay, and the steady ones (in any colour).
+
+    The overlay's colours (its palette) are those of the crop's **steady** pixels (one colour
+    in ``persistence`` of the samples) that are ``palette_ratio`` times more frequent among
+    them than on the ground (``ground``: shares per colour bin); flat ground is steady too, but
+    in the ground's own colours.  A pixel is overlay when it is steady in a palette colour (a
+    logo, the glyphs of a text that do not change), or shows palette colours, in strokes, in at
+    least ``min_hits`` samples (glyphs that change, as a running timestamp's digits)."""
+    k = len(stack)
+    if stack.ndim == 3:
+        stack = stack[..., None]
+    h, w, channels = stack.shape[1:]
+    # The pixel's usual colour: the median of its samples, channel by channel.
+    middle = k // 2
+    typical = np.partition(np.ascontiguousarray(stack.reshape(k, -1).T), middle, axis=1)[:, middle].reshape(h, w, channels)
+    steady_count = np.zeros((h, w), np.uint16)
+    for frame in stack:
+        steady_count += _channel_max(cv2.absdiff(frame, typical)) <= o.colour_tolerance
+    steady = steady_count >= o.persistence * k
+    if not steady.any():
+        return steady, steady
+    usual = _colour_bin(typical)
+    counts = _spread_bins(np.bincount(usual[steady], minlength=ground.size).astype(np.float64), channels)
+    palette = (counts >= o.palette_ratio * ground * counts.sum()) & (counts >= PALETTE_MIN_PIXELS)
+    evidence = steady & palette[usual]
+    hits = np.zeros((h, w), np.uint16)
+    box = np.ones((3, 3), np.uint8)
+    for frame in stack:
+        inked = palette[_colour_bin(frame)].view(np.uint8)
+        if o.hit_support > 1:
+            # A glyph is a stroke: a lone pixel of ground in one of the overlay's colours is not.
+            support = cv2.filter2D(inked, -1, box, borderType=cv2.BORDER_REPLICATE)
+            inked = inked & (support >= o.hit_support)
+        hits += inked
+    return evidence | (hits >= o.min_hits), steady
+
+
+PALETTE_BIN = 8  # gray levels per channel bin of the overlay's colours
+PALETTE_MIN_PIXELS = 4  # steady pixels (with the bins beside theirs) that make a colour the overlay's
+
+
+def _channel_max(image: np.ndarray) -> np.ndarray:
+    """The largest channel value of each pixel of an (h, w, c) uint8 image."""
+    if image.ndim == 2 or image.shape[2] == 1:
+        return image.reshape(image.shape[:2])
+    out = image[..., 0].copy()
+    for c in range(1, image.shape[2]):
+        np.maximum(out, image[..., c], out=out)
+    return out
+
 
 
 def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -216,7 +419,8 @@ def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REPLICATE)
     xx, yy, xy = gx * gx, gy * gy, gx * gy
     if frame.ndim == 3:
-        xx, yy, xy = xx.mean(axis=2), yy.mean(axis=2), xy.mean(axis=2)
+        mean = np.full((1, frame.shape[2]), 1.0 / frame.shape[2], np.float32)
+        xx, yy, xy = cv2.transform(xx, mean), cv2.transform(yy, mean), cv2.transform(xy, mean)
     return xx - yy, 2.0 * xy, xx + yy
 
 
@@ -266,6 +470,15 @@ def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | N
     if total <= DECODE_ALL_BELOW:
         return frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
     return _sample_by_seeking(count, width, info)
+
+
+def sample_width(source_size: tuple[int, int], options: OverlayOptions | None = None) -> int:
+    """The width the detector's samples are read at: the source's, scaled down to at most
+    ``trace_pixels`` pixels (a portrait 1080x1920 clip: 720 wide), never below ``width``."""
+    o = options or OverlayOptions()
+    w, h = source_size
+    fit = int(w * min(1.0, float(np.sqrt(o.trace_pixels / max(1, w * h)))))
+    return min(w, max(fit, o.width))
 
 
 def _picked(total: int, count: int) -> np.ndarray:
@@ -431,13 +644,12 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     use = _file_mask(options, info.source_size)
     detection = None
     if options.detect:
-        width = min(options.overlay.width, info.source_size[0])
+        width = sample_width(info.source_size, options.overlay)
         if show_progress:
             from mosaic_cli.progress import progress_task
 
             with progress_task("overlays", None, unit="fr/s") as advance:
-                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size,
-                                            options.overlay)
+                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
                 advance(detection.samples, status=f"{100 * detection.excluded:.1f}% masked")  # frames sampled
         else:
             detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
@@ -513,5 +725,6 @@ __all__ = [
     "frame_mask",
     "load_mask",
     "sample_frames",
+    "sample_width",
     "work_mask",
 ]

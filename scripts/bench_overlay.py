@@ -41,7 +41,7 @@ from bench_stitch import ORTHOPHOTO, placement_errors  # noqa: E402
 
 from mosaic_cli.estimators import make_estimator  # noqa: E402
 from mosaic_cli.evaluate import evaluate  # noqa: E402
-from mosaic_cli.overlay import MaskOptions, OverlayOptions, detect_overlays, frame_mask, sample_frames  # noqa: E402
+from mosaic_cli.overlay import MaskOptions, OverlayOptions, detect_overlays, frame_mask, sample_frames, sample_width  # noqa: E402
 from mosaic_cli.simulate import OverlaySpec, load_ground_truth, load_map, plan_flight, write_flight  # noqa: E402
 from mosaic_cli.stitch import StitchOptions, stitch  # noqa: E402
 from mosaic_cli.track import track_video  # noqa: E402
@@ -161,7 +161,8 @@ def detector_cost(args, burned: Path) -> dict:
         frame_mask(burned, MaskOptions(), info)
         times.append(time.perf_counter() - clock)
         cpu.append(cpu_seconds() - used)
-    frames = sample_frames(burned, OverlayOptions().samples, OverlayOptions().width, info)
+    o = OverlayOptions()
+    frames = sample_frames(burned, o.samples, sample_width(info.source_size, o), info)  # as frame_mask reads them
     detect, detect_cpu = [], []
     for _ in range(args.repeat):
         clock, used = time.perf_counter(), time.process_time()

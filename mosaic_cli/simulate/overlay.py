@@ -73,9 +73,12 @@ class OverlayBurner:
         self._text_drawn = np.zeros((h, w), bool)
         self._static_rgb = np.zeros((h, w, 3), np.uint8)
         self._static = np.zeros((h, w), bool)
+        self._bars = np.zeros((h, w), bool)
+        self._logo = np.zeros((h, w), bool)
         if spec.letterbox:
             bar = max(1, round(spec.bar_height * h))
-            self._static[:bar] = self._static[h - bar :] = True  # black: the RGB is already 0
+            self._bars[:bar] = self._bars[h - bar :] = True  # black: the RGB is already 0
+            self._static |= self._bars
         if spec.logo:
             self._draw_logo()
         self.drawn |= self._static
@@ -106,7 +109,8 @@ class OverlayBurner:
         cv2.putText(glyph, "M", org, cv2.FONT_HERSHEY_SIMPLEX, scale, 255, max(1, round(scale * 2)), cv2.LINE_AA)
         inside = (glyph > 127) & (layer > 0)
         self._static_rgb[inside] = (255, 255, 255)
-        self._static |= layer > 0
+        self._logo = layer > 0
+        self._static |= self._logo
 
     def text(self, t: int) -> str:
         seconds = self.spec.start_seconds + t / self.fps
@@ -139,6 +143,12 @@ class OverlayBurner:
         if len(xs):
             out[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1] = True
         return out
+
+    def kinds(self) -> dict[str, np.ndarray]:
+        """(h, w) bool per overlay of the spec (``"logo"``, ``"timestamp"``, ``"letterbox"``):
+        the pixels it drew in some frame so far; their union is ``drawn``."""
+        found = {"logo": self._logo, "timestamp": self._text_drawn, "letterbox": self._bars}
+        return {k: found[k].copy() for k in self.spec.names}
 
     def use_mask(self) -> np.ndarray:
         """The exact truth as a ``--mask`` image: uint8, 255 where no overlay was ever drawn."""
