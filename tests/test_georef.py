@@ -82,6 +82,7 @@ def flights(tmp_path_factory):
         video = d / f"{name}.mp4"
         mosaic("simulate", "-o", video, "-p", "survey", "-n", "150", "--size", "320x180", "--preset", "ultrafast", "-q",
                "--seed", "2", "--telemetry", "srt", "--gps-noise", noise, "--gps-dropouts", "0.02" if name == "noisy" else "0",
+               "--baro-bias", "0.5" if name == "noisy" else "0",
                "--gsd", "0.05")
         out[name] = video
     return out
