@@ -175,6 +175,15 @@ def bench_refit(args) -> None:
         kept = np.load(record)
         placements, ref, indices = list(kept["placements"]), int(kept["ref"]), [int(i) for i in kept["indices"]]
         track = read_telemetry(video.with_suffix(".SRT"))
+        if args.baro_bias is not None:
+            # the same flight's log with another barometer: the GPS errors are the same draw (height_offset's own stream)
+            from mosaic_cli.simulate.telemetry import simulate_log, srt_text
+
+            geo = MapGeo(truth_crs(video), np.array(json.loads(video.with_name(video.stem + ".geo.json").read_text())["map_to_crs"]), GSD)
+            log = simulate_log(gt, geo, GpsErrors(rms=3.0, dropouts=0.02, bad_fixes=0.005, height_bias=args.baro_bias, seed=seed))
+            other = video.with_name(f"{video.stem}.baro{args.baro_bias:g}.SRT")
+            other.write_text(srt_text(log))
+            track = read_telemetry(other)
         if args.gimbal_noise or args.gimbal_bias:
             # a gimbal less exact than the simulator's log: white noise per sample and a bias
             rng = np.random.default_rng([seed, 5])
@@ -192,6 +201,10 @@ def bench_refit(args) -> None:
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
         if args.detail:
             refit_detail(g, placements, indices, gt, map_to_crs)
+
+
+def truth_crs(video: Path) -> str:
+    return json.loads(video.with_name(video.stem + ".geo.json").read_text())["crs"]
 
 
 def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
@@ -336,6 +349,7 @@ def main() -> None:
     parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
     parser.add_argument("--link-fraction", type=float, help="refit: DriftOptions.link_fraction of the GPS drift shifts")
     parser.add_argument("--height-accuracy", type=float, help="refit: metres (GeorefOptions.height_accuracy)")
+    parser.add_argument("--baro-bias", type=float, help="refit: metres RMS: the log's heights simulated again with this barometric offset")
     parser.add_argument("--hfov", type=float, help="refit: degrees, in place of the log's (GeorefOptions.hfov)")
     parser.add_argument("--fov-accuracy", type=float, help="refit: relative (GeorefOptions.fov_accuracy)")
     parser.add_argument("--gimbal-noise", type=float, default=0.0, help="refit: degrees of white noise added to the log's pitch and roll")

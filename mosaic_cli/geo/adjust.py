@@ -179,13 +179,16 @@ def adjust_to_ground(
     # the prior: the scale by every view of known height (else by the prior view's), the heading by the prior view's
     scaled = np.zeros(len(attitude), bool)
     expected = np.full(len(attitude), np.nan)
+    scale_sigma = heading = heading_sigma = None
     if prior is not None and prior.sigma is not None:
         if view_scales is not None:
             expected = np.asarray(view_scales, np.float64)
         elif prior_view is not None:
             expected[prior_view] = prior.scale
         scaled = np.isfinite(expected) & (expected > 0)
-    headed = prior is not None and prior.rotation is not None and prior.heading_sigma is not None and prior_view is not None
+        scale_sigma = max(prior.sigma, 1e-12)
+    if prior is not None and prior.rotation is not None and prior.heading_sigma is not None and prior_view is not None:
+        heading, heading_sigma = prior.rotation, max(prior.heading_sigma, 1e-12)
 
     def matrix(p: np.ndarray) -> np.ndarray:
         return from_unit @ np.append(p, 1.0).reshape(3, 3)
@@ -196,20 +199,20 @@ def adjust_to_ground(
 
     def prior_residual(G: np.ndarray) -> np.ndarray:
         parts = []
-        if scaled.any():
+        if scale_sigma is not None and scaled.any():
             on_ground = project(G, unit_corners[scaled].reshape(-1, 2)).reshape(-1, 4, 2)
             r = similarity_ratios(attitude.corners[scaled], on_ground)
-            parts.append(float(np.mean(np.log(np.abs(r) / expected[scaled]))) / max(prior.sigma, 1e-12))
-        if headed:
+            parts.append(float(np.mean(np.log(np.abs(r) / expected[scaled]))) / scale_sigma)
+        if heading is not None and heading_sigma is not None and prior_view is not None:
             r = similarity_ratios(attitude.corners[prior_view][None], project(G, unit_corners[prior_view])[None])[0]
-            parts.append(math.remainder(float(np.angle(r)) - prior.rotation, 2 * math.pi) / max(prior.heading_sigma, 1e-12))
+            parts.append(math.remainder(float(np.angle(r)) - heading, 2 * math.pi) / heading_sigma)
         return np.array(parts)
 
     def residuals(p: np.ndarray, gps_w: np.ndarray, att_w: np.ndarray, gps_sigma: float) -> np.ndarray:
         G = matrix(p)
         parts = [((project(G, unit_nadirs) - fixes) * np.sqrt(gps_w)[:, None] / gps_sigma).ravel(),
                  (attitude_residuals(G) * np.sqrt(att_w)[:, None]).ravel()]
-        if scaled.any() or headed:
+        if (scale_sigma is not None and scaled.any()) or heading is not None:
             parts.append(prior_residual(G))
         return np.concatenate(parts)
 

@@ -33,9 +33,8 @@ from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigm
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
 from mosaic_cli.geo.drift import DriftOptions, drift_shifts
-from mosaic_cli.geo.fit import (SimilarityFit, SimilarityPrior, axis_sigma, fit_similarity, fix_weights, refine_homography,
-                                scale_sigma)
-from mosaic_cli.geo.prior import HeightScale, height_scale, sigmas_apart
+from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, axis_sigma, fit_similarity, fix_weights, refine_homography, scale_sigma
+from mosaic_cli.geo.prior import height_scale, sigmas_apart
 from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
 from mosaic_cli.telemetry.track import Track
@@ -223,7 +222,7 @@ def georeference(
         )
     warnings: list[str] = []
     if prior is not None and prior.sigma is not None:
-        fit, prior = _check_height_scale(fit, prior, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
+        fit, prior = _check_height_scale(fit, prior, prior.sigma, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
@@ -268,8 +267,9 @@ def georeference(
                         hfov, track, prior, notes, warnings)
 
 
-def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.ndarray, ground: np.ndarray, times: np.ndarray,
-                        options: GeorefOptions, hfov: float, warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
+def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, prior_sigma: float, mosaic: np.ndarray, ground: np.ndarray,
+                        times: np.ndarray, options: GeorefOptions, hfov: float | None,
+                        warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
     """The fit and the prior to go on with: as they are when the height x field of view scale
     agrees with the GPS track's own within ``options.max_scale_disagreement`` combined sigmas;
     else (a wrong --hfov, a nominal focal length of another video mode, ground far below the
@@ -281,11 +281,11 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.n
     inliers = gps.inliers
     weights = fix_weights(times, inliers, options.drift.correlation)
     gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
-    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior.sigma)
+    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior_sigma)
     if apart <= options.max_scale_disagreement:
         return fit, prior
     warnings.append(
-        f"the height and field of view ({hfov:.1f} deg) make the map {100 * (prior.scale / gps.scale - 1):+.1f}% the size the "
+        f"the height and field of view ({hfov or math.nan:.1f} deg) make the map {100 * (prior.scale / gps.scale - 1):+.1f}% the size the "
         f"GPS track does ({apart:.1f} sigmas apart): the GPS's scale is used; check --hfov and the log's height"
     )
     return gps, replace(prior, sigma=None)
