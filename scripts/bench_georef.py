@@ -157,6 +157,12 @@ def bench_refit(args) -> None:
     from mosaic_cli.telemetry import read_telemetry
 
     options = GeorefOptions(attitude_accuracy=None if args.no_gimbal else args.gimbal_accuracy)
+    if args.height_accuracy is not None:
+        options = replace(options, height_accuracy=args.height_accuracy)
+    if args.fov_accuracy is not None:
+        options = replace(options, fov_accuracy=args.fov_accuracy)
+    if args.hfov is not None:
+        options = replace(options, hfov=args.hfov)
     if args.link_fraction is not None:
         options = replace(options, drift=DriftOptions(link_fraction=args.link_fraction))
     for seed in range(args.first_seed, args.first_seed + args.seeds):
@@ -169,6 +175,15 @@ def bench_refit(args) -> None:
         kept = np.load(record)
         placements, ref, indices = list(kept["placements"]), int(kept["ref"]), [int(i) for i in kept["indices"]]
         track = read_telemetry(video.with_suffix(".SRT"))
+        if args.baro_bias is not None:
+            # the same flight's log with another barometer: the GPS errors are the same draw (height_offset's own stream)
+            from mosaic_cli.simulate.telemetry import simulate_log, srt_text
+
+            geo = MapGeo(truth_crs(video), np.array(json.loads(video.with_name(video.stem + ".geo.json").read_text())["map_to_crs"]), GSD)
+            log = simulate_log(gt, geo, GpsErrors(rms=3.0, dropouts=0.02, bad_fixes=0.005, height_bias=args.baro_bias, seed=seed))
+            other = video.with_name(f"{video.stem}.baro{args.baro_bias:g}.SRT")
+            other.write_text(srt_text(log))
+            track = read_telemetry(other)
         if args.gimbal_noise or args.gimbal_bias:
             # a gimbal less exact than the simulator's log: white noise per sample and a bias
             rng = np.random.default_rng([seed, 5])
@@ -180,10 +195,16 @@ def bench_refit(args) -> None:
         map_h = {i: g.frame_to_ground(k, P) for k, (i, P) in enumerate(zip(indices, placements))}
         score = score_map_homographies(map_h, gt, map_to_crs)
         print(f"mapping seed {seed}: {g.summary()}")
+        for warning in g.warnings:
+            print(f"mapping seed {seed}: warning: {warning}")
         print(f"| mapping seed {seed} (refit) | {gt.frames} | {score.keyframes} | {score.median_m:.2f} | {score.max_m:.2f} | "
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
         if args.detail:
             refit_detail(g, placements, indices, gt, map_to_crs)
+
+
+def truth_crs(video: Path) -> str:
+    return json.loads(video.with_name(video.stem + ".geo.json").read_text())["crs"]
 
 
 def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
@@ -193,7 +214,8 @@ def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
     own share of the error)."""
     import cv2
 
-    from mosaic_cli.geometry import project
+    from mosaic_cli.geo.score import score_map_homographies
+    from mosaic_cli.geometry import normalize, project
 
     w, h = gt.size
     xs, ys = np.meshgrid(np.linspace(0, w - 1, 5), np.linspace(0, h - 1, 5))
@@ -228,6 +250,10 @@ def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
     r = np.vdot(zt, zg) / np.vdot(zt, zt)
     print(f"  the GPS log at the keyframes against the true camera positions: scale {100 * (abs(r) - 1):+.2f}%, "
           f"heading {np.degrees(np.angle(r)):+.2f} deg (as the mosaic's scale and heading are scored)")
+    unshifted = score_map_homographies({i: normalize(g.mosaic_to_ground @ P) for i, P in zip(indices, placements)}, gt, map_to_crs)
+    prior = "none" if g.prior is None or g.prior.sigma is None else f"{g.prior.sigma:.2%} sigma"
+    print(f"  without the GPS drift shifts: scale {100 * unshifted.scale_error:+.2f}%, heading {unshifted.heading_error_deg:+.2f} deg; "
+          f"height x field of view prior: {prior}")
     src = np.concatenate([project(P, grid) for P in placements])
     best, _ = cv2.findHomography(src, true.reshape(-1, 2), 0)
     d = np.linalg.norm(project(best, src) - true.reshape(-1, 2), axis=1)
@@ -260,12 +286,34 @@ def bench_gps_limit(args) -> None:
         ratio = np.vdot(truth_z, gps_z) / np.vdot(truth_z, truth_z)
         scale.append(100 * (abs(ratio) - 1))
         heading.append(math.degrees(np.angle(ratio)))
+    signed = np.array(scale)
     scale, heading = np.abs(scale), np.abs(heading)
     print(f"\n$ python scripts/bench_georef.py gps-limit --draws {args.draws}")
     print(f"GPS scale error over the mapping flight ({len(keyframes)} keyframe fixes, {args.draws} draws): RMS "
           f"{np.sqrt(np.mean(scale**2)):.2f}%, 95th percentile {np.percentile(scale, 95):.2f}%, beyond 0.5%: {np.mean(scale > 0.5):.1%} of flights")
     print(f"GPS heading error: RMS {np.sqrt(np.mean(heading**2)):.2f} deg, 95th percentile {np.percentile(heading, 95):.2f} deg, "
           f"beyond 0.5 deg: {np.mean(heading > 0.5):.1%}")
+    # The height x field of view scale weighed in as georef does (prior.py, fit.scale_sigma): the
+    # simulator's barometric offset per flight, the field of view exact (as the simulator logs it)
+    from mosaic_cli.geo.fit import fix_weights, scale_sigma
+    from mosaic_cli.geo.georef import GeorefOptions
+    from mosaic_cli.simulate.telemetry import GpsErrors, height_offset
+
+    options = GeorefOptions()
+    weights = fix_weights(times[keyframes], np.ones(len(keyframes), bool), options.drift.correlation)
+    gps_sigma = scale_sigma(centred, weights, 3.0 / math.sqrt(2.0))
+    offsets = np.array([height_offset(GpsErrors(seed=draw)) for draw in range(args.draws)])
+    height = float(np.median(poses.z)) * float(truth["gsd"])
+    for metres, fov_error, fov_accuracy, what in ((height, 0.0, options.fov_accuracy, "this flight"),
+                                                   (height, 0.0, 0.0, "this flight, the field of view taken as exact"),
+                                                   (120.0, 0.0, 0.0, "the same flight 120 m up (a 4K camera at 5 cm), the field of view exact")):
+        prior_sigma = math.hypot(options.height_accuracy / metres, fov_accuracy)
+        prior_error = 100 * (offsets / metres + fov_error)
+        w = gps_sigma**-2 / (gps_sigma**-2 + prior_sigma**-2)
+        combined = np.abs(w * signed + (1 - w) * prior_error)
+        print(f"with the height ({metres:.0f} m, {options.height_accuracy} m RMS offset) x field of view, {what}: prior sigma "
+              f"{100 * prior_sigma:.2f}%, GPS {100 * gps_sigma:.2f}%, the GPS's weight {w:.0%}: RMS {np.sqrt(np.mean(combined**2)):.2f}%, "
+              f"beyond 0.5%: {np.mean(combined > 0.5):.1%} of flights")
 
 
 def record_stitch(record: Path, argv: list[str]) -> None:
@@ -300,6 +348,10 @@ def main() -> None:
     parser.add_argument("--gimbal-accuracy", type=float, default=1.0, help="refit: degrees (GeorefOptions.attitude_accuracy)")
     parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
     parser.add_argument("--link-fraction", type=float, help="refit: DriftOptions.link_fraction of the GPS drift shifts")
+    parser.add_argument("--height-accuracy", type=float, help="refit: metres (GeorefOptions.height_accuracy)")
+    parser.add_argument("--baro-bias", type=float, help="refit: metres RMS: the log's heights simulated again with this barometric offset")
+    parser.add_argument("--hfov", type=float, help="refit: degrees, in place of the log's (GeorefOptions.hfov)")
+    parser.add_argument("--fov-accuracy", type=float, help="refit: relative (GeorefOptions.fov_accuracy)")
     parser.add_argument("--gimbal-noise", type=float, default=0.0, help="refit: degrees of white noise added to the log's pitch and roll")
     parser.add_argument("--gimbal-bias", type=float, default=0.0, help="refit: degrees of bias added to the log's pitch and roll")
     args = parser.parse_args()

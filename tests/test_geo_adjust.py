@@ -192,3 +192,159 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     nadirs = np.array([project(flat @ P, nadir_pixel(SIZE, FOCAL, p, r)[None])[0] for P, p, r in zip(placements, pitch, roll)])
     similarity = fit_similarity(nadirs, gps, min_sigma=1.0).matrix @ flat
     assert ground_errors(similarity, placements, truth).max() > 2 * err.max()
+
+
+# --- the height x field of view scale (geo/prior.py), weighed against the GPS --------------
+
+
+def test_height_scale_averages_the_noise_not_the_offset_and_screens_a_misread_height():
+    """Each keyframe's height over the focal length against how many mosaic pixels its pixel
+    covers: the per-sample noise averages out, the flight's offset stays (and is in sigma)."""
+    from mosaic_cli.geo.prior import height_scale
+
+    rng = np.random.default_rng(7)
+    n, metres_per_mosaic_pixel = 120, 0.025
+    true_heights = HEIGHT * (1 + 0.03 * np.sin(np.linspace(0, 6, n)))  # the drone climbs and sinks
+    per_pixel = true_heights / FOCAL / metres_per_mosaic_pixel  # what the images say of each keyframe
+    offset = 0.4
+    logged = true_heights + offset + rng.normal(0, 0.3, n)
+    logged[17] = 3.0  # one misread sample
+    logged[40] = np.nan  # one without a height
+    hs = height_scale(logged, FOCAL, per_pixel, height_accuracy=0.5, fov_accuracy=0.01)
+    assert hs.used == n - 2 and np.isnan(hs.per_keyframe[[17, 40]]).all()
+    # the offset shifts the scale by offset / height; the noise of 0.3 m leaves 0.3 / 32 / sqrt(n)
+    expected = metres_per_mosaic_pixel * np.exp(np.mean(np.log((true_heights + offset) / true_heights)[np.isfinite(hs.per_keyframe)]))
+    assert hs.mosaic_scale == pytest.approx(expected, rel=3 * 0.3 / HEIGHT / math.sqrt(n))
+    assert hs.sigma == pytest.approx(math.hypot(0.5 / HEIGHT, 0.01), rel=0.02)
+    np.testing.assert_allclose(hs.per_keyframe[0], logged[0] / FOCAL)
+    assert height_scale(np.full(n, np.nan), FOCAL, per_pixel, 0.5, 0.01) is None
+
+
+def synthetic_track(centres, times, pitch, roll, gps, heights, hfov):
+    """A Track of the synthetic flight (y of ``gps`` runs south) at the Zurich test origin."""
+    from mosaic_cli.geo.crs import Projection
+    from mosaic_cli.telemetry.track import Track
+
+    projection = Projection.utm_for(47.3977, 8.5456)
+    origin = projection.to_map([47.3977], [8.5456])[0]
+    lonlat = projection.to_wgs84(origin[0] + gps[:, 0], origin[1] - gps[:, 1])
+    n = len(times)
+    headings = np.where((np.arange(n) // 15) % 2 == 0, 90.0, -90.0)
+    track = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), heights, headings, pitch, roll, np.full(n, hfov))
+    return track, np.array([[1.0, 0, origin[0]], [0, -1.0, origin[1]], [0, 0, 1.0]])
+
+
+def gps_scale_error(centres, gps):
+    """(scale of the GPS track / the true one's) - 1: what the GPS alone says of scale."""
+    zt, zg = centres[:, 0] + 1j * centres[:, 1], gps[:, 0] + 1j * gps[:, 1]
+    zt, zg = zt - zt.mean(), zg - zg.mean()
+    return float(abs(np.vdot(zt, zg) / np.vdot(zt, zt)) - 1.0)
+
+
+def map_scale_error(g, placements, truth, to_ground):
+    """(scale of the map / the truth's) - 1, over every keyframe's corners and centre."""
+    pts = np.vstack([frame_corners(*SIZE), [[(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2]]])
+    got = np.concatenate([project(g.frame_to_ground(k, P), pts) for k, P in enumerate(placements)])
+    true = np.concatenate([project(to_ground @ T, pts) for T in truth])
+    zg, zt = got[:, 0] + 1j * got[:, 1], true[:, 0] + 1j * true[:, 1]
+    zg, zt = zg - zg.mean(), zt - zt.mean()
+    return float(1.0 / abs(np.vdot(zg, zt) / np.vdot(zg, zg)) - 1.0)
+
+
+@pytest.mark.parametrize("gimbal", [True, False])
+def test_georeference_weighs_the_height_scale_against_the_gps_by_their_errors(gimbal):
+    """A GPS track 1% too large (a flight whose GPS errors happen to stretch it) and exact heights:
+    the map follows the heights when they are stated to be exact, the GPS when they are stated
+    to be poor, and lies between by their weights; in the adjustment and in the similarity alike."""
+    from mosaic_cli.geo.camera import hfov_degrees
+    from mosaic_cli.geo.georef import GeorefOptions, georeference
+
+    centres, pitch, roll, truth, _, _, times, rng = flight(3)
+    ref = 30
+    placements = [np.linalg.inv(truth[ref]) @ T for T in truth]
+    stretched = centres.mean(0) + 1.01 * (centres - centres.mean(0)) + rng.normal(0, 0.05, centres.shape)
+    track, to_ground = synthetic_track(centres, times, pitch, roll, stretched, np.full(len(times), HEIGHT), hfov_degrees(SIZE[0], FOCAL))
+    indices = [int(round(t * 10.0)) for t in times]
+
+    def scale_error(height_accuracy):
+        # (1% apart, exact heights and a GPS of 0.2% are many sigmas apart: the check is off here; see the next test)
+        options = GeorefOptions(height_accuracy=height_accuracy, fov_accuracy=0.0, attitude_accuracy=1.0 if gimbal else None,
+                                max_scale_disagreement=1e9)
+        g = georeference(placements, ref, indices, SIZE, 10.0, track, options)
+        return map_scale_error(g, placements, truth, to_ground)
+
+    exact, half, poor = scale_error(0.005), scale_error(0.06), scale_error(20.0)
+    # the heights: exact; the adjustment lets the GPS pull a little of the mosaic's aspect (its non-similar
+    # part, held by the gimbal to 1 degree per keyframe), which shows in the along-track scale
+    assert abs(exact) < 0.002, exact
+    assert poor == pytest.approx(0.01, abs=0.001), poor  # the GPS's 1%
+    assert exact < half < poor and 0.002 < half < 0.008, half  # between, by their weights
+
+
+def test_a_wrong_field_of_view_is_said_and_the_gps_scale_used():
+    """--hfov 15% off on a long flight: the height x field of view scale disagrees with the GPS
+    track's by many sigmas: one warning, and the map at the GPS's scale, not dragged by it."""
+    from mosaic_cli.geo.camera import hfov_degrees
+    from mosaic_cli.geo.georef import GeorefOptions, georeference
+
+    centres, pitch, roll, truth, _, _, times, rng = flight(5)
+    ref = 30
+    placements = [np.linalg.inv(truth[ref]) @ T for T in truth]
+    gps = noisy_gps(centres, times, rng)
+    hfov = hfov_degrees(SIZE[0], FOCAL)
+    track, to_ground = synthetic_track(centres, times, pitch, roll, gps, np.full(len(times), HEIGHT), hfov)
+    indices = [int(round(t * 10.0)) for t in times]
+    right = georeference(placements, ref, indices, SIZE, 10.0, track, GeorefOptions())
+    assert not right.warnings and right.prior.sigma is not None
+    wide = 2 * math.degrees(math.atan(1.15 * math.tan(math.radians(hfov) / 2)))  # 15% more ground per pixel
+    wrong = georeference(placements, ref, indices, SIZE, 10.0, track, GeorefOptions(hfov=wide))
+    assert len(wrong.warnings) == 1 and "check --hfov" in wrong.warnings[0], wrong.warnings
+    assert wrong.prior.sigma is None
+    own = gps_scale_error(centres, gps)
+    # the GPS's own scale (the wrong field of view still undoes the gimbal's tilts a little wrongly)
+    assert map_scale_error(wrong, placements, truth, to_ground) == pytest.approx(own, abs=0.005)
+    # the same field of view trusted at its stated accuracy would have pulled the map percents larger
+    trusted = georeference(placements, ref, indices, SIZE, 10.0, track, GeorefOptions(hfov=wide, max_scale_disagreement=1e9))
+    assert map_scale_error(trusted, placements, truth, to_ground) > own + 0.015
+
+
+def test_without_height_or_field_of_view_the_gps_alone_places_the_map():
+    """A log without heights, or without a field of view (and no --hfov): no scale prior, the
+    map as the GPS and the images make it, as before the prior existed."""
+    from mosaic_cli.geo.camera import hfov_degrees
+    from mosaic_cli.geo.georef import GeorefOptions, georeference
+
+    centres, pitch, roll, truth, _, _, times, rng = flight(6)
+    ref = 30
+    placements = [np.linalg.inv(truth[ref]) @ T for T in truth]
+    gps = noisy_gps(centres, times, rng)
+    n = len(times)
+    indices = [int(round(t * 10.0)) for t in times]
+    own = gps_scale_error(centres, gps)
+    for heights, hfov in ((np.full(n, np.nan), hfov_degrees(SIZE[0], FOCAL)), (np.full(n, HEIGHT), np.nan)):
+        track, to_ground = synthetic_track(centres, times, pitch, roll, gps, heights, hfov)
+        g = georeference(placements, ref, indices, SIZE, 10.0, track, GeorefOptions())
+        assert g.prior is None and not g.warnings
+        # the GPS's own scale; without a field of view the reference's tilt is not undone either (0.5% here)
+        assert map_scale_error(g, placements, truth, to_ground) == pytest.approx(own, abs=0.002 if np.isfinite(hfov) else 0.008)
+
+
+@pytest.mark.parametrize("spacing", [0.1, 1.0, 2.1, 6.0])
+def test_fix_weights_give_what_correlated_fixes_tell_of_a_mean_and_a_trend(spacing):
+    """Against generalised least squares with the exact covariance of exponentially correlated
+    errors (rho^|i - j|): the information of n fixes about their mean and about a slope (a
+    scale) is what the weights add up to (over a flight of 100 correlation times, where a slope is
+    told by the positions, not by the errors' own changes)."""
+    from mosaic_cli.geo.fit import fix_weights
+
+    tau = 2.0
+    n = int(round(100 * tau / spacing))
+    times = np.arange(n) * spacing
+    w = fix_weights(times, np.ones(n, bool), tau)
+    cov = np.exp(-np.abs(times[:, None] - times[None, :]) / tau)
+    inv = np.linalg.inv(cov)
+    ones = np.ones(n)
+    x = times - times.mean()
+    assert w.sum() == pytest.approx(ones @ inv @ ones, rel=0.03)
+    assert (w * (x - (w * x).sum() / w.sum()) ** 2).sum() == pytest.approx(x @ inv @ x, rel=0.05)
+    assert fix_weights(times, np.arange(n) % 2 == 0, tau)[1] == 0.0  # a fix not in use is worth nothing

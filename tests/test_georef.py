@@ -82,6 +82,7 @@ def flights(tmp_path_factory):
         video = d / f"{name}.mp4"
         mosaic("simulate", "-o", video, "-p", "survey", "-n", "150", "--size", "320x180", "--preset", "ultrafast", "-q",
                "--seed", "2", "--telemetry", "srt", "--gps-noise", noise, "--gps-dropouts", "0.02" if name == "noisy" else "0",
+               "--baro-bias", "0.5" if name == "noisy" else "0",
                "--gsd", "0.05")
         out[name] = video
     return out
@@ -267,3 +268,20 @@ def test_drift_shifts_remove_slow_bending_but_not_follow_gps_noise():
     assert np.median(np.linalg.norm(still, axis=1)) < 1.0
     # consecutive keyframes (6 m apart) move together to decimetres: no GPS jitter in the mosaic
     assert np.abs(np.diff(shifts, axis=0)).max() < 0.6
+
+
+def test_georeferencing_warnings_are_said_even_when_quiet():
+    """What the georeferencing warns of (a height x field of view scale far from the GPS's)
+    becomes one ``mosaic: warning:`` line per warning, named by panorama when there are several."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from mosaic_cli.commands.stitch import _notices
+
+    said = "the height and field of view (60.0 deg) make the map +15.6% the size the GPS track does"
+    first = SimpleNamespace(path=Path("map.tif"), georef=SimpleNamespace(warnings=[said]), transforms=[(0, None)])
+    result = SimpleNamespace(panoramas=[first], georef=first.georef, dropped=[], photos=False)
+    assert _notices(Path("v.mp4"), result) == [said]
+    second = SimpleNamespace(path=Path("map-2.tif"), georef=SimpleNamespace(warnings=[]), transforms=[(90, None)])
+    result = SimpleNamespace(panoramas=[first, second], georef=first.georef, dropped=[], photos=False)
+    assert f"map.tif: {said}" in _notices(Path("v.mp4"), result)

@@ -298,3 +298,27 @@ def test_geotiff_map_geotransform_follows_the_crop(tmp_path):
 
     cv2.imwrite(str(plain), img)
     assert MapGeo.from_geotiff(plain) is None  # no georeference: --origin and --gsd apply
+
+
+def test_simulated_barometric_height_has_one_offset_per_flight(flight):
+    """The log's height: the camera's true height above the ground (from the exact pose) plus
+    one offset for the whole flight (0.5 m RMS over flights) and white noise; the horizontal
+    GPS error of a seed is the same whatever the barometer's error."""
+    from mosaic_cli.simulate.telemetry import height_offset
+
+    gt = load_ground_truth(flight)
+    geo = MapGeo.from_origin(47.3977, 8.5456, 0.05, gt.map_size)
+    true_height = camera_poses(gt).z * geo.gsd  # one log sample per frame
+    offsets = []
+    for seed in range(40):
+        exact = simulate_log(gt, geo, GpsErrors(height_rms=0.0, height_bias=0.0, seed=seed))
+        np.testing.assert_allclose(exact.height, true_height, atol=1e-9)
+        log = simulate_log(gt, geo, GpsErrors(height_rms=0.0, height_bias=0.5, seed=seed))
+        error = log.height - true_height
+        assert np.ptp(error) < 1e-9  # one offset, the same for every sample
+        assert error[0] == pytest.approx(height_offset(GpsErrors(height_bias=0.5, seed=seed)))
+        offsets.append(error[0])
+        np.testing.assert_array_equal(np.nan_to_num(log.lat), np.nan_to_num(exact.lat))
+    assert np.sqrt(np.mean(np.square(offsets))) == pytest.approx(0.5, rel=0.3)
+    noisy = simulate_log(gt, geo, GpsErrors(height_rms=0.3, height_bias=0.0, seed=3))
+    assert np.std(noisy.height - true_height) == pytest.approx(0.3, rel=0.2)

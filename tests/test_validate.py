@@ -127,6 +127,7 @@ BAD = [
     (TelemetryOptions, {"gsd": 0.0}, BadInput, "--gsd"),
     (GpsErrors, {"rms": -1.0}, BadInput, "--gps-noise"),
     (GpsErrors, {"dropouts": 1.0}, BadInput, "--gps-dropouts"),
+    (GpsErrors, {"height_bias": -0.5}, BadInput, "--baro-bias"),
     (BenchOptions, {"estimators": [" "]}, BadInput, "--estimators"),
     (BenchOptions, {"estimators": ["orb", "orb"]}, BadInput, "--estimators"),
     (BenchOptions, {"flights": Path("f"), "video": Path("v.mp4")}, BadInput, "--flights"),
@@ -152,6 +153,9 @@ BAD = [
     (GeorefOptions, {"hfov": 200.0}, BadInput, "--hfov"),
     (GeorefOptions, {"offset": float("nan")}, BadInput, "--telemetry-offset"),
     (GeorefOptions, {"footprints": Path("footprints.txt")}, BadInput, "--footprints"),
+    (GeorefOptions, {"height_accuracy": -1.0}, BadInput, "accuracies"),
+    (GeorefOptions, {"fov_accuracy": 2.0}, BadInput, "accuracies"),
+    (GeorefOptions, {"compass_accuracy": 0.0}, BadInput, "accuracies"),
     # Knobs no flag sets: a bad value is a bug.
     (OrbConfig, {"method": "lmeds"}, ValueError, "method"),
     (OverlayOptions, {"samples": 2}, ValueError, "sample frames"),

@@ -31,6 +31,7 @@ def simulate(
     gsd: Annotated[float, typer.Option("--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry).")] = 0.05,
     gps_noise: Annotated[float, typer.Option("--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry.")] = 3.0,
     gps_dropouts: Annotated[float, typer.Option("--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry.")] = 0.02,
+    baro_bias: Annotated[float, typer.Option("--baro-bias", help="RMS of the barometric height's offset over the flight, metres, with --telemetry.")] = 0.5,
     telemetry_rate: Annotated[float, typer.Option("--telemetry-rate", help="Log samples per second; 0: one per frame.")] = 0.0,
 ) -> None:
     """Render a drone flight over a large aerial image with a virtual nadir camera.
@@ -50,7 +51,7 @@ def simulate(
     log = None
     if telemetry is not None:
         log = TelemetryOptions(format=telemetry, origin=origin, gsd=gsd, rate=telemetry_rate,
-                               errors=GpsErrors(rms=gps_noise, dropouts=gps_dropouts, seed=seed))
+                               errors=GpsErrors(rms=gps_noise, dropouts=gps_dropouts, height_bias=baro_bias, seed=seed))
     check_outputs(out, map_image, options)
     if log is not None:  # checked before rendering: a bad option costs nothing
         map_geo = prepare_telemetry(out, map_image, log)

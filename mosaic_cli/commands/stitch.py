@@ -131,6 +131,9 @@ def _notices(video: Path, result) -> list[str]:
         for p in extra:
             if p.georef is None:
                 lines.append(f"{p.path}: the telemetry gives its keyframes no position: a plain panorama, not georeferenced")
+    for p in result.panoramas:
+        if p.georef is not None:
+            lines += [f"{p.path}: {w}" if extra else w for w in p.georef.warnings]
     if result.dropped:
         if result.photos:
             from mosaic_cli.video.reader import _folder_images

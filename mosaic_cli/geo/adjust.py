@@ -13,11 +13,15 @@ reading bends nothing.  ``G`` minimises
 
     sum_k  w_k |G(n_k) - g_k|^2 / s_gps^2           GPS fix g_k of keyframe k's nadir point n_k
   + sum_k  v_k |nonsimilar(G P_k U_k^-1)|^2 / s_att^2   attitude, in the keyframe's own pixels
-  + |(a, b) - (a0, b0)|^2 / s_prior^2                  scale and heading of the altitude and compass
+  + (mean_k log(s_k / (h_k / f)))^2 / s_scale^2      scale: keyframe k's untilted view seen at s_k metres
+                                                      per pixel on the ground, h_k / f by its height
+  + (heading of the reference view - compass)^2 / s_heading^2
 
 with robust weights: Huber on both (``w_k``, ``v_k``), fixes beyond 3.5 robust sigmas out, and
-the GPS weight shared among the fixes of each correlation time (GPS errors are correlated over
-seconds: ten fixes in two seconds are worth about one).  ``level_mosaic`` is the attitude
+each fix weighed by its worth under GPS errors correlated over seconds (``fit.fix_weights``: ten
+fixes in two seconds are worth about one, two fixes a correlation time apart about one and a half).  The scale term is one equation for the
+whole mosaic: the heights' error is mostly one offset for the flight, which averaging over the
+keyframes does not remove, so ``s_scale`` is that offset's and the field of view's (georef.py).  ``level_mosaic`` is the attitude
 term alone: it levels the mosaic before the robust similarity fit that starts the adjustment,
 and says when the gimbal's angles and the images tell no one story.  Pure geometry: no I/O.
 """
@@ -30,12 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic_cli.geo.fit import HUBER, SimilarityPrior
+from mosaic_cli.geo.fit import HUBER, SCATTER, SimilarityPrior, axis_sigma, fix_weights
 from mosaic_cli.geometry import normalize, project
 
 OUTLIER = 3.5  # robust sigmas: a fix this far from the adjusted mosaic is a bad fix
-RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median distance / per-axis sigma of 2-D Gaussian errors
-SCATTER = 1.4826  # robust scatter = this x the median distance (what fit.py reports and checks)
 
 
 @dataclass
@@ -75,7 +77,7 @@ def attitude_sigma(size: tuple[int, int], focal: float, degrees: float) -> float
     return float(np.mean([np.linalg.norm(e) for e in errors]))
 
 
-def _similarity_to(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def similarity_ratios(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """(M,) complex ratios r of the least-squares similarities dst ~ r src + t, for (M, P, 2) point sets."""
     zs = src[..., 0] + 1j * src[..., 1]
     zd = dst[..., 0] + 1j * dst[..., 1]
@@ -86,18 +88,12 @@ def _similarity_to(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 def _nonsimilar(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
     """(M, 2P) what of dst (M, P, 2) no similarity from src explains, in src's units."""
-    r = _similarity_to(src, dst)
+    r = similarity_ratios(src, dst)
     zs = src[..., 0] + 1j * src[..., 1]
     zd = dst[..., 0] + 1j * dst[..., 1]
     left = (zd - zd.mean(1, keepdims=True)) - r[:, None] * (zs - zs.mean(1, keepdims=True))
     left = left / np.abs(r)[:, None]
     return np.concatenate([left.real, left.imag], axis=1)
-
-
-def _shared(times: np.ndarray, used: np.ndarray, correlation: float) -> np.ndarray:
-    """How many of the fixes in use lie within ``correlation`` seconds of each fix."""
-    t = np.sort(times[used])
-    return (np.searchsorted(t, times + correlation, "right") - np.searchsorted(t, times - correlation, "left")).astype(float)
 
 
 def _normaliser(points: np.ndarray) -> np.ndarray:
@@ -162,6 +158,7 @@ def adjust_to_ground(
     attitude: AttitudeViews,
     prior: SimilarityPrior | None = None,
     prior_view: int | None = None,  # the attitude view the prior's scale and heading are of
+    view_scales: np.ndarray | None = None,  # (M,) metres per untilted pixel of each view by its height (NaN: none)
     correlation: float = 2.0,  # seconds over which GPS errors are taken as one
     min_sigma: float = 1.0,
     rounds: int = 10,
@@ -179,10 +176,19 @@ def adjust_to_ground(
     mosaic_corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
     unit_corners = project(to_unit, mosaic_corners.reshape(-1, 2)).reshape(mosaic_corners.shape)
     unit_nadirs = project(to_unit, nadirs)
-    prior_ab = None
-    if prior is not None and prior_view is not None:
-        prior_ab = np.array([prior.scale * math.cos(prior.rotation), prior.scale * math.sin(prior.rotation)])
-        prior_scale = max(prior.sigma * prior.scale, 1e-12)
+    # the prior: the scale by every view of known height (else by the prior view's), the heading by the prior view's
+    scaled = np.zeros(len(attitude), bool)
+    expected = np.full(len(attitude), np.nan)
+    scale_sigma = heading = heading_sigma = None
+    if prior is not None and prior.sigma is not None:
+        if view_scales is not None:
+            expected = np.asarray(view_scales, np.float64)
+        elif prior_view is not None:
+            expected[prior_view] = prior.scale
+        scaled = np.isfinite(expected) & (expected > 0)
+        scale_sigma = max(prior.sigma, 1e-12)
+    if prior is not None and prior.rotation is not None and prior.heading_sigma is not None and prior_view is not None:
+        heading, heading_sigma = prior.rotation, max(prior.heading_sigma, 1e-12)
 
     def matrix(p: np.ndarray) -> np.ndarray:
         return from_unit @ np.append(p, 1.0).reshape(3, 3)
@@ -192,15 +198,21 @@ def adjust_to_ground(
         return _nonsimilar(on_ground, attitude.corners) / attitude.sigma  # (M, 8)
 
     def prior_residual(G: np.ndarray) -> np.ndarray:
-        on_ground = project(G, unit_corners[prior_view])[None]
-        r = _similarity_to(attitude.corners[prior_view][None], on_ground)[0]
-        return (np.array([r.real, r.imag]) - prior_ab) / prior_scale
+        parts = []
+        if scale_sigma is not None and scaled.any():
+            on_ground = project(G, unit_corners[scaled].reshape(-1, 2)).reshape(-1, 4, 2)
+            r = similarity_ratios(attitude.corners[scaled], on_ground)
+            parts.append(float(np.mean(np.log(np.abs(r) / expected[scaled]))) / scale_sigma)
+        if heading is not None and heading_sigma is not None and prior_view is not None:
+            r = similarity_ratios(attitude.corners[prior_view][None], project(G, unit_corners[prior_view])[None])[0]
+            parts.append(math.remainder(float(np.angle(r)) - heading, 2 * math.pi) / heading_sigma)
+        return np.array(parts)
 
     def residuals(p: np.ndarray, gps_w: np.ndarray, att_w: np.ndarray, gps_sigma: float) -> np.ndarray:
         G = matrix(p)
         parts = [((project(G, unit_nadirs) - fixes) * np.sqrt(gps_w)[:, None] / gps_sigma).ravel(),
                  (attitude_residuals(G) * np.sqrt(att_w)[:, None]).ravel()]
-        if prior_ab is not None:
+        if (scale_sigma is not None and scaled.any()) or heading is not None:
             parts.append(prior_residual(G))
         return np.concatenate(parts)
 
@@ -211,12 +223,11 @@ def adjust_to_ground(
         sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
         gps_w = np.where(r <= HUBER * sigma, 1.0, HUBER * sigma / np.maximum(r, 1e-12))
         gps_w[r > OUTLIER * sigma] = 0.0
-        gps_w /= np.maximum(_shared(times, gps_w > 0, correlation), 1.0)
+        gps_w *= fix_weights(times, gps_w > 0, correlation)
         a = np.linalg.norm(attitude_residuals(G), axis=1)  # per keyframe, in attitude sigmas
         att_w = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
         # sigma is the scatter of distances; the per-axis sigma of 2-D Gaussian errors is smaller
-        axis_sigma = sigma / SCATTER / RAYLEIGH_MEDIAN
-        new = least_squares(residuals, p, args=(gps_w, att_w, axis_sigma), method="lm", xtol=1e-12, ftol=1e-12).x
+        new = least_squares(residuals, p, args=(gps_w, att_w, axis_sigma(sigma)), method="lm", xtol=1e-12, ftol=1e-12).x
         done = np.allclose(new, p, rtol=0, atol=1e-9)
         p = new
         if done:
@@ -225,7 +236,7 @@ def adjust_to_ground(
     r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
     sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
     view = prior_view if prior_view is not None else 0
-    ratio = _similarity_to(attitude.corners[view][None], project(G, unit_corners[view])[None])[0]
+    ratio = similarity_ratios(attitude.corners[view][None], project(G, unit_corners[view])[None])[0]
     att = np.linalg.norm(attitude_residuals(G), axis=1) * attitude.sigma
     return GroundFit(normalize(G @ to_unit), r, r <= OUTLIER * sigma, sigma, float(abs(ratio)), float(np.angle(ratio)),
                      float(np.median(att)))

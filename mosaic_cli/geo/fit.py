@@ -4,9 +4,11 @@ x' = a x - b y + tx,  y' = b x + a y + ty  (scale sqrt(a^2 + b^2), rotation atan
 
 Least median of squares over point pairs finds a start that bad fixes cannot pull; iteratively
 reweighted least squares with Huber weights then uses every point in proportion to how well
-it agrees, and the points beyond 3 robust sigmas are reported as outliers.  An optional prior
-on (a, b) (scale from the altitude and field of view, rotation from the compass) keeps the
-fit determined when the track is too short or too straight to fix them itself.
+it agrees, and the points beyond 3.5 robust sigmas are reported as outliers.  An optional
+prior on the scale (from the altitude and field of view) and the rotation (from the compass),
+each with its own uncertainty, enters as two equations weighed against the points by their
+stated errors: it keeps the fit determined when the track is too short or too straight to fix
+them itself, and counts for little where the track is long.
 """
 
 from __future__ import annotations
@@ -19,11 +21,58 @@ import numpy as np
 HUBER = 1.345  # 95% efficiency under Gaussian noise
 
 
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median distance / per-axis sigma of 2-D Gaussian errors
+SCATTER = 1.4826  # robust scatter = this x the median distance
+
+
 @dataclass
 class SimilarityPrior:
     scale: float
-    rotation: float  # radians
-    sigma: float  # relative uncertainty of (a, b), e.g. 0.1 = 10% of the scale
+    rotation: float | None  # radians; None: no heading known
+    sigma: float | None  # relative uncertainty of the scale, e.g. 0.1 = 10%; None: no scale known
+    rotation_sigma: float | None = None  # radians; None: as ``sigma`` (the same relative error of (a, b))
+
+    @property
+    def heading_sigma(self) -> float | None:
+        return self.rotation_sigma if self.rotation_sigma is not None else self.sigma
+
+
+def axis_sigma(scatter: float) -> float:
+    """The per-axis sigma of 2-D Gaussian errors whose robust scatter (1.4826 x the median
+    distance) is ``scatter``."""
+    return scatter / SCATTER / RAYLEIGH_MEDIAN
+
+
+def fix_weights(times: np.ndarray, used: np.ndarray, correlation: float) -> np.ndarray:
+    """What each fix in use is worth, as a share of one independent fix, when GPS errors are
+    exponentially correlated over ``correlation`` seconds (a first-order Gauss-Markov process).
+    Fixes ``dt`` apart are correlated by rho = exp(-dt / correlation); what n of them tell of a
+    mean (or of a slow trend: a scale) is 1 + sum over the gaps of (1 - rho) / (1 + rho), the
+    exact figure for such errors, and each fix gets half of each gap beside it (a missing gap,
+    at the ends, counting 1).  Ten fixes in two seconds are worth about one; fixes far apart,
+    one each.  0 for a fix not in use."""
+    times = np.asarray(times, np.float64)
+    out = np.zeros(len(times))
+    idx = np.nonzero(used)[0]
+    if len(idx) == 0:
+        return out
+    order = idx[np.argsort(times[idx])]
+    rho = np.exp(-np.maximum(np.diff(times[order]), 0.0) / correlation)
+    gap = (1.0 - rho) / (1.0 + rho)
+    out[order] = 0.5 * (np.concatenate([[1.0], gap]) + np.concatenate([gap, [1.0]]))
+    return out
+
+
+def scale_sigma(points: np.ndarray, weights: np.ndarray, sigma: float) -> float:
+    """Relative standard error of a similarity's scale fitted by weighted least squares to
+    ``points`` (ground, (N, 2)) with per-axis error ``sigma`` and ``weights`` (each fix's
+    worth, ``fix_weights``): sigma / sqrt(sum w |p - mean|^2)."""
+    w = np.asarray(weights, np.float64)
+    if w.sum() <= 0:
+        return math.inf
+    centred = points - (w[:, None] * points).sum(0) / w.sum()
+    spread = float((w * (centred**2).sum(1)).sum())
+    return sigma / math.sqrt(spread) if spread > 0 else math.inf
 
 
 @dataclass
@@ -61,17 +110,30 @@ def _residuals(p: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.linalg.norm(src @ M[:2, :2].T + M[:2, 2] - dst, axis=1)
 
 
-def _solve(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, prior: SimilarityPrior | None, prior_weight: float) -> np.ndarray:
+def _solve(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, prior: SimilarityPrior | None, sigma: float,
+           rotation: float) -> np.ndarray:
+    """Weighted least squares of (a, b, tx, ty): the points with per-axis error ``sigma``; the
+    prior's scale as the length of (a, b) along ``rotation`` (the current estimate's direction:
+    at convergence, the scale itself) and its heading as (a, b) across the prior's direction,
+    each in units of its own error."""
     A = _rows(src)
     y = dst.reshape(-1)
-    w = np.repeat(np.sqrt(weights), 2)
+    w = np.repeat(np.sqrt(weights), 2) / sigma
     A, y = A * w[:, None], y * w
-    if prior is not None and prior_weight > 0:
-        a0, b0 = prior.scale * math.cos(prior.rotation), prior.scale * math.sin(prior.rotation)
-        P = np.zeros((2, 4))
-        P[0, 0] = P[1, 1] = prior_weight
-        A = np.vstack([A, P])
-        y = np.concatenate([y, [prior_weight * a0, prior_weight * b0]])
+    if prior is not None:
+        along = np.array([math.cos(rotation), math.sin(rotation), 0.0, 0.0])
+        heading = prior.rotation if prior.rotation is not None else rotation
+        across = np.array([-math.sin(heading), math.cos(heading), 0.0, 0.0])
+        rows, values = [], []
+        if prior.sigma is not None:
+            rows.append(along / max(prior.sigma * prior.scale, 1e-12))
+            values.append(prior.scale / max(prior.sigma * prior.scale, 1e-12))
+        if prior.rotation is not None and prior.heading_sigma is not None:
+            rows.append(across / max(prior.heading_sigma * prior.scale, 1e-12))
+            values.append(0.0)
+        if rows:
+            A = np.vstack([A, rows])
+            y = np.concatenate([y, values])
     return np.linalg.lstsq(A, y, rcond=None)[0]
 
 
@@ -88,9 +150,11 @@ def _pair_similarity(s1: np.ndarray, s2: np.ndarray, d1: np.ndarray, d2: np.ndar
 
 
 def fit_similarity(
-    src: np.ndarray, dst: np.ndarray, prior: SimilarityPrior | None = None, min_sigma: float = 0.05, seed: int = 0
+    src: np.ndarray, dst: np.ndarray, prior: SimilarityPrior | None = None, min_sigma: float = 0.05, seed: int = 0,
+    times: np.ndarray | None = None, correlation: float = 2.0,
 ) -> SimilarityFit:
-    """Robust similarity ``src`` -> ``dst`` ((N, 2) each, N >= 2)."""
+    """Robust similarity ``src`` -> ``dst`` ((N, 2) each, N >= 2).  With ``times`` (seconds) the
+    fixes within ``correlation`` of each other share one fix's weight against the prior."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     n = len(src)
@@ -118,7 +182,7 @@ def fit_similarity(
         if score < best_score:
             best, best_score = p, score
     if best is None:
-        best = _solve(s, d, np.ones(n), prior, 0.0)
+        best = _solve(s, d, np.ones(n), None, 1.0, 0.0)
 
     # 2. IRLS with Huber weights, the prior as two extra equations
     p = best
@@ -128,11 +192,9 @@ def fit_similarity(
         k = HUBER * sigma
         weights = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
         weights[r > 3.5 * sigma] = 0.0  # bad fixes: out, not merely down-weighted
-        prior_weight = 0.0
-        if prior is not None:
-            # weighted so that the prior's error counts like a point's (sigma) in the solve
-            prior_weight = sigma / max(prior.sigma * prior.scale, 1e-12)
-        new = _solve(s, d, weights, prior, prior_weight)
+        if times is not None:
+            weights *= fix_weights(times, weights > 0, correlation)
+        new = _solve(s, d, weights, prior, axis_sigma(sigma), math.atan2(p[1], p[0]))
         if np.allclose(new, p, rtol=1e-10, atol=1e-10):
             p = new
             break

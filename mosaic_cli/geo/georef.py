@@ -6,8 +6,9 @@ position, scale and heading.
              mosaic's plane is the ground's up to a similarity; with the pitch of every
              keyframe, the mosaic levelled by all of them (adjust.level_mosaic)
 3. fit       the keyframes' nadir points in the mosaic onto their GPS positions in the site's
-             UTM zone: a robust similarity (see fit.py), with the altitude x field of view
-             scale and the compass heading as a weak prior
+             UTM zone: a robust similarity (see fit.py), with the height x field of view scale
+             (prior.py) and the compass heading as a prior, each weighed by its stated error;
+             a height x field of view scale far from the GPS's own is said and not used
 4. check     the fit against the images: too few agreeing fixes, or GPS scatter no drone has,
              mean the telemetry belongs to another flight or clock
 5. adjust    with the gimbal's pitch of the keyframes, one adjustment (adjust.py): the tilt and
@@ -28,11 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic
+from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic, similarity_ratios
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
 from mosaic_cli.geo.drift import DriftOptions, drift_shifts
-from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, fit_similarity, refine_homography
+from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, axis_sigma, fit_similarity, fix_weights, refine_homography, scale_sigma
+from mosaic_cli.geo.prior import height_scale, sigmas_apart
 from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
 from mosaic_cli.telemetry.track import Track
@@ -57,6 +59,14 @@ class GeorefOptions:
     # With the gimbal's pitch and roll the tilt comes from them instead (adjust.py): how far
     # the gimbal's reported attitude may be off, degrees (None: not used, the tilt from the GPS)
     attitude_accuracy: float | None = 1.0
+    # What the height x field of view scale and the compass heading are worth against the GPS
+    # (prior.py): the height's offset over a flight, metres (a barometer zeroed at take-off);
+    # the field of view's relative error (a log's focal length is nominal); the compass, degrees
+    height_accuracy: float = 0.5
+    fov_accuracy: float = 0.01
+    compass_accuracy: float = 3.0
+    # a height x field of view scale this many combined sigmas from the GPS's own is not used (said)
+    max_scale_disagreement: float = 3.5
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
 
     def __post_init__(self) -> None:
@@ -65,6 +75,11 @@ class GeorefOptions:
     def validate(self) -> None:
         if self.attitude_accuracy is not None and not 0 < self.attitude_accuracy <= 90:
             raise BadInput(f"the gimbal's attitude accuracy must be between 0 and 90 degrees, got {self.attitude_accuracy}")
+        if not (0 <= self.height_accuracy <= 1000 and 0 <= self.fov_accuracy <= 1 and 0 < self.compass_accuracy <= 180
+                and self.max_scale_disagreement > 0):
+            raise BadInput(f"the telemetry's accuracies must be a height of 0-1000 m, a field of view of 0-100%, a compass of "
+                           f"0-180 degrees and a disagreement above 0 sigmas, got {self.height_accuracy}, {self.fov_accuracy}, "
+                           f"{self.compass_accuracy}, {self.max_scale_disagreement}")
         if self.hfov is not None and not 1.0 <= self.hfov <= 170.0:
             raise BadInput(f"--hfov must be between 1 and 170 degrees, got {self.hfov}")
         if not math.isfinite(self.offset):
@@ -89,6 +104,7 @@ class Georeference:
     track: Track
     prior: SimilarityPrior | None
     notes: list[str] = field(default_factory=list)  # what the summary should say besides
+    warnings: list[str] = field(default_factory=list)  # said even with -q (mosaic: warning: ...)
 
     @property
     def crs(self) -> str:
@@ -166,6 +182,10 @@ def georeference(
             attitude, flatten, nadirs = None, np.eye(3), [centre] * len(placements)
             notes.append(f"the gimbal's angles disagree with the images ({level.residual:.1f} x its accuracy): not used")
     mosaic = np.array([project(flatten @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    heights = None
+    if f is not None:
+        heights = height_scale(aligned.height, f, _untilted_scales(placements, flatten, frame_size, f, aligned, attitude is not None),
+                               options.height_accuracy, options.fov_accuracy)
 
     # 3. the fit, in the site's UTM zone, as (east, -north) so that image y (down) stays y
     lat0 = float(np.nanmedian(aligned.lat[fixes]))
@@ -173,18 +193,19 @@ def georeference(
     projection = Projection.utm_for(lat0, lon0)
     ground = projection.to_map(aligned.lat[fixes], aligned.lon[fixes]) * np.array([1.0, -1.0])
     prior = None
-    if f is not None and np.isfinite(aligned.height[ref]) and aligned.height[ref] > 0 and np.isfinite(aligned.yaw[ref]):
-        # the untilted reference view sees height / f metres per pixel; its top edge points at yaw
-        prior = SimilarityPrior(float(aligned.height[ref]) / f, math.radians(float(aligned.yaw[ref])), 0.05)
+    if heights is not None:
+        # the keyframes' heights over the focal length: metres per pixel (prior.py); the reference's top edge points at yaw
+        yaw = math.radians(float(aligned.yaw[ref])) if np.isfinite(aligned.yaw[ref]) else None
+        prior = SimilarityPrior(heights.mosaic_scale, yaw, heights.sigma, math.radians(options.compass_accuracy))
     extent = float(np.linalg.norm(np.ptp(ground, axis=0)))
-    if prior is None and extent < 30.0:
+    if (prior is None or prior.rotation is None) and extent < 30.0:
         raise BadInput(
             f"{track.source}: the GPS track spans only {extent:.0f} m, too little to fix scale and heading against GPS "
             f"noise; the telemetry needs a height, a heading and a field of view (--hfov) to place such a short flight"
         )
     # GPS is never better than about a metre: a floor under the robust scale keeps a short,
     # exact track from calling every fix but the best few an outlier
-    fit = fit_similarity(mosaic[fixes], ground, prior, min_sigma=1.0)
+    fit = fit_similarity(mosaic[fixes], ground, prior, min_sigma=1.0, times=times[fixes], correlation=options.drift.correlation)
 
     # 4. does the telemetry belong to these images?
     agreeing = float(fit.inliers.mean())
@@ -199,6 +220,9 @@ def georeference(
             f"{track.source}: the telemetry disagrees with the images: the GPS track implies {fit.scale * 100:.1f} cm per pixel, "
             f"the height and field of view {prior.scale * 100:.1f} cm; check --hfov and the log"
         )
+    warnings: list[str] = []
+    if prior is not None and prior.sigma is not None:
+        fit, prior = _check_height_scale(fit, prior, prior.sigma, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
@@ -206,7 +230,8 @@ def georeference(
         # the tilt the images leave open from every keyframe's gimbal, the rest from the GPS (adjust.py)
         views, known = attitude
         prior_view = int(np.searchsorted(known, ref)) if ref in known else None
-        adjusted = adjust_to_ground(mosaic[fixes], ground, times[fixes], fit.matrix, views, prior, prior_view,
+        view_scales = heights.per_keyframe[known] if heights is not None and prior is not None and prior.sigma is not None else None
+        adjusted = adjust_to_ground(mosaic[fixes], ground, times[fixes], fit.matrix, views, prior, prior_view, view_scales,
                                     correlation=options.drift.correlation)
         to_ground, model = adjusted.matrix, "homography levelled by the gimbal"
         inliers, sigma = adjusted.inliers, adjusted.sigma
@@ -239,7 +264,44 @@ def georeference(
     fit.sigma = sigma
     fit.inliers = inliers
     return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
-                        hfov, track, prior, notes)
+                        hfov, track, prior, notes, warnings)
+
+
+def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, prior_sigma: float, mosaic: np.ndarray, ground: np.ndarray,
+                        times: np.ndarray, options: GeorefOptions, hfov: float | None,
+                        warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
+    """The fit and the prior to go on with: as they are when the height x field of view scale
+    agrees with the GPS track's own within ``options.max_scale_disagreement`` combined sigmas;
+    else (a wrong --hfov, a nominal focal length of another video mode, ground far below the
+    take-off point) the GPS's scale, and a warning.  The GPS positions are what was measured
+    on this flight: where the track is long enough to tell them apart, they are trusted."""
+    from dataclasses import replace
+
+    gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=1.0, times=times, correlation=options.drift.correlation)
+    inliers = gps.inliers
+    weights = fix_weights(times, inliers, options.drift.correlation)
+    gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
+    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior_sigma)
+    if apart <= options.max_scale_disagreement:
+        return fit, prior
+    warnings.append(
+        f"the height and field of view ({hfov or math.nan:.1f} deg) make the map {100 * (prior.scale / gps.scale - 1):+.1f}% the size the "
+        f"GPS track does ({apart:.1f} sigmas apart): the GPS's scale is used; check --hfov and the log's height"
+    )
+    return gps, replace(prior, sigma=None)
+
+
+def _untilted_scales(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float,
+                     aligned: AlignedTelemetry, tilted: bool) -> np.ndarray:
+    """(N,) mosaic pixels per pixel of each keyframe's view undone of its gimbal tilt (when
+    ``tilted`` and its pitch is known; else its frame as it is), in the flattened mosaic."""
+    corners = frame_corners(*frame_size)
+    out = np.full(len(placements), np.nan)
+    for k, P in enumerate(placements):
+        U = untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) if tilted and np.isfinite(aligned.pitch[k]) else np.eye(3)
+        seen = project(U, corners)
+        out[k] = abs(similarity_ratios(seen[None], project(normalize(flatten @ P @ np.linalg.inv(U)), seen)[None])[0])
+    return out
 
 
 def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float | None,

@@ -4,7 +4,10 @@ The map gets a geotransform (a GeoTIFF's own, or ``--origin LAT,LON --gsd M``), 
 exact pose is read back from each frame's ``map_to_frame`` (see trajectory.py: a pinhole of
 focal length = frame width above the map), and the log gets realistic GPS errors: a
 first-order Gauss-Markov (exponentially correlated) error of ``rms`` metres horizontally,
-single-sample bad fixes 20-60 m off, and dropouts (samples without a fix).  The truth goes to
+single-sample bad fixes 20-60 m off, and dropouts (samples without a fix); its barometric
+height is off by one offset for the whole flight (``height_bias`` RMS: zeroed at take-off, a
+barometer drifts with the weather, temperature and airspeed by about half a metre) plus
+white noise (``height_rms``).  The truth goes to
 ``<stem>.geo.json`` beside the video, so every placement can be scored in metres.
 """
 
@@ -133,7 +136,8 @@ class GpsErrors:
     correlation: float = 2.0  # seconds (time constant of the Gauss-Markov error)
     dropouts: float = 0.02  # fraction of samples without a fix
     bad_fixes: float = 0.005  # fraction of samples 20-60 m off
-    height_rms: float = 0.3  # barometric height error, metres
+    height_rms: float = 0.3  # barometric height noise, metres, independent per sample
+    height_bias: float = 0.5  # RMS of the barometric height's offset over a whole flight, metres
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -146,6 +150,8 @@ class GpsErrors:
             raise BadInput("--gps-dropouts and bad-fix fractions must be in [0, 1)")
         if self.correlation <= 0:
             raise BadInput(f"GPS error correlation time must be positive, got {self.correlation}")
+        if not 0 <= self.height_rms <= 100 or not 0 <= self.height_bias <= 100:
+            raise BadInput(f"--baro-bias and the height noise must be between 0 and 100 metres, got {self.height_bias}, {self.height_rms}")
 
 
 @dataclass
@@ -172,6 +178,12 @@ def gauss_markov(rng: np.random.Generator, times: np.ndarray, sigma: float, tau:
         phi = math.exp(-(times[k] - times[k - 1]) / tau)
         out[k] = phi * out[k - 1] + math.sqrt(1 - phi * phi) * sigma * rng.standard_normal()
     return out
+
+
+def height_offset(errors: GpsErrors) -> float:
+    """The barometric height's offset over the whole flight, metres (its own random stream, so
+    that the horizontal GPS errors of a seed do not depend on it)."""
+    return float(errors.height_bias * np.random.default_rng([errors.seed, 4127]).standard_normal())
 
 
 def simulate_log(gt: GroundTruth, geo: MapGeo, errors: GpsErrors, rate: float | None = None) -> SimulatedLog:
@@ -206,7 +218,7 @@ def simulate_log(gt: GroundTruth, geo: MapGeo, errors: GpsErrors, rate: float | 
     lat = np.where(drop, np.nan, lonlat[:, 1])
     lon = np.where(drop, np.nan, lonlat[:, 0])
     height = at(poses.z) * geo.gsd
-    noisy_height = height + errors.height_rms * rng.standard_normal(len(times))
+    noisy_height = height + height_offset(errors) + errors.height_rms * rng.standard_normal(len(times))
     return SimulatedLog(
         times, lat, lon, noisy_height + GROUND_ELEVATION + 2.0 * rng.standard_normal(len(times)), noisy_height,
         yaw, at(poses.pitch), at(poses.roll), poses.hfov, east, north,
@@ -316,7 +328,8 @@ def write_telemetry(video: str | Path, gt: GroundTruth, geo: MapGeo, fmt: str, e
         "kind": "mosaic-geo-truth", "version": 1, **geo.to_json(), "hfov": poses.hfov,
         "telemetry": str(path.name), "format": fmt,
         "gps_errors": {"rms": errors.rms, "correlation": errors.correlation, "dropouts": errors.dropouts,
-                       "bad_fixes": errors.bad_fixes, "seed": errors.seed},
+                       "bad_fixes": errors.bad_fixes, "seed": errors.seed, "height_rms": errors.height_rms,
+                       "height_bias": errors.height_bias, "height_offset": height_offset(errors)},
     })
     return path
 
