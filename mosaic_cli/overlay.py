@@ -50,6 +50,8 @@ from mosaic_cli.video.reader import frame_at, frames_at, scaled_size
 
 # Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
 LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
+PALETTE_BIN = 8  # gray levels per channel bin of the overlay's colours
+PALETTE_MIN_PIXELS = 4  # steady pixels (with the bins beside theirs) that make a colour the overlay's
 
 
 @dataclass
@@ -396,10 +398,6 @@ def _pixel_evidence(stack: np.ndarray, ground: np.ndarray, o: OverlayOptions) ->
     return evidence | (hits >= o.min_hits), steady
 
 
-PALETTE_BIN = 8  # gray levels per channel bin of the overlay's colours
-PALETTE_MIN_PIXELS = 4  # steady pixels (with the bins beside theirs) that make a colour the overlay's
-
-
 def _channel_max(image: np.ndarray) -> np.ndarray:
     """The largest channel value of each pixel of an (h, w, c) uint8 image."""
     if image.ndim == 2 or image.shape[2] == 1:
@@ -408,7 +406,6 @@ def _channel_max(image: np.ndarray) -> np.ndarray:
     for c in range(1, image.shape[2]):
         np.maximum(out, image[..., c], out=out)
     return out
-
 
 
 def _colour_tensor(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
