@@ -395,7 +395,8 @@ class Decoder:
         got = 0
         while True:
             frame = np.empty(self.shape, np.uint8)
-            if read_into(pipe, memoryview(frame.reshape(-1))) < nbytes:
+            got = read_into(pipe, memoryview(frame.reshape(-1)))
+            if got < nbytes:
                 break
             yield frame
         status = self._proc.wait()
