@@ -218,7 +218,7 @@ def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
     assert_one_line_error(code, err, "photo folders")
 
 
-@pytest.mark.parametrize("case", ["offset", "no-fix", "other-flight", "footprints-without"])
+@pytest.mark.parametrize("case", ["offset", "no-fix", "other-flight", "footprints-without", "level-ground-without"])
 def test_unusable_telemetry_is_one_clear_line(flights, tmp_path, case):
     video = flights["exact"]
     srt = video.with_suffix(".SRT")
@@ -240,9 +240,12 @@ def test_unusable_telemetry_is_one_clear_line(flights, tmp_path, case):
             f"{t / 10:.2f},{47.3977 + 0.00005 * t:.7f},{8.5456 + 0.00002 * t:.7f},400,30,0,53.13\n" for t in range(60)))
         args += ["--telemetry", tmp_path / "other.csv"]
         expect = "disagrees with the images"
-    else:
+    elif case == "footprints-without":
         args += ["--telemetry", "none", "--footprints", tmp_path / "f.geojson"]
         expect = "--footprints needs telemetry"
+    else:
+        args += ["--telemetry", "none", "--level-ground"]
+        expect = "--level-ground needs telemetry"
     run = mosaic(*args, check=False)
     assert run.returncode == 2, run.stderr
     lines = run.stderr.strip().splitlines()
@@ -251,7 +254,7 @@ def test_unusable_telemetry_is_one_clear_line(flights, tmp_path, case):
 
 
 def test_drift_shifts_remove_slow_bending_but_not_follow_gps_noise():
-    from mosaic_cli.geo.drift import drift_shifts
+    from mosaic_cli.geo.drift import drift_correction
     from mosaic_cli.simulate.telemetry import gauss_markov
 
     rng = np.random.default_rng(7)
@@ -260,14 +263,42 @@ def test_drift_shifts_remove_slow_bending_but_not_follow_gps_noise():
     bend = np.stack([np.zeros_like(times), 15.0 * np.sin(np.pi * times / 240)], 1)  # the images bent it 15 m
     gps = truth + np.stack([gauss_markov(rng, times, 2.1, 2.0), gauss_markov(rng, times, 2.1, 2.0)], 1)
     weights = np.ones(len(times))
-    shifts = drift_shifts(truth + bend, gps, weights, times, 30.0, 2.1)
+    shifts = drift_correction(truth + bend, gps, weights, times, 30.0, 2.1).shifts
     after = np.linalg.norm(truth + bend + shifts - truth, axis=1)
     assert np.median(after) < 1.0 and after.max() < 4.0  # from 15 m
     # an unbent mosaic stays put: the shifts stay well under the GPS noise
-    still = drift_shifts(truth, gps, weights, times, 30.0, 2.1)
+    still = drift_correction(truth, gps, weights, times, 30.0, 2.1).shifts
     assert np.median(np.linalg.norm(still, axis=1)) < 1.0
     # consecutive keyframes (6 m apart) move together to decimetres: no GPS jitter in the mosaic
     assert np.abs(np.diff(shifts, axis=0)).max() < 0.6
+
+
+def test_drift_correction_undoes_the_images_scale_drift_by_the_heights():
+    """Chained registrations drift in scale: here the mosaic's keyframes shrink to 4% small
+    toward the middle of a 720 m line, their spacing with them.  The heights (0.3 m noise per
+    keyframe at 32 m, and one unknown offset) give each keyframe's scale back to within about
+    a percent; the GPS (3 m noise) cannot see a keyframe's size, and without heights nothing
+    is scaled."""
+    from mosaic_cli.geo.drift import drift_correction
+    from mosaic_cli.simulate.telemetry import gauss_markov
+
+    rng = np.random.default_rng(11)
+    times = np.arange(0, 240, 2.0)
+    truth = np.stack([3.0 * times, np.zeros_like(times)], 1)
+    shrink = 0.04 * np.sin(np.pi * times / 240)  # the mosaic's scale error: log(mosaic / true), 0 at both ends
+    step = np.diff(truth[:, 0]) * np.exp(-0.5 * (shrink[1:] + shrink[:-1]))
+    mosaic = np.stack([np.concatenate([[0.0], np.cumsum(step)]), np.zeros_like(times)], 1)
+    mosaic[:, 0] += truth[:, 0].mean() - mosaic[:, 0].mean()
+    gps = truth + np.stack([gauss_markov(rng, times, 3.0, 2.0), gauss_markov(rng, times, 3.0, 2.0)], 1)
+    weights = np.ones(len(times))
+    heights = shrink + 0.3 / 32.0 * rng.standard_normal(len(times)) + 0.02  # log(height's scale / mosaic's), offset unknown
+    fixed = drift_correction(mosaic, gps, weights, times, 30.0, 3.0, height_scales=heights)
+    left = np.log(fixed.scales) - shrink  # what scale error is left, up to one figure for the flight
+    assert np.ptp(left) < 0.5 * np.ptp(shrink) and np.abs(left - np.median(left)).max() < 0.012
+    # the spacing stretches with the scales, held by the GPS: the 9 m the chain was off are gone
+    assert np.abs(mosaic - truth).max() > 9.0 and np.abs(mosaic + fixed.shifts - truth).max() < 2.5
+    # without heights nothing is scaled
+    assert np.all(drift_correction(mosaic, gps, weights, times, 30.0, 3.0).scales == 1.0)
 
 
 def test_georeferencing_warnings_are_said_even_when_quiet():

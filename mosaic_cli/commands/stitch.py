@@ -62,6 +62,7 @@ def stitch(
     hfov: Annotated[float | None, typer.Option("--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV).")] = None,
     telemetry_offset: Annotated[float, typer.Option("--telemetry-offset", help="Seconds added to the telemetry's times to match the video's.")] = 0.0,
     footprints: Annotated[Path | None, typer.Option("--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84).")] = None,
+    level_ground: Annotated[bool, typer.Option("--level-ground", help="With telemetry: the ground is level with the take-off point, so each keyframe's height also corrects its scale (drift over long flights). Not over hills or slopes.")] = False,
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
@@ -79,7 +80,7 @@ def stitch(
         mask=mask_options(mask, overlay_detect),
         start=start,
         max_frames=max_frames,
-        georef=_georef_options(telemetry, hfov, telemetry_offset, footprints),
+        georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground),
         timeout=timeout,
     )
     live = live or is_live_source(video) or preview is not None
@@ -156,14 +157,16 @@ def _ranges(indices: list[int]) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None):
-    """``--telemetry FILE|none``, ``--hfov``, ``--telemetry-offset``, ``--footprints``; None:
-    no georeferencing (``--telemetry none``)."""
+def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None, level_ground: bool = False):
+    """``--telemetry FILE|none``, ``--hfov``, ``--telemetry-offset``, ``--footprints``,
+    ``--level-ground``; None: no georeferencing (``--telemetry none``)."""
     from mosaic_cli.errors import BadInput
     from mosaic_cli.geo.georef import GeorefOptions
 
     if telemetry is not None and telemetry.strip().lower() == "none":
-        if footprints is not None:
-            raise BadInput("--footprints needs telemetry (--telemetry none was given)")
+        for flag, given in (("--footprints", footprints is not None), ("--level-ground", level_ground)):
+            if given:
+                raise BadInput(f"{flag} needs telemetry (--telemetry none was given)")
         return None
-    return GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints)
+    return GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints,
+                         level_ground=level_ground)

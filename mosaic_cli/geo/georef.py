@@ -15,7 +15,9 @@ position, scale and heading.
              shear the chained registrations left in the mosaic from every keyframe's attitude,
              position, scale and heading from the GPS and the prior; without it a homography
              from the GPS alone where it explains the fixes clearly better
-6. shifts    per keyframe for what bending is left, held stiff by the images (drift.py)
+6. drift     per keyframe, for what bending is left: shifts toward the GPS and, over level
+             ground (``level_ground``), scales toward the heights' (the chained registrations'
+             scale drift), held stiff by the images (drift.py)
 
 Everything here is pure geometry: no file is read or written.
 """
@@ -32,7 +34,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic, similarity_ratios
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
-from mosaic_cli.geo.drift import DriftOptions, drift_shifts
+from mosaic_cli.geo.drift import DriftOptions, drift_correction
 from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, axis_sigma, fit_similarity, fix_weights, refine_homography, scale_sigma
 from mosaic_cli.geo.prior import height_scale, sigmas_apart
 from mosaic_cli.geometry import frame_corners, normalize, project
@@ -68,6 +70,11 @@ class GeorefOptions:
     # a height x field of view scale this many combined sigmas from the GPS's own is not used (said)
     max_scale_disagreement: float = 3.5
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
+    # The ground under the whole flight is level with the take-off point (to about the height's
+    # noise): each keyframe's height then also says its own scale, which corrects the scale the
+    # chained registrations drift in (drift.py).  Off by default: over relief the heights above
+    # take-off are not heights above the ground, and would scale keyframes wrongly.
+    level_ground: bool = False
 
     def __post_init__(self) -> None:
         self.validate()
@@ -99,6 +106,8 @@ class Georeference:
     frame_indices: list[int]
     used: np.ndarray  # keyframes whose fix entered the fit
     shifts: np.ndarray  # (N, 2) per-keyframe ground shifts from the GPS drift prior
+    scales: np.ndarray  # (N,) per-keyframe scales about ``nadirs`` from the heights (drift.py; 1: none)
+    nadirs: np.ndarray  # (N, 2) each keyframe's nadir point on the ground before its correction
     model: str  # "similarity", "homography" (from the GPS) or "homography levelled by the gimbal"
     hfov: float | None
     track: Track
@@ -110,12 +119,15 @@ class Georeference:
     def crs(self) -> str:
         return self.projection.name
 
-    def shift(self, k: int) -> np.ndarray:
-        return np.array([[1.0, 0, self.shifts[k, 0]], [0, 1.0, self.shifts[k, 1]], [0, 0, 1.0]])
+    def correction(self, k: int) -> np.ndarray:
+        """Keyframe k's drift correction on the ground: scaled about its nadir point, then shifted."""
+        s = float(self.scales[k])
+        (x, y), (dx, dy) = self.nadirs[k], self.shifts[k]
+        return np.array([[s, 0, x - s * x + dx], [0, s, y - s * y + dy], [0, 0, 1.0]])
 
     def frame_to_ground(self, k: int, placement: np.ndarray) -> np.ndarray:
         """Keyframe k's frame pixels -> (east, north), from its placement in the reference frame."""
-        return normalize(self.shift(k) @ self.mosaic_to_ground @ placement)
+        return normalize(self.correction(k) @ self.mosaic_to_ground @ placement)
 
     def placements_in_pixels(self, placements: list[np.ndarray]) -> list[np.ndarray]:
         return [normalize(self.ground_to_pixels @ self.frame_to_ground(k, H)) for k, H in enumerate(placements)]
@@ -249,13 +261,18 @@ def georeference(
     used = np.zeros(len(placements), bool)
     used[np.nonzero(fixes)[0][inliers]] = True
 
-    # what bending is left: GPS shifts per keyframe, stiffly linked by the images (drift.py)
+    # what bending is left: GPS shifts per keyframe, and the heights' scales, stiffly linked by the images (drift.py)
     nadir_ground = np.array([project(mosaic_to_ground @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    height_scales = None
+    if heights is not None and f is not None and options.level_ground:
+        seen = _ground_scales(mosaic_to_ground, placements, nadirs, frame_size, f, aligned, attitude is not None)
+        height_scales = np.log(heights.per_keyframe / seen)
     all_fixes = np.full((len(placements), 2), np.nan)
     all_fixes[fixes] = ground * np.array([1.0, -1.0])
     footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
     # sigma is 1.4826 x the median residual distance; a 2-D Gaussian's per-axis sigma is that / 1.75
-    shifts = drift_shifts(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(sigma / 1.75, 0.5), options.drift)
+    drift = drift_correction(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(sigma / 1.75, 0.5), options.drift,
+                             height_scales)
 
     # Output pixels: north-up at the keyframes' median ground sample, anchored at the reference's centre.
     gsd = footprint_m / max(w, h)
@@ -263,8 +280,8 @@ def georeference(
     ground_to_pixels = np.array([[1 / gsd, 0, -anchor[0] / gsd], [0, -1 / gsd, anchor[1] / gsd], [0, 0, 1.0]])
     fit.sigma = sigma
     fit.inliers = inliers
-    return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, shifts, model,
-                        hfov, track, prior, notes, warnings)
+    return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, drift.shifts,
+                        drift.scales, nadir_ground, model, hfov, track, prior, notes, warnings)
 
 
 def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, prior_sigma: float, mosaic: np.ndarray, ground: np.ndarray,
@@ -301,6 +318,18 @@ def _untilted_scales(placements: list[np.ndarray], flatten: np.ndarray, frame_si
         U = untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) if tilted and np.isfinite(aligned.pitch[k]) else np.eye(3)
         seen = project(U, corners)
         out[k] = abs(similarity_ratios(seen[None], project(normalize(flatten @ P @ np.linalg.inv(U)), seen)[None])[0])
+    return out
+
+
+def _ground_scales(mosaic_to_ground: np.ndarray, placements: list[np.ndarray], nadirs: list[np.ndarray], frame_size: tuple[int, int],
+                   focal: float, aligned: AlignedTelemetry, tilted: bool) -> np.ndarray:
+    """(N,) ground metres per pixel of each keyframe's view undone of its gimbal tilt (when
+    ``tilted`` and its pitch is known; else its frame as it is), at its nadir point."""
+    out = np.empty(len(placements))
+    for k, (P, nadir) in enumerate(zip(placements, nadirs)):
+        U = untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) if tilted and np.isfinite(aligned.pitch[k]) else np.eye(3)
+        J = _jacobian(normalize(mosaic_to_ground @ P @ np.linalg.inv(U)), project(U, np.asarray(nadir)[None])[0])
+        out[k] = math.sqrt(abs(float(np.linalg.det(J))))
     return out
 
 
