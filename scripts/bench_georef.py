@@ -126,12 +126,13 @@ def report(rows, command: str) -> None:
 
 def bench_mapping(args) -> None:
     rows = []
+    extra, label = (["--level-ground"], " (--level-ground)") if args.level_ground else ([], "")
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = mapping_flight(args.workdir, seed)
-        rows.append((f"mapping seed {seed}", run_stitch(video, video.with_suffix(".SRT"))))
+        rows.append((f"mapping seed {seed}{label}", run_stitch(video, video.with_suffix(".SRT"), extra)))
         report(rows[-1:], "(progress)")
     first = f" --first-seed {args.first_seed}" if args.first_seed else ""
-    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}{first}")
+    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}{first}{' --level-ground' if args.level_ground else ''}")
 
 
 def bench_short(args) -> None:
@@ -156,7 +157,7 @@ def bench_refit(args) -> None:
     from mosaic_cli.geo.score import score_map_homographies
     from mosaic_cli.telemetry import read_telemetry
 
-    options = GeorefOptions(attitude_accuracy=None if args.no_gimbal else args.gimbal_accuracy)
+    options = GeorefOptions(attitude_accuracy=None if args.no_gimbal else args.gimbal_accuracy, level_ground=args.level_ground)
     if args.height_accuracy is not None:
         options = replace(options, height_accuracy=args.height_accuracy)
     if args.fov_accuracy is not None:
@@ -197,7 +198,7 @@ def bench_refit(args) -> None:
         print(f"mapping seed {seed}: {g.summary()}")
         for warning in g.warnings:
             print(f"mapping seed {seed}: warning: {warning}")
-        print(f"| mapping seed {seed} (refit) | {gt.frames} | {score.keyframes} | {score.median_m:.2f} | {score.max_m:.2f} | "
+        print(f"| mapping seed {seed} (refit{', --level-ground' if args.level_ground else ''}) | {gt.frames} | {score.keyframes} | {score.median_m:.2f} | {score.max_m:.2f} | "
               f"{100 * score.scale_error:+.2f}% | {score.heading_error_deg:+.2f} |")
         if args.detail:
             refit_detail(g, placements, indices, gt, map_to_crs)
@@ -238,6 +239,9 @@ def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
     print(f"  keyframes' maps against the truth: turned {np.median(np.abs(np.degrees(np.angle(ratio)))):.2f} deg, "
           f"scaled {100 * np.median(np.abs(1 / np.abs(ratio) - 1)):.2f}% (medians), non-similar {np.median(left):.2f} m "
           f"(median, max over the frame)")
+    size = 1 / np.abs(ratio) - 1
+    print(f"  keyframes' own sizes against the truth: {100 * size.min():+.2f}% to {100 * size.max():+.2f}% "
+          f"(the worst keyframe's {100 * size[worst]:+.2f}%; chained registrations drift in scale, --level-ground)")
     # the GPS log itself at the keyframes against the true camera positions
     from mosaic_cli.simulate.telemetry import camera_poses
 
@@ -258,7 +262,8 @@ def refit_detail(g, placements, indices, gt, map_to_crs) -> None:
     best, _ = cv2.findHomography(src, true.reshape(-1, 2), 0)
     d = np.linalg.norm(project(best, src) - true.reshape(-1, 2), axis=1)
     print(f"  the best homography of the registered mosaic onto the truth leaves {np.median(d):.2f} m median, {d.max():.2f} m max; "
-          f"GPS drift shifts move keyframes by {np.linalg.norm(g.shifts - g.shifts.mean(0), axis=1).max():.2f} m at most")
+          f"GPS drift shifts move keyframes by {np.linalg.norm(g.shifts - g.shifts.mean(0), axis=1).max():.2f} m at most, "
+          f"the heights scale them by {100 * (g.scales.min() - 1):+.2f}% to {100 * (g.scales.max() - 1):+.2f}%")
 
 
 def bench_gps_limit(args) -> None:
@@ -344,6 +349,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3, help="how many mapping flights (seeds) to run")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--draws", type=int, default=1000, help="gps-limit: GPS error draws")
+    parser.add_argument("--level-ground", action="store_true", help="mapping, refit: stitch --level-ground (the heights also correct each keyframe's scale)")
     parser.add_argument("--detail", action="store_true", help="refit: where the error lies")
     parser.add_argument("--gimbal-accuracy", type=float, default=1.0, help="refit: degrees (GeorefOptions.attitude_accuracy)")
     parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
