@@ -31,6 +31,11 @@ keyframe.  The detector looks at a few dozen frames spread over the whole clip, 
 When the ground hardly moves over the clip (a hovering camera) everything looks static; more
 than ``max_static`` of the frame found static is taken for that and nothing is masked.
 
+Memory: the samples are read one at a time, twice at most (:class:`VideoSamples`).  The first
+read keeps them only at the working width (and the per-pixel gray range at the read
+resolution, for the letterbox); the second, made only when there are regions to trace, keeps
+only the crops of the regions' reaches.  The mask is the one all the samples held at once give.
+
 :func:`frame_mask` merges detection with a ``--mask`` file (white = use); the estimators
 (``Estimator.set_mask``) and ``stitch`` take the result.
 """
