@@ -31,6 +31,11 @@ keyframe.  The detector looks at a few dozen frames spread over the whole clip, 
 When the ground hardly moves over the clip (a hovering camera) everything looks static; more
 than ``max_static`` of the frame found static is taken for that and nothing is masked.
 
+Memory: the samples are read one at a time, twice at most (:class:`VideoSamples`).  The first
+read keeps them only at the working width (and the per-pixel gray range at the read
+resolution, for the letterbox); the second, made only when there are regions to trace, keeps
+only the crops of the regions' reaches.  The mask is the one all the samples held at once give.
+
 :func:`frame_mask` merges detection with a ``--mask`` file (white = use); the estimators
 (``Estimator.set_mask``) and ``stitch`` take the result.
 """
@@ -38,6 +43,7 @@ than ``max_static`` of the frame found static is taken for that and nothing is m
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable, Iterator, Sized
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,8 +51,8 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video import VideoInfo, open_video, probe
-from mosaic_cli.video.reader import frame_at, frames_at, scaled_size
+from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.reader import Decoder, frame_at, scaled_size
 
 # Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
 LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
@@ -128,19 +134,29 @@ class Detection:
         return 0.0 if self.use is None else float(np.count_nonzero(self.use == 0)) / self.use.size
 
 
-def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], options: OverlayOptions | None = None) -> Detection:
+def detect_overlays(frames: Iterable[np.ndarray], full_size: tuple[int, int], options: OverlayOptions | None = None) -> Detection:
     """Pure detector: ``frames`` are RGB (or gray) frames of one clip spread over it, any one
     size (regions are found at ``width``, then traced at the frames' own resolution); the mask
     comes back at ``full_size`` (w, h).  Fewer than ``min_samples`` frames (a short photo
-    folder) cannot tell a fixed edge from a coincidence: nothing is detected."""
+    folder) cannot tell a fixed edge from a coincidence, nor can frames of several sizes:
+    nothing is detected.
+
+    ``frames`` is iterated twice at most, and holds one frame at a time if it can (a list, or
+    :class:`VideoSamples`, which reads the frames again on each iteration).  The first pass
+    keeps each frame only at the working width (and the letterbox's per-pixel gray range at the
+    frames' own); the regions are found there.  Only when there are regions, and the frames
+    are wider than ``width``, a second pass keeps the crops of the regions' reaches, which are
+    then traced."""
     o = options or OverlayOptions()
-    if len(frames) < o.min_samples:
+    if isinstance(frames, Sized) and len(frames) < o.min_samples:
         return Detection(None, samples=len(frames), too_few=True)
-    fine_h, fine_w = frames[0].shape[:2]
-    work = frames
-    if fine_w > o.width:
-        size = scaled_size((fine_w, fine_h), o.width)
-        work = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in frames]
+    first = _first_pass(frames, o)
+    if first is None:  # frames of several sizes (a folder of mixed photos: the reader refuses it anyway)
+        return Detection(None, samples=0, too_few=True)
+    work, count = first.work, len(first.work)
+    if count < o.min_samples:
+        return Detection(None, samples=count, too_few=True)
+    fine_w, fine_h = first.size
     box = _letterbox(work, o)
     static, edges = _static_structure(work, box, o)
     fraction = float(np.count_nonzero(static)) / static.size
@@ -149,11 +165,17 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
         static[:] = False
         fraction = 0.0
     # Bars found at the working width are measured again at the frames' own.
-    bars = _bars_at(_letterbox(frames, o) if any(box) and work is not frames else box, (fine_w, fine_h), full_size)
+    scaled = first.gray_range is not None
+    bars = _bars_at(_letterbox_of(*first.gray_range, o) if any(box) and scaled else box, (fine_w, fine_h), full_size)
     full = np.zeros((full_size[1], full_size[0]), np.uint8)
     if static.any():
         reach = _reach(static, o)
-        traced = _trace(frames, work, static, box, edges, o).astype(np.uint8) * 255
+        plan = _trace_plan(static, reach, box, (fine_w, fine_h), o)
+        boxes = [tuple(int(v) for v in plan.stats[k, :4]) for k in range(1, len(plan.stats))]
+        # The crops of the regions' reaches, at the frames' own resolution: read again when the
+        # first pass kept the frames only at the working width.
+        crops = _crops(frames if scaled else work, boxes, count)
+        traced = _trace(plan, crops, work, edges, o).astype(np.uint8) * 255
         if o.smear_px > 0:
             r = max(1, int(np.ceil(o.smear_px * fine_w / full_size[0])))
             traced = cv2.dilate(traced, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
@@ -165,16 +187,76 @@ def detect_overlays(frames: list[np.ndarray], full_size: tuple[int, int], option
     full[:, : bars.left] = 255
     full[:, full.shape[1] - bars.right :] = 255
     use = None if not full.any() else np.where(full > 0, 0, 255).astype(np.uint8)
-    return Detection(use, bars, fraction, rejected, len(frames))
+    return Detection(use, bars, fraction, rejected, count)
+
+
+@dataclass
+class _FirstPass:
+    work: list[np.ndarray]  # the samples at the working width
+    size: tuple[int, int]  # (w, h) of the frames as given
+    gray_range: tuple[np.ndarray, np.ndarray] | None  # per-pixel gray min and max at that size; None: work is the frames
+
+
+def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass | None:
+    """The samples scaled to the working width, one frame held at a time, and the per-pixel
+    gray range of the frames as given (the letterbox is measured again there); None when the
+    frames are not all one size."""
+    work: list[np.ndarray] = []
+    shape = None
+    lo = hi = None
+    for frame in frames:
+        if shape is None:
+            shape = frame.shape
+        elif frame.shape != shape:
+            return None
+        fine_h, fine_w = shape[:2]
+        if fine_w <= o.width:
+            work.append(frame)
+            continue
+        work.append(cv2.resize(frame, scaled_size((fine_w, fine_h), o.width), interpolation=cv2.INTER_AREA))
+        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        if lo is None:
+            lo, hi = gray.copy(), gray.copy()
+        else:
+            np.minimum(lo, gray, out=lo)
+            np.maximum(hi, gray, out=hi)
+    if shape is None:
+        return _FirstPass([], (0, 0), None)
+    return _FirstPass(work, (shape[1], shape[0]), None if lo is None else (lo, hi))
+
+
+def _crops(frames: Iterable[np.ndarray], boxes: list[tuple[int, int, int, int]], count: int) -> list[np.ndarray]:
+    """Per box (x, y, w, h): the (K, h, w[, c]) stack of that crop of the first ``count``
+    frames, one frame held at a time.  Fewer than ``count`` when the frames, read again, end
+    early or change size (a file written while it is read)."""
+    stacks: list[np.ndarray] = []
+    shape = None
+    n = 0
+    for frame in frames:
+        if shape is None:
+            shape = frame.shape
+            stacks = [np.empty((count, h, w) + shape[2:], frame.dtype) for x, y, w, h in boxes]
+        if n >= count or frame.shape != shape:
+            break
+        for stack, (x, y, w, h) in zip(stacks, boxes):
+            stack[n] = frame[y : y + h, x : x + w]
+        n += 1
+    return [s[:n] for s in stacks] if stacks else [np.empty((0, h, w), np.uint8) for x, y, w, h in boxes]
 
 
 def _letterbox(frames: list[np.ndarray], o: OverlayOptions) -> tuple[int, int, int, int]:
     """(top, bottom, left, right) rows/columns, at the frames' resolution, flat in every
-    sample, with the rows next to them that hold within ``bar_ring`` (the codec rings a few
-    rows into a bar near its inner edge, far less than the ground varies).  Judged in gray:
-    H.264's chroma, at half resolution, rings a few pixels into a bar."""
+    sample: :func:`_letterbox_of` their per-pixel gray range."""
     stack = np.stack([f if f.ndim == 2 else cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames])
-    lo, hi = stack.min(axis=0).astype(np.int16), stack.max(axis=0).astype(np.int16)
+    return _letterbox_of(stack.min(axis=0), stack.max(axis=0), o)
+
+
+def _letterbox_of(lo: np.ndarray, hi: np.ndarray, o: OverlayOptions) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right) rows/columns whose per-pixel gray range over the samples
+    (``lo``, ``hi``) is flat, with the rows next to them that hold within ``bar_ring`` (the
+    codec rings a few rows into a bar near its inner edge, far less than the ground varies).
+    Judged in gray: H.264's chroma, at half resolution, rings a few pixels into a bar."""
+    lo, hi = lo.astype(np.int16), hi.astype(np.int16)
     h, w = lo.shape
 
     def spread(lo_line: np.ndarray, hi_line: np.ndarray) -> int:
@@ -204,7 +286,6 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
     # The orientation is compared through the doubled angle (gx^2 - gy^2, 2 gx gy): an overlay's
     # edge against changing ground flips its sign whenever the ground is brighter than the
     # overlay, but keeps its orientation.
-    doubled = []
     sum_a = np.zeros((h, w), np.float32)
     sum_b = np.zeros((h, w), np.float32)
     sum_e = np.zeros((h, w), np.float32)
@@ -213,7 +294,6 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
         sum_a += a
         sum_b += b
         sum_e += e
-        doubled.append((a, b, e))
     # Persistence: in how many samples the pixel has an edge (Sobel's 3x3 kernel has a gain of
     # 8 over a unit step per pixel) along the pixel's dominant orientation (within 20 degrees).
     # One strong edge passing by in one sample is not an overlay; a fixed edge is there in all.
@@ -222,7 +302,8 @@ def _static_structure(frames: list[np.ndarray], box: tuple[int, int, int, int], 
     strong = (8.0 * o.min_gradient) ** 2
     aligned_cos = float(np.cos(np.radians(2 * 20.0)))
     edges = np.zeros((h, w), np.uint16)
-    for a, b, e in doubled:  # e: the channels' mean squared gradient
+    for frame in frames:  # computed again rather than held: three float images per sample
+        a, b, e = _colour_tensor(frame)  # e: the channels' mean squared gradient
         edges += ((e >= strong) & (a * ua + b * ub >= aligned_cos * e)).astype(np.uint16)
     static = edges >= o.persistence * len(frames)
     # The bars are masked on their own; their inner edge (bar against ground, blurred over a
@@ -264,44 +345,63 @@ def _reach(regions: np.ndarray, o: OverlayOptions) -> np.ndarray:
     return reach
 
 
-def _trace(frames: list[np.ndarray], work: list[np.ndarray], regions: np.ndarray, box: tuple[int, int, int, int],
-           edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
-    """(H, W) bool at the frames' resolution: the overlay pixels of ``regions`` (found in
-    ``work``, the same samples at the working resolution), traced pixel by pixel within each
-    region's reach (the region grown by the margin, less the letterbox ``box``).  The ground
-    is what lies outside the reaches and the bars.  A region whose traced pixels do not
-    explain it keeps its whole reach: when they leave more than ``1 - min_explained`` of its
-    static ``edges`` farther than the margin from any (an overlay neither steady nor of fixed
-    colours, as some semi-transparent ones), or cover less than ``min_covered`` of its steady
-    pixels (an overlay in the ground's own colours)."""
-    fine_h, fine_w = frames[0].shape[:2]
+@dataclass
+class _TracePlan:
+    """Where the regions are traced, at the frames' resolution, before any frame is read there."""
+
+    labels: np.ndarray  # (H, W) int32: the reaches' connected components (0: not traced)
+    stats: np.ndarray  # cv2.connectedComponentsWithStats's, row k = component k (x, y, w, h, area)
+    region: np.ndarray  # (H, W) bool: the regions themselves (without the margin)
+    bars: np.ndarray  # (h, w) uint8 at the working resolution, 255 = the letterbox bars and their margin
+    reach_work: np.ndarray  # (h, w) uint8 at the working resolution: the regions grown by the margin
+
+
+def _trace_plan(regions: np.ndarray, reach_work: np.ndarray, box: tuple[int, int, int, int], fine_size: tuple[int, int],
+                o: OverlayOptions) -> _TracePlan:
+    """The reaches to trace at ``fine_size`` (w, h): the regions (working resolution) grown by the
+    margin (``reach_work``, :func:`_reach`), less the letterbox ``box``; one component each."""
     work_h, work_w = regions.shape
-    reach_work = _reach(regions, o)
     top, bottom, left, right = (k + BAR_MARGIN if k else 0 for k in box)
     bars = np.zeros((work_h, work_w), np.uint8)
     bars[:top] = bars[work_h - bottom :] = 255
     bars[:, :left] = bars[:, work_w - right :] = 255
-    ground = _ground_colours(work, np.maximum(reach_work, bars))
-    reach = np.minimum(_exclude_at(reach_work, (fine_w, fine_h)), 255 - _exclude_at(bars, (fine_w, fine_h)))
-    region_fine = _exclude_at(regions.astype(np.uint8) * 255, (fine_w, fine_h)) > 0
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(reach, connectivity=8)
+    reach = np.minimum(_exclude_at(reach_work, fine_size), 255 - _exclude_at(bars, fine_size))
+    region = _exclude_at(regions.astype(np.uint8) * 255, fine_size) > 0
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(reach, connectivity=8)
+    return _TracePlan(labels, stats, region, bars, reach_work)
+
+
+def _trace(plan: _TracePlan, crops: list[np.ndarray], work: list[np.ndarray], edges: np.ndarray, o: OverlayOptions) -> np.ndarray:
+    """(H, W) bool at the frames' resolution: the overlay pixels of the regions (found in
+    ``work``, the samples at the working resolution), traced pixel by pixel within each
+    region's reach (``plan``; ``crops``: per reach, the samples' crop of its bounding box at the
+    frames' resolution).  The ground is what lies outside the reaches and the bars.  A region
+    whose traced pixels do not explain it keeps its whole reach: when they leave more than
+    ``1 - min_explained`` of its static ``edges`` farther than the margin from any (an overlay
+    neither steady nor of fixed colours, as some semi-transparent ones), or cover less than
+    ``min_covered`` of its steady pixels (an overlay in the ground's own colours)."""
+    fine_h, fine_w = plan.labels.shape
+    work_h, work_w = edges.shape
+    ground = _ground_colours(work, np.maximum(plan.reach_work, plan.bars))
     out = np.zeros((fine_h, fine_w), bool)
     # An edge pixel (working resolution) is explained when a traced pixel lies within the
     # margin of it: an overlay's edge runs along its border (blurred by a pixel or two).
     r = int(np.ceil(o.margin_px))
     near = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    for k in range(1, count):
-        x, y, w, h = (int(v) for v in stats[k, :4])
-        inside = labels[y : y + h, x : x + w] == k
-        stack = np.stack([f[y : y + h, x : x + w] for f in frames])
+    for k, stack in enumerate(crops, start=1):
+        x, y, w, h = (int(v) for v in plan.stats[k, :4])
+        inside = plan.labels[y : y + h, x : x + w] == k
+        if len(stack) == 0:  # the frames could not be read again: the region is masked whole
+            out[y : y + h, x : x + w] |= inside
+            continue
         evidence, steady = _pixel_evidence(stack, ground, o)
         traced = _closed_and_filled(evidence & inside, o.trace_close_px) & inside
         on_work = np.zeros((fine_h, fine_w), np.uint8)
         on_work[y : y + h, x : x + w] = traced * 255
-        on_work = cv2.dilate(np.maximum(cv2.resize(on_work, (work_w, work_h), interpolation=cv2.INTER_AREA), bars), near) > 0
-        own_edges = edges & (cv2.resize(np.where(labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
+        on_work = cv2.dilate(np.maximum(cv2.resize(on_work, (work_w, work_h), interpolation=cv2.INTER_AREA), plan.bars), near) > 0
+        own_edges = edges & (cv2.resize(np.where(plan.labels == k, 255, 0).astype(np.uint8), (work_w, work_h), interpolation=cv2.INTER_AREA) > 0)
         explained = np.count_nonzero(own_edges & ~on_work) <= (1 - o.min_explained) * np.count_nonzero(own_edges)
-        still = steady & inside & region_fine[y : y + h, x : x + w]
+        still = steady & inside & plan.region[y : y + h, x : x + w]
         covered = np.count_nonzero(still & traced) >= o.min_covered * np.count_nonzero(still)
         out[y : y + h, x : x + w] |= traced if explained and covered else inside
     return out
@@ -454,19 +554,39 @@ def _bars_at(box: tuple[int, int, int, int], work: tuple[int, int], full_size: t
 DECODE_ALL_BELOW = 1000
 
 
-def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
+class VideoSamples:
     """About ``count`` RGB frames spread evenly over ``video`` (a file or an image folder),
-    ``width`` wide.  Short clips are decoded once; long ones are sampled by seeking, so the
-    cost does not grow with the clip's length; a folder's images are read only when picked."""
-    info = info or probe(video)
-    total = info.frame_count
-    if info.is_image_folder:
-        return _sample_folder(Path(video), count, width)
-    if total is None or info.duration <= 0:
-        return _sample_by_decoding(video, count, width, info)
-    if total <= DECODE_ALL_BELOW:
-        return frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
-    return _sample_by_seeking(count, width, info)
+    ``width`` wide, read anew on each iteration and yielded one at a time (the same frames each
+    time), so that :func:`detect_overlays` holds one frame at full width, never all of them.
+    Short clips are decoded once per iteration, piping only the picked frames; long ones are
+    sampled by seeking, so the cost does not grow with the clip's length; a folder's images
+    are read only when picked, one at a time."""
+
+    def __init__(self, video: str | Path, count: int, width: int, info: VideoInfo | None = None):
+        self.video, self.count, self.width = video, count, width
+        self.info = info or probe(video)
+        self._picks: list[int] | None = None  # a clip of unknown length: its picked frames, once counted
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        info, count, width = self.info, self.count, self.width
+        total = info.frame_count
+        if info.is_image_folder:
+            return _sample_folder(Path(self.video), count, width)
+        if total is None or info.duration <= 0:
+            if self._picks is None:
+                self._picks = _picked_by_decoding(_count_frames(info), count)
+            return _frames_at(info, self._picks, width)
+        if total <= DECODE_ALL_BELOW:
+            return _frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
+        return _sample_by_seeking(count, width, info)
+
+
+def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
+    """The frames of :class:`VideoSamples`, all held (tests and benchmarks: :func:`frame_mask`
+    reads them twice instead, one at a time).  A folder of photos of several sizes gives none
+    (the reader refuses it anyway)."""
+    frames = list(VideoSamples(video, count, width, info))
+    return frames if len({f.shape for f in frames}) <= 1 else []
 
 
 def sample_width(source_size: tuple[int, int], options: OverlayOptions | None = None) -> int:
@@ -482,47 +602,60 @@ def _picked(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
 
 
-def _sample_folder(folder: Path, count: int, width: int) -> list[np.ndarray]:
+def _frames_at(info: VideoInfo, indices, width: int) -> Iterator[np.ndarray]:
+    """The RGB frames of ``indices`` (sorted), one decoder pass that converts and pipes only
+    those (as :func:`mosaic_cli.video.reader.frames_at`), yielded as they come."""
+    if len(indices) == 0:
+        return
+    picks = "+".join(f"eq(n\\,{int(k)})" for k in indices)
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'") as decoder:
+        yield from decoder
+
+
+def _sample_folder(folder: Path, count: int, width: int) -> Iterator[np.ndarray]:
+    """The picked images, each read at its own size, scaled to ``width`` and yielded before the
+    next is read (a folder of 4000x2250 photos holds one of them at a time)."""
     from mosaic_cli.video.reader import _folder_images, _read_image_rgb
 
     files = _folder_images(folder)
-    frames = []
     for k in _picked(len(files), count):
         image = _read_image_rgb(files[k])
         size = scaled_size((image.shape[1], image.shape[0]), width)
-        frames.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size[0] != image.shape[1] else image)
-    sizes = {f.shape for f in frames}
-    return frames if len(sizes) <= 1 else []  # photos of several sizes: the reader refuses them anyway
+        yield cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size[0] != image.shape[1] else image
 
 
-def _sample_by_decoding(video, count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
-    """Unknown length: decode everything, keep an even spread (bounded memory: every other
-    kept frame is dropped whenever twice ``count`` are held)."""
-    kept: list[tuple[int, np.ndarray]] = []
+def _count_frames(info: VideoInfo) -> int:
+    """The frames of a clip whose container does not say, counted by decoding it (tiny, gray)."""
+    with Decoder(info, "gray", scaled_size(info.source_size, 16)) as decoder:
+        return sum(1 for _ in decoder)
+
+
+def _picked_by_decoding(total: int, count: int) -> list[int]:
+    """The frames an even spread over ``total`` keeps when it is chosen while decoding, without
+    knowing the total: every ``step``-th frame, every other kept one dropped (and the step
+    doubled) whenever twice ``count`` are held; then ``count`` of those evenly."""
+    kept: list[int] = []
     step = 1
-    with open_video(video, width=width, info=info) as stream:
-        for k, frame in enumerate(stream):
-            if k % step == 0:
-                kept.append((k, frame))  # (a fresh array: the reader reuses no buffer)
-                if len(kept) >= 2 * count:
-                    kept, step = kept[::2], step * 2
-    return [f for _, f in kept][:: max(1, len(kept) // count)][:count]
+    for k in range(total):
+        if k % step == 0:
+            kept.append(k)
+            if len(kept) >= 2 * count:
+                kept, step = kept[::2], step * 2
+    return kept[:: max(1, len(kept) // count)][:count]
 
 
-def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> list[np.ndarray]:
+def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.ndarray]:
     """One decoder start per picked frame, seeking to it: each decodes from the keyframe
     before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
     fps = info.fps if info.fps > 0 else 30.0
-    frames: list[np.ndarray] = []
     for index in _picked(info.frame_count, count):
         # A seek past the last decodable frame (the container's duration can run a little
         # long) steps back a frame or two.
         for back in (0, 1, 2):
             frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width)  # the first frame at or after
             if frame is not None:
-                frames.append(frame)
+                yield frame
                 break
-    return frames
 
 
 # -- the user's mask and the merged result -------------------------------------------------------
@@ -646,10 +779,10 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
             from mosaic_cli.progress import progress_task
 
             with progress_task("overlays", None, unit="fr/s") as advance:
-                detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
+                detection = detect_overlays(VideoSamples(video, options.overlay.samples, width, info), info.source_size, options.overlay)
                 advance(detection.samples, status=f"{100 * detection.excluded:.1f}% masked")  # frames sampled
         else:
-            detection = detect_overlays(sample_frames(video, options.overlay.samples, width, info), info.source_size, options.overlay)
+            detection = detect_overlays(VideoSamples(video, options.overlay.samples, width, info), info.source_size, options.overlay)
         if detection.use is not None:
             use = detection.use if use is None else np.minimum(use, detection.use)
     return FrameMask(use, detection, options.file is not None, time.perf_counter() - clock)
@@ -723,5 +856,6 @@ __all__ = [
     "load_mask",
     "sample_frames",
     "sample_width",
+    "VideoSamples",
     "work_mask",
 ]

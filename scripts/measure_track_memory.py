@@ -7,6 +7,7 @@ resident memory (``os.wait4`` rusage) and ms per frame.
 
     python scripts/measure_track_memory.py                       # 300 vs 3000 frames at 640x360
     python scripts/measure_track_memory.py --lengths 300 3000 --size 1280x720 --workdir /tmp/mem
+    python scripts/measure_track_memory.py --overlays all --workdir /tmp/mem-overlays  # a logo, a timestamp, letterbox bars
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ def main() -> None:
     parser.add_argument("--size", default="640x360")
     parser.add_argument("--estimator", default="orb")
     parser.add_argument("--workdir", default=None, help="keep the clips here (default: a temporary folder)")
+    parser.add_argument("--overlays", default=None, help="burn these into the flight (mosaic simulate --overlays; use its own --workdir)")
+    parser.add_argument("--no-overlay-detect", action="store_true", help="track with overlay detection off")
     args = parser.parse_args()
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="mosaic-mem-"))
@@ -50,7 +53,8 @@ def main() -> None:
     base = work / f"flight_{base_len}.mp4"
     if not base.exists():
         subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(base), "-n", str(base_len),
-                        "--size", args.size, "--preset", "veryfast", "-q"], check=True)
+                        "--size", args.size, "--preset", "veryfast", "-q"] + (["--overlays", args.overlays] if args.overlays else []),
+                       check=True)
     rows = []
     for n in args.lengths:
         clip = work / f"flight_{n}.mp4"
@@ -60,7 +64,7 @@ def main() -> None:
                             "-stream_loop", str(loops), "-i", str(base), "-frames:v", str(n), "-c", "copy", str(clip)], check=True)
         out = work / f"track_{n}.json"
         rss, wall = run_child([sys.executable, "-m", "mosaic_cli", "track", str(clip), "-o", str(out),
-                               "--estimator", args.estimator, "-q"])
+                               "--estimator", args.estimator, "-q"] + (["--no-overlay-detect"] if args.no_overlay_detect else []))
         track = json.loads(out.read_text())
         rows.append({"frames": track["frames"], "peak_rss_mib": round(rss, 1), "wall_s": round(wall, 1),
                      "ms_per_frame": round(track["meta"]["ms_per_frame"], 2)})

@@ -155,6 +155,52 @@ def test_a_region_the_trace_cannot_explain_keeps_its_whole_reach(sharp, monkeypa
     assert np.count_nonzero(untraced) > np.count_nonzero(traced) + 0.5 * sharp.kinds["logo"].sum()
 
 
+class CountedFrames:
+    """A re-iterable source of frames (as :class:`mosaic_cli.overlay.VideoSamples`): each pass
+    yields fresh copies and counts how many of them are alive at once."""
+
+    def __init__(self, frames: list[np.ndarray]):
+        self.frames, self.passes, self.alive, self.most_alive = frames, 0, 0, 0
+
+    def _gone(self) -> None:
+        self.alive -= 1
+
+    def __iter__(self):
+        import weakref
+
+        self.passes += 1
+        for frame in self.frames:
+            copy = frame.copy()
+            self.alive += 1
+            self.most_alive = max(self.most_alive, self.alive)
+            weakref.finalize(copy, self._gone)
+            yield copy
+            del copy
+
+
+def test_the_detector_holds_one_full_resolution_frame_at_a_time(sharp):
+    """Read twice, one frame at a time (the regions at the working width, then their crops at
+    the frames' own), the mask is the one from all the frames held at once."""
+    frames = sample_frames(sharp.burned, 32, 640)
+    held = detect_overlays(frames, (640, 360))
+    source = CountedFrames(frames)
+    streamed = detect_overlays(source, (640, 360))
+    assert held.use is not None and np.array_equal(streamed.use, held.use)
+    assert streamed.letterbox == held.letterbox and streamed.samples == held.samples == 32
+    assert source.passes == 2 and source.most_alive <= 2, (source.passes, source.most_alive)
+
+
+def test_without_regions_the_frames_are_read_once():
+    """Ground that moves under no overlay: nothing to trace, so no second read."""
+    rng = np.random.default_rng(5)
+    ground = cv2.GaussianBlur(rng.integers(0, 255, (400, 1200, 3), dtype=np.uint8), (0, 0), 2.0)
+    frames = [ground[20 + k : 380 + k, 30 * k : 30 * k + 640].copy() for k in range(16)]
+    source = CountedFrames(frames)
+    detection = detect_overlays(source, (640, 360))
+    assert detection.use is None and not detection.rejected and detection.samples == 16
+    assert source.passes == 1
+
+
 def test_a_region_traced_to_a_part_of_its_steady_pixels_is_masked_whole(sharp, monkeypatch):
     """An overlay in the ground's own colours (a gray logo in gray footage) traces only by
     pieces of its rim, not by its steady inside (a gap in the rim wider than the closing
