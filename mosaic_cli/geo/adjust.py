@@ -121,7 +121,7 @@ def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
     ground's up to a similarity by all keyframes' gimbals at once (robustly: Huber per
     keyframe), not by one keyframe's.  Only the tilt and shear are chosen (4 parameters); the
     similarity left is the GPS's to fix."""
-    corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
+    corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
     to_unit = _normaliser(corners.reshape(-1, 2))
     unit = project(to_unit, corners.reshape(-1, 2))
 
@@ -173,7 +173,7 @@ def adjust_to_ground(
     to_unit = _normaliser(nadirs)
     from_unit = np.linalg.inv(_normaliser(fixes)) if len(fixes) else np.eye(3)
     unit_start = normalize(np.linalg.inv(from_unit) @ start @ np.linalg.inv(to_unit))
-    mosaic_corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
+    mosaic_corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
     unit_corners = project(to_unit, mosaic_corners.reshape(-1, 2)).reshape(mosaic_corners.shape)
     unit_nadirs = project(to_unit, nadirs)
     # the prior: the scale by every view of known height (else by the prior view's), the heading by the prior view's

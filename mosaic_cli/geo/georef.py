@@ -181,7 +181,7 @@ def georeference(
         else:  # ... unless its angles and the images disagree: then none is used, the tilt is the GPS's
             attitude, flatten, nadirs = None, np.eye(3), [centre] * len(placements)
             notes.append(f"the gimbal's angles disagree with the images ({level.residual:.1f} x its accuracy): not used")
-    mosaic = np.array([project(flatten @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    mosaic = project(flatten @ np.stack(placements), np.stack(nadirs)[:, None])[:, 0]
     heights = None
     if f is not None:
         heights = height_scale(aligned.height, f, _untilted_scales(placements, flatten, frame_size, f, aligned, attitude is not None),
@@ -250,7 +250,7 @@ def georeference(
     used[np.nonzero(fixes)[0][inliers]] = True
 
     # what bending is left: GPS shifts per keyframe, stiffly linked by the images (drift.py)
-    nadir_ground = np.array([project(mosaic_to_ground @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    nadir_ground = project(mosaic_to_ground @ np.stack(placements), np.stack(nadirs)[:, None])[:, 0]
     all_fixes = np.full((len(placements), 2), np.nan)
     all_fixes[fixes] = ground * np.array([1.0, -1.0])
     footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
@@ -317,7 +317,7 @@ def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_siz
     corners = frame_corners(*frame_size)
     unt = [untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) for k in known]
     views = np.stack([normalize(flatten @ placements[k] @ np.linalg.inv(U)) for k, U in zip(known, unt)])
-    return AttitudeViews(views, np.stack([project(U, corners) for U in unt]), attitude_sigma(frame_size, focal, accuracy)), known
+    return AttitudeViews(views, project(np.stack(unt), corners), attitude_sigma(frame_size, focal, accuracy)), known
 
 
 def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
