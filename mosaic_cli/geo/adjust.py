@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic_cli.geo.fit import HUBER, SCATTER, SimilarityPrior, axis_sigma, fix_weights
+from mosaic_cli.geo.fit import HUBER, SCATTER, SimilarityPrior, axis_sigma, fix_weights, normaliser
 from mosaic_cli.geometry import normalize, project
 
 OUTLIER = 3.5  # robust sigmas: a fix this far from the adjusted mosaic is a bad fix
@@ -96,12 +96,6 @@ def _nonsimilar(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
     return np.concatenate([left.real, left.imag], axis=1)
 
 
-def _normaliser(points: np.ndarray) -> np.ndarray:
-    c = points.mean(0)
-    s = float(np.sqrt(((points - c) ** 2).sum(1).mean())) or 1.0
-    return np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1.0]])
-
-
 @dataclass
 class Levelling:
     matrix: np.ndarray  # 3x3, mosaic pixels -> levelled mosaic pixels
@@ -122,7 +116,7 @@ def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
     keyframe), not by one keyframe's.  Only the tilt and shear are chosen (4 parameters); the
     similarity left is the GPS's to fix."""
     corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
-    to_unit = _normaliser(corners.reshape(-1, 2))
+    to_unit = normaliser(corners.reshape(-1, 2))
     unit = project(to_unit, corners.reshape(-1, 2))
 
     def matrix(p: np.ndarray) -> np.ndarray:
@@ -170,8 +164,8 @@ def adjust_to_ground(
     if len(attitude) == 0:
         raise ValueError("the adjustment needs at least one keyframe of known attitude")
     # Normalised coordinates on both sides: the parameters are of order one.
-    to_unit = _normaliser(nadirs)
-    from_unit = np.linalg.inv(_normaliser(fixes)) if len(fixes) else np.eye(3)
+    to_unit = normaliser(nadirs)
+    from_unit = np.linalg.inv(normaliser(fixes)) if len(fixes) else np.eye(3)
     unit_start = normalize(np.linalg.inv(from_unit) @ start @ np.linalg.inv(to_unit))
     mosaic_corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
     unit_corners = project(to_unit, mosaic_corners.reshape(-1, 2)).reshape(mosaic_corners.shape)

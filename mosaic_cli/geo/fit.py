@@ -43,6 +43,14 @@ def axis_sigma(scatter: float) -> float:
     return scatter / SCATTER / RAYLEIGH_MEDIAN
 
 
+def normaliser(points: np.ndarray) -> np.ndarray:
+    """The similarity that moves ``points`` (N, 2) to their centroid and scales them to a root
+    mean square distance of 1 from it: fitted parameters of order one, a well-conditioned DLT."""
+    c = points.mean(0)
+    s = float(np.sqrt(((points - c) ** 2).sum(1).mean())) or 1.0
+    return np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1.0]])
+
+
 def fix_weights(times: np.ndarray, used: np.ndarray, correlation: float) -> np.ndarray:
     """What each fix in use is worth, as a share of one independent fix, when GPS errors are
     exponentially correlated over ``correlation`` seconds (a first-order Gauss-Markov process).
@@ -240,9 +248,8 @@ def refine_homography(src: np.ndarray, dst: np.ndarray, min_sigma: float = 0.05,
 
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
-    c = dst.mean(0)
-    scale = float(np.sqrt(((dst - c) ** 2).sum(1).mean())) or 1.0
-    N = np.array([[1 / scale, 0, -c[0] / scale], [0, 1 / scale, -c[1] / scale], [0, 0, 1.0]])
+    N = normaliser(dst)
+    scale = 1.0 / N[0, 0]  # target units per normalised unit
     s, d = project(N, src), project(N, dst)
     H = np.eye(3)
     for _ in range(iterations):
