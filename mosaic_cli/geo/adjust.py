@@ -34,10 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic_cli.geo.fit import HUBER, SCATTER, SimilarityPrior, axis_sigma, fix_weights, normaliser
+from mosaic_cli.geo.fit import (OUTLIER, SimilarityPrior, axis_sigma, fix_weights, huber_weights, normaliser, robust_scatter,
+                                robust_weights)
 from mosaic_cli.geometry import normalize, project
-
-OUTLIER = 3.5  # robust sigmas: a fix this far from the adjusted mosaic is a bad fix
 
 
 @dataclass
@@ -131,8 +130,7 @@ def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
 
     p = np.zeros(4)
     for _ in range(rounds):
-        a = np.linalg.norm(nonsimilar(p), axis=1)
-        weights = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        weights = huber_weights(np.linalg.norm(nonsimilar(p), axis=1))
         new = least_squares(residuals, p, args=(weights,), method="trf", xtol=1e-12, ftol=1e-12).x
         done = np.allclose(new, p, rtol=0, atol=1e-9)
         p = new
@@ -214,12 +212,10 @@ def adjust_to_ground(
     for _ in range(rounds):
         G = matrix(p)
         r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
-        sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
-        gps_w = np.where(r <= HUBER * sigma, 1.0, HUBER * sigma / np.maximum(r, 1e-12))
-        gps_w[r > OUTLIER * sigma] = 0.0
+        sigma = robust_scatter(r, min_sigma)
+        gps_w = robust_weights(r, sigma)
         gps_w *= fix_weights(times, gps_w > 0, correlation)
-        a = np.linalg.norm(attitude_residuals(G), axis=1)  # per keyframe, in attitude sigmas
-        att_w = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        att_w = huber_weights(np.linalg.norm(attitude_residuals(G), axis=1))  # per keyframe, in attitude sigmas
         # sigma is the scatter of distances; the per-axis sigma of 2-D Gaussian errors is smaller
         new = least_squares(residuals, p, args=(gps_w, att_w, axis_sigma(sigma)), method="lm", xtol=1e-12, ftol=1e-12).x
         done = np.allclose(new, p, rtol=0, atol=1e-9)
@@ -228,7 +224,7 @@ def adjust_to_ground(
             break
     G = matrix(p)
     r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
-    sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
+    sigma = robust_scatter(r, min_sigma)
     view = prior_view if prior_view is not None else 0
     ratio = similarity_ratios(attitude.corners[view][None], project(G, unit_corners[view])[None])[0]
     att = np.linalg.norm(attitude_residuals(G), axis=1) * attitude.sigma
