@@ -221,8 +221,8 @@ def georeference(
             f"the height and field of view {prior.scale * 100:.1f} cm; check --hfov and the log"
         )
     warnings: list[str] = []
-    if prior is not None and prior.sigma is not None:
-        fit, prior = _check_height_scale(fit, prior, prior.sigma, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
+    if prior is not None:
+        fit, prior = _check_height_scale(fit, prior, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
@@ -267,21 +267,24 @@ def georeference(
                         hfov, track, prior, notes, warnings)
 
 
-def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, prior_sigma: float, mosaic: np.ndarray, ground: np.ndarray,
+def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.ndarray, ground: np.ndarray,
                         times: np.ndarray, options: GeorefOptions, hfov: float | None,
                         warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
-    """The fit and the prior to go on with: as they are when the height x field of view scale
-    agrees with the GPS track's own within ``options.max_scale_disagreement`` combined sigmas;
-    else (a wrong --hfov, a nominal focal length of another video mode, ground far below the
-    take-off point) the GPS's scale, and a warning.  The GPS positions are what was measured
-    on this flight: where the track is long enough to tell them apart, they are trusted."""
+    """The fit and the prior to go on with: as they are when the prior has no scale, or when
+    the height x field of view scale agrees with the GPS track's own within
+    ``options.max_scale_disagreement`` combined sigmas; else (a wrong --hfov, a nominal focal
+    length of another video mode, ground far below the take-off point) the GPS's scale, and a
+    warning.  The GPS positions are what was measured on this flight: where the track is long
+    enough to tell them apart, they are trusted."""
     from dataclasses import replace
 
+    if prior.sigma is None:
+        return fit, prior
     gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=1.0, times=times, correlation=options.drift.correlation)
     inliers = gps.inliers
     weights = fix_weights(times, inliers, options.drift.correlation)
     gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
-    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior_sigma)
+    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior.sigma)
     if apart <= options.max_scale_disagreement:
         return fit, prior
     warnings.append(
