@@ -34,8 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic_cli.geo.fit import (OUTLIER, SimilarityPrior, axis_sigma, fix_weights, huber_weights, normaliser, robust_scatter,
-                                robust_weights)
+from mosaic_cli.geo.fit import OUTLIER, SimilarityPrior, axis_sigma, fix_weights, huber_weights, normaliser, robust_scatter, robust_weights
 from mosaic_cli.geometry import normalize, project
 
 
