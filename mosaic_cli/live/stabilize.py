@@ -144,9 +144,8 @@ class LiveSchedule:
         self.clock = clock
         self.timeline = timeline or Timeline(STAGES)
         self.cond = threading.Condition()
-        self._frames: deque[_Frame] = deque()  # frames rendered .. arrived - 1
+        self._frames: deque[_Frame] = deque()  # the frames in flight, in order: the first is frame ``rendered``
         self._untracked: deque[float] = deque()  # when the frames with no motion yet were taken
-        self.arrived = 0
         self.rendered = 0  # frames taken by the renderer
         self.tracked_all = False
         self.planned_all = False
@@ -168,7 +167,6 @@ class LiveSchedule:
             taken = self.clock()
             self._frames.append(_Frame(pixels, arrived, taken))
             self._untracked.append(taken)
-            self.arrived += 1
             self.cond.notify_all()
 
     # -- track ----------------------------------------------------------------------------
