@@ -325,13 +325,14 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     model = motion_model(options.model)
     crop = parse_crop(options.crop)
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
-    live = is_live_source(source)
+    live = file_info is None
     notes: list[str] = []
     # Loading a network takes seconds: before the stream opens, so that no frame waits for it.
     estimator = _estimator(options, options.work_width or WORK_WIDTH) if _learned(options) else None
     masked = None
+    horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
-        Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
+        horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
     with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live, info=file_info) as stream:
@@ -339,7 +340,8 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         size, fps = info.source_size, info.fps
         if estimator is None:
             estimator = _estimator(options, options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0]))
-        horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
+        if horizon is None:
+            horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
         if masked is None:
             masked = live_mask(options.mask, size, show_progress)
         estimator.set_mask(masked.use)
