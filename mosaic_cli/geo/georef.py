@@ -184,7 +184,7 @@ def georeference(
     mosaic = project(flatten @ np.stack(placements), np.stack(nadirs)[:, None])[:, 0]
     heights = None
     if f is not None:
-        heights = height_scale(aligned.height, f, _untilted_scales(placements, flatten, frame_size, f, aligned, attitude is not None),
+        heights = height_scale(aligned.height, f, _untilted_scales(placements, flatten, frame_size, attitude),
                                options.height_accuracy, options.fov_accuracy)
 
     # 3. the fit, in the site's UTM zone, as (east, -north) so that image y (down) stays y
@@ -294,16 +294,15 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.n
     return gps, replace(prior, sigma=None)
 
 
-def _untilted_scales(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float,
-                     aligned: AlignedTelemetry, tilted: bool) -> np.ndarray:
-    """(N,) mosaic pixels per pixel of each keyframe's view undone of its gimbal tilt (when
-    ``tilted`` and its pitch is known; else its frame as it is), in the flattened mosaic."""
-    corners = frame_corners(*frame_size)
-    out = np.full(len(placements), np.nan)
-    for k, P in enumerate(placements):
-        U = untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) if tilted and np.isfinite(aligned.pitch[k]) else np.eye(3)
-        seen = project(U, corners)
-        out[k] = abs(similarity_ratios(seen[None], project(normalize(flatten @ P @ np.linalg.inv(U)), seen)[None])[0])
+def _untilted_scales(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int],
+                     attitude: tuple[AttitudeViews, np.ndarray] | None) -> np.ndarray:
+    """(N,) mosaic pixels per pixel of each keyframe's view undone of its gimbal tilt (the
+    ``attitude`` views, for the keyframes they hold; else its frame as it is), in the flattened mosaic."""
+    corners = np.broadcast_to(frame_corners(*frame_size), (len(placements), 4, 2))
+    out = np.abs(similarity_ratios(corners, project(normalize(flatten @ np.stack(placements)), corners)))
+    if attitude is not None:
+        views, known = attitude
+        out[known] = np.abs(similarity_ratios(views.corners, project(views.views, views.corners)))
     return out
 
 
