@@ -41,6 +41,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import (
@@ -52,7 +53,7 @@ from mosaic_cli.live.source import (
     source_name,
 )
 from mosaic_cli.live.timeline import Timeline
-from mosaic_cli.overlay import frame_mask, live_mask, load_mask
+from mosaic_cli.overlay import frame_mask, live_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path, Window
 from mosaic_cli.stabilize.path import motion_model
@@ -310,8 +311,7 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, warps_o
         raise BadInput(f"--warps {warps_out} must end in .json")
     if not is_live_source(source):
         info = probe(source)  # the file checks of every command: missing, empty, damaged
-        if options.mask.file is not None:
-            load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
+        check_mask_file(options.mask, info)
         return info
     return None
 
