@@ -254,8 +254,8 @@ def georeference(
     all_fixes = np.full((len(placements), 2), np.nan)
     all_fixes[fixes] = ground * np.array([1.0, -1.0])
     footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
-    # sigma is 1.4826 x the median residual distance; a 2-D Gaussian's per-axis sigma is that / 1.75
-    shifts = drift_shifts(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(sigma / 1.75, 0.5), options.drift)
+    # sigma is the robust scatter of the fixes' distances: drift_shifts wants the per-axis sigma
+    shifts = drift_shifts(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(axis_sigma(sigma), 0.5), options.drift)
 
     # Output pixels: north-up at the keyframes' median ground sample, anchored at the reference's centre.
     gsd = footprint_m / max(w, h)
