@@ -26,7 +26,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, cast
 
 import cv2
 import numpy as np
@@ -211,8 +211,8 @@ class LivePreview:
             return
         clock = time.perf_counter()
         for k in keyframes:
-            if k.image is not None:
-                self._images[k.index] = load_pixels(k.image)
+            if k.image is not None:  # a snapshot's pixels, loaded by _snapshot
+                self._images[k.index] = cast(np.ndarray, k.image)
         image = self.draw(keyframes)
         if image is not None:
             with atomic_path(self.options.path) as tmp:
