@@ -327,7 +327,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
                 with stream_progress(f"scan ({estimator.name}, live)", disable=not show_progress) as advance:
                     def step(n: int = 1, status: str | None = None) -> None:
                         timeline.stamp("scanned", frames=n)
-                        if drawer.maybe_update(scanner.keyframes):
+                        if n and drawer.maybe_update(scanner.keyframes):  # not for the scan's closing status
                             status = f"{status or ''} preview {drawer.written + 1}"
                         advance(n, status=status)
 
