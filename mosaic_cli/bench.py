@@ -30,6 +30,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -202,9 +203,10 @@ def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np
     return out
 
 
-def _simulated_flight() -> SimulateOptions:
-    # A short clip encoded fast: the benchmark times the estimators, not the encoder.
-    return SimulateOptions(crf=18, preset="veryfast")
+def simulated_flight(**options: Any) -> SimulateOptions:
+    """The benchmark's simulated flight (``options``: SimulateOptions' profile, frames, size,
+    seed, ...): a short clip encoded fast, since the benchmark times the estimators, not the encoder."""
+    return SimulateOptions(crf=18, preset="veryfast", **options)
 
 
 @dataclass
@@ -216,7 +218,7 @@ class BenchOptions:
     video: Path | None = None
     flights: Path | None = None
     map_image: Path | None = None  # the simulated flight's map; None: procedural
-    flight: SimulateOptions = field(default_factory=_simulated_flight)
+    flight: SimulateOptions = field(default_factory=simulated_flight)
     weights: str | None = None  # for the learned estimators
     work_width: int = 320  # of the classical estimators
     device: str = "auto"

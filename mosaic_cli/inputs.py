@@ -1,14 +1,20 @@
 """How mosaic recognises its inputs, one rule each: what counts as a video file, where the
 simulated flights of a folder are (``X.<video>`` with ``X.gt.json`` beside it), how a
 ``WxH`` size is written, and the bounds of the flags several commands share (``--max-frames``,
-``--threads``, ``--timeout``, ``--crf``, ``--preset``), which their options' ``validate()`` apply."""
+``--threads``, ``--timeout``, ``--crf``, ``--preset``), which their options' ``validate()`` apply,
+and a ``--mask`` image against the input's size."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mosaic_cli.errors import BadInput
+
+if TYPE_CHECKING:
+    from mosaic_cli.overlay import MaskOptions
+    from mosaic_cli.video.reader import VideoInfo
 
 # Containers ffmpeg reads that a drone or an editor writes; a folder scan takes these and no others.
 VIDEO_SUFFIXES = frozenset(
@@ -79,5 +85,16 @@ def check_encoder(crf: int | None, preset: str) -> None:
         raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
 
 
-__all__ = ["VIDEO_SUFFIXES", "check_encoder", "check_max_frames", "check_threads", "check_timeout", "find_flights", "is_video_file",
-           "parse_size"]
+def check_mask_file(mask: MaskOptions, info: VideoInfo | None) -> None:
+    """A bad ``--mask`` image fails before any work (a network's weights, a decode), against the
+    input's probe ``info``; a live input (None: no probe) has its mask checked when its first
+    frame gives the size."""
+    if mask.file is None or info is None:
+        return
+    from mosaic_cli.overlay import load_mask
+
+    load_mask(mask.file, info.source_size)
+
+
+__all__ = ["VIDEO_SUFFIXES", "check_encoder", "check_mask_file", "check_max_frames", "check_threads", "check_timeout", "find_flights",
+           "is_video_file", "parse_size"]

@@ -9,17 +9,12 @@ import numpy as np
 import pytest
 
 from conftest import cli_exit
-from mosaic_cli.bench import BenchOptions, run_bench, run_flights, time_estimator
+from mosaic_cli.bench import BenchOptions, run_bench, run_flights, simulated_flight, time_estimator
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import LEARNED, learned
 from mosaic_cli.estimators.base import Estimator, PairEstimate, StageTimer
 from mosaic_cli.estimators.learned import default_weights
-from mosaic_cli.simulate import SimulateOptions, plan_flight, procedural_map, write_flight
-
-
-def flight(**options) -> SimulateOptions:
-    """The simulated clip of a benchmark, encoded fast."""
-    return SimulateOptions(crf=18, preset="veryfast", **options)
+from mosaic_cli.simulate import plan_flight, procedural_map, write_flight
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +53,7 @@ def shipped_weights(name: str) -> bool:
 
 
 def test_bench_default_estimators_run_learned_ones_with_weights_and_skip_the_others(tmp_path, map_file):
-    report = run_bench(BenchOptions(map_image=map_file, flight=flight(frames=6, size=(320, 180))), show_progress=False)
+    report = run_bench(BenchOptions(map_image=map_file, flight=simulated_flight(frames=6, size=(320, 180))), show_progress=False)
     assert {"orb", "identity"} <= set(report["estimators"])
     for name in LEARNED:
         if shipped_weights(name):  # the shipped checkpoint: benchmarked like any other
@@ -76,8 +71,8 @@ def test_bench_names_a_missing_learned_estimator_when_it_was_asked_for(tmp_path,
 
     monkeypatch.setattr(learned, "default_weights", no_weights)
     with pytest.raises(BadInput, match="no shipped weights"):
-        run_bench(BenchOptions(estimators=["cnn"], map_image=map_file, flight=flight(frames=6, size=(320, 180))), show_progress=False)
-    report = run_bench(BenchOptions(map_image=map_file, flight=flight(frames=6, size=(320, 180))), show_progress=False)
+        run_bench(BenchOptions(estimators=["cnn"], map_image=map_file, flight=simulated_flight(frames=6, size=(320, 180))), show_progress=False)
+    report = run_bench(BenchOptions(map_image=map_file, flight=simulated_flight(frames=6, size=(320, 180))), show_progress=False)
     assert not set(LEARNED) & set(report["estimators"])
     assert sorted(note.split(":")[0] for note in report["notes"] if "skipped" in note) == sorted(LEARNED)
 
@@ -87,10 +82,10 @@ def test_bench_on_a_video_reports_latency_only(tmp_path):
     plan = plan_flight((800, 800), "paper", frames=35, size=(320, 180), seed=1)
     video = tmp_path / "clip.mp4"
     write_flight(video, rgb, plan, show_progress=False)
-    scored = run_bench(BenchOptions(estimators=["identity"], video=video, flight=flight(frames=35)), show_progress=False)
+    scored = run_bench(BenchOptions(estimators=["identity"], video=video, flight=simulated_flight(frames=35)), show_progress=False)
     assert scored["estimators"]["identity"]["mace"] is not None  # ground truth beside it
     (tmp_path / "clip.gt.json").unlink()
-    report = run_bench(BenchOptions(estimators=["identity"], video=video, flight=flight(frames=8)), show_progress=False)
+    report = run_bench(BenchOptions(estimators=["identity"], video=video, flight=simulated_flight(frames=8)), show_progress=False)
     e = report["estimators"]["identity"]
     assert e["mace"] is None and e["frames"] == 8 and e["ms_per_frame"] > 0
 

@@ -71,6 +71,19 @@ def test_progress_to_a_pipe_is_one_line_per_stage(tmp_path, tiny_clip):
     assert not any(mark in run.stderr for mark in "━╸\r")
 
 
+def test_stitch_progress_counts_the_summarys_keyframes_and_shows_no_empty_stage(tmp_path, tiny_clip):
+    """The scan's count includes the last keyframe (added as the scan ends), and a loop search
+    with no pair to try writes no line."""
+    run = subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(tiny_clip), "-o", str(tmp_path / "p.png"), "-e", "orb"],
+                         capture_output=True, text=True, env={"PATH": "/usr/bin:/bin", "PYTHONPATH": ":".join(sys.path)})
+    assert run.returncode == 0, run.stderr
+    lines = run.stderr.strip().splitlines()
+    keyframes = int(next(line for line in lines if " frames -> " in line).split(" -> ")[1].split()[0])
+    assert keyframes >= 2  # the last one is added after the last frame is scanned
+    assert next(line for line in lines if line.startswith("scan (orb): ")).endswith(f"; {keyframes} keyframes"), lines
+    assert not any(": 0/0 in " in line for line in lines), lines
+
+
 def test_line_progress_writes_at_the_end_and_every_interval(monkeypatch):
     written = []
     monkeypatch.setattr(progress.LineProgress, "_write", lambda self, text: (written.append(text),

@@ -43,11 +43,10 @@ def bench(
     from rich.console import Console
 
     from mosaic_cli.atomic import write_json
-    from mosaic_cli.bench import BenchOptions, render_flights_table, render_table
+    from mosaic_cli.bench import BenchOptions, render_flights_table, render_table, simulated_flight
     from mosaic_cli.bench import bench as run
-    from mosaic_cli.simulate import SimulateOptions
 
-    flight = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), seed=seed, crf=18, preset="veryfast")
+    flight = simulated_flight(profile=profile, frames=frames, size=parse_size(size, "--size"), seed=seed)
     options = BenchOptions(estimators=estimators.split(",") if estimators is not None else None, video=video, flights=flights,
                            map_image=map_image, flight=flight, weights=str(weights) if weights is not None else None,
                            work_width=work_width, device=device, threads=threads)

@@ -66,17 +66,6 @@ def mask_options(mask: Path | None, detect: bool):
     return MaskOptions(file=mask, detect=detect)
 
 
-def check_mask_file(mask, info) -> None:
-    """A bad ``--mask`` image (``mask``: the MaskOptions) fails before the estimator loads its
-    weights, against the input's probe ``info``; a live input (no probe) has its mask checked
-    when its first frame gives the size."""
-    if mask.file is None or info is None:
-        return
-    from mosaic_cli.overlay import load_mask
-
-    load_mask(mask.file, info.source_size)
-
-
 def use_threads(threads: int | None) -> None:
     """``--threads``: torch's CPU threads for the network (checked by the command's options)."""
     if threads is not None:

@@ -17,12 +17,12 @@ from mosaic_cli.commands.options import (
     Timeout,
     Weights,
     WorkWidth,
-    check_mask_file,
     mask_options,
     overlay_detect_option,
     quiet_option,
 )
 from mosaic_cli.estimators import make_estimator
+from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
 from mosaic_cli.video import probe

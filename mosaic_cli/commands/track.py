@@ -18,7 +18,6 @@ from mosaic_cli.commands.options import (
     Timeout,
     Weights,
     WorkWidth,
-    check_mask_file,
     mask_options,
     overlay_detect_option,
     quiet_option,
@@ -26,6 +25,7 @@ from mosaic_cli.commands.options import (
 )
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import make_estimator
+from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
 from mosaic_cli.overlay import frame_mask

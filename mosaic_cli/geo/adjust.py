@@ -34,10 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from mosaic_cli.geo.fit import HUBER, SCATTER, SimilarityPrior, axis_sigma, fix_weights
+from mosaic_cli.geo.fit import OUTLIER, SimilarityPrior, axis_sigma, fix_weights, huber_weights, normaliser, robust_scatter, robust_weights
 from mosaic_cli.geometry import normalize, project
-
-OUTLIER = 3.5  # robust sigmas: a fix this far from the adjusted mosaic is a bad fix
 
 
 @dataclass
@@ -96,12 +94,6 @@ def _nonsimilar(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
     return np.concatenate([left.real, left.imag], axis=1)
 
 
-def _normaliser(points: np.ndarray) -> np.ndarray:
-    c = points.mean(0)
-    s = float(np.sqrt(((points - c) ** 2).sum(1).mean())) or 1.0
-    return np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1.0]])
-
-
 @dataclass
 class Levelling:
     matrix: np.ndarray  # 3x3, mosaic pixels -> levelled mosaic pixels
@@ -121,8 +113,8 @@ def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
     ground's up to a similarity by all keyframes' gimbals at once (robustly: Huber per
     keyframe), not by one keyframe's.  Only the tilt and shear are chosen (4 parameters); the
     similarity left is the GPS's to fix."""
-    corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
-    to_unit = _normaliser(corners.reshape(-1, 2))
+    corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
+    to_unit = normaliser(corners.reshape(-1, 2))
     unit = project(to_unit, corners.reshape(-1, 2))
 
     def matrix(p: np.ndarray) -> np.ndarray:
@@ -137,8 +129,7 @@ def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
 
     p = np.zeros(4)
     for _ in range(rounds):
-        a = np.linalg.norm(nonsimilar(p), axis=1)
-        weights = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        weights = huber_weights(np.linalg.norm(nonsimilar(p), axis=1))
         new = least_squares(residuals, p, args=(weights,), method="trf", xtol=1e-12, ftol=1e-12).x
         done = np.allclose(new, p, rtol=0, atol=1e-9)
         p = new
@@ -170,10 +161,10 @@ def adjust_to_ground(
     if len(attitude) == 0:
         raise ValueError("the adjustment needs at least one keyframe of known attitude")
     # Normalised coordinates on both sides: the parameters are of order one.
-    to_unit = _normaliser(nadirs)
-    from_unit = np.linalg.inv(_normaliser(fixes)) if len(fixes) else np.eye(3)
+    to_unit = normaliser(nadirs)
+    from_unit = np.linalg.inv(normaliser(fixes)) if len(fixes) else np.eye(3)
     unit_start = normalize(np.linalg.inv(from_unit) @ start @ np.linalg.inv(to_unit))
-    mosaic_corners = np.stack([project(V, c) for V, c in zip(attitude.views, attitude.corners)])  # (M, 4, 2)
+    mosaic_corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
     unit_corners = project(to_unit, mosaic_corners.reshape(-1, 2)).reshape(mosaic_corners.shape)
     unit_nadirs = project(to_unit, nadirs)
     # the prior: the scale by every view of known height (else by the prior view's), the heading by the prior view's
@@ -220,12 +211,10 @@ def adjust_to_ground(
     for _ in range(rounds):
         G = matrix(p)
         r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
-        sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
-        gps_w = np.where(r <= HUBER * sigma, 1.0, HUBER * sigma / np.maximum(r, 1e-12))
-        gps_w[r > OUTLIER * sigma] = 0.0
+        sigma = robust_scatter(r, min_sigma)
+        gps_w = robust_weights(r, sigma)
         gps_w *= fix_weights(times, gps_w > 0, correlation)
-        a = np.linalg.norm(attitude_residuals(G), axis=1)  # per keyframe, in attitude sigmas
-        att_w = np.where(a <= HUBER, 1.0, HUBER / np.maximum(a, 1e-12))
+        att_w = huber_weights(np.linalg.norm(attitude_residuals(G), axis=1))  # per keyframe, in attitude sigmas
         # sigma is the scatter of distances; the per-axis sigma of 2-D Gaussian errors is smaller
         new = least_squares(residuals, p, args=(gps_w, att_w, axis_sigma(sigma)), method="lm", xtol=1e-12, ftol=1e-12).x
         done = np.allclose(new, p, rtol=0, atol=1e-9)
@@ -234,7 +223,7 @@ def adjust_to_ground(
             break
     G = matrix(p)
     r = np.linalg.norm(project(G, unit_nadirs) - fixes, axis=1)
-    sigma = max(min_sigma, SCATTER * float(np.median(r))) if len(r) else min_sigma
+    sigma = robust_scatter(r, min_sigma)
     view = prior_view if prior_view is not None else 0
     ratio = similarity_ratios(attitude.corners[view][None], project(G, unit_corners[view])[None])[0]
     att = np.linalg.norm(attitude_residuals(G), axis=1) * attitude.sigma

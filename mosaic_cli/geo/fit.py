@@ -23,6 +23,7 @@ HUBER = 1.345  # 95% efficiency under Gaussian noise
 
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median distance / per-axis sigma of 2-D Gaussian errors
 SCATTER = 1.4826  # robust scatter = this x the median distance
+OUTLIER = 3.5  # robust sigmas: a residual this far out is a bad fix, not noise
 
 
 @dataclass
@@ -41,6 +42,32 @@ def axis_sigma(scatter: float) -> float:
     """The per-axis sigma of 2-D Gaussian errors whose robust scatter (1.4826 x the median
     distance) is ``scatter``."""
     return scatter / SCATTER / RAYLEIGH_MEDIAN
+
+
+def normaliser(points: np.ndarray) -> np.ndarray:
+    """The similarity that moves ``points`` (N, 2) to their centroid and scales them to a root
+    mean square distance of 1 from it: fitted parameters of order one, a well-conditioned DLT."""
+    c = points.mean(0)
+    s = float(np.sqrt(((points - c) ** 2).sum(1).mean())) or 1.0
+    return np.array([[1 / s, 0, -c[0] / s], [0, 1 / s, -c[1] / s], [0, 0, 1.0]])
+
+
+def robust_scatter(residuals: np.ndarray, floor: float) -> float:
+    """SCATTER x the median of ``residuals`` (distances), at least ``floor`` (``floor`` when there are none)."""
+    return max(floor, SCATTER * float(np.median(residuals))) if len(residuals) else floor
+
+
+def huber_weights(residuals: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """Huber's weights of ``residuals`` (distances) in units of ``sigma``: 1 within HUBER sigmas, falling as 1/r beyond."""
+    k = HUBER * sigma
+    return np.where(residuals <= k, 1.0, k / np.maximum(residuals, 1e-12))
+
+
+def robust_weights(residuals: np.ndarray, sigma: float) -> np.ndarray:
+    """Huber's weights, and 0 beyond OUTLIER sigmas: bad fixes out, not merely down-weighted."""
+    weights = huber_weights(residuals, sigma)
+    weights[residuals > OUTLIER * sigma] = 0.0
+    return weights
 
 
 def fix_weights(times: np.ndarray, used: np.ndarray, correlation: float) -> np.ndarray:
@@ -188,10 +215,8 @@ def fit_similarity(
     p = best
     for _ in range(30):
         r = _residuals(p, s, d)
-        sigma = max(min_sigma, 1.4826 * float(np.median(r)))
-        k = HUBER * sigma
-        weights = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
-        weights[r > 3.5 * sigma] = 0.0  # bad fixes: out, not merely down-weighted
+        sigma = robust_scatter(r, min_sigma)
+        weights = robust_weights(r, sigma)
         if times is not None:
             weights *= fix_weights(times, weights > 0, correlation)
         new = _solve(s, d, weights, prior, axis_sigma(sigma), math.atan2(p[1], p[0]))
@@ -200,8 +225,8 @@ def fit_similarity(
             break
         p = new
     r = _residuals(p, s, d)
-    sigma = max(min_sigma, 1.4826 * float(np.median(r)))
-    inliers = r <= 3.5 * sigma
+    sigma = robust_scatter(r, min_sigma)
+    inliers = r <= OUTLIER * sigma
     M = _matrix(p)
     # back from centred coordinates: x' = M (x - cs) + cd
     T_src = np.array([[1, 0, -cs[0]], [0, 1, -cs[1]], [0, 0, 1.0]])
@@ -240,17 +265,13 @@ def refine_homography(src: np.ndarray, dst: np.ndarray, min_sigma: float = 0.05,
 
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
-    c = dst.mean(0)
-    scale = float(np.sqrt(((dst - c) ** 2).sum(1).mean())) or 1.0
-    N = np.array([[1 / scale, 0, -c[0] / scale], [0, 1 / scale, -c[1] / scale], [0, 0, 1.0]])
+    N = normaliser(dst)
+    scale = 1.0 / N[0, 0]  # target units per normalised unit
     s, d = project(N, src), project(N, dst)
     H = np.eye(3)
     for _ in range(iterations):
         r = np.linalg.norm(project(H, s) - d, axis=1) * scale
-        sigma = max(min_sigma, 1.4826 * float(np.median(r)))
-        k = HUBER * sigma
-        weights = np.where(r <= k, 1.0, k / np.maximum(r, 1e-12))
-        weights[r > 3.5 * sigma] = 0.0
+        weights = robust_weights(r, robust_scatter(r, min_sigma))
         new = _weighted_dlt(s, d, weights)
         if np.allclose(new, H, atol=1e-12):
             break
@@ -258,5 +279,5 @@ def refine_homography(src: np.ndarray, dst: np.ndarray, min_sigma: float = 0.05,
     M = np.linalg.inv(N) @ H @ N
     M /= M[2, 2]
     r = np.linalg.norm(project(M, src) - dst, axis=1)
-    sigma = max(min_sigma, 1.4826 * float(np.median(r)))
-    return HomographyFit(M, r, r <= 3.5 * sigma, sigma)
+    sigma = robust_scatter(r, min_sigma)
+    return HomographyFit(M, r, r <= OUTLIER * sigma, sigma)

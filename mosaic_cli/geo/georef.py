@@ -193,10 +193,10 @@ def georeference(
         else:  # ... unless its angles and the images disagree: then none is used, the tilt is the GPS's
             attitude, flatten, nadirs = None, np.eye(3), [centre] * len(placements)
             notes.append(f"the gimbal's angles disagree with the images ({level.residual:.1f} x its accuracy): not used")
-    mosaic = np.array([project(flatten @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    mosaic = project(flatten @ np.stack(placements), np.stack(nadirs)[:, None])[:, 0]
     heights = None
     if f is not None:
-        heights = height_scale(aligned.height, f, _untilted_scales(placements, flatten, frame_size, f, aligned, attitude is not None),
+        heights = height_scale(aligned.height, f, _untilted_scales(placements, flatten, frame_size, attitude),
                                options.height_accuracy, options.fov_accuracy)
 
     # 3. the fit, in the site's UTM zone, as (east, -north) so that image y (down) stays y
@@ -233,8 +233,8 @@ def georeference(
             f"the height and field of view {prior.scale * 100:.1f} cm; check --hfov and the log"
         )
     warnings: list[str] = []
-    if prior is not None and prior.sigma is not None:
-        fit, prior = _check_height_scale(fit, prior, prior.sigma, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
+    if prior is not None:
+        fit, prior = _check_height_scale(fit, prior, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
@@ -262,16 +262,16 @@ def georeference(
     used[np.nonzero(fixes)[0][inliers]] = True
 
     # what bending is left: GPS shifts per keyframe, and the heights' scales, stiffly linked by the images (drift.py)
-    nadir_ground = np.array([project(mosaic_to_ground @ H, n[None])[0] for H, n in zip(placements, nadirs)])
+    nadir_ground = project(mosaic_to_ground @ np.stack(placements), np.stack(nadirs)[:, None])[:, 0]
     height_scales = None
     if heights is not None and f is not None and options.level_ground:
-        seen = _ground_scales(mosaic_to_ground, placements, nadirs, frame_size, f, aligned, attitude is not None)
+        seen = _untilted_scales(placements, flatten, frame_size, attitude, then=FLIP @ to_ground)
         height_scales = np.log(heights.per_keyframe / seen)
     all_fixes = np.full((len(placements), 2), np.nan)
     all_fixes[fixes] = ground * np.array([1.0, -1.0])
     footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
-    # sigma is 1.4826 x the median residual distance; a 2-D Gaussian's per-axis sigma is that / 1.75
-    drift = drift_correction(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(sigma / 1.75, 0.5), options.drift,
+    # sigma is the robust scatter of the fixes' distances: the drift correction wants the per-axis sigma
+    drift = drift_correction(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(axis_sigma(sigma), 0.5), options.drift,
                              height_scales)
 
     # Output pixels: north-up at the keyframes' median ground sample, anchored at the reference's centre.
@@ -284,21 +284,24 @@ def georeference(
                         drift.scales, nadir_ground, model, hfov, track, prior, notes, warnings)
 
 
-def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, prior_sigma: float, mosaic: np.ndarray, ground: np.ndarray,
+def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.ndarray, ground: np.ndarray,
                         times: np.ndarray, options: GeorefOptions, hfov: float | None,
                         warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
-    """The fit and the prior to go on with: as they are when the height x field of view scale
-    agrees with the GPS track's own within ``options.max_scale_disagreement`` combined sigmas;
-    else (a wrong --hfov, a nominal focal length of another video mode, ground far below the
-    take-off point) the GPS's scale, and a warning.  The GPS positions are what was measured
-    on this flight: where the track is long enough to tell them apart, they are trusted."""
+    """The fit and the prior to go on with: as they are when the prior has no scale, or when
+    the height x field of view scale agrees with the GPS track's own within
+    ``options.max_scale_disagreement`` combined sigmas; else (a wrong --hfov, a nominal focal
+    length of another video mode, ground far below the take-off point) the GPS's scale, and a
+    warning.  The GPS positions are what was measured on this flight: where the track is long
+    enough to tell them apart, they are trusted."""
     from dataclasses import replace
 
+    if prior.sigma is None:
+        return fit, prior
     gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=1.0, times=times, correlation=options.drift.correlation)
     inliers = gps.inliers
     weights = fix_weights(times, inliers, options.drift.correlation)
     gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
-    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior_sigma)
+    apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior.sigma)
     if apart <= options.max_scale_disagreement:
         return fit, prior
     warnings.append(
@@ -308,28 +311,17 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, prior_sigma:
     return gps, replace(prior, sigma=None)
 
 
-def _untilted_scales(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int], focal: float,
-                     aligned: AlignedTelemetry, tilted: bool) -> np.ndarray:
-    """(N,) mosaic pixels per pixel of each keyframe's view undone of its gimbal tilt (when
-    ``tilted`` and its pitch is known; else its frame as it is), in the flattened mosaic."""
-    corners = frame_corners(*frame_size)
-    out = np.full(len(placements), np.nan)
-    for k, P in enumerate(placements):
-        U = untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) if tilted and np.isfinite(aligned.pitch[k]) else np.eye(3)
-        seen = project(U, corners)
-        out[k] = abs(similarity_ratios(seen[None], project(normalize(flatten @ P @ np.linalg.inv(U)), seen)[None])[0])
-    return out
-
-
-def _ground_scales(mosaic_to_ground: np.ndarray, placements: list[np.ndarray], nadirs: list[np.ndarray], frame_size: tuple[int, int],
-                   focal: float, aligned: AlignedTelemetry, tilted: bool) -> np.ndarray:
-    """(N,) ground metres per pixel of each keyframe's view undone of its gimbal tilt (when
-    ``tilted`` and its pitch is known; else its frame as it is), at its nadir point."""
-    out = np.empty(len(placements))
-    for k, (P, nadir) in enumerate(zip(placements, nadirs)):
-        U = untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) if tilted and np.isfinite(aligned.pitch[k]) else np.eye(3)
-        J = _jacobian(normalize(mosaic_to_ground @ P @ np.linalg.inv(U)), project(U, np.asarray(nadir)[None])[0])
-        out[k] = math.sqrt(abs(float(np.linalg.det(J))))
+def _untilted_scales(placements: list[np.ndarray], flatten: np.ndarray, frame_size: tuple[int, int],
+                     attitude: tuple[AttitudeViews, np.ndarray] | None, then: np.ndarray | None = None) -> np.ndarray:
+    """(N,) mosaic pixels per pixel of each keyframe's view undone of its gimbal tilt (the
+    ``attitude`` views, for the keyframes they hold; else its frame as it is), in the flattened
+    mosaic, or in what ``then`` maps the flattened mosaic to (the ground: metres per pixel)."""
+    then = np.eye(3) if then is None else then
+    corners = np.broadcast_to(frame_corners(*frame_size), (len(placements), 4, 2))
+    out = np.abs(similarity_ratios(corners, project(normalize(then @ flatten @ np.stack(placements)), corners)))
+    if attitude is not None:
+        views, known = attitude
+        out[known] = np.abs(similarity_ratios(views.corners, project(normalize(then @ views.views), views.corners)))
     return out
 
 
@@ -346,7 +338,7 @@ def _attitude_views(placements: list[np.ndarray], flatten: np.ndarray, frame_siz
     corners = frame_corners(*frame_size)
     unt = [untilt(frame_size, focal, aligned.pitch[k], aligned.roll[k]) for k in known]
     views = np.stack([normalize(flatten @ placements[k] @ np.linalg.inv(U)) for k, U in zip(known, unt)])
-    return AttitudeViews(views, np.stack([project(U, corners) for U in unt]), attitude_sigma(frame_size, focal, accuracy)), known
+    return AttitudeViews(views, project(np.stack(unt), corners), attitude_sigma(frame_size, focal, accuracy)), known
 
 
 def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:

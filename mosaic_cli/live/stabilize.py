@@ -41,6 +41,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import (
@@ -52,7 +53,7 @@ from mosaic_cli.live.source import (
     source_name,
 )
 from mosaic_cli.live.timeline import Timeline
-from mosaic_cli.overlay import frame_mask, live_mask, load_mask
+from mosaic_cli.overlay import frame_mask, live_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path, Window
 from mosaic_cli.stabilize.path import motion_model
@@ -144,9 +145,8 @@ class LiveSchedule:
         self.clock = clock
         self.timeline = timeline or Timeline(STAGES)
         self.cond = threading.Condition()
-        self._frames: deque[_Frame] = deque()  # frames rendered .. arrived - 1
+        self._frames: deque[_Frame] = deque()  # the frames in flight, in order: the first is frame ``rendered``
         self._untracked: deque[float] = deque()  # when the frames with no motion yet were taken
-        self.arrived = 0
         self.rendered = 0  # frames taken by the renderer
         self.tracked_all = False
         self.planned_all = False
@@ -168,7 +168,6 @@ class LiveSchedule:
             taken = self.clock()
             self._frames.append(_Frame(pixels, arrived, taken))
             self._untracked.append(taken)
-            self.arrived += 1
             self.cond.notify_all()
 
     # -- track ----------------------------------------------------------------------------
@@ -312,8 +311,7 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, warps_o
         raise BadInput(f"--warps {warps_out} must end in .json")
     if not is_live_source(source):
         info = probe(source)  # the file checks of every command: missing, empty, damaged
-        if options.mask.file is not None:
-            load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
+        check_mask_file(options.mask, info)
         return info
     return None
 
@@ -327,13 +325,14 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     model = motion_model(options.model)
     crop = parse_crop(options.crop)
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
-    live = is_live_source(source)
+    live = file_info is None
     notes: list[str] = []
     # Loading a network takes seconds: before the stream opens, so that no frame waits for it.
     estimator = _estimator(options, options.work_width or WORK_WIDTH) if _learned(options) else None
     masked = None
+    horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
-        Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
+        horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
     with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live, info=file_info) as stream:
@@ -341,7 +340,8 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         size, fps = info.source_size, info.fps
         if estimator is None:
             estimator = _estimator(options, options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0]))
-        horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
+        if horizon is None:
+            horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
         if masked is None:
             masked = live_mask(options.mask, size, show_progress)
         estimator.set_mask(masked.use)

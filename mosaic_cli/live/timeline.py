@@ -38,12 +38,6 @@ class Timeline:
     def times(self, stage: str) -> np.ndarray:
         return np.frombuffer(self._stamps[stage], dtype=np.float64).copy() if len(self._stamps[stage]) else np.zeros(0)
 
-    def waits(self, first: str, then: str) -> np.ndarray:
-        """Seconds from ``first`` to ``then``, for the frames that reached both."""
-        a, b = self.times(first), self.times(then)
-        n = min(len(a), len(b))
-        return b[:n] - a[:n]
-
     # Python's collector stops every thread while it runs: its pauses are part of the picture.
     def watch_gc(self) -> None:
         gc.callbacks.append(self._on_gc)

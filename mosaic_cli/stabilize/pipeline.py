@@ -20,9 +20,9 @@ import numpy as np
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_device, check_work_width, make_estimator
-from mosaic_cli.inputs import check_encoder, check_timeout
+from mosaic_cli.inputs import check_encoder, check_mask_file, check_timeout
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
-from mosaic_cli.overlay import MaskOptions, frame_mask, load_mask
+from mosaic_cli.overlay import MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
@@ -185,8 +185,7 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
         renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset),
     )
     info = probe(video)
-    if options.mask.file is not None:
-        load_mask(options.mask.file, info.source_size)  # a bad --mask fails before any work
+    check_mask_file(options.mask, info)
     width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
     plan.estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device)
     return info, plan

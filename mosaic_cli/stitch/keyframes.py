@@ -480,6 +480,7 @@ def scan_flight(
     for estimate in estimator.finish():
         scanner.step(waiting.popleft(), estimate)
     scan = scanner.finish()
+    advance(0, status=f"{len(scan.keyframes)} keyframes")  # with the last, which finish() may add
     scan.seconds = time.perf_counter() - start
     return scan
 
@@ -491,5 +492,6 @@ def scan_photos(photos: Iterable[np.ndarray], scanner: FlightScanner, advance: C
         scanner.photo(photo)
         advance(1, status=f"{len(scanner.keyframes)} placed")
     scan = scanner.finish()
+    advance(0, status=f"{len(scan.keyframes)} placed")
     scan.seconds = time.perf_counter() - start
     return scan

@@ -26,7 +26,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, cast
 
 import cv2
 import numpy as np
@@ -211,8 +211,8 @@ class LivePreview:
             return
         clock = time.perf_counter()
         for k in keyframes:
-            if k.image is not None:
-                self._images[k.index] = load_pixels(k.image)
+            if k.image is not None:  # a snapshot's pixels, loaded by _snapshot
+                self._images[k.index] = cast(np.ndarray, k.image)
         image = self.draw(keyframes)
         if image is not None:
             with atomic_path(self.options.path) as tmp:
@@ -327,7 +327,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
                 with stream_progress(f"scan ({estimator.name}, live)", disable=not show_progress) as advance:
                     def step(n: int = 1, status: str | None = None) -> None:
                         timeline.stamp("scanned", frames=n)
-                        if drawer.maybe_update(scanner.keyframes):
+                        if n and drawer.maybe_update(scanner.keyframes):  # not for the scan's closing status
                             status = f"{status or ''} preview {drawer.written + 1}"
                         advance(n, status=status)
 

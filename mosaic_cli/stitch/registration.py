@@ -125,7 +125,7 @@ def register_keyframes(
         tried |= set(candidates)
         report.loop_candidates += len(candidates)
         name = "register loops" if round_ == 0 else f"register loops (round {round_ + 1})"
-        with progress(name, len(candidates)) as advance:
+        with (progress if candidates else no_progress)(name, len(candidates)) as advance:  # an empty stage shows nothing
             report.links += link_loops(features, placements, candidates, matcher, options, report, advance)
             advance(0, status="refining")
             placements = refine_placements(placements, report, reference, size, options)

@@ -14,6 +14,7 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.inputs import check_encoder
 from mosaic_cli.video.reader import VideoInfo, audio_codec_of
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
@@ -50,10 +51,7 @@ class VideoWriter:
         audio_seconds: float | None = None,
         metadata: dict[str, str] | None = None,
     ):
-        if not 0 <= crf <= 51:
-            raise BadInput(f"--crf must be in 0..51, got {crf}")
-        if preset not in PRESETS:
-            raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+        check_encoder(crf, preset)
         if fps <= 0:
             raise BadInput(f"frame rate must be positive, got {fps}")
         self.path = check_writable(path)
