@@ -153,9 +153,25 @@ def drift_correction(
         for i, j in [(k, k + 1) for k in range(n - 1)] + revisits:
             system.add({system.scale(i): 1.0, system.scale(j): -1.0}, 0.0, o.scale_step)
     solution = system.solve()
-    shifts = np.stack([solution[:n], solution[n : 2 * n]], 1)
+    shifts = _without_similarity(np.stack([solution[:n], solution[n : 2 * n]], 1), positions)
     scales = np.exp(solution[2 * n :]) if heights is not None else np.ones(n)
     return DriftCorrection(shifts, scales)
+
+
+def _without_similarity(shifts: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """The shifts less the change of scale and heading about the keyframes' centre that fits
+    them best.  The global fit owns the map's scale and heading, weighing the GPS against the
+    height and the compass; a steady trend along the flight costs the bending terms nothing,
+    so without this the shifts would hand them to the GPS alone (on a short flight, its noise)."""
+    z = positions[:, 0] + 1j * positions[:, 1]
+    z = z - z.mean()
+    if not np.any(z):
+        return shifts
+    d = shifts[:, 0] + 1j * shifts[:, 1]
+    design = np.stack([np.ones_like(z), z], 1)
+    (_, turn), *_ = np.linalg.lstsq(design, d, rcond=None)
+    trend = turn * z
+    return shifts - np.stack([trend.real, trend.imag], 1)
 
 
 def _centred(height_scales: np.ndarray | None, n: int) -> np.ndarray | None:

@@ -42,6 +42,13 @@ from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_
 from mosaic_cli.telemetry.track import Track
 
 FLIP = np.diag([1.0, -1.0, 1.0])  # (east, -north) <-> (east, north)
+# The fixes' robust scatter (metres) is never taken as less than GPS_FLOOR: no GPS is better than
+# about a metre, and a short, exact track must not call every fix but the best few an outlier.
+# Where the fixes are too few to tell their own scatter, a consumer receiver's (GPS_TYPICAL:
+# about 2 m per axis) is weighed in as GPS_TYPICAL_DOF degrees of freedom against theirs.
+GPS_FLOOR = 1.0
+GPS_TYPICAL = 3.5
+GPS_TYPICAL_DOF = 4.0
 
 
 @dataclass
@@ -215,9 +222,8 @@ def georeference(
             f"{track.source}: the GPS track spans only {extent:.0f} m, too little to fix scale and heading against GPS "
             f"noise; the telemetry needs a height, a heading and a field of view (--hfov) to place such a short flight"
         )
-    # GPS is never better than about a metre: a floor under the robust scale keeps a short,
-    # exact track from calling every fix but the best few an outlier
-    fit = fit_similarity(mosaic[fixes], ground, prior, min_sigma=1.0, times=times[fixes], correlation=options.drift.correlation)
+    floor = gps_floor(times[fixes], options.drift.correlation)
+    fit = fit_similarity(mosaic[fixes], ground, prior, min_sigma=floor, times=times[fixes], correlation=options.drift.correlation)
 
     # 4. does the telemetry belong to these images?
     agreeing = float(fit.inliers.mean())
@@ -244,7 +250,7 @@ def georeference(
         prior_view = int(np.searchsorted(known, ref)) if ref in known else None
         view_scales = heights.per_keyframe[known] if heights is not None and prior is not None and prior.sigma is not None else None
         adjusted = adjust_to_ground(mosaic[fixes], ground, times[fixes], fit.matrix, views, prior, prior_view, view_scales,
-                                    correlation=options.drift.correlation)
+                                    min_sigma=floor, correlation=options.drift.correlation)
         to_ground, model = adjusted.matrix, "homography levelled by the gimbal"
         inliers, sigma = adjusted.inliers, adjusted.sigma
         a, b = adjusted.scale * math.cos(adjusted.rotation), adjusted.scale * math.sin(adjusted.rotation)
@@ -253,7 +259,7 @@ def georeference(
     elif fixes.sum() >= options.min_fixes_for_perspective:
         # the perspective a long flight's chained registrations bend the mosaic with
         placed = project(fit.matrix, mosaic[fixes])
-        better = refine_homography(placed, ground, min_sigma=1.0)
+        better = refine_homography(placed, ground, min_sigma=floor)
         if better.sigma < options.perspective_gain * fit.sigma and better.inliers.mean() >= options.min_agreeing:
             to_ground, model = better.matrix @ fit.matrix, "homography"
             inliers, sigma = better.inliers, better.sigma
@@ -284,6 +290,17 @@ def georeference(
                         drift.scales, nadir_ground, model, hfov, track, prior, notes, warnings)
 
 
+def gps_floor(times: np.ndarray, correlation: float) -> float:
+    """The least robust scatter (metres) to take the GPS fixes at ``times`` (seconds) as having:
+    GPS_FLOOR, or where the fixes are worth few independent ones (fit.fix_weights: errors
+    correlated over ``correlation`` seconds), the typical receiver's scatter weighed in against
+    what 2 x worth - 4 degrees of freedom (a similarity's four parameters) could tell: a 10 s
+    track's handful of fixes leave about 3 m, a minute's 1.3 m; from about two minutes on, GPS_FLOOR."""
+    worth = float(fix_weights(np.asarray(times, np.float64), np.ones(len(times), bool), correlation).sum())
+    dof = max(2.0 * worth - 4.0, 0.0)
+    return max(GPS_FLOOR, GPS_TYPICAL * math.sqrt(GPS_TYPICAL_DOF / (dof + GPS_TYPICAL_DOF)))
+
+
 def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.ndarray, ground: np.ndarray,
                         times: np.ndarray, options: GeorefOptions, hfov: float | None,
                         warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
@@ -297,7 +314,8 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.n
 
     if prior.sigma is None:
         return fit, prior
-    gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=1.0, times=times, correlation=options.drift.correlation)
+    gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=gps_floor(times, options.drift.correlation), times=times,
+                         correlation=options.drift.correlation)
     inliers = gps.inliers
     weights = fix_weights(times, inliers, options.drift.correlation)
     gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
