@@ -358,6 +358,26 @@ def test_a_wrong_field_of_view_is_said_and_the_gps_scale_used():
     assert map_scale_error(trusted, placements, truth, to_ground) > own + 0.015
 
 
+def test_a_short_tracks_gps_does_not_overrule_the_height():
+    """Five keyframes over 10 s whose GPS happens to stretch the track by 25% (fixes 2 s apart
+    whose errors agree): so few fixes cannot tell their own scatter, so their scale is not
+    many sigmas from the (exact) height's, and the map keeps the height's scale.  Taken at
+    their own agreement they would call the height wrong and make the map 25% too large."""
+    from mosaic_cli.geo.camera import hfov_degrees
+    from mosaic_cli.geo.georef import GeorefOptions, georeference
+
+    centres, pitch, roll, truth, _, _, times, rng = flight(3)
+    keep = slice(0, 5)
+    centres, pitch, roll, truth, times = centres[keep], pitch[keep], roll[keep], truth[keep], times[keep]
+    ref = 2
+    placements = [np.linalg.inv(truth[ref]) @ T for T in truth]
+    stretched = centres.mean(0) + 1.25 * (centres - centres.mean(0))
+    track, to_ground = synthetic_track(centres, times, pitch, roll, stretched, np.full(len(times), HEIGHT), hfov_degrees(SIZE[0], FOCAL))
+    g = georeference(placements, ref, [int(round(t * 10.0)) for t in times], SIZE, 10.0, track, GeorefOptions(fov_accuracy=0.0))
+    assert not g.warnings, g.warnings
+    assert abs(map_scale_error(g, placements, truth, to_ground)) < 0.03
+
+
 def test_without_height_or_field_of_view_the_gps_alone_places_the_map():
     """A log without heights, or without a field of view (and no --hfov): no scale prior, the
     map as the GPS and the images make it, as before the prior existed."""

@@ -150,6 +150,12 @@ def test_a_short_tracks_few_fixes_are_taken_at_a_receivers_error_not_their_own_s
     assert GPS_FLOOR < short < GPS_TYPICAL
     assert gps_floor(np.arange(0.0, 60.0, 2.0), 2.0) < short
     assert gps_floor(np.arange(0.0, 251.0, 2.1), 2.0) == GPS_FLOOR  # the mapping flights: their own scatter
+    # and a scale that far from the height's is judged by Student's t on those few degrees of
+    # freedom: 3.5 normal sigmas are 5.7 on eight, and tend to 3.5 as the track grows
+    from mosaic_cli.geo.georef import disagreement_limit
+
+    assert disagreement_limit(3.5, 4.0) == pytest.approx(5.68, abs=0.02)  # t(8), a tail of 2.3e-4: between the tables' 5.04 (5e-4) and 6.44 (1e-4)
+    assert 3.5 < disagreement_limit(3.5, 110.0) < 3.65 and disagreement_limit(3.5, 1e6) == pytest.approx(3.5, abs=1e-3)
 
 
 def test_drift_shifts_leave_the_maps_scale_and_heading_to_the_global_fit():

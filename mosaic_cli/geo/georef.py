@@ -290,15 +290,31 @@ def georeference(
                         drift.scales, nadir_ground, model, hfov, track, prior, notes, warnings)
 
 
-def gps_floor(times: np.ndarray, correlation: float) -> float:
-    """The least robust scatter (metres) to take the GPS fixes at ``times`` (seconds) as having:
-    GPS_FLOOR, or where the fixes are worth few independent ones (fit.fix_weights: errors
-    correlated over ``correlation`` seconds), the typical receiver's scatter weighed in against
-    what 2 x worth - 4 degrees of freedom (a similarity's four parameters) could tell: a 10 s
-    track's handful of fixes leave about 3 m, a minute's 1.3 m; from about two minutes on, GPS_FLOOR."""
+def gps_dof(times: np.ndarray, correlation: float) -> float:
+    """The degrees of freedom GPS fixes at ``times`` (seconds) give their own scatter: 2 x what
+    they are worth as independent fixes (fit.fix_weights: errors correlated over
+    ``correlation`` seconds), less a similarity's four parameters."""
     worth = float(fix_weights(np.asarray(times, np.float64), np.ones(len(times), bool), correlation).sum())
-    dof = max(2.0 * worth - 4.0, 0.0)
+    return max(2.0 * worth - 4.0, 0.0)
+
+
+def gps_floor(times: np.ndarray, correlation: float) -> float:
+    """The least robust scatter (metres) to take the GPS fixes at ``times`` as having: GPS_FLOOR,
+    or where the fixes tell little of their own (``gps_dof``), the typical receiver's weighed in
+    against them: a 10 s track's handful of fixes leave about 3 m, a minute's 1.3 m; from about
+    two minutes on, GPS_FLOOR."""
+    dof = gps_dof(times, correlation)
     return max(GPS_FLOOR, GPS_TYPICAL * math.sqrt(GPS_TYPICAL_DOF / (dof + GPS_TYPICAL_DOF)))
+
+
+def disagreement_limit(sigmas: float, dof: float) -> float:
+    """How far apart, in estimated sigmas, two scales may lie when the GPS's sigma is itself
+    estimated on ``dof`` degrees of freedom (with the typical receiver's): as unlikely as
+    ``sigmas`` normal sigmas, in Student's t.  About ``sigmas`` for a long track, more for a
+    short one (8 degrees of freedom: 3.5 -> 5.6)."""
+    from scipy.stats import norm, t
+
+    return float(t.isf(norm.sf(sigmas), dof + GPS_TYPICAL_DOF))
 
 
 def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.ndarray, ground: np.ndarray,
@@ -306,7 +322,8 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.n
                         warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
     """The fit and the prior to go on with: as they are when the prior has no scale, or when
     the height x field of view scale agrees with the GPS track's own within
-    ``options.max_scale_disagreement`` combined sigmas; else (a wrong --hfov, a nominal focal
+    ``options.max_scale_disagreement`` combined sigmas (as unlikely, in Student's t, where the
+    GPS's sigma comes from few fixes: ``disagreement_limit``); else (a wrong --hfov, a nominal focal
     length of another video mode, ground far below the take-off point) the GPS's scale, and a
     warning.  The GPS positions are what was measured on this flight: where the track is long
     enough to tell them apart, they are trusted."""
@@ -320,7 +337,7 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.n
     weights = fix_weights(times, inliers, options.drift.correlation)
     gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
     apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior.sigma)
-    if apart <= options.max_scale_disagreement:
+    if apart <= disagreement_limit(options.max_scale_disagreement, gps_dof(times, options.drift.correlation)):
         return fit, prior
     warnings.append(
         f"the height and field of view ({hfov or math.nan:.1f} deg) make the map {100 * (prior.scale / gps.scale - 1):+.1f}% the size the "
