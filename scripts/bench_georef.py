@@ -136,13 +136,22 @@ def bench_mapping(args) -> None:
 
 
 def bench_short(args) -> None:
+    """Short flights, seconds long, where the GPS barely averages out: the simulator's own
+    profiles (its default 3 m GPS error), the docs' example (``mosaic simulate -o flight.mp4 -p
+    survey --telemetry srt``: 10 s at 1280x720) and the tests' noisy flight on three seeds."""
+    flights = [(f"{profile}, 600 frames at 30 fps", f"short_{profile}", ["-p", profile, "-n", "600", "--size", "640x360", "--gsd", "0.02"])
+               for profile in ("paper", "survey")]
+    flights.append(("survey, the docs' example (300 frames, 1280x720)", "short_example", ["-p", "survey"]))
+    flights += [(f"survey, 150 frames at 320x180, seed {seed} (the tests' noisy flight)", f"short_tests_s{seed}",
+                 ["-p", "survey", "-n", "150", "--size", "320x180", "--seed", str(seed), "--gps-dropouts", "0.02", "--baro-bias", "0.5",
+                  "--gsd", "0.05"]) for seed in (2, 3, 4)]
     rows = []
-    for profile in ("paper", "survey"):
-        video = args.workdir / f"short_{profile}.mp4"
+    for name, stem, options in flights:
+        video = args.workdir / f"{stem}.mp4"
         if not video.exists():
-            subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", profile, "-n", "600",
-                            "--size", "640x360", "--telemetry", "srt", "--gsd", "0.02", "--preset", "veryfast", "-q"], check=True)
-        rows.append((f"{profile}, 600 frames at 30 fps", run_stitch(video, video.with_suffix(".SRT"))))
+            subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), *options, "--telemetry", "srt",
+                            "--preset", "veryfast", "-q"], check=True)
+        rows.append((name, run_stitch(video, video.with_suffix(".SRT"))))
     report(rows, "python scripts/bench_georef.py short")
 
 
@@ -166,6 +175,8 @@ def bench_refit(args) -> None:
         options = replace(options, hfov=args.hfov)
     if args.link_fraction is not None:
         options = replace(options, drift=DriftOptions(link_fraction=args.link_fraction))
+    if args.scale_step is not None:
+        options = replace(options, drift=replace(options.drift, scale_step=args.scale_step))
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         video = args.workdir / f"mapping_s{seed}.mp4"
         record = video.with_suffix(".placements.npz")
@@ -354,6 +365,7 @@ def main() -> None:
     parser.add_argument("--gimbal-accuracy", type=float, default=1.0, help="refit: degrees (GeorefOptions.attitude_accuracy)")
     parser.add_argument("--no-gimbal", action="store_true", help="refit: the tilt from the GPS alone, as before adjust.py")
     parser.add_argument("--link-fraction", type=float, help="refit: DriftOptions.link_fraction of the GPS drift shifts")
+    parser.add_argument("--scale-step", type=float, help="refit, --level-ground: DriftOptions.scale_step (the heights' scales' stiffness)")
     parser.add_argument("--height-accuracy", type=float, help="refit: metres (GeorefOptions.height_accuracy)")
     parser.add_argument("--baro-bias", type=float, help="refit: metres RMS: the log's heights simulated again with this barometric offset")
     parser.add_argument("--hfov", type=float, help="refit: degrees, in place of the log's (GeorefOptions.hfov)")
