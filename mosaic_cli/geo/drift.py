@@ -13,7 +13,9 @@ ground again later (neighbouring survey lines, loops: drift control registered t
 other) move together.  The images say where keyframes lie relative to each other to ``s`` (a
 fraction of their distance), the GPS (with its robust weights w_k) where they lie.  GPS noise
 correlated over a few seconds cannot bend the result: a shift has to be shared by many
-keyframes' fixes, over many metres, before it outweighs the images.
+keyframes' fixes, over many metres, before it outweighs the images.  What the shifts share
+with a change of the whole map's scale and heading is taken off them: the global fit weighed
+those against the height and the compass (on a short flight the GPS alone would take them).
 
 The chained registrations also drift in scale: along a survey line the keyframes grow or
 shrink by a few percent, and neighbouring lines shrink alike (the loops between them see no
@@ -38,6 +40,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 from scipy.spatial import cKDTree
+
+from mosaic_cli.geo.fit import SCATTER
 
 
 @dataclass
@@ -191,4 +195,4 @@ def _height_scatter(heights: np.ndarray, o: DriftOptions) -> float:
     barometer's noise leaves in each keyframe's scale, the slow changes the images' drift."""
     r = heights[np.isfinite(heights)]
     steps = np.abs(np.diff(r))
-    return max(1.4826 * float(np.median(steps)) / math.sqrt(2.0), o.height_floor)
+    return max(SCATTER * float(np.median(steps)) / math.sqrt(2.0), o.height_floor)

@@ -74,7 +74,8 @@ class GeorefOptions:
     height_accuracy: float = 0.5
     fov_accuracy: float = 0.01
     compass_accuracy: float = 3.0
-    # a height x field of view scale this many combined sigmas from the GPS's own is not used (said)
+    # a height x field of view scale this many combined sigmas from the GPS's own (as unlikely, in
+    # Student's t, on a short track's few fixes: disagreement_limit) is not used (said)
     max_scale_disagreement: float = 3.5
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
     # The ground under the whole flight is level with the take-off point (to about the height's
@@ -311,7 +312,7 @@ def disagreement_limit(sigmas: float, dof: float) -> float:
     """How far apart, in estimated sigmas, two scales may lie when the GPS's sigma is itself
     estimated on ``dof`` degrees of freedom (with the typical receiver's): as unlikely as
     ``sigmas`` normal sigmas, in Student's t.  About ``sigmas`` for a long track, more for a
-    short one (8 degrees of freedom: 3.5 -> 5.6)."""
+    short one (8 degrees of freedom: 3.5 -> 5.7)."""
     from scipy.stats import norm, t
 
     return float(t.isf(norm.sf(sigmas), dof + GPS_TYPICAL_DOF))
