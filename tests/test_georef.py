@@ -233,13 +233,26 @@ def test_live_stitch_with_telemetry_file_is_georeferenced(flights, tmp_path):
     assert kinds.count("footprint") == len(json.loads(tr.read_text())["frames"])
 
 
-def test_live_stream_footprints_need_a_telemetry_file(capsys, tmp_path):
-    """A stream cannot be searched for an embedded track: --footprints needs --telemetry (said
-    before the stream is read)."""
-    code, err = run_cli(capsys, "stitch", "-", "-o", tmp_path / "m.tif", "--footprints", tmp_path / "f.geojson", "-q",
-                        "--estimator", "orb")
-    assert_one_line_error(code, err, "--footprints", "--telemetry")
+@pytest.mark.parametrize("flag", ["--footprints", "--level-ground"])
+def test_live_stream_georef_flags_need_a_telemetry_file(capsys, tmp_path, flag):
+    """A stream cannot be searched for an embedded track: --footprints and --level-ground need
+    --telemetry (said before the stream is read)."""
+    extra = [flag, tmp_path / "f.geojson"] if flag == "--footprints" else [flag]
+    code, err = run_cli(capsys, "stitch", "-", "-o", tmp_path / "m.tif", *extra, "-q", "--estimator", "orb")
+    assert_one_line_error(code, err, flag, "--telemetry")
     assert not (tmp_path / "m.tif").exists()
+
+
+@pytest.mark.parametrize("flag", ["--footprints", "--level-ground"])
+def test_georef_flags_on_a_video_without_a_track_are_one_clear_line(capsys, tmp_path, flag):
+    """A video with no telemetry inside and no --telemetry: a georeferencing flag is an error,
+    not silently dropped."""
+    video = tmp_path / "plain.mp4"
+    mosaic("simulate", "-o", video, "-n", "20", "--size", "160x90", "--preset", "ultrafast", "-q")
+    extra = [flag, tmp_path / "f.geojson"] if flag == "--footprints" else [flag]
+    code, err = run_cli(capsys, "stitch", video, "-o", tmp_path / "m.png", *extra, "-q", "--estimator", "orb")
+    assert_one_line_error(code, err, f"{flag} needs telemetry")
+    assert not (tmp_path / "m.png").exists()
 
 
 def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):

@@ -31,10 +31,11 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
         track = read_telemetry(options.telemetry)
     else:
         track = find_telemetry(video, info)
-    if track is None and options.footprints is not None:
-        raise BadInput(f"--footprints needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
+    wanted = [flag for flag, given in (("--footprints", options.footprints is not None), ("--level-ground", options.level_ground)) if given]
+    if track is None and wanted:
+        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
     if track is not None and not track.has_fix.any():
-        if options.telemetry is None:
+        if options.telemetry is None and not wanted:
             return None  # an embedded track without positions: a plain panorama, as without one
         raise BadInput(f"{track.source}: no GPS fix in its {len(track)} samples (all without coordinates)")
     if track is not None and span is not None and span[1] > span[0]:
