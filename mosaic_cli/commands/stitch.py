@@ -163,10 +163,10 @@ def _georef_options(telemetry: str | None, hfov: float | None, offset: float, fo
     from mosaic_cli.errors import BadInput
     from mosaic_cli.geo.georef import GeorefOptions
 
+    options = GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints,
+                            level_ground=level_ground)
     if telemetry is not None and telemetry.strip().lower() == "none":
-        for flag, given in (("--footprints", footprints is not None), ("--level-ground", level_ground)):
-            if given:
-                raise BadInput(f"{flag} needs telemetry (--telemetry none was given)")
+        if wanted := options.without_telemetry():
+            raise BadInput(f"{wanted[0]} needs telemetry (--telemetry none was given)")
         return None
-    return GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints,
-                         level_ground=level_ground)
+    return options

@@ -87,6 +87,10 @@ class GeorefOptions:
     def __post_init__(self) -> None:
         self.validate()
 
+    def without_telemetry(self) -> list[str]:
+        """The flags given that mean nothing without a GPS track (said when there is none)."""
+        return [flag for flag, given in (("--footprints", self.footprints is not None), ("--level-ground", self.level_ground)) if given]
+
     def validate(self) -> None:
         if self.attitude_accuracy is not None and not 0 < self.attitude_accuracy <= 90:
             raise BadInput(f"the gimbal's attitude accuracy must be between 0 and 90 degrees, got {self.attitude_accuracy}")

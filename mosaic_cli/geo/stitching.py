@@ -31,7 +31,7 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
         track = read_telemetry(options.telemetry)
     else:
         track = find_telemetry(video, info)
-    wanted = [flag for flag, given in (("--footprints", options.footprints is not None), ("--level-ground", options.level_ground)) if given]
+    wanted = options.without_telemetry()
     if track is None and wanted:
         raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
     if track is not None and not track.has_fix.any():

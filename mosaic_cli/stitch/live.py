@@ -360,9 +360,8 @@ def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool
     if georef is None:
         return None
     if live and georef.telemetry is None:
-        for flag, given in (("--footprints", georef.footprints is not None), ("--level-ground", georef.level_ground)):
-            if given:
-                raise BadInput(f"{flag} with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
+        if wanted := georef.without_telemetry():
+            raise BadInput(f"{wanted[0]} with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
         return None
     return load_track(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan
 
