@@ -52,7 +52,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.reader import Decoder, frame_at, scaled_size
+from mosaic_cli.video.reader import Decoder, frame_at, frames_at, scaled_size
 
 # Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
 LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
@@ -575,9 +575,9 @@ class VideoSamples:
         if total is None or info.duration <= 0:
             if self._picks is None:
                 self._picks = _picked_by_decoding(_count_frames(info), count)
-            return _frames_at(info, self._picks, width)
+            return frames_at(info, self._picks, width)
         if total <= DECODE_ALL_BELOW:
-            return _frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
+            return frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
         return _sample_by_seeking(count, width, info)
 
 
@@ -600,16 +600,6 @@ def sample_width(source_size: tuple[int, int], options: OverlayOptions | None = 
 
 def _picked(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
-
-
-def _frames_at(info: VideoInfo, indices, width: int) -> Iterator[np.ndarray]:
-    """The RGB frames of ``indices`` (sorted), one decoder pass that converts and pipes only
-    those (as :func:`mosaic_cli.video.reader.frames_at`), yielded as they come."""
-    if len(indices) == 0:
-        return
-    picks = "+".join(f"eq(n\\,{int(k)})" for k in indices)
-    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'") as decoder:
-        yield from decoder
 
 
 def _sample_folder(folder: Path, count: int, width: int) -> Iterator[np.ndarray]:

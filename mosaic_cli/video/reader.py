@@ -487,12 +487,14 @@ def open_video(
     return stream
 
 
-def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None) -> list[np.ndarray]:
+def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None) -> Iterator[np.ndarray]:
     """The RGB frames of ``indices`` (sorted), in one decoder pass that converts and pipes only
-    those (ffmpeg's select filter); fewer when the file ends first."""
+    those (ffmpeg's select filter), yielded as they come; fewer when the file ends first."""
+    if len(indices) == 0:
+        return
     picks = "+".join(f"eq(n\\,{int(k)})" for k in indices)
     with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'") as decoder:
-        return list(decoder)
+        yield from decoder
 
 
 def frame_at(info: VideoInfo, seconds: float, width: int | None = None) -> np.ndarray | None:
