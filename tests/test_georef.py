@@ -144,12 +144,12 @@ def test_stitch_with_noisy_gps_keeps_shape_and_place(flights, tmp_path):
 def test_a_short_tracks_few_fixes_are_taken_at_a_receivers_error_not_their_own_scatter():
     """Five fixes over 10 s say little of their own scatter (the similarity takes 4 of their 10
     coordinates): the floor under it is a typical receiver's until the track is long enough."""
-    from mosaic_cli.geo.georef import GPS_FLOOR, GPS_TYPICAL, gps_floor
+    from mosaic_cli.geo.georef import GPS_FLOOR, GPS_TYPICAL, gps_dof, gps_floor
 
-    short = gps_floor(np.arange(0.0, 10.0, 2.0), 2.0)
+    short = gps_floor(gps_dof(np.arange(0.0, 10.0, 2.0), 2.0))
     assert GPS_FLOOR < short < GPS_TYPICAL
-    assert gps_floor(np.arange(0.0, 60.0, 2.0), 2.0) < short
-    assert gps_floor(np.arange(0.0, 251.0, 2.1), 2.0) == GPS_FLOOR  # the mapping flights: their own scatter
+    assert gps_floor(gps_dof(np.arange(0.0, 60.0, 2.0), 2.0)) < short
+    assert gps_floor(gps_dof(np.arange(0.0, 251.0, 2.1), 2.0)) == GPS_FLOOR  # the mapping flights: their own scatter
     # and a scale that far from the height's is judged by Student's t on those few degrees of
     # freedom: 3.5 normal sigmas are 5.7 on eight, and tend to 3.5 as the track grows
     from mosaic_cli.geo.georef import disagreement_limit

@@ -227,7 +227,8 @@ def georeference(
             f"{track.source}: the GPS track spans only {extent:.0f} m, too little to fix scale and heading against GPS "
             f"noise; the telemetry needs a height, a heading and a field of view (--hfov) to place such a short flight"
         )
-    floor = gps_floor(times[fixes], options.drift.correlation)
+    dof = gps_dof(times[fixes], options.drift.correlation)
+    floor = gps_floor(dof)
     fit = fit_similarity(mosaic[fixes], ground, prior, min_sigma=floor, times=times[fixes], correlation=options.drift.correlation)
 
     # 4. does the telemetry belong to these images?
@@ -245,7 +246,7 @@ def georeference(
         )
     warnings: list[str] = []
     if prior is not None:
-        fit, prior = _check_height_scale(fit, prior, mosaic[fixes], ground, times[fixes], options, hfov, warnings)
+        fit, prior = _check_height_scale(fit, prior, mosaic[fixes], ground, times[fixes], dof, options, hfov, warnings)
     to_ground = fit.matrix
     model = "similarity"
     inliers, sigma = fit.inliers, fit.sigma
@@ -303,12 +304,11 @@ def gps_dof(times: np.ndarray, correlation: float) -> float:
     return max(2.0 * worth - 4.0, 0.0)
 
 
-def gps_floor(times: np.ndarray, correlation: float) -> float:
-    """The least robust scatter (metres) to take the GPS fixes at ``times`` as having: GPS_FLOOR,
-    or where the fixes tell little of their own (``gps_dof``), the typical receiver's weighed in
-    against them: a 10 s track's handful of fixes leave about 3 m, a minute's 1.3 m; from about
-    two minutes on, GPS_FLOOR."""
-    dof = gps_dof(times, correlation)
+def gps_floor(dof: float) -> float:
+    """The least robust scatter (metres) to take GPS fixes of ``dof`` degrees of freedom
+    (``gps_dof``) as having: GPS_FLOOR, or where the fixes tell little of their own, the typical
+    receiver's weighed in against them: a 10 s track's handful of fixes leave about 3 m, a
+    minute's 1.3 m; from about two minutes on, GPS_FLOOR."""
     return max(GPS_FLOOR, GPS_TYPICAL * math.sqrt(GPS_TYPICAL_DOF / (dof + GPS_TYPICAL_DOF)))
 
 
@@ -323,7 +323,7 @@ def disagreement_limit(sigmas: float, dof: float) -> float:
 
 
 def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.ndarray, ground: np.ndarray,
-                        times: np.ndarray, options: GeorefOptions, hfov: float | None,
+                        times: np.ndarray, dof: float, options: GeorefOptions, hfov: float | None,
                         warnings: list[str]) -> tuple[SimilarityFit, SimilarityPrior]:
     """The fit and the prior to go on with: as they are when the prior has no scale, or when
     the height x field of view scale agrees with the GPS track's own within
@@ -331,18 +331,18 @@ def _check_height_scale(fit: SimilarityFit, prior: SimilarityPrior, mosaic: np.n
     GPS's sigma comes from few fixes: ``disagreement_limit``); else (a wrong --hfov, a nominal focal
     length of another video mode, ground far below the take-off point) the GPS's scale, and a
     warning.  The GPS positions are what was measured on this flight: where the track is long
-    enough to tell them apart, they are trusted."""
+    enough to tell them apart, they are trusted.  ``dof``: the fixes' degrees of freedom (``gps_dof``)."""
     from dataclasses import replace
 
     if prior.sigma is None:
         return fit, prior
-    gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=gps_floor(times, options.drift.correlation), times=times,
+    gps = fit_similarity(mosaic, ground, replace(prior, sigma=None), min_sigma=gps_floor(dof), times=times,
                          correlation=options.drift.correlation)
     inliers = gps.inliers
     weights = fix_weights(times, inliers, options.drift.correlation)
     gps_sigma = scale_sigma(ground[inliers], weights[inliers], axis_sigma(gps.sigma))
     apart = sigmas_apart(gps.scale, gps_sigma, prior.scale, prior.sigma)
-    if apart <= disagreement_limit(options.max_scale_disagreement, gps_dof(times, options.drift.correlation)):
+    if apart <= disagreement_limit(options.max_scale_disagreement, dof):
         return fit, prior
     warnings.append(
         f"the height and field of view ({hfov or math.nan:.1f} deg) make the map {100 * (prior.scale / gps.scale - 1):+.1f}% the size the "
