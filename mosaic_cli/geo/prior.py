@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mosaic_cli.geo.fit import SCATTER
+
 SCREEN = 5.0  # robust sigmas: a keyframe's estimate this far from the median is a misread height
 SCREEN_FLOOR = 0.005  # relative: the screen never closer than this (an exact log has no scatter)
 
@@ -54,7 +56,7 @@ def height_scale(heights: np.ndarray, focal: float, mosaic_per_pixel: np.ndarray
     estimates = np.full(len(heights), np.nan)
     estimates[known] = np.log(heights[known] / focal / per_pixel[known])
     centre = float(np.median(estimates[known]))
-    spread = 1.4826 * float(np.median(np.abs(estimates[known] - centre)))
+    spread = SCATTER * float(np.median(np.abs(estimates[known] - centre)))
     kept = known & (np.abs(estimates - centre) <= max(SCREEN * spread, SCREEN_FLOOR))
     n = int(kept.sum())
     scatter = float(np.var(estimates[kept])) / n if n > 1 else 0.0
