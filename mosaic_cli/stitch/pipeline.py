@@ -34,7 +34,7 @@ from mosaic_cli.estimators import Estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
-from mosaic_cli.geometry import normalize, resize_matrix
+from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.inputs import check_max_frames, check_timeout
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
@@ -321,9 +321,11 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
         extra = [
             dataclasses.replace(l, a=local[l.a], b=local[l.b]) for l in joined.links if l.a in local and l.b in local
         ]
+        chained = chain_sequence(sequence, placements, ref)
         if not options.registration.enabled or len(members) < 2:
-            placements, report = chain_sequence(sequence, placements, ref), RegistrationReport()
+            placements, report = chained, RegistrationReport()
         else:
+            placements = _start(placements, chained, scan.source_size, options.keyframes)
             if track is not None:  # geo hook: drift control starts from GPS-straightened placements
                 assert options.georef is not None
                 straighten = gps_straightener(track, ref, indices, scan.source_size, scan.fps, options.georef)
@@ -334,6 +336,13 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
         _add_report(total, report)
         groups.append((members, placements, ref, len({segments[k] for k in members})))
     return groups, total
+
+
+def _start(world: list[np.ndarray], chained: list[np.ndarray], size, options: KeyframeOptions) -> list[np.ndarray]:
+    """Drift control's starting placements: the scan's registrations chained in full (their
+    perspective included), or the scan's affine world where that chain folds a keyframe."""
+    limit = options.max_scale_change**2
+    return chained if all(is_valid(H, size, max_area_ratio=limit) for H in chained) else world
 
 
 def _add_report(total: RegistrationReport, report: RegistrationReport) -> None:

@@ -3,11 +3,11 @@
 Chaining accumulates error: a long flight bends.  Consecutive keyframes were registered
 directly during the scan (one SIFT match instead of dozens of chained estimates); here the
 keyframes that see the same ground again (loops, neighbouring survey lines) are registered as
-well, and one robust least-squares problem (scipy ``least_squares``, soft-L1 loss over each
-registration's homography at its inlier locations, measured in the keyframes' own pixels, each
-pair weighted by its inlier count) places every keyframe in the reference keyframe's frame at
-once.  A loop closure that disagrees with the rest is dropped and the problem solved again, so
-one bad match cannot bend the panorama.
+well, and one robust least-squares problem (soft-L1 loss over each registration's homography
+at its inlier locations, measured in the keyframes' own pixels, each pair weighted by its
+inlier count; Levenberg-Marquardt with exact sparse steps, run to convergence) places every
+keyframe in the reference keyframe's frame at once.  A loop closure that disagrees with the
+rest is dropped and the problem solved again, so one bad match cannot bend the panorama.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Callable, ContextManager
 
 import numpy as np
 import scipy.sparse
-from scipy.optimize import least_squares
+import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 
 from mosaic_cli.errors import BadInput
@@ -43,7 +43,8 @@ class RegistrationOptions:
     chain_weight: float = 0.3  # weight of a point of a chained (estimator-only) link against a registered one
     loss_scale: float = 1.5  # pixels: soft-L1 turns from quadratic to linear here
     outlier_residual: float = 5.0  # pixels: median residual above which a loop pair is dropped
-    max_evaluations: int = 200
+    max_evaluations: int = 200  # Levenberg-Marquardt steps at most
+    tolerance: float = 1e-10  # relative fall of the cost below which the refinement has converged
     loop_rounds: int = 2  # look for loops again once the placements are refined
 
     def __post_init__(self) -> None:
@@ -342,6 +343,9 @@ class _Problem:
         rho[2] = -0.5 * self.weight / (root * (1 + t)) / scale**2
         return rho
 
+    def cost(self, residuals: np.ndarray, scale: float) -> float:
+        return 0.5 * float(self.loss(residuals**2, scale)[0].sum())
+
     def jacobian(self, x: np.ndarray) -> scipy.sparse.csr_matrix:
         u, B = self._transfer(x)
         w = u[:, 2]
@@ -406,16 +410,33 @@ def refine_placements(
 
 
 def _solve(problem: _Problem, x0: np.ndarray, options: RegistrationOptions) -> np.ndarray:
-    result = least_squares(
-        problem.residuals,
-        x0,
-        jac=problem.jacobian,
-        method="trf",
-        loss=lambda z: problem.loss(z, options.loss_scale),
-        x_scale="jac",
-        tr_solver="lsmr",
-        max_nfev=options.max_evaluations,
-        xtol=1e-10,
-        ftol=1e-8,
-    )
-    return result.x
+    """Levenberg-Marquardt on the robust cost, each step an exact sparse solve of the
+    reweighted normal equations (soft-L1 as iteratively reweighted least squares), run until
+    the cost stops falling.  The cost has directions it barely changes along (a flight's
+    keyframes growing a few hundredths of a percent each, seen by the links as hundredths of a
+    pixel): an inexact inner solver (LSMR in scipy's trust region) leaves them where the
+    starting placements had them, and stops at its evaluation budget."""
+    x = np.array(x0, dtype=np.float64)
+    f = problem.residuals(x)
+    cost = problem.cost(f, options.loss_scale)
+    damping = 1e-3
+    for _ in range(options.max_evaluations):
+        J = problem.jacobian(x)
+        weighted = (J.T @ scipy.sparse.diags(problem.loss(f**2, options.loss_scale)[1])).tocsr()
+        normal = (weighted @ J).tocsc()
+        gradient = weighted @ f
+        diagonal = np.maximum(normal.diagonal(), 1e-12 * max(1.0, float(normal.diagonal().max(initial=0.0))))
+        while True:
+            step = scipy.sparse.linalg.spsolve(normal + scipy.sparse.diags(damping * diagonal), -gradient)
+            f_new = problem.residuals(x + step)
+            cost_new = problem.cost(f_new, options.loss_scale)
+            if np.isfinite(cost_new) and cost_new < cost:
+                damping = max(damping / 3.0, 1e-12)
+                break
+            damping *= 4.0
+            if damping > 1e8:
+                return x
+        x, f, gained, cost = x + step, f_new, cost - cost_new, cost_new
+        if gained <= options.tolerance * cost:
+            break
+    return x
