@@ -43,7 +43,7 @@ class RegistrationOptions:
     chain_weight: float = 0.3  # weight of a point of a chained (estimator-only) link against a registered one
     loss_scale: float = 1.5  # pixels: soft-L1 turns from quadratic to linear here
     outlier_residual: float = 5.0  # pixels: median residual above which a loop pair is dropped
-    max_evaluations: int = 200  # Levenberg-Marquardt steps at most
+    max_steps: int = 200  # Levenberg-Marquardt steps at most (each accepted step; rejected tries are not counted)
     tolerance: float = 1e-10  # relative fall of the cost below which the refinement has converged
     loop_rounds: int = 2  # look for loops again once the placements are refined
 
@@ -420,7 +420,7 @@ def _solve(problem: _Problem, x0: np.ndarray, options: RegistrationOptions) -> n
     f = problem.residuals(x)
     cost = problem.cost(f, options.loss_scale)
     damping = 1e-3
-    for _ in range(options.max_evaluations):
+    for _ in range(options.max_steps):
         J = problem.jacobian(x)
         weighted = (J.T @ scipy.sparse.diags(problem.loss(f**2, options.loss_scale)[1])).tocsr()
         normal = (weighted @ J).tocsc()
