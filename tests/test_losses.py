@@ -20,6 +20,7 @@ from mosaic_cli.geometry.tensor import cumulative, frame_corners
 from mosaic_cli.model import VARIANTS, HomographyNet, NetConfig
 from mosaic_cli.model.patches import homography_to_offsets
 from mosaic_cli.train.losses import (
+    band_pass,
     chain_consistency,
     corner_distance,
     photometric,
@@ -176,9 +177,11 @@ def test_oracle_makes_every_term_vanish(panning_frames):
     assert float(wrong["photometric"]) > 20 * float(out["photometric"]) and float(wrong["temporal2"]) > 20 * float(out["temporal2"])
 
 
-def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography():
+@pytest.mark.parametrize("space", ["gray", "band"])
+def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography(space):
     """Free corner offsets, optimised on one frame pair related by a known homography (rotation,
-    zoom, tilt and shift): the loss and its gradient lead to the true offsets."""
+    zoom, tilt and shift): the loss and its gradient lead to the true offsets.  In the band
+    space, also when the second frame is darker, lower in contrast and vignetted."""
     W_, H_ = 320, 180
     tex = cv2.GaussianBlur(cv2.cvtColor(textured_image(600, 400, seed=5), cv2.COLOR_RGB2GRAY), (0, 0), 2.0)
     x, y = 100, 80
@@ -190,6 +193,10 @@ def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography():
     to_texture = np.array([[1, 0, x], [0, 1, y], [0, 0, 1.0]])
     f0 = cv2.warpPerspective(tex, to_texture, (W_, H_), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
     f1 = cv2.warpPerspective(tex, to_texture @ np.linalg.inv(truth), (W_, H_), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    if space == "band":
+        yy, xx = np.mgrid[:H_, :W_]
+        vignette = 1 - 0.4 * (((xx - W_ / 2) / (W_ / 2)) ** 2 + ((yy - H_ / 2) / (H_ / 2)) ** 2) / 2
+        f1 = 0.6 * f1 * vignette + 20
     frames = torch.tensor(np.stack([f0, f1]), dtype=torch.float32)[None, :, None] / 127.5 - 1
 
     class FreeOffsets(nn.Module):
@@ -200,7 +207,7 @@ def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography():
         def forward(self, patches, state=None):
             return self.offsets.expand(*patches.shape[:2], 4, 2), None
 
-    model, objective = FreeOffsets(), Objective("base")
+    model, objective = FreeOffsets(), Objective("base", photometric_space=space)
     optimiser = torch.optim.Adam(model.parameters(), lr=0.1)
     for _ in range(150):
         loss = objective(model, batch_of(frames, [(96, 26)]))["total"]
@@ -209,6 +216,30 @@ def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography():
         optimiser.step()
     expected = homography_to_offsets(torch.tensor(truth), torch.tensor([96, 26]), 128).float()
     assert (model.offsets.detach() - expected).abs().max() < 0.1, (model.offsets, expected)
+
+
+def test_band_pass_is_blind_to_gain_and_offset_and_keeps_the_shift(panning_frames):
+    frames = panning_frames[0, :2]  # (2, 1, h, w)
+    band = band_pass(frames)
+    assert band.shape == frames.shape
+    rms = band.square().mean(dim=(-1, -2)).sqrt()
+    torch.testing.assert_close(rms, torch.ones_like(rms), atol=5e-3, rtol=0)  # but for the 1e-4 floor
+    torch.testing.assert_close(band_pass(0.5 * frames - 0.3), band, atol=1e-2, rtol=1e-2)
+    # the band of frame 1 is the band of frame 0 moved by STEP (away from the blur's borders)
+    a = band[0, 0, 40:-40, 40:-40]
+    b = band[1, 0, 40 + STEP[1] : H_ - 40 + STEP[1], 40 + STEP[0] : W - 40 + STEP[0]]
+    torch.testing.assert_close(a, b, atol=0.05, rtol=0)
+
+
+def test_oracle_makes_the_band_terms_vanish_too(panning_frames):
+    frames = panning_frames[:, :4]
+    objective = Objective("reg-all", window=4, photometric_space="band")
+    out = objective(PhaseOracle(), batch_of(frames, [(96, 26), (20, 40)]))
+    wrong = Objective("reg-t", window=4, photometric_space="band")(PhaseOracle(flip=True), batch_of(frames, [(96, 26)]))
+    for name in ("photometric", "temporal2"):
+        assert float(wrong[name]) > 20 * float(out[name]), (out, wrong)
+    with pytest.raises(ValueError, match="photometric_space"):
+        Objective("base", photometric_space="color")
 
 
 def test_scale_term_halves_child_offsets(panning_frames):

@@ -176,6 +176,29 @@ def test_frame_cache_holds_the_exact_frames_and_windows_are_consecutive(tmp_path
     assert again == cached and Path(cached[0].file).stat().st_mtime_ns == mtime
 
 
+def test_flip_mirrors_whole_windows_and_leaves_unflipped_runs_as_they_were(tmp_path):
+    frames = pan_frames(20)
+    clip = write_png_folder(tmp_path / "clip", frames)
+    cached = build_frame_cache([clip], tmp_path / "cache", WORK, window=4, budget_bytes=1e9, workers=0,
+                               show_progress=False)
+    plain = WindowDataset(cached, window=4, positions=3, patch=PATCH, seed=7)
+    flipped = WindowDataset(cached, window=4, positions=3, patch=PATCH, seed=7, flip=True)
+    mirrors = {
+        "none": lambda w: w, "left-right": lambda w: w[:, :, ::-1],
+        "upside-down": lambda w: w[:, ::-1, :], "both": lambda w: w[:, ::-1, ::-1],
+    }
+    seen = dict.fromkeys(mirrors, 0)
+    for index in range(200):
+        a, b = plain[index], flipped[index]
+        # The same window and patch positions: the flip is drawn after everything else.
+        torch.testing.assert_close(a["positions"], b["positions"])
+        window, mirrored = a["frames"][:, 0].numpy(), b["frames"][:, 0].numpy()
+        found = [name for name, mirror in mirrors.items() if np.array_equal(mirrored, mirror(window))]
+        assert found, "a flipped window must be the plain window mirrored as a whole"
+        seen[found[0]] += 1
+    assert all(20 < count < 80 for count in seen.values()), seen  # each about a quarter of the time
+
+
 def test_frame_cache_stays_within_its_budget_with_segments_of_real_consecutive_frames(tmp_path):
     frames = pan_frames(300, speed=1.0)
     clip = write_png_folder(tmp_path / "long", frames)

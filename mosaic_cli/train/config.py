@@ -13,6 +13,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import check_threads
 from mosaic_cli.model.network import PRESETS as NET_PRESETS
 from mosaic_cli.model.network import VARIANTS
+from mosaic_cli.train.losses import PHOTOMETRIC_SPACES
 
 PRESETS = tuple(NET_PRESETS)
 DEVICES = ("auto", "cpu", "cuda")
@@ -26,7 +27,7 @@ PAPER_REG_BATCH = 32
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
-                "work_size", "patch")
+                "work_size", "patch", "flip", "photometric")
 
 
 def paper_steps(variant: str) -> int:
@@ -59,6 +60,8 @@ class TrainConfig:
     checkpoint_minutes: float = 15.0  # also checkpoint when this long has passed (slow CPU runs)
     work_size: tuple[int, int] = (320, 180)
     patch: int = 128
+    photometric: str = "gray"  # what the photometric terms compare: "gray" (the paper) or "band" (band-passed)
+    flip: bool = False  # mirror windows left-right and/or upside down (off: runs saved before it resume unchanged)
     num_workers: int = 1
     threads: int | None = None  # torch CPU threads per process; None: torch's default (all cores)
     cache_gb: float = 8.0  # disk budget of the decoded-frame cache in RUN_DIR/cache
@@ -74,6 +77,8 @@ class TrainConfig:
             raise BadInput(f"unknown --variant {self.variant!r}: choose one of {', '.join(VARIANTS)}")
         if self.preset not in PRESETS:
             raise BadInput(f"unknown --preset {self.preset!r}: choose one of {', '.join(PRESETS)}")
+        if self.photometric not in PHOTOMETRIC_SPACES:
+            raise BadInput(f"unknown --photometric {self.photometric!r}: choose one of {', '.join(PHOTOMETRIC_SPACES)}")
         if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
             raise BadInput(f"unknown --device {self.device!r}: choose one of {', '.join(DEVICES)}")
         checks = [

@@ -12,7 +12,9 @@ Stages:
    video): clips longer than their share keep evenly spread segments of consecutive frames.
 3. ``WindowDataset``: sample ``index`` is a window of K consecutive frames of a random clip
    at a random start, time-reversed half of the time (free augmentation: the reversed
-   sequence is as valid a flight as the forward one), with M random patch top-lefts.  Every
+   sequence is as valid a flight as the forward one), with M random patch top-lefts, and with
+   ``flip``, mirrored left-right and/or upside down (each half of the time: a mirrored flight
+   is a flight over the mirrored ground, its homographies the mirrored ones).  Every
    random choice comes from ``(seed, index)`` alone, so a resumed run sees exactly the
    samples an uninterrupted run would have seen, whatever the number of loader workers.
 4. ``StepBatches``: the indices of step s for rank r of a W-process run, from step s on.
@@ -341,13 +343,14 @@ class WindowDataset(Dataset):
     top-lefts (x, y), each patch fully inside the frame}."""
 
     def __init__(self, clips: Sequence[CachedClip], window: int, positions: int, patch: int, seed: int,
-                 reverse_probability: float = 0.5):
+                 reverse_probability: float = 0.5, flip: bool = False):
         self.clips = list(clips)
         self.window = int(window)
         self.positions = int(positions)
         self.patch = int(patch)
         self.seed = int(seed)
         self.reverse_probability = float(reverse_probability)
+        self.flip = bool(flip)
         # Every window start of every segment, flattened: (clip index, first row) by cumulative count.
         self._segments = [(c, off, length) for c, clip in enumerate(self.clips) for off, length in clip.segments
                           if length >= self.window]
@@ -379,6 +382,9 @@ class WindowDataset(Dataset):
         h, w = frames.shape[1:]
         xs = rng.integers(0, w - self.patch + 1, self.positions)
         ys = rng.integers(0, h - self.patch + 1, self.positions)
+        if self.flip:  # drawn last, so that a run without it sees the samples it always did
+            left_right, upside_down = rng.random(2) < 0.5
+            frames = np.ascontiguousarray(frames[:, ::-1 if upside_down else 1, ::-1 if left_right else 1])
         return {
             "frames": torch.from_numpy(frames)[:, None],
             "positions": torch.from_numpy(np.stack([xs, ys], axis=1).astype(np.int64)),

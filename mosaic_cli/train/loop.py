@@ -119,7 +119,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     if start >= cfg.steps:
         raise BadInput(f"{run.root} has already run {start} steps; pass a larger --steps to continue it")
     clips = discover_clips(cfg.clips)
-    objective = Objective(cfg.variant, patch=cfg.patch)
+    objective = Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
     flights = find_val_flights(cfg.val) if cfg.val else []
     init_net = load_init(cfg) if (cfg.init and not resume) else None
     prepare_run_dir(run)
@@ -152,7 +152,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     model, precision = wrap_for_device(net, dist, cfg.amp)
     scaler = torch.amp.GradScaler("cuda", enabled=precision == torch.float16)
 
-    dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed)
+    dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed, flip=cfg.flip)
     loader = make_loader(dataset, StepBatches(start, cfg.steps, cfg.batch_size, dist.rank, dist.world),
                          cfg.num_workers, pin_memory=dist.device.type == "cuda")
     log = CsvLog(run.log if dist.is_main else None, keep_until=start if resume else None)

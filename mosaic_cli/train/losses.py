@@ -19,14 +19,36 @@ compared pairs, so the paper's lambda = 1/(9 N) is the weight 1/9 on these means
 from __future__ import annotations
 
 import itertools
+import math
 
 import torch
+from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
 from mosaic_cli.geometry.tensor import cumulative, project
 from mosaic_cli.model.patches import crop, sample_patches
 
 PHOTOMETRIC_NORMS = ("l2", "l1")
+PHOTOMETRIC_SPACES = ("gray", "band")
+BAND_SIGMAS = (1.5, 6.0)  # working px: the band the polish aligns (estimators.refine.band_pass)
+
+
+def band_pass(frames: Tensor, fine: float = BAND_SIGMAS[0], coarse: float = BAND_SIGMAS[1]) -> Tensor:
+    """Difference of Gaussians of ``frames`` (..., C, h, w), each image scaled to unit RMS.
+
+    What the photometric loss compares in the "band" space: the ground's detail without the
+    brightness and contrast that exposure drift, haze and vignetting change between frames (a
+    gain and offset of an image leave it unchanged but for the blur's edge effects), so that
+    these no longer outweigh a misalignment in the loss."""
+    flat = frames.flatten(0, -4) if frames.dim() > 4 else frames.reshape(-1, *frames.shape[-3:])
+
+    def blur(x: Tensor, sigma: float) -> Tensor:
+        taps = 2 * int(math.ceil(3 * sigma)) + 1
+        return gaussian_blur2d(x, (taps, taps), (sigma, sigma), border_type="reflect")
+
+    dog = blur(flat, fine) - blur(flat, coarse)
+    rms = dog.square().mean(dim=(-1, -2), keepdim=True).sqrt()
+    return (dog / (rms + 1e-4)).reshape(frames.shape)
 
 
 def photometric(target: Tensor, warped: Tensor, mask: Tensor, norm: str = "l2") -> Tensor:
@@ -124,6 +146,8 @@ def chain_consistency(frames: Tensor, H: Tensor, positions: Tensor, patch: int, 
 
 __all__ = [
     "PHOTOMETRIC_NORMS",
+    "PHOTOMETRIC_SPACES",
+    "band_pass",
     "photometric",
     "corner_distance",
     "spatial_consistency",

@@ -70,7 +70,10 @@ class Objective:
     """``objective(model, batch)`` -> every active term by name plus ``"total"``.
 
     ``window`` (K frames) and ``positions`` (M patches per frame pair) default to the table in the
-    module docstring; ``photometric_norm`` is "l2" (the authors' code) or "l1" (the paper's text).
+    module docstring; ``photometric_norm`` is "l2" (the authors' code) or "l1" (the paper's text);
+    ``photometric_space`` is "gray" (the paper: the network's input itself) or "band" (each frame
+    band-passed and scaled to unit RMS first, :func:`.losses.band_pass`: blind to exposure, haze
+    and vignetting).  The network always sees the gray patches.
     """
 
     def __init__(
@@ -81,12 +84,15 @@ class Objective:
         window: int | None = None,
         positions: int | None = None,
         photometric_norm: str = "l2",
+        photometric_space: str = "gray",
     ):
         variant = variant.lower()
         if variant not in VARIANTS:
             raise ValueError(f"unknown variant {variant!r}: choose one of {', '.join(VARIANTS)}")
         if photometric_norm not in losses.PHOTOMETRIC_NORMS:
             raise ValueError(f"photometric_norm must be one of {', '.join(losses.PHOTOMETRIC_NORMS)}")
+        if photometric_space not in losses.PHOTOMETRIC_SPACES:
+            raise ValueError(f"photometric_space must be one of {', '.join(losses.PHOTOMETRIC_SPACES)}")
         self.variant = variant
         self.terms = _VARIANT_TERMS[variant]
         self.weights = (weights or LossWeights()).resolved()
@@ -95,6 +101,7 @@ class Objective:
         self.window = int(window) if window is not None else (PAPER_WINDOW if temporal else 2)
         self.positions = int(positions) if positions is not None else (2 if "spatial" in self.terms else 1)
         self.photometric_norm = photometric_norm
+        self.photometric_space = photometric_space
         if self.window < 2:
             raise ValueError("window must be at least 2 frames")
         if "spatial" in self.terms and self.positions < 2:
@@ -117,9 +124,13 @@ class Objective:
         pairs = torch.cat([crops[:, :-1], crops[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
         H, H_children = self.predict(model, pairs, positions)
         corners = frame_corners(w, h, device=frames.device)
+        seen, seen_crops = frames, crops  # what the photometric terms compare
+        if self.photometric_space == "band":
+            seen = losses.band_pass(frames)
+            seen_crops = self.cut_patches(seen, positions)
 
         out: dict[str, Tensor] = {}
-        out["photometric"] = self.pair_photometric(frames, crops, H, positions)
+        out["photometric"] = self.pair_photometric(seen, seen_crops, H, positions)
         if "spatial" in self.terms:
             out["spatial"] = losses.spatial_consistency(H, corners)
         if "scale" in self.terms:
@@ -127,7 +138,7 @@ class Objective:
         if "temporal1" in self.terms:
             out["temporal1"] = losses.temporal_smoothness(H, corners)
         if "temporal2" in self.terms:
-            out["temporal2"] = losses.chain_consistency(frames, H, positions, self.patch, self.photometric_norm)
+            out["temporal2"] = losses.chain_consistency(seen, H, positions, self.patch, self.photometric_norm)
         out["total"] = sum(self.weights[name] * value for name, value in out.items())
         return out
 
