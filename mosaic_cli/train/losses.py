@@ -21,6 +21,8 @@ from __future__ import annotations
 import itertools
 import math
 
+import cv2
+import numpy as np
 import torch
 from kornia.filters import gaussian_blur2d
 from torch import Tensor
@@ -40,15 +42,21 @@ def band_pass(frames: Tensor, fine: float = BAND_SIGMAS[0], coarse: float = BAND
     brightness and contrast that exposure drift, haze and vignetting change between frames (a
     gain and offset of an image leave it unchanged but for the blur's edge effects), so that
     these no longer outweigh a misalignment in the loss."""
-    flat = frames.flatten(0, -4) if frames.dim() > 4 else frames.reshape(-1, *frames.shape[-3:])
-
-    def blur(x: Tensor, sigma: float) -> Tensor:
-        taps = 2 * int(math.ceil(3 * sigma)) + 1
-        return gaussian_blur2d(x, (taps, taps), (sigma, sigma), border_type="reflect")
-
-    dog = blur(flat, fine) - blur(flat, coarse)
+    flat = frames.reshape(-1, 1, *frames.shape[-2:])
+    dog = _blur(flat, fine) - _blur(flat, coarse)
     rms = dog.square().mean(dim=(-1, -2), keepdim=True).sqrt()
     return (dog / (rms + 1e-4)).reshape(frames.shape)
+
+
+def _blur(images: Tensor, sigma: float) -> Tensor:
+    """Gaussian blur of (N, 1, h, w), reflect-101 borders, 3-sigma kernel.  On the CPU, outside
+    autograd, OpenCV's: some 30x faster than a torch convolution of one channel there."""
+    taps = 2 * int(math.ceil(3 * sigma)) + 1
+    if images.device.type != "cpu" or images.requires_grad:
+        return gaussian_blur2d(images, (taps, taps), (sigma, sigma), border_type="reflect")
+    planes = images[:, 0].detach().float().contiguous().numpy()
+    blurred = [cv2.GaussianBlur(plane, (taps, taps), sigma, borderType=cv2.BORDER_REFLECT_101) for plane in planes]
+    return torch.from_numpy(np.stack(blurred)).to(images.dtype)[:, None]
 
 
 def photometric(target: Tensor, warped: Tensor, mask: Tensor, norm: str = "l2") -> Tensor:
