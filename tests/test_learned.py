@@ -265,6 +265,23 @@ def test_the_fallback_takes_the_pairs_the_learned_path_cannot_confirm(fast_panni
     assert np.all(conf == 0) and est.path_counts["failed"] == 9
 
 
+def test_the_wide_retry_finds_what_the_cheap_polish_cannot_reach(panning):
+    """A net 8 working px off: beyond the cheap polish's 3 px leash, within the wide one's reach.
+    retry=none leaves the pair to what the seed alone reaches: failed, without a fallback."""
+    def off_by_8(offsets):
+        return torch.tensor([8.0, 0.0]).expand_as(offsets)
+
+    truth = translation(*STEP_FULL)
+    est = phase_estimator(bias=off_by_8, refine="lk")
+    H, conf = run(est, panning)
+    assert errors_against(H, truth).max() < 0.3 and conf.min() > 0.2
+    assert est.path_counts["learned"] == len(H)
+    est = phase_estimator(bias=off_by_8, refine="lk", retry="none")
+    H, conf = run(est, panning)
+    np.testing.assert_array_equal(H, np.broadcast_to(np.eye(3), H.shape))
+    assert np.all(conf == 0) and est.path_counts["failed"] == len(H)
+
+
 class ExplodingNet(PhaseNet):
     def features(self, pairs):
         raise AssertionError("the network must not run when the seed replaces it")
@@ -291,7 +308,7 @@ def test_velocity_seed_starts_each_pair_from_the_last_motion(fast_panning):
 
 
 @pytest.mark.parametrize("option,value,message", [("seed", "zero", "seed must be one of"), ("prior", "kalman", "prior must be one of"),
-                                                   ("fallback", "sift", "fallback must be one of")])
+                                                   ("fallback", "sift", "fallback must be one of"), ("retry", "narrow", "retry must be one of")])
 def test_bad_ablation_options_are_refused(option, value, message):
     with pytest.raises(BadInput, match=message):
         phase_estimator(**{option: value})

@@ -273,6 +273,13 @@ def test_every_variant_trains(variant, panning_frames):
     assert model.regressor.weight.grad.abs().sum() > 0
 
 
+def test_lstm_reg_t_is_the_lstm_with_the_temporal_terms_alone(panning_frames):
+    objective = Objective("lstm-reg-t", window=4)
+    assert objective.head == "lstm" and objective.positions == 1 and Objective("lstm-reg-t").window == 16
+    out = objective(HomographyNet(NetConfig(head="lstm")), batch_of(panning_frames[:, :4], [(96, 26)]))
+    assert set(out) == {"photometric", "temporal1", "temporal2", "total"}
+
+
 def test_loss_weights_default_to_the_paper_and_can_be_overridden():
     assert LossWeights().resolved() == {"photometric": 1.0, "spatial": 1 / 9, "scale": 1 / 9, "temporal1": 1 / 9, "temporal2": 1.0}
     assert LossWeights(spatial=0.5, temporal2=None).resolved()["spatial"] == 0.5

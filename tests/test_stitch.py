@@ -20,10 +20,10 @@ from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
 from mosaic_cli.simulate import MapPyramid, plan_flight, render_frames, render_view
 from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
-from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
-from mosaic_cli.stitch.spill import SpilledImage
 from mosaic_cli.stitch.features import PairMatch
+from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
 from mosaic_cli.stitch.registration import Link, RegistrationReport, _from_match, chain_sequence, refine_placements
+from mosaic_cli.stitch.spill import SpilledImage
 from mosaic_cli.video import VideoWriter, open_video
 
 SIZE = (256, 144)

@@ -21,7 +21,7 @@ Quiet = quiet_option("No progress bar.")
 def train(
     clips: Annotated[Path, typer.Argument(help="Folder of training clips (video files and/or folders of frames), or one clip.")],
     out: Annotated[Path | None, typer.Option("-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache (default: runs/VARIANT).")] = None,
-    variant: Annotated[str | None, typer.Option("--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm or lstm-reg-all (default: base).")] = None,
+    variant: Annotated[str | None, typer.Option("--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm, lstm-reg-t or lstm-reg-all (default: base).")] = None,
     preset: Annotated[str | None, typer.Option("--preset", help="Network size: compact (CPU) or paper (Table 1) (default: compact).")] = None,
     init: Annotated[Path | None, typer.Option("--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors).")] = None,
     freeze: Annotated[bool | None, typer.Option("--freeze/--no-freeze", help="LSTM from a CNN --init: keep backbone + first Linear fixed (default: freeze).")] = None,

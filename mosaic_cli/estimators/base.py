@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -31,7 +31,7 @@ class PairEstimate:
     confidence: float
 
     @staticmethod
-    def failed() -> "PairEstimate":
+    def failed() -> PairEstimate:
         return PairEstimate(np.eye(3), 0.0)
 
 

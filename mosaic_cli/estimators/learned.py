@@ -60,6 +60,7 @@ from mosaic_cli.model.quantize import quantized_features, quantized_head
 SEEDS = ("network", "identity", "velocity")
 PRIORS = ("velocity", "none")
 FALLBACKS = ("orb", "none")
+RETRIES = ("wide", "none")
 PATHS = ("learned", "fallback", "failed")  # which path produced a pair, counted in ``path_counts``
 PRECISIONS = ("auto", "int8", "fp32")
 PATCH_LAYOUTS = (1, 5, 9)
@@ -89,6 +90,7 @@ class LearnedConfig:
     polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
     polish_wide: PolishConfig | None = field(
         default_factory=lambda: PolishConfig(window=31, levels=4, max_shift=20.0, threshold=1.5))
+    retry: str = "wide"  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
@@ -137,6 +139,8 @@ class LearnedConfig:
             raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
         if self.fallback not in FALLBACKS:
             raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.fallback!r}")
+        if self.retry not in RETRIES:
+            raise BadInput(f"retry must be one of {', '.join(RETRIES)}, got {self.retry!r}")
 
 
 @dataclass
@@ -339,7 +343,7 @@ class LearnedEstimator(Estimator):
         if c.refine is None:
             return Polish(H, False, 1.0), True
         result = self._polish_once(prev, cur, H, c.polish)
-        if result.refined or c.polish_wide is None:
+        if result.refined or c.polish_wide is None or c.retry == "none":
             return result, True
         wide = self._polish_once(prev, cur, H, c.polish_wide)
         if not wide.refined:

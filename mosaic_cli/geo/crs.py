@@ -22,7 +22,7 @@ class Projection:
         self._inverse = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
 
     @classmethod
-    def utm_for(cls, lat: float, lon: float) -> "Projection":
+    def utm_for(cls, lat: float, lon: float) -> Projection:
         return cls(f"EPSG:{utm_epsg(lat, lon)}")
 
     @property

@@ -6,7 +6,7 @@ See :mod:`mosaic_cli.geometry` for the pixel and direction conventions.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

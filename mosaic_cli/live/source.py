@@ -24,8 +24,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import cv2
 import imageio_ffmpeg
@@ -350,7 +350,7 @@ class LiveStream:
                 while True:
                     self._queue.get_nowait()
 
-    def __enter__(self) -> "LiveStream":
+    def __enter__(self) -> LiveStream:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -39,7 +39,9 @@ from torch import Tensor, nn
 HEADS = ("cnn", "lstm")
 # The paper's training variants (Table 2; what each trains: mosaic_cli.train.objective).  A
 # checkpoint records the variant that made it, so the model side knows their names.
-VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-all")
+# lstm-reg-t is not in the paper: the LSTM with the temporal priors alone, which costs a fifth of
+# lstm-reg-all's forward passes (R_s runs the net on four quadrants of every pair).
+VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-t", "lstm-reg-all")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": dict(backbone=(64, 64, "M", 64, 64, "M", 128, 128, "M", 128, 128), embed=1024, hidden=1024, dropout=0.5),
@@ -103,7 +105,7 @@ class NetConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "NetConfig":
+    def from_dict(cls, data: dict) -> NetConfig:
         known = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
         return cls(**known)
 
@@ -189,7 +191,7 @@ class HomographyNet(nn.Module):
         """Backbone and first Linear: the part an LSTM variant takes (frozen) from a trained CNN."""
         return list(self.backbone.parameters()) + list(self.embed.parameters())
 
-    def load_features_from(self, other: "HomographyNet") -> None:
+    def load_features_from(self, other: HomographyNet) -> None:
         """Copy backbone and first Linear from another net of the same preset (e.g. BASE -> LSTM)."""
         self.backbone.load_state_dict(other.backbone.state_dict())
         self.embed.load_state_dict(other.embed.state_dict())

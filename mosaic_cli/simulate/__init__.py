@@ -54,7 +54,7 @@ def write_flight(
     map_name: str = "procedural",
     preset: str = "medium",
     show_progress: bool = True,
-    overlays: "OverlaySpec | None" = None,
+    overlays: OverlaySpec | None = None,
 ) -> GroundTruth:
     """Render ``plan`` over ``map_rgb`` into an H.264 video at ``out_path`` and write its
     ground truth to ``<stem>.gt.json`` beside it; both appear atomically (the JSON last).

@@ -45,7 +45,7 @@ class GroundTruth:
         return len(self.map_to_frame)
 
     @classmethod
-    def from_plan(cls, plan: FlightPlan, fps: float | None = None, map_name: str = "procedural") -> "GroundTruth":
+    def from_plan(cls, plan: FlightPlan, fps: float | None = None, map_name: str = "procedural") -> GroundTruth:
         return cls(
             np.array(plan.map_to_frame, dtype=np.float64),
             np.array(plan.smooth_map_to_frame, dtype=np.float64),

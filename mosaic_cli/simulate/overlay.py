@@ -39,7 +39,7 @@ class OverlaySpec:
     start_seconds: int = 12 * 3600 + 34 * 60 + 50  # the clock at frame 0 (12:34:50)
 
     @staticmethod
-    def parse(text: str | None) -> "OverlaySpec":
+    def parse(text: str | None) -> OverlaySpec:
         """``"logo,timestamp"``, ``"all"`` or ``"none"``/``""`` (nothing)."""
         names = [n.strip().lower() for n in (text or "").split(",") if n.strip()]
         if names == ["all"]:

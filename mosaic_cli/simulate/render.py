@@ -9,7 +9,7 @@ filtering), so down-sampling never aliases and zooming in or out never pops.
 from __future__ import annotations
 
 import functools
-from typing import Iterator
+from collections.abc import Iterator
 
 import cv2
 import numpy as np

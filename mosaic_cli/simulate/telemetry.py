@@ -48,7 +48,7 @@ class MapGeo:
     gsd: float  # metres per map pixel
 
     @classmethod
-    def from_origin(cls, lat: float, lon: float, gsd: float, map_size: tuple[int, int]) -> "MapGeo":
+    def from_origin(cls, lat: float, lon: float, gsd: float, map_size: tuple[int, int]) -> MapGeo:
         """A north-up map of ``gsd`` m/px whose centre lies at (lat, lon), in that site's UTM zone."""
         check_origin(lat, lon, gsd)
         proj = Projection.utm_for(lat, lon)
@@ -58,7 +58,7 @@ class MapGeo:
         return cls(proj.name, M, float(gsd))
 
     @classmethod
-    def from_geotiff(cls, path: str | Path) -> "MapGeo | None":
+    def from_geotiff(cls, path: str | Path) -> MapGeo | None:
         """The geotransform of a GeoTIFF as ``load_map`` crops it (None: no georeference)."""
         import cv2
         import rasterio

@@ -39,7 +39,7 @@ class Horizon:
         return self.step + self.lookahead
 
     @classmethod
-    def for_latency(cls, latency: float, fps: float, estimator_delay: int = 0) -> "Horizon":
+    def for_latency(cls, latency: float, fps: float, estimator_delay: int = 0) -> Horizon:
         """The longest horizon whose frames fit in ``latency`` seconds at ``fps``, after the
         estimator's own delay (a batching estimator answers a chunk at a time) and a share of
         the budget kept for the work."""

@@ -17,8 +17,8 @@ normalised coordinates of the input frame (see :mod:`.crop`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp

@@ -4,8 +4,8 @@ default) at full size.  Uncovered canvas stays transparent (alpha 0)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -75,7 +75,7 @@ class Roi:
     def corner(self) -> tuple[int, int]:
         return (self.x, self.y)
 
-    def scaled(self, s: float) -> "Roi":
+    def scaled(self, s: float) -> Roi:
         x0, y0 = int(np.floor(self.x * s)), int(np.floor(self.y * s))
         x1, y1 = int(np.ceil((self.x + self.w) * s)), int(np.ceil((self.y + self.h) * s))
         return Roi(x0, y0, max(1, x1 - x0), max(1, y1 - y0))

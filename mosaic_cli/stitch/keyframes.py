@@ -29,9 +29,9 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -40,7 +40,7 @@ from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
 from mosaic_cli.overlay import fill_masked
-from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, Features, FeatureOptions, PairMatch, corner_distance
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions, Features, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
 

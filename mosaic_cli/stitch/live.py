@@ -24,9 +24,10 @@ import itertools
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, cast
+from typing import cast
 
 import cv2
 import numpy as np

@@ -71,7 +71,7 @@ class StitchOptions:
     # held pixels add up to several canvases (see spill.py).
     spill: bool = True
     # Telemetry to lay the mosaic on the ground with (see mosaic_cli/geo); None: a plain panorama.
-    georef: "GeorefOptions | None" = None
+    georef: GeorefOptions | None = None
     timeout: float = DEFAULT_TIMEOUT  # a live input (stitch/live.py) ends when it sends nothing for this long
 
     def __post_init__(self) -> None:

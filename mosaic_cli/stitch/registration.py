@@ -13,8 +13,9 @@ rest is dropped and the problem solved again, so one bad match cannot bend the p
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Callable, ContextManager
 
 import numpy as np
 import scipy.sparse
@@ -86,7 +87,7 @@ def relative(placements: list[np.ndarray], a: int, b: int) -> np.ndarray:
 
 
 # A progress task: ``(description, total)`` -> a context manager yielding ``advance(n)``.
-ProgressFactory = Callable[[str, int], ContextManager[Callable[..., None]]]
+ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[..., None]]]
 
 
 @contextlib.contextmanager

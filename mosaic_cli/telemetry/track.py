@@ -42,10 +42,10 @@ class Track:
     def known(self, name: str) -> bool:
         return bool(np.isfinite(getattr(self, name)).any())
 
-    def select(self, keep: np.ndarray) -> "Track":
+    def select(self, keep: np.ndarray) -> Track:
         return Track(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes))
 
-    def shifted(self, seconds: float) -> "Track":
+    def shifted(self, seconds: float) -> Track:
         out = self.select(np.ones(len(self), bool))
         out.time = out.time + float(seconds)
         return out

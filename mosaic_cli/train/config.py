@@ -22,7 +22,7 @@ DEVICES = ("auto", "cpu", "cuda")
 # (batch 32) and the LSTM variants (batch 8) from it for 90k iterations.
 PAPER_STEPS = {"base": 300_000}
 PAPER_FINETUNE_STEPS = 90_000
-PAPER_BATCH = {"base": 64, "lstm": 8, "lstm-reg-all": 8}
+PAPER_BATCH = {"base": 64, "lstm": 8, "lstm-reg-t": 8, "lstm-reg-all": 8}
 PAPER_REG_BATCH = 32
 
 # Options that define what a run learns: a resumed run must keep them.
@@ -102,7 +102,7 @@ class TrainConfig:
                 raise BadInput(message)
         check_threads(self.threads)
 
-    def resolved(self) -> "TrainConfig":
+    def resolved(self) -> TrainConfig:
         """A copy with the paper's defaults filled in for the variant."""
         return replace(
             self,
@@ -119,7 +119,7 @@ class TrainConfig:
         return data
 
     @classmethod
-    def from_dict(cls, data: dict) -> "TrainConfig":
+    def from_dict(cls, data: dict) -> TrainConfig:
         known = {f.name for f in fields(cls)}
         values = {k: v for k, v in data.items() if k in known}
         if "work_size" in values:

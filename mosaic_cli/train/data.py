@@ -26,11 +26,11 @@ import hashlib
 import json
 import os
 import signal
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import cv2
 import numpy as np

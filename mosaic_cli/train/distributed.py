@@ -37,7 +37,7 @@ class Distributed:
         return self.world > 1
 
     @classmethod
-    def start(cls, device: str) -> "Distributed":
+    def start(cls, device: str) -> Distributed:
         """Read the torchrun environment, pick the device, join the process group."""
         world = int(os.environ.get("WORLD_SIZE", "1"))
         rank = int(os.environ.get("RANK", "0"))

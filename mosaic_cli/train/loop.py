@@ -414,7 +414,7 @@ class StopRequests:
         self.requested = True
         console.print("[yellow]stopping after this step (Ctrl-C again to stop at once)[/]")
 
-    def __enter__(self) -> "StopRequests":
+    def __enter__(self) -> StopRequests:
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
                 self._previous[sig] = signal.signal(sig, self._handle)

@@ -11,6 +11,7 @@ reg-s          cnn   2       1          L, R_s
 reg-t          cnn   16      1          L, R_t1, R_t2
 reg-all        cnn   16      2          L, R_p, R_s, R_t1, R_t2
 lstm           lstm  16      1          L
+lstm-reg-t     lstm  16      1          L, R_t1, R_t2        (not in the paper)
 lstm-reg-all   lstm  16      2          L, R_p, R_s, R_t1, R_t2
 =============  ====  ======  =========  ===================================
 
@@ -44,6 +45,7 @@ _VARIANT_TERMS = {
     "reg-t": ("photometric", "temporal1", "temporal2"),
     "reg-all": TERMS,
     "lstm": ("photometric",),
+    "lstm-reg-t": ("photometric", "temporal1", "temporal2"),
     "lstm-reg-all": TERMS,
 }
 PAPER_WINDOW = 16  # the paper's K

@@ -15,9 +15,9 @@ import re
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import av
 import cv2
@@ -106,7 +106,7 @@ class VideoStream:
             self._closer()
             self._closer = None
 
-    def __enter__(self) -> "VideoStream":
+    def __enter__(self) -> VideoStream:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -421,7 +421,7 @@ class Decoder:
             self._proc = None
         self._log.close()
 
-    def __enter__(self) -> "Decoder":
+    def __enter__(self) -> Decoder:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -512,7 +512,7 @@ def frame_at(info: VideoInfo, seconds: float, width: int | None = None) -> np.nd
 SHORTFALL_TOLERANCE = 2  # frames: rounding of a duration-based count, an edit list's last frame
 EXACT_COUNT_SUFFIXES = {".mp4", ".mov", ".m4v", ".3gp", ".avi"}  # containers that store the count itself
 _policy: dict = {"strict": False}
-_shortfalls: dict[str, "Shortfall"] = {}
+_shortfalls: dict[str, Shortfall] = {}
 
 
 @dataclass(frozen=True)

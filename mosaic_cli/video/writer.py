@@ -175,7 +175,7 @@ class VideoWriter:
                 return lines[-1]
         return f"ffmpeg exited with status {self._encoder.poll() if self._encoder else None}"
 
-    def __enter__(self) -> "VideoWriter":
+    def __enter__(self) -> VideoWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
