@@ -232,6 +232,29 @@ def test_features_transfer_from_cnn_to_lstm():
     assert len(lstm.feature_parameters()) == len(list(cnn.backbone.parameters())) + 2
 
 
+def test_an_lstm_can_start_as_the_cnn_it_is_fine_tuned_from():
+    """start_as: the LSTM head passes its input through with no memory yet, so a sequence of
+    pairs gets the CNN's offsets, pair by pair, in any order."""
+    torch.manual_seed(4)
+    cnn, lstm = HomographyNet(NetConfig(head="cnn")).eval(), HomographyNet(NetConfig(head="lstm")).eval()
+    with torch.no_grad():
+        cnn.regressor.weight.normal_(std=0.05)  # offsets of a few px, as a trained net's
+    pairs = torch.rand(1, 6, 2, 128, 128) * 2 - 1
+    with torch.no_grad():
+        largest = float(cnn.features(pairs.flatten(0, 1)).max())
+        lstm.start_as(cnn, 5 * largest)
+        expected, _ = cnn(pairs)
+        got, _ = lstm(pairs)
+        backwards, _ = lstm(pairs.flip(1))
+    assert expected.abs().max() > 1.0
+    torch.testing.assert_close(got, expected, atol=0.02 * float(expected.abs().max()), rtol=0)
+    torch.testing.assert_close(backwards.flip(1), got, atol=0.02, rtol=0)  # no memory yet (the forget gate keeps 0.25%)
+    with pytest.raises(ValueError, match="from a CNN head"):
+        cnn.start_as(lstm, 1.0)
+    with pytest.raises(ValueError, match="hidden == embed"):
+        HomographyNet(NetConfig(head="lstm", hidden=256)).start_as(cnn, 1.0)
+
+
 def test_config_round_trip_and_validation():
     config = NetConfig(preset="paper", head="lstm", dropout=0.1)
     assert NetConfig.from_dict(config.to_dict()) == config

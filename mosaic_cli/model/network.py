@@ -196,6 +196,34 @@ class HomographyNet(nn.Module):
         self.backbone.load_state_dict(other.backbone.state_dict())
         self.embed.load_state_dict(other.embed.state_dict())
 
+    @torch.no_grad()
+    def start_as(self, cnn: HomographyNet, feature_scale: float) -> None:
+        """An LSTM head that starts as ``cnn``'s head: the features and first Linear copied, and
+        the LSTM set to pass its input through, with no memory yet, so that the fine-tune begins
+        at the CNN's answer and learns only what the sequence adds.
+
+        With the input, forget and output gates held at s = sigmoid(6), 0.0025 and s by their
+        biases, and the cell input at tanh(a x) (a = 1 / ``feature_scale``, the typical size of
+        the features x), h = s tanh(s tanh(a x) + 0.0025 c), about s^2 a x while a x is small;
+        the regressor is the CNN's, divided by s^2 a.  Needs hidden == embed."""
+        if self.lstm is None or cnn.lstm is not None:
+            raise ValueError("start_as makes an LSTM head from a CNN head")
+        if self.config.hidden != self.config.embed:
+            raise ValueError(f"start_as needs hidden == embed, got {self.config.hidden} and {self.config.embed}")
+        self.load_features_from(cnn)
+        a, open_gate = 1.0 / float(feature_scale), 6.0
+        s = float(torch.sigmoid(torch.tensor(open_gate)))
+        hidden = self.config.hidden
+        lstm = self.lstm
+        lstm.weight_ih_l0.zero_()
+        lstm.weight_hh_l0.zero_()
+        lstm.bias_hh_l0.zero_()
+        lstm.weight_ih_l0[2 * hidden : 3 * hidden] = a * torch.eye(hidden)  # gates in torch's order: i, f, g, o
+        lstm.bias_ih_l0.copy_(torch.cat([torch.full((hidden,), open_gate), torch.full((hidden,), -open_gate),
+                                         torch.zeros(hidden), torch.full((hidden,), open_gate)]))
+        self.regressor.weight.copy_(cnn.regressor.weight / (s * s * a))
+        self.regressor.bias.copy_(cnn.regressor.bias)
+
 
 # --------------------------------------------------------------------------------------------
 # Cost accounting

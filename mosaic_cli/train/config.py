@@ -17,6 +17,7 @@ from mosaic_cli.train.losses import PHOTOMETRIC_SPACES
 
 PRESETS = tuple(NET_PRESETS)
 DEVICES = ("auto", "cpu", "cuda")
+LSTM_STARTS = ("random", "cnn")
 
 # The paper trains BASE for 300k iterations at batch 64 and fine-tunes the REG-* variants
 # (batch 32) and the LSTM variants (batch 8) from it for 90k iterations.
@@ -27,7 +28,7 @@ PAPER_REG_BATCH = 32
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
-                "work_size", "patch", "flip", "photometric")
+                "work_size", "patch", "flip", "photometric", "lstm_start")
 
 
 def paper_steps(variant: str) -> int:
@@ -60,6 +61,7 @@ class TrainConfig:
     checkpoint_minutes: float = 15.0  # also checkpoint when this long has passed (slow CPU runs)
     work_size: tuple[int, int] = (320, 180)
     patch: int = 128
+    lstm_start: str = "random"  # an LSTM from a CNN --init: "random" head (the paper) or "cnn" (starts as the CNN's head)
     photometric: str = "gray"  # what the photometric terms compare: "gray" (the paper) or "band" (band-passed)
     flip: bool = False  # mirror windows left-right and/or upside down (off: runs saved before it resume unchanged)
     num_workers: int = 1
@@ -77,6 +79,8 @@ class TrainConfig:
             raise BadInput(f"unknown --variant {self.variant!r}: choose one of {', '.join(VARIANTS)}")
         if self.preset not in PRESETS:
             raise BadInput(f"unknown --preset {self.preset!r}: choose one of {', '.join(PRESETS)}")
+        if self.lstm_start not in LSTM_STARTS:
+            raise BadInput(f"unknown --lstm-start {self.lstm_start!r}: choose one of {', '.join(LSTM_STARTS)}")
         if self.photometric not in PHOTOMETRIC_SPACES:
             raise BadInput(f"unknown --photometric {self.photometric!r}: choose one of {', '.join(PHOTOMETRIC_SPACES)}")
         if self.device not in DEVICES and not str(self.device).startswith("cuda:"):

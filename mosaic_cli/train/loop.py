@@ -58,6 +58,9 @@ from mosaic_cli.train.run import (
 from mosaic_cli.train.schedule import StepSchedule
 
 CALIBRATION_PAIRS = 512  # training patch pairs that set the int8 activation ranges of the final weights
+# --lstm-start cnn: the LSTM's input scale, as a multiple of the largest feature seen, keeps its
+# cell in tanh's linear range (5x: within 1.3%), so that it starts as the CNN to 0.1-0.2 px.
+LSTM_START_MARGIN = 5.0
 MAX_SKIPPED_STEPS = 50  # consecutive non-finite losses before the run is declared diverged
 
 
@@ -137,13 +140,14 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
         cached = decode_clips(clips, run, cfg, objective.window, fresh=False, show_progress=False)
 
     # 3. the network and 4. the optimiser
+    dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed, flip=cfg.flip)
     torch.manual_seed(cfg.seed)  # the same initial weights on every rank (DDP also broadcasts them)
     if resume:
         net, optimizer_tensors = load_checkpoint(run, state, dist.device)
     else:
         net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch)).to(dist.device)
         if init_net is not None:
-            initialise_from(net, init_net)
+            initialise_from(net, init_net, dataset if cfg.lstm_start == "cnn" else None, cfg.seed)
     trainable = set_trainable(net, cfg)
     optimizer = torch.optim.Adam(trainable, lr=cfg.lr)
     if resume:
@@ -152,7 +156,6 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     model, precision = wrap_for_device(net, dist, cfg.amp)
     scaler = torch.amp.GradScaler("cuda", enabled=precision == torch.float16)
 
-    dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed, flip=cfg.flip)
     loader = make_loader(dataset, StepBatches(start, cfg.steps, cfg.batch_size, dist.rank, dist.world),
                          cfg.num_workers, pin_memory=dist.device.type == "cuda")
     log = CsvLog(run.log if dist.is_main else None, keep_until=start if resume else None)
@@ -285,11 +288,18 @@ def load_init(cfg: TrainConfig) -> HomographyNet:
     return net
 
 
-def initialise_from(net: HomographyNet, source: HomographyNet) -> None:
+def initialise_from(net: HomographyNet, source: HomographyNet, start_as_cnn: WindowDataset | None = None,
+                    seed: int = 0) -> None:
     """Fine-tuning: everything from a net with the same head; backbone + first Linear otherwise
-    (the paper's BASE -> LSTM)."""
+    (the paper's BASE -> LSTM).  With ``start_as_cnn`` (``--lstm-start cnn``), an LSTM from a CNN
+    also starts as the CNN's head (:meth:`HomographyNet.start_as`), its features' scale taken as
+    LSTM_START_MARGIN times the largest feature over pairs of that dataset."""
     if source.head == net.head:
         net.load_state_dict(source.state_dict())
+    elif start_as_cnn is not None and net.head == "lstm":
+        with torch.no_grad():
+            largest = float(source.eval().features(sample_pairs(start_as_cnn, CALIBRATION_PAIRS, seed=seed)).max())
+        net.start_as(source, LSTM_START_MARGIN * max(largest, 1e-3))
     else:
         net.load_features_from(source)
 
