@@ -3,6 +3,9 @@ fp32 ones closely on textured patches, and the estimator picks int8 only when it
 
 from __future__ import annotations
 
+import copy
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -80,29 +83,39 @@ def test_the_estimator_runs_int8_only_with_calibrated_weights(tmp_path, net_and_
     assert make_estimator(f"cnn:weights={with_ranges}", weights=str(without), device="cpu").precision == "int8"
 
 
-def test_int8_lstm_steps_like_fp32_through_a_carried_state():
-    """The shipped LSTM in int8, stepped over 48 pairs in 16-pair chunks with its state carried as
-    the estimator does: offsets within 0.05 working px of fp32's (measured: under 0.01), where
-    they spread over pixels; the fp32 network itself is left as it was."""
+def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
+    """An LSTM head in int8, stepped over 48 pairs in 16-pair chunks with its state carried as
+    the estimator does: kept only where its offsets stay within 0.05 working px of fp32's on real
+    texture.  A freshly initialised LSTM passes (measured: under 0.01 px); the shipped one, whose
+    regressor amplifies a small hidden state (it started as its CNN's head), loses 0.15 px to
+    int8 and keeps its head in fp32.  The verdict of quantized_head's own probe is checked
+    against textured patch pairs, independently of that probe."""
+    from torch.ao.quantization import quantize_dynamic
+
     from mosaic_cli.estimators.learned import default_weights
     from mosaic_cli.model.checkpoint import load_weights
 
-    model, _ = load_weights(default_weights("lstm"))
-    int8 = quantize.quantized_head(model)
-    assert int8 is not None and type(int8.lstm).__module__.startswith("torch.ao.nn.quantized.dynamic")
-    assert type(model.lstm) is torch.nn.LSTM
+    shipped, _ = load_weights(default_weights("lstm"))
+    torch.manual_seed(0)
+    fresh = HomographyNet(NetConfig(head="lstm", patch=PATCH)).eval()
+    for model, keeps_int8 in ((fresh, True), (shipped, False)):
+        with torch.inference_mode(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            int8 = quantize_dynamic(copy.deepcopy(model).eval(), {torch.nn.LSTM}, dtype=torch.qint8)
+            features = model.features(patch_pairs(48, seed=3))[None]
 
-    with torch.inference_mode():
-        features = model.features(patch_pairs(48, seed=3))[None]
+            def offsets(net, features=features):
+                state, out = None, []
+                for chunk in features.split(16, dim=1):
+                    step, state = net.step(chunk, state)
+                    out.append(step)
+                return torch.cat(out, dim=1)[0]
 
-        def offsets(net):
-            state, out = None, []
-            for chunk in features.split(16, dim=1):
-                step, state = net.step(chunk, state)
-                out.append(step)
-            return torch.cat(out, dim=1)[0]
-
-        exact, approx = offsets(model), offsets(int8)
-    assert float(exact.std()) > 0.5
-    assert float((approx - exact).abs().max()) < 0.05
+            error = float((offsets(int8) - offsets(model)).abs().max())
+        assert (error <= quantize.HEAD_TOLERANCE_PX) == keeps_int8, error
+        head = quantize.quantized_head(model)
+        assert (head is not None) == keeps_int8
+        if head is not None:
+            assert type(head.lstm).__module__.startswith("torch.ao.nn.quantized.dynamic")
+        assert type(model.lstm) is torch.nn.LSTM  # the fp32 network itself is left as it was
     assert quantize.quantized_head(HomographyNet(NetConfig(head="cnn", patch=PATCH))) is None

@@ -39,8 +39,8 @@ from torch import Tensor, nn
 HEADS = ("cnn", "lstm")
 # The paper's training variants (Table 2; what each trains: mosaic_cli.train.objective).  A
 # checkpoint records the variant that made it, so the model side knows their names.
-# lstm-reg-t is not in the paper: the LSTM with the temporal priors alone, which costs a fifth of
-# lstm-reg-all's forward passes (R_s runs the net on four quadrants of every pair).
+# lstm-reg-t is not in the paper: the LSTM with the temporal priors alone, which costs a tenth of
+# lstm-reg-all's forward passes (that reads two patches of every pair, and for R_s four quadrants of each).
 VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-t", "lstm-reg-all")
 
 PRESETS: dict[str, dict[str, Any]] = {

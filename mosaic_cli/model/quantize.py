@@ -12,7 +12,8 @@ loading is deterministic and needs no data:
 
     quantized_head(model)            -> a copy of ``model`` whose LSTM has int8 weights
                                         (dynamic: activations quantised on the fly, so no
-                                        ranges are needed), or None where there is none
+                                        ranges are needed), or None where there is none, or
+                                        where its offsets would stray from fp32's
 
 Stepped one 16-pair chunk at a time, the LSTM reads its 4 MB of weights once a pair: in int8 a
 chunk took 0.55 ms instead of 5.5 on the development machine.  The regressor stays in fp32.
@@ -120,8 +121,16 @@ def quantized_features(model: HomographyNet, ranges: dict | None) -> nn.Module |
         return convert_fx(prepared).eval()
 
 
-def quantized_head(model: HomographyNet) -> HomographyNet | None:
-    """A copy of ``model`` with its LSTM's weights in int8; None without an LSTM or an int8 engine."""
+# The int8 LSTM is kept only where its offsets stay this close to fp32's (working px) on a probe:
+# an LSTM whose regressor amplifies small hidden values (one started as a CNN's head) can lose
+# more to int8 than its speed is worth.
+HEAD_TOLERANCE_PX = 0.05
+
+
+def quantized_head(model: HomographyNet, tolerance: float = HEAD_TOLERANCE_PX) -> HomographyNet | None:
+    """A copy of ``model`` with its LSTM's weights in int8; None without an LSTM or an int8
+    engine, or where the int8 head's offsets stray more than ``tolerance`` working px from
+    fp32's on a probe (:func:`head_error`)."""
     from torch.ao.quantization import quantize_dynamic
 
     if model.lstm is None or engine() is None:
@@ -129,7 +138,37 @@ def quantized_head(model: HomographyNet) -> HomographyNet | None:
     torch.backends.quantized.engine = engine()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torch.ao announces its move to torchao
-        return quantize_dynamic(model.eval(), {nn.LSTM}, dtype=torch.qint8)  # a copy: not in place
+        int8 = quantize_dynamic(model.eval(), {nn.LSTM}, dtype=torch.qint8)  # a copy: not in place
+    return int8 if head_error(model, int8) <= tolerance else None
 
 
-__all__ = ["RANGES_FORMAT", "engine", "calibrate", "quantized_features", "quantized_head"]
+@torch.inference_mode()
+def head_error(model: HomographyNet, int8: HomographyNet, pairs: int = 48, chunk: int = 16) -> float:
+    """The largest offset difference (working px) between ``model``'s head and ``int8``'s, both
+    stepped over the features of ``pairs`` probe patch pairs, ``chunk`` pairs at a time with the
+    state carried, as the estimator runs them.  The probe: smoothed noise, the second patch of
+    each pair the first moved by a few pixels (fixed seed: the same verdict on every load)."""
+    generator = torch.Generator().manual_seed(0)
+    p = model.config.patch
+    ground = torch.rand(1, 1, 4 * p, 4 * p, generator=generator)
+    for _ in range(2):
+        ground = torch.nn.functional.avg_pool2d(ground, 5, stride=1, padding=2, count_include_pad=False)
+    ground = (ground - ground.mean()) / ground.std().clamp(min=1e-6) * 0.5
+    corners = torch.randint(8, 3 * p - 8, (pairs, 2), generator=generator)
+    moves = torch.randint(-6, 7, (pairs, 2), generator=generator)
+    cut = [torch.stack([ground[0, 0, y : y + p, x : x + p], ground[0, 0, y + dy : y + dy + p, x + dx : x + dx + p]])
+           for (x, y), (dx, dy) in zip(corners.tolist(), moves.tolist())]
+    # (1, pairs, F), a chunk at a time: no more memory than the estimator's own chunks
+    features = torch.cat([model.eval().features(part) for part in torch.stack(cut).clamp(-1, 1).split(chunk)])[None]
+
+    def offsets(net: HomographyNet) -> Tensor:
+        state, out = None, []
+        for part in features.split(chunk, dim=1):
+            step, state = net.step(part, state)
+            out.append(step)
+        return torch.cat(out, dim=1)
+
+    return float((offsets(int8) - offsets(model)).abs().max())
+
+
+__all__ = ["HEAD_TOLERANCE_PX", "RANGES_FORMAT", "engine", "calibrate", "head_error", "quantized_features", "quantized_head"]

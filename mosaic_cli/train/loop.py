@@ -58,9 +58,11 @@ from mosaic_cli.train.run import (
 from mosaic_cli.train.schedule import StepSchedule
 
 CALIBRATION_PAIRS = 512  # training patch pairs that set the int8 activation ranges of the final weights
-# --lstm-start cnn: the LSTM's input scale, as a multiple of the largest feature seen, keeps its
-# cell in tanh's linear range (5x: within 1.3%), so that it starts as the CNN to 0.1-0.2 px.
-LSTM_START_MARGIN = 5.0
+# --lstm-start cnn: the LSTM's input scale, as a multiple of the largest feature seen.  Larger
+# keeps the cell nearer tanh's linear range (the start nearer the CNN), but the regressor must
+# then amplify a smaller hidden state as much, and the optimiser's first steps on the LSTM's
+# weights move it that much more: 2x starts within about a working px of the CNN.
+LSTM_START_MARGIN = 2.0
 MAX_SKIPPED_STEPS = 50  # consecutive non-finite losses before the run is declared diverged
 
 
