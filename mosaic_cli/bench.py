@@ -375,6 +375,7 @@ class FlightScore:
     ms: np.ndarray  # per frame: preprocess + estimate, wall clock
     cpu_ms: np.ndarray  # per frame: preprocess + estimate, process CPU time
     metrics: dict  # mosaic_cli.evaluate.evaluate of this flight alone (what `mosaic eval` prints)
+    touches_burst: np.ndarray | None = None  # per frame pair: it touches a frame without a motion cue (gt "bursts")
 
 
 def find_flights(folder: str | Path) -> list[Flight]:
@@ -389,6 +390,7 @@ def score_flight(flight: Flight, pairwise: np.ndarray, times: StageTimes) -> Fli
     """MACE by the paper's protocol (landmark pairs every 30 frames, from the exact ground truth,
     on the frames the prediction covers), corner errors and per-frame times of one run."""
     from mosaic_cli.evaluate import corner_errors, evaluate, landmarks_from_ground_truth, mace_pairs
+    from mosaic_cli.simulate.bursts import burst_pairs
 
     gt = flight.gt
     n = len(pairwise)
@@ -398,15 +400,25 @@ def score_flight(flight: Flight, pairwise: np.ndarray, times: StageTimes) -> Fli
     corners = corner_errors(pairwise, np.asarray(gt.pairwise)[:n], gt.size)
     frames = len(times.preprocess)
     ms = np.asarray(times.preprocess[:frames]) + np.asarray(times.estimate[:frames])
-    return FlightScore(flight.name, flight.profile, landmark, corners, ms, np.asarray(times.cpu[:frames]), evaluate(pairwise, gt, ann))
+    touches = burst_pairs(gt.bursts, n) if gt.bursts else None
+    return FlightScore(flight.name, flight.profile, landmark, corners, ms, np.asarray(times.cpu[:frames]), evaluate(pairwise, gt, ann),
+                       touches)
 
 
 def pool(scores: list[FlightScore]) -> dict:
     """The metrics of several flights taken together: MACE = mean over all their landmark pairs,
     corner error = median over all their frame pairs, failure rate = share of those pairs with a
-    corner error above evaluate.FAILURE_PX, times = p50 over all their frames."""
+    corner error above evaluate.FAILURE_PX, times = p50 over all their frames; on flights with
+    bursts, the failure rate of the pairs that touch a burst and of the others apart."""
     from mosaic_cli.evaluate import FAILURE_PX
 
+    touched = [(s.corner_errors, s.touches_burst) for s in scores if s.touches_burst is not None]
+    bursts = {}
+    if touched:
+        errors = np.concatenate([e for e, _ in touched])
+        mask = np.concatenate([m for _, m in touched])
+        bursts = {"burst_pairs": int(mask.sum()), "burst_failure_rate": float(np.mean(errors[mask] > FAILURE_PX)) if mask.any() else None,
+                  "other_failure_rate": float(np.mean(errors[~mask] > FAILURE_PX)) if (~mask).any() else None}
     landmark = np.concatenate([s.landmark_errors for s in scores])
     corners = np.concatenate([s.corner_errors for s in scores])
     ms = np.concatenate([s.ms for s in scores])
@@ -420,6 +432,7 @@ def pool(scores: list[FlightScore]) -> dict:
         "flights": len(scores),
         "pairs": int(len(corners)),
         "landmark_pairs": int(len(landmark)),
+        **bursts,
     }
 
 
@@ -476,7 +489,7 @@ def run_flights(options: BenchOptions, show_progress: bool = True) -> dict:
     }
 
 
-PROFILE_ORDER = ("paper", "survey", "fast", "shaky", "hard", "extreme")
+PROFILE_ORDER = ("paper", "survey", "fast", "shaky", "hard", "extreme", "bursts")
 
 
 def _machine() -> dict:
@@ -498,8 +511,10 @@ def render_flights_table(report: dict):
     profiles = src["profiles"]
     table = Table(title=f"bench: {len(src['flights'])} flights in {src['path']} ({src['frames']} frames)", title_justify="left")
     table.add_column("estimator", no_wrap=True)
+    with_bursts = any(e.get("burst_pairs") for e in report["estimators"].values())
+    burst_cols = ("burst pairs\nfailed", "carried\npairs") if with_bursts else ()
     for col in ("MACE\nall", *[f"MACE / failed\n{p}" for p in profiles], "corner px\nmedian", "failure\nrate",
-                "fallback\npairs", "ms/frame\np50", "CPU ms/fr\np50"):
+                *burst_cols, "fallback\npairs", "ms/frame\np50", "CPU ms/fr\np50"):
         table.add_column(col, justify="right", no_wrap=True)
 
     def num(v, fmt):
@@ -508,12 +523,15 @@ def render_flights_table(report: dict):
     for label, e in report["estimators"].items():
         paths = e.get("paths")
         fallback = paths.get("fallback", 0) / max(1, sum(paths.values())) if paths else None
+        carried = paths.get("carried", 0) / max(1, sum(paths.values())) if paths else None
+        burst_cells = (num(e.get("burst_failure_rate"), "{:.1%}"), num(carried, "{:.1%}")) if with_bursts else ()
         table.add_row(
             label,
             num(e["mace"], "{:.2f}"),
             *[f"{num(e['profiles'][p]['mace'], '{:.2f}')} / {e['profiles'][p]['failure_rate']:.1%}" for p in profiles],
             num(e["corner_error"], "{:.2f}"),
             num(e["failure_rate"], "{:.1%}"),
+            *burst_cells,
             num(fallback, "{:.1%}"),
             num(e["ms_per_frame"]["p50"], "{:.2f}"),
             num(e["cpu_ms_per_frame"]["p50"], "{:.2f}"),

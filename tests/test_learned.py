@@ -190,8 +190,10 @@ SPOILERS = {
 @pytest.mark.parametrize("spoil", SPOILERS)
 def test_the_shipped_default_is_right_or_says_it_is_unsure_on_spoiled_frames(spoil):
     """The shipped default weights, with frames 5 and 6 of a known pan spoiled: every estimate
-    is finite, and each is either right (within 1 px) or flagged (confidence under 0.5); frames
-    with nothing to register (black, white, blank, too dark) give identity at confidence 0."""
+    is finite, and each is either right (within 1 px) or flagged (confidence under 0.5); the
+    pairs that touch a frame with nothing to register (black, white, blank, too dark) are placed
+    by the motion carried over from the frames before (the pan's, exactly), at the low
+    confidence that says nothing in the frames confirmed them."""
     tex = textured_image(800, 480, seed=11)
     frames = [tex[60 + 4 * t : 420 + 4 * t, 100 - 6 * t : 740 - 6 * t] for t in range(12)]  # (6, -4) px a frame
     frames[5], frames[6] = SPOILERS[spoil](frames[5]), SPOILERS[spoil](frames[6])
@@ -202,8 +204,8 @@ def test_the_shipped_default_is_right_or_says_it_is_unsure_on_spoiled_frames(spo
     clean = [0, 1, 2, 3, 7, 8, 9, 10]
     assert errors[clean].max() < 0.5 and conf[clean].min() > 0.9
     if spoil in ("black", "white", "textureless", "dark"):
-        np.testing.assert_array_equal(H[4:7], np.broadcast_to(np.eye(3), (3, 3, 3)))
-        assert np.all(conf[4:7] == 0)
+        assert errors[4:7].max() < 0.5, errors
+        assert np.all(conf[4:7] == LearnedConfig().carry_confidence)
     else:
         assert conf[4] < 0.5  # a sharp frame and a spoiled one do not register as sure
 
@@ -240,7 +242,7 @@ def test_the_motion_prior_lets_a_short_sighted_net_follow_a_fast_pan(fast_pannin
     H, conf = run(with_prior, fast_panning)
     assert errors_against(H, truth).max() < 0.5 and conf.min() > 0.3
     # the first chunk (3 pairs) has no prior yet; every later one is pre-aligned by the last motion
-    assert with_prior.path_counts == {"learned": 6, "fallback": 3, "failed": 0}
+    assert with_prior.path_counts == {"learned": 6, "fallback": 3, "carried": 0, "failed": 0}
     assert sum(with_prior.path_counts.values()) == len(H)
     alone = phase_estimator(bias=short_sighted, prior="none", fallback="none", refine="lk")
     H, conf = run(alone, fast_panning)
@@ -258,7 +260,7 @@ def test_the_fallback_takes_the_pairs_the_learned_path_cannot_confirm(fast_panni
     est = phase_estimator(bias=blind, prior="none", fallback="orb", refine="lk")
     H, conf = run(est, fast_panning)
     assert errors_against(H, truth).max() < 0.5 and conf.min() > 0.3
-    assert est.path_counts == {"learned": 0, "fallback": 9, "failed": 0}
+    assert est.path_counts == {"learned": 0, "fallback": 9, "carried": 0, "failed": 0}
     est = phase_estimator(bias=blind, prior="none", fallback="none", refine="lk")
     H, conf = run(est, fast_panning)
     np.testing.assert_array_equal(H, np.broadcast_to(np.eye(3), H.shape))

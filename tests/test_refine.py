@@ -212,7 +212,7 @@ def test_a_pair_only_the_wide_polish_placed_is_contested_by_the_fallback(ground)
     assert estimator.path_counts["failed"] == 0 and sum(estimator.path_counts.values()) == 4
     alone = oracle_estimator(H_full, far, fallback="none", polish=never)
     run(alone, frames)
-    assert alone.path_counts == {"learned": 4, "fallback": 0, "failed": 0}
+    assert alone.path_counts == {"learned": 4, "fallback": 0, "carried": 0, "failed": 0}
 
 
 def test_network_estimate_kept_when_the_polish_cannot_confirm_it(ground):
@@ -246,20 +246,29 @@ def degraded(kind: str, texture: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("kind", ["black", "over-exposed", "blurred", "textureless"])
 @pytest.mark.parametrize("refine", ["lk", None])
-def test_frames_without_texture_give_identity_with_zero_confidence(ground, kind, refine):
+@pytest.mark.parametrize("carry", ["none", "velocity"])
+def test_frames_without_texture_are_carried_or_failed_never_wild(ground, kind, refine, carry):
     """A real (randomly initialised) network and the full pipeline: a pair that involves a frame
-    with nothing to register is the identity with confidence 0, never NaN or a wild matrix; the
-    good pairs around it are unaffected."""
+    with nothing to register is never NaN or a wild matrix: with ``carry=none`` it is the
+    identity with confidence 0 (failed); by default it is placed by the last confirmed motion,
+    at the carried confidence, and counted as carried.  The good pairs around it are unaffected."""
     torch.manual_seed(0)
     net = HomographyNet(NetConfig(head="cnn"))
     good = flight(ground, true_motion(4), n=4)
     frames = good[:2] + [degraded(kind, good[2]), degraded(kind, good[2])] + good[2:]
-    estimator = LearnedEstimator(net, {"variant": "base", "work_size": WORK}, "cpu", LearnedConfig(refine=refine, chunk=4))
+    config = LearnedConfig(refine=refine, chunk=4, carry=carry)
+    estimator = LearnedEstimator(net, {"variant": "base", "work_size": WORK}, "cpu", config)
     H, conf = run(estimator, frames)
     assert H.shape == (5, 3, 3) and np.all(np.isfinite(H)) and np.all(np.isfinite(conf))
+    assert conf[0] > config.carry_confidence and conf[4] > config.carry_confidence
     for k in (1, 2, 3):  # every pair with a degraded frame
-        np.testing.assert_array_equal(H[k], np.eye(3))
-        assert conf[k] == 0
+        if carry == "none":
+            np.testing.assert_array_equal(H[k], np.eye(3))
+            assert conf[k] == 0
+        else:
+            np.testing.assert_allclose(H[k], H[0], atol=1e-9)
+            assert conf[k] == config.carry_confidence
+    assert estimator.path_counts["carried" if carry != "none" else "failed"] == 3
 
 
 def test_wide_polish_rescues_a_far_off_network(ground):

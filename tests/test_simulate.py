@@ -339,3 +339,65 @@ def test_load_map_crops_opaque_white_fill(tmp_path):
     m = load_map(tmp_path / "ortho.png")
     assert 170 <= m.shape[0] <= 180 and 225 <= m.shape[1] <= 240
     assert not (m >= 250).all(axis=2).all(axis=0).any()  # no all-white column left
+
+
+# --- bursts: frames without a motion cue ------------------------------------------------------
+
+
+def test_bursts_spoil_the_listed_frames_and_keep_the_geometry_exact(small_map, tmp_path):
+    """The 'bursts' profile: the ground truth lists every spoilt frame; a duplicated frame shows
+    exactly the frame before (pairwise identity), a dropped one makes its pair span two flown
+    intervals (the product of the two steps of the same flight without bursts), and the pixel
+    kinds take the band-passed detail far below the neighbours' (what the estimator calls
+    spoilt) while the frames around them are untouched."""
+    from mosaic_cli.estimators.learned import detail_level
+    from mosaic_cli.simulate import SimulateOptions, plan_simulated_flight
+    from mosaic_cli.simulate.bursts import BurstSpec, burst_pairs, frames_to_plan, plan_bursts
+
+    spec = BurstSpec(PROFILES["bursts"].bursts)
+    seed = next(s for s in range(50) if {b.kind for b in plan_bursts(240, spec, s)} == set(spec.kinds))  # every kind
+    options = SimulateOptions(profile="bursts", frames=240, size=SIZE, seed=seed)
+    plan = plan_simulated_flight((1024, 1024), options)
+    kinds = {b.frame: b.kind for b in plan.bursts}
+    assert plan.frames == 240 and len(plan.bursts) >= 8 and set(kinds.values()) == set(spec.kinds)
+    for t, kind in kinds.items():
+        if kind == "duplicate":
+            np.testing.assert_allclose(plan.pairwise[t - 1], np.eye(3), atol=1e-12)
+    # Drops: the same flight planned without bursts, the dropped frames taken out.
+    flown = plan_flight((1024, 1024), "bursts", frames_to_plan(240, spec), SIZE, seed)
+    drops = sorted(t for t, k in kinds.items() if k == "drop")
+    for t in drops:
+        k = t + sum(1 for d in drops if d < t) + 1  # flown index of video frame t (the one before it was dropped)
+        spanned = flown.pairwise[k - 1] @ flown.pairwise[k - 2]
+        np.testing.assert_allclose(plan.pairwise[t - 1], spanned / spanned[2, 2], rtol=1e-9, atol=1e-9)
+    frames = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in render_frames(small_map, plan)]
+    levels = np.array([detail_level(cv2.resize(f, (320, 180))) for f in frames])
+    clean = np.median(levels)
+    for t, kind in kinds.items():
+        if kind in ("glare", "dark", "flat"):
+            assert levels[t] < 0.2 * clean, (t, kind, levels[t], clean)
+        elif kind == "blur":
+            assert levels[t] < 0.8 * clean, (t, kind, levels[t], clean)
+    # The pairs that touch them: both pairs around a spoilt frame, the one pair of a drop or duplicate.
+    touched = burst_pairs(plan.bursts, plan.frames - 1)
+    for t, kind in kinds.items():
+        assert touched[t - 1] and (kind in ("drop", "duplicate") or touched[t])
+    # Written and read back with the video.
+    gt = write_flight(tmp_path / "b.mp4", small_map, plan, show_progress=False)
+    assert load_ground_truth(tmp_path / "b.mp4").bursts == gt.bursts == [{"frame": b.frame, "kind": b.kind} for b in plan.bursts]
+
+
+def test_bursts_option_and_its_errors(tmp_path, capsys):
+    from mosaic_cli.simulate.bursts import KINDS, BurstSpec
+
+    assert BurstSpec.parse("all").kinds == KINDS and not BurstSpec.parse("none").any and not BurstSpec.parse(None).any
+    assert BurstSpec.parse("glare, dark").kinds == ("glare", "dark")
+    code = cli_exit(["simulate", "-o", str(tmp_path / "x.mp4"), "--bursts", "glare,fog", "-n", "4", "--size", "64x48"])
+    assert code == 2 and "unknown kind 'fog'" in capsys.readouterr().err and not (tmp_path / "x.mp4").exists()
+    # A paper flight with dark frames only: listed, and a paper flight without the option lists none.
+    assert cli_exit(["simulate", "-o", str(tmp_path / "d.mp4"), "--bursts", "dark", "-n", "60", "--size", "128x72", "-q"]) == 0
+    listed = load_ground_truth(tmp_path / "d.mp4").bursts
+    assert listed and {b["kind"] for b in listed} == {"dark"}
+    assert cli_exit(["simulate", "-o", str(tmp_path / "p.mp4"), "-n", "60", "--size", "128x72", "-q"]) == 0
+    assert load_ground_truth(tmp_path / "p.mp4").bursts == []
+    assert "bursts" not in json.loads((tmp_path / "p.gt.json").read_text())  # the format of flights without them is unchanged

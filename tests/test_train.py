@@ -446,6 +446,27 @@ def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan
     assert float(rows[-1]["mace"]) == pytest.approx(summary.val_mace, rel=1e-6) and np.isfinite(summary.val_mace)
 
 
+def test_validation_scores_the_network_alone_never_the_classical_fallback(tmp_path):
+    """A zero-motion net on a fast flight: the identity does not correlate with the moved ground,
+    so an estimator with ORB as its fallback would replace most pairs by ORB's (far better)
+    estimates; validation must score what the network said (val.csv would flatter it otherwise)."""
+    from mosaic_cli.evaluate import landmarks_from_ground_truth, mace
+    from mosaic_cli.simulate import SimulateOptions, simulate_flight
+    from mosaic_cli.train.validate import find_flights, validation_mace
+
+    gt = simulate_flight(tmp_path / "f.mp4", options=SimulateOptions(profile="fast", frames=40, size=(256, 144), preset="ultrafast"),
+                         show_progress=False)
+    flights = find_flights(tmp_path)
+    net = HomographyNet(NetConfig(preset="compact", head="cnn", patch=PATCH))
+    with torch.no_grad():
+        net.regressor.weight.zero_()
+        net.regressor.bias.zero_()
+    got = validation_mace(net, flights, torch.device("cpu"), (256, 144))
+    identity = mace(np.tile(np.eye(3), (gt.frames - 1, 1, 1)), landmarks_from_ground_truth(gt), gt.size)
+    assert identity > 20.0  # the flight moves far: ORB in its place would score a few px
+    assert got == pytest.approx(identity, rel=1e-9)
+
+
 # ----------------------------------------------------------------------------- real imagery
 
 

@@ -25,6 +25,7 @@ def simulate(
     crf: Annotated[int | None, typer.Option("--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme.")] = None,
     preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast ... veryslow).")] = "medium",
     overlays: Annotated[str | None, typer.Option("--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png.")] = None,
+    bursts: Annotated[str | None, typer.Option("--bursts", help="Every 12-30 frames, 1-3 frames with no motion cue: glare, blur, dark, flat, drop, duplicate (comma-separated), all, or none. Default: the profile's (all for -p bursts, none otherwise). Listed in the ground truth.")] = None,
     quiet: Quiet = False,
     telemetry: Annotated[str | None, typer.Option("--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json.")] = None,
     origin: Annotated[str, typer.Option("--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry).")] = "47.3977,8.5456",
@@ -40,14 +41,16 @@ def simulate(
     lines that revisit the ground), fast (10-20 px/frame), shaky (paper + 3-8 Hz shake),
     hard (paper + exposure drift, noise, motion blur), extreme (25-60 px/frame, fast yaw turns
     and altitude changes, exposure drift and jumps, noise, motion blur, vignetting, haze,
-    low-bitrate H.264).  Motion is in 1280x720-equivalent px.
+    low-bitrate H.264), bursts (8-30 px/frame, exposure drift, noise and blur, and every 12-30
+    frames 1-3 frames without a motion cue: see --bursts).  Motion is in 1280x720-equivalent px.
     The exact homographies go to <stem>.gt.json: map_to_frame per frame and pairwise t -> t+1.
     """
-    from mosaic_cli.simulate import OverlaySpec, SimulateOptions, check_outputs, ground_truth_path, simulate_flight
+    from mosaic_cli.simulate import BurstSpec, OverlaySpec, SimulateOptions, check_outputs, ground_truth_path, simulate_flight
     from mosaic_cli.simulate.telemetry import GpsErrors, TelemetryOptions, prepare_telemetry, write_telemetry
 
     options = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), fps=fps, seed=seed, crf=crf,
-                              preset=preset, overlays=OverlaySpec.parse(overlays))
+                              preset=preset, overlays=OverlaySpec.parse(overlays),
+                              bursts=BurstSpec.parse(bursts) if bursts is not None else None)
     log = None
     if telemetry is not None:
         log = TelemetryOptions(format=telemetry, origin=origin, gsd=gsd, rate=telemetry_rate,

@@ -19,10 +19,14 @@
              polish could place is contested by ORB (the better band-passed correlation wins)
           -> confidence (ZNCC of the registered patches x agreement between patches x how much
              of the polish agreed), or ORB's when the fallback made the pair
+          -> a pair no path confirms, one of whose frames is spoilt (glare, a gust's blur, near
+             black, featureless) -> the motion carried across the frames, with a low confidence
+             (``carry``: the network's estimate, which for the LSTM reads its carried state, or
+             the last confirmed motion)
           -> invalid, a frame without texture, or detail that does not correlate once registered
              (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
-    ``path_counts`` says which path made each pair: learned, fallback or failed.
+    ``path_counts`` says which path made each pair: learned, fallback, carried or failed.
 """
 
 from __future__ import annotations
@@ -61,7 +65,8 @@ SEEDS = ("network", "identity", "velocity")
 PRIORS = ("velocity", "none")
 FALLBACKS = ("orb", "none")
 RETRIES = ("wide", "none")
-PATHS = ("learned", "fallback", "failed")  # which path produced a pair, counted in ``path_counts``
+CARRIES = ("network", "velocity", "none")
+PATHS = ("learned", "fallback", "carried", "failed")  # which path produced a pair, counted in ``path_counts``
 PRECISIONS = ("auto", "int8", "fp32")
 PATCH_LAYOUTS = (1, 5, 9)
 REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -117,6 +122,16 @@ class LearnedConfig:
     # When the learned path cannot confirm a pair (the polish fails or its detail does not
     # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
     fallback: str = "orb"
+    # A pair that no path confirms, one of whose frames is spoilt (glare, a gust's blur, near
+    # black, featureless: its band-passed detail below ``spoilt_ratio`` of the flight's recent
+    # frames), is placed by the motion carried across the frames rather than reported failed:
+    # "network" (the network's estimate for the pair: for the LSTM, what its state carried over
+    # from the frames before makes of it), "velocity" (the last confirmed motion), "none"
+    # (failed).  Its confidence is ``carry_confidence``: placed, but confirmed by nothing.  A cut
+    # to unrelated ground keeps its detail, so it stays a failure.
+    carry: str = "velocity"
+    carry_confidence: float = 0.05
+    spoilt_ratio: float = 0.7
 
     def __post_init__(self) -> None:
         self.validate()
@@ -141,6 +156,12 @@ class LearnedConfig:
             raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.fallback!r}")
         if self.retry not in RETRIES:
             raise BadInput(f"retry must be one of {', '.join(RETRIES)}, got {self.retry!r}")
+        if self.carry not in CARRIES:
+            raise BadInput(f"carry must be one of {', '.join(CARRIES)}, got {self.carry!r}")
+        if not 0 < self.carry_confidence < 1:
+            raise BadInput(f"carry-confidence must be in (0, 1), got {self.carry_confidence}")
+        if not 0 <= self.spoilt_ratio < 1:
+            raise BadInput(f"spoilt-ratio must be in [0, 1), got {self.spoilt_ratio}")
 
 
 @dataclass
@@ -154,6 +175,7 @@ class WorkFrame:
     aligned: np.ndarray | None = None  # the image the polish aligns (band-passed gray)
     detail: np.ndarray | None = None  # fine detail (gray minus its 5x5 mean), for the ZNCC check
     features: tuple | None = None  # ORB keypoints and descriptors, when the fallback needed them
+    spoilt: bool | None = None  # no motion cue: glare, heavy blur, near black, featureless (see LearnedConfig.carry)
 
 
 def resolve_device(device: str | None) -> torch.device:
@@ -220,6 +242,7 @@ class LearnedEstimator(Estimator):
         self._state = None
         self._pairs_done = 0
         self._motion = np.eye(3)
+        self._detail_levels: list[float] = []
         self.path_counts = dict.fromkeys(PATHS, 0)
 
     def reset(self, full_size: tuple[int, int]) -> None:
@@ -241,6 +264,7 @@ class LearnedEstimator(Estimator):
         self._state = None
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
+        self._detail_levels = []  # band-passed detail of the recent unspoilt frames (see _describe)
         self.path_counts = dict.fromkeys(PATHS, 0)
         self._zncc_use = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
         if self._fallback is not None:
@@ -310,6 +334,9 @@ class LearnedEstimator(Estimator):
             if orb_ok and (not confirmed or self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H)):
                 return self._result(H_orb, orb_confidence, "fallback")
         if polished is None or not related:
+            if self.config.carry != "none" and (prev.spoilt or cur.spoilt):
+                carried = seed if self.config.carry == "network" and valid else self._motion
+                return self._result(carried, self.config.carry_confidence, "carried")
             return self._result(None, 0.0, "failed")
         confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
         return self._result(polished.H, confidence, "learned")
@@ -335,6 +362,17 @@ class LearnedEstimator(Estimator):
             frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
         if c.refine is not None and frame.textured:
             frame.aligned = band_pass(frame.gray, *self._band) if self._band else frame.gray
+        frame.spoilt = not frame.textured or self._spoilt(detail_level(frame.gray))
+
+    def _spoilt(self, level: float) -> bool:
+        """Whether a frame of this band-passed detail carries no motion cue: far less detail than
+        the median of the flight's recent unspoilt frames (which then takes it in)."""
+        recent = self._detail_levels
+        spoilt = len(recent) >= SPOILT_HISTORY_MIN and level < self.config.spoilt_ratio * float(np.median(recent))
+        if not spoilt:
+            recent.append(level)
+            del recent[:-SPOILT_HISTORY]
+        return spoilt
 
     def _polish(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> tuple[Polish, bool]:
         """The polished estimate, and whether the cheap polish settled it (from the seed, or from
@@ -460,6 +498,18 @@ class LearnedEstimator(Estimator):
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
+
+
+SPOILT_HISTORY = 15  # frames the detail reference is the median of
+SPOILT_HISTORY_MIN = 2  # frames needed before any is called spoilt
+
+
+def detail_level(gray: np.ndarray) -> float:
+    """RMS of the band-passed detail of a working frame (difference of Gaussians of sigmas 1.5 and
+    6 working px, taken at half size): what glare, a heavy blur, darkness or featureless ground
+    take away and what sensor noise, which the band leaves out, cannot fake."""
+    half = cv2.pyrDown(gray).astype(np.float32)
+    return float((cv2.GaussianBlur(half, (0, 0), 0.75) - cv2.GaussianBlur(half, (0, 0), 3.0)).std())
 
 
 def _sample(image: np.ndarray, patch_to_image: np.ndarray, size: int) -> np.ndarray:

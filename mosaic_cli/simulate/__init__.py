@@ -16,6 +16,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import check_encoder
+from mosaic_cli.simulate.bursts import BurstSpec, apply_bursts, frames_to_plan, plan_bursts
 from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load_ground_truth
 from mosaic_cli.simulate.maps import load_map, procedural_map
 from mosaic_cli.simulate.overlay import OverlayBurner, OverlaySpec, overlay_mask_path, write_mask
@@ -40,6 +41,8 @@ __all__ = [
     "simulate_flight",
     "SimulateOptions",
     "check_outputs",
+    "plan_simulated_flight",
+    "BurstSpec",
     "OverlaySpec",
     "overlay_mask_path",
 ]
@@ -100,6 +103,7 @@ class SimulateOptions:
     crf: int | None = None  # None: the profile's own (degraded flights are low-bitrate too)
     preset: str = "medium"  # x264's
     overlays: OverlaySpec = field(default_factory=OverlaySpec)  # burned in, with their exact mask
+    bursts: BurstSpec | None = None  # frames without a motion cue; None: the profile's own
 
     def __post_init__(self) -> None:
         self.validate()
@@ -143,7 +147,21 @@ def simulate_flight(out_path: str | Path, map_path: str | Path | None = None, op
     """Everything ``mosaic simulate`` does: load (or make) the map, plan, render, encode."""
     o = options or SimulateOptions()
     map_rgb = load_map(map_path, seed=o.seed)
-    plan = plan_flight((map_rgb.shape[1], map_rgb.shape[0]), o.profile, o.frames, o.size, o.seed, o.fps)
+    plan = plan_simulated_flight((map_rgb.shape[1], map_rgb.shape[0]), o)
     name = "procedural" if map_path is None else Path(map_path).name
     return write_flight(out_path, map_rgb, plan, fps=o.fps, crf=o.crf, map_name=name, preset=o.preset, show_progress=show_progress,
                         overlays=o.overlays)
+
+
+def plan_simulated_flight(map_size: tuple[int, int], options: SimulateOptions) -> FlightPlan:
+    """The flight of ``options`` over a map of ``map_size``: :func:`plan_flight`, then its bursts
+    (the profile's, or ``options.bursts``), drawn from the seed alone."""
+    o = options
+    spec = o.bursts if o.bursts is not None else BurstSpec(PROFILES[o.profile].bursts)
+    plan = plan_flight(map_size, o.profile, frames_to_plan(o.frames, spec), o.size, o.seed, o.fps)
+    if not spec.any:
+        return plan
+    bursts = plan_bursts(o.frames, spec, o.seed)
+    plan = apply_bursts(plan, bursts, o.frames, o.seed)
+    plan.bursts = bursts
+    return plan

@@ -15,7 +15,7 @@ coordinates follow the OpenCV pixel-centre convention at full frame resolution.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,7 @@ class GroundTruth:
     seed: int
     map_name: str
     map_size: tuple[int, int]
+    bursts: list[dict] = field(default_factory=list)  # {"frame": t, "kind": k}: frames without a motion cue
 
     @property
     def frames(self) -> int:
@@ -56,13 +57,14 @@ class GroundTruth:
             int(plan.seed),
             str(map_name),
             (int(plan.map_size[0]), int(plan.map_size[1])),
+            [{"frame": int(b.frame), "kind": str(b.kind)} for b in plan.bursts],
         )
 
     def to_json(self) -> dict:
         def mats(a):
             return [[[float(v) for v in row] for row in m] for m in a]
 
-        return {
+        doc = {
             "version": GT_VERSION,
             "kind": GT_KIND,
             "frames": self.frames,
@@ -77,6 +79,9 @@ class GroundTruth:
             "smooth_map_to_frame": mats(self.smooth_map_to_frame),
             "pairwise": mats(self.pairwise),
         }
+        if self.bursts:  # flights without bursts keep the format they always had
+            doc["bursts"] = [dict(b) for b in self.bursts]
+        return doc
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_json())
@@ -117,6 +122,7 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
         gt = GroundTruth(
             M, smooth, pairwise, size, float(data.get("fps", 30.0)), str(data.get("profile", "?")),
             int(data.get("seed", 0)), str(data.get("map", "?")), (map_size[0], map_size[1]),
+            [{"frame": int(b["frame"]), "kind": str(b["kind"])} for b in data.get("bursts", [])],
         )
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise BadInput(f"{p}: malformed ground-truth file ({exc.__class__.__name__}: {exc})") from None

@@ -15,9 +15,12 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, resize_matrix
+from mosaic_cli.simulate.bursts import CODES, PIXEL_KINDS
 from mosaic_cli.simulate.trajectory import FlightPlan
 
 LEVEL_STEP = np.sqrt(2.0)  # scale factor between pyramid levels
+GLARE, GUST, DARK, FLAT = (CODES[k] for k in PIXEL_KINDS)  # the burst codes of a frame's effects
+BURST_NOISE = 2.0  # gray levels of sensor noise on a spoilt frame of a flight otherwise clean
 
 
 class MapPyramid:
@@ -81,10 +84,16 @@ def render_view(pyramid: MapPyramid, map_to_frame: np.ndarray, size: tuple[int, 
 
 
 def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, seed: int) -> np.ndarray:
-    """Motion blur, contrast, vignetting, exposure gain and sensor noise of frame ``t`` (degraded profiles)."""
+    """Motion blur, contrast, vignetting, exposure gain and sensor noise of frame ``t`` (degraded profiles),
+    and the burst that spoils it, if any (:mod:`mosaic_cli.simulate.bursts`)."""
     out = frame
-    if "blur" in effects:
-        bx, by = (float(v) for v in effects["blur"][t])
+    burst = int(effects["burst"][t]) if "burst" in effects else 0  # simulate.bursts.CODES
+    level = float(effects["burst_level"][t]) if burst else 0.0
+    if "blur" in effects or burst == GUST:
+        bx, by = (float(v) for v in effects["blur"][t]) if "blur" in effects else (0.0, 0.0)
+        if burst == GUST:  # a gust: the camera swings far during the exposure
+            angle, length = float(effects["burst_angle"][t]), level * frame.shape[1] / 1280.0
+            bx, by = bx + length * np.cos(angle), by + length * np.sin(angle)
         length = float(np.hypot(bx, by))
         if length >= 1.0:
             ksize = int(np.ceil(length)) | 1
@@ -105,9 +114,17 @@ def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, see
     sigma = float(effects["noise_sigma"][t]) if "noise_sigma" in effects else 0.0
     contrast = float(effects["contrast"][t]) if "contrast" in effects else 1.0
     vignette = float(effects["vignette"][t]) if "vignette" in effects else 0.0
-    if gain != 1.0 or sigma > 0 or contrast != 1.0 or vignette > 0:
+    if burst:
+        sigma = max(sigma, BURST_NOISE)  # a spoilt frame is never clean: the sensor's floor shows
+        if burst == FLAT:
+            contrast *= level
+        elif burst == DARK:
+            gain *= level
+    if gain != 1.0 or sigma > 0 or contrast != 1.0 or vignette > 0 or burst == GLARE:
         h, w = out.shape[:2]
         f = out.astype(np.float32)
+        if burst == GLARE:  # washed out toward white, a faint residue of the ground left
+            f = 255.0 - (255.0 - f) * level
         if contrast != 1.0:  # haze, flat ground: detail fades toward the scene's mean
             mean = cv2.mean(f)[:3]
             f = cv2.addWeighted(f, contrast, np.full_like(f, mean), 1.0 - contrast, 0.0)

@@ -62,6 +62,7 @@ class Profile:
     heading_periods: tuple[float, float] = (20.0, 60.0)  # seconds: how fast the heading turns
     altitude_periods: tuple[float, float] = (20.0, 60.0)
     crf: int = 18  # H.264 quality the flight is encoded at unless --crf says otherwise
+    bursts: tuple[str, ...] = ()  # frames without a motion cue (simulate.bursts.KINDS), unless --bursts says otherwise
 
 
 PROFILES: dict[str, Profile] = {
@@ -86,6 +87,16 @@ PROFILES: dict[str, Profile] = {
                                 shake_blur_px=3.0, vignette=(0.3, 0.5), contrast=(0.35, 1.0)),
             crf=30,
         ),
+        Profile(
+            "bursts",
+            "an ordinary flight (8-30 px/frame, exposure drift, noise, motion blur) where every 12-30 frames "
+            "1-3 frames carry no motion cue: glare, a gust's heavy blur, near-black or featureless frames, "
+            "a dropped or duplicated frame",
+            (8.0, 30.0),
+            heading_deg=20.0,
+            effects=Degradation(),
+            bursts=("glare", "blur", "dark", "flat", "drop", "duplicate"),
+        ),
     )
 }
 
@@ -102,6 +113,7 @@ class FlightPlan:
     map_size: tuple[int, int] = (0, 0)  # (W, H) of the map flown over
     fps: float = 30.0
     effects: dict[str, np.ndarray] = field(default_factory=dict)  # per-frame arrays (hard profile)
+    bursts: list = field(default_factory=list)  # simulate.bursts.Burst: the frames without a motion cue
 
     @property
     def frames(self) -> int:

@@ -1,9 +1,10 @@
 """Validation during training: the paper's MACE on flights with known homographies.
 
 ``--val VAL_DIR`` holds videos written by ``mosaic simulate`` (``X.mp4`` with ``X.gt.json``
-beside it).  The network runs as ``mosaic track --weights W --refine none`` runs it (the
-learned estimator without the polish it seeds: the centre patch of each gray working frame,
-the LSTM state carried through the whole flight, implausible estimates replaced by the identity), its pairwise homographies
+beside it).  The network runs alone, as ``mosaic track --weights W -e lstm:refine=none:fallback=none``
+runs it (the learned estimator without the polish it seeds and without the classical fallback: the
+centre patch of each gray working frame, the LSTM state carried through the whole flight,
+implausible estimates replaced by the identity), its pairwise homographies
 are scored against landmarks derived from the ground truth every 30 frames, and the errors
 are averaged over the (f1, f2) pairs of all flights together, as in the paper.
 """
@@ -50,11 +51,13 @@ def find_flights(folder: str | Path) -> list[ValFlight]:
 def flight_pairwise(net: HomographyNet, video: Path, device: torch.device, work_size: tuple[int, int],
                     variant: str = "base") -> np.ndarray:
     """Pairwise homographies (N-1, 3, 3), frame t -> t+1 in full-resolution pixels: exactly what
-    ``mosaic track --weights W --refine none`` would output for this net (a copy, so that the estimator's
-    inference settings never touch the weights being trained)."""
+    ``mosaic track --weights W -e NAME:refine=none:fallback=none`` would output for this net (a copy, so
+    that the estimator's inference settings never touch the weights being trained)."""
     meta = {"work_size": tuple(work_size), "variant": variant}
-    # The network alone: the LK polish it seeds at inference would hide what training changes.
-    estimator = LearnedEstimator(copy.deepcopy(net), meta, device=str(device), config=LearnedConfig(refine=None))
+    # The network alone: the LK polish it seeds at inference, or ORB taking over the pairs it
+    # cannot confirm, would hide what training changes (and flatter the network in val.csv).
+    alone = LearnedConfig(refine=None, fallback="none", carry="none")
+    estimator = LearnedEstimator(copy.deepcopy(net), meta, device=str(device), config=alone)
     return track_video(video, estimator, show_progress=False).pairwise
 
 
