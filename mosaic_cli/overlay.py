@@ -550,7 +550,7 @@ def _bars_at(box: tuple[int, int, int, int], work: tuple[int, int], full_size: t
 
 # Up to this many frames a clip is decoded once, keeping only the sampled frames; longer ones
 # are sampled by seeking (a decoder start and the frames from the last keyframe each: at most
-# ``samples`` keyframe intervals decoded, however long the clip).  docs/stitch.md has the costs.
+# ``samples`` keyframe intervals decoded, however long the clip).  docs/measurements/stitch.md has the costs.
 DECODE_ALL_BELOW = 1000
 
 

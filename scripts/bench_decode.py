@@ -1,4 +1,4 @@
-"""Decoding and probing speed of mosaic's video reader (docs/video.md).
+"""Decoding and probing speed of mosaic's video reader (docs/developer/video.md).
 
     python scripts/bench_decode.py                     # 1280x720 H.264, 300 frames, 3 rounds
     python scripts/bench_decode.py --rounds 5 --frames 600

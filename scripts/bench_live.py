@@ -423,7 +423,7 @@ def bench_horizon(args) -> list[dict]:
     rows = []
     # (step, lookahead, predicted, solver): how the defaults were chosen; the default with the
     # offline windows' interior point solver; then the shorter lookaheads a loaded machine
-    # adapts to (docs/live.md), predicted frames kept at the horizon's.
+    # adapts to (docs/measurements/live.md), predicted frames kept at the horizon's.
     runs = [(9, 10, 0, "highs-ds"), (5, 14, 0, "highs-ds"), (5, 17, 0, "highs-ds"), (5, 17, 8, "highs-ds"),
             (5, 17, 17, "highs-ds"), (5, 17, 34, "highs-ds"), (5, 17, 17, "highs-ipm"),
             (5, 14, 17, "highs-ds"), (5, 11, 17, "highs-ds"), (5, 8, 17, "highs-ds"), (5, 4, 17, "highs-ds")]

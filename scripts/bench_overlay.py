@@ -1,4 +1,4 @@
-"""Burned-in overlays on simulated flights with exact ground truth (docs/stitch.md, "Burned-in
+"""Burned-in overlays on simulated flights with exact ground truth (docs/measurements/stitch.md, "Burned-in
 overlays").
 
     python scripts/bench_overlay.py                  # accuracy + overlay pixels + detector cost

@@ -1,5 +1,5 @@
 """How tight the overlay detector's mask is, per overlay, against the simulator's exact pixels
-(docs/stitch.md, "Burned-in overlays").
+(docs/measurements/stitch.md, "Burned-in overlays").
 
     python scripts/bench_overlay_mask.py                       # seeds 1-6, logo+timestamp and all
     python scripts/bench_overlay_mask.py --seeds 1 --overlays all --repeat 1

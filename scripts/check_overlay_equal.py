@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """The overlay detector's mask against another revision's, on the same clips: equal to the
-pixel, with the detector's time and the peak of the memory its arrays take (docs/stitch.md,
+pixel, with the detector's time and the peak of the memory its arrays take (docs/measurements/stitch.md,
 "Burned-in overlays").
 
     python scripts/check_overlay_equal.py --rev dca4fcd a.mp4 b.mp4 photos/ --seek --unknown-length

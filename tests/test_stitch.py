@@ -376,7 +376,7 @@ def test_joint_refinement_converges_along_a_flight_s_slow_scale_drift():
     dropped, so the frames grow steadily along the line).  The links see that growth as
     hundredths of a pixel per pair; the refinement must still remove it.  scipy's trust region
     with an inexact inner solver left a keyframe 10.6% off in size here (and a mapping
-    flight's keyframes -6% to +1% of the truth: docs/georef.md)."""
+    flight's keyframes -6% to +1% of the truth: docs/measurements/georef.md)."""
     from mosaic_cli.simulate.trajectory import camera_homography
     from mosaic_cli.stitch.keyframes import closest_affine
 

@@ -237,7 +237,7 @@ def test_real_photo_folders_use_every_photo_or_name_it(tmp_path, capsys, name):
             gap = np.median(np.linalg.norm(project(np.linalg.inv(Hj) @ Hi, points_i) - project(direct, points_i), axis=1))
             # 2 px at 4000 px is the goal: 0.4 px here.  Garfield's woodland is not one plane:
             # its pairs' registrations disagree by several pixels, so no placement is that
-            # close to all of them (docs/stitch.md, photo folders).
+            # close to all of them (docs/measurements/stitch.md, photo folders).
             assert gap < (2.5 if name == "odm_garfield_msp_rgb" else 0.4), (i, j)
     named = [int(i) for i, p in enumerate(sources) if f"photo {p.stem}.png not used" in err]
     assert sorted(used + named) == list(range(len(sources)))

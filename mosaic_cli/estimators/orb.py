@@ -3,8 +3,8 @@ fallback.  Features of the previous frame are kept, so each frame is described o
 
 Stages per frame pair: describe (ORB), match (ratio test), fit (USAC/RANSAC), refine
 (Lucas-Kanade tracking of the inliers, or ECC alignment of the pixels, started from the
-feature fit), score (confidence from the inliers).  The defaults were chosen by measurement; see the README's Foundation
-section for the numbers and the commands that reproduce them.
+feature fit), score (confidence from the inliers).  The defaults were chosen by measurement; see
+docs/measurements/estimators.md for the numbers and the commands that reproduce them.
 """
 
 from __future__ import annotations

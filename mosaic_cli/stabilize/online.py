@@ -48,7 +48,7 @@ class Horizon:
             need = (CARRIED + MIN_LOOKAHEAD + estimator_delay) / fps / (1.0 - WORK_SHARE)
             raise BadInput(f"--latency {latency:g} s is too short at {fps:g} fps for this estimator: give at least {need:.2f} s")
         # A quarter of the horizon: shorter steps re-plan more often with the future in view
-        # (half the horizon left twice the jitter of a quarter: docs/live.md).
+        # (half the horizon left twice the jitter of a quarter: docs/measurements/live.md).
         step = max(CARRIED, budget // 4)
         return cls(step=step, lookahead=budget - step)
 
@@ -84,11 +84,11 @@ class OnlineL1Path:
     crop: float | None
     horizon: Horizon
     # The dual simplex solves these short windows in about half the interior point's time, with
-    # the same jitter (docs/live.md).
+    # the same jitter (docs/measurements/live.md).
     options: L1Smoother = field(default_factory=lambda: L1Smoother(method="highs-ds"))
     # Frames beyond the newest planned as if the camera kept its recent mean motion: without
     # them the window's free tail stops following the camera, and the next window bends the
-    # path back (see docs/live.md).  Only the real frames' views are used, except by a commit
+    # path back (see docs/measurements/live.md).  Only the real frames' views are used, except by a commit
     # ahead of the motion (a deadline).
     predicted: int | None = None  # None: as many as the lookahead
     recent: int = 15  # frames whose mean motion is carried on
@@ -217,7 +217,7 @@ class OnlineL1Path:
         plan's prediction.  The transform then returns towards the one of the plan's last
         known frame by ``recover`` a frame, so that the output follows the camera's slow motion
         where the prediction drifts from it (0.15 left the least jitter in simulated stalls of
-        the solver: docs/live.md)."""
+        the solver: docs/measurements/live.md)."""
         assert self._plan is not None
         first, matrices = self._plan_first, self.model.matrices
         predicted = self._plan_motion[t - 1 - first]

@@ -35,7 +35,7 @@ from mosaic_cli.video import VideoInfo, probe
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
 # on shaky 1280x720 flights ORB at 640 px leaves 0.03-0.09 of the shake where 320 px leaves
-# 0.03-0.15 (occasional bad fits at 320 px), for about 5 ms more per frame (docs/stabilize.md).
+# 0.03-0.15 (occasional bad fits at 320 px), for about 5 ms more per frame (docs/measurements/stabilize.md).
 WORK_WIDTH = 640
 
 

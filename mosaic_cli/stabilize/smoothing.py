@@ -40,7 +40,7 @@ class L1Smoother:
 
     # |D|, |D^2|, |D^3|.  Grundmann et al. use (10, 1, 100); in normalised units a jerk weight
     # of 3000 leaves 0.017-0.051 of the shake on the benchmark flights where 100 leaves
-    # 0.048-0.075 (docs/stabilize.md): an L1 path's jerks are what a viewer still sees as shake.
+    # 0.048-0.075 (docs/measurements/stabilize.md): an L1 path's jerks are what a viewer still sees as shake.
     weights: tuple[float, float, float] = (10.0, 1.0, 3000.0)
     window: int = 120  # frames per linear program (4 s at 30 fps: time enough to plan ahead)
     overlap: int = 40  # frames re-solved by the next window (only the first part is kept)

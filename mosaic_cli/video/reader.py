@@ -5,7 +5,7 @@ Probing opens the file in-process with PyAV (libav's own structures: the exact r
 display matrix, every stream and its codec), once per command: the :class:`VideoInfo` is passed
 down to whatever reads the file next, so nothing probes it again.  Decoding runs the bundled
 ffmpeg (imageio-ffmpeg's binary) on a pipe: a process of its own decodes the next frame while
-mosaic works on this one (docs/video.md has the measured rates of both ways)."""
+mosaic works on this one (docs/developer/video.md has the measured rates of both ways)."""
 
 from __future__ import annotations
 

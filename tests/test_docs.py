@@ -1,0 +1,108 @@
+"""The README is a front door (issue 26): short, the two set-up commands first, and no link in
+README.md, docs/ or models/README.md leads nowhere (files and, for Markdown files, anchors)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+MAX_README_LINES = 200
+
+FENCE = re.compile(r"^(```|~~~)")
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
+
+
+def _prose_lines(text: str) -> list[str]:
+    """The lines outside fenced code blocks, with inline code spans blanked."""
+    lines, fenced = [], False
+    for line in text.splitlines():
+        if FENCE.match(line.lstrip()):
+            fenced = not fenced
+            continue
+        if not fenced:
+            lines.append(re.sub(r"`[^`]*`", "``", line))
+    return lines
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", heading)  # a link in a heading: its text
+    text = text.strip().lower()
+    text = re.sub(r"[^\w\- ]", "", text)
+    return text.replace(" ", "-")
+
+
+def _anchors(path: Path) -> set[str]:
+    seen: dict[str, int] = {}
+    anchors = set()
+    fenced = False
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if FENCE.match(line.lstrip()):
+            fenced = not fenced
+            continue
+        match = None if fenced else HEADING.match(line)
+        if match:
+            slug = _slug(match.group(2))
+            count = seen.get(slug, 0)
+            anchors.add(slug if count == 0 else f"{slug}-{count}")
+            seen[slug] = count + 1
+    return anchors
+
+
+def _documents() -> list[Path]:
+    return [README, ROOT / "models" / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+
+
+def _relative_links(path: Path) -> list[str]:
+    links = []
+    for line in _prose_lines(path.read_text(encoding="utf-8")):
+        for target in LINK.findall(line):
+            if not re.match(r"^[a-z][a-z0-9+.-]*:", target, re.I):  # http:, https:, mailto:
+                links.append(target)
+    return links
+
+
+def test_readme_is_short():
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= MAX_README_LINES, f"README.md has {len(lines)} lines; at most {MAX_README_LINES}"
+
+
+def test_readme_starts_with_exactly_two_setup_commands():
+    text = README.read_text(encoding="utf-8")
+    sections = re.split(r"^## ", text, flags=re.M)
+    assert len(sections) > 1, "README.md has no ## section"
+    setup = sections[1]
+    assert setup.lower().startswith("set-up"), f"the first section of README.md is not the set-up: {setup.splitlines()[0]!r}"
+    blocks = re.findall(r"^```[a-z]*\n(.*?)^```", setup, flags=re.M | re.S)
+    assert len(blocks) == 2, f"the set-up section holds {len(blocks)} fenced blocks, not 2"
+    commands = [block.strip() for block in blocks]
+    for command in commands:
+        assert "\n" not in command, f"a set-up block is not one command: {command!r}"
+        assert command.startswith("python3 -m venv .venv && "), command
+    assert "pip install -e . " in commands[0] and "mosaic stitch" in commands[0]
+    assert "pip install -e '.[test]'" in commands[1] and commands[1].endswith("python -m pytest -q")
+    # No other fenced block comes before the set-up section.
+    assert "```" not in sections[0]
+    # CI runs that same test command (after lint and types).
+    ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8").replace(" --quiet", "")
+    for step in commands[1].split(" && "):
+        assert step in ci, f".ci/run does not run {step!r}"
+
+
+@pytest.mark.parametrize("path", _documents(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_resolve(path: Path):
+    broken = []
+    for target in _relative_links(path):
+        file_part, _, anchor = target.partition("#")
+        resolved = (path.parent / file_part).resolve() if file_part else path
+        if not resolved.exists():
+            broken.append(f"{target} (no such file)")
+            continue
+        if anchor and resolved.suffix == ".md" and anchor not in _anchors(resolved):
+            broken.append(f"{target} (no heading #{anchor})")
+    assert not broken, f"{path.relative_to(ROOT)}: broken links: {broken}"
