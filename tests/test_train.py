@@ -418,6 +418,70 @@ def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pa
         assert quantize.quantized_features(model, meta["int8"]) is not None
 
 
+# ----------------------------------------------------------------------------- bursts
+
+
+def test_burst_windows_keep_the_clean_frames_and_spoil_only_what_the_network_reads(tmp_path):
+    """--bursts: the same windows as a plain run (drawn last), the burst never on the first or last
+    frame, about the asked share of windows; spoil() takes the detail out of exactly the coded
+    frames and leaves the others as they were."""
+    from mosaic_cli.train.bursts import BLUR, DARK, FLAT, GLARE, spoil
+
+    clip = write_png_folder(tmp_path / "clip", pan_frames(40))
+    cached = build_frame_cache([clip], tmp_path / "cache", WORK, window=8, budget_bytes=1e9, workers=0, show_progress=False)
+    plain = WindowDataset(cached, window=8, positions=1, patch=PATCH, seed=3)
+    bursty = WindowDataset(cached, window=8, positions=1, patch=PATCH, seed=3, bursts=0.5)
+    hits = 0
+    for index in range(200):
+        a, b = plain[index], bursty[index]
+        assert "burst" not in a
+        torch.testing.assert_close(a["frames"], b["frames"])
+        torch.testing.assert_close(a["positions"], b["positions"])
+        code = b["burst"].numpy()
+        hits += bool(code.any())
+        assert code[0] == 0 and code[-1] == 0 and code.sum() == 0 or len(set(code[code > 0])) == 1
+    assert 70 < hits < 130
+    frames = torch.from_numpy(pan_frames(6)).float()[None, :, None] / 127.5 - 1.0  # (1, 6, 1, h, w)
+    code = torch.tensor([[0, GLARE, BLUR, DARK, FLAT, 0]])
+    level = torch.tensor([[0, 0.05, 60.0, 0.04, 0.04, 0]])
+    angle = torch.tensor([[0, 0, 30.0, 0, 0, 0]])
+    out = spoil(frames, code, level, angle)
+    torch.testing.assert_close(out[:, [0, 5]], frames[:, [0, 5]])
+    def detail(x):  # the ground's detail above the sensor noise spoil() adds: smoothed, then its spread
+        smooth = torch.from_numpy(np.stack([cv2.GaussianBlur(f, (0, 0), 2.0) for f in x[0, :, 0].numpy()]))
+        return smooth.flatten(1).std(dim=1)
+
+    assert torch.all(detail(out)[[1, 3, 4]] < 0.2 * detail(frames)[[1, 3, 4]])  # glare, dark, flat
+    assert not torch.allclose(out[0, 2], frames[0, 2], atol=0.05)  # the gust's blur
+    assert out[0, 1].mean() > 0.8 and out[0, 3].mean() < -0.8  # white, black
+
+
+def test_with_bursts_the_network_reads_spoilt_frames_and_the_loss_compares_clean_ones(tmp_path):
+    """A zero-offset net gives the identity whatever it reads, so every loss term must be the same
+    with and without the burst keys (the photometric terms compare the clean frames); the
+    patches the network is given do change where the burst is."""
+    from mosaic_cli.train.bursts import DARK
+
+    net = HomographyNet(NetConfig(preset="compact", head="lstm", patch=PATCH))
+    with torch.no_grad():
+        net.regressor.weight.zero_()
+        net.regressor.bias.zero_()
+    seen = []
+    net.features = (lambda f: (lambda x: (seen.append(x.detach().clone()), f(x))[1]))(net.features)
+    frames = torch.from_numpy(pan_frames(16)).float()[None, :, None] / 127.5 - 1.0
+    batch = {"frames": frames, "positions": torch.tensor([[[8, 4]]])}
+    spoilt = {**batch, "burst": torch.zeros(1, 16, dtype=torch.long), "burst_level": torch.full((1, 16), 0.03),
+              "burst_angle": torch.zeros(1, 16)}
+    spoilt["burst"][0, 5:7] = DARK
+    objective = Objective("lstm-reg-t", patch=PATCH)
+    clean_terms, spoilt_terms = objective(net, batch), objective(net, spoilt)
+    for name in clean_terms:
+        torch.testing.assert_close(clean_terms[name], spoilt_terms[name])
+    clean_in, spoilt_in = seen  # (T, 2, P, P): pair t reads frames t and t+1
+    assert torch.equal(clean_in[:4], spoilt_in[:4]) and torch.equal(clean_in[7:], spoilt_in[7:])
+    assert spoilt_in[5].abs().max() > 0 and spoilt_in[5].mean() < -0.9  # both frames of pair 5 dark
+
+
 # ----------------------------------------------------------------------------- validation
 
 

@@ -10,11 +10,11 @@ import sys
 import tempfile
 from fractions import Fraction
 
-import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.live.source import _URL, STDIN
+from mosaic_cli.video.reader import ffmpeg_exe
 from mosaic_cli.video.writer import PRESETS
 
 OUTPUT_SCHEMES = ("udp", "srt", "tcp", "rtp", "rist")
@@ -48,7 +48,7 @@ class StreamWriter:
         if target.lower().startswith("udp://") and "pkt_size" not in target:
             target += ("&" if "?" in target else "?") + f"pkt_size={UDP_PACKET}"
         w, h = size
-        cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-hide_banner", "-v", "error", "-nostdin",
+        cmd = [ffmpeg_exe(), "-y", "-hide_banner", "-v", "error", "-nostdin",
                "-f", "rawvideo", "-pix_fmt", "yuv420p", "-s", f"{w}x{h}", "-r", str(Fraction(fps).limit_denominator()),
                "-i", "pipe:0", "-an", "-vcodec", "libx264", "-pix_fmt", "yuv420p", "-crf", str(crf), "-preset", preset,
                "-tune", "zerolatency", "-flush_packets", "1", "-f", "mpegts", target]

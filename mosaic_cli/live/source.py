@@ -28,11 +28,10 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
-import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.reader import VideoInfo, read_into, scaled_size
+from mosaic_cli.video.reader import VideoInfo, ffmpeg_exe, read_into, scaled_size
 
 STDIN = "-"
 URL_SCHEMES = ("udp", "tcp", "rtp", "rtsp", "rtsps", "srt", "http", "https", "rtmp", "rist")
@@ -161,7 +160,7 @@ class LiveStream:
     # -- the decoder --------------------------------------------------------------------
     def _start(self) -> subprocess.Popen:
         pix_fmt = {"gray": "gray", "rgb": "rgb24", "yuv420p": "yuv420p"}[self.pixels]
-        cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostats", "-v", "info"]
+        cmd = [ffmpeg_exe(), "-hide_banner", "-nostats", "-v", "info"]
         if self.source != STDIN and not self.live:
             cmd += ["-nostdin"]
         elif self.source != STDIN:

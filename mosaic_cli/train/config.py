@@ -17,6 +17,7 @@ from mosaic_cli.train.losses import PHOTOMETRIC_SPACES
 
 PRESETS = tuple(NET_PRESETS)
 DEVICES = ("auto", "cpu", "cuda")
+DATA = ("stream", "device")  # windows built per sample by loader processes, or cut from the cache held on the device
 LSTM_STARTS = ("random", "cnn")
 
 # The paper trains BASE for 300k iterations at batch 64 and fine-tunes the REG-* variants
@@ -28,7 +29,7 @@ PAPER_REG_BATCH = 32
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
-                "work_size", "patch", "flip", "photometric", "lstm_start")
+                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data")
 
 
 def paper_steps(variant: str) -> int:
@@ -64,7 +65,10 @@ class TrainConfig:
     lstm_start: str = "random"  # an LSTM from a CNN --init: "random" head (the paper) or "cnn" (starts as the CNN's head)
     photometric: str = "gray"  # what the photometric terms compare: "gray" (the paper) or "band" (band-passed)
     flip: bool = False  # mirror windows left-right and/or upside down (off: runs saved before it resume unchanged)
+    bursts: float = 0.0  # share of the windows with a burst of spoilt frames the network reads (train.bursts)
+    data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
     num_workers: int = 1
+    max_minutes: float | None = None  # stop (checkpoint and final weights) after this long, whatever --steps says
     threads: int | None = None  # torch CPU threads per process; None: torch's default (all cores)
     cache_gb: float = 8.0  # disk budget of the decoded-frame cache in RUN_DIR/cache
     extra: dict = field(default_factory=dict)  # free-form notes kept with the run
@@ -83,6 +87,8 @@ class TrainConfig:
             raise BadInput(f"unknown --lstm-start {self.lstm_start!r}: choose one of {', '.join(LSTM_STARTS)}")
         if self.photometric not in PHOTOMETRIC_SPACES:
             raise BadInput(f"unknown --photometric {self.photometric!r}: choose one of {', '.join(PHOTOMETRIC_SPACES)}")
+        if self.data not in DATA:
+            raise BadInput(f"unknown --data {self.data!r}: choose one of {', '.join(DATA)}")
         if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
             raise BadInput(f"unknown --device {self.device!r}: choose one of {', '.join(DEVICES)}")
         checks = [
@@ -100,6 +106,8 @@ class TrainConfig:
             (self.val_every >= 1, f"--val-every must be at least 1, got {self.val_every}"),
             (self.checkpoint_minutes > 0, f"--checkpoint-minutes must be positive, got {self.checkpoint_minutes}"),
             (self.cache_gb > 0, f"--cache-gb must be positive, got {self.cache_gb}"),
+            (self.max_minutes is None or self.max_minutes > 0, f"--max-minutes must be positive, got {self.max_minutes}"),
+            (0 <= self.bursts <= 1, f"--bursts must be a share of the windows in [0, 1], got {self.bursts}"),
         ]
         for ok, message in checks:
             if not ok:

@@ -14,7 +14,8 @@ Stages:
    at a random start, time-reversed half of the time (free augmentation: the reversed
    sequence is as valid a flight as the forward one), with M random patch top-lefts, and with
    ``flip``, mirrored left-right and/or upside down (each half of the time: a mirrored flight
-   is a flight over the mirrored ground, its homographies the mirrored ones).  Every
+   is a flight over the mirrored ground, its homographies the mirrored ones), and with
+   ``bursts``, a burst of spoilt frames in that share of the windows (:mod:`.bursts`).  Every
    random choice comes from ``(seed, index)`` alone, so a resumed run sees exactly the
    samples an uninterrupted run would have seen, whatever the number of loader workers.
 4. ``StepBatches``: the indices of step s for rank r of a W-process run, from step s on.
@@ -42,6 +43,7 @@ from mosaic_cli.errors import BadInput, MosaicError
 from mosaic_cli.inputs import VIDEO_SUFFIXES
 from mosaic_cli.model.patches import crop
 from mosaic_cli.progress import console, progress_task
+from mosaic_cli.train.bursts import BURST_KEYS, draw_burst, draw_bursts
 from mosaic_cli.video.reader import IMAGE_SUFFIXES, VideoInfo, open_video, probe
 
 CACHE_FORMAT = 1
@@ -343,7 +345,7 @@ class WindowDataset(Dataset):
     top-lefts (x, y), each patch fully inside the frame}."""
 
     def __init__(self, clips: Sequence[CachedClip], window: int, positions: int, patch: int, seed: int,
-                 reverse_probability: float = 0.5, flip: bool = False):
+                 reverse_probability: float = 0.5, flip: bool = False, bursts: float = 0.0):
         self.clips = list(clips)
         self.window = int(window)
         self.positions = int(positions)
@@ -351,6 +353,7 @@ class WindowDataset(Dataset):
         self.seed = int(seed)
         self.reverse_probability = float(reverse_probability)
         self.flip = bool(flip)
+        self.bursts = float(bursts)
         # Every window start of every segment, flattened: (clip index, first row) by cumulative count.
         self._segments = [(c, off, length) for c, clip in enumerate(self.clips) for off, length in clip.segments
                           if length >= self.window]
@@ -385,10 +388,72 @@ class WindowDataset(Dataset):
         if self.flip:  # drawn last, so that a run without it sees the samples it always did
             left_right, upside_down = rng.random(2) < 0.5
             frames = np.ascontiguousarray(frames[:, ::-1 if upside_down else 1, ::-1 if left_right else 1])
-        return {
+        item = {
             "frames": torch.from_numpy(frames)[:, None],
             "positions": torch.from_numpy(np.stack([xs, ys], axis=1).astype(np.int64)),
         }
+        if self.bursts > 0:  # drawn after everything else, like flip (see mosaic_cli.train.bursts)
+            item.update({k: torch.from_numpy(v) for k, v in draw_burst(rng, self.window, self.bursts).items()})
+        return item
+
+
+class DeviceWindows:
+    """The whole frame cache held in one uint8 tensor on the training device, and every batch of
+    windows cut there with tensor indexing (``--data device``): no per-sample Python, no worker
+    processes, no host-to-device copy per step.  What a GPU needs to stay busy: at 320x180 a
+    million frames take 58 GB, so the cache of any run here fits an H100's memory many times.
+
+    The draws are those of :class:`WindowDataset` (a window of consecutive frames within one
+    segment, time-reversed half of the time, M patch positions, and with ``flip`` / ``bursts``
+    the mirrors and the burst of :mod:`.bursts`), made in batch on the device by a generator
+    seeded from ``(seed, step, rank)`` alone: a resumed run draws what an uninterrupted one did.
+    ``batch`` returns what :func:`to_model_input` would: frames float in [-1, 1] on the device."""
+
+    def __init__(self, clips: Sequence[CachedClip], window: int, positions: int, patch: int, seed: int,
+                 device: torch.device, flip: bool = False, bursts: float = 0.0, reverse_probability: float = 0.5):
+        self.window, self.positions, self.patch, self.seed = int(window), int(positions), int(patch), int(seed)
+        self.device, self.flip, self.bursts = torch.device(device), bool(flip), float(bursts)
+        self.reverse_probability = float(reverse_probability)
+        parts, starts, offset = [], [], 0
+        for clip in clips:
+            array = np.load(clip.file, mmap_mode="r")
+            for first, length in clip.segments:
+                if length >= self.window:
+                    parts.append(torch.from_numpy(np.ascontiguousarray(array[first:first + length])))
+                    starts.append(torch.arange(offset, offset + length - self.window + 1))
+                    offset += length
+        if not parts:
+            raise BadInput(f"no clip holds {self.window} consecutive frames")
+        self.frames = torch.cat(parts).to(self.device)  # (N, h, w) uint8
+        self.starts = torch.cat(starts).to(self.device)  # the first frame of every possible window
+        self._steps = torch.arange(self.window, device=self.device)
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+    def batch(self, step: int, batch_size: int, rank: int = 0, world: int = 1) -> dict[str, torch.Tensor]:
+        g = torch.Generator(device=self.device)
+        g.manual_seed((self.seed * 1_000_003 + step) * 4099 + rank * 131 + world)
+        B, K, M, P = int(batch_size), self.window, self.positions, self.patch
+        dev = self.device
+
+        def uniform(*shape: int) -> torch.Tensor:
+            return torch.rand(shape, generator=g, device=dev)
+
+        first = self.starts[torch.randint(len(self.starts), (B,), generator=g, device=dev)]
+        order = torch.where(uniform(B, 1) < self.reverse_probability, self._steps.flip(0), self._steps)  # (B, K)
+        frames = self.frames[first[:, None] + order]  # (B, K, h, w)
+        h, w = frames.shape[-2:]
+        xs = torch.randint(0, w - P + 1, (B, M), generator=g, device=dev)
+        ys = torch.randint(0, h - P + 1, (B, M), generator=g, device=dev)
+        if self.flip:
+            mirror = uniform(B, 2) < 0.5
+            frames = torch.where(mirror[:, 0, None, None, None], frames.flip(-1), frames)
+            frames = torch.where(mirror[:, 1, None, None, None], frames.flip(-2), frames)
+        out = {"frames": frames[:, :, None].float().div_(127.5).sub_(1.0), "positions": torch.stack([xs, ys], dim=-1)}
+        if self.bursts > 0:
+            out.update(draw_bursts(g, B, K, self.bursts, dev))
+        return out
 
 
 class StepBatches(Sampler):
@@ -445,4 +510,8 @@ def to_model_input(batch: dict[str, torch.Tensor], device: torch.device) -> dict
     """Move a loader batch to ``device`` as the objective wants it: frames float in [-1, 1]
     (converted on the device, so only uint8 crosses the bus)."""
     frames = batch["frames"].to(device, non_blocking=True).float().div_(127.5).sub_(1.0)
-    return {"frames": frames, "positions": batch["positions"].to(device, non_blocking=True)}
+    out = {"frames": frames, "positions": batch["positions"].to(device, non_blocking=True)}
+    for key in BURST_KEYS:
+        if key in batch:
+            out[key] = batch[key].to(device, non_blocking=True)
+    return out

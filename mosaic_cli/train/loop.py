@@ -20,6 +20,7 @@ run interrupted at step s and resumed computes the same steps s+1.. as one that 
 from __future__ import annotations
 
 import contextlib
+import math
 import shutil
 import signal
 import time
@@ -37,6 +38,7 @@ from mosaic_cli.model.network import HomographyNet, NetConfig
 from mosaic_cli.progress import console, progress_task
 from mosaic_cli.train.config import RUN_DEFINING, TrainConfig
 from mosaic_cli.train.data import (
+    DeviceWindows,
     StepBatches,
     WindowDataset,
     build_frame_cache,
@@ -142,7 +144,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
         cached = decode_clips(clips, run, cfg, objective.window, fresh=False, show_progress=False)
 
     # 3. the network and 4. the optimiser
-    dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed, flip=cfg.flip)
+    dataset = WindowDataset(cached, objective.window, objective.positions, cfg.patch, cfg.seed, flip=cfg.flip, bursts=cfg.bursts)
     torch.manual_seed(cfg.seed)  # the same initial weights on every rank (DDP also broadcasts them)
     if resume:
         net, optimizer_tensors = load_checkpoint(run, state, dist.device)
@@ -158,8 +160,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     model, precision = wrap_for_device(net, dist, cfg.amp)
     scaler = torch.amp.GradScaler("cuda", enabled=precision == torch.float16)
 
-    loader = make_loader(dataset, StepBatches(start, cfg.steps, cfg.batch_size, dist.rank, dist.world),
-                         cfg.num_workers, pin_memory=dist.device.type == "cuda")
+    batches = step_batches(cfg, dataset, cached, objective, dist, start)
     log = CsvLog(run.log if dist.is_main else None, keep_until=start if resume else None)
     val_log = CsvLog(run.val_log if dist.is_main and flights else None, keep_until=start if resume else None)
     if show_progress:
@@ -176,20 +177,26 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     step = start
     last_checkpoint = time.monotonic()
     skipped = 0
+    started = time.monotonic()
     with contextlib.closing(log), contextlib.closing(val_log), StopRequests() as stop, progress_task(
         f"train {cfg.variant}", cfg.steps - start, unit="step/s", disable=not show_progress
     ) as advance:
-        for step, batch in zip(range(start, cfg.steps), loader):
+        for step, batch in zip(range(start, cfg.steps), batches):
             lr = schedule.lr_at(step)
             for group in optimizer.param_groups:
                 group["lr"] = lr
             torch.manual_seed(cfg.seed * 1000003 + step * dist.world + dist.rank)
-            losses = compute_gradients(model, objective, optimizer, scaler, to_model_input(batch, dist.device))
+            losses = compute_gradients(model, objective, optimizer, scaler, batch)
+            # One wait for the device per step: every term and whether the total is finite, together.
+            names = list(losses)
+            values = torch.stack([losses[k].detach().float() for k in names]).tolist()
             # One collective per step: whether any process saw a non-finite loss, was asked to
             # stop, or is due a time-based checkpoint, so that all act on it together.
-            time_due = time.monotonic() - last_checkpoint > 60 * cfg.checkpoint_minutes
-            diverged, stop_now, time_due = dist.any_flag(
-                not torch.isfinite(losses["total"]).item(), stop.requested, time_due
+            now = time.monotonic()
+            time_due = now - last_checkpoint > 60 * cfg.checkpoint_minutes
+            out_of_time = cfg.max_minutes is not None and now - started > 60 * cfg.max_minutes
+            diverged, stop_now, time_due, out_of_time = dist.any_flag(
+                not math.isfinite(values[names.index("total")]), stop.requested, time_due, out_of_time
             )
             skipped = skipped + 1 if diverged else 0
             if skipped > MAX_SKIPPED_STEPS:
@@ -199,12 +206,13 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
                 scaler.update()
 
             done = step + 1
-            names = list(losses)
-            terms = dict(zip(names, dist.mean([float(losses[k].detach()) for k in names])))
+            terms = dict(zip(names, dist.mean(values)))
             samples_per_s = rate.tick(samples_per_step)
             log.write({"step": done, "lr": lr, **terms, "samples_per_s": samples_per_s, "skipped": int(diverged)})
             advance(1, status=status_line(terms, samples_per_s, done, cfg.steps))
 
+            if out_of_time:  # --max-minutes: this is the last step; the final weights follow
+                cfg = replace(cfg, steps=done)
             if stop_now or time_due or done % cfg.checkpoint_every == 0 or done == cfg.steps:
                 if dist.is_main:
                     save_checkpoint(run, done, net, optimizer, run_state, cfg.variant, cfg.work_size)
@@ -217,6 +225,8 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
                 dist.barrier()
             if stop_now:
                 raise Interrupted(f"interrupted: checkpoint at step {done} in {run.root}; continue with --resume")
+            if out_of_time:
+                break
 
     if dist.is_main:
         save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size, int8=calibrate_int8(net, dataset, cfg.seed))
@@ -226,6 +236,20 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
 
 
 # ----------------------------------------------------------------------------- stages
+
+
+def step_batches(cfg: TrainConfig, dataset: WindowDataset, cached, objective: Objective, dist: Distributed, start: int):
+    """The batches of steps ``start``.., on the training device: from loader processes building
+    each window (``--data stream``), or cut from the frame cache held on the device
+    (``--data device``, :class:`DeviceWindows`), whose patch positions need no check."""
+    if cfg.data == "device":
+        windows = DeviceWindows(cached, objective.window, objective.positions, cfg.patch, cfg.seed, dist.device,
+                                flip=cfg.flip, bursts=cfg.bursts)
+        objective.check_positions = False
+        return (windows.batch(step, cfg.batch_size, dist.rank, dist.world) for step in range(start, cfg.steps))
+    loader = make_loader(dataset, StepBatches(start, cfg.steps, cfg.batch_size, dist.rank, dist.world),
+                         cfg.num_workers, pin_memory=dist.device.type == "cuda")
+    return (to_model_input(batch, dist.device) for batch in loader)
 
 
 def calibrate_int8(net: HomographyNet, dataset: WindowDataset, seed: int) -> dict | None:

@@ -17,7 +17,9 @@ lstm-reg-all   lstm  16      2          L, R_p, R_s, R_t1, R_t2
 
 A batch is ``{"frames": (B, K, 1, h, w) float in [-1, 1], "positions": (B, M, 2) long}``: K
 consecutive gray working frames and the top-left (x, y) of M patches, each fully inside the
-frame and used at the same place in every frame of the window.  The objective cuts the patch
+frame and used at the same place in every frame of the window (and, in a run with bursts,
+``"burst"``, ``"burst_level"``, ``"burst_angle"`` (B, K): the frames the network reads spoilt,
+see :mod:`.bursts`).  The objective cuts the patch
 pairs itself, runs the net over the window (the LSTM starts from a zero state in each window),
 turns the offsets into homographies frame t -> t+1 with the DLT, and evaluates the terms of
 :mod:`.losses`.
@@ -35,6 +37,7 @@ from mosaic_cli.geometry.tensor import frame_corners
 from mosaic_cli.model.network import VARIANTS, HomographyNet
 from mosaic_cli.model.patches import crop, offsets_to_homography, sample_patches
 from mosaic_cli.train import losses
+from mosaic_cli.train.bursts import spoil
 
 TERMS = ("photometric", "spatial", "scale", "temporal1", "temporal2")
 
@@ -104,6 +107,7 @@ class Objective:
         self.positions = int(positions) if positions is not None else (2 if "spatial" in self.terms else 1)
         self.photometric_norm = photometric_norm
         self.photometric_space = photometric_space
+        self.check_positions = True  # off where the batches are made valid (train.data.DeviceWindows): the check waits for the device
         if self.window < 2:
             raise ValueError("window must be at least 2 frames")
         if "spatial" in self.terms and self.positions < 2:
@@ -123,7 +127,10 @@ class Objective:
         B, K, _, h, w = frames.shape
         self.check_batch(frames, positions)
         crops = self.cut_patches(frames, positions)  # (B, K, M, 1, P, P)
-        pairs = torch.cat([crops[:, :-1], crops[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
+        # With bursts, the network reads the spoilt frames; the photometric terms below compare the clean ones.
+        read = crops if "burst" not in batch else self.cut_patches(
+            spoil(frames, batch["burst"], batch["burst_level"], batch["burst_angle"]), positions)
+        pairs = torch.cat([read[:, :-1], read[:, 1:]], dim=3).transpose(1, 2)  # (B, M, T, 2, P, P)
         H, H_children = self.predict(model, pairs, positions)
         corners = frame_corners(w, h, device=frames.device)
         seen, seen_crops = frames, crops  # what the photometric terms compare
@@ -148,6 +155,8 @@ class Objective:
         """Shapes and patch positions (a negative index would silently wrap around)."""
         if frames.dim() != 5 or positions.dim() != 3 or positions.shape[-1] != 2 or len(positions) != len(frames):
             raise ValueError(f"batch shapes: frames {tuple(frames.shape)} (B, K, 1, h, w), positions {tuple(positions.shape)} (B, M, 2)")
+        if not self.check_positions:
+            return
         h, w = frames.shape[-2:]
         low = positions.amin(dim=(0, 1))
         high = positions.amax(dim=(0, 1))

@@ -19,9 +19,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import av
 import cv2
-import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.errors import BadInput
@@ -174,10 +172,19 @@ def read_into(pipe, view: memoryview) -> int:
     return got
 
 
+def ffmpeg_exe() -> str:
+    """The ffmpeg binary imageio-ffmpeg ships (or the one ``IMAGEIO_FFMPEG_EXE`` names), looked up
+    when a video is first read or written, not when mosaic starts."""
+    import imageio_ffmpeg
+
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
 def probe(path: str | Path) -> VideoInfo:
     """What a video file or image folder holds, with user-facing errors for bad input.
 
     A command probes its input once and passes the result down (``info=`` of the readers)."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     p = Path(path)
     if not p.exists():
         raise BadInput(f"{p}: no such file or folder")
@@ -205,6 +212,7 @@ def refuse_damaged(info: VideoInfo) -> None:
 
 
 def _probe_container(p: Path, container) -> VideoInfo:
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     video = _main_video_stream(container)
     if video is None:
         raise BadInput(f"{p}: not a video ffmpeg can read (no video stream)")
@@ -239,6 +247,7 @@ def _probe_container(p: Path, container) -> VideoInfo:
 def audio_codec_of(path: str | Path) -> str | None:
     """The codec of the first audio stream of any media file (a sound file too); None when it
     has none or libav cannot open it."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     try:
         with av.open(str(path), metadata_errors="replace") as container:
             return next((s.codec_context.name for s in container.streams.audio if s.codec_context is not None), None)
@@ -248,6 +257,7 @@ def audio_codec_of(path: str | Path) -> str | None:
 
 def _main_video_stream(container):
     """The video stream ffmpeg would pick: the largest picture, cover art (attached pictures) last."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     streams = [s for s in container.streams.video if s.codec_context is not None]
     if not streams:
         return None
@@ -274,6 +284,7 @@ def _frame_rate(video) -> tuple[float, bool]:
 def _libav_log() -> Iterator[list]:
     """libav's warnings and errors meanwhile, as (level, context, message) tuples, instead of
     nowhere (PyAV's default) and instead of Python's logging (which would print them)."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     level, repeated = av.logging.get_level(), av.logging.get_skip_repeated()
     try:
         with av.logging.Capture(local=False) as logs:
@@ -299,6 +310,7 @@ def _complaint(logs: list, error: Exception | None, signs: Sequence[str] = ()) -
 
 def _first_frame(container, video):
     """(the first decodable frame or None, libav's complaint when there is none)."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     error: Exception | None = None
     with _libav_log() as logs:
         try:
@@ -312,6 +324,7 @@ def _first_frame(container, video):
 def _damage_at_the_end(container, video, end: float, fps: float) -> str | None:
     """libav's complaint when no frame decodes in the last :data:`TAIL_SECONDS` the container
     announces (cheap: a seek there, then at most a keyframe interval decoded); None when one does."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     target = end - TAIL_SECONDS
     error: Exception | None = None
     with _libav_log() as logs:
@@ -363,7 +376,7 @@ class Decoder:
             raise ValueError(f"yuv420p frames are read at the source size, even only; got {self.size}")
         self.shape = frame_shape(pixels, self.size)
         self.error: str | None = None
-        cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error"]
+        cmd = [ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error"]
         if seek is not None:
             cmd += ["-ss", f"{seek:.4f}"]
         stream = f"0:{info.stream_index}" if info.stream_index is not None else "0:v:0"

@@ -9,13 +9,12 @@ import tempfile
 from fractions import Fraction
 from pathlib import Path
 
-import imageio_ffmpeg
 import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.inputs import check_encoder
-from mosaic_cli.video.reader import VideoInfo, audio_codec_of
+from mosaic_cli.video.reader import VideoInfo, audio_codec_of, ffmpeg_exe
 
 PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 # Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
@@ -90,7 +89,7 @@ class VideoWriter:
         reaches mosaic alone, which then stops it (it inherits the held signals, and needs none).
         ``audio``: (the file whose first audio stream is carried, the codec: "copy" or one to encode)."""
         w, h = self.out_size
-        cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-hide_banner", "-v", "error",
+        cmd = [ffmpeg_exe(), "-y", "-hide_banner", "-v", "error",
                "-f", "rawvideo", "-pix_fmt", self.pix_fmt_in, "-s", f"{w}x{h}", "-r", str(Fraction(fps).limit_denominator()),
                "-i", "-"]
         if audio is None:
