@@ -99,3 +99,26 @@ def test_line_progress_writes_at_the_end_and_every_interval(monkeypatch):
         lines.advance(1, status="ok")
     assert written == ["render: 120/300 in 0:01:00 (2.0 fr/s), ETA 0:01:30; ok"]
     assert lines.line(final=True) == "render: 200/300 in 0:01:40 (2.0 fr/s); ok"
+
+
+def test_version_prints_the_package_version(capsys):
+    from importlib import metadata
+
+    code, out, err = run_cli(capsys, "--version")
+    assert code == 0 and not err
+    assert out == f"mosaic {metadata.version('mosaic-cli')}\n"
+
+
+def test_version_of_an_uninstalled_checkout_is_pyprojects(capsys, monkeypatch):
+    """Run from a checkout that was never installed: the version pyproject.toml declares."""
+    import tomllib
+    from importlib import metadata
+    from pathlib import Path
+
+    def not_installed(name):
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(metadata, "version", not_installed)
+    declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
+    code, out, _ = run_cli(capsys, "--version")
+    assert code == 0 and out == f"mosaic {declared}\n"
