@@ -120,31 +120,59 @@ def stitch(
 
 
 def _notices(video: Path, result) -> list[str]:
-    """A line for each panorama beyond the first and for frames placed nowhere."""
+    """A line for a flight in several panoramas (which file holds what), and for frames or
+    photos placed nowhere."""
     lines = []
-    extra = result.panoramas[1:]
-    if extra:
-        firsts = ", ".join(f"frame {p.transforms[0][0]} -> {p.path}" for p in extra)
-        lines.append(
-            f"{len(extra)} part(s) of the flight registered with no other and went to panoramas of their own: {firsts}"
-        )
-    if result.georef is not None:
-        for p in extra:
+    names = _photo_names(video) if result.photos else None
+    several = len(result.panoramas) > 1
+    if several:
+        lines.append(_split_notice(result.panoramas, names))
+    if several and any(p.georef is not None for p in result.panoramas):
+        for p in result.panoramas:
             if p.georef is None:
                 lines.append(f"{p.path}: the telemetry gives its keyframes no position: a plain panorama, not georeferenced")
     for p in result.panoramas:
         if p.georef is not None:
-            lines += [f"{p.path}: {w}" if extra else w for w in p.georef.warnings]
+            lines += [f"{p.path}: {w}" if several else w for w in p.georef.warnings]
     if result.dropped:
-        if result.photos:
-            from mosaic_cli.video.reader import _folder_images
-
-            names = _folder_images(Path(video))
+        if names is not None:
             for index, why in result.dropped:
-                lines.append(f"photo {names[index].name} not used: {why}")
+                lines.append(f"photo {names[index]} not used: {why}")
         else:
             lines.append(f"{len(result.dropped)} frame(s) placed nowhere (the flight was lost there): frames {_ranges([i for i, _ in result.dropped])}")
     return lines
+
+
+def _photo_names(video: Path) -> list[str]:
+    """The folder's photos by index, as the scan read them (name order)."""
+    from mosaic_cli.video.reader import _folder_images
+
+    return [p.name for p in _folder_images(Path(video))]
+
+
+def _split_notice(panoramas, photo_names: list[str] | None) -> str:
+    """``the photos make 2 panoramas that no registration joins: pano.png holds 17 photos
+    (A.jpg, B.jpg, C.jpg, ..., Q.jpg); pano-2.png holds 1 photo (R.jpg)``: the files in the
+    order written (largest first), each with the photos (names) or frames (indices) it holds."""
+    parts = []
+    for p in panoramas:
+        if photo_names is not None:
+            held = [photo_names[i] for a, b in p.spans for i in range(a, b + 1)]
+            parts.append(f"{p.path} holds {_count(p.size, 'photo')} ({_abridged(held)})")
+        else:
+            runs = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in p.spans)
+            parts.append(f"{p.path} holds {_count(p.size, 'frame')} ({runs})")
+    what = "photos" if photo_names is not None else "flight"
+    return f"the {what} make{'' if photo_names is not None else 's'} {len(panoramas)} panoramas that no registration joins: " + "; ".join(parts)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _abridged(names: list[str], most: int = 5) -> str:
+    """A few names in full, a long list as its first three, ... and its last."""
+    return ", ".join(names) if len(names) <= most else ", ".join([*names[:3], "...", names[-1]])
 
 
 def _ranges(indices: list[int]) -> str:
