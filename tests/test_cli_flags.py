@@ -122,3 +122,43 @@ def test_version_of_an_uninstalled_checkout_is_pyprojects(capsys, monkeypatch):
     declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
     code, out, _ = run_cli(capsys, "--version")
     assert code == 0 and out == f"mosaic {declared}\n"
+
+
+# -- --work-width: no silent option ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["lstm", "cnn"])
+def test_work_width_other_than_the_networks_is_refused_before_any_work(tmp_path, capsys, tiny_clip, name):
+    """A learned estimator works at its weights' width: another --work-width would be ignored."""
+    out = tmp_path / "t.json"
+    code, _, err = run_cli(capsys, "track", tiny_clip, "-o", out, "-e", name, "--work-width", 640, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"mosaic: error: --work-width 640: the {name} network works at 320 px, the width its weights were trained at")
+    assert not out.exists()
+    code, _, err = run_cli(capsys, "stitch", tiny_clip, "-o", tmp_path / "p.png", "--work-width", 512, "-q")  # the default, lstm
+    assert code == 2 and "--work-width 512: the lstm network works at 320 px" in err
+
+
+def test_work_width_wider_than_the_video_is_clamped_with_a_warning(tmp_path, capsys, tiny_clip):
+    """orb never upscales: a 96 px wide video with --work-width 4096 is worked at 96 px, and said so."""
+    out = tmp_path / "t.json"
+    code, _, err = run_cli(capsys, "track", tiny_clip, "-o", out, "-e", "orb", "--work-width", 4096, "-q")
+    assert code == 0, err
+    assert err == "mosaic: warning: --work-width 4096 is wider than the video (96 px): working at 96 px (upscaling adds no detail, only time)\n"
+    assert json.loads(out.read_text())["meta"]["work_width"] == 96
+    # The default (320) is not the user's choice: clamped without a word.
+    code, _, err = run_cli(capsys, "track", tiny_clip, "-o", out, "-e", "orb", "-q")
+    assert code == 0 and err == ""
+    assert json.loads(out.read_text())["meta"]["work_width"] == 96
+
+
+def test_one_estimator_instance_keeps_the_requested_width_across_videos():
+    """bench resets one estimator for flights of several sizes: a narrow one clamps only itself."""
+    from mosaic_cli.estimators import make_estimator
+
+    orb = make_estimator("orb", work_width=640)
+    orb.reset((320, 180))
+    assert orb.work_size == (320, 180)
+    orb.reset((1280, 720))
+    assert orb.work_size == (640, 360)
+    assert make_estimator("orb", default_width=640).work_width == 640  # stabilize's default

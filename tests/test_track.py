@@ -53,7 +53,7 @@ def test_track_json_matches_exact_ground_truth(tmp_path, hd_flight, hd_clip):
 
 def test_track_npy_and_max_frames(tmp_path, hd_flight, hd_clip):
     out = tmp_path / "track.npy"
-    run_track(hd_clip, "-o", out, "--max-frames", 6, "--work-width", 160)
+    run_track(hd_clip, "-o", out, "--max-frames", 6)
     pairwise = np.load(out)
     assert pairwise.shape == (5, 3, 3)
     errors = corner_error(pairwise, hd_flight.pairwise[:5], FULL)

@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR, DEFAULT_WORK_WIDTH
 
 # -- the estimator (track, stitch, stabilize) -----------------------------------------------------
 
@@ -20,10 +20,11 @@ EstimatorName = Annotated[str | None, typer.Option(
     "--estimator", "-e",
     help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} "
          "(with --weights: the network they hold).")]
-WorkWidth = Annotated[int, typer.Option(
+WorkWidth = Annotated[int | None, typer.Option(
     "--work-width",
-    help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size "
-         "their weights were trained for.")]
+    help=f"Width the classical estimators (orb, orb-ransac, orb-paper, identity) work at, pixels (default {DEFAULT_WORK_WIDTH}; "
+         "never wider than the video). The learned ones (lstm, cnn) work at the width their weights were trained at: "
+         "another value is refused.")]
 Weights = Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) to run.")]
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda (learned estimators).")]
 Threads = Annotated[int | None, typer.Option(

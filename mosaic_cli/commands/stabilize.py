@@ -41,8 +41,10 @@ def stabilize(
     warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.")] = None,
     compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.")] = None,
     estimator: EstimatorName = None,
-    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators work at (pixels; the learned ones use their weights' size; "
-                                                  "default 640 or the input's width if smaller).")] = None,
+    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators (orb, orb-ransac, orb-paper, identity) "
+                                                  "work at, pixels (default 640, never wider than the video: more than track and stitch's 320 "
+                                                  "because every tracking error shows as shake in a stabilised video). The learned ones (lstm, "
+                                                  "cnn) work at the width their weights were trained at: another value is refused.")] = None,
     weights: Weights = None,
     device: Device = "auto",
     mask: Mask = None,

@@ -45,7 +45,7 @@ def stitch(
     seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.")] = "dp",
     exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.")] = "gain-blocks",
     estimator: EstimatorName = None,
-    work_width: WorkWidth = 320,
+    work_width: WorkWidth = None,
     weights: Weights = None,
     device: Device = "auto",
     mask: Mask = None,

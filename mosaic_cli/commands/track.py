@@ -42,7 +42,7 @@ def track(
     video: Annotated[str, typer.Argument(help="Video file (mp4, mov, mkv, avi, ...), folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
     out: Annotated[str, typer.Option("-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated.")],
     estimator: EstimatorName = None,
-    work_width: WorkWidth = 320,
+    work_width: WorkWidth = None,
     weights: Weights = None,
     device: Device = "auto",
     patches: Annotated[int | None, typer.Option("--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus.")] = None,

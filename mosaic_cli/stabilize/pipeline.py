@@ -42,7 +42,7 @@ WORK_WIDTH = 640
 @dataclass
 class StabilizeOptions:
     estimator: str | None = None  # None: DEFAULT_ESTIMATOR, or the network --weights hold
-    work_width: int | None = None  # None: min(640, input width), see WORK_WIDTH
+    work_width: int | None = None  # --work-width; None: WORK_WIDTH (classical estimators, never wider than the video)
     weights: str | None = None
     device: str = "auto"
     smoothing: str = "l1"  # or "gaussian"
@@ -186,8 +186,8 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     )
     info = probe(video)
     check_mask_file(options.mask, info)
-    width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
-    plan.estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device)
+    plan.estimator = make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
+                                    default_width=WORK_WIDTH)
     return info, plan
 
 
