@@ -23,7 +23,7 @@ from mosaic_cli.commands.options import (
     quiet_option,
     use_threads,
 )
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, warn
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
@@ -90,18 +90,18 @@ def track(
             result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
+    where = "standard output" if out == "-" else out
+    if not len(result.pairwise):
+        # One frame: nothing to track, which is not an error (the output is a valid empty
+        # track), but no confidence either: said even with -q.
+        warn(f"{video} has only {result.frames} frame: no frame pair to track; {where} holds an empty track")
     if not quiet:
         if masked is not None and masked.use is not None:
             console.print(masked.describe())
         elif masked is None and result.meta["mask"]["excluded"] > 0:
             console.print(f"{100 * result.meta['mask']['excluded']:.1f}% of the frame masked (--mask)")
-        console.print(
-            f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
-            f"median confidence {float(_median(result.confidence)):.2f} -> {'standard output' if out == '-' else out}"
-        )
+        if len(result.pairwise):
+            import numpy as np
 
-
-def _median(values) -> float:
-    import numpy as np
-
-    return float(np.median(values)) if len(values) else 0.0
+            console.print(f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
+                          f"median confidence {float(np.median(result.confidence)):.2f} -> {where}")
