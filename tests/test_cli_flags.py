@@ -162,3 +162,45 @@ def test_one_estimator_instance_keeps_the_requested_width_across_videos():
     orb.reset((1280, 720))
     assert orb.work_size == (640, 360)
     assert make_estimator("orb", default_width=640).work_width == 640  # stabilize's default
+
+
+def help_panels(capsys, command: str) -> dict[str, list[str]]:
+    """The boxes of ``mosaic COMMAND --help``: panel title -> the long flags listed in it."""
+    code, out, _ = run_cli(capsys, command, "--help")
+    assert code == 0
+    panels: dict[str, list[str]] = {}
+    title = None
+    for line in out.splitlines():
+        if line.startswith("╭─ "):
+            title = line[3:].split(" ─")[0].strip()
+            panels[title] = []
+        elif title is not None and line.startswith("│ "):
+            panels[title] += [word for word in line[2:].split() if word.startswith("--")][:1]
+    return panels
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_option_of_every_command_is_in_a_named_help_panel(capsys, monkeypatch, command):
+    """--help reads as groups: the plain Options box holds --help alone, and each option of the
+    command is listed under one panel."""
+    import typer
+
+    from mosaic_cli.cli import app
+
+    monkeypatch.setenv("COLUMNS", "200")  # one row per option: no flag wrapped away
+    panels = help_panels(capsys, command)
+    assert panels["Options"] == ["--help"]
+    click_command = typer.main.get_command(app).commands[command]
+    flags = [next(o for o in p.opts if o.startswith("--")) for p in click_command.params if p.param_type_name == "option"]
+    listed = [flag for title, shown in panels.items() if title not in ("Options", "Arguments") for flag in shown]
+    assert sorted(listed) == sorted(flags)
+
+
+def test_stitch_help_groups_its_options(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")
+    panels = help_panels(capsys, "stitch")
+    assert list(panels) == ["Arguments", "Options", "Input and output", "Estimator", "Drift control", "Output quality",
+                            "Overlays and mask", "Telemetry and maps", "Live input", "Progress and run"]
+    assert panels["Drift control"] == ["--drift-control", "--max-loop-pairs", "--overlap"]
+    assert panels["Live input"] == ["--live", "--preview", "--every", "--timeout"]
+    assert "--telemetry" in panels["Telemetry and maps"] and "--work-width" in panels["Estimator"]

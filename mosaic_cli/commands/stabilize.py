@@ -8,6 +8,11 @@ from typing import Annotated
 import typer
 
 from mosaic_cli.commands.options import (
+    ESTIMATOR,
+    INPUT_OUTPUT,
+    LIVE,
+    OUTPUT_QUALITY,
+    SMOOTHING,
     Device,
     EstimatorName,
     Mask,
@@ -29,28 +34,28 @@ Quiet = quiet_option("No progress bars or summary.")
 def stabilize(
     video: Annotated[str, typer.Argument(help="Input video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
     out: Annotated[str, typer.Argument(help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://).")],
-    smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.")] = "l1",
-    radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).")] = 30,
-    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.")] = "similarity",
+    smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.", rich_help_panel=SMOOTHING)] = "l1",
+    radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).", rich_help_panel=SMOOTHING)] = 30,
+    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.", rich_help_panel=SMOOTHING)] = "similarity",
     crop: Annotated[str, typer.Option("--crop", help="auto (zoom just enough that no border shows) or the share of "
-                                      "width and height to keep, 0.5..1 (borders may then show, filled as --border says).")] = "auto",
+                                      "width and height to keep, 0.5..1 (borders may then show, filled as --border says).", rich_help_panel=SMOOTHING)] = "auto",
     border: Annotated[str | None, typer.Option("--border", help="Fill of uncovered areas with a fixed --crop: black "
-                                               "(default), replicate or reflect.")] = None,
-    crf: Annotated[int, typer.Option("--crf", help="x264 quality, 0 (lossless) .. 51.")] = 18,
-    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast .. veryslow).")] = "veryfast",
-    warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.")] = None,
-    compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.")] = None,
+                                               "(default), replicate or reflect.", rich_help_panel=SMOOTHING)] = None,
+    crf: Annotated[int, typer.Option("--crf", help="x264 quality, 0 (lossless) .. 51.", rich_help_panel=OUTPUT_QUALITY)] = 18,
+    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast .. veryslow).", rich_help_panel=OUTPUT_QUALITY)] = "veryfast",
+    warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
+    compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.", rich_help_panel=INPUT_OUTPUT)] = None,
     estimator: EstimatorName = None,
     work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators (orb, orb-ransac, orb-paper, identity) "
                                                   "work at, pixels (default 640, never wider than the video: more than track and stitch's 320 "
                                                   "because every tracking error shows as shake in a stabilised video). The learned ones (lstm, "
-                                                  "cnn) work at the width their weights were trained at: another value is refused.")] = None,
+                                                  "cnn) work at the width their weights were trained at: another value is refused.", rich_help_panel=ESTIMATOR)] = None,
     weights: Weights = None,
     device: Device = "auto",
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
     strict: Strict = False,
-    latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.")] = None,
+    latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
 ) -> None:

@@ -9,6 +9,8 @@ import typer
 
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.commands.options import (
+    ESTIMATOR,
+    INPUT_OUTPUT,
     Device,
     EstimatorName,
     Mask,
@@ -40,15 +42,15 @@ Quiet = quiet_option("No progress bar.")
 
 def track(
     video: Annotated[str, typer.Argument(help="Video file (mp4, mov, mkv, avi, ...), folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
-    out: Annotated[str, typer.Option("-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated.")],
+    out: Annotated[str, typer.Option("-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated.", rich_help_panel=INPUT_OUTPUT)],
     estimator: EstimatorName = None,
     work_width: WorkWidth = None,
     weights: Weights = None,
     device: Device = "auto",
-    patches: Annotated[int | None, typer.Option("--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus.")] = None,
-    reset_every: Annotated[int | None, typer.Option("--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video).")] = None,
-    refine: Annotated[str | None, typer.Option("--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb).")] = None,
-    chunk: Annotated[int | None, typer.Option("--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU).")] = None,
+    patches: Annotated[int | None, typer.Option("--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus.", rich_help_panel=ESTIMATOR)] = None,
+    reset_every: Annotated[int | None, typer.Option("--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video).", rich_help_panel=ESTIMATOR)] = None,
+    refine: Annotated[str | None, typer.Option("--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb).", rich_help_panel=ESTIMATOR)] = None,
+    chunk: Annotated[int | None, typer.Option("--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU).", rich_help_panel=ESTIMATOR)] = None,
     threads: Threads = None,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
