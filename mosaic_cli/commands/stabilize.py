@@ -23,6 +23,7 @@ from mosaic_cli.commands.options import (
     overlay_detect_option,
     quiet_option,
 )
+from mosaic_cli.errors import BadInput
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
 from mosaic_cli.video.reader import reading_policy
@@ -58,20 +59,27 @@ def stabilize(
     latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
+                                              "and the crop window over time to this PNG (needs matplotlib: "
+                                              "pip install 'mosaic-cli[plot]').", rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
     from mosaic_cli.live.stabilize import is_live_request, stabilize_live
+    from mosaic_cli.plots import check_plot_request
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
 
+    check_plot_request(plot)  # before any long work
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
         mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout,
     )
     if is_live_request(video, out, options):
+        if plot is not None:
+            raise BadInput("--plot needs the whole camera path: not with --latency or a live input or output")
         live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
                               compare=str(compare) if compare else None, show_progress=not quiet)
         if not quiet:
@@ -84,6 +92,8 @@ def stabilize(
         return
     with reading_policy(strict):
         result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
+    if plot is not None:
+        _plot(plot, result)
     if not quiet:
         s = result.seconds
         console.print(
@@ -91,3 +101,11 @@ def stabilize(
             f"(track {s['track']:.1f} s, path {s['plan']:.1f} s, render {s['render']:.1f} s); "
             f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
         )
+
+
+def _plot(path: Path, result) -> None:
+    """``--plot``: the path stabilize planned, before and after, and the crop window."""
+    from mosaic_cli.plots import camera_path_series, crop_series, write_stabilize_plot
+
+    before, after = camera_path_series(result.motion, result.views)
+    write_stabilize_plot(path, before, after, crop_series(result.warps, result.size), result.fps)

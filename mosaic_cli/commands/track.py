@@ -58,11 +58,17 @@ def track(
     strict: Strict = False,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw each pair's confidence over time, failed pairs marked, to "
+                                              "this PNG (needs matplotlib: pip install 'mosaic-cli[plot]').",
+                                              rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.
 
     pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
     """
+    from mosaic_cli.plots import check_plot_request
+
+    check_plot_request(plot)  # before any long work
     options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect))
     if not is_jsonl(out):
         check_writable(out)
@@ -92,6 +98,10 @@ def track(
             result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
+    if plot is not None:
+        from mosaic_cli.plots import write_track_plot
+
+        write_track_plot(plot, result.confidence, result.info.fps)
     where = "standard output" if out == "-" else out
     if not len(result.pairwise):
         # One frame: nothing to track, which is not an error (the output is a valid empty
