@@ -160,7 +160,9 @@ def build_estimators(labels: list[str], work_width: int, device: str, weights: s
     for label in labels:
         learned = _learned(label)
         try:
-            built[label] = make_estimator(label, work_width=work_width, device=device, weights=weights if learned else None)
+            # --work-width is the classical estimators' (a learned one works at its weights' width).
+            built[label] = make_estimator(label, work_width=None if learned else work_width, device=device,
+                                          weights=weights if learned else None)
         except (MosaicError, ImportError, OSError) as exc:
             if explicit or not learned:
                 if isinstance(exc, MosaicError):
@@ -189,7 +191,7 @@ def _gpu_batch(label: str, work_width: int, weights: str | None, frames: list[np
         return None
     out = {}
     for chunk in chunks:
-        est = make_estimator(label, work_width=work_width, weights=weights, device="cuda", chunk=int(chunk))
+        est = make_estimator(label, weights=weights, device="cuda", chunk=int(chunk))
         for _ in range(2):  # warm-up, then timed
             torch.cuda.synchronize()
             t0 = time.perf_counter()

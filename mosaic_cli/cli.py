@@ -36,8 +36,35 @@ app = typer.Typer(
 DEBUG = {"on": False}
 
 
+def package_version() -> str:
+    """The installed package's version; a checkout run without installing falls back to
+    pyproject.toml's, so that ``--version`` never fails."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("mosaic-cli")
+    except metadata.PackageNotFoundError:
+        import tomllib
+        from pathlib import Path
+
+        pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+        try:
+            return tomllib.loads(pyproject.read_text())["project"]["version"]
+        except (OSError, KeyError, tomllib.TOMLDecodeError):
+            return "unknown"
+
+
+def _print_version(wanted: bool) -> None:
+    if wanted:
+        print(f"mosaic {package_version()}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root(debug: bool = typer.Option(False, "--debug", help="Show full tracebacks on errors.")) -> None:
+def _root(
+    debug: bool = typer.Option(False, "--debug", help="Show full tracebacks on errors."),
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."),
+) -> None:
     DEBUG["on"] = debug
 
 

@@ -7,6 +7,14 @@ EXIT_FAILED = 1
 EXIT_INTERRUPTED = 130
 
 
+def warn(message: str) -> None:
+    """One ``mosaic: warning:`` line on stderr: said even with -q, the run goes on."""
+    import sys
+
+    sys.stderr.write(f"mosaic: warning: {message}\n")
+    sys.stderr.flush()
+
+
 class MosaicError(Exception):
     """An error the user can act on; the CLI prints its message as one line."""
 

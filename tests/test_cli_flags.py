@@ -99,3 +99,108 @@ def test_line_progress_writes_at_the_end_and_every_interval(monkeypatch):
         lines.advance(1, status="ok")
     assert written == ["render: 120/300 in 0:01:00 (2.0 fr/s), ETA 0:01:30; ok"]
     assert lines.line(final=True) == "render: 200/300 in 0:01:40 (2.0 fr/s); ok"
+
+
+def test_version_prints_the_package_version(capsys):
+    from importlib import metadata
+
+    code, out, err = run_cli(capsys, "--version")
+    assert code == 0 and not err
+    assert out == f"mosaic {metadata.version('mosaic-cli')}\n"
+
+
+def test_version_of_an_uninstalled_checkout_is_pyprojects(capsys, monkeypatch):
+    """Run from a checkout that was never installed: the version pyproject.toml declares."""
+    import tomllib
+    from importlib import metadata
+    from pathlib import Path
+
+    def not_installed(name):
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(metadata, "version", not_installed)
+    declared = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["version"]
+    code, out, _ = run_cli(capsys, "--version")
+    assert code == 0 and out == f"mosaic {declared}\n"
+
+
+# -- --work-width: no silent option ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["lstm", "cnn"])
+def test_work_width_other_than_the_networks_is_refused_before_any_work(tmp_path, capsys, tiny_clip, name):
+    """A learned estimator works at its weights' width: another --work-width would be ignored."""
+    out = tmp_path / "t.json"
+    code, _, err = run_cli(capsys, "track", tiny_clip, "-o", out, "-e", name, "--work-width", 640, "-q")
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"mosaic: error: --work-width 640: the {name} network works at 320 px, the width its weights were trained at")
+    assert not out.exists()
+    code, _, err = run_cli(capsys, "stitch", tiny_clip, "-o", tmp_path / "p.png", "--work-width", 512, "-q")  # the default, lstm
+    assert code == 2 and "--work-width 512: the lstm network works at 320 px" in err
+
+
+def test_work_width_wider_than_the_video_is_clamped_with_a_warning(tmp_path, capsys, tiny_clip):
+    """orb never upscales: a 96 px wide video with --work-width 4096 is worked at 96 px, and said so."""
+    out = tmp_path / "t.json"
+    code, _, err = run_cli(capsys, "track", tiny_clip, "-o", out, "-e", "orb", "--work-width", 4096, "-q")
+    assert code == 0, err
+    assert err == "mosaic: warning: --work-width 4096 is wider than the video (96 px): working at 96 px (upscaling adds no detail, only time)\n"
+    assert json.loads(out.read_text())["meta"]["work_width"] == 96
+    # The default (320) is not the user's choice: clamped without a word.
+    code, _, err = run_cli(capsys, "track", tiny_clip, "-o", out, "-e", "orb", "-q")
+    assert code == 0 and err == ""
+    assert json.loads(out.read_text())["meta"]["work_width"] == 96
+
+
+def test_one_estimator_instance_keeps_the_requested_width_across_videos():
+    """bench resets one estimator for flights of several sizes: a narrow one clamps only itself."""
+    from mosaic_cli.estimators import make_estimator
+
+    orb = make_estimator("orb", work_width=640)
+    orb.reset((320, 180))
+    assert orb.work_size == (320, 180)
+    orb.reset((1280, 720))
+    assert orb.work_size == (640, 360)
+    assert make_estimator("orb", default_width=640).work_width == 640  # stabilize's default
+
+
+def help_panels(capsys, command: str) -> dict[str, list[str]]:
+    """The boxes of ``mosaic COMMAND --help``: panel title -> the long flags listed in it."""
+    code, out, _ = run_cli(capsys, command, "--help")
+    assert code == 0
+    panels: dict[str, list[str]] = {}
+    title = None
+    for line in out.splitlines():
+        if line.startswith("╭─ "):
+            title = line[3:].split(" ─")[0].strip()
+            panels[title] = []
+        elif title is not None and line.startswith("│ "):
+            panels[title] += [word for word in line[2:].split() if word.startswith("--")][:1]
+    return panels
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_option_of_every_command_is_in_a_named_help_panel(capsys, monkeypatch, command):
+    """--help reads as groups: the plain Options box holds --help alone, and each option of the
+    command is listed under one panel."""
+    import typer
+
+    from mosaic_cli.cli import app
+
+    monkeypatch.setenv("COLUMNS", "200")  # one row per option: no flag wrapped away
+    panels = help_panels(capsys, command)
+    assert panels["Options"] == ["--help"]
+    click_command = typer.main.get_command(app).commands[command]
+    flags = [next(o for o in p.opts if o.startswith("--")) for p in click_command.params if p.param_type_name == "option"]
+    listed = [flag for title, shown in panels.items() if title not in ("Options", "Arguments") for flag in shown]
+    assert sorted(listed) == sorted(flags)
+
+
+def test_stitch_help_groups_its_options(capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")
+    panels = help_panels(capsys, "stitch")
+    assert list(panels) == ["Arguments", "Options", "Input and output", "Estimator", "Drift control", "Output quality",
+                            "Overlays and mask", "Telemetry and maps", "Live input", "Progress and run"]
+    assert panels["Drift control"] == ["--drift-control", "--max-loop-pairs", "--overlap"]
+    assert panels["Live input"] == ["--live", "--preview", "--every", "--timeout"]
+    assert "--telemetry" in panels["Telemetry and maps"] and "--work-width" in panels["Estimator"]

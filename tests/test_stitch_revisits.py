@@ -141,7 +141,7 @@ def test_a_cut_to_unrelated_ground_goes_to_a_second_panorama_named_in_the_summar
     code, err = run(capsys, "stitch", video, "-o", tmp_path / "pano.png", "--transforms", tmp_path / "t.json", "-e", "orb", "-q")
     assert code == 0, err
     assert "Traceback" not in err
-    warning = [line for line in err.splitlines() if "panoramas of their own" in line]
+    warning = [line for line in err.splitlines() if "panoramas that no registration joins" in line]
     assert len(warning) == 1 and "pano-2.png" in warning[0]
     _, first, H1 = load(tmp_path / "t.json")
     _, second, _ = load(tmp_path / "t-2.json")
@@ -193,7 +193,7 @@ def test_photos_far_apart_are_all_registered_directly_and_none_is_dropped_silent
     code, err = run(capsys, "stitch", tmp_path / "photos", "-o", tmp_path / "pano.png", "--transforms", tmp_path / "t.json", "-q")
     assert code == 0, err
     assert "photo IMG_0008.png not used: black" in err
-    assert any("panoramas of their own" in line and "frame 9 -> " in line and "pano-2.png" in line for line in err.splitlines())
+    assert any("pano-2.png holds 1 photo (IMG_0009.png)" in line for line in err.splitlines())
     _, indices, H = load(tmp_path / "t.json")
     _, second, _ = load(tmp_path / "t-2.json")
     assert indices == list(range(8)) and second == [9]  # every photo used or named
@@ -309,3 +309,54 @@ def test_a_convincing_direct_registration_overrules_a_wrong_chain():
     keyframe = scanner.keyframes[1]
     assert keyframe.link is not None and keyframe.link.inliers >= 60
     np.testing.assert_allclose(project(keyframe.placement, frame_corners(*SIZE)), frame_corners(*SIZE) + [120, 0], atol=0.5)
+
+
+def photo_strip(folder: Path, views: list[tuple[float, float]], seed: int = 11, names=None) -> None:
+    """Photos of one ground taken with their top-left corner at each ``views`` map point (no
+    rotation), written in the order given as IMG_0000.png, IMG_0001.png, ... (or ``names``)."""
+    from mosaic_cli.simulate import MapPyramid, render_view
+
+    pyramid = MapPyramid(textured_image(2000, 1000, seed=seed))
+    folder.mkdir(exist_ok=True)
+    for k, (x, y) in enumerate(views):
+        to_frame = np.linalg.inv(np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1]]))
+        write_png(folder / (names[k] if names else f"IMG_{k:04d}.png"), render_view(pyramid, to_frame, PHOTO))
+
+
+def test_a_photo_that_overlaps_only_a_later_photo_is_registered_into_the_one_panorama(tmp_path, capsys):
+    """Shuffled names: the first photo shares no ground with the second (the scan starts a new
+    part there) but overlaps the fifth; it must be tried against every photo of the other
+    part, not only a few spread along it, and the folder gives one panorama of every photo."""
+    strip = [(60 + 220 * i, 120) for i in range(8)]  # 100 px (31%) overlap between neighbours
+    # Below the fourth and fifth photos of the strip and beside no other: the keyframes that a
+    # join tried before (4 spread along a part: the 1st, 3rd, 6th and 8th) share no ground with it.
+    below = (strip[3][0] + 110, strip[3][1] + 130)
+    photo_strip(tmp_path / "photos", [below, *strip])
+    code, err = run(capsys, "stitch", tmp_path / "photos", "-o", tmp_path / "pano.png", "--transforms", tmp_path / "t.json", "-q")
+    assert code == 0, err
+    assert "warning" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pano.png", "photos", "t.json"]
+    _, indices, H = load(tmp_path / "t.json")
+    assert sorted(indices) == list(range(9))
+    # Placed where it belongs: 110 px right of and 130 px below the fourth photo of the strip.
+    lone, fourth = H[indices.index(0)], H[indices.index(4)]
+    offset = project(np.linalg.inv(fourth) @ lone, np.array([[0.0, 0.0]]))[0]
+    assert np.allclose(offset, [110, 130], atol=1.0)
+
+
+def test_the_largest_part_takes_the_name_given_and_the_warning_names_the_photos(tmp_path, capsys):
+    """Two photos of one place first (in name order), then four of another: the four make
+    pano.png, the two pano-2.png, and the warning says which photos each file holds."""
+    photo_strip(tmp_path / "photos", [(100, 100), (300, 100)], seed=21, names=["A_1.png", "A_2.png"])
+    photo_strip(tmp_path / "photos", [(100 + 200 * i, 300) for i in range(4)], seed=22, names=[f"B_{i}.png" for i in range(1, 5)])
+    code, err = run(capsys, "stitch", tmp_path / "photos", "-o", tmp_path / "pano.png", "--transforms", tmp_path / "t.json", "-q")
+    assert code == 0, err
+    _, largest, _ = load(tmp_path / "t.json")
+    _, smaller, _ = load(tmp_path / "t-2.json")
+    assert sorted(largest) == [2, 3, 4, 5] and sorted(smaller) == [0, 1]
+    assert (tmp_path / "pano-2.png").stat().st_size > 0 and not (tmp_path / "pano-3.png").exists()
+    warning = [line for line in err.splitlines() if line.startswith("mosaic: warning:")]
+    assert warning == [
+        f"mosaic: warning: the photos make 2 panoramas that no registration joins: {tmp_path / 'pano.png'} holds 4 photos "
+        f"(B_1.png, B_2.png, B_3.png, B_4.png); {tmp_path / 'pano-2.png'} holds 2 photos (A_1.png, A_2.png)"
+    ]

@@ -53,7 +53,7 @@ def test_track_json_matches_exact_ground_truth(tmp_path, hd_flight, hd_clip):
 
 def test_track_npy_and_max_frames(tmp_path, hd_flight, hd_clip):
     out = tmp_path / "track.npy"
-    run_track(hd_clip, "-o", out, "--max-frames", 6, "--work-width", 160)
+    run_track(hd_clip, "-o", out, "--max-frames", 6)
     pairwise = np.load(out)
     assert pairwise.shape == (5, 3, 3)
     errors = corner_error(pairwise, hd_flight.pairwise[:5], FULL)
@@ -91,3 +91,19 @@ def test_track_reads_an_image_folder(tmp_path, flight):
     pairwise = np.array(json.loads(out.read_text())["pairwise"])
     assert len(pairwise) == len(flight.frames) - 1
     assert np.median(corner_error(pairwise, flight.pairwise, flight.frame_size)) < 0.1
+
+
+def test_a_one_frame_video_says_there_is_no_frame_pair_and_writes_an_empty_track(tmp_path, capsys, texture):
+    from mosaic_cli.cli import main
+
+    video = write_clip(tmp_path / "one.mp4", [texture[:64, :96]], fps=10)
+    out = tmp_path / "t.json"
+    for quiet in ([], ["-q"]):  # said even with -q
+        with pytest.raises(SystemExit) as exit_info:
+            main(["track", str(video), "-o", str(out), "-e", "orb", *quiet])
+        assert exit_info.value.code in (0, None)
+        err = capsys.readouterr().err
+        warning = f"mosaic: warning: {video} has only 1 frame: no frame pair to track; {out} holds an empty track\n"
+        assert warning in err and "confidence" not in err
+        data = json.loads(out.read_text())
+        assert data["frames"] == 1 and data["pairwise"] == [] and data["confidence"] == []

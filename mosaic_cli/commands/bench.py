@@ -7,7 +7,17 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.commands.options import Device, Strict, Threads, check_json_report, quiet_option, use_threads
+from mosaic_cli.commands.options import (
+    ESTIMATOR,
+    INPUT_OUTPUT,
+    SIMULATED_FLIGHT,
+    Device,
+    Strict,
+    Threads,
+    check_json_report,
+    quiet_option,
+    use_threads,
+)
 from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
 from mosaic_cli.video.reader import reading_policy
@@ -16,19 +26,19 @@ Quiet = quiet_option("No progress and no table (use with --json).")
 
 
 def bench(
-    video: Annotated[Path | None, typer.Option("--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it).")] = None,
-    flights: Annotated[Path | None, typer.Option("--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile).")] = None,
-    map_image: Annotated[Path | None, typer.Option("--map", help="Simulate the flight over this aerial image (default: procedural map).")] = None,
-    estimators: Annotated[str | None, typer.Option("--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped).")] = None,
-    weights: Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn).")] = None,
-    profile: Annotated[str, typer.Option("--profile", "-p", help="Flight profile of the simulated clip.")] = "paper",
-    frames: Annotated[int, typer.Option("--frames", "-n", help="Frames to simulate (or to read from --video).")] = 300,
-    size: Annotated[str, typer.Option("--size", help="Frame size of the simulated clip, WxH.")] = "1280x720",
-    work_width: Annotated[int, typer.Option("--work-width", help="Width the classical estimators work at.")] = 320,
+    video: Annotated[Path | None, typer.Option("--video", help="Benchmark on this video (latency only, unless a <stem>.gt.json sits beside it).", rich_help_panel=INPUT_OUTPUT)] = None,
+    flights: Annotated[Path | None, typer.Option("--flights", help="Score on every X.mp4 with an X.gt.json in this folder (MACE over all flights and per profile).", rich_help_panel=INPUT_OUTPUT)] = None,
+    map_image: Annotated[Path | None, typer.Option("--map", help="Simulate the flight over this aerial image (default: procedural map).", rich_help_panel=INPUT_OUTPUT)] = None,
+    estimators: Annotated[str | None, typer.Option("--estimators", "-e", help="Comma-separated: lstm,cnn,orb,orb-ransac,orb-paper,identity, each with options as NAME:OPTION=VALUE (cnn:refine=none, cnn:patches=5, lstm:reset-every=300, cnn:precision=fp32, lstm:weights=FILE; default: lstm,cnn,orb,orb-paper,identity; learned ones without weights are skipped).", rich_help_panel=ESTIMATOR)] = None,
+    weights: Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) for the learned estimators (lstm, cnn).", rich_help_panel=ESTIMATOR)] = None,
+    profile: Annotated[str, typer.Option("--profile", "-p", help="Flight profile of the simulated clip.", rich_help_panel=SIMULATED_FLIGHT)] = "paper",
+    frames: Annotated[int, typer.Option("--frames", "-n", help="Frames to simulate (or to read from --video).", rich_help_panel=SIMULATED_FLIGHT)] = 300,
+    size: Annotated[str, typer.Option("--size", help="Frame size of the simulated clip, WxH.", rich_help_panel=SIMULATED_FLIGHT)] = "1280x720",
+    work_width: Annotated[int, typer.Option("--work-width", help="Width the classical estimators work at.", rich_help_panel=ESTIMATOR)] = 320,
     device: Device = "auto",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated flight.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the simulated flight.", rich_help_panel=SIMULATED_FLIGHT)] = 0,
     threads: Threads = None,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the full report as JSON.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the full report as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
     strict: Strict = False,
     quiet: Quiet = False,
 ) -> None:

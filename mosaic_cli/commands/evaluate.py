@@ -7,7 +7,12 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.commands.options import check_json_report, quiet_option
+from mosaic_cli.commands.options import (
+    INPUT_OUTPUT,
+    SCORING,
+    check_json_report,
+    quiet_option,
+)
 from mosaic_cli.evaluate import LANDMARK_EVERY, EvalOptions, score
 from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
@@ -27,11 +32,11 @@ ROWS = [
 
 def evaluate(
     prediction: Annotated[Path, typer.Argument(help="Pairwise homographies: a `mosaic track` .json or an (N-1, 3, 3) .npy.")],
-    gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth of a simulated flight (<stem>.gt.json).")] = None,
-    annotations: Annotated[Path | None, typer.Option("--annotations", "-a", help="Landmarks, one 'f1 x1 y1 f2 x2 y2' per line.")] = None,
-    size: Annotated[str | None, typer.Option("--size", help="Frame size WxH of the video (for .npy predictions scored on annotations).")] = None,
-    every: Annotated[int, typer.Option("--every", help="Frames between landmark pairs made from the ground truth.")] = LANDMARK_EVERY,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the metrics to this JSON file.")] = None,
+    gt: Annotated[Path | None, typer.Option("--gt", help="Ground truth of a simulated flight (<stem>.gt.json).", rich_help_panel=INPUT_OUTPUT)] = None,
+    annotations: Annotated[Path | None, typer.Option("--annotations", "-a", help="Landmarks, one 'f1 x1 y1 f2 x2 y2' per line.", rich_help_panel=INPUT_OUTPUT)] = None,
+    size: Annotated[str | None, typer.Option("--size", help="Frame size WxH of the video (for .npy predictions scored on annotations).", rich_help_panel=SCORING)] = None,
+    every: Annotated[int, typer.Option("--every", help="Frames between landmark pairs made from the ground truth.", rich_help_panel=SCORING)] = LANDMARK_EVERY,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the metrics to this JSON file.", rich_help_panel=INPUT_OUTPUT)] = None,
     quiet: Quiet = False,
 ) -> None:
     """Score pairwise homographies against ground truth or landmark annotations.

@@ -12,28 +12,50 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR, DEFAULT_WORK_WIDTH
+
+# -- the panels of the help (typer's rich_help_panel): each option under one, so that --help
+# reads as groups (what goes in and out, the estimator, drift control ...), not one long box --
+
+INPUT_OUTPUT = "Input and output"
+ESTIMATOR = "Estimator"
+OVERLAYS = "Overlays and mask"
+DRIFT_CONTROL = "Drift control"
+OUTPUT_QUALITY = "Output quality"
+SMOOTHING = "Smoothing and crop"
+LIVE = "Live input"
+TELEMETRY = "Telemetry and maps"
+PROGRESS_AND_RUN = "Progress and run"
+SIMULATED_FLIGHT = "Simulated flight"
+FLIGHT = "Flight"
+SCORING = "Scoring"
+MODEL = "Model"
+TRAINING = "Training"
+VALIDATION = "Validation"
+CHECKPOINTS = "Checkpoints"
+MACHINE = "Machine"
 
 # -- the estimator (track, stitch, stabilize) -----------------------------------------------------
 
 EstimatorName = Annotated[str | None, typer.Option(
     "--estimator", "-e",
     help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} "
-         "(with --weights: the network they hold).")]
-WorkWidth = Annotated[int, typer.Option(
+         "(with --weights: the network they hold).", rich_help_panel=ESTIMATOR)]
+WorkWidth = Annotated[int | None, typer.Option(
     "--work-width",
-    help="Width the classical estimators (orb, orb-ransac, identity) work at, pixels; the learned ones work at the size "
-         "their weights were trained for.")]
-Weights = Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) to run.")]
-Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda (learned estimators).")]
+    help=f"Width the classical estimators (orb, orb-ransac, orb-paper, identity) work at, pixels (default {DEFAULT_WORK_WIDTH}; "
+         "never wider than the video). The learned ones (lstm, cnn) work at the width their weights were trained at: "
+         "another value is refused.", rich_help_panel=ESTIMATOR)]
+Weights = Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) to run.", rich_help_panel=ESTIMATOR)]
+Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda (learned estimators).", rich_help_panel=ESTIMATOR)]
 Threads = Annotated[int | None, typer.Option(
     "--threads",
-    help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine).")]
+    help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine).", rich_help_panel=ESTIMATOR)]
 
 # -- the input ------------------------------------------------------------------------------------
 
 Mask = Annotated[Path | None, typer.Option(
-    "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses.")]
+    "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses.", rich_help_panel=OVERLAYS)]
 
 
 def overlay_detect_option(kept_out_of: str):
@@ -41,19 +63,19 @@ def overlay_detect_option(kept_out_of: str):
     the overlays out of."""
     return Annotated[bool, typer.Option(
         "--overlay-detect/--no-overlay-detect",
-        help=f"Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of {kept_out_of}.")]
+        help=f"Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of {kept_out_of}.", rich_help_panel=OVERLAYS)]
 
 
-MaxFrames = Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames.")]
+MaxFrames = Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames.", rich_help_panel=INPUT_OUTPUT)]
 Strict = Annotated[bool, typer.Option(
     "--strict",
-    help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning.")]
+    help="A video that decodes to fewer frames than its container announces (truncated, damaged) is an error, not a warning.", rich_help_panel=INPUT_OUTPUT)]
 Timeout = Annotated[float, typer.Option(
-    "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds.")]
+    "--timeout", help="Live input: end the run when the stream sends nothing for this many seconds.", rich_help_panel=LIVE)]
 
 def quiet_option(help: str):
     """``--quiet/-q``: what it silences differs from command to command."""
-    return Annotated[bool, typer.Option("--quiet", "-q", help=help)]
+    return Annotated[bool, typer.Option("--quiet", "-q", help=help, rich_help_panel=PROGRESS_AND_RUN)]
 
 
 # -- turning flags into library calls -------------------------------------------------------------

@@ -7,7 +7,13 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.commands.options import quiet_option
+from mosaic_cli.commands.options import (
+    FLIGHT,
+    INPUT_OUTPUT,
+    OUTPUT_QUALITY,
+    TELEMETRY,
+    quiet_option,
+)
 from mosaic_cli.inputs import parse_size
 from mosaic_cli.progress import console
 
@@ -15,25 +21,25 @@ Quiet = quiet_option("No progress bar.")
 
 
 def simulate(
-    out: Annotated[Path, typer.Option("-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it.")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it.", rich_help_panel=INPUT_OUTPUT)],
     map_image: Annotated[Path | None, typer.Argument(help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map.")] = None,
-    profile: Annotated[str, typer.Option("--profile", "-p", help="paper, survey, fast, shaky, hard or extreme.")] = "paper",
-    frames: Annotated[int, typer.Option("--frames", "-n", help="Number of frames.")] = 300,
-    size: Annotated[str, typer.Option("--size", help="Frame size WxH.")] = "1280x720",
-    fps: Annotated[float, typer.Option("--fps", help="Frame rate.")] = 30.0,
-    seed: Annotated[int, typer.Option("--seed", help="Random seed (path, map, effects).")] = 0,
-    crf: Annotated[int | None, typer.Option("--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme.")] = None,
-    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast ... veryslow).")] = "medium",
-    overlays: Annotated[str | None, typer.Option("--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png.")] = None,
-    bursts: Annotated[str | None, typer.Option("--bursts", help="Every 12-30 frames, 1-3 frames with no motion cue: glare, blur, dark, flat, drop, duplicate (comma-separated), all, or none. Default: the profile's (all for -p bursts, none otherwise). Listed in the ground truth.")] = None,
+    profile: Annotated[str, typer.Option("--profile", "-p", help="paper, survey, fast, shaky, hard, extreme or bursts.", rich_help_panel=FLIGHT)] = "paper",
+    frames: Annotated[int, typer.Option("--frames", "-n", help="Number of frames.", rich_help_panel=FLIGHT)] = 300,
+    size: Annotated[str, typer.Option("--size", help="Frame size WxH.", rich_help_panel=FLIGHT)] = "1280x720",
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate.", rich_help_panel=FLIGHT)] = 30.0,
+    seed: Annotated[int, typer.Option("--seed", help="Random seed (path, map, effects).", rich_help_panel=FLIGHT)] = 0,
+    crf: Annotated[int | None, typer.Option("--crf", help="H.264 quality (0-51, lower is better). Default: 18, 30 for extreme.", rich_help_panel=OUTPUT_QUALITY)] = None,
+    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast ... veryslow).", rich_help_panel=OUTPUT_QUALITY)] = "medium",
+    overlays: Annotated[str | None, typer.Option("--overlays", help="Burn in overlays: logo, timestamp, letterbox (comma-separated) or all; the exact mask goes to <stem>.mask.png.", rich_help_panel=FLIGHT)] = None,
+    bursts: Annotated[str | None, typer.Option("--bursts", help="Every 12-30 frames, 1-3 frames with no motion cue: glare, blur, dark, flat, drop, duplicate (comma-separated), all, or none. Default: the profile's (all for -p bursts, none otherwise). Listed in the ground truth.", rich_help_panel=FLIGHT)] = None,
     quiet: Quiet = False,
-    telemetry: Annotated[str | None, typer.Option("--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json.")] = None,
-    origin: Annotated[str, typer.Option("--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry).")] = "47.3977,8.5456",
-    gsd: Annotated[float, typer.Option("--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry).")] = 0.05,
-    gps_noise: Annotated[float, typer.Option("--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry.")] = 3.0,
-    gps_dropouts: Annotated[float, typer.Option("--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry.")] = 0.02,
-    baro_bias: Annotated[float, typer.Option("--baro-bias", help="RMS of the barometric height's offset over the flight, metres, with --telemetry.")] = 0.5,
-    telemetry_rate: Annotated[float, typer.Option("--telemetry-rate", help="Log samples per second; 0: one per frame.")] = 0.0,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json.", rich_help_panel=TELEMETRY)] = None,
+    origin: Annotated[str, typer.Option("--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry).", rich_help_panel=TELEMETRY)] = "47.3977,8.5456",
+    gsd: Annotated[float, typer.Option("--gsd", help="Metres per map pixel, when the map carries no geotransform (with --telemetry).", rich_help_panel=TELEMETRY)] = 0.05,
+    gps_noise: Annotated[float, typer.Option("--gps-noise", help="Horizontal GPS error, RMS metres (correlated over 2 s), with --telemetry.", rich_help_panel=TELEMETRY)] = 3.0,
+    gps_dropouts: Annotated[float, typer.Option("--gps-dropouts", help="Fraction of log samples without a fix, with --telemetry.", rich_help_panel=TELEMETRY)] = 0.02,
+    baro_bias: Annotated[float, typer.Option("--baro-bias", help="RMS of the barometric height's offset over the flight, metres, with --telemetry.", rich_help_panel=TELEMETRY)] = 0.5,
+    telemetry_rate: Annotated[float, typer.Option("--telemetry-rate", help="Log samples per second; 0: one per frame.", rich_help_panel=TELEMETRY)] = 0.0,
 ) -> None:
     """Render a drone flight over a large aerial image with a virtual nadir camera.
 

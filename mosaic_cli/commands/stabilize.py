@@ -8,6 +8,11 @@ from typing import Annotated
 import typer
 
 from mosaic_cli.commands.options import (
+    ESTIMATOR,
+    INPUT_OUTPUT,
+    LIVE,
+    OUTPUT_QUALITY,
+    SMOOTHING,
     Device,
     EstimatorName,
     Mask,
@@ -18,6 +23,7 @@ from mosaic_cli.commands.options import (
     overlay_detect_option,
     quiet_option,
 )
+from mosaic_cli.errors import BadInput
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
 from mosaic_cli.video.reader import reading_policy
@@ -29,42 +35,51 @@ Quiet = quiet_option("No progress bars or summary.")
 def stabilize(
     video: Annotated[str, typer.Argument(help="Input video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
     out: Annotated[str, typer.Argument(help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://).")],
-    smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.")] = "l1",
-    radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).")] = 30,
-    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.")] = "similarity",
+    smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.", rich_help_panel=SMOOTHING)] = "l1",
+    radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).", rich_help_panel=SMOOTHING)] = 30,
+    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.", rich_help_panel=SMOOTHING)] = "similarity",
     crop: Annotated[str, typer.Option("--crop", help="auto (zoom just enough that no border shows) or the share of "
-                                      "width and height to keep, 0.5..1 (borders may then show, filled as --border says).")] = "auto",
+                                      "width and height to keep, 0.5..1 (borders may then show, filled as --border says).", rich_help_panel=SMOOTHING)] = "auto",
     border: Annotated[str | None, typer.Option("--border", help="Fill of uncovered areas with a fixed --crop: black "
-                                               "(default), replicate or reflect.")] = None,
-    crf: Annotated[int, typer.Option("--crf", help="x264 quality, 0 (lossless) .. 51.")] = 18,
-    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast .. veryslow).")] = "veryfast",
-    warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.")] = None,
-    compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.")] = None,
+                                               "(default), replicate or reflect.", rich_help_panel=SMOOTHING)] = None,
+    crf: Annotated[int, typer.Option("--crf", help="x264 quality, 0 (lossless) .. 51.", rich_help_panel=OUTPUT_QUALITY)] = 18,
+    preset: Annotated[str, typer.Option("--preset", help="x264 preset (ultrafast .. veryslow).", rich_help_panel=OUTPUT_QUALITY)] = "veryfast",
+    warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
+    compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.", rich_help_panel=INPUT_OUTPUT)] = None,
     estimator: EstimatorName = None,
-    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators work at (pixels; the learned ones use their weights' size; "
-                                                  "default 640 or the input's width if smaller).")] = None,
+    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators (orb, orb-ransac, orb-paper, identity) "
+                                                  "work at, pixels (default 640, never wider than the video: more than track and stitch's 320 "
+                                                  "because every tracking error shows as shake in a stabilised video). The learned ones (lstm, "
+                                                  "cnn) work at the width their weights were trained at: another value is refused.", rich_help_panel=ESTIMATOR)] = None,
     weights: Weights = None,
     device: Device = "auto",
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
     strict: Strict = False,
-    latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.")] = None,
+    latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
+                                              "and the crop window over time to this PNG (needs matplotlib: "
+                                              "pip install 'mosaic-cli[plot]').", rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
     from mosaic_cli.live.stabilize import is_live_request, stabilize_live
+    from mosaic_cli.plots import check_plot_request
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
 
+    check_plot_request(plot)  # before any long work
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
         mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout,
     )
     if is_live_request(video, out, options):
+        if plot is not None:
+            raise BadInput("--plot needs the whole camera path: not with --latency or a live input or output")
         live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
                               compare=str(compare) if compare else None, show_progress=not quiet)
         if not quiet:
@@ -77,6 +92,8 @@ def stabilize(
         return
     with reading_policy(strict):
         result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
+    if plot is not None:
+        _plot(plot, result)
     if not quiet:
         s = result.seconds
         console.print(
@@ -84,3 +101,11 @@ def stabilize(
             f"(track {s['track']:.1f} s, path {s['plan']:.1f} s, render {s['render']:.1f} s); "
             f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
         )
+
+
+def _plot(path: Path, result) -> None:
+    """``--plot``: the path stabilize planned, before and after, and the crop window."""
+    from mosaic_cli.plots import camera_path_series, crop_series, write_stabilize_plot
+
+    before, after = camera_path_series(result.motion, result.views)
+    write_stabilize_plot(path, before, after, crop_series(result.warps, result.size), result.fps)

@@ -9,6 +9,11 @@ from typing import Annotated
 import typer
 
 from mosaic_cli.commands.options import (
+    DRIFT_CONTROL,
+    INPUT_OUTPUT,
+    LIVE,
+    OUTPUT_QUALITY,
+    TELEMETRY,
     Device,
     EstimatorName,
     Mask,
@@ -34,35 +39,35 @@ Quiet = quiet_option("No progress bars.")
 
 def stitch(
     video: Annotated[str, typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg.")],
-    transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.")] = None,
-    reference: Annotated[str, typer.Option("--reference", help="Frame the panorama is drawn in: first, middle or a frame number.")] = "middle",
-    max_size: Annotated[int, typer.Option("--max-size", help="Longest side of the panorama in pixels (larger canvases are scaled down); 0: no limit.")] = 8000,
-    drift_control: Annotated[bool, typer.Option("--drift-control/--no-drift-control", help="Register revisited ground and refine all placements jointly.")] = True,
-    max_loop_pairs: Annotated[int, typer.Option("--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost).")] = 300,
-    overlap: Annotated[float, typer.Option("--overlap", help="A new keyframe is due when its overlap with the last one drops below this.")] = 0.6,
-    blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.")] = "multiband",
-    seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.")] = "dp",
-    exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.")] = "gain-blocks",
-    estimator: EstimatorName = None,
-    work_width: WorkWidth = 320,
-    weights: Weights = None,
-    device: Device = "auto",
-    mask: Mask = None,
-    overlay_detect: OverlayDetect = True,
-    start: Annotated[int, typer.Option("--start", help="Skip this many frames first.")] = 0,
+    out: Annotated[Path, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg.", rich_help_panel=INPUT_OUTPUT)],
+    transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
+    start: Annotated[int, typer.Option("--start", help="Skip this many frames first.", rich_help_panel=INPUT_OUTPUT)] = 0,
     max_frames: MaxFrames = None,
     strict: Strict = False,
-    live: Annotated[bool, typer.Option("--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview.")] = False,
-    preview: Annotated[Path | None, typer.Option("--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds.")] = None,
-    every: Annotated[float, typer.Option("--every", help="--live: seconds between two previews.")] = 2.0,
+    estimator: EstimatorName = None,
+    work_width: WorkWidth = None,
+    weights: Weights = None,
+    device: Device = "auto",
+    drift_control: Annotated[bool, typer.Option("--drift-control/--no-drift-control", help="Register revisited ground and refine all placements jointly.", rich_help_panel=DRIFT_CONTROL)] = True,
+    max_loop_pairs: Annotated[int, typer.Option("--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost).", rich_help_panel=DRIFT_CONTROL)] = 300,
+    overlap: Annotated[float, typer.Option("--overlap", help="A new keyframe is due when its overlap with the last one drops below this.", rich_help_panel=DRIFT_CONTROL)] = 0.6,
+    reference: Annotated[str, typer.Option("--reference", help="Frame the panorama is drawn in: first, middle or a frame number.", rich_help_panel=OUTPUT_QUALITY)] = "middle",
+    max_size: Annotated[int, typer.Option("--max-size", help="Longest side of the panorama in pixels (larger canvases are scaled down); 0: no limit.", rich_help_panel=OUTPUT_QUALITY)] = 8000,
+    blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.", rich_help_panel=OUTPUT_QUALITY)] = "multiband",
+    seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.", rich_help_panel=OUTPUT_QUALITY)] = "dp",
+    exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.", rich_help_panel=OUTPUT_QUALITY)] = "gain-blocks",
+    mask: Mask = None,
+    overlay_detect: OverlayDetect = True,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.", rich_help_panel=TELEMETRY)] = None,
+    hfov: Annotated[float | None, typer.Option("--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV).", rich_help_panel=TELEMETRY)] = None,
+    telemetry_offset: Annotated[float, typer.Option("--telemetry-offset", help="Seconds added to the telemetry's times to match the video's.", rich_help_panel=TELEMETRY)] = 0.0,
+    footprints: Annotated[Path | None, typer.Option("--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84).", rich_help_panel=TELEMETRY)] = None,
+    level_ground: Annotated[bool, typer.Option("--level-ground", help="With telemetry: the ground is level with the take-off point, so each keyframe's height also corrects its scale (drift over long flights). Not over hills or slopes.", rich_help_panel=TELEMETRY)] = False,
+    live: Annotated[bool, typer.Option("--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview.", rich_help_panel=LIVE)] = False,
+    preview: Annotated[Path | None, typer.Option("--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds.", rich_help_panel=LIVE)] = None,
+    every: Annotated[float, typer.Option("--every", help="--live: seconds between two previews.", rich_help_panel=LIVE)] = 2.0,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
-    telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.")] = None,
-    hfov: Annotated[float | None, typer.Option("--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV).")] = None,
-    telemetry_offset: Annotated[float, typer.Option("--telemetry-offset", help="Seconds added to the telemetry's times to match the video's.")] = 0.0,
-    footprints: Annotated[Path | None, typer.Option("--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84).")] = None,
-    level_ground: Annotated[bool, typer.Option("--level-ground", help="With telemetry: the ground is level with the take-off point, so each keyframe's height also corrects its scale (drift over long flights). Not over hills or slopes.")] = False,
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
@@ -120,31 +125,59 @@ def stitch(
 
 
 def _notices(video: Path, result) -> list[str]:
-    """A line for each panorama beyond the first and for frames placed nowhere."""
+    """A line for a flight in several panoramas (which file holds what), and for frames or
+    photos placed nowhere."""
     lines = []
-    extra = result.panoramas[1:]
-    if extra:
-        firsts = ", ".join(f"frame {p.transforms[0][0]} -> {p.path}" for p in extra)
-        lines.append(
-            f"{len(extra)} part(s) of the flight registered with no other and went to panoramas of their own: {firsts}"
-        )
-    if result.georef is not None:
-        for p in extra:
+    names = _photo_names(video) if result.photos else None
+    several = len(result.panoramas) > 1
+    if several:
+        lines.append(_split_notice(result.panoramas, names))
+    if several and any(p.georef is not None for p in result.panoramas):
+        for p in result.panoramas:
             if p.georef is None:
                 lines.append(f"{p.path}: the telemetry gives its keyframes no position: a plain panorama, not georeferenced")
     for p in result.panoramas:
         if p.georef is not None:
-            lines += [f"{p.path}: {w}" if extra else w for w in p.georef.warnings]
+            lines += [f"{p.path}: {w}" if several else w for w in p.georef.warnings]
     if result.dropped:
-        if result.photos:
-            from mosaic_cli.video.reader import _folder_images
-
-            names = _folder_images(Path(video))
+        if names is not None:
             for index, why in result.dropped:
-                lines.append(f"photo {names[index].name} not used: {why}")
+                lines.append(f"photo {names[index]} not used: {why}")
         else:
             lines.append(f"{len(result.dropped)} frame(s) placed nowhere (the flight was lost there): frames {_ranges([i for i, _ in result.dropped])}")
     return lines
+
+
+def _photo_names(video: Path) -> list[str]:
+    """The folder's photos by index, as the scan read them (name order)."""
+    from mosaic_cli.video.reader import _folder_images
+
+    return [p.name for p in _folder_images(Path(video))]
+
+
+def _split_notice(panoramas, photo_names: list[str] | None) -> str:
+    """``the photos make 2 panoramas that no registration joins: pano.png holds 17 photos
+    (A.jpg, B.jpg, C.jpg, ..., Q.jpg); pano-2.png holds 1 photo (R.jpg)``: the files in the
+    order written (largest first), each with the photos (names) or frames (indices) it holds."""
+    parts = []
+    for p in panoramas:
+        if photo_names is not None:
+            held = [photo_names[i] for a, b in p.spans for i in range(a, b + 1)]
+            parts.append(f"{p.path} holds {_count(p.size, 'photo')} ({_abridged(held)})")
+        else:
+            runs = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in p.spans)
+            parts.append(f"{p.path} holds {_count(p.size, 'frame')} ({runs})")
+    what = "photos" if photo_names is not None else "flight"
+    return f"the {what} make{'' if photo_names is not None else 's'} {len(panoramas)} panoramas that no registration joins: " + "; ".join(parts)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def _abridged(names: list[str], most: int = 5) -> str:
+    """A few names in full, a long list as its first three, ... and its last."""
+    return ", ".join(names) if len(names) <= most else ", ".join([*names[:3], "...", names[-1]])
 
 
 def _ranges(indices: list[int]) -> str:

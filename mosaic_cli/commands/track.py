@@ -9,6 +9,8 @@ import typer
 
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.commands.options import (
+    ESTIMATOR,
+    INPUT_OUTPUT,
     Device,
     EstimatorName,
     Mask,
@@ -23,7 +25,7 @@ from mosaic_cli.commands.options import (
     quiet_option,
     use_threads,
 )
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, warn
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
@@ -40,15 +42,15 @@ Quiet = quiet_option("No progress bar.")
 
 def track(
     video: Annotated[str, typer.Argument(help="Video file (mp4, mov, mkv, avi, ...), folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
-    out: Annotated[str, typer.Option("-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated.")],
+    out: Annotated[str, typer.Option("-o", "--out", help="Output .json (documented format), .npy (pairwise array), or .jsonl / - (standard output): JSON Lines, one pair a line as it is estimated.", rich_help_panel=INPUT_OUTPUT)],
     estimator: EstimatorName = None,
-    work_width: WorkWidth = 320,
+    work_width: WorkWidth = None,
     weights: Weights = None,
     device: Device = "auto",
-    patches: Annotated[int | None, typer.Option("--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus.")] = None,
-    reset_every: Annotated[int | None, typer.Option("--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video).")] = None,
-    refine: Annotated[str | None, typer.Option("--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb).")] = None,
-    chunk: Annotated[int | None, typer.Option("--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU).")] = None,
+    patches: Annotated[int | None, typer.Option("--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus.", rich_help_panel=ESTIMATOR)] = None,
+    reset_every: Annotated[int | None, typer.Option("--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video).", rich_help_panel=ESTIMATOR)] = None,
+    refine: Annotated[str | None, typer.Option("--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb).", rich_help_panel=ESTIMATOR)] = None,
+    chunk: Annotated[int | None, typer.Option("--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU).", rich_help_panel=ESTIMATOR)] = None,
     threads: Threads = None,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
@@ -56,11 +58,17 @@ def track(
     strict: Strict = False,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Also draw each pair's confidence over time, failed pairs marked, to "
+                                              "this PNG (needs matplotlib: pip install 'mosaic-cli[plot]').",
+                                              rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.
 
     pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
     """
+    from mosaic_cli.plots import check_plot_request
+
+    check_plot_request(plot)  # before any long work
     options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect))
     if not is_jsonl(out):
         check_writable(out)
@@ -90,18 +98,22 @@ def track(
             result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
+    if plot is not None:
+        from mosaic_cli.plots import write_track_plot
+
+        write_track_plot(plot, result.confidence, result.info.fps)
+    where = "standard output" if out == "-" else out
+    if not len(result.pairwise):
+        # One frame: nothing to track, which is not an error (the output is a valid empty
+        # track), but no confidence either: said even with -q.
+        warn(f"{video} has only {result.frames} frame: no frame pair to track; {where} holds an empty track")
     if not quiet:
         if masked is not None and masked.use is not None:
             console.print(masked.describe())
         elif masked is None and result.meta["mask"]["excluded"] > 0:
             console.print(f"{100 * result.meta['mask']['excluded']:.1f}% of the frame masked (--mask)")
-        console.print(
-            f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
-            f"median confidence {float(_median(result.confidence)):.2f} -> {'standard output' if out == '-' else out}"
-        )
+        if len(result.pairwise):
+            import numpy as np
 
-
-def _median(values) -> float:
-    import numpy as np
-
-    return float(np.median(values)) if len(values) else 0.0
+            console.print(f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
+                          f"median confidence {float(np.median(result.confidence)):.2f} -> {where}")

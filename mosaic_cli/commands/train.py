@@ -12,7 +12,15 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.commands.options import quiet_option
+from mosaic_cli.commands.options import (
+    CHECKPOINTS,
+    INPUT_OUTPUT,
+    MACHINE,
+    MODEL,
+    TRAINING,
+    VALIDATION,
+    quiet_option,
+)
 from mosaic_cli.progress import console
 
 Quiet = quiet_option("No progress bar.")
@@ -20,33 +28,33 @@ Quiet = quiet_option("No progress bar.")
 
 def train(
     clips: Annotated[Path, typer.Argument(help="Folder of training clips (video files and/or folders of frames), or one clip.")],
-    out: Annotated[Path | None, typer.Option("-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache (default: runs/VARIANT).")] = None,
-    variant: Annotated[str | None, typer.Option("--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm, lstm-reg-t or lstm-reg-all (default: base).")] = None,
-    preset: Annotated[str | None, typer.Option("--preset", help="Network size: compact (CPU) or paper (Table 1) (default: compact).")] = None,
-    init: Annotated[Path | None, typer.Option("--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors).")] = None,
-    freeze: Annotated[bool | None, typer.Option("--freeze/--no-freeze", help="LSTM from a CNN --init: keep backbone + first Linear fixed (default: freeze).")] = None,
-    steps: Annotated[int | None, typer.Option("--steps", help="Training steps (paper: 300k BASE, 90k fine-tunes); more on --resume extends.")] = None,
-    batch_size: Annotated[int | None, typer.Option("--batch-size", help="Windows per step per process (paper: 64 BASE, 32 REG-*, 8 LSTM).")] = None,
-    lr: Annotated[float | None, typer.Option("--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps (default: 1e-3).")] = None,
-    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda (default: auto).")] = None,
-    amp: Annotated[bool | None, typer.Option("--amp/--no-amp", help="Mixed precision on CUDA (default: amp).")] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Random seed: initial weights, samples, dropout (default: 0).")] = None,
-    val: Annotated[Path | None, typer.Option("--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on.")] = None,
-    val_every: Annotated[int | None, typer.Option("--val-every", help="Validate every N steps (default: 1000).")] = None,
-    checkpoint_every: Annotated[int | None, typer.Option("--checkpoint-every", help="Checkpoint every N steps (default: 500).")] = None,
-    checkpoint_minutes: Annotated[float | None, typer.Option("--checkpoint-minutes", help="...and whenever this many minutes have passed (default: 15).")] = None,
-    work_size: Annotated[str | None, typer.Option("--work-size", help="Working frame size WxH (default: 320x180).")] = None,
-    patch: Annotated[int | None, typer.Option("--patch", help="Patch side in working pixels (default: 128).")] = None,
-    lstm_start: Annotated[str | None, typer.Option("--lstm-start", help="An LSTM variant from a CNN --init: random (the paper: a new head) or cnn (the head starts as the CNN's, the LSTM passing its input through) (default: random).")] = None,
-    photometric: Annotated[str | None, typer.Option("--photometric", help="What the photometric loss compares: gray (the paper) or band (band-passed frames at unit contrast: blind to exposure, haze, vignetting) (default: gray).")] = None,
-    flip: Annotated[bool | None, typer.Option("--flip/--no-flip", help="Mirror each window left-right and/or upside down, each half of the time (default: no-flip).")] = None,
-    data: Annotated[str | None, typer.Option("--data", help="stream: windows built by loader processes (--num-workers); device: the decoded clips held on the training device and every batch cut there (for GPUs; also works on a CPU with the memory for them). Default: stream.")] = None,
-    max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after this many minutes of steps (a checkpoint and the final weights are written, as at the last step); resume with a larger budget later.")] = None,
-    bursts: Annotated[float | None, typer.Option("--bursts", help="Share of the training windows (0-1) in which 1-3 frames are spoilt (glare, a gust's blur, near-black, featureless) for the network while the loss compares the clean frames: the LSTM learns to carry the motion through (default: 0).")] = None,
-    num_workers: Annotated[int | None, typer.Option("--num-workers", help="Loader / decoder worker processes (default: 1).")] = None,
-    threads: Annotated[int | None, typer.Option("--threads", help="Torch CPU threads per process (default: all cores; 1 under torchrun).")] = None,
-    cache_gb: Annotated[float | None, typer.Option("--cache-gb", help="Disk budget of the decoded-frame cache in RUN_DIR/cache (default: 8).")] = None,
-    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.")] = False,
+    out: Annotated[Path | None, typer.Option("-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache (default: runs/VARIANT).", rich_help_panel=INPUT_OUTPUT)] = None,
+    variant: Annotated[str | None, typer.Option("--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm, lstm-reg-t or lstm-reg-all (default: base).", rich_help_panel=MODEL)] = None,
+    preset: Annotated[str | None, typer.Option("--preset", help="Network size: compact (CPU) or paper (Table 1) (default: compact).", rich_help_panel=MODEL)] = None,
+    init: Annotated[Path | None, typer.Option("--init", help="Checkpoint to fine-tune from (e.g. a BASE run's weights.safetensors).", rich_help_panel=MODEL)] = None,
+    freeze: Annotated[bool | None, typer.Option("--freeze/--no-freeze", help="LSTM from a CNN --init: keep backbone + first Linear fixed (default: freeze).", rich_help_panel=MODEL)] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="Training steps (paper: 300k BASE, 90k fine-tunes); more on --resume extends.", rich_help_panel=TRAINING)] = None,
+    batch_size: Annotated[int | None, typer.Option("--batch-size", help="Windows per step per process (paper: 64 BASE, 32 REG-*, 8 LSTM).", rich_help_panel=TRAINING)] = None,
+    lr: Annotated[float | None, typer.Option("--lr", help="Initial learning rate; x0.1 at 1/3 and 2/3 of --steps (default: 1e-3).", rich_help_panel=TRAINING)] = None,
+    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda (default: auto).", rich_help_panel=MACHINE)] = None,
+    amp: Annotated[bool | None, typer.Option("--amp/--no-amp", help="Mixed precision on CUDA (default: amp).", rich_help_panel=TRAINING)] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Random seed: initial weights, samples, dropout (default: 0).", rich_help_panel=TRAINING)] = None,
+    val: Annotated[Path | None, typer.Option("--val", help="Folder of simulated flights (X.mp4 + X.gt.json) to report MACE on.", rich_help_panel=VALIDATION)] = None,
+    val_every: Annotated[int | None, typer.Option("--val-every", help="Validate every N steps (default: 1000).", rich_help_panel=VALIDATION)] = None,
+    checkpoint_every: Annotated[int | None, typer.Option("--checkpoint-every", help="Checkpoint every N steps (default: 500).", rich_help_panel=CHECKPOINTS)] = None,
+    checkpoint_minutes: Annotated[float | None, typer.Option("--checkpoint-minutes", help="...and whenever this many minutes have passed (default: 15).", rich_help_panel=CHECKPOINTS)] = None,
+    work_size: Annotated[str | None, typer.Option("--work-size", help="Working frame size WxH (default: 320x180).", rich_help_panel=MODEL)] = None,
+    patch: Annotated[int | None, typer.Option("--patch", help="Patch side in working pixels (default: 128).", rich_help_panel=MODEL)] = None,
+    lstm_start: Annotated[str | None, typer.Option("--lstm-start", help="An LSTM variant from a CNN --init: random (the paper: a new head) or cnn (the head starts as the CNN's, the LSTM passing its input through) (default: random).", rich_help_panel=MODEL)] = None,
+    photometric: Annotated[str | None, typer.Option("--photometric", help="What the photometric loss compares: gray (the paper) or band (band-passed frames at unit contrast: blind to exposure, haze, vignetting) (default: gray).", rich_help_panel=TRAINING)] = None,
+    flip: Annotated[bool | None, typer.Option("--flip/--no-flip", help="Mirror each window left-right and/or upside down, each half of the time (default: no-flip).", rich_help_panel=TRAINING)] = None,
+    bursts: Annotated[float | None, typer.Option("--bursts", help="Share of the training windows (0-1) in which 1-3 frames are spoilt (glare, a gust's blur, near-black, featureless) for the network while the loss compares the clean frames: the LSTM learns to carry the motion through (default: 0).", rich_help_panel=TRAINING)] = None,
+    max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after this many minutes of steps (a checkpoint and the final weights are written, as at the last step); resume with a larger budget later.", rich_help_panel=TRAINING)] = None,
+    data: Annotated[str | None, typer.Option("--data", help="stream: windows built by loader processes (--num-workers); device: the decoded clips held on the training device and every batch cut there (for GPUs; also works on a CPU with the memory for them). Default: stream.", rich_help_panel=MACHINE)] = None,
+    num_workers: Annotated[int | None, typer.Option("--num-workers", help="Loader / decoder worker processes (default: 1).", rich_help_panel=MACHINE)] = None,
+    threads: Annotated[int | None, typer.Option("--threads", help="Torch CPU threads per process (default: all cores; 1 under torchrun).", rich_help_panel=MACHINE)] = None,
+    cache_gb: Annotated[float | None, typer.Option("--cache-gb", help="Disk budget of the decoded-frame cache in RUN_DIR/cache (default: 8).", rich_help_panel=MACHINE)] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.", rich_help_panel=CHECKPOINTS)] = False,
     quiet: Quiet = False,
 ) -> None:
     """Train the homography network unsupervised on raw clips (photometric loss + the paper's priors).

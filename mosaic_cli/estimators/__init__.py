@@ -18,6 +18,10 @@ CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
 NAMES = (*CLASSICAL, *LEARNED)
 MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096  # estimators work on frames this wide (px)
+# The classical estimators' width unless --work-width says otherwise: track and stitch (stitch
+# places its keyframes by direct registration at the features' width; the estimator only
+# follows the ground between them).  stabilize uses its own (stabilize.pipeline.WORK_WIDTH).
+DEFAULT_WORK_WIDTH = 320
 # What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
 DEFAULT_ESTIMATOR = "lstm"
 
@@ -86,19 +90,25 @@ def check_device(device: str | None) -> None:
         raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
 
 
-def make_estimator(name: str | None = None, work_width: int = 320, weights: str | None = None, device: str = "auto",
-                   **options) -> Estimator:
+def make_estimator(name: str | None = None, work_width: int | None = None, weights: str | None = None, device: str = "auto",
+                   default_width: int = DEFAULT_WORK_WIDTH, **options) -> Estimator:
     """Build the estimator a user named on the command line.
 
     ``name`` (None: :data:`DEFAULT_ESTIMATOR`) may carry options (``cnn:patches=5``, ``lstm:weights=run/weights.safetensors``);
     keyword ``options`` (from flags, None = not given) add to them.  ``weights`` goes with a
     learned name or none (the checkpoint's head then decides lstm or cnn); with a classical name
     it is an error.  A ``weights`` option in the name wins over it, so that one benchmark can
-    compare several checkpoints."""
+    compare several checkpoints.
+
+    ``work_width`` is the user's ``--work-width`` (None: not given).  A classical estimator
+    works at it (else at ``default_width``), never wider than the video; a learned one works
+    at the width its weights were trained at, and a different width given is refused: the
+    network cannot read another size, and ignoring the flag would be a silent surprise."""
     if name is None:  # not named: the default, or with ``weights`` whichever network they hold
         name = "" if weights is not None else DEFAULT_ESTIMATOR
     base, spec_options = parse_spec(name)
-    check_work_width(work_width)
+    if work_width is not None:
+        check_work_width(work_width)
     check_device(device)
     if weights is not None and base not in (*LEARNED, ""):
         if base in NAMES:  # running the network instead of what was named would be a silent surprise
@@ -112,19 +122,38 @@ def make_estimator(name: str | None = None, work_width: int = 320, weights: str 
         from mosaic_cli.estimators.learned import LearnedConfig, make_learned_estimator
 
         weights = typed.pop("weights", weights)
+        if work_width is not None:  # before the weights are loaded: their header says their width
+            _check_learned_width(base or "the network", work_width, weights)
         return make_learned_estimator(base, weights=weights, device=device, config=LearnedConfig(**typed))
+    if base not in CLASSICAL:
+        raise BadInput(f"unknown estimator {base!r}: choose one of {', '.join(NAMES)}")
+    width = default_width if work_width is None else work_width
+    estimator: Estimator
     if base in ("orb", "orb-ransac"):
-        return OrbEstimator(work_width, OrbConfig(method="ransac" if base == "orb-ransac" else "usac", **typed))
-    if base == "orb-paper":
-        return PaperOrbEstimator(work_width)
-    if base == "identity":
-        return IdentityEstimator(work_width)
-    raise BadInput(f"unknown estimator {base!r}: choose one of {', '.join(NAMES)}")
+        estimator = OrbEstimator(width, OrbConfig(method="ransac" if base == "orb-ransac" else "usac", **typed))
+    elif base == "orb-paper":
+        estimator = PaperOrbEstimator(width)
+    else:
+        estimator = IdentityEstimator(width)
+    estimator.never_upscale, estimator.width_given = True, work_width is not None
+    return estimator
+
+
+def _check_learned_width(name: str, work_width: int, weights: str | Path | None) -> None:
+    """``--work-width`` with a learned estimator: only the width its weights were trained at."""
+    from mosaic_cli.estimators.learned import default_weights
+    from mosaic_cli.model.checkpoint import read_metadata
+
+    trained = int(read_metadata(weights if weights is not None else default_weights(name))["work_size"][0])
+    if work_width != trained:
+        raise BadInput(f"--work-width {work_width}: the {name} network works at {trained} px, the width its weights were "
+                       f"trained at; leave --work-width out (it sets the width of {', '.join(CLASSICAL)})")
 
 
 __all__ = [
     "CLASSICAL",
     "DEFAULT_ESTIMATOR",
+    "DEFAULT_WORK_WIDTH",
     "LEARNED",
     "NAMES",
     "check_device",

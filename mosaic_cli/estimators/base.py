@@ -72,6 +72,13 @@ class Estimator(ABC):
         if work_width < 32:
             raise ValueError("work_width must be at least 32 pixels")
         self.work_width = int(work_width)
+        self.requested_width = self.work_width
+        # A classical estimator built for a user (make_estimator) works no wider than the video:
+        # upscaling adds no detail, only time (1920 -> 4096 px was 10x slower).  Off by default:
+        # a learned estimator works at its weights' size, and so must its ORB fallback, which
+        # reads the network's frames.  ``width_given``: the user chose the width, so say so.
+        self.never_upscale = False
+        self.width_given = False
         self.full_size: tuple[int, int] | None = None
         self._prev: np.ndarray | None = None
         self.mask: np.ndarray | None = None  # full-resolution use mask (255 = ground), see set_mask
@@ -91,6 +98,14 @@ class Estimator(ABC):
     def reset(self, full_size: tuple[int, int]) -> None:
         """Start a new video whose full-resolution frames are ``full_size`` (w, h)."""
         self.full_size = (int(full_size[0]), int(full_size[1]))
+        self.work_width = self.requested_width
+        if self.never_upscale and self.work_width > self.full_size[0]:
+            if self.width_given:
+                from mosaic_cli.errors import warn
+
+                warn(f"--work-width {self.work_width} is wider than the video ({self.full_size[0]} px): working at "
+                     f"{self.full_size[0]} px (upscaling adds no detail, only time)")
+            self.work_width = self.full_size[0]
         self.work_size = working_size(self.full_size, self.work_width)
         self._prev = None
         self.work_mask = None

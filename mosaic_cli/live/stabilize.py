@@ -328,7 +328,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     live = file_info is None
     notes: list[str] = []
     # Loading a network takes seconds: before the stream opens, so that no frame waits for it.
-    estimator = _estimator(options, options.work_width or WORK_WIDTH) if _learned(options) else None
+    estimator = _estimator(options) if _learned(options) else None
     masked = None
     horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
@@ -339,7 +339,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         info = stream.info
         size, fps = info.source_size, info.fps
         if estimator is None:
-            estimator = _estimator(options, options.work_width if options.work_width is not None else min(WORK_WIDTH, size[0]))
+            estimator = _estimator(options)
         if horizon is None:
             horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
         if masked is None:
@@ -496,8 +496,10 @@ def _render(schedule: LiveSchedule, writer: StreamWriter | VideoWriter, size: tu
         latencies.append(handed - frame.arrived)
 
 
-def _estimator(options: StabilizeOptions, width: int) -> Estimator:
-    return make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device,
+def _estimator(options: StabilizeOptions) -> Estimator:
+    """``--work-width`` as given (a classical estimator never works wider than the video)."""
+    return make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
+                          default_width=WORK_WIDTH,
                           **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
 
 

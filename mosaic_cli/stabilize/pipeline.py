@@ -42,7 +42,7 @@ WORK_WIDTH = 640
 @dataclass
 class StabilizeOptions:
     estimator: str | None = None  # None: DEFAULT_ESTIMATOR, or the network --weights hold
-    work_width: int | None = None  # None: min(640, input width), see WORK_WIDTH
+    work_width: int | None = None  # --work-width; None: WORK_WIDTH (classical estimators, never wider than the video)
     weights: str | None = None
     device: str = "auto"
     smoothing: str = "l1"  # or "gaussian"
@@ -93,6 +93,10 @@ class StabilizeResult:
     warps: np.ndarray  # (N, 3, 3) input pixels -> output pixels
     seconds: dict[str, float] = field(default_factory=dict)
     input_meta: dict | None = None  # set when the input decoded short (see video.reader.Shortfall)
+    # The camera path as planned, for --plot: F_{t+1} (frame t+1 -> t, normalised) and each
+    # output frame's view in its input frame (see plots.camera_path_series).
+    motion: np.ndarray | None = None
+    views: np.ndarray | None = None
 
     @property
     def cropping(self) -> float:
@@ -135,7 +139,7 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         write_warps(warps_out, warps, info.source_size, input_meta=short)
     seconds["render"] = time.perf_counter() - clock - seconds["track"] - seconds["plan"]
     seconds["total"] = time.perf_counter() - clock
-    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short)
+    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=motion, views=views)
 
 
 def _shortfall_text(short: dict) -> str:
@@ -186,8 +190,8 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     )
     info = probe(video)
     check_mask_file(options.mask, info)
-    width = options.work_width if options.work_width is not None else min(WORK_WIDTH, info.source_size[0])
-    plan.estimator = make_estimator(options.estimator, work_width=width, weights=options.weights, device=options.device)
+    plan.estimator = make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
+                                    default_width=WORK_WIDTH)
     return info, plan
 
 

@@ -9,8 +9,9 @@
              (drift control); segments that join nothing become panoramas of their own
 3. canvas    pick the reference keyframe, size the canvas (``max_size``), refuse degenerate chains
 4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending
-5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically; the panoramas
-             after the first are numbered: pano.png, pano-2.png, ...
+5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically; a flight in
+             several parts: the largest (most frames or photos) takes the name given, the
+             others are numbered in decreasing size: pano.png, pano-2.png, ...
 
 With telemetry (``StitchOptions.georef``, see mosaic_cli/geo) the log is read before any work,
 drift control starts from GPS-straightened placements, and each panorama whose keyframes the
@@ -94,22 +95,30 @@ class Panorama:
     reference_frame: int
     segments: int  # segments of the flight joined in it
     georef: Georeference | None = None  # laid on the ground (telemetry covering its keyframes)
+    # The frames (photos) of the flight it stands for, as inclusive runs of indices: a video
+    # keyframe stands for the frames up to the next one, those placed nowhere left out.
+    spans: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def size(self) -> int:
+        """Frames (photos) of the flight in it: what orders the panoramas of a flight."""
+        return sum(b - a + 1 for a, b in self.spans)
 
 
 @dataclass
 class StitchResult:
-    canvas_size: tuple[int, int]  # of the first panorama (the one with the first keyframe)
+    canvas_size: tuple[int, int]  # of the first panorama (the largest, written to the name given)
     transforms: list[tuple[int, np.ndarray]]  # (frame index, frame -> panorama) per keyframe, ditto
     reference_frame: int
     frames: int
     keyframes: int
     registration: RegistrationReport
     seconds: dict[str, float]
-    panoramas: list[Panorama] = field(default_factory=list)  # all of them, the first first
+    panoramas: list[Panorama] = field(default_factory=list)  # all of them, the largest first
     dropped: list[tuple[int, str]] = field(default_factory=list)  # (frame index, why) not placed anywhere
     photos: bool = False
     mask: FrameMask | None = None  # what was kept out of estimation and the panoramas
-    georef: Georeference | None = None  # the first panorama's, with telemetry
+    georef: Georeference | None = None  # the first panorama's, with telemetry (see Panorama.georef for the others)
 
     @property
     def frames_per_second(self) -> float:
@@ -173,6 +182,12 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     clock = time.perf_counter()
     groups, report = _register(scan, reference, options, show_progress, track)
     seconds["register"] = time.perf_counter() - clock
+    # The user's name goes to the largest part, the others numbered in decreasing size (ties:
+    # in flight order), whichever part the flight began with.
+    held = _frames_held(scan)
+    spans = [_runs(sorted(i for k in members for i in held[k])) for members, *_ in groups]
+    order = sorted(range(len(groups)), key=lambda g: -sum(b - a + 1 for a, b in spans[g]))
+    groups, spans = [groups[g] for g in order], [spans[g] for g in order]
 
     seconds["compose"] = seconds["write"] = 0.0
     panoramas = []
@@ -182,7 +197,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         georef = None
         if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
             clock = time.perf_counter()
-            georef = _georeference(placements, ref, indices, scan, track, options.georef, first=number == 0)
+            georef = _georeference(placements, ref, indices, scan, track, options.georef, first=0 in members)
             if georef is not None:
                 placements = georef.placements_in_pixels(placements)
             seconds["register"] += time.perf_counter() - clock
@@ -211,7 +226,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         if json_path is not None:
             write_transforms(json_path, canvas.size, frames, extra)
         seconds["write"] += time.perf_counter() - clock
-        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef))
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number]))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
@@ -219,11 +234,33 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     )
 
 
+def _frames_held(scan: FlightScan) -> list[list[int]]:
+    """The frames each keyframe stands for: a photo itself; a video keyframe the frames from it
+    to the next keyframe, less those placed nowhere (they are reported on their own)."""
+    if scan.photos:
+        return [[k.index] for k in scan.keyframes]
+    dropped = {i for i, _ in scan.dropped}
+    starts = [k.index for k in scan.keyframes]
+    ends = [*starts[1:], scan.first_index + scan.frames]
+    return [[i for i in range(a, b) if i not in dropped] for a, b in zip(starts, ends)]
+
+
+def _runs(indices: list[int]) -> list[tuple[int, int]]:
+    """Sorted indices as inclusive runs: [0, 1, 2, 5] -> [(0, 2), (5, 5)]."""
+    runs: list[tuple[int, int]] = []
+    for i in indices:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], i)
+        else:
+            runs.append((i, i))
+    return runs
+
+
 def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, track: Track, options: GeorefOptions | None,
                   first: bool) -> Georeference | None:
-    """One panorama laid on the ground.  The first panorama must be (the log was checked to
-    cover the video: what is wrong is said); a panorama of a later segment whose keyframes the
-    log does not cover stays a plain one (None)."""
+    """One panorama laid on the ground.  The panorama of the flight's first keyframe must be
+    (the log was checked to cover the video: what is wrong is said); a panorama of a later
+    segment whose keyframes the log does not cover stays a plain one (None)."""
     assert options is not None
     try:
         return georeference(placements, ref, indices, scan.source_size, scan.fps, track, options)

@@ -91,9 +91,15 @@ def join_segments(
 
 
 def _pairs(mine: list[int], theirs: list[int], options: JoinOptions) -> list[tuple[int, int]]:
-    """Keyframe pairs to try: a few keyframes spread along the segment, each against keyframes
-    spread over the other group, ``max_pairs`` at most."""
-    picks = [mine[int(round(p))] for p in np.linspace(0, len(mine) - 1, min(options.picks, len(mine)))]
+    """Keyframe pairs to try, ``max_pairs`` at most: every pair when there are no more (a few
+    photos: a photo that failed with its neighbours in name order is tried against every
+    photo of the others, so a set that overlaps comes out whole); else keyframes spread along
+    the segment (``picks``, more when the other group is small), each against keyframes spread
+    over the other group."""
+    if len(mine) * len(theirs) <= options.max_pairs:
+        return [(k, j) for k in mine for j in theirs]
+    count = min(len(mine), max(options.picks, options.max_pairs // len(theirs)))
+    picks = [mine[int(round(p))] for p in np.linspace(0, len(mine) - 1, count)]
     per_pick = max(1, options.max_pairs // len(picks))
     targets = [theirs[int(round(p))] for p in np.linspace(0, len(theirs) - 1, min(per_pick, len(theirs)))]
     return [(k, j) for k in picks for j in targets]
@@ -112,25 +118,29 @@ def _try_join(features, placements, mine, theirs, matcher: FeatureMatcher, regis
             continue
         # Confirm with another keyframe of the segment, where the join predicts an overlap.
         k_to_world = placements[j] @ closest_affine(match.H, size) @ np.linalg.inv(placements[k])
-        if _confirmed(features, placements, k, match, mine, theirs, k_to_world, matcher, tolerance, options):
+        if _confirmed(features, placements, k, j, match, mine, theirs, k_to_world, matcher, tolerance, options):
             return (k, j, match), tries
     return None, tries
 
 
-def _confirmed(features, placements, k, match, mine, theirs, T, matcher, tolerance, options: JoinOptions) -> bool:
+def _confirmed(features, placements, k, matched, match, mine, theirs, T, matcher, tolerance, options: JoinOptions) -> bool:
+    """A second registration where the join predicts an overlap: another keyframe of the
+    segment over their ground, or (a one-photo segment has no other) the same keyframe over
+    another of their keyframes.  With none predicted, the single registration must be strong."""
     strong = match.inliers >= options.strong_inliers
-    others = [m for m in mine if m != k]
-    if not others:
-        return strong  # a one-keyframe segment: nothing else to check with
     size = matcher.source_size
-    moved = {m: T @ placements[m] for m in others}
+    moved = {m: T @ placements[m] for m in mine}
+    # Another keyframe of the segment is the more independent check (a repeated pattern that
+    # fooled k may fool k again beside j); a one-keyframe segment has only k.
+    others = [m for m in mine if m != k]
+    candidates = [(m, j) for m in others for j in theirs] if others else [(k, j) for j in theirs if j != matched]
     best = max(
-        ((overlap_fraction(np.linalg.inv(placements[j]) @ moved[m], size), m, j) for m in others for j in theirs),
+        ((overlap_fraction(np.linalg.inv(placements[j]) @ moved[m], size), m, j) for m, j in candidates),
         default=(0.0, None, None),
     )
     if best[0] < options.min_confirm_overlap:
-        # Nothing else of the segment is predicted over their ground: the segment only touches
-        # it; accept the single registration only if it is strong.
+        # Nothing else is predicted over their ground: the segment only touches it; accept
+        # the single registration only if it is strong.
         return strong
     _, m, j = best
     prior = np.linalg.inv(placements[j]) @ moved[m]
