@@ -30,14 +30,15 @@ def is_video_file(path: str | Path) -> bool:
 
 def find_flights(folder: str | Path, flag: str) -> list[Path]:
     """Every video in ``folder`` (not its subfolders) with a ``.gt.json`` ground truth beside it
-    (``mosaic simulate`` writes both), sorted by name; videos without one are left out.
+    (``mosaic simulate`` writes both), sorted by name; videos without one are left out.  A
+    folder of frames ``X/`` with an ``X.gt.json`` beside it is a flight too.
     BadInput, naming the user's ``flag``, when ``folder`` is not a folder or holds no flight."""
     from mosaic_cli.simulate.groundtruth import ground_truth_path
 
     root = Path(folder)
     if not root.is_dir():
         raise BadInput(f"{flag} {root}: not a folder")
-    videos = sorted(p for p in root.iterdir() if is_video_file(p) and p.is_file())
+    videos = sorted(p for p in root.iterdir() if (is_video_file(p) and p.is_file()) or p.is_dir())
     flights = [v for v in videos if ground_truth_path(v).is_file()]
     if not flights:
         raise BadInput(f"{flag} {root}: no video (X.mp4, X.mov, ...) with an X.gt.json beside it "

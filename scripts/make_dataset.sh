@@ -99,4 +99,17 @@ for split in dev test; do
       --size 1280x720 --seed "$seed" --preset veryfast --quiet
   done
 done
+# Flights with bursts (issue 29): an ordinary 8-30 px/frame flight where every 12-30 frames 1-3
+# frames carry no motion cue (glare, a gust's blur, near-black, featureless, a dropped or a
+# duplicated frame): where only the motion carried across the frames can place a pair.  One per
+# held-out site for development and one for test; seeds continue after the ones above.
+for split in dev test; do
+  for map in "${dev_maps[@]}"; do
+    name=$(basename "${map%.*}")
+    seed=$((seed + 1))
+    clip="$out/$split/${name}_bursts.mp4"
+    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile bursts --frames 300 \
+      --size 1280x720 --seed "$seed" --preset veryfast --quiet
+  done
+done
 echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)), $out/dev ($(ls "$out/dev"/*.mp4 | wc -l)) and $out/test ($(ls "$out/test"/*.mp4 | wc -l))"

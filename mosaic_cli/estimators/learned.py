@@ -131,6 +131,9 @@ class LearnedConfig:
     # to unrelated ground keeps its detail, so it stays a failure.
     carry: str = "velocity"
     carry_confidence: float = 0.05
+    # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
+    # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
+    carry_limit: int = 8
     spoilt_ratio: float = 0.7
 
     def __post_init__(self) -> None:
@@ -158,6 +161,8 @@ class LearnedConfig:
             raise BadInput(f"retry must be one of {', '.join(RETRIES)}, got {self.retry!r}")
         if self.carry not in CARRIES:
             raise BadInput(f"carry must be one of {', '.join(CARRIES)}, got {self.carry!r}")
+        if self.carry_limit < 1:
+            raise BadInput(f"carry-limit must be at least 1 pair, got {self.carry_limit}")
         if not 0 < self.carry_confidence < 1:
             raise BadInput(f"carry-confidence must be in (0, 1), got {self.carry_confidence}")
         if not 0 <= self.spoilt_ratio < 1:
@@ -243,6 +248,8 @@ class LearnedEstimator(Estimator):
         self._pairs_done = 0
         self._motion = np.eye(3)
         self._detail_levels: list[float] = []
+        self._confirmed_once = False
+        self._carried_run = 0
         self.path_counts = dict.fromkeys(PATHS, 0)
 
     def reset(self, full_size: tuple[int, int]) -> None:
@@ -265,6 +272,8 @@ class LearnedEstimator(Estimator):
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
         self._detail_levels = []  # band-passed detail of the recent unspoilt frames (see _describe)
+        self._confirmed_once = False  # a pair was placed by the frames: there is a motion to carry
+        self._carried_run = 0  # pairs carried in a row
         self.path_counts = dict.fromkeys(PATHS, 0)
         self._zncc_use = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
         if self._fallback is not None:
@@ -334,18 +343,25 @@ class LearnedEstimator(Estimator):
             if orb_ok and (not confirmed or self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H)):
                 return self._result(H_orb, orb_confidence, "fallback")
         if polished is None or not related:
-            if self.config.carry != "none" and (prev.spoilt or cur.spoilt):
+            if self._can_carry() and (prev.spoilt or cur.spoilt):
                 carried = seed if self.config.carry == "network" and valid else self._motion
                 return self._result(carried, self.config.carry_confidence, "carried")
             return self._result(None, 0.0, "failed")
         confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
         return self._result(polished.H, confidence, "learned")
 
+    def _can_carry(self) -> bool:
+        """Whether a pair no path confirms may take the carried motion (see LearnedConfig.carry)."""
+        c = self.config
+        return c.carry != "none" and self._confirmed_once and self._carried_run < c.carry_limit
+
     def _result(self, H_work: np.ndarray | None, confidence: float, path: str) -> PairEstimate:
         self.path_counts[path] += 1
+        self._carried_run = self._carried_run + 1 if path == "carried" else 0
         if H_work is None:
             return PairEstimate.failed()
         if confidence > 0:
+            self._confirmed_once = self._confirmed_once or path != "carried"
             self._motion = H_work
         return self._to_full(H_work, confidence)
 

@@ -88,17 +88,15 @@ class GroundTruth:
 
 
 def ground_truth_path(video_path: str | Path) -> Path:
-    """flight.mp4 -> flight.gt.json (beside the video)."""
+    """flight.mp4 -> flight.gt.json (beside the video); a folder of frames flight/ -> flight.gt.json."""
     p = Path(video_path)
-    return p.with_name(p.stem + ".gt.json")
+    return p.with_name((p.name if p.is_dir() else p.stem) + ".gt.json")
 
 
 def load_ground_truth(path: str | Path) -> GroundTruth:
-    """Read a ``.gt.json`` file (or, given a video, the ``.gt.json`` beside it)."""
+    """Read a ``.gt.json`` file (or, given a video or a folder of frames, the ``.gt.json`` beside it)."""
     p = Path(path)
-    if p.is_dir():
-        raise BadInput(f"{p}: a folder, not a ground-truth file (.gt.json)")
-    if not p.name.endswith(".json"):
+    if p.is_dir() or not p.name.endswith(".json"):  # a video, or a folder of frames: the truth beside it
         p = ground_truth_path(p)
     if not p.exists():
         raise BadInput(f"{p}: no such file")

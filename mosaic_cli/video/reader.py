@@ -184,7 +184,6 @@ def probe(path: str | Path) -> VideoInfo:
     """What a video file or image folder holds, with user-facing errors for bad input.
 
     A command probes its input once and passes the result down (``info=`` of the readers)."""
-    import av  # PyAV, loaded with the first video probed (start-up, image folders)
     p = Path(path)
     if not p.exists():
         raise BadInput(f"{p}: no such file or folder")
@@ -193,6 +192,8 @@ def probe(path: str | Path) -> VideoInfo:
             return stream.info
     if p.stat().st_size == 0:
         raise BadInput(f"{p}: file is empty")
+    import av  # PyAV, loaded with the first video probed (start-up, image folders need none)
+
     try:
         container = av.open(str(p), metadata_errors="replace")
     except (av.error.FFmpegError, OSError, ValueError) as exc:

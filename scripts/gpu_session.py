@@ -1,0 +1,285 @@
+"""Everything a session with a lent GPU does, in one call that ends well inside 10 minutes.
+
+    bash scripts/prepare_gpu_session.sh          # here, once: wheels and stills into .gpu/
+    # then one device call:  bash scripts/gpu_session.sh   (carry: [".gpu"])
+
+Stages, each timed into session.log, a summary table printed last:
+
+1. env        the GPU, torch, CUDA
+2. data       training flights rendered from the carried stills on the machine's cores (the
+              simulator's renderer, OpenCV only: no video encoder there), written as folders of
+              320x180 frames; validation flights with bursts over a still kept out of training
+3. tests      pytest -m cuda: the CUDA path against the CPU's, AMP steps, one-process nccl DDP
+4. bench      mosaic bench --device cuda: lstm, cnn and orb-paper, per-frame latency per stage
+5. speed      BASE samples/s and LSTM windows/s with the batches cut on the GPU (--data device)
+6. train      the BASE from the shipped cnn, then LSTM-REG-T with bursts from the shipped lstm,
+              each for the time left, validated on the burst flights (the network alone)
+
+Back under $OUT (at most 8 files): cnn.safetensors, lstm.safetensors, bench.json, tests.xml,
+logs.tar.gz (every run's log.csv / val.csv, the speed probes, env.json), session.log.
+Score the weights on the CPU afterwards: mosaic bench --flights ... -e lstm:weights=$OUT/lstm.safetensors.
+
+``--tiny --device cpu`` runs every stage on tiny data on a CPU, as tests/test_gpu_session.py does,
+so that the script cannot rot between the sessions that get a GPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+STILLS = ROOT / ".gpu" / "stills"
+TRAIN_PROFILES = ("paper", "fast", "hard", "survey", "extreme")
+
+
+@dataclass
+class Plan:
+    """What each stage does, at full size (a GPU) or tiny (the CPU rehearsal)."""
+
+    device: str
+    minutes: float  # the whole session's budget; training gets what the other stages leave
+    tiny: bool
+    frames: int = 300
+    size: tuple[int, int] = (320, 180)
+    val_size: tuple[int, int] = (640, 360)
+    base_batch: int = 256
+    lstm_batch: int = 64
+    probe_minutes: float = 0.35
+    work: list[str] = field(default_factory=list)  # --work-size / --patch for tiny runs
+
+    @classmethod
+    def make(cls, device: str, minutes: float, tiny: bool) -> Plan:
+        if tiny:
+            return cls(device, minutes, True, frames=36, size=(128, 96), val_size=(128, 96), base_batch=4, lstm_batch=2,
+                       probe_minutes=0.05, work=["--work-size", "64x48", "--patch", "32", "--threads", "1"])
+        return cls(device, minutes, False)
+
+
+class Session:
+    def __init__(self, out: Path, work: Path, plan: Plan):
+        self.out, self.work, self.plan = out, work, plan
+        self.started = time.monotonic()
+        self.rows: list[tuple[str, str, str]] = []  # (stage, seconds, result)
+        self.logs: list[Path] = []
+        self.log = open(out / "session.log", "a")
+
+    def say(self, text: str) -> None:
+        line = f"[{time.monotonic() - self.started:7.1f} s] {text}"
+        print(line, flush=True)
+        self.log.write(line + "\n")
+        self.log.flush()
+
+    def left(self) -> float:
+        return 60 * self.plan.minutes - (time.monotonic() - self.started)
+
+    def run(self, *args: str, timeout: float | None = None, check: bool = True) -> subprocess.CompletedProcess:
+        """A command, its output into session.log; a stage that fails is reported, the session goes on."""
+        self.say("$ " + " ".join(args))
+        proc = subprocess.run(list(args), cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+        self.log.write(proc.stdout[-20000:] + proc.stderr[-20000:])
+        if check and proc.returncode:
+            raise RuntimeError(f"{args[2] if len(args) > 2 else args[0]} exited {proc.returncode}: {proc.stderr.strip()[-400:]}")
+        return proc
+
+    def stage(self, name: str, fn) -> object:
+        t0 = time.monotonic()
+        try:
+            result = fn()
+            summary = str(result) if result is not None else "ok"
+        except Exception as exc:  # noqa: BLE001 - one stage failing must not lose the others' results
+            result, summary = None, f"FAILED: {exc.__class__.__name__}: {str(exc)[:300]}"
+        seconds = time.monotonic() - t0
+        self.rows.append((name, f"{seconds:.1f}", summary))
+        self.say(f"{name}: {summary} ({seconds:.1f} s)")
+        return result
+
+
+def mosaic(*args: str) -> tuple[str, ...]:
+    return (sys.executable, "-m", "mosaic_cli", *args)
+
+
+# ----------------------------------------------------------------------------- stages
+
+
+def environment(s: Session) -> str:
+    import torch
+
+    info = {"torch": torch.__version__, "cuda": torch.version.cuda, "python": sys.version.split()[0],
+            "device": s.plan.device, "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+            "cpus": os.cpu_count()}
+    (s.work / "env.json").write_text(json.dumps(info, indent=1))
+    s.logs.append(s.work / "env.json")
+    return f"{info['gpu'] or 'no GPU'}, torch {info['torch']}, CUDA {info['cuda']}, {info['cpus']} CPUs"
+
+
+def stills(tiny: bool) -> list[Path | None]:
+    """The carried stills (None: a procedural map, for the rehearsal or where none were carried)."""
+    found = sorted(STILLS.glob("*.jpg")) if STILLS.is_dir() and not tiny else []
+    return list(found) or [None, None]
+
+
+def render_flight(job: tuple) -> str:
+    """One flight as a folder of gray frames (and, for validation, its ground truth beside it)."""
+    still, profile, frames, size, seed, folder, with_truth = job
+    from mosaic_cli.simulate import SimulateOptions, load_map, plan_simulated_flight, render_frames
+    from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path
+
+    cv2.setNumThreads(1)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    map_rgb = load_map(still, seed=seed)
+    plan = plan_simulated_flight((map_rgb.shape[1], map_rgb.shape[0]),
+                                 SimulateOptions(profile=profile, frames=frames, size=size, seed=seed))
+    for t, frame in enumerate(render_frames(map_rgb, plan)):
+        cv2.imwrite(str(folder / f"{t:05d}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY))
+    if with_truth:
+        GroundTruth.from_plan(plan, map_name=Path(still).name if still else "procedural").save(ground_truth_path(folder))
+    return str(folder)
+
+
+def make_data(s: Session) -> str:
+    p = s.plan
+    maps = stills(p.tiny)
+    train_maps, val_map = (maps[:-1], maps[-1]) if len(maps) > 1 else (maps, maps[0])  # the last still is kept out
+    jobs, seed = [], 100
+    for k, still in enumerate(train_maps):
+        for profile in TRAIN_PROFILES[: 2 if p.tiny else None]:
+            seed += 1
+            jobs.append((str(still) if still else None, profile, p.frames, p.size, seed, str(s.work / "clips" / f"m{k}_{profile}"), False))
+    for k in range(1 if p.tiny else 2):
+        seed += 1
+        jobs.append((str(val_map) if val_map else None, "bursts", p.frames if p.tiny else 150, p.val_size, seed,
+                     str(s.work / "val" / f"bursts{k}"), True))
+    workers = max(1, min(len(jobs), (os.cpu_count() or 2)))
+    with concurrent.futures.ProcessPoolExecutor(workers) as pool:
+        done = list(pool.map(render_flight, jobs))
+    frames = sum(len(list(Path(d).glob("*.png"))) for d in done)
+    return f"{len(done)} flights, {frames} frames rendered on {workers} processes"
+
+
+def cuda_tests(s: Session) -> str:
+    xml = s.out / "tests.xml"
+    proc = s.run(sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", "tests/test_cuda.py",
+                 f"--junitxml={xml}", timeout=max(60.0, 0.25 * s.left()), check=False)
+    last = (proc.stdout.strip().splitlines() or ["no output"])[-1]
+    if proc.returncode not in (0, 5):
+        raise RuntimeError(last)
+    return last
+
+
+def bench(s: Session) -> str:
+    video = sorted((s.work / "val").glob("bursts*"))[0]
+    out = s.out / "bench.json"
+    s.run(*mosaic("bench", "--video", str(video), "-e", "lstm,cnn,orb-paper", "--device", s.plan.device, "--frames", "150",
+                  "--json", str(out), "-q"), timeout=max(60.0, 0.3 * s.left()))
+    report = json.loads(out.read_text())
+    parts = []
+    for name, e in report["estimators"].items():
+        st = e["stages"]
+        parts.append(f"{name} {e['ms_per_frame']:.2f} ms/frame (estimate p50 {st['estimate']['p50']:.2f} p95 {st['estimate']['p95']:.2f})")
+    return "; ".join(parts)
+
+
+def train_args(s: Session, variant: str, init: str, out: Path, batch: int, steps: int, minutes: float, extra=()) -> tuple[str, ...]:
+    p = s.plan
+    tiny_init = () if p.tiny else ("--init", init)  # the shipped weights read 128 px patches; the rehearsal's are 32
+    return mosaic("train", str(s.work / "clips"), "--variant", variant, *tiny_init, "--data", "device", "--device", p.device,
+                  "--batch-size", str(batch), "--steps", str(steps), "--max-minutes", f"{minutes:.3f}", "--photometric", "band",
+                  "--flip", "--num-workers", "8" if not p.tiny else "0", "--checkpoint-every", "100000", "-o", str(out), "-q",
+                  *p.work, *extra)
+
+
+def rate_of(run: Path) -> float:
+    """Samples (windows) per second over the second half of a run's log.csv."""
+    rows = list(csv.DictReader(open(run / "log.csv")))
+    rates = [float(r["samples_per_s"]) for r in rows[len(rows) // 2:] if float(r["samples_per_s"]) > 0]
+    return float(np.median(rates)) if rates else 0.0
+
+
+def speed(s: Session) -> dict:
+    p = s.plan
+    rates = {}
+    for variant, init, batch in (("base", "models/cnn.safetensors", p.base_batch), ("lstm-reg-t", "models/lstm.safetensors", p.lstm_batch)):
+        run = s.work / f"probe-{variant}"
+        s.run(*train_args(s, variant, init, run, batch, 10**6, p.probe_minutes, ("--bursts", "0.5") if variant != "base" else ()),
+              timeout=120 + 60 * p.probe_minutes * 4)
+        rates[variant] = rate_of(run)
+        s.logs.append(run / "log.csv")
+    return rates
+
+
+def train(s: Session, rates: dict | None) -> str:
+    p = s.plan
+    budget = max(0.2, s.left() / 60 - 0.75)  # minutes for both runs; the rest for packing up
+    base_min, lstm_min = (0.05, 0.05) if p.tiny else (0.4 * budget, 0.6 * budget)
+    rates = rates or {"base": 100.0, "lstm-reg-t": 10.0}
+    results = []
+    base_run, lstm_run = s.work / "base", s.work / "lstm"
+    # Steps sized to the measured rate, so that the paper's learning-rate decays fall inside the time.
+    base_steps = max(2, int(rates["base"] * 60 * base_min / p.base_batch * 0.9))
+    s.run(*train_args(s, "base", "models/cnn.safetensors", base_run, p.base_batch, base_steps, base_min, ("--lr", "3e-4")),
+          timeout=120 + 60 * base_min * 1.5)
+    shutil.copy(base_run / "weights.safetensors", s.out / "cnn.safetensors")
+    results.append(f"base {base_steps} steps x {p.base_batch} at {rate_of(base_run):.0f} samples/s")
+    lstm_steps = max(2, int(rates["lstm-reg-t"] * 60 * lstm_min / p.lstm_batch * 0.9))
+    val = ("--val", str(s.work / "val"), "--val-every", str(max(1, lstm_steps // 2)))
+    s.run(*train_args(s, "lstm-reg-t", "models/lstm.safetensors", lstm_run, p.lstm_batch, lstm_steps, lstm_min,
+                      ("--lr", "1e-4", "--bursts", "0.5", *val)), timeout=180 + 60 * lstm_min * 1.5)
+    shutil.copy(lstm_run / "weights.safetensors", s.out / "lstm.safetensors")
+    results.append(f"lstm-reg-t {lstm_steps} steps x {p.lstm_batch} at {rate_of(lstm_run):.0f} windows/s")
+    for run in (base_run, lstm_run):
+        s.logs += [f for f in (run / "log.csv", run / "val.csv") if f.is_file()]
+    return "; ".join(results)
+
+
+def pack(s: Session) -> str:
+    with tarfile.open(s.out / "logs.tar.gz", "w:gz") as tar:
+        for f in s.logs:
+            if f.is_file():
+                tar.add(f, arcname=f"{f.parent.name}-{f.name}" if f.parent != s.work else f.name)
+    return f"{len(s.logs)} logs"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "gpu-out")))
+    ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--minutes", type=float, default=7.0, help="the whole session's budget")
+    ap.add_argument("--tiny", action="store_true", help="tiny data, for a rehearsal on a CPU")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    work = args.work or Path(os.environ.get("TMPDIR", "/tmp")) / f"mosaic-gpu-{os.getpid()}"
+    work.mkdir(parents=True, exist_ok=True)
+    s = Session(args.out, work, Plan.make(args.device, args.minutes, args.tiny))
+    s.stage("env", lambda: environment(s))
+    s.stage("data", lambda: make_data(s))
+    s.stage("tests", lambda: cuda_tests(s))
+    s.stage("bench", lambda: bench(s))
+    rates = s.stage("speed", lambda: speed(s))
+    s.stage("train", lambda: train(s, rates if isinstance(rates, dict) else None))
+    s.stage("pack", lambda: pack(s))
+    width = max(len(r[0]) for r in s.rows)
+    s.say("summary")
+    for name, seconds, summary in s.rows:
+        s.say(f"  {name:<{width}}  {seconds:>7} s  {summary}")
+    failed = [r[0] for r in s.rows if r[2].startswith("FAILED")]
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

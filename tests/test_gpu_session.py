@@ -1,0 +1,64 @@
+"""scripts/gpu_session.py, the one call a session with a lent GPU makes, rehearsed on a CPU with
+tiny data (``--tiny --device cpu``) and without the packages the device machine lacks (PyAV,
+imageio-ffmpeg and the map libraries are made unimportable), so that it cannot rot between the
+sessions that get a GPU: every stage runs and everything it promises comes back."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import subprocess
+import sys
+import tarfile
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MISSING_ON_THE_DEVICE = ("av", "imageio_ffmpeg", "rasterio", "pyproj", "rio_cogeo", "gpxpy", "klvdata")
+
+
+@pytest.mark.slow
+def test_the_device_session_runs_every_stage_and_returns_its_files(tmp_path):
+    blocker = tmp_path / "site"
+    blocker.mkdir()
+    (blocker / "sitecustomize.py").write_text(
+        f"import sys\nfor name in {MISSING_ON_THE_DEVICE!r}:\n    sys.modules[name] = None\n")
+    env = {**os.environ, "PYTHONPATH": f"{blocker}{os.pathsep}{ROOT}", "OMP_NUM_THREADS": "1"}
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "scripts/gpu_session.py", "--tiny", "--device", "cpu", "--out", str(out),
+                           "--work", str(tmp_path / "work"), "--minutes", "3"], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "FAILED" not in proc.stdout
+    # At most 8 files come back from a device call, each named plainly.
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["bench.json", "cnn.safetensors", "logs.tar.gz", "lstm.safetensors", "session.log", "tests.xml"]
+
+    from mosaic_cli.model import load_weights
+
+    cnn, cnn_meta = load_weights(out / "cnn.safetensors", device="cpu")  # safetensors: no pickle
+    lstm, lstm_meta = load_weights(out / "lstm.safetensors", device="cpu")
+    assert cnn.head == "cnn" and lstm.head == "lstm" and lstm_meta["variant"] == "lstm-reg-t"
+
+    report = json.loads((out / "bench.json").read_text())
+    assert set(report["estimators"]) == {"lstm", "cnn", "orb-paper"}
+    for entry in report["estimators"].values():
+        assert entry["stages"]["estimate"]["p50"] > 0 and entry["stages"]["estimate"]["p95"] >= entry["stages"]["estimate"]["p50"]
+
+    with tarfile.open(out / "logs.tar.gz") as tar:
+        logs = {m.name: tar.extractfile(m).read().decode() for m in tar.getmembers()}
+    assert {"env.json", "base-log.csv", "lstm-log.csv", "lstm-val.csv", "probe-base-log.csv", "probe-lstm-reg-t-log.csv"} <= set(logs)
+    for name in ("base-log.csv", "lstm-log.csv"):
+        rows = list(csv.DictReader(io.StringIO(logs[name])))
+        assert rows and all(float(r["samples_per_s"]) >= 0 for r in rows) and float(rows[-1]["samples_per_s"]) > 0
+    val = list(csv.DictReader(io.StringIO(logs["lstm-val.csv"])))
+    assert val and math.isfinite(float(val[-1]["mace"]))
+
+    suite = ET.parse(out / "tests.xml").getroot()
+    cases = suite.findall(".//testcase")
+    assert cases and all(c.find("skipped") is not None for c in cases)  # no GPU here: every CUDA test skips cleanly
