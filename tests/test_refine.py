@@ -298,3 +298,22 @@ def test_band_pass_matches_the_full_resolution_difference_of_gaussians(ground, s
     assert np.percentile(diff, 99) <= 1.0 and diff.max() <= 3.0
     assert diff.mean() < 0.5
     assert np.std(got.astype(np.float64)) > 5  # the band carries the texture, not a flat 128
+
+
+def test_the_carried_motion_stops_after_its_limit_and_never_starts_before_a_confirmed_pair(ground):
+    """A video that goes black for longer than ``carry-limit`` pairs: the first pairs into the dark
+    take the carried motion, the rest fail (identity, confidence 0); a video that starts black
+    has no motion to carry."""
+    torch.manual_seed(0)
+    net = HomographyNet(NetConfig(head="cnn"))
+    good = flight(ground, true_motion(4), n=4)
+    black = np.zeros_like(good[0])
+    config = LearnedConfig(refine="lk", chunk=4, carry_limit=3)
+    estimator = LearnedEstimator(net, {"variant": "base", "work_size": WORK}, "cpu", config)
+    H, conf = run(estimator, good[:2] + [black] * 6)  # pairs: 1 good, 6 into or within the dark
+    assert conf[0] > config.carry_confidence
+    assert list(conf[1:4]) == [config.carry_confidence] * 3 and np.all(conf[4:] == 0)
+    assert estimator.path_counts["carried"] == 3 and estimator.path_counts["failed"] == 3
+    estimator = LearnedEstimator(net, {"variant": "base", "work_size": WORK}, "cpu", config)
+    H, conf = run(estimator, [black] * 3 + good[:2])
+    assert np.all(conf[:3] == 0) and estimator.path_counts["carried"] == 0

@@ -357,7 +357,10 @@ class LearnedEstimator(Estimator):
 
     def _result(self, H_work: np.ndarray | None, confidence: float, path: str) -> PairEstimate:
         self.path_counts[path] += 1
-        self._carried_run = self._carried_run + 1 if path == "carried" else 0
+        if path == "carried":
+            self._carried_run += 1
+        elif path != "failed":  # the frames placed a pair again: a new run may be carried
+            self._carried_run = 0
         if H_work is None:
             return PairEstimate.failed()
         if confidence > 0:
