@@ -28,9 +28,9 @@ DEFAULT_ESTIMATOR = "lstm"
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
     "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path,
-             "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int},
+             "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float, "carry_gate_px": float, "spoilt_ratio": float},
     "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path,
-            "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int},
+            "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float, "carry_gate_px": float, "spoilt_ratio": float},
     "orb": {"refine": str},
     "orb-ransac": {"refine": str},
 }

@@ -54,7 +54,7 @@ from mosaic_cli.estimators.refine import (
     points_to_track,
     track_points,
 )
-from mosaic_cli.geometry import frame_corners, is_valid
+from mosaic_cli.geometry import corner_error, frame_corners, is_valid
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.network import HomographyNet
@@ -134,7 +134,11 @@ class LearnedConfig:
     # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
     # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
     carry_limit: int = 8
-    spoilt_ratio: float = 0.7
+    # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
+    # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.
+    carry_gate: float = 0.25
+    carry_gate_px: float = 2.5
+    spoilt_ratio: float = 0.8
 
     def __post_init__(self) -> None:
         self.validate()
@@ -341,14 +345,31 @@ class LearnedEstimator(Estimator):
             # Only the wide polish placed the pair: where its large windows were fooled, ORB's
             # features may do better; the registration whose band-passed frames agree more wins.
             if orb_ok and (not confirmed or self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H)):
-                return self._result(H_orb, orb_confidence, "fallback")
+                return self._gated(prev, cur, seed, valid, H_orb, orb_confidence, "fallback")
         if polished is None or not related:
             if self._can_carry() and (prev.spoilt or cur.spoilt):
-                carried = seed if self.config.carry == "network" and valid else self._motion
-                return self._result(carried, self.config.carry_confidence, "carried")
+                return self._carried(seed, valid)
             return self._result(None, 0.0, "failed")
         confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
-        return self._result(polished.H, confidence, "learned")
+        return self._gated(prev, cur, seed, valid, polished.H, confidence, "learned")
+
+    def _gated(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, valid: bool, H: np.ndarray, confidence: float,
+               path: str) -> PairEstimate:
+        """An estimate that touches a spoilt frame, weakly confirmed and far from the motion carried
+        over, is a registration the spoilt detail fooled (a heavy blur's streaks lock onto the
+        wrong place): the carried motion takes its place.  Every other estimate stands."""
+        c = self.config
+        if (prev.spoilt or cur.spoilt) and confidence < c.carry_gate and self._can_carry():
+            carried = self._carry_estimate(seed, valid)
+            if float(corner_error(H, carried, self.work_size)) > c.carry_gate_px:
+                return self._carried(seed, valid)
+        return self._result(H, confidence, path)
+
+    def _carry_estimate(self, seed: np.ndarray, valid: bool) -> np.ndarray:
+        return seed if self.config.carry == "network" and valid else self._motion
+
+    def _carried(self, seed: np.ndarray, valid: bool) -> PairEstimate:
+        return self._result(self._carry_estimate(seed, valid), self.config.carry_confidence, "carried")
 
     def _can_carry(self) -> bool:
         """Whether a pair no path confirms may take the carried motion (see LearnedConfig.carry)."""
