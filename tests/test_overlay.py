@@ -144,7 +144,7 @@ def test_a_region_the_trace_cannot_explain_keeps_its_whole_reach(sharp, monkeypa
     """An overlay whose pixels are neither steady nor of fixed colours (semi-transparent) is
     still found by its static edges; the trace finds none of its pixels, and the region is
     then masked whole, never dropped."""
-    import mosaic_cli.overlay as overlay
+    import mosaic_cli.overlay.detect as overlay
 
     frames = sample_frames(sharp.burned, 32, 640)
     traced = overlay.detect_overlays(frames, (640, 360)).use == 0
@@ -205,7 +205,7 @@ def test_a_region_traced_to_a_part_of_its_steady_pixels_is_masked_whole(sharp, m
     """An overlay in the ground's own colours (a gray logo in gray footage) traces only by
     pieces of its rim, not by its steady inside (a gap in the rim wider than the closing
     leaves the inside unfilled): the region is then masked whole, never traced to its rim."""
-    import mosaic_cli.overlay as overlay
+    import mosaic_cli.overlay.detect as overlay
 
     trace = overlay._pixel_evidence
 
@@ -242,7 +242,7 @@ def test_a_hovering_camera_or_too_few_frames_masks_nothing():
 
 
 def test_long_clips_are_sampled_by_seeking_as_short_ones_by_decoding(flights, monkeypatch):
-    import mosaic_cli.overlay as overlay
+    import mosaic_cli.overlay.samples as overlay
 
     decoded = sample_frames(flights.burned, 12, 160)
     monkeypatch.setattr(overlay, "DECODE_ALL_BELOW", 10)  # as if the clip were long

@@ -137,7 +137,7 @@ def _notices(video: Path, result) -> list[str]:
             lines += [f"{p.path}: {w}" if extra else w for w in p.georef.warnings]
     if result.dropped:
         if result.photos:
-            from mosaic_cli.video.reader import _folder_images
+            from mosaic_cli.video.reader import folder_images as _folder_images
 
             names = _folder_images(Path(video))
             for index, why in result.dropped:

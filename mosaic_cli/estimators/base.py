@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import to_resolution
+from mosaic_cli.mask import work_mask
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,7 @@ class Estimator(ABC):
     def set_mask(self, use: np.ndarray | None) -> None:
         """Estimate from the pixels ``use`` allows only (uint8 (h, w) at the full resolution of
         the frames to come, 255 = use; None: every pixel): burned-in overlays and the user's
-        ``--mask`` (see :mod:`mosaic_cli.overlay`).  Applies from the next ``reset``."""
+        ``--mask`` (see :mod:`mosaic_cli.mask`, :mod:`mosaic_cli.overlay`).  Applies from the next ``reset``."""
         self.mask = None if use is None else np.asarray(use, dtype=np.uint8)
 
     @property
@@ -97,8 +98,6 @@ class Estimator(ABC):
         if self.mask is not None:
             if (self.mask.shape[1], self.mask.shape[0]) != self.full_size:
                 raise ValueError(f"mask is {self.mask.shape[1]}x{self.mask.shape[0]}, the frames {self.full_size[0]}x{self.full_size[1]}")
-            from mosaic_cli.overlay import work_mask
-
             self.work_mask = work_mask(self.mask, self.work_size)
 
     def prepare(self, frame: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import normalize, project, rect_corners, resize_matrix
-from mosaic_cli.overlay import work_mask
+from mosaic_cli.mask import work_mask
 from mosaic_cli.stitch.spill import Pixels, drop_pixels, load_pixels
 
 BLENDS = ("multiband", "feather", "none")

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
-from mosaic_cli.overlay import work_mask
+from mosaic_cli.mask import work_mask
 
 MASK_MARGIN = 4  # px at the feature width: keypoints this close to an overlay are not kept
 

@@ -39,7 +39,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
-from mosaic_cli.overlay import fill_masked
+from mosaic_cli.mask import fill_masked
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions, Features, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 

@@ -35,8 +35,7 @@ from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
-from mosaic_cli.inputs import check_max_frames, check_timeout
-from mosaic_cli.live.source import DEFAULT_TIMEOUT
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas

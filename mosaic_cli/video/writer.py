@@ -14,10 +14,9 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
-from mosaic_cli.inputs import check_encoder
+from mosaic_cli.inputs import PRESETS, check_encoder  # noqa: F401  (PRESETS: the encoder's, named where the flag's bounds live)
 from mosaic_cli.video.reader import VideoInfo, audio_codec_of
 
-PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 # Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
 MP4_AUDIO = {"aac", "mp3", "ac3", "eac3", "alac"}
 
