@@ -16,9 +16,11 @@ if TYPE_CHECKING:
     from mosaic_cli.overlay import MaskOptions
     from mosaic_cli.video.reader import VideoInfo
 
-# Containers ffmpeg reads that a drone or an editor writes; a folder scan takes these and no others.
+# Containers ffmpeg reads that a drone or an editor writes: a folder scan takes these and no
+# others, and a ``--telemetry`` file with one of them is a video whose embedded track is read.
+# (What mosaic writes is narrower: ``video.writer.OUTPUT_SUFFIXES``.)
 VIDEO_SUFFIXES = frozenset(
-    {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".wmv", ".flv"}
+    {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".m2ts", ".wmv", ".flv"}
 )
 
 

@@ -30,8 +30,8 @@ from mosaic_cli.stabilize.render import Renderer, parse_border
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.track import track_video
 from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.writer import OUTPUT_SUFFIXES
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
 # on shaky 1280x720 flights ORB at 640 px leaves 0.03-0.09 of the shake where 320 px leaves
 # 0.03-0.15 (occasional bad fits at 320 px), for about 5 ms more per frame (docs/stabilize.md).
@@ -159,10 +159,10 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     given = {name: Path(p) for name, p in outputs.items() if p is not None}
     for path in given.values():
         check_writable(path)
-    if Path(out).suffix.lower() not in VIDEO_SUFFIXES:
-        raise BadInput(f"output {out} must end in one of {', '.join(VIDEO_SUFFIXES)}")
-    if compare is not None and Path(compare).suffix.lower() not in VIDEO_SUFFIXES:
-        raise BadInput(f"--compare {compare} must end in one of {', '.join(VIDEO_SUFFIXES)}")
+    if Path(out).suffix.lower() not in OUTPUT_SUFFIXES:
+        raise BadInput(f"output {out} must end in one of {', '.join(OUTPUT_SUFFIXES)}")
+    if compare is not None and Path(compare).suffix.lower() not in OUTPUT_SUFFIXES:
+        raise BadInput(f"--compare {compare} must end in one of {', '.join(OUTPUT_SUFFIXES)}")
     if warps_out is not None and Path(warps_out).suffix.lower() != ".json":
         raise BadInput(f"--warps {warps_out} must end in .json")
     source = Path(video).resolve()
