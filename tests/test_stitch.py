@@ -22,7 +22,7 @@ from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.features import PairMatch
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
-from mosaic_cli.stitch.registration import Link, RegistrationReport, _from_match, chain_sequence, refine_placements
+from mosaic_cli.stitch.registration import Link, RegistrationReport, chain_sequence, link_from_match, refine_placements
 from mosaic_cli.stitch.spill import SpilledImage
 from mosaic_cli.video import VideoWriter, open_video
 
@@ -436,8 +436,8 @@ def test_a_loop_counts_as_its_inliers_so_a_weak_loop_cannot_pull_consecutive_pho
 
     def refined_errors(equal_weights: bool) -> np.ndarray:
         rng = np.random.default_rng(0)
-        links = [_from_match(k + 1, k, _registration(truth, k + 1, k, 1000, rng, size), "sequential", options) for k in range(6)]
-        links += [_from_match(k, k + 2, _registration(truth, k, k + 2, 100, rng, size, parallax), "loop", options) for k in range(5)]
+        links = [link_from_match(k + 1, k, _registration(truth, k + 1, k, 1000, rng, size), "sequential", options) for k in range(6)]
+        links += [link_from_match(k, k + 2, _registration(truth, k, k + 2, 100, rng, size, parallax), "loop", options) for k in range(5)]
         assert links[0].weight == pytest.approx(1000 / options.points_per_pair) and len(links[0].points_a) == options.points_per_pair
         if equal_weights:  # what the refinement did before: every pair 60 points of weight 1
             for link in links:
@@ -503,9 +503,9 @@ def test_drift_control_keeps_consecutive_photos_on_their_registrations_over_unev
     start = [normalize(to_reference @ G) for G in start]
     plain = chain_sequence([(a, b, m) for (a, b), m in matches.items()], start, reference)
     for with_loops in (False, True):
-        links = [_from_match(a, b, m, "sequential", options) for (a, b), m in matches.items()]
+        links = [link_from_match(a, b, m, "sequential", options) for (a, b), m in matches.items()]
         if with_loops:
-            links += [_from_match(a, b, m, "loop", options) for (a, b), m in loops.items()]
+            links += [link_from_match(a, b, m, "loop", options) for (a, b), m in loops.items()]
         report = RegistrationReport(links=links)
         refined = refine_placements(list(start), report, reference, size, options)
         assert report.loops_dropped == 0

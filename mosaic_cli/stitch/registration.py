@@ -153,7 +153,7 @@ def link_sequence(sequence: Sequence, placements, size, options: RegistrationOpt
     links = []
     for a, b, match in sequence:
         if match is not None:
-            links.append(_from_match(a, b, match, "sequential", options))
+            links.append(link_from_match(a, b, match, "sequential", options))
             report.sequential += 1
         else:
             links.append(_from_homography(a, b, relative(placements, a, b), size, "chain", options.chain_weight))
@@ -167,7 +167,7 @@ def link_loops(features, placements, candidates, matcher: FeatureMatcher, option
     for a, b in candidates:
         match = matcher.match(features[a], features[b], relative(placements, a, b), tolerance)
         if match is not None:
-            links.append(_from_match(a, b, match, "loop", options))
+            links.append(link_from_match(a, b, match, "loop", options))
             report.loops += 1
         advance(1)
     return links
@@ -213,7 +213,7 @@ def loop_candidates(
     return chosen
 
 
-def _from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
+def link_from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
     """A registered pair as the refinement takes it: its homography ``match.H`` at up to
     ``points_per_pair`` of its inlier locations (a repeatable random pick), weighted so that
     the link counts as all of its inliers: a pair registered on 1000 inliers (two photos that
