@@ -1,9 +1,13 @@
-"""The UTM zone of a site, with the grid's exceptions (southwest Norway, Svalbard)."""
+"""The UTM zone of a site, with the grid's exceptions (southwest Norway, Svalbard), and the one
+line a user sees when the packages of the ``geo`` extra are missing."""
 
 from __future__ import annotations
 
+import importlib.util
+
 import pytest
 
+from mosaic_cli.errors import GEO_EXTRA, BadInput, require_geo
 from mosaic_cli.geo.crs import Projection, utm_epsg
 
 
@@ -32,3 +36,18 @@ def test_a_projection_for_bergen_is_in_zone_32():
     east, north = projection.to_map(60.39, 5.32)[0]
     assert 290_000 < east < 300_000 and 6_690_000 < north < 6_710_000  # zone 32's false easting, 3.7 degrees west of its meridian
 
+
+def test_without_the_geo_extra_a_map_is_refused_in_one_line(monkeypatch, tmp_path):
+    found = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "gpxpy" else found(name, *a))
+    with pytest.raises(BadInput) as refused:
+        require_geo()
+    assert str(refused.value) == GEO_EXTRA == "maps need the geo extra: pip install 'mosaic-cli[geo]'"
+    require_geo("pyproj")  # the others are there
+
+    from mosaic_cli.telemetry.logs import read_gpx
+
+    log = tmp_path / "flight.gpx"
+    log.write_text("<gpx></gpx>")
+    with pytest.raises(BadInput, match=r"geo extra"):
+        read_gpx(log)

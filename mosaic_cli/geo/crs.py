@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mosaic_cli.errors import require_geo
+
 
 def utm_zone(lat: float, lon: float) -> int:
     """The UTM zone (1-60) holding (lat, lon): the 6-degree band, with the grid's two exceptions
@@ -29,6 +31,7 @@ class Projection:
     """WGS84 longitude/latitude <-> a projected CRS (east, north in metres)."""
 
     def __init__(self, crs) -> None:
+        require_geo("pyproj")
         from pyproj import CRS, Transformer
 
         self.crs = CRS.from_user_input(crs)
