@@ -132,6 +132,7 @@ class Estimator(ABC):
     def _to_full(self, H_work: np.ndarray | None, confidence: float) -> PairEstimate:
         if H_work is None or not np.all(np.isfinite(H_work)):
             return PairEstimate.failed()
+        assert self.work_size is not None and self.full_size is not None  # reset() set them
         H = to_resolution(H_work, self.work_size, self.full_size)
         if not np.all(np.isfinite(H)):
             return PairEstimate.failed()

@@ -115,8 +115,10 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     info, plan = check_request(video, out, options, warps_out, compare)
     clock = time.perf_counter()
 
-    plan.estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
-    track = track_video(video, plan.estimator, show_progress=show_progress, info=info)
+    estimator = plan.estimator
+    assert estimator is not None  # check_request made it
+    estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
+    track = track_video(video, estimator, show_progress=show_progress, info=info)
     seconds = {"track": time.perf_counter() - clock}
 
     motion = camera_motion(track.pairwise, info.source_size, plan.model, track.confidence)

@@ -113,7 +113,7 @@ class _Program:
     def __init__(self) -> None:
         self.costs: list[np.ndarray] = []
         self.bounds: list[tuple[float | None, float | None]] = []
-        self.rows = {"ub": [], "eq": []}
+        self.rows: dict[str, list] = {"ub": [], "eq": []}
         self.size = 0
 
     def variables(self, n: int, cost, bounds=(0.0, None)) -> slice:

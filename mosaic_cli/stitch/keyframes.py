@@ -317,9 +317,9 @@ class FlightScanner:
         if not ok:
             self.failed_pairs += 1
         if ok and self.placement is not None:
-            placement = self.placement @ np.linalg.inv(self._affine(estimate.H))
-            self._check_chain(placement)
-            return placement
+            chained = self.placement @ np.linalg.inv(self._affine(estimate.H))
+            self._check_chain(chained)
+            return chained
         if not self.keyframes:
             # Nothing placed yet: start the world afresh at this frame.
             self._candidate = None

@@ -313,9 +313,9 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
         to_ref = np.linalg.inv(joined.placements[members[ref]])
         placements = [normalize(to_ref @ joined.placements[k]) for k in members]
         sequence = [
-            (local[k], local[keyframes[k].link_to], keyframes[k].link)
+            (local[k], local[to], keyframes[k].link)
             for k in members
-            if keyframes[k].link_to is not None and keyframes[k].link_to in local
+            if (to := keyframes[k].link_to) is not None and to in local
         ]
         extra = [
             dataclasses.replace(l, a=local[l.a], b=local[l.b]) for l in joined.links if l.a in local and l.b in local

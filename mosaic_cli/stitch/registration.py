@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
+from collections.abc import Set as AbstractSet
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 
@@ -108,7 +109,7 @@ def register_keyframes(
     matcher: FeatureMatcher,
     options: RegistrationOptions,
     progress: ProgressFactory = no_progress,
-    extra_links: list[Link] = (),
+    extra_links: list[Link] | tuple[Link, ...] = (),
 ) -> tuple[list[np.ndarray], RegistrationReport]:
     """Keyframe -> reference placements refined against direct registrations: the scan's
     ``sequence`` links, ``extra_links`` (segments relocalised on each other) and loops.
@@ -177,7 +178,7 @@ def loop_candidates(
     placements: list[np.ndarray],
     size: tuple[int, int],
     options: RegistrationOptions,
-    tried: set[tuple[int, int]] = frozenset(),
+    tried: AbstractSet[tuple[int, int]] = frozenset(),
 ) -> list[tuple[int, int]]:
     """Non-neighbouring keyframe pairs predicted to overlap and not ``tried`` yet, most
     overlap first (the most reliable registrations), spread over the keyframes, within what

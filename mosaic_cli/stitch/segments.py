@@ -84,7 +84,7 @@ def join_segments(
                         placements[m] = T @ placements[m]
                     group_of[t] = group_of[c]
             links.append(link_from_match(k, j, match, "relocalised", registration))
-    groups = {}
+    groups: dict[int, list[int]] = {}
     for k, s in enumerate(segments):
         groups.setdefault(group_of[s], []).append(k)
     return Joined(placements, list(groups.values()), links, tried)
