@@ -37,3 +37,19 @@ class Interrupted(MosaicError):
     """The user stopped the run (Ctrl-C, SIGTERM) at a point where it could say what was kept."""
 
     exit_code = EXIT_INTERRUPTED
+
+
+# Maps (georeferencing, COG, footprints, GPX) need packages only the ``geo`` extra installs.
+GEO_EXTRA = "maps need the geo extra: pip install 'mosaic-cli[geo]'"
+GEO_PACKAGES = ("pyproj", "rasterio", "rio_cogeo", "gpxpy")
+
+
+def require_geo(*packages: str) -> None:
+    """BadInput, one line, when a package of the ``geo`` extra (``packages``, or all of them) is
+    not installed; called before it is imported, and before any long work that ends in a map.
+    Looks the packages up without importing them."""
+    import importlib.util
+
+    for name in packages or GEO_PACKAGES:
+        if importlib.util.find_spec(name) is None:
+            raise BadInput(GEO_EXTRA)

@@ -16,10 +16,19 @@ if TYPE_CHECKING:
     from mosaic_cli.overlay import MaskOptions
     from mosaic_cli.video.reader import VideoInfo
 
-# Containers ffmpeg reads that a drone or an editor writes; a folder scan takes these and no others.
+# Containers ffmpeg reads that a drone or an editor writes: a folder scan takes these and no
+# others, and a ``--telemetry`` file with one of them is a video whose embedded track is read.
+# (What mosaic writes is narrower: ``video.writer.OUTPUT_SUFFIXES``.)
 VIDEO_SUFFIXES = frozenset(
-    {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".wmv", ".flv"}
+    {".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v", ".mpg", ".mpeg", ".ts", ".mts", ".m2ts", ".wmv", ".flv"}
 )
+
+
+# A live input ends when it sends nothing for this long (``--timeout``, seconds).
+DEFAULT_TIMEOUT = 10.0
+
+# The H.264 encoder's ``--preset`` values (libx264's), fastest first.
+PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 
 
 def is_video_file(path: str | Path) -> bool:
@@ -28,13 +37,17 @@ def is_video_file(path: str | Path) -> bool:
     return p.suffix.lower() in VIDEO_SUFFIXES and not p.name.startswith(".")
 
 
+def ground_truth_path(video_path: str | Path) -> Path:
+    """flight.mp4 -> flight.gt.json (beside the video); a folder of frames flight/ -> flight.gt.json."""
+    p = Path(video_path)
+    return p.with_name((p.name if p.is_dir() else p.stem) + ".gt.json")
+
+
 def find_flights(folder: str | Path, flag: str) -> list[Path]:
     """Every video in ``folder`` (not its subfolders) with a ``.gt.json`` ground truth beside it
     (``mosaic simulate`` writes both), sorted by name; videos without one are left out.  A
     folder of frames ``X/`` with an ``X.gt.json`` beside it is a flight too.
     BadInput, naming the user's ``flag``, when ``folder`` is not a folder or holds no flight."""
-    from mosaic_cli.simulate.groundtruth import ground_truth_path
-
     root = Path(folder)
     if not root.is_dir():
         raise BadInput(f"{flag} {root}: not a folder")
@@ -78,8 +91,6 @@ def check_timeout(seconds: float) -> None:
 
 def check_encoder(crf: int | None, preset: str) -> None:
     """``--crf`` (None: the command's default) and ``--preset`` of the H.264 encoder."""
-    from mosaic_cli.video.writer import PRESETS
-
     if crf is not None and not 0 <= crf <= 51:
         raise BadInput(f"--crf must be in 0..51, got {crf}")
     if preset not in PRESETS:
@@ -92,10 +103,10 @@ def check_mask_file(mask: MaskOptions, info: VideoInfo | None) -> None:
     frame gives the size."""
     if mask.file is None or info is None:
         return
-    from mosaic_cli.overlay import load_mask
+    from mosaic_cli.mask import load_mask
 
     load_mask(mask.file, info.source_size)
 
 
-__all__ = ["VIDEO_SUFFIXES", "check_encoder", "check_mask_file", "check_max_frames", "check_threads", "check_timeout", "find_flights",
-           "is_video_file", "parse_size"]
+__all__ = ["DEFAULT_TIMEOUT", "PRESETS", "VIDEO_SUFFIXES", "check_encoder", "check_mask_file", "check_max_frames", "check_threads",
+           "check_timeout", "find_flights", "ground_truth_path", "is_video_file", "parse_size"]

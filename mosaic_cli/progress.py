@@ -30,6 +30,11 @@ console = Console(stderr=True, soft_wrap=True)
 LINE_EVERY_SECONDS = 60.0
 
 
+def note(message: str) -> None:
+    """One line on stderr, beside the progress bars."""
+    console.print(f"mosaic: {message}", markup=False, highlight=False, soft_wrap=True)
+
+
 class RateColumn(ProgressColumn):
     """Items per second, with a unit ("fr/s", "it/s")."""
 

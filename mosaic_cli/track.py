@@ -13,8 +13,7 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, estimate_stream
-from mosaic_cli.inputs import check_max_frames, check_threads, check_timeout
-from mosaic_cli.live.source import DEFAULT_TIMEOUT
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_threads, check_timeout
 from mosaic_cli.overlay import MaskOptions
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video

@@ -56,8 +56,9 @@ def cpu_seconds() -> float:
 
 def run(module, clip: Path, info, seek: bool):
     """(FrameMask, wall s, CPU s, peak MiB of Python's allocations)."""
-    saved = module.DECODE_ALL_BELOW
-    module.DECODE_ALL_BELOW = 10 if seek else saved
+    holder = getattr(module, "samples", module)  # the package's sampling lives in mosaic_cli/overlay/samples.py
+    saved = holder.DECODE_ALL_BELOW
+    holder.DECODE_ALL_BELOW = 10 if seek else saved
     try:
         clock, used = time.perf_counter(), cpu_seconds()
         mask = module.frame_mask(clip, module.MaskOptions(), info)
@@ -67,7 +68,7 @@ def run(module, clip: Path, info, seek: bool):
         peak = tracemalloc.get_traced_memory()[1] / 2**20
         tracemalloc.stop()
     finally:
-        module.DECODE_ALL_BELOW = saved
+        holder.DECODE_ALL_BELOW = saved
     return mask, wall, cpu, peak
 
 
@@ -82,7 +83,7 @@ def same(a, b) -> bool:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("clips", type=Path, nargs="+")
-    parser.add_argument("--rev", required=True, help="the reference revision of mosaic_cli/overlay.py")
+    parser.add_argument("--rev", required=True, help="the reference revision of mosaic_cli/overlay.py (a revision before it became the package mosaic_cli/overlay/)")
     parser.add_argument("--seek", action="store_true", help="also sample each video by seeking, as a long clip")
     parser.add_argument("--unknown-length", action="store_true", help="also sample each video as if its length were unknown")
     args = parser.parse_args()

@@ -24,6 +24,7 @@ def map_file(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_bench_command_small_run(tmp_path, map_file, capsys):
     out = tmp_path / "bench.json"
     code = cli_exit(["bench", "--frames", "40", "--map", str(map_file), "--size", "640x360", "--estimators", "orb,identity", "--json", str(out)])
@@ -52,6 +53,7 @@ def shipped_weights(name: str) -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_bench_default_estimators_run_learned_ones_with_weights_and_skip_the_others(tmp_path, map_file):
     report = run_bench(BenchOptions(map_image=map_file, flight=simulated_flight(frames=6, size=(320, 180))), show_progress=False)
     assert {"orb", "identity"} <= set(report["estimators"])
@@ -77,6 +79,7 @@ def test_bench_names_a_missing_learned_estimator_when_it_was_asked_for(tmp_path,
     assert sorted(note.split(":")[0] for note in report["notes"] if "skipped" in note) == sorted(LEARNED)
 
 
+@pytest.mark.slow
 def test_bench_on_a_video_reports_latency_only(tmp_path):
     rgb = procedural_map((800, 800), seed=1)
     plan = plan_flight((800, 800), "paper", frames=35, size=(320, 180), seed=1)
@@ -180,6 +183,7 @@ def flights_dir(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_flights_pool_what_mosaic_eval_reports_per_flight(tmp_path, flights_dir):
     """bench --flights against `mosaic track` + `mosaic eval` on each flight, combined by hand:
     MACE weighted by landmark pairs, failures by frame pairs, the median corner error from the
@@ -217,6 +221,7 @@ def test_flights_pool_what_mosaic_eval_reports_per_flight(tmp_path, flights_dir)
     assert report["estimators"]["orb"]["mace"] < 0.1 * report["estimators"]["identity"]["mace"]
 
 
+@pytest.mark.slow
 def test_flights_estimator_options_and_errors(tmp_path, flights_dir, capsys):
     report = run_flights(BenchOptions(estimators=["orb", "orb:refine=none"], flights=flights_dir), show_progress=False)
     assert list(report["estimators"]) == ["orb", "orb:refine=none"]

@@ -24,6 +24,7 @@ def run_cli(capsys, *args):
     return (0 if code is None else code), captured.out, captured.err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", COMMANDS)
 def test_quiet_is_a_flag_in_every_command(capsys, command):
     code, out, _ = run_cli(capsys, command, "--help")
@@ -45,6 +46,7 @@ def test_weights_with_a_classical_estimator_is_one_line_error(tmp_path, capsys, 
     assert f"-e {name} takes no weights" in err and not out.exists()
 
 
+@pytest.mark.slow
 def test_simulate_makes_the_output_folder(tmp_path, capsys):
     out = tmp_path / "flights" / "day 1" / "f.mp4"
     code, _, err = run_cli(capsys, "simulate", "-o", out, "-n", "3", "--size", "64x48", "--preset", "ultrafast", "-q")
@@ -56,6 +58,7 @@ def test_simulate_makes_the_output_folder(tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1 and "is a file" in err
 
 
+@pytest.mark.slow
 def test_progress_to_a_pipe_is_one_line_per_stage(tmp_path, tiny_clip):
     """A child whose stderr is a pipe: no bars, no wrapped lines, one line a stage."""
     out = tmp_path / "t.json"
@@ -71,6 +74,7 @@ def test_progress_to_a_pipe_is_one_line_per_stage(tmp_path, tiny_clip):
     assert not any(mark in run.stderr for mark in "━╸\r")
 
 
+@pytest.mark.slow
 def test_stitch_progress_counts_the_summarys_keyframes_and_shows_no_empty_stage(tmp_path, tiny_clip):
     """The scan's count includes the last keyframe (added as the scan ends), and a loop search
     with no pair to try writes no line."""

@@ -76,6 +76,7 @@ def make_bad_input(kind, folder):
     raise AssertionError(kind)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", [
     "missing", "empty", "text", "random bytes", "audio only", "truncated", "truncated header", "truncated mkv",
     "folder without images", "folder of broken images",
@@ -133,6 +134,7 @@ def test_output_on_a_file_system_that_takes_no_files(capsys, clip):
     assert_one_line_error(code, err, "/proc", "not writable")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, fragments", [
     (["simulate", "-o", "{out}/odd.mp4", "-n", "3", "--size", "321x181"], ["even", "321x181"]),
     (["eval", "{pred}", "--gt", "{folder}"], ["a folder", "ground-truth"]),
@@ -155,6 +157,7 @@ def test_more_bad_input_across_commands(capsys, workdir, clip, args, fragments):
     assert outputs(workdir) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum, status, message", [
     (signal.SIGINT, 130, "interrupted"),
     (signal.SIGTERM, 143, "terminated"),
@@ -213,6 +216,7 @@ def test_failure_midway_leaves_no_file_and_debug_shows_the_traceback(capsys, wor
     assert outputs(workdir) == []
 
 
+@pytest.mark.slow
 def test_console_script_prints_no_traceback(workdir):
     """The installed entry point, in a fresh process, as a user runs it."""
     missing = workdir / "in" / "nothing.mp4"
@@ -228,6 +232,7 @@ def test_console_script_prints_no_traceback(workdir):
 # ---------------------------------------------------------------- degenerate but valid
 
 
+@pytest.mark.slow
 def test_one_frame_video_gives_an_empty_track(capsys, workdir):
     video = good_clip(workdir / "in" / "one.mp4", n=1)
     out = workdir / "out" / "t.json"
@@ -236,6 +241,7 @@ def test_one_frame_video_gives_an_empty_track(capsys, workdir):
     assert code == 0 and data["frames"] == 1 and data["pairwise"] == [] and data["confidence"] == []
 
 
+@pytest.mark.slow
 def test_all_black_video_gives_identity_with_zero_confidence(capsys, workdir):
     video = write_clip(workdir / "in" / "black.mp4", [np.zeros((180, 320, 3), np.uint8)] * 10)
     out = workdir / "out" / "t.json"

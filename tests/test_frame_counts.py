@@ -115,6 +115,7 @@ def shaky_frames(n: int) -> list[np.ndarray]:
     return [render(texture, np.linalg.inv(M), (320, 180)) for M in shaken]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["29.97 fps, audio shorter", "variable rate with audio"])
 def test_stabilize_writes_as_many_frames_as_it_reads(tmp_path, capsys, kind):
     n = 48

@@ -150,6 +150,7 @@ def test_adjustment_prior_decides_scale_and_heading_of_a_short_hover():
     assert math.degrees(fit.rotation) == pytest.approx(math.degrees(prior.rotation), abs=1.0)
 
 
+@pytest.mark.slow
 def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     """georeference() end to end on a synthetic track: a mosaic whose chained registrations left
     a slight projective drift (invisible within a frame, metres at the flight's ends) lands on
@@ -378,6 +379,7 @@ def test_a_short_tracks_gps_does_not_overrule_the_height():
     assert abs(map_scale_error(g, placements, truth, to_ground)) < 0.03
 
 
+@pytest.mark.slow
 def test_without_height_or_field_of_view_the_gps_alone_places_the_map():
     """A log without heights, or without a field of view (and no --hfov): no scale prior, the
     map as the GPS and the images make it, as before the prior existed."""
@@ -399,6 +401,7 @@ def test_without_height_or_field_of_view_the_gps_alone_places_the_map():
         assert map_scale_error(g, placements, truth, to_ground) == pytest.approx(own, abs=0.002 if np.isfinite(hfov) else 0.008)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spacing", [0.1, 1.0, 2.1, 6.0])
 def test_fix_weights_give_what_correlated_fixes_tell_of_a_mean_and_a_trend(spacing):
     """Against generalised least squares with the exact covariance of exponentially correlated

@@ -88,6 +88,7 @@ def flights(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_stitch_with_exact_telemetry_lands_where_the_truth_is(flights, tmp_path):
     """Without GPS error the whole chain (SRT, UTM, tilt, fit, COG) must land within centimetres."""
     video = flights["exact"]
@@ -129,6 +130,7 @@ def test_stitch_with_exact_telemetry_lands_where_the_truth_is(flights, tmp_path)
     assert abs(lat - 47.3977) < 0.01 and abs(lon - 8.5456) < 0.01  # WGS84, lon/lat order, near the origin
 
 
+@pytest.mark.slow
 def test_stitch_with_noisy_gps_keeps_shape_and_place(flights, tmp_path):
     video = flights["noisy"]
     tr = tmp_path / "t.json"
@@ -176,6 +178,7 @@ def test_drift_shifts_leave_the_maps_scale_and_heading_to_the_global_fit():
     assert np.abs(moved - moved.mean(0) - (truth - centre)).max() < 1e-6  # no trend taken: at most a common offset
 
 
+@pytest.mark.slow
 def test_embedded_track_is_used_without_telemetry_option(flights, tmp_path):
     video = flights["exact"]
     muxed = tmp_path / "with_srt.mkv"
@@ -191,6 +194,7 @@ def test_embedded_track_is_used_without_telemetry_option(flights, tmp_path):
         assert ds.crs is None
 
 
+@pytest.mark.slow
 def test_klv_log_gives_the_same_map(flights, tmp_path):
     from mosaic_cli.simulate.telemetry import GpsErrors, MapGeo, write_telemetry
 
@@ -214,6 +218,7 @@ def test_klv_log_gives_the_same_map(flights, tmp_path):
     assert score_files(tr_ts, gt, video.with_name("k.geo.json")).median_m < 0.3
 
 
+@pytest.mark.slow
 def test_live_stitch_with_telemetry_file_is_georeferenced(flights, tmp_path):
     """The live stitch shares finish_stitch: an explicit log gives it the same COG, footprints
     and map homographies as the offline one."""
@@ -243,6 +248,7 @@ def test_live_stream_georef_flags_need_a_telemetry_file(capsys, tmp_path, flag):
     assert not (tmp_path / "m.tif").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flag", ["--footprints", "--level-ground"])
 def test_georef_flags_on_a_video_without_a_track_are_one_clear_line(capsys, tmp_path, flag):
     """A video with no telemetry inside and no --telemetry: a georeferencing flag is an error,
@@ -255,6 +261,7 @@ def test_georef_flags_on_a_video_without_a_track_are_one_clear_line(capsys, tmp_
     assert not (tmp_path / "m.png").exists()
 
 
+@pytest.mark.slow
 def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
     import cv2
 
@@ -268,6 +275,7 @@ def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
     assert_one_line_error(code, err, "photo folders")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["offset", "no-fix", "other-flight", "footprints-without", "level-ground-without"])
 def test_unusable_telemetry_is_one_clear_line(flights, tmp_path, case):
     video = flights["exact"]

@@ -1,7 +1,8 @@
-"""The command line's layer rule (docs/architecture.md): ``cli.py`` registers the commands; a
+"""The layers of docs/architecture.md.  The command line's rule: ``cli.py`` registers the commands; a
 command imports neither ``mosaic_cli.cli`` nor another command, only the flags they share
 (``commands/options.py``) and the library.  Checked on the source with ``ast``, so that an
-import inside a function counts as much as one at the top."""
+import inside a function counts as much as one at the top.  The library's layers, top to bottom:
+import-linter's contract in pyproject.toml (``lint-imports``), run here too."""
 
 from __future__ import annotations
 
@@ -70,3 +71,42 @@ def test_every_command_module_is_registered_once_under_its_name():
     assert registered == modules
     assert [c.name for c in app.registered_commands] == list(COMMANDS)
     assert [c.callback for c in app.registered_commands] == list(COMMANDS.values())
+
+
+# -- the library's layers (pyproject.toml's [tool.importlinter], checked by import-linter) --------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def importlinter_layers() -> list[str]:
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    (contract,) = [c for c in config["contracts"] if c["type"] == "layers"]
+    return [name.strip() for layer in contract["layers"] for name in layer.replace(":", "|").split("|")]
+
+
+def test_every_module_of_the_package_sits_in_a_layer():
+    """A module the layers contract does not name would go unchecked: each top-level module and
+    subpackage of mosaic_cli is in one layer (``__main__``, ``python -m mosaic_cli``, only calls
+    the CLI)."""
+    package = ROOT / "mosaic_cli"
+    found = {f"mosaic_cli.{p.stem}" for p in package.glob("*.py")} | {f"mosaic_cli.{p.parent.name}" for p in package.glob("*/__init__.py")}
+    layers = importlinter_layers()
+    assert len(layers) == len(set(layers))
+    assert found - {"mosaic_cli.__init__", "mosaic_cli.__main__"} == set(layers)
+
+
+def test_the_layers_hold():
+    """import-linter's contracts (every import, in a function or not; only ``TYPE_CHECKING``
+    imports are left out), as ``.ci/run`` runs them with ``lint-imports``."""
+    pytest.importorskip("importlinter")
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from importlinter.cli import lint_imports; "
+            "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True, no_logo=True))")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
+    run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr

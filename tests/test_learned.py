@@ -187,6 +187,7 @@ SPOILERS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spoil", SPOILERS)
 def test_the_shipped_default_is_right_or_says_it_is_unsure_on_spoiled_frames(spoil):
     """The shipped default weights, with frames 5 and 6 of a known pan spoiled: every estimate
@@ -362,6 +363,7 @@ def _only_under(root):
     return Confined
 
 
+@pytest.mark.slow
 def test_track_cli_with_weights(tmp_path, panning):
     path, model = checkpoint(tmp_path)
     clip = write_clip(tmp_path / "pan.mp4", panning, fps=10)
@@ -404,6 +406,7 @@ def test_track_cli_refuses_bad_weights(tmp_path, panning, capsys, args, message)
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_track_cli_flags_reach_the_estimator(tmp_path, panning, capsys):
     path, _ = checkpoint(tmp_path, head="cnn")
     clip = write_clip(tmp_path / "pan.mp4", panning, fps=10)

@@ -97,6 +97,7 @@ def read_lines(text: str) -> list[dict]:
     return [json.loads(line) for line in text.splitlines() if line.strip()]
 
 
+@pytest.mark.slow
 def test_track_from_stdin_writes_json_lines_equal_to_the_offline_track(tmp_path, flight):
     video, truth = flight
     with open(video, "rb") as stdin:
@@ -111,6 +112,7 @@ def test_track_from_stdin_writes_json_lines_equal_to_the_offline_track(tmp_path,
     assert all(0.0 <= line["confidence"] <= 1.0 for line in lines)
 
 
+@pytest.mark.slow
 def test_track_over_udp_ends_on_timeout_with_every_frame(tmp_path, flight):
     video, _ = flight
     port = free_port(socket.SOCK_DGRAM)
@@ -130,6 +132,7 @@ def test_track_over_udp_ends_on_timeout_with_every_frame(tmp_path, flight):
     assert stopped - sent > 1.0  # it really was served in real time
 
 
+@pytest.mark.slow
 def test_track_over_tcp_listening_follows_the_json_lines_file(tmp_path, flight):
     video, _ = flight
     port = free_port(socket.SOCK_STREAM)
@@ -152,6 +155,7 @@ def test_track_over_tcp_listening_follows_the_json_lines_file(tmp_path, flight):
     assert [line["frame"] for line in read_lines(out.read_text())] == list(range(FRAMES - 1))
 
 
+@pytest.mark.slow
 def test_sigterm_ends_a_live_track_with_what_was_received(tmp_path, flight):
     video, _ = flight
     port = free_port(socket.SOCK_STREAM)
@@ -171,6 +175,7 @@ def test_sigterm_ends_a_live_track_with_what_was_received(tmp_path, flight):
     assert doc["meta"]["ended_by"] == "SIGTERM"
 
 
+@pytest.mark.slow
 def test_no_sender_is_one_clear_error(tmp_path):
     port = free_port(socket.SOCK_DGRAM)
     rc, _, err = finish(mosaic("track", f"udp://127.0.0.1:{port}", "-o", tmp_path / "t.json", "-e", "orb", "--timeout", "0.5"))
@@ -201,6 +206,7 @@ def count_frames(video: Path) -> int:
     return int(frames[-1].split("=")[1].split()[0])
 
 
+@pytest.mark.slow
 def test_stabilize_live_over_tcp_to_a_file_keeps_every_frame_and_steadies(tmp_path, flight):
     video, truth = flight
     port = free_port(socket.SOCK_STREAM)
@@ -215,6 +221,7 @@ def test_stabilize_live_over_tcp_to_a_file_keeps_every_frame_and_steadies(tmp_pa
     assert len(json.loads(warps.read_text())["warps"]) == FRAMES
 
 
+@pytest.mark.slow
 def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offline(tmp_path, shaky_flight):
     video, truth = shaky_flight
     jitter = {}
@@ -232,6 +239,7 @@ def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offlin
         assert jitter[name] <= 1.5 * jitter["offline"]
 
 
+@pytest.mark.slow
 def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
     video, _ = flight
     with open(video, "rb") as stdin:
@@ -243,6 +251,7 @@ def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
     assert count_frames(tmp_path / "out.ts") == FRAMES
 
 
+@pytest.mark.slow
 def test_a_solver_slower_than_the_latency_holds_no_frame_back_and_drops_none(tmp_path, flight, monkeypatch):
     """Every solve of the path takes longer than the whole budget (fault injected): the frames
     leave at their deadline on the path planned so far, every one of them."""
@@ -302,6 +311,7 @@ def test_online_path_waits_at_most_its_horizon_and_equals_the_offline_path_when_
     np.testing.assert_allclose(views, offline, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, flight):
     video, _ = flight
     proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / "o.mp4"), "-e", "orb",
@@ -322,6 +332,7 @@ def survey(tmp_path_factory) -> Path:
     return video
 
 
+@pytest.mark.slow
 def test_stitch_live_from_stdin_equals_the_offline_stitch(tmp_path, survey):
     with open(survey, "rb") as stdin:
         rc, _, err = finish(mosaic("stitch", "-", "-o", tmp_path / "live.png", "--transforms", tmp_path / "live.json",
@@ -335,6 +346,7 @@ def test_stitch_live_from_stdin_equals_the_offline_stitch(tmp_path, survey):
     np.testing.assert_array_equal(cv2.imread(str(tmp_path / "live.png"), -1), cv2.imread(str(tmp_path / "off.png"), -1))
 
 
+@pytest.mark.slow
 def test_stitch_live_over_udp_writes_a_growing_preview_and_ends_on_timeout(tmp_path, survey):
     import cv2
 
@@ -373,6 +385,7 @@ def test_stitch_live_over_udp_writes_a_growing_preview_and_ends_on_timeout(tmp_p
     assert not list(tmp_path.glob(".*.part*"))
 
 
+@pytest.mark.slow
 def test_the_previews_incremental_drift_control_places_keyframes_as_well_as_the_final_stitch(tmp_path, survey):
     from mosaic_cli.estimators import make_estimator
     from mosaic_cli.geometry import frame_corners, project

@@ -76,6 +76,7 @@ def survey(tmp_path_factory) -> Path:
     return video
 
 
+@pytest.mark.slow
 def test_previews_are_drawn_beside_the_scan_one_at_a_time_and_always_readable(tmp_path, survey, monkeypatch):
     from mosaic_cli.estimators import make_estimator
     from mosaic_cli.stitch import StitchOptions

@@ -78,6 +78,7 @@ def batch_of(frames, positions):
 # --- the terms one by one ----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_photometric_formula_and_mask():
     torch.manual_seed(0)
     target = torch.rand(3, 1, 16, 16)
@@ -177,6 +178,7 @@ def test_oracle_makes_every_term_vanish(panning_frames):
     assert float(wrong["photometric"]) > 20 * float(out["photometric"]) and float(wrong["temporal2"]) > 20 * float(out["temporal2"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("space", ["gray", "band"])
 def test_gradient_descent_on_the_photometric_loss_finds_the_true_homography(space):
     """Free corner offsets, optimised on one frame pair related by a known homography (rotation,

@@ -68,6 +68,7 @@ def overlay_coloured(rgba_bgr: np.ndarray) -> int:
 # -- the detector ------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_detector_finds_the_logo_the_timestamp_and_the_letterbox(flights):
     detection = frame_mask(flights.burned).detection
     excluded = detection.use == 0
@@ -123,6 +124,7 @@ def per_overlay(masked: np.ndarray, kinds: dict[str, np.ndarray]) -> dict[str, d
     return out
 
 
+@pytest.mark.slow
 def test_the_mask_follows_each_overlay_to_the_pixel(sharp):
     """Against the exact pixels of each overlay: none is missed, and the ground hidden around
     each is a thin rim (H.264's smear), not the regions' blocks and margins.  The detector
@@ -144,7 +146,7 @@ def test_a_region_the_trace_cannot_explain_keeps_its_whole_reach(sharp, monkeypa
     """An overlay whose pixels are neither steady nor of fixed colours (semi-transparent) is
     still found by its static edges; the trace finds none of its pixels, and the region is
     then masked whole, never dropped."""
-    import mosaic_cli.overlay as overlay
+    import mosaic_cli.overlay.detect as overlay
 
     frames = sample_frames(sharp.burned, 32, 640)
     traced = overlay.detect_overlays(frames, (640, 360)).use == 0
@@ -178,6 +180,7 @@ class CountedFrames:
             del copy
 
 
+@pytest.mark.slow
 def test_the_detector_holds_one_full_resolution_frame_at_a_time(sharp):
     """Read twice, one frame at a time (the regions at the working width, then their crops at
     the frames' own), the mask is the one from all the frames held at once."""
@@ -205,7 +208,7 @@ def test_a_region_traced_to_a_part_of_its_steady_pixels_is_masked_whole(sharp, m
     """An overlay in the ground's own colours (a gray logo in gray footage) traces only by
     pieces of its rim, not by its steady inside (a gap in the rim wider than the closing
     leaves the inside unfilled): the region is then masked whole, never traced to its rim."""
-    import mosaic_cli.overlay as overlay
+    import mosaic_cli.overlay.detect as overlay
 
     trace = overlay._pixel_evidence
 
@@ -241,8 +244,9 @@ def test_a_hovering_camera_or_too_few_frames_masks_nothing():
     assert few.use is None and few.too_few
 
 
+@pytest.mark.slow
 def test_long_clips_are_sampled_by_seeking_as_short_ones_by_decoding(flights, monkeypatch):
-    import mosaic_cli.overlay as overlay
+    import mosaic_cli.overlay.samples as overlay
 
     decoded = sample_frames(flights.burned, 12, 160)
     monkeypatch.setattr(overlay, "DECODE_ALL_BELOW", 10)  # as if the clip were long
@@ -287,6 +291,7 @@ def test_orb_and_the_lk_polish_keep_off_masked_pixels():
     assert mask_px[:, :160].max() == 0 and mask_px[:, 160:].min() == 255
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("estimator", ["orb", "lstm"])
 def test_estimates_with_overlays_are_as_good_as_without(flights, tmp_path, capsys, estimator):
     """Against the exact pairwise homographies: the burned-in flight, its overlays found and
@@ -312,6 +317,7 @@ def test_estimates_with_overlays_are_as_good_as_without(flights, tmp_path, capsy
 # -- stitch ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_panorama_holds_no_overlay_pixel(flights, tmp_path, capsys):
     pano, transforms = tmp_path / "pano.png", tmp_path / "pano.json"
     code, err = run(capsys, "stitch", flights.burned, "-o", pano, "--transforms", transforms, "-e", "orb", "-q")
@@ -327,6 +333,7 @@ def test_the_panorama_holds_no_overlay_pixel(flights, tmp_path, capsys):
     assert overlay_coloured(cv2.imread(str(raw), cv2.IMREAD_UNCHANGED)) > 200
 
 
+@pytest.mark.slow
 def test_a_mask_file_alone_keeps_the_overlays_out(flights, tmp_path, capsys):
     """The simulator's exact mask as ``--mask``, detection off; at half size too (same aspect)."""
     exact = overlay_mask_path(flights.burned)
@@ -394,6 +401,7 @@ def test_load_mask_reads_alpha_as_not_to_use(tmp_path):
     assert use[:50, :50].max() == 0 and use[60:, 60:].min() == 255
 
 
+@pytest.mark.slow
 def test_stabilize_estimates_without_the_overlays_but_keeps_them_in_the_output(flights, tmp_path, capsys):
     out = tmp_path / "stable.mp4"
     code, err = run(capsys, "stabilize", flights.burned, out, "-e", "orb", "-q")
@@ -422,6 +430,7 @@ def test_burner_colours_are_absent_from_the_procedural_map():
     assert TEXT_RGB == (255, 255, 0) and LOGO_RGB == (255, 0, 255)
 
 
+@pytest.mark.slow
 def test_the_learned_estimators_orb_fallback_takes_the_mask():
     """The fallback's own ORB (``fallback=orb``) is masked with the learned estimator: a pair whose
     larger, static part is an overlay registers by the ground that moves, not by the overlay."""
@@ -449,6 +458,7 @@ def test_the_learned_estimators_orb_fallback_takes_the_mask():
             assert np.abs(H / H[2, 2] - shift).max() > 1.0, H
 
 
+@pytest.mark.slow
 def test_a_live_input_takes_the_mask_file_and_skips_detection_with_one_line(flights, tmp_path):
     """stdin is a live input: no frames to sample ahead, so detection is skipped (said once)
     and ``--mask`` alone keeps the overlays out of the panorama and the track."""

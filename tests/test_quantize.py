@@ -42,6 +42,7 @@ def net_and_ranges():
     return model, quantize.calibrate(model, patch_pairs(48, seed=1))
 
 
+@pytest.mark.slow
 def test_int8_features_follow_fp32_on_patches_it_was_not_calibrated_on(net_and_ranges):
     model, ranges = net_and_ranges
     int8 = quantize.quantized_features(model, ranges)
@@ -83,6 +84,7 @@ def test_the_estimator_runs_int8_only_with_calibrated_weights(tmp_path, net_and_
     assert make_estimator(f"cnn:weights={with_ranges}", weights=str(without), device="cpu").precision == "int8"
 
 
+@pytest.mark.slow
 def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
     """An LSTM head in int8, stepped over 48 pairs in 16-pair chunks with its state carried as
     the estimator does: kept only where its offsets stay within 0.05 working px of fp32's on real

@@ -285,6 +285,7 @@ def test_load_map_variants(tmp_path):
         load_map(tmp_path / "missing.png")
 
 
+@pytest.mark.slow
 def test_simulate_command(tmp_path, capsys):
     out = tmp_path / "f.mp4"
     assert cli_exit(["simulate", "-o", str(out), "--frames", "8", "--size", "160x96", "--profile", "fast", "--seed", "3", "-q"]) == 0

@@ -98,6 +98,7 @@ def test_l1_path_keeps_crop_inside_and_removes_jitter(model):
     assert distortion(warps, SIZE) > 0.95
 
 
+@pytest.mark.slow
 def test_l1_windows_join_without_jumps():
     """Sliding windows give (almost) the path a single program over all frames gives."""
     shaken, smooth = shaky_path(120, seed=2)
@@ -208,6 +209,7 @@ def decoded(path) -> list[np.ndarray]:
         return list(stream)
 
 
+@pytest.mark.slow
 def test_stabilize_keeps_frames_rate_and_audio(tmp_path, capsys, shaky_clip):
     clip, shaken, smooth = shaky_clip
     out, warps_json, side = tmp_path / "steady.mp4", tmp_path / "warps.json", tmp_path / "side.mp4"
@@ -246,6 +248,7 @@ def test_stabilize_keeps_frames_rate_and_audio(tmp_path, capsys, shaky_clip):
             assert np.linalg.norm(found - np.array(p)) < 1.5, (t, p, found)
 
 
+@pytest.mark.slow
 def test_gaussian_option_end_to_end(tmp_path, capsys, shaky_clip):
     clip, shaken, smooth = shaky_clip
     out, warps_json = tmp_path / "steady.mp4", tmp_path / "warps.json"
@@ -257,6 +260,7 @@ def test_gaussian_option_end_to_end(tmp_path, capsys, shaky_clip):
     assert high_frequency(shaken, smooth, warps) < 0.6 * high_frequency(shaken, smooth)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("border", ["black", "replicate", "reflect"])
 def test_full_view_with_border_fill(tmp_path, capsys, shaky_clip, border):
     clip, _, _ = shaky_clip
@@ -306,6 +310,7 @@ def test_bad_options(tmp_path, capsys, shaky_clip, args, fragment):
     assert list(out.parent.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_bad_paths(tmp_path, capsys, shaky_clip):
     clip, _, _ = shaky_clip
     outdir = tmp_path / "out"

@@ -22,7 +22,7 @@ from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
 from mosaic_cli.stitch.features import PairMatch
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
-from mosaic_cli.stitch.registration import Link, RegistrationReport, _from_match, chain_sequence, refine_placements
+from mosaic_cli.stitch.registration import Link, RegistrationReport, chain_sequence, link_from_match, refine_placements
 from mosaic_cli.stitch.spill import SpilledImage
 from mosaic_cli.video import VideoWriter, open_video
 
@@ -116,6 +116,7 @@ def survey(tmp_path_factory, ground):
     return flight, pano, transforms, result
 
 
+@pytest.mark.slow
 def test_transforms_place_the_known_map_where_the_panorama_shows_it(survey):
     flight, pano, transforms, result = survey
     canvas, indices, H = load_transforms(transforms)
@@ -137,6 +138,7 @@ def test_transforms_place_the_known_map_where_the_panorama_shows_it(survey):
     assert np.corrcoef(got.ravel(), want.ravel())[0, 1] > 0.95
 
 
+@pytest.mark.slow
 def test_drift_control_beats_plain_chaining(survey):
     flight, _, transforms, result = survey
     _, indices, H = load_transforms(transforms)
@@ -148,6 +150,7 @@ def test_drift_control_beats_plain_chaining(survey):
     assert np.median(ours) <= 0.5 * np.median(chained)
 
 
+@pytest.mark.slow
 def test_alpha_is_zero_exactly_outside_the_covered_ground(survey):
     flight, pano, transforms, _ = survey
     canvas, indices, H = load_transforms(transforms)
@@ -169,6 +172,7 @@ def test_alpha_is_zero_exactly_outside_the_covered_ground(survey):
     assert inside.sum() > 10000 and np.all(alpha[inside == 1] == 255)
 
 
+@pytest.mark.slow
 def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     flight, _, _, full = survey
     pano, transforms = tmp_path / "small.jpg", tmp_path / "small.json"
@@ -188,6 +192,7 @@ def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     assert ratio / full_ratio == pytest.approx(scale, rel=0.02)
 
 
+@pytest.mark.slow
 def test_without_drift_control_keyframes_are_only_chained_and_placed_worse(survey, tmp_path):
     flight, _, transforms, _ = survey
     options = StitchOptions(registration=RegistrationOptions(enabled=False))
@@ -217,6 +222,7 @@ def spoil(k: int, frame: np.ndarray) -> np.ndarray:
     return frame
 
 
+@pytest.mark.slow
 def test_keyframes_skip_blurred_black_and_overexposed_frames_and_bridge_them(tmp_path, ground):
     flight = fly(tmp_path / "spoilt.mp4", ground, edit=spoil)
     result = stitch(flight.path, tmp_path / "p.png", fast_orb(), transforms=tmp_path / "t.json", show_progress=False)
@@ -254,6 +260,7 @@ def short_clip(tmp_path_factory, ground) -> Path:
     return fly(tmp_path_factory.mktemp("short") / "short.mp4", ground, frames=40).path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "name, channels, magic",
     [("p.png", 4, b"\x89PNG"), ("p.jpg", 3, b"\xff\xd8\xff"), ("p.JPEG", 3, b"\xff\xd8\xff"), ("p.tif", 4, b"II*\x00"), ("p.tiff", 4, b"II*\x00")],
@@ -268,6 +275,7 @@ def test_format_follows_the_extension(short_clip, tmp_path, capsys, name, channe
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]  # no temporary file left
 
 
+@pytest.mark.slow
 def test_reference_first_draws_the_first_keyframe_upright(short_clip, tmp_path, capsys):
     code, err = run_cli(capsys, "stitch", short_clip, "-o", tmp_path / "p.png", "--transforms", tmp_path / "t.json",
                         "--reference", "first", "--work-width", 128, "-q")
@@ -278,6 +286,7 @@ def test_reference_first_draws_the_first_keyframe_upright(short_clip, tmp_path, 
     assert np.allclose(A[2, :2], 0, atol=1e-9) and np.allclose(A[:2, :2], A[0, 0] * np.eye(2), atol=1e-9)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "args, fragment",
     [
@@ -436,8 +445,8 @@ def test_a_loop_counts_as_its_inliers_so_a_weak_loop_cannot_pull_consecutive_pho
 
     def refined_errors(equal_weights: bool) -> np.ndarray:
         rng = np.random.default_rng(0)
-        links = [_from_match(k + 1, k, _registration(truth, k + 1, k, 1000, rng, size), "sequential", options) for k in range(6)]
-        links += [_from_match(k, k + 2, _registration(truth, k, k + 2, 100, rng, size, parallax), "loop", options) for k in range(5)]
+        links = [link_from_match(k + 1, k, _registration(truth, k + 1, k, 1000, rng, size), "sequential", options) for k in range(6)]
+        links += [link_from_match(k, k + 2, _registration(truth, k, k + 2, 100, rng, size, parallax), "loop", options) for k in range(5)]
         assert links[0].weight == pytest.approx(1000 / options.points_per_pair) and len(links[0].points_a) == options.points_per_pair
         if equal_weights:  # what the refinement did before: every pair 60 points of weight 1
             for link in links:
@@ -503,9 +512,9 @@ def test_drift_control_keeps_consecutive_photos_on_their_registrations_over_unev
     start = [normalize(to_reference @ G) for G in start]
     plain = chain_sequence([(a, b, m) for (a, b), m in matches.items()], start, reference)
     for with_loops in (False, True):
-        links = [_from_match(a, b, m, "sequential", options) for (a, b), m in matches.items()]
+        links = [link_from_match(a, b, m, "sequential", options) for (a, b), m in matches.items()]
         if with_loops:
-            links += [_from_match(a, b, m, "loop", options) for (a, b), m in loops.items()]
+            links += [link_from_match(a, b, m, "loop", options) for (a, b), m in loops.items()]
         report = RegistrationReport(links=links)
         refined = refine_placements(list(start), report, reference, size, options)
         assert report.loops_dropped == 0
@@ -630,6 +639,7 @@ def test_compose_reports_progress_in_canvas_rows_each_row_once(ground):
     assert sum(rows) == 380
 
 
+@pytest.mark.slow
 def test_stitch_spills_keyframes_to_a_temporary_folder_it_always_removes(survey, tmp_path, ground, monkeypatch):
     spill_root = tmp_path / "tmp"
     spill_root.mkdir()
@@ -687,6 +697,7 @@ class Batching(Estimator):
         raise AssertionError("not used")
 
 
+@pytest.mark.slow
 def test_an_estimator_that_answers_late_in_batches_gives_the_same_panorama(survey, tmp_path):
     flight, _, transforms, _ = survey
     stitch(flight.path, tmp_path / "p.png", Batching(fast_orb()), transforms=tmp_path / "t.json", show_progress=False)
@@ -696,6 +707,7 @@ def test_an_estimator_that_answers_late_in_batches_gives_the_same_panorama(surve
     assert np.allclose(np.array(H), np.array(ref_H), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_video_with_no_usable_frame_is_refused(tmp_path, capsys):
     with VideoWriter(tmp_path / "black.mp4", SIZE, 30.0) as writer:
         for _ in range(10):

@@ -60,6 +60,7 @@ def placement_errors(indices, frame_to_pano, truth, gap: int = 60) -> np.ndarray
     ])
 
 
+@pytest.mark.slow
 def test_forward_then_backward_keeps_its_scale_and_drift_control_is_not_worse(tmp_path, forward):
     frames, m = forward
     video = write(tmp_path / "fb.mp4", frames + frames[::-1])
@@ -119,6 +120,7 @@ def run(capsys, *args) -> tuple[int, str]:
     return (0 if code is None else code), capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_looped_flight_with_a_cut_is_relocalised_into_one_panorama(tmp_path, forward, capsys):
     frames, m = forward
     video = write(tmp_path / "loop.mp4", frames + frames)  # the same flight twice in a row: a cut at 150
@@ -134,6 +136,7 @@ def test_a_looped_flight_with_a_cut_is_relocalised_into_one_panorama(tmp_path, f
     assert np.median(placement_errors(indices, H, truth)) < 0.6
 
 
+@pytest.mark.slow
 def test_a_cut_to_unrelated_ground_goes_to_a_second_panorama_named_in_the_summary(tmp_path, forward, capsys):
     frames, m = forward
     other = textured_image(*SIZE, seed=99)
@@ -186,6 +189,7 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
     cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
 
 
+@pytest.mark.slow
 def test_photos_far_apart_are_all_registered_directly_and_none_is_dropped_silently(tmp_path, ground, capsys):
     black = np.zeros((PHOTO[1], PHOTO[0], 3), np.uint8)
     unrelated = textured_image(*PHOTO, seed=123)
@@ -207,6 +211,7 @@ def test_photos_far_apart_are_all_registered_directly_and_none_is_dropped_silent
 ODM = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "aerial_sequences"
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not ODM.is_dir(), reason="the shared ODM photo folders are not here")
 @pytest.mark.parametrize("name", ["odm_caliterra", "odm_garfield_msp_rgb", "odm_boruszyn_kap", "odm_lewis_oblique"])
 def test_real_photo_folders_use_every_photo_or_name_it(tmp_path, capsys, name):
@@ -263,6 +268,7 @@ def direct_registration(a: np.ndarray, b: np.ndarray):
     return H, pa[mask.ravel().astype(bool)]
 
 
+@pytest.mark.slow
 def test_every_progress_stage_has_a_total_and_keeps_within_it(tmp_path, forward, monkeypatch):
     """The register stage showed ``123/?`` with no ETA: each stage now knows its total."""
     import contextlib

@@ -208,6 +208,7 @@ def flight(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_simulated_camera_poses_match_the_exact_homographies(flight):
     """The decomposed pose and the gimbal convention put the point below the camera exactly
     where the simulator's own matrix projects it."""
@@ -222,6 +223,7 @@ def test_simulated_camera_poses_match_the_exact_homographies(flight):
     assert max(np.abs(poses.pitch + 90).max(), np.abs(poses.roll).max()) > 0.3  # tilted: the test has teeth
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fmt", ["srt", "gpx", "csv", "klv"])
 def test_simulated_logs_read_back_to_the_truth(flight, fmt, tmp_path):
     gt = load_ground_truth(flight)
@@ -260,6 +262,7 @@ def test_gps_error_statistics():
     assert np.corrcoef(e[:-lag], e[lag:])[0, 1] == pytest.approx(math.exp(-1), abs=0.05)
 
 
+@pytest.mark.slow
 def test_srt_subtitle_track_inside_the_video_is_found(flight, tmp_path):
     muxed = tmp_path / "with_srt.mp4"
     subprocess.run([FFMPEG, "-hide_banner", "-loglevel", "error", "-y", "-i", str(flight), "-i", str(flight.with_suffix(".SRT")),
@@ -300,6 +303,7 @@ def test_geotiff_map_geotransform_follows_the_crop(tmp_path):
     assert MapGeo.from_geotiff(plain) is None  # no georeference: --origin and --gsd apply
 
 
+@pytest.mark.slow
 def test_simulated_barometric_height_has_one_offset_per_flight(flight):
     """The log's height: the camera's true height above the ground (from the exact pose) plus
     one offset for the whole flight (0.5 m RMS over flights) and white noise; the horizontal

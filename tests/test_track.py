@@ -30,6 +30,7 @@ def run_track(*args):
     assert cli_exit(["track", *args, "-q"]) == 0
 
 
+@pytest.mark.slow
 def test_track_json_matches_exact_ground_truth(tmp_path, hd_flight, hd_clip):
     out = tmp_path / "track.json"
     run_track(hd_clip, "-o", out)
@@ -51,6 +52,7 @@ def test_track_json_matches_exact_ground_truth(tmp_path, hd_flight, hd_clip):
     assert corner_error(pairwise, inverse, FULL).min() > 5
 
 
+@pytest.mark.slow
 def test_track_npy_and_max_frames(tmp_path, hd_flight, hd_clip):
     out = tmp_path / "track.npy"
     run_track(hd_clip, "-o", out, "--max-frames", 6)
@@ -79,6 +81,7 @@ def test_identity_estimator_and_load_track(tmp_path, hd_clip):
     assert result.info.source_size == FULL and np.all(result.confidence == 0)
 
 
+@pytest.mark.slow
 def test_track_reads_an_image_folder(tmp_path, flight):
     import cv2
 

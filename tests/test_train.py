@@ -241,6 +241,7 @@ def test_step_batches_never_reuse_a_sample_across_steps_or_ranks():
     assert min(seen) == 3 * 2 * 4  # resuming at step 3 starts where step 3 started
 
 
+@pytest.mark.slow
 def test_an_unreadable_clip_is_skipped_and_no_usable_clip_is_a_clear_error(tmp_path, pan_clips, capsys):
     bad = tmp_path / "clips"
     bad.mkdir()
@@ -278,6 +279,7 @@ def test_bad_options_fail_before_any_work(tmp_path, pan_clips, capsys):
 # ----------------------------------------------------------------------------- training
 
 
+@pytest.mark.slow
 def test_a_short_cpu_run_lowers_the_photometric_loss_clearly(tmp_path, pan_clips):
     cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / "run"), steps=250, batch_size=8, work_size=WORK,
                       patch=PATCH, num_workers=0, threads=1, lr_milestones=(0.9,), seed=0).resolved()
@@ -316,6 +318,7 @@ def test_a_short_cpu_run_lowers_the_photometric_loss_clearly(tmp_path, pan_clips
     assert err < 0.5 * corner_error(np.eye(3), truth, WORK)
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_damaged_checkpoint_in_one_line(tmp_path, pan_clips, capsys):
     """A checkpoint cut short by a full disk, say (mosaic's own writes are atomic): --resume names
     the damaged file and says what to do, and writes nothing."""
@@ -332,6 +335,7 @@ def test_resume_refuses_a_damaged_checkpoint_in_one_line(tmp_path, pan_clips, ca
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == before
 
 
+@pytest.mark.slow
 def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one(tmp_path, pan_clips, capsys):
     args = ["train", str(pan_clips), "--steps", "40", "--batch-size", "8", "--num-workers", "1",
             "--checkpoint-every", "1000", *SMALL]
@@ -379,6 +383,7 @@ def test_an_interrupted_run_resumes_at_its_step_and_matches_an_uninterrupted_one
     assert code == 2 and "--resume" in err
 
 
+@pytest.mark.slow
 def test_a_two_process_cpu_ddp_run_completes(tmp_path, pan_clips):
     run = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "mosaic_cli",
@@ -395,6 +400,7 @@ def test_a_two_process_cpu_ddp_run_completes(tmp_path, pan_clips):
     assert meta["variant"] == "reg-all"
 
 
+@pytest.mark.slow
 def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pan_clips):
     def run(name: str, **options) -> dict[str, torch.Tensor]:
         cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / name), steps=2, work_size=WORK, patch=PATCH,
@@ -485,6 +491,7 @@ def test_with_bursts_the_network_reads_spoilt_frames_and_the_loss_compares_clean
 # ----------------------------------------------------------------------------- validation
 
 
+@pytest.mark.slow
 def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan_clips):
     from mosaic_cli.evaluate import landmarks_from_ground_truth, mace
     from mosaic_cli.simulate import SimulateOptions, simulate_flight
@@ -534,6 +541,7 @@ def test_validation_scores_the_network_alone_never_the_classical_fallback(tmp_pa
 # ----------------------------------------------------------------------------- real imagery
 
 
+@pytest.mark.slow
 def test_trains_on_a_flight_rendered_from_real_aerial_imagery(tmp_path, shared_data):
     from mosaic_cli.simulate import SimulateOptions, simulate_flight
 

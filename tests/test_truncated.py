@@ -42,6 +42,7 @@ def clips(tmp_path_factory):
     return whole, cut, cut_mkv, trimmed
 
 
+@pytest.mark.slow
 def test_truncated_track_warns_once_and_records_it(tmp_path, capsys, clips):
     _, cut, cut_mkv, _ = clips
     for video in (cut, cut_mkv):
@@ -73,6 +74,7 @@ def test_strict_refuses_a_truncated_video_in_every_command(tmp_path, capsys, cli
         assert list(out.iterdir()) == [], args
 
 
+@pytest.mark.slow
 def test_stabilize_and_stitch_record_the_shortfall(tmp_path, capsys, clips):
     _, cut, _, _ = clips
     decoded = opencv_count(cut)
@@ -89,6 +91,7 @@ def test_stabilize_and_stitch_record_the_shortfall(tmp_path, capsys, clips):
     assert json.loads((tmp_path / "t.json").read_text())["input"]["frames_decoded"] == decoded
 
 
+@pytest.mark.slow
 def test_whole_and_edit_list_clips_are_not_called_truncated(tmp_path, capsys, clips):
     whole, _, _, trimmed = clips
     assert opencv_count(trimmed) < FRAMES  # the container still lists the frames the edit list leaves out

@@ -150,9 +150,9 @@ def _notices(video: Path, result) -> list[str]:
 
 def _photo_names(video: Path) -> list[str]:
     """The folder's photos by index, as the scan read them (name order)."""
-    from mosaic_cli.video.reader import _folder_images
+    from mosaic_cli.video.reader import folder_images
 
-    return [p.name for p in _folder_images(Path(video))]
+    return [p.name for p in folder_images(Path(video))]
 
 
 def _split_notice(panoramas, photo_names: list[str] | None) -> str:

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import to_resolution
+from mosaic_cli.mask import work_mask
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ class Estimator(ABC):
     def set_mask(self, use: np.ndarray | None) -> None:
         """Estimate from the pixels ``use`` allows only (uint8 (h, w) at the full resolution of
         the frames to come, 255 = use; None: every pixel): burned-in overlays and the user's
-        ``--mask`` (see :mod:`mosaic_cli.overlay`).  Applies from the next ``reset``."""
+        ``--mask`` (see :mod:`mosaic_cli.mask`, :mod:`mosaic_cli.overlay`).  Applies from the next ``reset``."""
         self.mask = None if use is None else np.asarray(use, dtype=np.uint8)
 
     @property
@@ -112,8 +113,6 @@ class Estimator(ABC):
         if self.mask is not None:
             if (self.mask.shape[1], self.mask.shape[0]) != self.full_size:
                 raise ValueError(f"mask is {self.mask.shape[1]}x{self.mask.shape[0]}, the frames {self.full_size[0]}x{self.full_size[1]}")
-            from mosaic_cli.overlay import work_mask
-
             self.work_mask = work_mask(self.mask, self.work_size)
 
     def prepare(self, frame: np.ndarray) -> np.ndarray:
@@ -148,6 +147,7 @@ class Estimator(ABC):
     def _to_full(self, H_work: np.ndarray | None, confidence: float) -> PairEstimate:
         if H_work is None or not np.all(np.isfinite(H_work)):
             return PairEstimate.failed()
+        assert self.work_size is not None and self.full_size is not None  # reset() set them
         H = to_resolution(H_work, self.work_size, self.full_size)
         if not np.all(np.isfinite(H)):
             return PairEstimate.failed()

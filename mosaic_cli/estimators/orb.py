@@ -88,7 +88,7 @@ class OrbEstimator(Estimator):
 
     def _describe(self, gray: np.ndarray):
         keypoints, descriptors = self._orb.detectAndCompute(gray, self._detect_mask)
-        points = np.float32([k.pt for k in keypoints]) if keypoints else np.zeros((0, 2), np.float32)
+        points = np.array([k.pt for k in keypoints], np.float32) if keypoints else np.zeros((0, 2), np.float32)
         return points, descriptors
 
     def _estimate(self, prev: np.ndarray, cur: np.ndarray):

@@ -42,7 +42,7 @@ class PaperOrbEstimator(Estimator):
         self.config = config or PaperOrbConfig()
         self._orb = cv2.ORB_create(nfeatures=self.config.n_features, WTA_K=self.config.wta_k)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        self._prev_features = None
+        self._prev_features: tuple | None = None
 
     def reset(self, full_size):
         super().reset(full_size)
@@ -59,8 +59,8 @@ class PaperOrbEstimator(Estimator):
         matches = self._matcher.match(d1, d2)
         if len(matches) < 4:
             return np.eye(3), 0.0
-        src = np.float32([kp1[m.queryIdx].pt for m in matches])
-        dst = np.float32([kp2[m.trainIdx].pt for m in matches])
+        src = np.array([kp1[m.queryIdx].pt for m in matches], np.float32)
+        dst = np.array([kp2[m.trainIdx].pt for m in matches], np.float32)
         H, mask = cv2.findHomography(src, dst, cv2.RANSAC, self.config.reproj_threshold)
         if H is None or not np.all(np.isfinite(H)):
             return np.eye(3), 0.0

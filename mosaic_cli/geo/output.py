@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, signals_held, temporary_beside, write_json
-from mosaic_cli.errors import ProcessingError
+from mosaic_cli.errors import ProcessingError, require_geo
 from mosaic_cli.geo.georef import Georeference
 from mosaic_cli.geometry import frame_corners, normalize, project
 
@@ -35,6 +35,7 @@ def geotransform(georef: Georeference, to_canvas: np.ndarray):
 def write_cog(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray) -> None:
     """RGBA panorama -> Cloud Optimized GeoTIFF: 512-px internal tiles, deflate, overviews
     (averaged), transparency as an alpha band."""
+    require_geo("rasterio", "rio_cogeo")
     import rasterio
     from rasterio.enums import ColorInterp
     from rasterio.windows import Window

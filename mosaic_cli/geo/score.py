@@ -6,11 +6,23 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from mosaic_cli.geometry import project
-from mosaic_cli.simulate.groundtruth import GroundTruth
+
+
+class FrameTruth(Protocol):
+    """What scoring needs of a flight's truth (``mosaic_cli.simulate.groundtruth.GroundTruth``
+    has it; geo, below the simulator, does not import it): the frame size and, per frame, the
+    homography from map pixels to frame pixels."""
+
+    @property
+    def size(self) -> tuple[int, int]: ...
+
+    @property
+    def map_to_frame(self) -> np.ndarray: ...
 
 
 @dataclass
@@ -22,7 +34,7 @@ class GroundScore:
     keyframes: int
 
 
-def score_map_homographies(map_h: dict[int, np.ndarray], gt: GroundTruth, map_to_crs: np.ndarray, grid: int = 5) -> GroundScore:
+def score_map_homographies(map_h: dict[int, np.ndarray], gt: FrameTruth, map_to_crs: np.ndarray, grid: int = 5) -> GroundScore:
     """Compare where each keyframe's pixels land (``map_h``: frame index -> frame pixels ->
     east, north) with where they truly lie (``gt.map_to_frame`` and the map's geotransform)."""
     w, h = gt.size
@@ -43,7 +55,7 @@ def score_map_homographies(map_h: dict[int, np.ndarray], gt: GroundTruth, map_to
                        float(math.degrees(-np.angle(ratio))), len(map_h))
 
 
-def score_files(transforms: str | Path, gt: GroundTruth, geo_truth: str | Path) -> GroundScore:
+def score_files(transforms: str | Path, gt: FrameTruth, geo_truth: str | Path) -> GroundScore:
     data = json.loads(Path(transforms).read_text())
     truth = json.loads(Path(geo_truth).read_text())
     map_h = {int(f["index"]): np.array(f["map_H"], dtype=np.float64) for f in data["frames"]}

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import check_writable
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, require_geo
 from mosaic_cli.geo.georef import Georeference, GeorefOptions
 from mosaic_cli.geometry import normalize
 from mosaic_cli.telemetry import Track, find_telemetry, read_telemetry
@@ -38,6 +38,8 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
         if options.telemetry is None and not wanted:
             return None  # an embedded track without positions: a plain panorama, as without one
         raise BadInput(f"{track.source}: no GPS fix in its {len(track)} samples (all without coordinates)")
+    if track is not None:
+        require_geo()  # a map will be made: its packages are checked before any work
     if track is not None and span is not None and span[1] > span[0]:
         fixed = track.time[track.has_fix] + options.offset
         covered = max(0.0, min(span[1], fixed.max()) - max(span[0], fixed.min()))

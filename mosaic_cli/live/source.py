@@ -31,11 +31,12 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import DEFAULT_TIMEOUT
+from mosaic_cli.progress import note
 from mosaic_cli.video.reader import VideoInfo, ffmpeg_exe, read_into, scaled_size
 
 STDIN = "-"
 URL_SCHEMES = ("udp", "tcp", "rtp", "rtsp", "rtsps", "srt", "http", "https", "rtmp", "rist")
-DEFAULT_TIMEOUT = 10.0
 # Frames queued between the decoder and the consumer at most (memory bound: the bytes of this
 # many frames, or fewer frames when they are large).
 QUEUE_BYTES = 256 * 2**20
@@ -106,13 +107,6 @@ class Arrival:
 
     frame: np.ndarray
     time: float
-
-
-def note(message: str) -> None:
-    """One line on stderr, beside the progress bars."""
-    from mosaic_cli.progress import console
-
-    console.print(f"mosaic: {message}", markup=False, highlight=False, soft_wrap=True)
 
 
 _END = object()

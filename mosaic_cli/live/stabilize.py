@@ -57,10 +57,11 @@ from mosaic_cli.overlay import frame_mask, live_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path, Window
 from mosaic_cli.stabilize.path import motion_model
-from mosaic_cli.stabilize.pipeline import VIDEO_SUFFIXES, WORK_WIDTH, StabilizeOptions, write_warps
+from mosaic_cli.stabilize.pipeline import WORK_WIDTH, StabilizeOptions, write_warps
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
 from mosaic_cli.video import VideoInfo, VideoWriter, probe
 from mosaic_cli.video.reader import scaled_size
+from mosaic_cli.video.writer import OUTPUT_SUFFIXES
 
 DEFAULT_LATENCY = 1.0
 LIVE_CHUNK = 4  # a learned estimator's frame pairs per batch: its answer comes 3 frames late at most
@@ -305,8 +306,8 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, warps_o
         raise BadInput("--compare is not available with --latency or a live input")
     if options.smoothing.lower() != "l1":
         raise BadInput("--latency plans an L1 path: --smoothing gaussian needs the whole video")
-    if not is_stream_output(out) and Path(out).suffix.lower() not in VIDEO_SUFFIXES:
-        raise BadInput(f"output {out} must end in one of {', '.join(VIDEO_SUFFIXES)}, or be - or a URL")
+    if not is_stream_output(out) and Path(out).suffix.lower() not in OUTPUT_SUFFIXES:
+        raise BadInput(f"output {out} must end in one of {', '.join(OUTPUT_SUFFIXES)}, or be - or a URL")
     if warps_out is not None and Path(warps_out).suffix.lower() != ".json":
         raise BadInput(f"--warps {warps_out} must end in .json")
     if not is_live_source(source):

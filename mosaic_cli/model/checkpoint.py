@@ -45,7 +45,6 @@ def save_weights(
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}")
     model = getattr(model, "module", model)  # unwrap DistributedDataParallel
-    model = getattr(model, "_orig_mod", model)  # unwrap torch.compile
     tensors = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in model.state_dict().items()}
     metadata = {
         "format": FORMAT,

@@ -22,6 +22,7 @@ import numpy as np
 
 from mosaic_cli.atomic import write_json
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import ground_truth_path
 from mosaic_cli.simulate.trajectory import FlightPlan, pairwise_from_absolute
 
 GT_VERSION = 1
@@ -87,15 +88,11 @@ class GroundTruth:
         write_json(path, self.to_json())
 
 
-def ground_truth_path(video_path: str | Path) -> Path:
-    """flight.mp4 -> flight.gt.json (beside the video); a folder of frames flight/ -> flight.gt.json."""
-    p = Path(video_path)
-    return p.with_name((p.name if p.is_dir() else p.stem) + ".gt.json")
-
-
 def load_ground_truth(path: str | Path) -> GroundTruth:
     """Read a ``.gt.json`` file (or, given a video or a folder of frames, the ``.gt.json`` beside it)."""
     p = Path(path)
+    if p.is_dir() and not ground_truth_path(p).is_file():
+        raise BadInput(f"{p}: a folder, not a ground-truth file (.gt.json), and no {ground_truth_path(p).name} beside it")
     if p.is_dir() or not p.name.endswith(".json"):  # a video, or a folder of frames: the truth beside it
         p = ground_truth_path(p)
     if not p.exists():

@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -100,16 +99,6 @@ def ground_truth_jitter(map_to_frame: np.ndarray, smooth_map_to_frame: np.ndarra
     return _trimmed_rms(outline - low, len(weights) // 2)
 
 
-@dataclass
-class VideoScores:
-    """Scores of one output video measured from the pixels alone."""
-
-    jitter: float  # residual jitter of the output, output pixels
-    cropping: float | None = None  # needs the input: features matched input -> output
-    distortion: float | None = None
-    matched_frames: int = 0
-
-
 # The ruler for scores from pixels: mosaic's ORB with its sub-pixel polish, finer than the
 # stabiliser's own tracking (measured on shaky flights: 0.05-0.09 px high-frequency error of
 # the chained path, against 0.07-0.4 px at 320 px wide with 500 features).
@@ -170,17 +159,3 @@ def matched_warps(input_video: str | Path, output_video: str | Path, step: int =
             indices.append(t)
             warps.append(first if rest is None else normalize(first @ rest))
     return np.array(indices, dtype=int), np.array(warps).reshape(-1, 3, 3)
-
-
-def video_scores(output_video: str | Path, input_video: str | Path | None = None, step: int = 5,
-                 seconds: float = HIGHPASS_SECONDS) -> VideoScores:
-    """Residual jitter of ``output_video`` (and, with the input, cropping and distortion)."""
-    pairwise, size, fps = track_pairwise(output_video)
-    scores = VideoScores(pairwise_jitter(pairwise, size, fps, seconds))
-    if input_video is not None:
-        _, warps = matched_warps(input_video, output_video, step=step)
-        if len(warps):
-            scores.cropping = cropping_ratio(warps, size)
-            scores.distortion = distortion(warps, size)
-            scores.matched_frames = len(warps)
-    return scores

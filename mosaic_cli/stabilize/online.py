@@ -20,7 +20,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.stabilize.crop import zoom_matrix
 from mosaic_cli.stabilize.path import MotionModel, fit_model, to_normalized
-from mosaic_cli.stabilize.smoothing import CARRIED, L1Smoother, _solve_window
+from mosaic_cli.stabilize.smoothing import CARRIED, L1Smoother, solve_window
 
 # Part of the latency budget left for the work itself (tracking, warping, encoding, queues).
 WORK_SHARE = 0.15
@@ -153,7 +153,7 @@ class OnlineL1Path:
 
     def solve(self, window: Window) -> np.ndarray:
         """(n, K) parameters of the window's frames (safe to call from another thread)."""
-        return _solve_window(window.motion, self.model, window.fixed, self.size, self.crop, self.options)
+        return solve_window(window.motion, self.model, window.fixed, self.size, self.crop, self.options)
 
     def adopt(self, window: Window, params: np.ndarray) -> bool:
         """Make a solved window the plan.  When frames were settled while it was solved (a

@@ -118,12 +118,6 @@ def to_normalized(H: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return normalize(N @ np.asarray(H, dtype=np.float64) @ np.linalg.inv(N))
 
 
-def to_pixels(H: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """The inverse of :func:`to_normalized`."""
-    N = normalizer(size)
-    return normalize(np.linalg.inv(N) @ np.asarray(H, dtype=np.float64) @ N)
-
-
 def fill_failed(pairwise: np.ndarray, confidence: np.ndarray | None) -> np.ndarray:
     """Replace failed estimates (confidence 0) by the nearest successful one.
 

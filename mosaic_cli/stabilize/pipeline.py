@@ -20,8 +20,7 @@ import numpy as np
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_device, check_work_width, make_estimator
-from mosaic_cli.inputs import check_encoder, check_mask_file, check_timeout
-from mosaic_cli.live.source import DEFAULT_TIMEOUT
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_encoder, check_mask_file, check_timeout
 from mosaic_cli.overlay import MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
@@ -31,8 +30,8 @@ from mosaic_cli.stabilize.render import Renderer, parse_border
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.track import track_video
 from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.writer import OUTPUT_SUFFIXES
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
 # on shaky 1280x720 flights ORB at 640 px leaves 0.03-0.09 of the shake where 320 px leaves
 # 0.03-0.15 (occasional bad fits at 320 px), for about 5 ms more per frame (docs/measurements/stabilize.md).
@@ -120,8 +119,10 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     info, plan = check_request(video, out, options, warps_out, compare)
     clock = time.perf_counter()
 
-    plan.estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
-    track = track_video(video, plan.estimator, show_progress=show_progress, info=info)
+    estimator = plan.estimator
+    assert estimator is not None  # check_request made it
+    estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
+    track = track_video(video, estimator, show_progress=show_progress, info=info)
     seconds = {"track": time.perf_counter() - clock}
 
     motion = camera_motion(track.pairwise, info.source_size, plan.model, track.confidence)
@@ -164,10 +165,10 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     given = {name: Path(p) for name, p in outputs.items() if p is not None}
     for path in given.values():
         check_writable(path)
-    if Path(out).suffix.lower() not in VIDEO_SUFFIXES:
-        raise BadInput(f"output {out} must end in one of {', '.join(VIDEO_SUFFIXES)}")
-    if compare is not None and Path(compare).suffix.lower() not in VIDEO_SUFFIXES:
-        raise BadInput(f"--compare {compare} must end in one of {', '.join(VIDEO_SUFFIXES)}")
+    if Path(out).suffix.lower() not in OUTPUT_SUFFIXES:
+        raise BadInput(f"output {out} must end in one of {', '.join(OUTPUT_SUFFIXES)}")
+    if compare is not None and Path(compare).suffix.lower() not in OUTPUT_SUFFIXES:
+        raise BadInput(f"--compare {compare} must end in one of {', '.join(OUTPUT_SUFFIXES)}")
     if warps_out is not None and Path(warps_out).suffix.lower() != ".json":
         raise BadInput(f"--warps {warps_out} must end in .json")
     source = Path(video).resolve()

@@ -16,6 +16,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -128,7 +129,7 @@ class Renderer:
         warp = warp_yuv if yuv else warp_frame
         join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
         # The audio ends with the video (the frames the first pass counted, at the input's rate).
-        common = dict(crf=self.crf, preset=self.preset, audio_from=info if info.has_audio else None, audio_seconds=len(warps) / info.fps,
+        common: dict[str, Any] = dict(crf=self.crf, preset=self.preset, audio_from=info if info.has_audio else None, audio_seconds=len(warps) / info.fps,
                       pix_fmt_in=pix_fmt, metadata=metadata)
         writers = [VideoWriter(out, size, info.fps, **common)]
         if compare is not None:
@@ -192,7 +193,7 @@ def _background(items: Iterable, depth: int = 4) -> Iterator:
 def _drain(results: Iterable[tuple[np.ndarray, ...]], sinks: list[Callable[[np.ndarray], None]],
            advance: Callable[[int], None], depth: int = 4) -> int:
     """Feed each element of every result tuple to its sink, one encoder thread per sink."""
-    queues = [queue.Queue(maxsize=depth) for _ in sinks]
+    queues: list[queue.Queue] = [queue.Queue(maxsize=depth) for _ in sinks]
     errors: list[BaseException] = []
 
     def consume(q: queue.Queue, sink: Callable[[np.ndarray], None]) -> None:

@@ -71,7 +71,7 @@ class L1Smoother:
         while True:
             end = min(n_frames, start + self.window)
             fixed = params[start:start + CARRIED] if start > 0 else None
-            solution = _solve_window(motion[start:end - 1], model, fixed, size, crop, self)
+            solution = solve_window(motion[start:end - 1], model, fixed, size, crop, self)
             done = start + (CARRIED if start else 0)
             if end == n_frames:
                 params[start:end] = solution
@@ -113,7 +113,7 @@ class _Program:
     def __init__(self) -> None:
         self.costs: list[np.ndarray] = []
         self.bounds: list[tuple[float | None, float | None]] = []
-        self.rows = {"ub": [], "eq": []}
+        self.rows: dict[str, list] = {"ub": [], "eq": []}
         self.size = 0
 
     def variables(self, n: int, cost, bounds=(0.0, None)) -> slice:
@@ -156,7 +156,7 @@ class _Program:
         return result.x
 
 
-def _solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | None, size: tuple[int, int],
+def solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | None, size: tuple[int, int],
                   crop: float | None, opts: L1Smoother) -> np.ndarray:
     """One linear program over L = len(motion) + 1 frames; returns (L, K) parameters of B_t."""
     L, K = len(motion) + 1, model.n_params

@@ -62,6 +62,7 @@ def choose_reference(frame_indices: list[int], spec: str | int, last_frame: int)
         return 0
     if spec == "middle":
         return (len(frame_indices) - 1) // 2
+    assert isinstance(spec, (int, np.integer))  # parse_reference gives first, middle or a frame number
     if spec > last_frame:
         raise BadInput(f"--reference {spec} is past the last frame stitched ({last_frame})")
     return int(np.argmin(np.abs(np.asarray(frame_indices) - spec)))
@@ -91,8 +92,8 @@ def plan_canvas(
     scale = 1.0
     if options.max_size and extent.max() > options.max_size:
         scale = options.max_size / float(extent.max())
-    W = max(1, int(np.ceil(extent[0] * scale - 1e-6)))
-    H = max(1, int(np.ceil(extent[1] * scale - 1e-6)))
+    width = max(1, int(np.ceil(extent[0] * scale - 1e-6)))
+    height = max(1, int(np.ceil(extent[1] * scale - 1e-6)))
     # Outer frame edges sit at pixel -0.5; the canvas' first pixel centre at its edge + 0.5.
     to_canvas = np.array([[scale, 0, -scale * lo[0] - 0.5], [0, scale, -scale * lo[1] - 0.5], [0, 0, 1.0]])
-    return Canvas((W, H), to_canvas, scale)
+    return Canvas((width, height), to_canvas, scale)

@@ -12,7 +12,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import normalize, project, rect_corners, resize_matrix
-from mosaic_cli.overlay import work_mask
+from mosaic_cli.mask import work_mask
 from mosaic_cli.stitch.spill import Pixels, drop_pixels, load_pixels
 
 BLENDS = ("multiband", "feather", "none")
@@ -130,14 +130,15 @@ def compose(
     canvas; ``placed`` is consumed: an image's pixels are dropped after its last strip.
     ``advance(n)`` is called with the canvas rows finished, strip by strip."""
     W, H = canvas_size
-    rois = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size) for p in placed]
-    keep = [k for k, r in enumerate(rois) if r is not None]
-    for k, r in enumerate(rois):
+    # compose() is given every image with its pixels (it drops them itself): image is not None here.
+    found = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size) for p in placed]  # type: ignore[union-attr]
+    keep = [k for k, r in enumerate(found) if r is not None]
+    for k, r in enumerate(found):
         if r is None:  # entirely off the canvas
             drop_pixels(placed[k].image)
             placed[k].image = None
     placed = [placed[k] for k in keep]
-    rois = [rois[k] for k in keep]
+    rois = [r for r in found if r is not None]
     seam_scale = _seam_scale([r.w * r.h for r in rois], W * H, options)
     compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
     advance(0, status="blending")
@@ -162,18 +163,18 @@ def compose(
                 continue
             rows = (max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y)
             if k not in loaded:
-                loaded[k] = load_pixels(placed[k].image)
+                loaded[k] = load_pixels(placed[k].image)  # type: ignore[arg-type]  # dropped only once finished
             image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gains[k] if gains else None, seam_masks[k],
                                       placed[k].use)
             blender.feed(image, mask, (roi.x, roi.y + rows[0]))
             fed = True
         if fed:
             result, result_mask = blender.blend(None, None)
-            rows = slice(y0 - top, y1 - top)
+            band = slice(y0 - top, y1 - top)
             np.clip(result, 0, 255, out=result)
             out = rgba[y0:y1]
-            out[..., :3] = result[rows, :W]
-            out[..., 3] = result_mask[rows, :W]
+            out[..., :3] = result[band, :W]
+            out[..., 3] = result_mask[band, :W]
             out[out[..., 3] == 0] = 0
             del result, result_mask
         del blender

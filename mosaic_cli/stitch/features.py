@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
-from mosaic_cli.overlay import work_mask
+from mosaic_cli.mask import work_mask
 
 MASK_MARGIN = 4  # px at the feature width: keypoints this close to an overlay are not kept
 
@@ -94,7 +94,7 @@ class FeatureExtractor:
         keypoints, descriptors = self._sift.detectAndCompute(gray, self._mask)
         if not keypoints or descriptors is None:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
-        points = project(self._to_source, np.float64([k.pt for k in keypoints])).astype(np.float32)
+        points = project(self._to_source, np.array([k.pt for k in keypoints], np.float64)).astype(np.float32)
         return Features(points, np.clip(descriptors, 0, 255).astype(np.uint8))
 
 

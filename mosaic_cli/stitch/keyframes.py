@@ -39,7 +39,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
-from mosaic_cli.overlay import fill_masked
+from mosaic_cli.mask import fill_masked
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions, Features, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 
@@ -317,9 +317,9 @@ class FlightScanner:
         if not ok:
             self.failed_pairs += 1
         if ok and self.placement is not None:
-            placement = self.placement @ np.linalg.inv(self._affine(estimate.H))
-            self._check_chain(placement)
-            return placement
+            chained = self.placement @ np.linalg.inv(self._affine(estimate.H))
+            self._check_chain(chained)
+            return chained
         if not self.keyframes:
             # Nothing placed yet: start the world afresh at this frame.
             self._candidate = None

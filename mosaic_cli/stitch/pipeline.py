@@ -36,8 +36,7 @@ from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
-from mosaic_cli.inputs import check_max_frames, check_timeout
-from mosaic_cli.live.source import DEFAULT_TIMEOUT
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -351,9 +350,9 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
         to_ref = np.linalg.inv(joined.placements[members[ref]])
         placements = [normalize(to_ref @ joined.placements[k]) for k in members]
         sequence = [
-            (local[k], local[keyframes[k].link_to], keyframes[k].link)
+            (local[k], local[to], keyframes[k].link)
             for k in members
-            if keyframes[k].link_to is not None and keyframes[k].link_to in local
+            if (to := keyframes[k].link_to) is not None and to in local
         ]
         extra = [
             dataclasses.replace(l, a=local[l.a], b=local[l.b]) for l in joined.links if l.a in local and l.b in local

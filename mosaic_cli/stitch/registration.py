@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable
+from collections.abc import Set as AbstractSet
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 
@@ -108,7 +109,7 @@ def register_keyframes(
     matcher: FeatureMatcher,
     options: RegistrationOptions,
     progress: ProgressFactory = no_progress,
-    extra_links: list[Link] = (),
+    extra_links: list[Link] | tuple[Link, ...] = (),
 ) -> tuple[list[np.ndarray], RegistrationReport]:
     """Keyframe -> reference placements refined against direct registrations: the scan's
     ``sequence`` links, ``extra_links`` (segments relocalised on each other) and loops.
@@ -153,7 +154,7 @@ def link_sequence(sequence: Sequence, placements, size, options: RegistrationOpt
     links = []
     for a, b, match in sequence:
         if match is not None:
-            links.append(_from_match(a, b, match, "sequential", options))
+            links.append(link_from_match(a, b, match, "sequential", options))
             report.sequential += 1
         else:
             links.append(_from_homography(a, b, relative(placements, a, b), size, "chain", options.chain_weight))
@@ -167,7 +168,7 @@ def link_loops(features, placements, candidates, matcher: FeatureMatcher, option
     for a, b in candidates:
         match = matcher.match(features[a], features[b], relative(placements, a, b), tolerance)
         if match is not None:
-            links.append(_from_match(a, b, match, "loop", options))
+            links.append(link_from_match(a, b, match, "loop", options))
             report.loops += 1
         advance(1)
     return links
@@ -177,7 +178,7 @@ def loop_candidates(
     placements: list[np.ndarray],
     size: tuple[int, int],
     options: RegistrationOptions,
-    tried: set[tuple[int, int]] = frozenset(),
+    tried: AbstractSet[tuple[int, int]] = frozenset(),
 ) -> list[tuple[int, int]]:
     """Non-neighbouring keyframe pairs predicted to overlap and not ``tried`` yet, most
     overlap first (the most reliable registrations), spread over the keyframes, within what
@@ -213,7 +214,7 @@ def loop_candidates(
     return chosen
 
 
-def _from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
+def link_from_match(a: int, b: int, match: PairMatch, kind: str, options: RegistrationOptions) -> Link:
     """A registered pair as the refinement takes it: its homography ``match.H`` at up to
     ``points_per_pair`` of its inlier locations (a repeatable random pick), weighted so that
     the link counts as all of its inliers: a pair registered on 1000 inliers (two photos that

@@ -17,7 +17,7 @@ import numpy as np
 
 from mosaic_cli.stitch.features import FeatureMatcher, Features
 from mosaic_cli.stitch.keyframes import closest_affine, overlap_fraction
-from mosaic_cli.stitch.registration import Link, ProgressFactory, RegistrationOptions, _from_match, no_progress
+from mosaic_cli.stitch.registration import Link, ProgressFactory, RegistrationOptions, link_from_match, no_progress
 
 
 @dataclass
@@ -83,8 +83,8 @@ def join_segments(
                     for m in members[t]:
                         placements[m] = T @ placements[m]
                     group_of[t] = group_of[c]
-            links.append(_from_match(k, j, match, "relocalised", registration))
-    groups = {}
+            links.append(link_from_match(k, j, match, "relocalised", registration))
+    groups: dict[int, list[int]] = {}
     for k, s in enumerate(segments):
         groups.setdefault(group_of[s], []).append(k)
     return Joined(placements, list(groups.values()), links, tried)

@@ -10,12 +10,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import VIDEO_SUFFIXES
 from mosaic_cli.telemetry.align import AlignedTelemetry, align_to_frames
 from mosaic_cli.telemetry.track import Track
 
 __all__ = ["Track", "AlignedTelemetry", "align_to_frames", "read_telemetry", "find_telemetry"]
-
-VIDEO_SUFFIXES = {".mp4", ".mov", ".mkv", ".ts", ".m2ts", ".mts", ".mpg", ".mpeg", ".avi"}
 
 
 def read_telemetry(path: str | Path) -> Track:

@@ -13,7 +13,7 @@ import math
 from datetime import datetime
 from pathlib import Path
 
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, require_geo
 from mosaic_cli.telemetry.track import Track, TrackBuilder
 
 _CSV_COLUMNS = {
@@ -92,6 +92,7 @@ def read_csv(path: str | Path) -> Track:
 
 
 def read_gpx(path: str | Path) -> Track:
+    require_geo("gpxpy")
     import gpxpy
     import gpxpy.gpx
 

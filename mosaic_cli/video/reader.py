@@ -118,12 +118,12 @@ def _natural_key(path: Path) -> list:
     return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", path.name)]
 
 
-def _folder_images(folder: Path) -> list[Path]:
+def folder_images(folder: Path) -> list[Path]:
     """The images of ``folder`` in natural order (frame_2 before frame_10)."""
     return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()), key=_natural_key)
 
 
-def _read_image_rgb(path: Path) -> np.ndarray:
+def read_image_rgb(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise BadInput(f"{path}: not an image OpenCV can read")
@@ -131,10 +131,10 @@ def _read_image_rgb(path: Path) -> np.ndarray:
 
 
 def _open_folder(folder: Path, width: int | None, fps: float | None, gray: bool) -> VideoStream:
-    files = _folder_images(folder)
+    files = folder_images(folder)
     if not files:
         raise BadInput(f"{folder}: folder holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
-    first = _read_image_rgb(files[0])
+    first = read_image_rgb(files[0])
     source_size = (first.shape[1], first.shape[0])
     size = scaled_size(source_size, width)
     rate = fps or DEFAULT_FOLDER_FPS
@@ -142,7 +142,7 @@ def _open_folder(folder: Path, width: int | None, fps: float | None, gray: bool)
 
     def frames() -> Iterator[np.ndarray]:
         for k, path in enumerate(files):
-            img = first if k == 0 else _read_image_rgb(path)
+            img = first if k == 0 else read_image_rgb(path)
             if (img.shape[1], img.shape[0]) != source_size:
                 raise BadInput(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from the first image's {source_size[0]}x{source_size[1]}")
             if size != source_size:

@@ -13,10 +13,12 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
-from mosaic_cli.inputs import check_encoder
+from mosaic_cli.inputs import PRESETS, check_encoder  # noqa: F401  (PRESETS: the encoder's, named where the flag's bounds live)
 from mosaic_cli.video.reader import VideoInfo, audio_codec_of, ffmpeg_exe
 
-PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
+# The containers a stabilised video is written in (H.264 with the source's audio).
+OUTPUT_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
+
 # Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
 MP4_AUDIO = {"aac", "mp3", "ac3", "eac3", "alac"}
 

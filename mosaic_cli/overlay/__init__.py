@@ -1,0 +1,34 @@
+"""Burned-in overlays (logos, OSD text, timestamps, letterbox bars) found in frames sampled
+over a clip, merged with the user's ``--mask`` into one use mask (uint8, full resolution,
+255 = ground to use):
+
+- :mod:`~mosaic_cli.overlay.detect`: what stays put while the ground moves (the detector);
+- :mod:`~mosaic_cli.overlay.samples`: the frames it looks at, read one at a time;
+- :mod:`~mosaic_cli.overlay.merge`: ``--mask``'s options and a video's merged use mask.
+
+The mask operations every stage uses (:func:`~mosaic_cli.mask.load_mask`,
+:func:`~mosaic_cli.mask.work_mask`, :func:`~mosaic_cli.mask.fill_masked`) live in
+:mod:`mosaic_cli.mask`, below the estimators; they are re-exported here."""
+
+from mosaic_cli.mask import fill_masked, load_mask, work_mask
+from mosaic_cli.overlay.detect import Detection, Letterbox, OverlayOptions, detect_overlays
+from mosaic_cli.overlay.merge import LIVE_DETECTION_SKIPPED, FrameMask, MaskOptions, frame_mask, live_mask
+from mosaic_cli.overlay.samples import VideoSamples, sample_frames, sample_width
+
+__all__ = [
+    "LIVE_DETECTION_SKIPPED",
+    "Detection",
+    "FrameMask",
+    "Letterbox",
+    "MaskOptions",
+    "OverlayOptions",
+    "VideoSamples",
+    "detect_overlays",
+    "fill_masked",
+    "frame_mask",
+    "live_mask",
+    "load_mask",
+    "sample_frames",
+    "sample_width",
+    "work_mask",
+]
