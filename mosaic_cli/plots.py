@@ -123,16 +123,24 @@ def write_stabilize_plot(path: str | Path, before: PathSeries, after: PathSeries
     _save(figure, path)
 
 
-def write_track_plot(path: str | Path, confidence: np.ndarray, fps: float, failed_below: float = 0.0) -> None:
-    """Each pair's confidence over time; failed pairs (confidence at or below ``failed_below``) marked."""
+PATH_STYLES = {"fallback": ("tab:orange", "o"), "carried": ("tab:purple", "s"), "failed": ("tab:red", "x")}
+
+
+def write_track_plot(path: str | Path, confidence: np.ndarray, fps: float, failed_below: float = 0.0,
+                     paths: list[str] | None = None) -> None:
+    """Each pair's confidence over time; failed pairs (confidence at or below ``failed_below``)
+    marked, and with ``paths`` (the learned estimator's, per pair) the pairs the classical
+    fallback made and those the carried motion placed, each in its own colour."""
     figure, axes = _figure(1)
     confidence = np.asarray(confidence, float)
     t = (np.arange(len(confidence)) + 1) / (fps or 1.0)  # pair t -> t+1 is known at frame t+1
     ax = axes[0]
     ax.plot(t, confidence, color="tab:blue", label="confidence")
-    failed = confidence <= failed_below
-    if failed.any():
-        ax.scatter(t[failed], confidence[failed], color="tab:red", marker="x", label="failed", zorder=3)
+    kinds = np.asarray(paths) if paths is not None else np.where(confidence <= failed_below, "failed", "")
+    for kind, (colour, marker) in PATH_STYLES.items():
+        marked = kinds == kind
+        if marked.any():
+            ax.scatter(t[marked], confidence[marked], color=colour, marker=marker, label=kind, zorder=3)
     ax.set_ylim(-0.05, 1.05)
     ax.set_ylabel("confidence")
     ax.set_xlabel("seconds" if fps else "frames")

@@ -46,6 +46,7 @@ class TrackResult:
     pairwise: np.ndarray  # (N-1, 3, 3), frame t -> t+1, full-resolution pixels
     confidence: np.ndarray  # (N-1,)
     meta: dict = field(default_factory=dict)
+    paths: list[str] | None = None  # the learned estimator: which path made each pair
 
     @property
     def frames(self) -> int:
@@ -55,6 +56,8 @@ class TrackResult:
         doc = self._header()
         doc["pairwise"] = [[[float(v) for v in row] for row in H] for H in self.pairwise]
         doc["confidence"] = [float(c) for c in self.confidence]
+        if self.paths is not None:
+            doc["path"] = list(self.paths)
         doc["meta"] = self.meta
         return doc
 
@@ -77,6 +80,8 @@ class TrackResult:
             fh.write((", " if k else "") + json.dumps(np.asarray(H, dtype=np.float64).tolist()))
         fh.write('], "confidence": ')
         fh.write(json.dumps(np.asarray(self.confidence, dtype=np.float64).tolist()))
+        if self.paths is not None:
+            fh.write(', "path": ' + json.dumps(list(self.paths)))
         fh.write(', "meta": ' + json.dumps(self.meta) + "}\n")
 
 
@@ -91,6 +96,7 @@ def track_video(
     ``info``: the video's probe, when the caller has it."""
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
+    paths: list[str | None] = []
     with open_video(path, width=estimator.input_width, gray=True, info=info) as stream:
         info = stream.info
         total = info.frame_count if max_frames is None else min(max_frames, info.frame_count or max_frames)
@@ -101,6 +107,7 @@ def track_video(
             for estimate in estimate_stream(estimator, itertools.islice(stream, max_frames), info.source_size):
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
+                paths.append(estimate.path)
                 advance(1)
         elapsed = time.perf_counter() - start
     n = len(pairwise) + 1
@@ -110,7 +117,8 @@ def track_video(
     if stream.shortfall is not None:  # read to the end, and the end came early
         meta["input"] = stream.shortfall.as_meta()
     return TrackResult(
-        info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta
+        info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta,
+        [str(p) for p in paths] if paths and all(p is not None for p in paths) else None,
     )
 
 
@@ -164,4 +172,6 @@ def load_track(path: str | Path) -> TrackResult:
         conf = np.array(data.get("confidence", [1.0] * len(pairwise)), dtype=np.float64)
     except (ValueError, TypeError) as exc:
         raise BadInput(f"{path}: not a mosaic track file ({exc.__class__.__name__})") from None
-    return TrackResult(info, data.get("estimator", "?"), pairwise, conf, data.get("meta", {}))
+    paths = data.get("path")
+    return TrackResult(info, data.get("estimator", "?"), pairwise, conf, data.get("meta", {}),
+                       [str(p) for p in paths] if isinstance(paths, list) and len(paths) == len(pairwise) else None)

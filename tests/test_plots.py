@@ -90,9 +90,9 @@ def test_track_plot_draws_the_confidence_written(tmp_path, capsys, tiny_clip, mo
     drawn = {}
     original = plots.write_track_plot
 
-    def spy(path, confidence, fps):
-        drawn.update(confidence=np.array(confidence), fps=fps)
-        original(path, confidence, fps)
+    def spy(path, confidence, fps, paths=None):
+        drawn.update(confidence=np.array(confidence), fps=fps, paths=paths)
+        original(path, confidence, fps, paths=paths)
 
     monkeypatch.setattr(plots, "write_track_plot", spy)
     out, plot = tmp_path / "t.json", tmp_path / "confidence.png"
@@ -116,3 +116,31 @@ def test_plot_without_matplotlib_is_one_line_before_any_work(tmp_path, capsys, t
 def test_plot_must_be_a_png(tmp_path, capsys, tiny_clip):
     code, err = run_cli(capsys, "track", tiny_clip, "-o", tmp_path / "t.json", "--plot", tmp_path / "p.jpg", "-q")
     assert_one_line_error(code, err, "--plot", "must end in .png")
+
+
+def test_track_plot_draws_which_path_made_each_pair(tmp_path, capsys, monkeypatch):
+    """The learned estimator's track names the path of every pair ("path" in the JSON, counted in
+    meta.paths); the plot is given those very paths: here a black stretch in a pan, whose pairs
+    the carried motion places."""
+    from conftest import textured_image, write_clip
+
+    tex = textured_image(800, 480, seed=11)
+    frames = [tex[60 + 4 * t: 420 + 4 * t, 100 - 6 * t: 740 - 6 * t] for t in range(12)]
+    frames[6] = np.zeros_like(frames[6])
+    video = write_clip(tmp_path / "pan.mp4", frames)
+    drawn = {}
+    original = plots.write_track_plot
+
+    def spy(path, confidence, fps, paths=None):
+        drawn.update(paths=paths)
+        original(path, confidence, fps, paths=paths)
+
+    monkeypatch.setattr(plots, "write_track_plot", spy)
+    out, plot = tmp_path / "t.json", tmp_path / "paths.png"
+    code, err = run_cli(capsys, "track", video, "-o", out, "--plot", plot, "-q")
+    assert code == 0, err
+    data = json.loads(out.read_text())
+    assert drawn["paths"] == data["path"] and len(data["path"]) == 11
+    assert data["path"][5] == data["path"][6] == "carried"
+    assert {k: data["path"].count(k) for k in set(data["path"])} == {k: v for k, v in data["meta"]["paths"].items() if v}
+    assert is_png_of_plausible_size(plot)

@@ -101,7 +101,7 @@ def track(
     if plot is not None:
         from mosaic_cli.plots import write_track_plot
 
-        write_track_plot(plot, result.confidence, result.info.fps)
+        write_track_plot(plot, result.confidence, result.info.fps, paths=result.paths)
     where = "standard output" if out == "-" else out
     if not len(result.pairwise):
         # One frame: nothing to track, which is not an error (the output is a valid empty

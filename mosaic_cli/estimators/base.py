@@ -26,10 +26,12 @@ from mosaic_cli.mask import work_mask
 
 @dataclass(frozen=True)
 class PairEstimate:
-    """Homography frame t -> t+1 (3x3, full-resolution pixels) and a confidence in [0, 1]."""
+    """Homography frame t -> t+1 (3x3, full-resolution pixels), a confidence in [0, 1], and for
+    the learned estimator the path that made it (learned, fallback, carried or failed)."""
 
     H: np.ndarray
     confidence: float
+    path: str | None = None
 
     @staticmethod
     def failed() -> PairEstimate:

@@ -32,7 +32,7 @@
 from __future__ import annotations
 
 import importlib.resources
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -383,11 +383,12 @@ class LearnedEstimator(Estimator):
         elif path != "failed":  # the frames placed a pair again: a new run may be carried
             self._carried_run = 0
         if H_work is None:
-            return PairEstimate.failed()
+            return replace(PairEstimate.failed(), path=path)
         if confidence > 0:
             self._confirmed_once = self._confirmed_once or path != "carried"
             self._motion = H_work
-        return self._to_full(H_work, confidence)
+        estimate = self._to_full(H_work, confidence)
+        return replace(estimate, path=path if estimate.confidence > 0 or path == "failed" else "failed")
 
     def _describe(self, frame: WorkFrame) -> None:
         """Whether the frame has texture to register (black, blown-out, flat or badly blurred
