@@ -400,6 +400,47 @@ def test_a_two_process_cpu_ddp_run_completes(tmp_path, pan_clips):
     assert meta["variant"] == "reg-all"
 
 
+def _ddp_half_batch(rank: int, world: int, port: int, batch: dict, out: str) -> None:
+    import torch.distributed as dist
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world)
+    try:
+        torch.manual_seed(5)
+        net = HomographyNet(NetConfig(preset="compact", head="cnn", patch=PATCH)).eval()  # eval: no dropout
+        ddp = torch.nn.parallel.DistributedDataParallel(net)
+        half = {k: v[rank::world] for k, v in batch.items()}
+        Objective("base", patch=PATCH)(ddp, half)["total"].backward()
+        if rank == 0:
+            torch.save({k: p.grad for k, p in net.named_parameters()}, out)
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_process_ddp_gradients_equal_one_process_on_the_whole_batch(tmp_path):
+    """Each of two gloo processes takes half of a batch; DistributedDataParallel averages their
+    gradients, which must be the gradients of one process on the whole batch (the loss is a mean
+    over the batch)."""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    frames = torch.from_numpy(pan_frames(8)).float() / 127.5 - 1.0
+    batch = {"frames": torch.stack([frames[k:k + 2] for k in range(4)])[:, :, None],
+             "positions": torch.tensor([[[4, 2]], [[10, 6]], [[20, 8]], [[30, 12]]])}
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "grads.pt"
+    mp.spawn(_ddp_half_batch, args=(2, port, batch, str(out)), nprocs=2, join=True)
+    torch.manual_seed(5)
+    net = HomographyNet(NetConfig(preset="compact", head="cnn", patch=PATCH)).eval()
+    Objective("base", patch=PATCH)(net, batch)["total"].backward()
+    averaged = torch.load(out)
+    for name, p in net.named_parameters():
+        torch.testing.assert_close(averaged[name], p.grad, rtol=1e-4, atol=1e-7)
+
+
 @pytest.mark.slow
 def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pan_clips):
     def run(name: str, **options) -> dict[str, torch.Tensor]:
@@ -422,6 +463,33 @@ def test_lstm_fine_tuned_from_base_keeps_the_copied_backbone_frozen(tmp_path, pa
     if quantize.engine() is not None:  # the final weights carry int8 ranges that fit the net
         assert meta["int8"]["pairs"] == CALIBRATION_PAIRS
         assert quantize.quantized_features(model, meta["int8"]) is not None
+
+
+def test_device_windows_cut_real_windows_and_draw_from_the_step_alone(tmp_path):
+    """--data device: each window is consecutive frames of one clip (forward or reversed), the
+    patches inside the frame, the same batch for the same (seed, step) and another for another
+    step; in [-1, 1] as to_model_input gives them."""
+    from mosaic_cli.train.data import DeviceWindows
+
+    frames = pan_frames(30)
+    clips = [write_png_folder(tmp_path / name, frames[k::2] if name == "b" else frames) for k, name in enumerate("ab")]
+    cached = build_frame_cache(clips, tmp_path / "cache", WORK, window=4, budget_bytes=1e9, workers=0, show_progress=False)
+    windows = DeviceWindows(cached, window=4, positions=2, patch=PATCH, seed=3, device=torch.device("cpu"), flip=False)
+    stored = [np.load(c.file) for c in cached]
+    batch = windows.batch(7, batch_size=16)
+    assert batch["frames"].shape == (16, 4, 1, *WORK[::-1]) and batch["frames"].min() >= -1 and batch["frames"].max() <= 1
+    reversed_seen = 0
+    for window in ((batch["frames"][:, :, 0] + 1.0) * 127.5).round().to(torch.uint8).numpy():
+        found = [(c, s, d) for c, clip in enumerate(stored) for d in (1, -1) for s in range(len(clip) - 3)
+                 if np.array_equal(window, clip[s:s + 4][::d])]
+        assert found, "every window is 4 consecutive frames of one clip"
+        reversed_seen += found[0][2] == -1
+    assert 0 < reversed_seen < 16
+    pos = batch["positions"]
+    assert pos.min() >= 0 and pos[..., 0].max() <= WORK[0] - PATCH and pos[..., 1].max() <= WORK[1] - PATCH
+    again = windows.batch(7, batch_size=16)
+    assert torch.equal(again["frames"], batch["frames"]) and torch.equal(again["positions"], batch["positions"])
+    assert not torch.equal(windows.batch(8, batch_size=16)["positions"], batch["positions"])
 
 
 # ----------------------------------------------------------------------------- bursts

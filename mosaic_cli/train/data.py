@@ -419,7 +419,7 @@ class DeviceWindows:
             array = np.load(clip.file, mmap_mode="r")
             for first, length in clip.segments:
                 if length >= self.window:
-                    parts.append(torch.from_numpy(np.ascontiguousarray(array[first:first + length])))
+                    parts.append(torch.from_numpy(np.array(array[first:first + length])))  # read out of the memory map
                     starts.append(torch.arange(offset, offset + length - self.window + 1))
                     offset += length
         if not parts:
