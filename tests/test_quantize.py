@@ -88,10 +88,9 @@ def test_the_estimator_runs_int8_only_with_calibrated_weights(tmp_path, net_and_
 def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
     """An LSTM head in int8, stepped over 48 pairs in 16-pair chunks with its state carried as
     the estimator does: kept only where its offsets stay within 0.05 working px of fp32's on real
-    texture.  A freshly initialised LSTM passes (measured: under 0.01 px); the shipped one, whose
-    regressor amplifies a small hidden state (it started as its CNN's head), loses 0.15 px to
-    int8 and keeps its head in fp32.  The verdict of quantized_head's own probe is checked
-    against textured patch pairs, independently of that probe."""
+    texture.  A freshly initialised LSTM passes (measured: under 0.01 px); for the shipped one,
+    whatever its weights, quantized_head's verdict must match what int8 does to its offsets here,
+    on textured patch pairs its own probe never saw."""
     from torch.ao.quantization import quantize_dynamic
 
     from mosaic_cli.estimators.learned import default_weights
@@ -100,7 +99,7 @@ def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
     shipped, _ = load_weights(default_weights("lstm"))
     torch.manual_seed(0)
     fresh = HomographyNet(NetConfig(head="lstm", patch=PATCH)).eval()
-    for model, keeps_int8 in ((fresh, True), (shipped, False)):
+    for model in (fresh, shipped):
         with torch.inference_mode(), warnings.catch_warnings():
             warnings.simplefilter("ignore")
             int8 = quantize_dynamic(copy.deepcopy(model).eval(), {torch.nn.LSTM}, dtype=torch.qint8)
@@ -114,7 +113,9 @@ def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
                 return torch.cat(out, dim=1)[0]
 
             error = float((offsets(int8) - offsets(model)).abs().max())
-        assert (error <= quantize.HEAD_TOLERANCE_PX) == keeps_int8, error
+        keeps_int8 = error <= quantize.HEAD_TOLERANCE_PX  # measured here, independently of quantized_head's probe
+        if model is fresh:
+            assert keeps_int8, error  # a small random LSTM steps alike in int8 (under 0.01 px measured)
         head = quantize.quantized_head(model)
         assert (head is not None) == keeps_int8
         if head is not None:
