@@ -302,3 +302,69 @@ def plain_video(tmp_path_factory):
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+def chromium(*args: str) -> subprocess.CompletedProcess:
+    """Debian's chromium, headless, on a page from disk (no sandbox: tests may run as root)."""
+    command = [CHROMIUM, "--headless=new", "--disable-gpu", "--no-sandbox", "--hide-scrollbars", "--force-device-scale-factor=1",
+               "--window-size=1000,700", "--virtual-time-budget=5000", "--enable-logging=stderr", "--v=0", *args]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120)
+
+
+def page_console(stderr: str) -> list[str]:
+    """What the page said on its console (chromium's own warnings left out)."""
+    return [line for line in stderr.splitlines() if "CONSOLE" in line or "Uncaught" in line]
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs chromium (apt-get install chromium)")
+def test_quicklook_page_draws_the_map_where_it_belongs_in_a_browser(geotiff, tmp_path):
+    from mosaic_cli.geo.quicklook import write_quicklook
+
+    page = tmp_path / "quick look.html"
+    write_quicklook(page, geotiff, features(), title="site")
+    text = page.read_text()
+    assert not re.search(r"<(script|link|img)\b[^>]*\b(src|href)=", text)  # one file: nothing loaded from beside it or online
+    assert "BSD 2-Clause License" in text  # Leaflet's licence travels with it
+    url = page.resolve().as_uri()
+    dom = chromium("--dump-dom", url)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    body = re.search(r"<body[^>]*>", dom.stdout).group(0)  # the page's script marks its <body> when done, and on an error
+    assert 'data-ready="1"' in body and "data-errors" not in body, body
+    assert not page_console(dom.stderr), page_console(dom.stderr)
+    shot = tmp_path / "shot.png"
+    run = chromium(f"--screenshot={shot}", url)
+    assert run.returncode == 0 and shot.exists(), run.stderr[-2000:]
+    assert not page_console(run.stderr), page_console(run.stderr)
+    image = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(int)
+    assert image.shape[:2] == (700, 1000)
+
+    background = np.array([221, 221, 221])  # the page's grey
+
+    def off_map(pixels: np.ndarray) -> np.ndarray:
+        return np.abs(pixels - background).max(axis=-1) <= 3
+
+    # where the map is drawn: across the middle row and column, from the page's grey to it and back
+    row, column = ~off_map(image[350]), ~off_map(image[:, 500])
+    x0, x1 = np.argmax(row), len(row) - np.argmax(row[::-1])
+    y0, y1 = np.argmax(column), len(column) - np.argmax(column[::-1])
+    from rasterio.warp import transform_bounds
+
+    west, south, east, north = wgs84_bounds(geotiff)
+    left, bottom, right, top = transform_bounds("EPSG:4326", "EPSG:3857", west, south, east, north)
+    assert (x1 - x0) / (y1 - y0) == pytest.approx((right - left) / (top - bottom), rel=0.02)  # its shape in Web Mercator
+    assert (x0 + x1) / 2 == pytest.approx(500, abs=3) and (y0 + y1) / 2 == pytest.approx(350, abs=3)  # fitted: centred
+    assert x1 - x0 > 500
+
+    def at(u: float, v: float) -> np.ndarray:
+        """The screenshot's median colour around the map's point (u, v) (fractions of its width, height from the top)."""
+        x, y = round(x0 + u * (x1 - x0)), round(y0 + v * (y1 - y0))
+        return np.median(image[y - 3:y + 4, x - 3:x + 4].reshape(-1, 3), axis=0)
+
+    for u, v in ((0.5, 0.85), (0.9, 0.5), (0.3, 0.9)):  # away from the footprints and the track
+        expected = (40 + 180 * u, 200 - 150 * v)  # the synthetic map's red and green there
+        assert np.abs(at(u, v)[:2] - expected).max() < 20, (u, v, at(u, v), expected)
+    assert off_map(at(0.03, 0.97)[None])[0]  # the map's transparent corner shows the page
+    # the track is drawn on the map where it is on the ground: its first fix, 5 m east and 20 m north of the corner
+    x, y = round(x0 + 5 / 64 * (x1 - x0)), round(y0 + (1 - 20 / 42) * (y1 - y0))
+    red = image[y - 2:y + 3, x - 2:x + 3].reshape(-1, 3)
+    assert ((red[:, 0] > 180) & (red[:, 1] < 80) & (red[:, 2] < 100)).any(), red

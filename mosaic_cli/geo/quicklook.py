@@ -131,13 +131,6 @@ SCRIPT = r"""
   map.on("click", function (e) {
     L.popup().setLatLng(e.latlng).setContent(fmt(e.latlng.lat, 7) + " N, " + fmt(e.latlng.lng, 7) + " E").openOn(map);
   });
-  // where the map is drawn, for a test or a script reading the page
-  function box() {
-    var a = map.latLngToContainerPoint(data.bounds[1]), b = map.latLngToContainerPoint(data.bounds[0]);
-    document.body.setAttribute("data-map-box", [a.x, a.y, b.x, b.y].map(Math.round).join(","));
-  }
-  map.on("moveend zoomend", box);
-  box();
   document.body.setAttribute("data-ready", "1");
 })();
 """
