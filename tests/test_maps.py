@@ -216,6 +216,29 @@ def test_mbtiles_by_gdal_reads_back_in_web_mercator(geotiff, tmp_path):
         assert db.execute("SELECT COUNT(*) FROM tiles WHERE zoom_level = ?", (zooms.minzoom,)).fetchone()[0] >= 1
 
 
+def test_pmtiles_archive_holds_the_same_tiles(geotiff, tmp_path):
+    from pmtiles.reader import MmapSource, Reader
+    from pmtiles.tile import TileType
+
+    from mosaic_cli.geo.tiles import write_pmtiles, write_tiles
+
+    out = tmp_path / "site.pmtiles"
+    zooms = write_pmtiles(out, geotiff)
+    write_tiles(tmp_path / "tiles", geotiff)
+    with open(out, "rb") as f:
+        reader = Reader(MmapSource(f))
+        header = reader.header()
+        assert header["tile_type"] == TileType.PNG and (header["min_zoom"], header["max_zoom"]) == (zooms.minzoom, zooms.maxzoom)
+        west, south, east, north = wgs84_bounds(geotiff)
+        assert header["min_lon_e7"] / 1e7 == pytest.approx(west, abs=1e-6) and header["max_lat_e7"] / 1e7 == pytest.approx(north, abs=1e-6)
+        pngs = sorted((tmp_path / "tiles").glob("*/*/*.png"))
+        for png in pngs:
+            z, x, y = int(png.parent.parent.name), int(png.parent.name), int(png.stem)
+            assert reader.get(z, x, y) == png.read_bytes()  # every tile of the folder, the same bytes
+        assert reader.get(zooms.maxzoom + 1, 0, 0) is None
+        assert reader.metadata()["name"] == "site"
+
+
 def test_tiles_folder_replaces_its_own_tiles_but_not_other_files(tmp_path, capsys):
     from mosaic_cli.errors import BadInput
     from mosaic_cli.geo.tiles import check_tiles_folder
@@ -284,7 +307,7 @@ def test_stitch_writes_kmz_tiles_and_html(flight, tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
 
 
-@pytest.mark.parametrize("args", [["-o", "m.kmz"], ["-o", "m.mbtiles"], ["-o", "tiles/"], ["-o", "m.png", "--html", "q.html"]])
+@pytest.mark.parametrize("args", [["-o", "m.kmz"], ["-o", "m.mbtiles"], ["-o", "m.pmtiles"], ["-o", "tiles/"], ["-o", "m.png", "--html", "q.html"]])
 @pytest.mark.parametrize("telemetry", [None, "none"])
 def test_map_outputs_without_telemetry_are_one_line_before_any_work(capsys, tmp_path, monkeypatch, args, telemetry, plain_video):
     monkeypatch.chdir(tmp_path)

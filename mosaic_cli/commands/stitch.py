@@ -39,7 +39,7 @@ Quiet = quiet_option("No progress bars.")
 
 def stitch(
     video: Annotated[str, typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
-    out: Annotated[str, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg; with telemetry a map: .tif (Cloud Optimized GeoTIFF), .kmz (Google Earth), .mbtiles, or DIR/ (web tiles, {z}/{x}/{y}.png).", rich_help_panel=INPUT_OUTPUT)],
+    out: Annotated[str, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg; with telemetry a map: .tif (Cloud Optimized GeoTIFF), .kmz (Google Earth), DIR/ (web tiles, {z}/{x}/{y}.png), .pmtiles or .mbtiles.", rich_help_panel=INPUT_OUTPUT)],
     transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
     start: Annotated[int, typer.Option("--start", help="Skip this many frames first.", rich_help_panel=INPUT_OUTPUT)] = 0,
     max_frames: MaxFrames = None,

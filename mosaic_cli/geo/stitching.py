@@ -105,7 +105,7 @@ def write_outputs(out, panorama, georef: Georeference, options: GeorefOptions, t
 
     from mosaic_cli.atomic import write_json
     from mosaic_cli.geo.output import footprint_collection, staged_geotiff, write_cog
-    from mosaic_cli.stitch.output import output_format
+    from mosaic_cli.stitch.output import MAP_FORMATS, output_format
 
     fmt = output_format(out)
     features = footprint_collection(georef, map_homographies(georef, to_canvas, frame_to_canvas), frame_size, fps)
@@ -113,7 +113,7 @@ def write_outputs(out, panorama, georef: Georeference, options: GeorefOptions, t
         write_json(options.footprints, features)
     if fmt == "tiff":
         write_cog(out, panorama, georef, to_canvas)
-    if fmt not in ("kmz", "mbtiles", "tiles") and options.html is None:
+    if fmt not in MAP_FORMATS and options.html is None:
         return fmt == "tiff"
     with contextlib.ExitStack() as stack:
         # the writers below read a georeferenced raster: the COG just written, else a staging one
@@ -126,6 +126,10 @@ def write_outputs(out, panorama, georef: Georeference, options: GeorefOptions, t
             from mosaic_cli.geo.tiles import write_mbtiles
 
             write_mbtiles(out, raster)
+        elif fmt == "pmtiles":
+            from mosaic_cli.geo.tiles import write_pmtiles
+
+            write_pmtiles(out, raster)
         elif fmt == "tiles":
             from mosaic_cli.geo.tiles import write_tiles
 
@@ -134,4 +138,4 @@ def write_outputs(out, panorama, georef: Georeference, options: GeorefOptions, t
             from mosaic_cli.geo.quicklook import write_quicklook
 
             write_quicklook(options.html, raster, features, title=Path(out).stem or Path(out).name)
-    return fmt in ("tiff", "kmz", "mbtiles", "tiles")
+    return fmt == "tiff" or fmt in MAP_FORMATS

@@ -1,6 +1,6 @@
 """Web map tiles of a georeferenced mosaic: XYZ tiles in Web Mercator (``DIR/{z}/{x}/{y}.png``,
-with a TileJSON ``metadata.json``) and MBTiles (GDAL's driver), the zoom range chosen from
-the map's ground resolution.
+with a TileJSON ``metadata.json``), PMTiles (one file, the ``pmtiles`` package) and MBTiles
+(GDAL's driver), the zoom range chosen from the map's ground resolution.
 
 The tile grid is morecantile's WebMercatorQuad (the OSM/Google XYZ scheme); the pixels are
 warped by GDAL (a rasterio WarpedVRT per zoom level, aligned to that level's tile grid:
@@ -179,6 +179,40 @@ def _swap_in(staging: Path, out: Path) -> None:
     finally:
         with contextlib.suppress(OSError):
             shutil.rmtree(old)
+
+
+def write_pmtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
+    """The XYZ tiles as one PMTiles v3 archive (PNG tiles, clustered: each zoom's tiles in
+    tile-id order), written atomically."""
+    from pmtiles.tile import Compression, TileType, zxy_to_tileid
+    from pmtiles.writer import Writer
+
+    zooms = zoom_range(geotiff)
+    west, south, east, north = zooms.bounds
+    with atomic_path(out) as tmp, open(tmp, "wb") as f:
+        writer = Writer(f)
+        level: list[tuple[int, bytes]] = []
+
+        def flush() -> None:
+            for tile_id, data in sorted(level, key=lambda item: item[0]):
+                writer.write_tile(tile_id, data)
+            level.clear()
+
+        current = None
+        for z, x, y, rgba in render_tiles(geotiff, zooms):
+            if z != current:
+                flush()
+                current = z
+            level.append((zxy_to_tileid(z, x, y), encode_png(rgba)))
+        flush()
+        e7 = 10_000_000
+        header = {"tile_type": TileType.PNG, "tile_compression": Compression.NONE, "min_zoom": zooms.minzoom, "max_zoom": zooms.maxzoom,
+                  "min_lon_e7": int(west * e7), "min_lat_e7": int(south * e7), "max_lon_e7": int(east * e7), "max_lat_e7": int(north * e7),
+                  "center_zoom": min(zooms.maxzoom, zooms.minzoom + 2), "center_lon_e7": int((west + east) / 2 * e7),
+                  "center_lat_e7": int((south + north) / 2 * e7)}
+        meta = tilejson(zooms, Path(out).stem)
+        writer.finalize(header, {k: v for k, v in meta.items() if k not in ("tilejson", "tiles", "scheme")})
+    return zooms
 
 
 def write_mbtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:

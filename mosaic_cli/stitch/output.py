@@ -13,10 +13,11 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path, check_writable, write_json
 from mosaic_cli.errors import BadInput, ProcessingError
 
-FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".kmz": "kmz", ".mbtiles": "mbtiles"}
+FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".kmz": "kmz", ".mbtiles": "mbtiles",
+           ".pmtiles": "pmtiles"}
 # Outputs only a map can be (they need the mosaic's place on the ground: telemetry); "tiles" is
 # a folder of web tiles, given as DIR/ (a trailing slash) or an existing folder.
-MAP_FORMATS = {"kmz": "KMZ", "mbtiles": "MBTiles", "tiles": "web tiles"}
+MAP_FORMATS = {"kmz": "KMZ", "mbtiles": "MBTiles", "pmtiles": "PMTiles", "tiles": "web tiles"}
 JPEG_MAX_SIDE = 65500
 
 
@@ -33,7 +34,7 @@ def check_outputs(out: str | Path, transforms: str | Path | None, max_size: int 
     fmt = output_format(out)
     out = Path(out)
     if fmt is None:
-        raise BadInput(f"output {out} must end in .png, .jpg, .jpeg, .tif, .tiff, .kmz or .mbtiles, or be a folder (DIR/) for web tiles")
+        raise BadInput(f"output {out} must end in .png, .jpg, .jpeg, .tif, .tiff, .kmz, .pmtiles or .mbtiles, or be a folder (DIR/) for web tiles")
     if fmt == "tiles":
         from mosaic_cli.geo.tiles import check_tiles_folder
 
