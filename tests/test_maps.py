@@ -146,7 +146,7 @@ def test_zoom_range_follows_the_ground_resolution(geotiff):
     assert 1 <= len(list(tms.tiles(*zooms.bounds, zooms=[zooms.minzoom]))) <= 4
 
 
-def _reprojected(geotiff, bounds, size=256):
+def _reprojected(geotiff, bounds, size=256, resampling="bilinear"):
     """The map warped by GDAL (rasterio.warp.reproject) onto a tile's bounds: the truth."""
     import rasterio
     from rasterio.enums import Resampling
@@ -156,7 +156,7 @@ def _reprojected(geotiff, bounds, size=256):
     dst = np.zeros((4, size, size), np.uint8)
     with rasterio.open(geotiff) as ds:
         reproject(rasterio.band(ds, [1, 2, 3, 4]), dst, dst_transform=from_bounds(*bounds, size, size), dst_crs="EPSG:3857",
-                  resampling=Resampling.bilinear, src_alpha=4, dst_alpha=4)
+                  resampling=Resampling[resampling], src_alpha=4, dst_alpha=4)
     return dst.transpose(1, 2, 0)
 
 
@@ -173,10 +173,9 @@ def test_xyz_folder_tiles_are_the_map_warped_to_their_bounds(geotiff, tmp_path):
     assert levels == list(range(zooms.minzoom, zooms.maxzoom + 1))
     # the deepest level: each tile is GDAL's warp of the map onto the tile's bounds, which are
     # computed here from the XYZ scheme's formula (not morecantile)
-    z = zooms.maxzoom
-    checked = 0
     to_merc = Transformer.from_crs("EPSG:4326", "EPSG:3857", always_xy=True)
     half = to_merc.transform(180, 0)[0]
+    z, checked = zooms.maxzoom, 0
     for png in sorted((out / str(z)).glob("*/*.png")):
         x, y = int(png.parent.name), int(png.stem)
         size = 2 * half / 2**z
@@ -191,6 +190,19 @@ def test_xyz_folder_tiles_are_the_map_warped_to_their_bounds(geotiff, tmp_path):
             assert diff.mean() < 2.0 and np.percentile(diff, 99) <= 8, (png, diff.mean())
             checked += 1
     assert checked >= 2
+    # the shallowest level: the map averaged down (the whole map in one to four tiles)
+    z = zooms.minzoom
+    for png in sorted((out / str(z)).glob("*/*.png")):
+        x, y = int(png.parent.name), int(png.stem)
+        size = 2 * half / 2**z
+        bounds = (-half + x * size, half - (y + 1) * size, -half + (x + 1) * size, half - y * size)
+        tile = cv2.cvtColor(cv2.imread(str(png), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
+        truth = _reprojected(geotiff, bounds, resampling="average")
+        inside = cv2.erode((truth[..., 3] == 255).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        if inside.sum() > 100:
+            assert np.abs(tile[..., :3].astype(int) - truth[..., :3].astype(int))[inside].mean() < 3.0
+            checked += 1
+    assert checked >= 3
 
 
 def test_mbtiles_by_gdal_reads_back_in_web_mercator(geotiff, tmp_path):
