@@ -311,6 +311,10 @@ def test_stitch_writes_kmz_tiles_and_html(flight, tmp_path):
     assert len(truth) < 90  # some cues without a fix: left out of the track
     np.testing.assert_allclose(track, truth, atol=1e-7)  # the telemetry's positions, every fix
     assert html.stat().st_size > 10_000 and "L.imageOverlay" in html.read_text()
+    if CHROMIUM is not None:  # the page of a real stitch loads without an error
+        dom = chromium("--dump-dom", html.resolve().as_uri())
+        body = re.search(r"<body[^>]*>", dom.stdout).group(0)
+        assert 'data-ready="1"' in body and "data-errors" not in body and not page_console(dom.stderr), (body, page_console(dom.stderr))
     tiles = tmp_path / "tiles"
     mosaic("stitch", flight, "--telemetry", srt, "-o", f"{tiles}/", "-q")
     meta = json.loads((tiles / "metadata.json").read_text())
