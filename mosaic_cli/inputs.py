@@ -6,6 +6,7 @@ and a ``--mask`` image against the input's size."""
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -110,3 +111,19 @@ def check_mask_file(mask: MaskOptions, info: VideoInfo | None) -> None:
 
 __all__ = ["DEFAULT_TIMEOUT", "PRESETS", "VIDEO_SUFFIXES", "check_encoder", "check_mask_file", "check_max_frames", "check_threads",
            "check_timeout", "find_flights", "ground_truth_path", "is_video_file", "parse_size"]
+
+
+# What an output's name makes it (stitch's panorama, geo's maps): PNG, JPEG or TIFF by extension;
+# outputs only a map can be (they need the mosaic's place on the ground: telemetry); "tiles" is
+# a folder of web tiles, given as DIR/ (a trailing slash) or an existing folder.
+FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".kmz": "kmz", ".mbtiles": "mbtiles",
+           ".pmtiles": "pmtiles"}
+MAP_FORMATS = {"kmz": "KMZ", "mbtiles": "MBTiles", "pmtiles": "PMTiles", "tiles": "web tiles"}
+
+
+def output_format(out: str | Path) -> str | None:
+    """The output's format by its extension; "tiles" for a folder (a trailing slash, or one that
+    exists); None for an extension no writer has."""
+    if str(out).endswith(("/", os.sep)) or Path(out).is_dir():
+        return "tiles"
+    return FORMATS.get(Path(out).suffix.lower())

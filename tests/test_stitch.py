@@ -267,7 +267,7 @@ def short_clip(tmp_path_factory, ground) -> Path:
 )
 def test_format_follows_the_extension(short_clip, tmp_path, capsys, name, channels, magic):
     out = tmp_path / name
-    code, err = run_cli(capsys, "stitch", short_clip, "-o", out, "--work-width", 128, "--no-drift-control", "-q")
+    code, err = run_cli(capsys, "stitch", short_clip, "-o", out, "-e", "orb", "--work-width", 128, "--no-drift-control", "-q")
     assert code == 0, err
     assert out.read_bytes()[:4].startswith(magic[:3]) and out.read_bytes()[:4] in (magic, magic[:3] + out.read_bytes()[3:4])
     image = read_rgba(out)
@@ -278,7 +278,7 @@ def test_format_follows_the_extension(short_clip, tmp_path, capsys, name, channe
 @pytest.mark.slow
 def test_reference_first_draws_the_first_keyframe_upright(short_clip, tmp_path, capsys):
     code, err = run_cli(capsys, "stitch", short_clip, "-o", tmp_path / "p.png", "--transforms", tmp_path / "t.json",
-                        "--reference", "first", "--work-width", 128, "-q")
+                        "--reference", "first", "-e", "orb", "--work-width", 128, "-q")
     assert code == 0, err
     _, indices, H = load_transforms(tmp_path / "t.json")
     A = H[0] / H[0][2, 2]

@@ -39,7 +39,7 @@ Quiet = quiet_option("No progress bars.")
 
 def stitch(
     video: Annotated[str, typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg.", rich_help_panel=INPUT_OUTPUT)],
+    out: Annotated[str, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg; with telemetry a map: .tif (Cloud Optimized GeoTIFF), .kmz (Google Earth), DIR/ (web tiles, {z}/{x}/{y}.png), .pmtiles or .mbtiles.", rich_help_panel=INPUT_OUTPUT)],
     transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
     start: Annotated[int, typer.Option("--start", help="Skip this many frames first.", rich_help_panel=INPUT_OUTPUT)] = 0,
     max_frames: MaxFrames = None,
@@ -62,6 +62,7 @@ def stitch(
     hfov: Annotated[float | None, typer.Option("--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV).", rich_help_panel=TELEMETRY)] = None,
     telemetry_offset: Annotated[float, typer.Option("--telemetry-offset", help="Seconds added to the telemetry's times to match the video's.", rich_help_panel=TELEMETRY)] = 0.0,
     footprints: Annotated[Path | None, typer.Option("--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84).", rich_help_panel=TELEMETRY)] = None,
+    html: Annotated[Path | None, typer.Option("--html", help="With telemetry: write a quick-look page of the map (one offline HTML file: the map, track, footprints, scale bar).", rich_help_panel=TELEMETRY)] = None,
     level_ground: Annotated[bool, typer.Option("--level-ground", help="With telemetry: the ground is level with the take-off point, so each keyframe's height also corrects its scale (drift over long flights). Not over hills or slopes.", rich_help_panel=TELEMETRY)] = False,
     live: Annotated[bool, typer.Option("--live", help="Stitch as frames arrive (implied by a live input), with a growing --preview.", rich_help_panel=LIVE)] = False,
     preview: Annotated[Path | None, typer.Option("--preview", help="--live: rewrite this PNG/JPEG preview of the panorama so far (atomically) every --every seconds.", rich_help_panel=LIVE)] = None,
@@ -85,7 +86,7 @@ def stitch(
         mask=mask_options(mask, overlay_detect),
         start=start,
         max_frames=max_frames,
-        georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground),
+        georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground, html),
         timeout=timeout,
     )
     live = live or is_live_source(video) or preview is not None
@@ -190,14 +191,15 @@ def _ranges(indices: list[int]) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None, level_ground: bool = False):
+def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None, level_ground: bool = False,
+                    html: Path | None = None):
     """``--telemetry FILE|none``, ``--hfov``, ``--telemetry-offset``, ``--footprints``,
-    ``--level-ground``; None: no georeferencing (``--telemetry none``)."""
+    ``--level-ground``, ``--html``; None: no georeferencing (``--telemetry none``)."""
     from mosaic_cli.errors import BadInput
     from mosaic_cli.geo.georef import GeorefOptions
 
     options = GeorefOptions(telemetry=Path(telemetry) if telemetry else None, hfov=hfov, offset=offset, footprints=footprints,
-                            level_ground=level_ground)
+                            level_ground=level_ground, html=html)
     if telemetry is not None and telemetry.strip().lower() == "none":
         if wanted := options.without_telemetry():
             raise BadInput(f"{wanted[0]} needs telemetry (--telemetry none was given)")

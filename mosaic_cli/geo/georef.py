@@ -57,6 +57,7 @@ class GeorefOptions:
     hfov: float | None = None  # degrees; overrides the telemetry's
     offset: float = 0.0  # seconds added to the telemetry's times
     footprints: Path | None = None
+    html: Path | None = None  # --html: the quick-look page (geo/quicklook.py)
     align: AlignOptions = field(default_factory=AlignOptions)
     min_coverage: float = 0.5  # at least this fraction of keyframes must have a fix
     max_scatter: float = 30.0  # metres: robust GPS scatter about the fit beyond this is no GPS error
@@ -89,7 +90,8 @@ class GeorefOptions:
 
     def without_telemetry(self) -> list[str]:
         """The flags given that mean nothing without a GPS track (said when there is none)."""
-        return [flag for flag, given in (("--footprints", self.footprints is not None), ("--level-ground", self.level_ground)) if given]
+        return [flag for flag, given in (("--footprints", self.footprints is not None), ("--html", self.html is not None),
+                                         ("--level-ground", self.level_ground)) if given]
 
     def validate(self) -> None:
         if self.attitude_accuracy is not None and not 0 < self.attitude_accuracy <= 90:
@@ -105,6 +107,8 @@ class GeorefOptions:
             raise BadInput("--telemetry-offset must be a number of seconds")
         if self.footprints is not None and Path(self.footprints).suffix.lower() not in (".geojson", ".json"):
             raise BadInput(f"--footprints {self.footprints} must end in .geojson or .json")
+        if self.html is not None and Path(self.html).suffix.lower() not in (".html", ".htm"):
+            raise BadInput(f"--html {self.html} must end in .html or .htm")
 
 
 @dataclass

@@ -5,6 +5,7 @@ homographies for the transforms JSON."""
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -32,32 +33,65 @@ def geotransform(georef: Georeference, to_canvas: np.ndarray):
     return Affine(G[0, 0], G[0, 1], G[0, 2], G[1, 0], G[1, 1], G[1, 2])
 
 
+def _write_geotiff(path: Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray, overviews: bool = False) -> None:
+    """A plain tiled RGBA GeoTIFF (alpha band), written in strips; with ``overviews``, averaged
+    ones down to a tile (what a reader warping the whole map at a coarser scale wants)."""
+    import rasterio
+    from rasterio.enums import ColorInterp, Resampling
+    from rasterio.windows import Window
+
+    height, width = rgba.shape[:2]
+    profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8", crs=georef.projection.crs.to_wkt(),
+                   transform=geotransform(georef, to_canvas), tiled=True, blockxsize=BLOCK, blockysize=BLOCK, compress="deflate",
+                   photometric="RGB", ALPHA="YES", BIGTIFF="IF_SAFER")
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
+        for r0 in range(0, height, ROWS_PER_WRITE):
+            r1 = min(height, r0 + ROWS_PER_WRITE)
+            dst.write(np.ascontiguousarray(rgba[r0:r1].transpose(2, 0, 1)), window=Window(0, r0, width, r1 - r0))
+        if overviews:
+            factors = [2**k for k in range(1, 32) if max(width, height) / 2 ** (k - 1) > BLOCK]
+            if factors:
+                dst.build_overviews(factors, Resampling.average)
+
+
+@contextlib.contextmanager
+def staged_geotiff(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray) -> Iterator[Path]:
+    """The panorama as a temporary GeoTIFF beside ``out`` (with overviews), for the writers that
+    read a georeferenced raster (KMZ, web tiles, the quick-look page); removed on leaving."""
+    import rasterio
+
+    staging = None
+    try:
+        with signals_held():
+            staging = temporary_beside(Path(out), ".staging.tif")
+        try:
+            _write_geotiff(staging, rgba, georef, to_canvas, overviews=True)
+        except rasterio.errors.RasterioError as exc:
+            raise ProcessingError(f"{out}: could not write the map's staging GeoTIFF ({exc})") from None
+        yield staging
+    finally:
+        if staging is not None:
+            with contextlib.suppress(FileNotFoundError):
+                staging.unlink()
+
+
 def write_cog(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray) -> None:
     """RGBA panorama -> Cloud Optimized GeoTIFF: 512-px internal tiles, deflate, overviews
     (averaged), transparency as an alpha band."""
     require_geo("rasterio", "rio_cogeo")
     import rasterio
-    from rasterio.enums import ColorInterp
-    from rasterio.windows import Window
     from rio_cogeo.cogeo import cog_translate
     from rio_cogeo.profiles import cog_profiles
     from rio_cogeo.utils import get_maximum_overview_level
 
     out = Path(out)
     height, width = rgba.shape[:2]
-    transform = geotransform(georef, to_canvas)
     staging = None
     try:
         with signals_held():
             staging = temporary_beside(out, ".staging.tif")
-        profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8", crs=georef.projection.crs.to_wkt(),
-                       transform=transform, tiled=True, blockxsize=BLOCK, blockysize=BLOCK, compress="deflate",
-                       photometric="RGB", ALPHA="YES", BIGTIFF="IF_SAFER")
-        with rasterio.open(staging, "w", **profile) as dst:
-            dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-            for r0 in range(0, height, ROWS_PER_WRITE):
-                r1 = min(height, r0 + ROWS_PER_WRITE)
-                dst.write(np.ascontiguousarray(rgba[r0:r1].transpose(2, 0, 1)), window=Window(0, r0, width, r1 - r0))
+        _write_geotiff(staging, rgba, georef, to_canvas)
         cog = cog_profiles.get("deflate")
         cog.update(blockxsize=BLOCK, blockysize=BLOCK, BIGTIFF="IF_SAFER")
         with atomic_path(out) as tmp:
@@ -74,15 +108,23 @@ def write_cog(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas
 
 
 def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> None:
+    """The footprints GeoJSON (see :func:`footprint_collection`), written atomically."""
+    write_json(path, footprint_collection(georef, map_h, frame_size, fps))
+
+
+def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> dict:
     """GeoJSON (RFC 7946, WGS84 lon/lat): a Polygon per keyframe's ground footprint (``gps``:
-    whether its fix agreed with the images, was an outlier, or was missing), the GPS track as
-    read (every fix), and the camera path as placed."""
+    whether its fix agreed with the images, was an outlier, or was missing; ``centre``: where
+    the frame's centre lies, lon/lat), the GPS track as read (every fix), and the camera path
+    as placed."""
     corners = frame_corners(*frame_size)
     proj = georef.projection
 
     def lonlat(points: np.ndarray) -> list[list[float]]:
         return [[round(float(x), 9), round(float(y), 9)] for x, y in proj.to_wgs84(points[:, 0], points[:, 1])]
 
+    w, h = frame_size
+    centre = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
     features = []
     for k, (index, M) in enumerate(zip(georef.frame_indices, map_h)):
         ring = project(M, corners)
@@ -90,7 +132,8 @@ def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndar
         features.append({
             "type": "Feature",
             "geometry": {"type": "Polygon", "coordinates": [lonlat(np.vstack([ring, ring[:1]]))]},
-            "properties": {"kind": "footprint", "frame": int(index), "time": round(index / fps, 4), "gps": gps},
+            "properties": {"kind": "footprint", "frame": int(index), "time": round(index / fps, 4), "gps": gps,
+                           "centre": lonlat(project(M, centre))[0]},
         })
     track = georef.track
     fixed = track.has_fix
@@ -98,13 +141,11 @@ def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndar
         coords = [[round(float(lon), 9), round(float(lat), 9)] for lat, lon in zip(track.lat[fixed], track.lon[fixed])]
         features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
                          "properties": {"kind": "gps track", "source": track.source}})
-    w, h = frame_size
-    centre = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
     if len(map_h) >= 2:
         path_ground = np.array([project(M, centre)[0] for M in map_h])
         features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": lonlat(path_ground)},
                          "properties": {"kind": "frame centres"}})
-    write_json(path, {"type": "FeatureCollection", "features": features})
+    return {"type": "FeatureCollection", "features": features}
 
 
 def transforms_extra(georef: Georeference, map_h: list[np.ndarray]) -> tuple[dict, list[dict]]:

@@ -22,16 +22,20 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
     of video to stitch, when known, to refuse a log that misses them before any work;
     ``info``: the video's probe (its streams are where an embedded track is looked for)."""
     if options is None:
+        check_plain_output(out, "--telemetry none was given")
         return None
-    if options.footprints is not None:
-        check_writable(options.footprints)
-        if Path(options.footprints).resolve() == Path(out).resolve():
-            raise BadInput("--footprints must differ from the panorama output")
+    for flag, path in (("--footprints", options.footprints), ("--html", options.html)):
+        if path is not None:
+            check_writable(path)
+            if Path(path).resolve() == Path(out).resolve():
+                raise BadInput(f"{flag} must differ from the panorama output")
+    if options.footprints is not None and options.html is not None and Path(options.footprints).resolve() == Path(options.html).resolve():
+        raise BadInput("--html must differ from --footprints")
     if options.telemetry is not None:
         track = read_telemetry(options.telemetry)
     else:
         track = find_telemetry(video, info)
-    wanted = options.without_telemetry()
+    wanted = map_output_flag(out) + options.without_telemetry()
     if track is None and wanted:
         raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
     if track is not None and not track.has_fix.any():
@@ -49,6 +53,20 @@ def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None
                 f"the video {span[0]:.1f}-{span[1]:.1f} s; check --telemetry-offset"
             )
     return track
+
+
+def map_output_flag(out: str | Path) -> list[str]:
+    """``["-o map.kmz"]`` when ``out`` is an output only a map can be (KMZ, MBTiles, web tiles)."""
+    from mosaic_cli.inputs import MAP_FORMATS, output_format
+
+    fmt = output_format(out)
+    return [f"-o {out} ({MAP_FORMATS[fmt]})"] if fmt in MAP_FORMATS else []
+
+
+def check_plain_output(out: str | Path, why: str) -> None:
+    """Refuse, before any work, an output only a map can be when there is no telemetry."""
+    if wanted := map_output_flag(out):
+        raise BadInput(f"{wanted[0]} needs telemetry ({why})")
 
 
 def gps_straightener(track: Track, ref: int, indices: list[int], frame_size, fps: float, options: GeorefOptions):
@@ -82,14 +100,44 @@ def map_homographies(georef: Georeference, to_canvas: np.ndarray, frame_to_canva
 
 
 def write_outputs(out, panorama, georef: Georeference, options: GeorefOptions, to_canvas, frame_to_canvas, frame_size, fps) -> bool:
-    """The GeoTIFF (when ``out`` is one) and the footprints; False when ``out`` is left to the
-    plain writer (PNG/JPEG: the north-up mosaic without a geotransform)."""
-    from mosaic_cli.geo.output import write_cog, write_footprints
+    """The map ``out`` when it is one (GeoTIFF, KMZ, MBTiles, web tiles), the footprints and the
+    quick-look page; False when ``out`` is left to the plain writer (PNG/JPEG: the north-up
+    mosaic without a geotransform)."""
+    import contextlib
 
-    written = False
-    if Path(out).suffix.lower() in (".tif", ".tiff"):
-        write_cog(out, panorama, georef, to_canvas)
-        written = True
+    from mosaic_cli.atomic import write_json
+    from mosaic_cli.geo.output import footprint_collection, staged_geotiff, write_cog
+    from mosaic_cli.inputs import MAP_FORMATS, output_format
+
+    fmt = output_format(out)
+    features = footprint_collection(georef, map_homographies(georef, to_canvas, frame_to_canvas), frame_size, fps)
     if options.footprints is not None:
-        write_footprints(options.footprints, georef, map_homographies(georef, to_canvas, frame_to_canvas), frame_size, fps)
-    return written
+        write_json(options.footprints, features)
+    if fmt == "tiff":
+        write_cog(out, panorama, georef, to_canvas)
+    if fmt not in MAP_FORMATS and options.html is None:
+        return fmt == "tiff"
+    with contextlib.ExitStack() as stack:
+        # the writers below read a georeferenced raster: the COG just written, else a staging one
+        raster = Path(out) if fmt == "tiff" else stack.enter_context(staged_geotiff(out, panorama, georef, to_canvas))
+        if fmt == "kmz":
+            from mosaic_cli.geo.kmz import write_kmz
+
+            write_kmz(out, raster, features)
+        elif fmt == "mbtiles":
+            from mosaic_cli.geo.tiles import write_mbtiles
+
+            write_mbtiles(out, raster)
+        elif fmt == "pmtiles":
+            from mosaic_cli.geo.tiles import write_pmtiles
+
+            write_pmtiles(out, raster)
+        elif fmt == "tiles":
+            from mosaic_cli.geo.tiles import write_tiles
+
+            write_tiles(out, raster)
+        if options.html is not None:
+            from mosaic_cli.geo.quicklook import write_quicklook
+
+            write_quicklook(options.html, raster, features, title=Path(out).stem or Path(out).name)
+    return fmt == "tiff" or fmt in MAP_FORMATS

@@ -355,13 +355,14 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
 def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
     """The telemetry, before any work: an explicit --telemetry file; a file read as live may
     hold a track of its own, a stream (stdin, URL) cannot be probed for one."""
-    from mosaic_cli.geo.stitching import load_track
+    from mosaic_cli.geo.stitching import check_plain_output, load_track, map_output_flag
 
     georef = options.georef
     if georef is None:
+        check_plain_output(out, "--telemetry none was given")
         return None
     if live and georef.telemetry is None:
-        if wanted := georef.without_telemetry():
+        if wanted := map_output_flag(out) + georef.without_telemetry():
             raise BadInput(f"{wanted[0]} with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
         return None
     return load_track(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan

@@ -34,7 +34,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
-from mosaic_cli.geo.stitching import gps_straightener, load_track, map_homographies, write_outputs
+from mosaic_cli.geo.stitching import check_plain_output, gps_straightener, load_track, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
@@ -144,8 +144,10 @@ def stitch(
         f = options.features
         photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features))
         options = dataclasses.replace(options, features=photo)
-        if options.georef is not None and (options.georef.telemetry is not None or options.georef.footprints is not None):
-            raise BadInput(f"{video}: --telemetry and --footprints apply to videos, not to photo folders")
+        if options.georef is not None and (options.georef.telemetry is not None or options.georef.footprints is not None
+                                           or options.georef.html is not None):
+            raise BadInput(f"{video}: --telemetry, --footprints and --html apply to videos, not to photo folders")
+        check_plain_output(out, "photo folders are not georeferenced")
         track = None
     else:
         track = load_track(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
@@ -209,12 +211,13 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         seconds["compose"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
-        path, json_path = numbered(out, number), numbered(transforms, number) if transforms is not None else None
+        path, json_path = numbered(out, number), Path(numbered(transforms, number)) if transforms is not None else None
         extra, written = None, False
         if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
             assert options.georef is not None
-            footprints = options.georef.footprints
-            own = dataclasses.replace(options.georef, footprints=numbered(footprints, number) if footprints is not None else None)
+            footprints, html = options.georef.footprints, options.georef.html
+            own = dataclasses.replace(options.georef, footprints=Path(numbered(footprints, number)) if footprints is not None else None,
+                                      html=Path(numbered(html, number)) if html is not None else None)
             written = write_outputs(path, panorama, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps)
             extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
         if not written:
