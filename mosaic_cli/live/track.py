@@ -1,6 +1,7 @@
 """``track`` as frames arrive: the homographies as JSON Lines, one pair a line, flushed at once.
 
-Each line is ``{"frame": t, "H": [[...], [...], [...]], "confidence": c}``: H maps pixel
+Each line is ``{"frame": t, "H": [[...], [...], [...]], "confidence": c}`` (and, from the learned
+estimator, ``"path"``: learned, fallback, carried or failed): H maps pixel
 (x, y) of frame t to frame t+1 (full-resolution pixels, OpenCV pixel centres), as ``pairwise[t]``
 of the JSON format.  A program can follow the file (or the pipe) line by line.  From a live
 source a ``.json`` or ``.npy`` output is written once, at the end, from every frame received.
@@ -36,9 +37,11 @@ def is_jsonl(out: str | Path) -> bool:
     return str(out) == STDOUT or Path(out).suffix.lower() in JSONL_SUFFIXES
 
 
-def pair_line(index: int, H: np.ndarray, confidence: float) -> str:
-    return json.dumps({"frame": int(index), "H": np.asarray(H, dtype=np.float64).tolist(),
-                       "confidence": float(confidence)}) + "\n"
+def pair_line(index: int, H: np.ndarray, confidence: float, path: str | None = None) -> str:
+    line = {"frame": int(index), "H": np.asarray(H, dtype=np.float64).tolist(), "confidence": float(confidence)}
+    if path is not None:
+        line["path"] = path
+    return json.dumps(line) + "\n"
 
 
 @contextlib.contextmanager
@@ -72,6 +75,7 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
     live = is_live_source(source)
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
+    paths: list[str | None] = []
     if live:
         stream = LiveStream(str(source), "gray", width=estimator.input_width, timeout=timeout, quiet=not show_progress)
     else:
@@ -90,9 +94,10 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
             for t, estimate in enumerate(estimate_stream(estimator, itertools.islice(stream, max_frames), info.source_size)):
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
+                paths.append(estimate.path)
                 if sink is not None:
                     try:
-                        sink.write(pair_line(t, estimate.H, estimate.confidence))
+                        sink.write(pair_line(t, estimate.H, estimate.confidence, estimate.path))
                         sink.flush()
                     except BrokenPipeError:
                         raise ProcessingError("standard output was closed by the reader") from None
@@ -112,4 +117,5 @@ def track_stream(source: str | Path, estimator: Estimator, out: str | Path, time
 
     info = replace(info, frame_count=n)
     return TrackResult(info, estimator.name, np.array(pairwise).reshape(-1, 3, 3),
-                       np.array(confidence, dtype=np.float64), meta)
+                       np.array(confidence, dtype=np.float64), meta,
+                       [str(p) for p in paths] if all(p is not None for p in paths) else None)
