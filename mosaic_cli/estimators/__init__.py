@@ -28,9 +28,11 @@ DEFAULT_ESTIMATOR = "lstm"
 # The options each estimator takes (in a name or as command-line flags) and how to read them.
 OPTIONS: dict[str, dict[str, type]] = {
     "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path,
-             "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float, "carry_gate_px": float, "spoilt_ratio": float},
+             "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float,
+             "carry_gate_px": float, "spoilt_ratio": float},
     "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path,
-            "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float, "carry_gate_px": float, "spoilt_ratio": float},
+            "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float,
+            "carry_gate_px": float, "spoilt_ratio": float},
     "orb": {"refine": str},
     "orb-ransac": {"refine": str},
 }
@@ -67,6 +69,11 @@ def _typed(name: str, options: dict) -> dict:
                 value = int(value)
             except (TypeError, ValueError):
                 raise BadInput(f"estimator {name!r}: {key.replace('_', '-')} must be a whole number, got {value!r}") from None
+        elif kind is float:
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise BadInput(f"estimator {name!r}: {key.replace('_', '-')} must be a number, got {value!r}") from None
         elif kind is Path:
             value = str(value)  # a file name keeps its case
         else:
