@@ -291,6 +291,7 @@ def srt_positions(path: Path) -> np.ndarray:
     return np.array([(x, y) for x, y in zip(lon, lat) if (x, y) != (0.0, 0.0)])
 
 
+@pytest.mark.slow
 def test_stitch_writes_kmz_tiles_and_html(flight, tmp_path):
     import rasterio
 
@@ -323,6 +324,7 @@ def test_stitch_writes_kmz_tiles_and_html(flight, tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args", [["-o", "m.kmz"], ["-o", "m.mbtiles"], ["-o", "m.pmtiles"], ["-o", "tiles/"], ["-o", "m.png", "--html", "q.html"]])
 @pytest.mark.parametrize("telemetry", [None, "none"])
 def test_map_outputs_without_telemetry_are_one_line_before_any_work(capsys, tmp_path, monkeypatch, args, telemetry, plain_video):
@@ -355,6 +357,7 @@ def page_console(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if "CONSOLE" in line or "Uncaught" in line]
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="needs chromium (apt-get install chromium)")
 def test_quicklook_page_draws_the_map_where_it_belongs_in_a_browser(geotiff, tmp_path):
     from mosaic_cli.geo.quicklook import write_quicklook

@@ -124,6 +124,7 @@ def test_eval_every_sets_the_landmark_spacing(flight, tmp_path):
         assert metrics["mace"] < 1e-6  # the truth scored against itself
 
 
+@pytest.mark.slow
 def test_learned_estimator_options_of_every_type_are_read_or_refused_in_one_line():
     """Numbers with a fraction (carry-gate, spoilt-ratio) are read as numbers, like the whole ones."""
     from mosaic_cli.errors import BadInput

@@ -64,6 +64,7 @@ def shaky(tmp_path_factory, texture):
     return write_clip(tmp_path_factory.mktemp("plot") / "shaky.mp4", frames, fps=20)
 
 
+@pytest.mark.slow
 def test_stabilize_plot_draws_the_path_it_planned_and_the_crop_it_rendered(tmp_path, capsys, shaky, monkeypatch):
     drawn = {}
     original = plots.write_stabilize_plot
@@ -118,6 +119,7 @@ def test_plot_must_be_a_png(tmp_path, capsys, tiny_clip):
     assert_one_line_error(code, err, "--plot", "must end in .png")
 
 
+@pytest.mark.slow
 def test_track_plot_draws_which_path_made_each_pair(tmp_path, capsys, monkeypatch):
     """The learned estimator's track names the path of every pair ("path" in the JSON, counted in
     meta.paths); the plot is given those very paths: here a black stretch in a pan, whose pairs

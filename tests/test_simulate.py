@@ -345,6 +345,7 @@ def test_load_map_crops_opaque_white_fill(tmp_path):
 # --- bursts: frames without a motion cue ------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_bursts_spoil_the_listed_frames_and_keep_the_geometry_exact(small_map, tmp_path):
     """The 'bursts' profile: the ground truth lists every spoilt frame; a duplicated frame shows
     exactly the frame before (pairwise identity), a dropped one makes its pair span two flown
@@ -388,6 +389,7 @@ def test_bursts_spoil_the_listed_frames_and_keep_the_geometry_exact(small_map, t
     assert load_ground_truth(tmp_path / "b.mp4").bursts == gt.bursts == [{"frame": b.frame, "kind": b.kind} for b in plan.bursts]
 
 
+@pytest.mark.slow
 def test_bursts_option_and_its_errors(tmp_path, capsys):
     from mosaic_cli.simulate.bursts import KINDS, BurstSpec
 

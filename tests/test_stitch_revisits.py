@@ -329,6 +329,7 @@ def photo_strip(folder: Path, views: list[tuple[float, float]], seed: int = 11, 
         write_png(folder / (names[k] if names else f"IMG_{k:04d}.png"), render_view(pyramid, to_frame, PHOTO))
 
 
+@pytest.mark.slow
 def test_a_photo_that_overlaps_only_a_later_photo_is_registered_into_the_one_panorama(tmp_path, capsys):
     """Shuffled names: the first photo shares no ground with the second (the scan starts a new
     part there) but overlaps the fifth; it must be tried against every photo of the other
@@ -350,6 +351,7 @@ def test_a_photo_that_overlaps_only_a_later_photo_is_registered_into_the_one_pan
     assert np.allclose(offset, [110, 130], atol=1.0)
 
 
+@pytest.mark.slow
 def test_the_largest_part_takes_the_name_given_and_the_warning_names_the_photos(tmp_path, capsys):
     """Two photos of one place first (in name order), then four of another: the four make
     pano.png, the two pano-2.png, and the warning says which photos each file holds."""

@@ -417,6 +417,7 @@ def _ddp_half_batch(rank: int, world: int, port: int, batch: dict, out: str) -> 
         dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_two_process_ddp_gradients_equal_one_process_on_the_whole_batch(tmp_path):
     """Each of two gloo processes takes half of a batch; DistributedDataParallel averages their
     gradients, which must be the gradients of one process on the whole batch (the loss is a mean
@@ -585,6 +586,7 @@ def test_validation_mace_of_a_zero_motion_net_is_the_identity_mace(tmp_path, pan
     assert float(rows[-1]["mace"]) == pytest.approx(summary.val_mace, rel=1e-6) and np.isfinite(summary.val_mace)
 
 
+@pytest.mark.slow
 def test_validation_scores_the_network_alone_never_the_classical_fallback(tmp_path):
     """A zero-motion net on a fast flight: the identity does not correlate with the moved ground,
     so an estimator with ORB as its fallback would replace most pairs by ORB's (far better)
