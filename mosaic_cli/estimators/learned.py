@@ -409,7 +409,8 @@ class LearnedEstimator(Estimator):
             frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
         if c.refine is not None and frame.textured:
             frame.aligned = band_pass(frame.gray, *self._band) if self._band else frame.gray
-        frame.spoilt = not frame.textured or self._spoilt(detail_level(frame.gray))
+        if c.carry != "none":  # only the carried motion asks whether a frame is spoilt
+            frame.spoilt = not frame.textured or self._spoilt(detail_level(frame.gray))
 
     def _spoilt(self, level: float) -> bool:
         """Whether a frame of this band-passed detail carries no motion cue: far less detail than
@@ -554,7 +555,8 @@ SPOILT_HISTORY_MIN = 2  # frames needed before any is called spoilt
 def detail_level(gray: np.ndarray) -> float:
     """RMS of the band-passed detail of a working frame (difference of Gaussians of sigmas 1.5 and
     6 working px, taken at half size): what glare, a heavy blur, darkness or featureless ground
-    take away and what sensor noise, which the band leaves out, cannot fake."""
+    take away, and sensor noise mostly leaves alone (over nearly textureless ground the noise is
+    most of it, and a blur there counts as spoilt only when it takes a fifth of that away)."""
     half = cv2.pyrDown(gray).astype(np.float32)
     return float((cv2.GaussianBlur(half, (0, 0), 0.75) - cv2.GaussianBlur(half, (0, 0), 3.0)).std())
 
