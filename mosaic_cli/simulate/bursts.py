@@ -29,6 +29,9 @@ PIXEL_KINDS = ("glare", "blur", "dark", "flat")
 GEOMETRY_KINDS = ("drop", "duplicate")
 KINDS = PIXEL_KINDS + GEOMETRY_KINDS
 CODES = {kind: k + 1 for k, kind in enumerate(PIXEL_KINDS)}  # per-frame effect codes; 0 = none
+# Each pixel kind's strength: the ground's residue under glare, the blur's length in 1280-wide px,
+# the brightness kept in the dark, the contrast kept on featureless ground.
+LEVELS = {"glare": (0.03, 0.12), "blur": (40.0, 80.0), "dark": (0.02, 0.06), "flat": (0.02, 0.06)}
 
 
 @dataclass(frozen=True)
@@ -121,8 +124,8 @@ def apply_bursts(plan, bursts: list[Burst], frames: int, seed: int):
                 v[t] = v[t - 1]
         elif b.kind in CODES:
             code[t] = CODES[b.kind]
-            level[t] = {"glare": rng.uniform(0.03, 0.12), "blur": rng.uniform(40.0, 80.0),
-                        "dark": rng.uniform(0.02, 0.06), "flat": rng.uniform(0.02, 0.06)}[b.kind]
+            # one draw per kind, in PIXEL_KINDS order, whatever the kind: the flights made so far stay as they were
+            level[t] = {kind: rng.uniform(*LEVELS[kind]) for kind in PIXEL_KINDS}[b.kind]
             angle[t] = rng.uniform(0.0, np.pi)
     if code.any():
         effects.update({"burst": code, "burst_level": level, "burst_angle": angle})
@@ -142,4 +145,4 @@ def burst_pairs(bursts: list[dict] | list[Burst], pairs: int) -> np.ndarray:
     return touched
 
 
-__all__ = ["KINDS", "BurstSpec", "Burst", "plan_bursts", "frames_to_plan", "apply_bursts", "burst_pairs"]
+__all__ = ["KINDS", "CODES", "LEVELS", "BurstSpec", "Burst", "plan_bursts", "frames_to_plan", "apply_bursts", "burst_pairs"]

@@ -20,11 +20,12 @@ import torch
 from kornia.filters import motion_blur
 from torch import Tensor
 
-GLARE, BLUR, DARK, FLAT = 1, 2, 3, 4  # a frame's burst code; 0: clean
+from mosaic_cli.simulate.bursts import CODES, PIXEL_KINDS
+from mosaic_cli.simulate.bursts import LEVELS as SIMULATED_LEVELS
+
+GLARE, BLUR, DARK, FLAT = (CODES[k] for k in PIXEL_KINDS)  # a frame's burst code; 0: clean
 MAX_LENGTH = 3  # spoilt frames in a row
-# The simulator's ranges (simulate.bursts.apply_bursts): residue of the ground under glare,
-# blur length in 1280-wide px, brightness kept in the dark, contrast kept on featureless ground.
-LEVELS = {GLARE: (0.03, 0.12), BLUR: (40.0, 80.0), DARK: (0.02, 0.06), FLAT: (0.02, 0.06)}
+LEVELS = {CODES[k]: SIMULATED_LEVELS[k] for k in PIXEL_KINDS}  # the simulator's strengths, by code
 BURST_KEYS = ("burst", "burst_level", "burst_angle")  # what a window of a run with bursts carries
 NOISE = 2.0 / 127.5  # the sensor's floor on a spoilt frame (2 gray levels), in [-1, 1] units
 
