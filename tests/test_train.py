@@ -413,6 +413,7 @@ def _ddp_half_batch(rank: int, world: int, port: int, batch: dict, out: str) -> 
         Objective("base", patch=PATCH)(ddp, half)["total"].backward()
         if rank == 0:
             torch.save({k: p.grad for k, p in net.named_parameters()}, out)
+        dist.barrier()  # neither process leaves the group while the other still uses it (gloo aborts)
     finally:
         dist.destroy_process_group()
 
