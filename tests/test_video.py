@@ -277,7 +277,7 @@ def lavfi_clip(path, rate: str, frames: int, audio: str | None = None, audio_sec
     """``frames`` frames of testsrc2 (160x90) at ``rate``, with a sine track in ``audio``'s codec."""
     args = ["-f", "lavfi", "-i", f"testsrc2=size=160x90:rate={rate}"]
     if audio is not None:
-        seconds = audio_seconds if audio_seconds is not None else frames * float(Fraction(rate))
+        seconds = audio_seconds if audio_seconds is not None else frames / float(Fraction(rate))
         args += ["-f", "lavfi", "-i", f"sine=frequency=440:sample_rate=48000:duration={seconds:.4f}", "-map", "0:v", "-map", "1:a",
                  "-c:a", audio]
     video = ["-c:v", codec, "-pix_fmt", "yuv420p"] + (["-preset", "ultrafast"] if codec == "libx264" else ["-deadline", "realtime"])
@@ -294,6 +294,23 @@ PROBE_CASES = [
     ("turned.mov", "30", 30, "aac", -90, 90),
     ("turned.mkv", "25", 25, None, 180, 180),
 ]
+
+
+@pytest.mark.parametrize("name, codec", [("long_audio.webm", "libvpx-vp9"), ("long_audio.mkv", "libx264")])
+def test_probe_counts_the_pictures_not_a_longer_audio_track(tmp_path, name, codec):
+    """mkv and webm carry no frame count: the container's duration is the longest stream's, so
+    a sound track running 0.5 s past 30 pictures must not add 15 frames (it did: 45)."""
+    video = tmp_path / ("video" + name[name.rindex("."):])
+    lavfi_clip(video, "30", 30, codec=codec)
+    clip = tmp_path / name
+    ffmpeg("-i", str(video), "-f", "lavfi", "-i", "sine=frequency=440:sample_rate=48000:duration=1.5",
+           "-map", "0:v", "-map", "1:a", "-c:v", "copy", "-c:a", "libopus", str(clip))
+    info = probe(clip)
+    assert info.duration == pytest.approx(1.5, abs=0.05)  # the container's: the audio's
+    assert info.frame_count == 30 == opencv_count(clip)
+    with open_video(clip, width=48, info=info) as stream:
+        assert sum(1 for _ in stream) == 30
+    assert stream.shortfall is None
 
 
 @pytest.mark.parametrize("name, rate, frames, audio, turn, clockwise", PROBE_CASES, ids=[c[0] for c in PROBE_CASES])

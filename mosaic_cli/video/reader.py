@@ -239,6 +239,13 @@ def _probe_container(p: Path, container) -> VideoInfo:
         # leaves out (a clip cut without re-encoding): the smaller of the two.
         count = min(video.frames, count) if count else video.frames
     damage = _damage_at_the_end(container, video, start + duration, fps) if duration > 0 else None
+    if count and not video.frames and first.time is not None:
+        # A duration-based count (mkv, webm) counts the longest stream: an audio track that runs
+        # on past the last picture adds frames.  The last video timestamp, read from the packets
+        # near the end (demuxed, not decoded), bounds it.
+        last = _last_video_time(container, video, start + duration)
+        if last is not None and last >= first.time:
+            count = min(count, int(round((last - first.time) * fps)) + 1)
     others = tuple(_stream_meta(s) for s in container.streams if s.index != video.index)
     audio = next((s.codec for s in others if s.kind == "audio"), None)
     return VideoInfo(str(p), size, size, fps, count, duration, rotation, audio, damage=damage,
@@ -341,6 +348,25 @@ def _damage_at_the_end(container, video, end: float, fps: float) -> str | None:
             error = exc
     # No frame there and no complaint: the container's duration is another stream's (a longer audio track).
     return _complaint(logs, error, DAMAGE_SIGNS)
+
+
+def _last_video_time(container, video, end: float) -> float | None:
+    """The presentation time of the last video packet in the container's final seconds (None
+    when none is found there or libav fails): read by demuxing only, from a seek near the end."""
+    import av  # PyAV, loaded with the first video probed (start-up, image folders)
+    if not video.time_base:
+        return None
+    last = None
+    with _libav_log():
+        try:
+            container.seek(int(max(end - 2 * TAIL_SECONDS, 0.0) / video.time_base), stream=video, backward=True)
+            for packet in container.demux(video):
+                if packet.pts is not None and packet.size:
+                    time = float(packet.pts * video.time_base)
+                    last = time if last is None else max(last, time)
+        except av.error.FFmpegError:
+            return None
+    return last
 
 
 def _stream_meta(stream) -> StreamMeta:
