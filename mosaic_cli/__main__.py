@@ -1,3 +1,3 @@
-from mosaic_cli.cli import main
+from mosaic_cli.cli import entry
 
-main()
+entry()

@@ -122,3 +122,15 @@ def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
             assert type(head.lstm).__module__.startswith("torch.ao.nn.quantized.dynamic")
         assert type(model.lstm) is torch.nn.LSTM  # the fp32 network itself is left as it was
     assert quantize.quantized_head(HomographyNet(NetConfig(head="cnn", patch=PATCH))) is None
+
+
+def test_the_shipped_int8_estimator_loads_without_the_compiler_stack():
+    """Building the int8 features traces the network with FX; recording a stack trace per graph
+    node imported torch._dynamo and torch._inductor, 1.5 s of every command's start-up."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from mosaic_cli.estimators import make_estimator; e = make_estimator(None); "
+            "print(e.precision, 'torch._dynamo' in sys.modules, 'torch._inductor' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["int8", "False", "False"]

@@ -17,7 +17,6 @@ does not import it (``from mosaic_cli.geometry import tensor``).
 from __future__ import annotations
 
 import torch
-from kornia.geometry.transform import get_perspective_transform
 from torch import Tensor
 
 # Smallest |w| a projective divisor may have: a wild early-training estimate then gives large but
@@ -69,6 +68,9 @@ def four_point_to_homography(corners: Tensor, offsets: Tensor) -> Tensor:
     src, offsets = torch.broadcast_tensors(corners.to(dtype), offsets.to(dtype))
     batch = src.shape[:-2]
     src64 = src.reshape(-1, 4, 2).double()
+    # kornia is imported with the first pair, not at start-up (a quarter of a second).
+    from kornia.geometry.transform import get_perspective_transform
+
     H = get_perspective_transform(src64, src64 + offsets.reshape(-1, 4, 2).double())
     return normalize(H).to(dtype).reshape(*batch, 3, 3)
 

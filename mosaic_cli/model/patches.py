@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from kornia.geometry.transform import warp_perspective as _kornia_warp_perspective
 from torch import Tensor
 
 from mosaic_cli.geometry.tensor import four_point_to_homography, homography_to_four_point, project, rect_corners
@@ -105,8 +104,10 @@ def warp_perspective(images: Tensor, H: Tensor, dsize: tuple[int, int]) -> Tenso
     """Warp ``images`` (N, C, h, w) by ``H`` (N, 3, 3), source -> destination pixels, into an image
     of ``dsize`` = (w, h): out(H @ x) = image(x), as ``cv2.warpPerspective(image, H, dsize)``
     (kornia's warp_perspective, zero padding)."""
+    from kornia.geometry.transform import warp_perspective  # (with the first use: start-up)
+
     w, h = dsize
-    return _kornia_warp_perspective(images, H.to(images.dtype), (h, w), mode="bilinear", align_corners=True)
+    return warp_perspective(images, H.to(images.dtype), (h, w), mode="bilinear", align_corners=True)
 
 
 __all__ = [

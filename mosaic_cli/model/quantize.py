@@ -21,6 +21,7 @@ chunk took 0.55 ms instead of 5.5 on the development machine.  The regressor sta
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import warnings
 
@@ -63,9 +64,24 @@ def _prepare(model: HomographyNet, observer, example: Tensor):
     qconfig = QConfig(activation=observer.with_args(reduce_range=reduce_range),
                       weight=default_per_channel_weight_observer)
     features = _Features(copy.deepcopy(model).cpu().eval())
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _no_stack_traces():
         warnings.simplefilter("ignore")  # torch.ao announces its move to torchao
         return prepare_fx(features, QConfigMapping().set_global(qconfig), (example,))
+
+
+@contextlib.contextmanager
+def _no_stack_traces():
+    """FX tracing without a Python stack trace recorded on each graph node: symbolising one
+    imports torch._dynamo and torch._inductor, 1.5 of the 1.7 s the int8 features took to build
+    at start-up (docs/measurements/speed.md); the traced graph is the same."""
+    import torch.fx.config
+
+    before = torch.fx.config.do_not_emit_stack_traces
+    torch.fx.config.do_not_emit_stack_traces = True
+    try:
+        yield
+    finally:
+        torch.fx.config.do_not_emit_stack_traces = before
 
 
 def _observers(prepared: nn.Module) -> dict[str, nn.Module]:
