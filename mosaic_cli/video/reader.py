@@ -239,10 +239,11 @@ def _probe_container(p: Path, container) -> VideoInfo:
         # leaves out (a clip cut without re-encoding): the smaller of the two.
         count = min(video.frames, count) if count else video.frames
     damage = _damage_at_the_end(container, video, start + duration, fps) if duration > 0 else None
-    if count and not video.frames and first.time is not None:
+    if count and not video.frames and first.time is not None and damage is None:
         # A duration-based count (mkv, webm) counts the longest stream: an audio track that runs
         # on past the last picture adds frames.  The last video timestamp, read from the packets
-        # near the end (demuxed, not decoded), bounds it.
+        # near the end (demuxed, not decoded), bounds it.  (Not for a damaged end: the count
+        # announced is what tells a truncated file.)
         last = _last_video_time(container, video, start + duration)
         if last is not None and last >= first.time:
             count = min(count, int(round((last - first.time) * fps)) + 1)
