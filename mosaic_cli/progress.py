@@ -123,5 +123,27 @@ def progress_task(description: str, total: int | None, unit: str = "fr/s", disab
         yield lines.advance
         lines._write(lines.line(final=True))
         return
+    if _shared and not disable:  # a stage running beside others: one more bar in their display
+        yield advancer(_shared[-1], _shared[-1].add_task(description, total=total, status=""))
+        return
     with make_progress(unit, disable) as progress:
         yield advancer(progress, progress.add_task(description, total=total, status=""))
+
+
+_shared: list[Progress] = []
+
+
+@contextlib.contextmanager
+def progress_group(disable: bool = False) -> Iterator[None]:
+    """One display for the stages that run at the same time inside it, each stage's
+    :func:`progress_task` a bar of its own (rich allows one live display at a time; its
+    progress is safe to advance from several threads)."""
+    if disable or not console.is_terminal:
+        yield
+        return
+    with make_progress() as progress:
+        _shared.append(progress)
+        try:
+            yield
+        finally:
+            _shared.remove(progress)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -91,9 +92,11 @@ def track_video(
     max_frames: int | None = None,
     show_progress: bool = True,
     info: VideoInfo | None = None,
+    on_pair: Callable[[np.ndarray, float], None] | None = None,
 ) -> TrackResult:
     """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
-    ``info``: the video's probe, when the caller has it."""
+    ``info``: the video's probe, when the caller has it; ``on_pair(H, confidence)`` is told of
+    each pair as it is estimated (stabilize plans its path meanwhile)."""
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
     paths: list[str | None] = []
@@ -108,6 +111,8 @@ def track_video(
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
                 paths.append(estimate.path)
+                if on_pair is not None:
+                    on_pair(estimate.H, estimate.confidence)
                 advance(1)
         elapsed = time.perf_counter() - start
     n = len(pairwise) + 1

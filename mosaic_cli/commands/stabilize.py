@@ -98,7 +98,8 @@ def stabilize(
         s = result.seconds
         console.print(
             f"{result.frames} frames -> {out}: {result.frames / max(s['total'], 1e-9):.1f} fr/s "
-            f"(track {s['track']:.1f} s, path {s['plan']:.1f} s, render {s['render']:.1f} s); "
+            f"(overlays {s['overlays']:.1f} s; track {s['track']:.1f} s, path {s['plan']:.1f} s of it, "
+            f"beside the render {s['render']:.1f} s); "
             f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
         )
 

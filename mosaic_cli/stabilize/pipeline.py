@@ -1,16 +1,20 @@
 """``stabilize``: track the camera, plan a smooth view of it, render that view.
 
-Two passes over the input and nothing in memory that grows with its length but the
-per-frame matrices (72 bytes a frame):
+Two passes over the input, at the same time, and nothing in memory that grows with its length
+but the per-frame matrices (72 bytes a frame):
 
-1. track: the estimator's pairwise homographies, frames decoded small and gray;
+1. track: the estimator's pairwise homographies, frames decoded small and gray (a thread);
 2. plan: the camera motion in the chosen model, smoothed (L1-optimal path or Gaussian) with
-   the crop window kept inside every frame; the per-frame warps input -> output;
-3. render: decode again at full resolution, warp, encode with the input's audio.
+   the crop window kept inside every frame; the per-frame warps input -> output.  The L1 path
+   is solved a window at a time as the pairs come in (stream.py);
+3. render: decode again at full resolution, warp, encode with the input's audio, each frame
+   as soon as its window is solved: on two cores the tracking runs beside the encoder instead
+   of before it.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,15 +26,16 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_device, check_work_width, make_estimator
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_encoder, check_mask_file, check_timeout
 from mosaic_cli.overlay import MaskOptions, frame_mask
-from mosaic_cli.progress import progress_task
-from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
+from mosaic_cli.progress import progress_group
+from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
-from mosaic_cli.stabilize.path import MotionModel, camera_motion, motion_model
+from mosaic_cli.stabilize.path import MotionModel, motion_model
 from mosaic_cli.stabilize.render import Renderer, parse_border
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
-from mosaic_cli.track import track_video
+from mosaic_cli.stabilize.stream import PathFeed
+from mosaic_cli.track import TrackResult, track_video
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.writer import OUTPUT_SUFFIXES
+from mosaic_cli.video.writer import OUTPUT_SUFFIXES, rewrite_container
 
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
 # on shaky 1280x720 flights ORB at 640 px leaves 0.03-0.09 of the shake where 320 px leaves
@@ -122,25 +127,68 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     estimator = plan.estimator
     assert estimator is not None  # check_request made it
     estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
-    track = track_video(video, estimator, show_progress=show_progress, info=info)
-    seconds = {"track": time.perf_counter() - clock}
+    seconds = {"overlays": time.perf_counter() - clock}
 
-    motion = camera_motion(track.pairwise, info.source_size, plan.model, track.confidence)
-    with progress_task("stabilize: camera path", track.frames, disable=not show_progress) as advance:
-        views = plan.smoother.smooth(motion, info.source_size, plan.model, plan.crop, advance)
-    warps = output_warps(views, info.source_size)
-    seconds["plan"] = time.perf_counter() - clock - seconds["track"]
+    # The path is planned as the pairs come in, and the render follows the plan (stream.py).
+    feed = PathFeed(info.source_size, plan.model, plan.smoother, plan.crop)
+    tracking = TrackingPass(video, estimator, info, feed, show_progress)
+    render_clock = time.perf_counter()
+    with progress_group(disable=not show_progress):
+        tracking.start()
+        try:
+            written = plan.renderer.render(video, out, feed.warp, info, compare=compare, show_progress=show_progress,
+                                           frames=info.frame_count)
+        except BaseException:
+            feed.cancel()
+            tracking.join()
+            raise
+        track = tracking.outcome()
+    seconds.update(track=tracking.seconds, plan=feed.plan_seconds, render=time.perf_counter() - render_clock)
 
-    # A truncated input (the track pass read fewer frames than announced) is said in every output.
+    # What only the tracking pass knows, said in the outputs: where the audio ends (with the
+    # frames it counted), and a truncated input (fewer frames than announced).
     short = track.meta.get("input")
     tags = {"comment": f"mosaic stabilize: {_shortfall_text(short)}"} if short else None
-    written = plan.renderer.render(video, out, warps, info, compare=compare, show_progress=show_progress, metadata=tags)
-    warps = _match_length(warps, written)
+    if tags or (info.has_audio and track.frames != info.frame_count):
+        for path in [out] + ([compare] if compare is not None else []):
+            rewrite_container(path, audio_seconds=track.frames / info.fps if info.has_audio else None, metadata=tags)
+    warps = _match_length(feed.warps, written)
     if warps_out is not None:
         write_warps(warps_out, warps, info.source_size, input_meta=short)
-    seconds["render"] = time.perf_counter() - clock - seconds["track"] - seconds["plan"]
     seconds["total"] = time.perf_counter() - clock
-    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=motion, views=views)
+    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=feed.motion,
+                           views=feed.views)
+
+
+class TrackingPass(threading.Thread):
+    """The tracking pass in a thread of its own, each pair handed to the path's feed as it is
+    estimated; :meth:`outcome` waits for it and gives its result or raises its error."""
+
+    def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed, show_progress: bool):
+        super().__init__(name="mosaic-track", daemon=True)
+        self.video, self.estimator, self.info, self.feed, self.show_progress = video, estimator, info, feed, show_progress
+        self.result: TrackResult | None = None
+        self.error: BaseException | None = None
+        self.seconds = 0.0
+
+    def run(self) -> None:
+        clock = time.perf_counter()
+        try:
+            self.result = track_video(self.video, self.estimator, show_progress=self.show_progress, info=self.info,
+                                      on_pair=self.feed.add_pair)
+            self.feed.finish()
+        except BaseException as exc:  # the render learns of it from the feed; the caller from outcome()
+            self.error = exc
+            self.feed.fail(exc)
+        finally:
+            self.seconds = time.perf_counter() - clock
+
+    def outcome(self) -> TrackResult:
+        self.join()
+        if self.error is not None:
+            raise self.error
+        assert self.result is not None
+        return self.result
 
 
 def _shortfall_text(short: dict) -> str:

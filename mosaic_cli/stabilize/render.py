@@ -116,30 +116,36 @@ class Renderer:
     crf: int = 18
     preset: str = "veryfast"  # x264 'medium' halves throughput on two cores for a few % of bitrate
 
-    def render(self, video: str | Path, out: str | Path, warps: np.ndarray, info: VideoInfo,
+    def render(self, video: str | Path, out: str | Path, warps: np.ndarray | Callable[[int], np.ndarray], info: VideoInfo,
                compare: str | Path | None = None, show_progress: bool = True,
-               metadata: dict[str, str] | None = None) -> int:
+               metadata: dict[str, str] | None = None, frames: int | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
-        Frames beyond ``len(warps)`` (a decoder that finds one more frame the second time)
-        reuse the last warp."""
+        ``warps``: (N, 3, 3), or a function giving frame t's warp (which may wait until it is
+        known: :meth:`~.stream.PathFeed.warp`); then ``frames`` is the count expected, which
+        cuts the audio (None: the audio is not cut).  Frames beyond ``len(warps)`` (a decoder
+        that finds one more frame the second time) reuse the last warp."""
+        if isinstance(warps, np.ndarray):
+            frames, known = len(warps), warps
+            warps = lambda t: known[min(t, len(known) - 1)]  # noqa: E731
+        warp_of = warps
         size = info.source_size
         yuv = _yuv_possible(info, compare is not None)
         pix_fmt = "yuv420p" if yuv else "rgb24"
         warp = warp_yuv if yuv else warp_frame
         join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
         # The audio ends with the video (the frames the first pass counted, at the input's rate).
-        common: dict[str, Any] = dict(crf=self.crf, preset=self.preset, audio_from=info if info.has_audio else None, audio_seconds=len(warps) / info.fps,
-                      pix_fmt_in=pix_fmt, metadata=metadata)
+        common: dict[str, Any] = dict(crf=self.crf, preset=self.preset, audio_from=info if info.has_audio else None,
+                                      audio_seconds=frames / info.fps if frames else None, pix_fmt_in=pix_fmt, metadata=metadata)
         writers = [VideoWriter(out, size, info.fps, **common)]
         if compare is not None:
             writers.append(VideoWriter(compare, compare_size(size), info.fps, **common))
         try:
             # The frames of the first pass, upright, each once; yuv420p planes when they can stay so.
-            with open_video(video, yuv420p=yuv, info=info) as frames, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:
+            with open_video(video, yuv420p=yuv, info=info) as decoded, progress_task("stabilize: render", frames, disable=not show_progress) as advance:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
-                    for t, frame in enumerate(_background(frames)):
-                        result = warp(frame, warps[min(t, len(warps) - 1)], size, self.border)
+                    for t, frame in enumerate(_background(decoded)):
+                        result = warp(frame, warp_of(t), size, self.border)
                         yield (result, join(frame, result)) if compare is not None else (result,)
 
                 written = _drain(outputs(), [w.write for w in writers], advance)

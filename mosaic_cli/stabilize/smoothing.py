@@ -17,6 +17,7 @@ normalised coordinates of the input frame (see :mod:`.crop`).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -63,28 +64,78 @@ class L1Smoother:
                advance: Callable[[int], None] | None = None) -> np.ndarray:
         """``motion`` (N-1, 3, 3): F_{t+1}, frame t+1 -> frame t, normalised (see path.py);
         ``advance(n)`` is told of every n frames whose view is settled."""
-        n_frames = len(motion) + 1
+        planner = self.planner(size, model, crop)
+        views = [planner.push(motion), planner.finish()]
+        if advance:
+            advance(sum(len(v) for v in views))
+        return np.concatenate(views)
+
+    def planner(self, size: tuple[int, int], model: MotionModel, crop: float | None) -> L1Planner:
+        """The path planned as the motions arrive (:class:`L1Planner`)."""
         if self.window < 2 * CARRIED + 2 or not 0 <= self.overlap < self.window - CARRIED:
             raise BadInput("the L1 window must hold at least 8 frames and exceed the overlap by 3")
-        params = np.empty((n_frames, model.n_params))
-        start = 0
-        while True:
-            end = min(n_frames, start + self.window)
-            fixed = params[start:start + CARRIED] if start > 0 else None
-            solution = solve_window(motion[start:end - 1], model, fixed, size, crop, self)
-            done = start + (CARRIED if start else 0)
-            if end == n_frames:
-                params[start:end] = solution
-                if advance:
-                    advance(n_frames - done)
-                break
-            keep = start + self.window - self.overlap
-            params[start:keep] = solution[:keep - start]
-            if advance:
-                advance(keep - done)
-            start = keep - CARRIED
-        ratio = 1.0 if crop is None else crop
-        return model.matrices(params) @ zoom_matrix(ratio)
+        return L1Planner(self, size, model, crop)
+
+
+class L1Planner:
+    """The L1 path of :class:`L1Smoother`, a window at a time as the motions arrive.
+
+    A window's program sees only its own motions and the previous window's last transforms, so
+    the views a window settles are final as soon as its last motion is known: a video's render
+    can start while the rest is still being tracked, with the views a plan of the whole clip
+    gives (:meth:`L1Smoother.smooth` is this planner fed everything at once)."""
+
+    def __init__(self, options: L1Smoother, size: tuple[int, int], model: MotionModel, crop: float | None):
+        self.options, self.size, self.model, self.crop = options, size, model, crop
+        self._motion: list[np.ndarray] = []  # F_{t+1}, normalised, in the model
+        self._params: list[np.ndarray] = []  # the settled frames' parameters of B_t
+        self._start = 0  # the first frame of the next window
+        self._last: tuple[int, np.ndarray] | None = None  # (start, solution) of the window solved last
+        self.solve_seconds = 0.0
+
+    def push(self, motion: np.ndarray) -> np.ndarray:
+        """Take the next motions (M, 3, 3); return the views (K, 3, 3) they settle, in order."""
+        self._motion.extend(np.asarray(motion, dtype=np.float64).reshape(-1, 3, 3))
+        settled = len(self._params)
+        window, overlap = self.options.window, self.options.overlap
+        while len(self._motion) + 1 >= self._start + window:
+            end = self._start + window
+            solution = self._solve(end)
+            keep = end - overlap
+            self._settle(self._start, solution[:keep - self._start])
+            self._last = (self._start, solution)
+            self._start = keep - CARRIED
+        return self._views(settled)
+
+    def finish(self) -> np.ndarray:
+        """The views of the frames left after the last motion."""
+        settled = len(self._params)
+        n_frames = len(self._motion) + 1
+        if self._last is not None and self._last[0] + self.options.window == n_frames:
+            self._settle(*self._last)  # the last window ended with the video: all of it stands
+        else:
+            self._settle(self._start, self._solve(n_frames))
+        return self._views(settled)
+
+    def _solve(self, end: int) -> np.ndarray:
+        start = self._start
+        fixed = np.array(self._params[start:start + CARRIED]) if start > 0 else None
+        clock = time.perf_counter()
+        solution = solve_window(np.array(self._motion[start:end - 1]).reshape(-1, 3, 3), self.model, fixed, self.size,
+                                self.crop, self.options)
+        self.solve_seconds += time.perf_counter() - clock
+        return solution
+
+    def _settle(self, start: int, solution: np.ndarray) -> None:
+        """Keep the rows of a window's ``solution`` (its first frame ``start``) not yet settled:
+        the carried ones were, and the program held them to those values."""
+        self._params.extend(solution[len(self._params) - start:])
+
+    def _views(self, since: int) -> np.ndarray:
+        if len(self._params) == since:
+            return np.zeros((0, 3, 3))
+        ratio = 1.0 if self.crop is None else self.crop
+        return self.model.matrices(np.array(self._params[since:])) @ zoom_matrix(ratio)
 
 
 def _difference(n: int, order: int) -> sp.csr_matrix:

@@ -184,3 +184,33 @@ class VideoWriter:
             self.close()
         else:
             self.abort()
+
+
+def rewrite_container(path: str | os.PathLike, audio_seconds: float | None = None,
+                      metadata: dict[str, str] | None = None) -> None:
+    """Rewrite a finished video by stream copy (no re-encoding), its audio cut after
+    ``audio_seconds`` and ``metadata`` added to its tags: for what is known only once encoding
+    has begun (stabilize's render starts before the tracking pass has counted the frames).
+    Atomic: the file is replaced only when the copy succeeded."""
+    path = Path(path)
+    with signals_held():
+        tmp = temporary_beside(path, f".part{path.suffix or '.mp4'}")
+    cmd = [ffmpeg_exe(), "-y", "-hide_banner", "-v", "error", "-i", str(path)]
+    if audio_seconds is not None:  # the same file again, read only this far, for its audio
+        cmd += ["-t", f"{audio_seconds:.6f}", "-i", str(path), "-map", "0:v:0", "-map", "1:a:0?"]
+    else:
+        cmd += ["-map", "0"]
+    for key, value in (metadata or {}).items():
+        cmd += ["-metadata", f"{key}={value}"]
+    cmd += ["-c", "copy", "-movflags", "+faststart", str(tmp)]
+    try:
+        done = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, start_new_session=True)
+        if done.returncode != 0:
+            lines = done.stderr.decode("utf-8", "replace").strip().splitlines()
+            raise ProcessingError(f"{path}: rewriting failed ({lines[-1] if lines else f'status {done.returncode}'})")
+        give_default_permissions(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
