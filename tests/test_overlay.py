@@ -249,7 +249,8 @@ def test_long_clips_are_sampled_by_seeking_as_short_ones_by_decoding(flights, mo
     import mosaic_cli.overlay.samples as overlay
 
     decoded = sample_frames(flights.burned, 12, 160)
-    monkeypatch.setattr(overlay, "DECODE_ALL_BELOW", 10)  # as if the clip were long
+    monkeypatch.setattr(overlay, "DECODE_ALL_BELOW", 10)  # as if the clip were long ...
+    monkeypatch.setattr(overlay, "keyframe_indices", lambda info: None)  # ... and its keyframes unknown
     sought = sample_frames(flights.burned, 12, 160)
     assert len(decoded) == len(sought) == 12 and decoded[0].shape == (90, 160, 3)
     # The same frames of the clip (a seek decodes from the keyframe before the frame it wants).
@@ -480,3 +481,51 @@ def test_a_live_input_takes_the_mask_file_and_skips_detection_with_one_line(flig
     assert done.returncode == 0, done.stderr
     meta = json.loads(out.read_text())["meta"]["mask"]
     assert meta["from_file"] and meta["detected"] is None and meta["excluded"] > 0.1
+
+
+def test_keyframes_are_read_from_the_packets(tmp_path):
+    from conftest import ffmpeg
+    from mosaic_cli.overlay.samples import keyframe_indices
+    from mosaic_cli.video import probe
+
+    clip = tmp_path / "g10.mp4"
+    ffmpeg("-f", "lavfi", "-i", "testsrc2=size=160x90:rate=25", "-frames:v", "95", "-c:v", "libx264", "-g", "10",
+           "-keyint_min", "10", "-sc_threshold", "0", "-pix_fmt", "yuv420p", str(clip))
+    assert keyframe_indices(probe(clip)) == list(range(0, 95, 10))
+
+
+@pytest.mark.parametrize("turn", [0, 90])
+def test_a_clip_with_dense_keyframes_is_sampled_at_them(tmp_path, monkeypatch, turn):
+    """Keyframes as close together as the samples: each sample is the keyframe nearest its
+    frame, one frame decoded each, upright, and the same picture the decoder pipe gives."""
+    import mosaic_cli.overlay.samples as samples
+    from conftest import ffmpeg
+    from mosaic_cli.video import probe
+    from mosaic_cli.video.reader import frames_at
+
+    ground = procedural_map((1024, 1024), seed=5)
+    plain = tmp_path / "plain.mp4"
+    write_flight(plain, ground, plan_flight((1024, 1024), "fast", frames=240, size=(320, 180), seed=5), crf=16,
+                 preset="veryfast", show_progress=False)
+    clip = tmp_path / "dense.mp4"
+    ffmpeg(*(["-display_rotation", str(turn)] if turn else []), "-i", str(plain), "-c:v", "libx264", "-g", "12",
+           "-keyint_min", "12", "-sc_threshold", "0", "-pix_fmt", "yuv420p", str(clip))
+    info = probe(clip)
+    seen: list = []
+    monkeypatch.setattr(samples, "frames_at", lambda *a, **k: seen.append("decoded") or frames_at(*a, **k))
+    got = sample_frames(clip, 16, 160, info)
+    assert seen == [] and len(got) >= 15  # no decoder pass; a sample or so may share a keyframe
+    keys = samples._nearest_keyframes(samples._picked(240, 16), list(range(0, 240, 12)), 240 / 16)
+    assert keys is not None and len(got) == len(keys) and all(k % 12 == 0 for k in keys)
+    exact = list(frames_at(info, keys, 160))
+    assert got[0].shape == exact[0].shape == ((284, 160, 3) if turn else (90, 160, 3))
+    assert all(np.abs(a.astype(int) - b).mean() < 2.0 for a, b in zip(got, exact))
+
+
+def test_sparse_keyframes_make_one_decoder_pass_cheaper_than_seeking():
+    from mosaic_cli.overlay.samples import _picked, _seeking_cost
+
+    # x264's default, a keyframe every 250 frames: 1200 frames are cheaper decoded once, 12000
+    # cheaper sought 32 times (the costs are frames decoded).
+    assert _seeking_cost(_picked(1200, 32), list(range(0, 1200, 250))) > 1200
+    assert _seeking_cost(_picked(12000, 32), list(range(0, 12000, 250))) < 12000

@@ -14,10 +14,13 @@ from mosaic_cli.overlay.detect import OverlayOptions
 from mosaic_cli.video import VideoInfo, probe
 from mosaic_cli.video.reader import Decoder, folder_images, frame_at, frames_at, read_image_rgb, scaled_size
 
-# Up to this many frames a clip is decoded once, keeping only the sampled frames; longer ones
-# are sampled by seeking (a decoder start and the frames from the last keyframe each: at most
-# ``samples`` keyframe intervals decoded, however long the clip).  docs/measurements/stitch.md has the costs.
-DECODE_ALL_BELOW = 1000
+# What a picked frame costs, in frames decoded: a clip is sampled at its keyframes where they
+# lie as close together as the picks (one frame decoded each, no decoder to start), else the
+# cheaper of decoding it once, piping only the picked frames, and one seek per picked frame
+# (a decoder start, worth about this many frames, then the frames from the keyframe before it).
+# docs/measurements/speed.md has the costs.
+SEEK_START_FRAMES = 30
+DECODE_ALL_BELOW = 1000  # frames: with no keyframe index, a clip this short is decoded once
 
 
 class VideoSamples:
@@ -42,9 +45,18 @@ class VideoSamples:
             if self._picks is None:
                 self._picks = _picked_by_decoding(_count_frames(info), count)
             return frames_at(info, self._picks, width)
-        if total <= DECODE_ALL_BELOW:
-            return frames_at(info, _picked(total, count), width)  # one decoder pass, the picked frames piped
-        return _sample_by_seeking(count, width, info)
+        picks = _picked(total, count)
+        keys = keyframe_indices(info)
+        if keys is None:
+            seek = total > DECODE_ALL_BELOW
+        else:
+            at_keys = _nearest_keyframes(picks, keys, total / max(1, len(picks)))
+            if at_keys is not None:
+                return _keyframes_at(info, at_keys, width)
+            seek = _seeking_cost(picks, keys) < picks[-1] + 1
+        if seek:
+            return _sample_by_seeking(count, width, info)
+        return frames_at(info, picks, width)  # one decoder pass, the picked frames piped
 
 
 def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
@@ -98,6 +110,69 @@ def _picked_by_decoding(total: int, count: int) -> list[int]:
     return kept[:: max(1, len(kept) // count)][:count]
 
 
+def keyframe_indices(info: VideoInfo) -> list[int] | None:
+    """The frame indices of the video's keyframes, read from its packets (demuxed, not decoded);
+    None when libav cannot read them."""
+    import av  # PyAV, loaded with the first video probed
+
+    fps = info.fps if info.fps > 0 else 30.0
+    try:
+        with av.open(info.path, metadata_errors="replace") as container:
+            video = container.streams[info.stream_index]
+            times = [(float(packet.pts * video.time_base), packet.is_keyframe)
+                     for packet in container.demux(video) if packet.pts is not None and packet.size]
+    except (av.error.FFmpegError, OSError, ValueError, IndexError):
+        return None
+    if not times:
+        return None
+    first = min(t for t, _ in times)
+    return sorted({int(round((t - first) * fps)) for t, key in times if key})
+
+
+def _nearest_keyframes(picks: np.ndarray, keys: list[int], spacing: float) -> list[int] | None:
+    """For each pick the nearest keyframe, when every pick has one within the picks' spacing
+    and nine in ten of them are different keyframes (the samples stay about as many and as
+    evenly spread); else None."""
+    keyed = np.asarray(keys)
+    nearest = keyed[np.abs(keyed[None, :] - picks[:, None]).argmin(axis=1)]
+    distinct = sorted(set(nearest.tolist()))
+    if np.abs(nearest - picks).max() > spacing or len(distinct) < 0.9 * len(picks):
+        return None
+    return distinct
+
+
+def _seeking_cost(picks: np.ndarray, keys: list[int]) -> float:
+    """Frames decoded (a decoder start counted as :data:`SEEK_START_FRAMES`) sampling by seeking."""
+    keyed = np.asarray(keys)
+    before = keyed[np.clip(np.searchsorted(keyed, picks, side="right") - 1, 0, None)]
+    return float(np.sum(picks - before + 1) + SEEK_START_FRAMES * len(picks))
+
+
+def _keyframes_at(info: VideoInfo, indices: list[int], width: int) -> Iterator[np.ndarray]:
+    """The keyframes at ``indices``, upright, ``width`` wide: a seek and one frame decoded each,
+    in this process."""
+    import av  # PyAV, loaded with the first video probed
+
+    fps = info.fps if info.fps > 0 else 30.0
+    size = scaled_size(info.source_size, width)
+    turn = {90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}.get(info.rotation)
+    with av.open(info.path, metadata_errors="replace") as container:
+        video = container.streams[info.stream_index]
+        start = None
+        for index in indices:
+            if start is None:
+                container.seek(0, stream=video)
+                start = next(container.decode(video)).time or 0.0
+            container.seek(int((start + index / fps) / video.time_base), stream=video, backward=True)
+            frame = next(container.decode(video), None)
+            if frame is None:
+                continue
+            rgb = frame.to_ndarray(format="rgb24")
+            if turn is not None:
+                rgb = cv2.rotate(rgb, turn)
+            yield cv2.resize(rgb, size, interpolation=cv2.INTER_AREA) if size != (rgb.shape[1], rgb.shape[0]) else rgb
+
+
 def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.ndarray]:
     """One decoder start per picked frame, seeking to it: each decodes from the keyframe
     before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
@@ -112,4 +187,4 @@ def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.n
                 break
 
 
-__all__ = ["DECODE_ALL_BELOW", "VideoSamples", "sample_frames", "sample_width"]
+__all__ = ["DECODE_ALL_BELOW", "SEEK_START_FRAMES", "VideoSamples", "keyframe_indices", "sample_frames", "sample_width"]
