@@ -111,7 +111,8 @@ def stitch(
         if result.mask is not None and result.mask.use is not None:
             console.print(result.mask.describe())
         used = sum(len(p.transforms) for p in result.panoramas)
-        console.print(f"{result.frames} frames -> {used} keyframes{loops}, {result.frames_per_second:.1f} fr/s")
+        stages = ", ".join(f"{name} {seconds:.1f} s" for name, seconds in result.seconds.items())
+        console.print(f"{result.frames} frames -> {used} keyframes{loops}, {result.frames_per_second:.1f} fr/s ({stages})")
         for p in result.panoramas:
             joined = f" ({p.segments} segments joined)" if p.segments > 1 else ""
             console.print(f"  {p.canvas_size[0]}x{p.canvas_size[1]} panorama of {len(p.transforms)} keyframes{joined} -> {p.path}")

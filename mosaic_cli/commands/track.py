@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from pathlib import Path
 from typing import Annotated
 
@@ -83,9 +85,11 @@ def track(
                          patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     use_threads(options.threads)
     masked = None
+    clock = time.perf_counter()
     if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
         masked = frame_mask(video, options.mask, info, show_progress=not quiet)
         est.set_mask(masked.use)
+    overlay_seconds = time.perf_counter() - clock
     if live or is_jsonl(out):
         result = track_stream(video, est, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
                               mask=options.mask if live else None, info=info)
@@ -116,4 +120,5 @@ def track(
             import numpy as np
 
             console.print(f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
-                          f"median confidence {float(np.median(result.confidence)):.2f} -> {where}")
+                          f"median confidence {float(np.median(result.confidence)):.2f} -> {where} "
+                          f"(overlays {overlay_seconds:.1f} s, track {result.meta['seconds']:.1f} s)")
