@@ -1,0 +1,184 @@
+#!/usr/bin/env python
+"""mosaic's speed against the encoder's floor and vid.stab, per command and stage, in one run.
+
+For each clip (made once with ``mosaic simulate -p shaky`` over a real image of
+../shared/data, or given with --clip), in rounds whose order alternates (A-B-B-A), wall times of:
+
+* decode: ``ffmpeg -i clip -f null -`` (the floor of any command that reads every frame);
+* transcode: ``ffmpeg -i clip -c:v libx264 -preset veryfast -crf 18`` (the floor of any
+  stabiliser that re-encodes);
+* vid.stab: ``vidstabdetect`` then ``vidstabtransform`` with the same encoder settings;
+* ``mosaic stabilize``, ``mosaic track`` and ``mosaic stitch`` with their defaults, each
+  command's own stage times read from its final line;
+
+then the medians and the ratios the speed goals are stated in, with the machine's load average
+before and after.  Also the start-up: ``mosaic track`` of a one-frame clip (median of 5).
+
+    python scripts/bench_speed.py                       # 1280x720 x 1200 frames and 3840x2160 x 300
+    python scripts/bench_speed.py --sizes 720p --rounds 2
+    python scripts/bench_speed.py --gop 30              # clips with a keyframe a second
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio_ffmpeg
+
+FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+# (frame size, frames, loops of a shorter flight, the image flown over, seed)
+SIZES = {
+    "720p": ((1280, 720), 300, 4, "aerial_stills/odm_orthomosaic_previews/aukerman.png", 3),
+    "4k": ((3840, 2160), 300, 1, "aerial_sequences/odm_caliterra/IMG_9356.jpg", 5),
+}
+MOSAIC = [sys.executable, "-m", "mosaic_cli"]
+X264 = ["-c:v", "libx264", "-preset", "veryfast", "-crf", "18", "-pix_fmt", "yuv420p"]
+
+
+def run(cmd: list[str], cwd: Path) -> tuple[float, str]:
+    """(wall seconds, stderr) of one command, which must succeed."""
+    start = time.perf_counter()
+    done = subprocess.run(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise SystemExit(f"failed ({done.returncode}): {shlex.join(cmd)}\n{done.stderr[-2000:]}")
+    return wall, done.stderr
+
+
+def make_clip(folder: Path, name: str, gop: int | None) -> Path:
+    (w, h), frames, loops, image, seed = SIZES[name]
+    clip = folder / f"shaky_{name}{'' if gop is None else f'_g{gop}'}.mp4"
+    if clip.exists():
+        return clip
+    flight = folder / f"flight_{name}.mp4"
+    if not flight.exists():
+        source = DATA / image
+        subprocess.run([*MOSAIC, "simulate", *([str(source)] if source.exists() else []), "-p", "shaky", "-n", str(frames),
+                        "--size", f"{w}x{h}", "--seed", str(seed), "-o", str(flight), "-q"], check=True)
+    encoded = flight
+    if gop is not None:
+        encoded = folder / f"flight_{name}_g{gop}.mp4"
+        subprocess.run([FFMPEG, "-v", "error", "-y", "-i", str(flight), *X264, "-g", str(gop), str(encoded)], check=True)
+    subprocess.run([FFMPEG, "-v", "error", "-y", "-stream_loop", str(loops - 1), "-i", str(encoded), "-c", "copy", str(clip)], check=True)
+    return clip
+
+
+def methods(clip: Path, work: Path, vidstab: bool) -> dict[str, list[str]]:
+    out = work / clip.stem
+    table = {
+        "decode": [FFMPEG, "-v", "error", "-y", "-i", str(clip), "-f", "null", "-"],
+        "transcode": [FFMPEG, "-v", "error", "-y", "-i", str(clip), *X264, "-c:a", "copy", f"{out}_transcode.mp4"],
+        "mosaic stabilize": [*MOSAIC, "stabilize", str(clip), f"{out}_mosaic.mp4"],
+        "mosaic track": [*MOSAIC, "track", str(clip), "-o", f"{out}_track.json"],
+        "mosaic stitch": [*MOSAIC, "stitch", str(clip), "-o", f"{out}_pano.png"],
+    }
+    if vidstab:
+        table["vid.stab"] = ["vidstab"]  # two commands: see run_vidstab
+    return table
+
+
+def run_vidstab(clip: Path, work: Path) -> float:
+    trf = f"{clip.stem}.trf"
+    detect, _ = run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-vf", f"vidstabdetect=result={trf}", "-f", "null", "-"], work)
+    transform, _ = run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-vf", f"vidstabtransform=input={trf}", *X264,
+                        "-c:a", "copy", f"{clip.stem}_vidstab.mp4"], work)
+    return detect + transform
+
+
+STAGE = re.compile(r"(overlays|track|path|render|scan|register|compose|write) ([0-9.]+) s")
+
+
+def stages(stderr: str) -> dict[str, float]:
+    """The stage seconds of a mosaic command's final line."""
+    lines = [line for line in stderr.strip().splitlines() if STAGE.search(line)]
+    return {name: float(value) for name, value in STAGE.findall(lines[-1])} if lines else {}
+
+
+def startup(work: Path, clip: Path, repeats: int = 5) -> float:
+    one = work / "one_frame.mp4"
+    subprocess.run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-frames:v", "1", str(one)], check=True)
+    return statistics.median(run([*MOSAIC, "track", str(one), "-o", str(work / "one.json"), "-q"], work)[0] for _ in range(repeats))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="720p,4k", help="comma-separated: 720p, 4k")
+    parser.add_argument("--clip", type=Path, action="append", help="a clip of your own instead (repeatable)")
+    parser.add_argument("--rounds", type=int, default=2, help="rounds; each round runs every method twice, A-B-B-A")
+    parser.add_argument("--gop", type=int, help="re-encode the made clips with a keyframe every GOP frames")
+    parser.add_argument("--work", type=Path, default=Path(".dev/bench_speed"), help="working folder (clips are kept)")
+    parser.add_argument("--no-vidstab", action="store_true")
+    parser.add_argument("--json", type=Path, help="write every time measured here")
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    work = args.work.resolve()
+    print("command:", shlex.join([sys.executable, *sys.argv]))
+    print(f"cpus: {os.cpu_count()}, load average at start: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    clips = [c.resolve() for c in args.clip] if args.clip else [make_clip(work, s.strip(), args.gop) for s in args.sizes.split(",")]
+    report: dict = {"load_start": os.getloadavg(), "clips": {}}
+    for clip in clips:
+        table = methods(clip, work, not args.no_vidstab)
+        order = list(table)
+        times: dict[str, list[float]] = {name: [] for name in order}
+        stage_times: dict[str, list[dict[str, float]]] = {name: [] for name in order}
+        for k in range(args.rounds):
+            for name in order + order[::-1]:  # A-B-B-A: a drifting load weighs on every method alike
+                if name == "vid.stab":
+                    times[name].append(run_vidstab(clip, work))
+                    continue
+                wall, err = run(table[name], work)
+                times[name].append(wall)
+                if name.startswith("mosaic"):
+                    stage_times[name].append(stages(err))
+            print(f"{clip.name}: round {k + 1} of {args.rounds} done, load {os.getloadavg()[0]:.2f}", file=sys.stderr)
+        median = {name: statistics.median(v) for name, v in times.items()}
+        report["clips"][clip.name] = {"times": times, "stages": stage_times, "median": median}
+        _print_clip(clip, median, stage_times)
+    first = clips[0]
+    report["startup_one_frame_track"] = startup(work, first)
+    report["load_end"] = os.getloadavg()
+    print(f"\nstart-up: mosaic track of a one-frame clip, median of 5: {report['startup_one_frame_track']:.2f} s")
+    print(f"load average at the end: {' '.join(f'{v:.2f}' for v in report['load_end'])}")
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1))
+
+
+def _print_clip(clip: Path, median: dict[str, float], stage_times: dict[str, list[dict[str, float]]]) -> None:
+    from mosaic_cli.video import probe
+
+    info = probe(clip)
+    print(f"\n{clip.name}: {info.source_size[0]}x{info.source_size[1]}, {info.frame_count} frames")
+    print(f"{'method':<18} {'wall s':>7}  stages (medians, s)")
+    for name, seconds in median.items():
+        runs = stage_times.get(name) or []
+        keys = list(runs[0]) if runs else []
+        parts = ", ".join(f"{key} {statistics.median(r.get(key, 0.0) for r in runs):.1f}" for key in keys)
+        print(f"{name:<18} {seconds:7.1f}  {parts}")
+    ratios = [
+        ("mosaic stabilize / transcode", "mosaic stabilize", "transcode", "<= 1.5"),
+        ("vid.stab / mosaic stabilize", "vid.stab", "mosaic stabilize", ">= 2"),
+        ("mosaic track / decode", "mosaic track", "decode", "<= 2.5"),
+        ("mosaic stitch / decode", "mosaic stitch", "decode", "<= 5"),
+    ]
+    for label, a, b, goal in ratios:
+        if a in median and b in median:
+            print(f"{label:<32} {median[a] / median[b]:6.2f}   (goal {goal})")
+    for name in ("mosaic stabilize", "mosaic track", "mosaic stitch"):
+        runs = stage_times.get(name) or []
+        if runs and "overlays" in runs[0]:
+            share = statistics.median(r["overlays"] for r in runs) / median[name]
+            print(f"overlay detection in {name:<17} {100 * share:5.1f}% of its wall time (goal <= 5%)")
+
+
+if __name__ == "__main__":
+    main()
