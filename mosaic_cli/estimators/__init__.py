@@ -6,9 +6,9 @@ An estimator is named on the command line as ``NAME[:OPTION=VALUE]...``, e.g. ``
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
+from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, IdentityEstimator, PairEstimate, estimate_stream  # noqa: F401
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
@@ -90,13 +90,6 @@ def check_work_width(width: int) -> None:
         raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {width}")
 
 
-def check_device(device: str | None) -> None:
-    """``--device``: auto, cpu, cuda or cuda:N (whether that GPU exists is found when a learned
-    estimator moves its network there)."""
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):
-        raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
-
-
 def make_estimator(name: str | None = None, work_width: int | None = None, weights: str | None = None, device: str = "auto",
                    default_width: int = DEFAULT_WORK_WIDTH, **options) -> Estimator:
     """Build the estimator a user named on the command line.
@@ -116,7 +109,7 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
     base, spec_options = parse_spec(name)
     if work_width is not None:
         check_work_width(work_width)
-    check_device(device)
+    check_device(device)  # whether that GPU is there is found when a learned estimator moves its network there
     if weights is not None and base not in (*LEARNED, ""):
         if base in NAMES:  # running the network instead of what was named would be a silent surprise
             raise BadInput(f"--weights goes with a learned estimator (lstm or cnn) or none; -e {base} takes no weights")
@@ -163,7 +156,6 @@ __all__ = [
     "DEFAULT_WORK_WIDTH",
     "LEARNED",
     "NAMES",
-    "check_device",
     "check_work_width",
     "Estimator",
     "IdentityEstimator",

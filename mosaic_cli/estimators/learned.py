@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 import torch
 
+from mosaic_cli.device import resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
@@ -191,23 +192,6 @@ class WorkFrame:
     detail: np.ndarray | None = None  # fine detail (gray minus its 5x5 mean), for the ZNCC check
     features: tuple | None = None  # ORB keypoints and descriptors, when the fallback needed them
     spoilt: bool | None = None  # no motion cue: glare, heavy blur, near black, featureless (see LearnedConfig.carry)
-
-
-def resolve_device(device: str | None) -> torch.device:
-    """"auto" -> cuda when available, else cpu; "cpu"/"cuda"/"cuda:N" as asked (BadInput if absent)."""
-    device = (device or "auto").lower()
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cpu":
-        return torch.device("cpu")
-    if device.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise BadInput("--device cuda: no CUDA GPU is available (use --device cpu or auto)")
-        try:
-            return torch.device(device)
-        except RuntimeError:
-            raise BadInput(f"--device {device}: not a valid device") from None
-    raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
 
 
 def patch_positions(work_size: tuple[int, int], patch: int, layout: int) -> np.ndarray:
@@ -618,5 +602,4 @@ __all__ = [
     "default_weights",
     "make_learned_estimator",
     "patch_positions",
-    "resolve_device",
 ]
