@@ -5,34 +5,41 @@ is told to do, apart from how it does it."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators.refine import POLISHERS, CornerConfig, PolishConfig
+from mosaic_cli.estimators.options import check_choices, option
+from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, Polisher
 
-SEEDS = ("network", "identity", "velocity")
-PRIORS = ("velocity", "none")
-FALLBACKS = ("orb", "none")
-RETRIES = ("wide", "none")
-CARRIES = ("network", "velocity", "none")
-PRECISIONS = ("auto", "int8", "fp32")
-PATCH_LAYOUTS = (1, 5, 9)
+# The values of the options that take one of a few: the annotations of LearnedConfig's fields,
+# which the command line reads its choices from (mosaic_cli.estimators.options).
+PatchLayout = Literal[1, 5, 9]
+Precision = Literal["auto", "int8", "fp32"]
+Retry = Literal["wide", "none"]
+Seed = Literal["network", "identity", "velocity"]
+Prior = Literal["velocity", "none"]
+Fallback = Literal["orb", "none"]
+Carry = Literal["network", "velocity", "none"]
+PATCH_LAYOUTS: tuple[PatchLayout, ...] = get_args(PatchLayout)
+PRECISIONS: tuple[Precision, ...] = get_args(Precision)
 
 
 @dataclass
 class LearnedConfig:
-    """The learned estimator's options (``-e lstm:OPTION=VALUE``).  The measurements behind
-    each default are in models/README.md ("Why these defaults")."""
+    """The learned estimator's options (``-e lstm:OPTION=VALUE``: the fields declared with
+    ``option``) and internal knobs.  The measurements behind each default are in
+    models/README.md ("Why these defaults")."""
 
-    patches: int = 1  # 1: the centre patch (paper); 5: centre + 4 corners; 9: a 3x3 grid
-    chunk: int = 16  # frame pairs per backbone batch (larger on a GPU)
-    reset_every: int | None = None  # LSTM: restart from a zero state every K pairs (None: never)
+    patches: PatchLayout = option(1)  # 1: the centre patch (paper); 5: centre + 4 corners; 9: a 3x3 grid
+    chunk: int = option(16)  # frame pairs per backbone batch (larger on a GPU)
+    reset_every: int | None = option(None, only=("lstm",))  # LSTM: restart from a zero state every K pairs (None: never)
     # The network's arithmetic: "auto" is int8 on a CPU when the weights carry calibrated ranges
     # (the convolutions and the LSTM's weights; offsets stay within hundredths of a working px of
     # fp32's), fp32 otherwise and on GPUs.
-    precision: str = "auto"
+    precision: Precision = option("auto")
     agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
     max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
-    refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
+    refine: Polisher | None = option("lk")  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
     # The network's estimate is usually within a working px or two, but on fast, degraded flights
     # over ground unlike its training sites it can be 5-15 px off: a cheap polish first (1 pyramid
     # level), and where it fails a deep pyramid with large windows and a long leash, which finds
@@ -41,7 +48,7 @@ class LearnedConfig:
     polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
     polish_wide: PolishConfig | None = field(
         default_factory=lambda: PolishConfig(window=31, levels=4, max_shift=20.0, threshold=1.5))
-    retry: str = "wide"  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
+    retry: Retry = option("wide")  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
@@ -59,15 +66,15 @@ class LearnedConfig:
     min_zncc: float | None = 0.1  # None: never
     # What seeds the polish: "network" (the product), or for the ablations the identity or the
     # previous pair's motion (constant velocity), with everything else unchanged.
-    seed: str = "network"
+    seed: Seed = option("network")
     # A motion prior: "velocity" pre-aligns frame t+1 by the last confirmed motion (as the chunk
     # starts) before the network reads it, so that the network regresses only what changed;
     # "none" reads the raw pair, as the paper does.  A network trained on fast flights needs no
     # prior, and a prior a chunk old misleads it (models/README.md): "none" by default.
-    prior: str = "none"
+    prior: Prior = option("none")
     # When the learned path cannot confirm a pair (the polish fails or its detail does not
     # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
-    fallback: str = "orb"
+    fallback: Fallback = option("orb")
     # A pair that no path confirms, one of whose frames is spoilt (glare, a gust's blur, near
     # black, featureless: its band-passed detail below ``spoilt_ratio`` of the flight's recent
     # frames), is placed by the motion carried across the frames rather than reported failed:
@@ -75,18 +82,18 @@ class LearnedConfig:
     # from the frames before makes of it), "velocity" (the last confirmed motion), "none"
     # (failed).  Its confidence is ``carry_confidence``: placed, but confirmed by nothing.  A cut
     # to unrelated ground keeps its detail, so it stays a failure.
-    carry: str = "velocity"
+    carry: Carry = option("velocity")
     carry_confidence: float = 0.05
     # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
     # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
-    carry_limit: int = 8
+    carry_limit: int = option(8)
     # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
     # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.  Off
     # by default (0): on the development flights a gate of 0.1 took the failed burst pairs from
     # 5.9% to 5.2% but the extreme flights' failures from 25.2% to 25.6% (models/README.md).
-    carry_gate: float = 0.0
-    carry_gate_px: float = 2.5
-    spoilt_ratio: float = 0.8
+    carry_gate: float = option(0.0)
+    carry_gate_px: float = option(2.5)
+    spoilt_ratio: float = option(0.8)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -95,24 +102,9 @@ class LearnedConfig:
         """The options a user sets (``--patches``, ``-e lstm:reset-every=K`` ...), named as written."""
         if self.chunk < 1:
             raise BadInput(f"chunk must be at least 1 frame pair, got {self.chunk}")
-        if self.patches not in PATCH_LAYOUTS:
-            raise BadInput(f"patches must be one of {', '.join(map(str, PATCH_LAYOUTS))}, got {self.patches}")
-        if self.refine not in (None, *POLISHERS):
-            raise BadInput(f"refine must be one of {', '.join(POLISHERS)} or none, got {self.refine!r}")
+        check_choices(self)  # patches, refine, precision, retry, seed, prior, fallback, carry
         if self.reset_every is not None and self.reset_every < 1:
             raise BadInput(f"reset-every must be at least 1 frame pair, got {self.reset_every}")
-        if self.precision not in PRECISIONS:
-            raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
-        if self.seed not in SEEDS:
-            raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.seed!r}")
-        if self.prior not in PRIORS:
-            raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
-        if self.fallback not in FALLBACKS:
-            raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.fallback!r}")
-        if self.retry not in RETRIES:
-            raise BadInput(f"retry must be one of {', '.join(RETRIES)}, got {self.retry!r}")
-        if self.carry not in CARRIES:
-            raise BadInput(f"carry must be one of {', '.join(CARRIES)}, got {self.carry!r}")
         if not 0 <= self.carry_gate < 1:
             raise BadInput(f"carry-gate must be in [0, 1), got {self.carry_gate}")
         if self.carry_gate_px <= 0:
