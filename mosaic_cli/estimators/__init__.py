@@ -144,7 +144,7 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
 
 def _check_learned_width(name: str, work_width: int, weights: str | Path | None) -> None:
     """``--work-width`` with a learned estimator: only the width its weights were trained at."""
-    from mosaic_cli.estimators.learned import default_weights
+    from mosaic_cli.estimators.weights import default_weights
     from mosaic_cli.model.checkpoint import read_metadata
 
     trained = int(read_metadata(weights if weights is not None else default_weights(name))["work_size"][0])

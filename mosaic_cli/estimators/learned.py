@@ -27,11 +27,13 @@
              (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
     ``path_counts`` says which path made each pair: learned, fallback, carried or failed.
+
+Beside it: its options (:mod:`.learned_config`), the correlation checks (:mod:`.correlation`),
+where the shipped weights are (:mod:`.weights`) and the polish (:mod:`.refine`).
 """
 
 from __future__ import annotations
 
-import importlib.resources
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -43,6 +45,7 @@ from mosaic_cli.device import resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
+from mosaic_cli.estimators.correlation import band_agreement, detail_level, detail_zncc, fine_detail
 from mosaic_cli.estimators.learned_config import PATCH_LAYOUTS, PRECISIONS, LearnedConfig
 from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.estimators.refine import (
@@ -54,6 +57,7 @@ from mosaic_cli.estimators.refine import (
     points_to_track,
     track_points,
 )
+from mosaic_cli.estimators.weights import default_weights
 from mosaic_cli.geometry import corner_error, frame_corners, is_valid
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
@@ -62,7 +66,6 @@ from mosaic_cli.model.patches import offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 
 PATHS = ("learned", "fallback", "carried", "failed")  # which path produced a pair, counted in ``path_counts``
-REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
 
 
 @dataclass
@@ -370,27 +373,12 @@ class LearnedEstimator(Estimator):
         return H.cpu().numpy(), agreement.cpu().numpy()
 
     def _zncc(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
-        """Zero-normalised cross-correlation between the fine detail (image minus its 5x5 mean)
-        of the patches of frame t and of frame t+1 sampled through ``H``, on pixels whose every
-        bilinear tap lies inside frame t+1, over all patches.  Detail decorrelates within a pixel
-        or two of misregistration, where raw intensities still correlate, and a textureless patch
-        scores low, as it should (docs in models/README.md).  Overlays (set_mask) are left out:
-        no tap on a masked pixel of frame t+1, no masked pixel of frame t."""
+        """The correlation of the pair's fine detail registered by ``H`` (:func:`.correlation.detail_zncc`),
+        each frame's detail made once."""
         for f in (prev, cur):
             if f.detail is None:
-                g = f.gray.astype(np.float32)
-                f.detail = g - cv2.blur(g, (5, 5))
-        ones = self._valid_pixels()
-        P = self.patch
-        target, warped = [], []
-        for x, y in self.positions:
-            to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-            valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1 (and unmasked)
-            if self.work_mask is not None:  # nor on an overlay of frame t
-                valid &= self.work_mask[y : y + P, x : x + P] > 0
-            target.append(prev.detail[y : y + P, x : x + P][valid])
-            warped.append(_sample(cur.detail, to_next, P)[valid])
-        return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
+                f.detail = fine_detail(f.gray)
+        return detail_zncc(prev.detail, cur.detail, H, self.positions, self.patch, self._valid_pixels(), self.work_mask)
 
     def _valid_pixels(self) -> np.ndarray:
         """1 where a pixel of a working frame may be used (the mask allows it), 0 elsewhere;
@@ -401,17 +389,9 @@ class LearnedEstimator(Estimator):
         return self._zncc_use
 
     def _agreement(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
-        """ZNCC of the images the polish aligns (band-passed), frame t against frame t+1 sampled
-        through ``H``, over the pixels both frames see (and the mask allows): to choose between
-        two registrations of one pair.  Band-passed frames keep the coarse detail that noise and
-        compression spare, where the fine detail of :meth:`_zncc` is mostly noise."""
-        a = prev.aligned.astype(np.float32)
-        inside = cv2.warpPerspective(self._valid_pixels(), H, self.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-        b = cv2.warpPerspective(cur.aligned.astype(np.float32), H, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        use = inside > 0
-        if self.work_mask is not None:
-            use &= self.work_mask > 0
-        return _zncc(a[use], b[use], a.size)
+        """The correlation of the pair's band-passed frames registered by ``H`` (:func:`.correlation.band_agreement`):
+        to choose between two registrations of one pair."""
+        return band_agreement(prev.aligned, cur.aligned, H, self._valid_pixels(), self.work_mask)
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
@@ -419,48 +399,6 @@ class LearnedEstimator(Estimator):
 
 SPOILT_HISTORY = 15  # frames the detail reference is the median of
 SPOILT_HISTORY_MIN = 2  # frames needed before any is called spoilt
-
-
-def detail_level(gray: np.ndarray) -> float:
-    """RMS of the band-passed detail of a working frame (difference of Gaussians of sigmas 1.5 and
-    6 working px, taken at half size): what glare, a heavy blur, darkness or featureless ground
-    take away, and sensor noise mostly leaves alone (over nearly textureless ground the noise is
-    most of it, and a blur there counts as spoilt only when it takes a fifth of that away)."""
-    half = cv2.pyrDown(gray).astype(np.float32)
-    return float((cv2.GaussianBlur(half, (0, 0), 0.75) - cv2.GaussianBlur(half, (0, 0), 3.0)).std())
-
-
-def _sample(image: np.ndarray, patch_to_image: np.ndarray, size: int) -> np.ndarray:
-    """The ``size`` x ``size`` patch whose pixel (x, y) is ``image`` at ``patch_to_image @ (x, y, 1)``
-    (bilinear, 0 outside)."""
-    return cv2.warpPerspective(image, patch_to_image, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_CONSTANT)
-
-
-def _zncc(a: np.ndarray, b: np.ndarray, total: int) -> float:
-    """ZNCC of the samples ``a`` and ``b``; 0 when they are fewer than a quarter of ``total``."""
-    if len(a) <= 0.25 * total:
-        return 0.0
-    a, b = a.astype(np.float64), b.astype(np.float64)
-    a, b = a - a.mean(), b - b.mean()
-    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
-
-
-def default_weights(kind: str) -> Path:
-    """The shipped weights for ``kind`` ("lstm" or "cnn"): ``<kind>.safetensors`` in the
-    ``mosaic_cli.models`` package data, ``mosaic_cli/weights/``, or the repository's ``models/``."""
-    name = f"{kind}.safetensors"
-    candidates: list[Path] = []
-    for package in ("mosaic_cli.models", "mosaic_cli.weights"):
-        try:
-            candidates.append(Path(str(importlib.resources.files(package) / name)))
-        except (ModuleNotFoundError, TypeError):
-            pass
-    candidates += [Path(__file__).resolve().parents[1] / "weights" / name, REPO_MODELS / name]
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise BadInput(f"no shipped weights for {kind!r} yet: pass --weights FILE (train one with mosaic train)")
 
 
 def make_learned_estimator(
