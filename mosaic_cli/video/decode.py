@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.folders import _open_folder
+from mosaic_cli.video.folders import open_folder
 from mosaic_cli.video.info import VideoInfo, VideoStream, scaled_size
 from mosaic_cli.video.policy import refuse_damaged
 from mosaic_cli.video.probe import probe
@@ -173,7 +173,7 @@ def open_video(
     if p.is_dir():
         if yuv420p:
             raise ValueError("yuv420p frames are read from video files only")
-        stream = _open_folder(p, width, fps, gray)
+        stream = open_folder(p, width, fps, gray)
         if start:
             stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
         return stream

@@ -33,7 +33,9 @@ def read_image_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _open_folder(folder: Path, width: int | None, fps: float | None, gray: bool) -> VideoStream:
+def open_folder(folder: Path, width: int | None, fps: float | None, gray: bool) -> VideoStream:
+    """The images of ``folder`` as a stream of frames (``width``: downscaled, aspect kept;
+    ``gray``: (h, w) frames); its info says ``fps``, else :data:`DEFAULT_FOLDER_FPS`."""
     files = folder_images(folder)
     if not files:
         raise BadInput(f"{folder}: folder holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")

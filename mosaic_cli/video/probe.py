@@ -12,7 +12,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.folders import DEFAULT_FOLDER_FPS, _open_folder
+from mosaic_cli.video.folders import DEFAULT_FOLDER_FPS, open_folder
 from mosaic_cli.video.info import StreamMeta, VideoInfo
 from mosaic_cli.video.policy import refuse_damaged
 
@@ -31,7 +31,7 @@ def probe(path: str | Path) -> VideoInfo:
     if not p.exists():
         raise BadInput(f"{p}: no such file or folder")
     if p.is_dir():
-        with _open_folder(p, None, None, False) as stream:
+        with open_folder(p, None, None, False) as stream:
             return stream.info
     if p.stat().st_size == 0:
         raise BadInput(f"{p}: file is empty")
