@@ -231,7 +231,8 @@ class BenchOptions:
 
     def validate(self) -> None:
         """The flags (the simulated flight's checked themselves); the paths are the request's (:func:`check_request`)."""
-        from mosaic_cli.estimators import check_device, check_work_width
+        from mosaic_cli.device import check_device
+        from mosaic_cli.estimators import check_work_width
         from mosaic_cli.inputs import check_threads
 
         if self.estimators is not None:

@@ -17,7 +17,7 @@ from torch import nn
 from conftest import textured_image, write_clip
 from mosaic_cli.cli import main
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import estimate_stream, learned, make_estimator
+from mosaic_cli.estimators import estimate_stream, make_estimator, weights
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, default_weights, make_learned_estimator
 from mosaic_cli.geometry import corner_error, four_point_to_homography, rect_corners, to_resolution
 from mosaic_cli.model import HomographyNet, NetConfig, save_weights
@@ -342,9 +342,9 @@ def test_weights_select_the_estimator(tmp_path):
 
 
 def test_default_weights(tmp_path, monkeypatch):
-    monkeypatch.setattr(learned, "REPO_MODELS", tmp_path)
-    monkeypatch.setattr(learned.importlib.resources, "files", lambda package: tmp_path / "absent")
-    monkeypatch.setattr(learned, "Path", _only_under(tmp_path))
+    monkeypatch.setattr(weights, "REPO_MODELS", tmp_path)
+    monkeypatch.setattr(weights.importlib.resources, "files", lambda package: tmp_path / "absent")
+    monkeypatch.setattr(weights, "Path", _only_under(tmp_path))
     with pytest.raises(BadInput, match="no shipped weights for 'lstm' yet: pass --weights FILE"):
         default_weights("lstm")
     shipped, _ = checkpoint(tmp_path, head="lstm")

@@ -425,8 +425,9 @@ def encoders(started: list[list[str]]) -> list[list[str]]:
     ("stabilize", 3, 1),  # overlays sampled, the track pass, the render pass; one encoder
 ])
 def test_each_command_probes_its_input_once(tmp_path, capsys, flight_clip, media_starts, command, decodes, encodes):
-    """No second probe, no ffmpeg run only to read metadata: one libav open of the input, and
-    ffmpeg started only to decode (once per pass) or to encode."""
+    """No second probe, no ffmpeg run only to read metadata: two libav opens of the input (the
+    probe, and the overlay sampler reading where the keyframes are), and ffmpeg started only
+    to decode (once per pass) or to encode."""
     from conftest import cli_exit
 
     mask = tmp_path / "mask.png"
@@ -435,6 +436,6 @@ def test_each_command_probes_its_input_once(tmp_path, capsys, flight_clip, media
     code = cli_exit([command, flight_clip, *out, "-e", "orb", "-q", "--mask", mask])
     assert code == 0, capsys.readouterr().err
     opened, started = media_starts
-    assert opened == [str(flight_clip)]
+    assert opened == [str(flight_clip)] * 2
     assert len(decoders(started)) == decodes and len(encoders(started)) == encodes
     assert len(started) == decodes + encodes, started

@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR, DEFAULT_WORK_WIDTH
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR, DEFAULT_WORK_WIDTH, options_help
 
 # -- the panels of the help (typer's rich_help_panel): each option under one, so that --help
 # reads as groups (what goes in and out, the estimator, drift control ...), not one long box --
@@ -40,7 +40,7 @@ MACHINE = "Machine"
 EstimatorName = Annotated[str | None, typer.Option(
     "--estimator", "-e",
     help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} "
-         "(with --weights: the network they hold).", rich_help_panel=ESTIMATOR)]
+         f"(with --weights: the network they hold). {options_help()}", rich_help_panel=ESTIMATOR)]
 WorkWidth = Annotated[int | None, typer.Option(
     "--work-width",
     help=f"Width the classical estimators (orb, orb-ransac, orb-paper, identity) work at, pixels (default {DEFAULT_WORK_WIDTH}; "

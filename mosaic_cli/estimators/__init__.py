@@ -6,11 +6,13 @@ An estimator is named on the command line as ``NAME[:OPTION=VALUE]...``, e.g. ``
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
+from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, IdentityEstimator, PairEstimate, estimate_stream  # noqa: F401
+from mosaic_cli.estimators.learned_config import LearnedConfig
+from mosaic_cli.estimators.options import Option, options_of
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 
@@ -25,17 +27,32 @@ DEFAULT_WORK_WIDTH = 320
 # What track, stitch and stabilize use unless told otherwise (models/README.md has the measurements).
 DEFAULT_ESTIMATOR = "lstm"
 
-# The options each estimator takes (in a name or as command-line flags) and how to read them.
-OPTIONS: dict[str, dict[str, type]] = {
-    "lstm": {"patches": int, "chunk": int, "reset_every": int, "refine": str, "precision": str, "weights": Path,
-             "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float,
-             "carry_gate_px": float, "spoilt_ratio": float},
-    "cnn": {"patches": int, "chunk": int, "refine": str, "precision": str, "weights": Path,
-            "seed": str, "prior": str, "fallback": str, "retry": str, "carry": str, "carry_limit": int, "carry_gate": float,
-            "carry_gate_px": float, "spoilt_ratio": float},
-    "orb": {"refine": str},
-    "orb-ransac": {"refine": str},
+# The options each estimator takes (in a name or as command-line flags), by field name: the
+# option fields of its config, and for a network the checkpoint it runs (not a config field:
+# it decides which network there is to configure).
+OPTIONS: dict[str, dict[str, Option]] = {
+    **{name: {**options_of(LearnedConfig, name), "weights": Option("weights", Path)} for name in LEARNED},
+    **{name: options_of(OrbConfig, name) for name in ("orb", "orb-ransac")},
 }
+
+
+def options_help() -> str:
+    """The estimators' options as a sentence for ``--help``: ``Options of lstm and cnn (defaults
+    in brackets): patches=1|5|9 (1), ..., reset-every=N (lstm only), ...; of orb and orb-ransac:
+    refine=lk|ecc|none (lk).``"""
+    orbs = ("orb", "orb-ransac")
+    return (f"Options of {' and '.join(LEARNED)} (defaults in brackets): {_options_of_all(LEARNED)}; "
+            f"of {' and '.join(orbs)}: {_options_of_all(orbs)}.")
+
+
+def _options_of_all(family: tuple[str, ...]) -> str:
+    """The options of estimators that take (nearly) the same, each once, with those only some take marked."""
+    described = []
+    for key in dict.fromkeys(key for estimator in family for key in OPTIONS[estimator]):
+        takers = [estimator for estimator in family if key in OPTIONS[estimator]]
+        usage = OPTIONS[takers[0]][key].usage()
+        described.append(usage if len(takers) == len(family) else f"{usage} ({' and '.join(takers)} only)")
+    return ", ".join(described)
 
 
 def parse_spec(spec: str) -> tuple[str, dict[str, str]]:
@@ -53,7 +70,10 @@ def parse_spec(spec: str) -> tuple[str, dict[str, str]]:
     return name.lower(), options
 
 
-def _typed(name: str, options: dict) -> dict:
+def typed_options(name: str, options: dict) -> dict:
+    """The options given to the estimator ``name`` (from its spec and flags, None: not given),
+    read as its config takes them, by field name; ``BadInput`` for one it does not take (listing
+    those it does) or a value not of the option's kind."""
     allowed = OPTIONS.get(name, {})
     out = {}
     for key, value in options.items():
@@ -61,26 +81,9 @@ def _typed(name: str, options: dict) -> dict:
             continue
         key = key.replace("-", "_")
         if key not in allowed:
-            offer = ", ".join(k.replace("_", "-") for k in allowed) or "none"
+            offer = ", ".join(opt.usage() for opt in allowed.values()) or "none"
             raise BadInput(f"estimator {name!r} has no option {key.replace('_', '-')!r} (its options: {offer})")
-        kind = allowed[key]
-        if kind is int:
-            try:
-                value = int(value)
-            except (TypeError, ValueError):
-                raise BadInput(f"estimator {name!r}: {key.replace('_', '-')} must be a whole number, got {value!r}") from None
-        elif kind is float:
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise BadInput(f"estimator {name!r}: {key.replace('_', '-')} must be a number, got {value!r}") from None
-        elif kind is Path:
-            value = str(value)  # a file name keeps its case
-        else:
-            value = str(value).lower()
-            if key == "refine" and value == "none":
-                value = None
-        out[key] = value
+        out[key] = allowed[key].read(name, value)
     return out
 
 
@@ -88,13 +91,6 @@ def check_work_width(width: int) -> None:
     """``--work-width``: one rule for track, stitch, stabilize and bench."""
     if not MIN_WORK_WIDTH <= width <= MAX_WORK_WIDTH:
         raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {width}")
-
-
-def check_device(device: str | None) -> None:
-    """``--device``: auto, cpu, cuda or cuda:N (whether that GPU exists is found when a learned
-    estimator moves its network there)."""
-    if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", (device or "auto").lower()):
-        raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
 
 
 def make_estimator(name: str | None = None, work_width: int | None = None, weights: str | None = None, device: str = "auto",
@@ -116,7 +112,7 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
     base, spec_options = parse_spec(name)
     if work_width is not None:
         check_work_width(work_width)
-    check_device(device)
+    check_device(device)  # whether that GPU is there is found when a learned estimator moves its network there
     if weights is not None and base not in (*LEARNED, ""):
         if base in NAMES:  # running the network instead of what was named would be a silent surprise
             raise BadInput(f"--weights goes with a learned estimator (lstm or cnn) or none; -e {base} takes no weights")
@@ -124,9 +120,9 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
     learned = weights is not None or base in LEARNED
     kind = "lstm" if learned and base not in LEARNED else base  # --weights alone: the options any learned one takes
     given = {**spec_options, **{k: v for k, v in options.items() if v is not None}}
-    typed = _typed(kind, given) if base in NAMES or learned else {}
+    typed = typed_options(kind, given) if base in NAMES or learned else {}
     if learned:
-        from mosaic_cli.estimators.learned import LearnedConfig, make_learned_estimator
+        from mosaic_cli.estimators.learned import make_learned_estimator
 
         weights = typed.pop("weights", weights)
         if work_width is not None:  # before the weights are loaded: their header says their width
@@ -148,7 +144,7 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
 
 def _check_learned_width(name: str, work_width: int, weights: str | Path | None) -> None:
     """``--work-width`` with a learned estimator: only the width its weights were trained at."""
-    from mosaic_cli.estimators.learned import default_weights
+    from mosaic_cli.estimators.weights import default_weights
     from mosaic_cli.model.checkpoint import read_metadata
 
     trained = int(read_metadata(weights if weights is not None else default_weights(name))["work_size"][0])
@@ -163,7 +159,7 @@ __all__ = [
     "DEFAULT_WORK_WIDTH",
     "LEARNED",
     "NAMES",
-    "check_device",
+    "OPTIONS",
     "check_work_width",
     "Estimator",
     "IdentityEstimator",
@@ -173,5 +169,7 @@ __all__ = [
     "PaperOrbEstimator",
     "estimate_stream",
     "make_estimator",
+    "options_help",
     "parse_spec",
+    "typed_options",
 ]

@@ -27,25 +27,28 @@
              (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
     ``path_counts`` says which path made each pair: learned, fallback, carried or failed.
+
+Beside it: its options (:mod:`.learned_config`), the correlation checks (:mod:`.correlation`),
+where the shipped weights are (:mod:`.weights`) and the polish (:mod:`.refine`).
 """
 
 from __future__ import annotations
 
-import importlib.resources
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
+from mosaic_cli.device import resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
+from mosaic_cli.estimators.correlation import band_agreement, detail_level, detail_zncc, fine_detail
+from mosaic_cli.estimators.learned_config import PATCH_LAYOUTS, PRECISIONS, LearnedConfig
 from mosaic_cli.estimators.orb import OrbEstimator
 from mosaic_cli.estimators.refine import (
-    POLISHERS,
-    CornerConfig,
     Polish,
     PolishConfig,
     align_pixels,
@@ -54,6 +57,7 @@ from mosaic_cli.estimators.refine import (
     points_to_track,
     track_points,
 )
+from mosaic_cli.estimators.weights import default_weights
 from mosaic_cli.geometry import corner_error, frame_corners, is_valid
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
@@ -61,122 +65,7 @@ from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.model.patches import offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 
-SEEDS = ("network", "identity", "velocity")
-PRIORS = ("velocity", "none")
-FALLBACKS = ("orb", "none")
-RETRIES = ("wide", "none")
-CARRIES = ("network", "velocity", "none")
 PATHS = ("learned", "fallback", "carried", "failed")  # which path produced a pair, counted in ``path_counts``
-PRECISIONS = ("auto", "int8", "fp32")
-PATCH_LAYOUTS = (1, 5, 9)
-REPO_MODELS = Path(__file__).resolve().parents[2] / "models"
-
-
-@dataclass
-class LearnedConfig:
-    """The learned estimator's options (``-e lstm:OPTION=VALUE``).  The measurements behind
-    each default are in models/README.md ("Why these defaults")."""
-
-    patches: int = 1  # 1: the centre patch (paper); 5: centre + 4 corners; 9: a 3x3 grid
-    chunk: int = 16  # frame pairs per backbone batch (larger on a GPU)
-    reset_every: int | None = None  # LSTM: restart from a zero state every K pairs (None: never)
-    # The network's arithmetic: "auto" is int8 on a CPU when the weights carry calibrated ranges
-    # (the convolutions and the LSTM's weights; offsets stay within hundredths of a working px of
-    # fp32's), fp32 otherwise and on GPUs.
-    precision: str = "auto"
-    agreement_px: float = 2.0  # corner spread between patches (working px) at which confidence halves
-    max_area_ratio: float = 2.0  # larger frame-to-frame area changes are failures
-    refine: str | None = "lk"  # "lk", "ecc" or None: the polish seeded by the network (see refine.py)
-    # The network's estimate is usually within a working px or two, but on fast, degraded flights
-    # over ground unlike its training sites it can be 5-15 px off: a cheap polish first (1 pyramid
-    # level), and where it fails a deep pyramid with large windows and a long leash, which finds
-    # the basin on blurred, noisy frames; its result then seeds the cheap polish again, whose
-    # small windows and tight refit place it precisely.
-    polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
-    polish_wide: PolishConfig | None = field(
-        default_factory=lambda: PolishConfig(window=31, levels=4, max_shift=20.0, threshold=1.5))
-    retry: str = "wide"  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
-    # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
-    # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
-    # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
-    # None: plain frames.
-    polish_band: tuple[float, float] | None = (1.5, 6.0)
-    # ...but only for video at least this many times wider than the working frame: frames that
-    # already are at the working size keep their finest detail, which is then real.
-    polish_band_min_downscale: float = 2.0
-    corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_points=200))
-    unpolished_weight: float = 0.5  # confidence factor of an estimate the polish could not confirm
-    # Registered detail that correlates less than this is unrelated ground (a cut, a swapped
-    # camera): the pair is reported as failed (identity, confidence 0), as ORB does, so that
-    # stitch and stabilize treat it as one.  Registered noisy frames score far above it, a cut
-    # to unrelated ground far below.
-    min_zncc: float | None = 0.1  # None: never
-    # What seeds the polish: "network" (the product), or for the ablations the identity or the
-    # previous pair's motion (constant velocity), with everything else unchanged.
-    seed: str = "network"
-    # A motion prior: "velocity" pre-aligns frame t+1 by the last confirmed motion (as the chunk
-    # starts) before the network reads it, so that the network regresses only what changed;
-    # "none" reads the raw pair, as the paper does.  A network trained on fast flights needs no
-    # prior, and a prior a chunk old misleads it (models/README.md): "none" by default.
-    prior: str = "none"
-    # When the learned path cannot confirm a pair (the polish fails or its detail does not
-    # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
-    fallback: str = "orb"
-    # A pair that no path confirms, one of whose frames is spoilt (glare, a gust's blur, near
-    # black, featureless: its band-passed detail below ``spoilt_ratio`` of the flight's recent
-    # frames), is placed by the motion carried across the frames rather than reported failed:
-    # "network" (the network's estimate for the pair: for the LSTM, what its state carried over
-    # from the frames before makes of it), "velocity" (the last confirmed motion), "none"
-    # (failed).  Its confidence is ``carry_confidence``: placed, but confirmed by nothing.  A cut
-    # to unrelated ground keeps its detail, so it stays a failure.
-    carry: str = "velocity"
-    carry_confidence: float = 0.05
-    # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
-    # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
-    carry_limit: int = 8
-    # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
-    # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.  Off
-    # by default (0): on the development flights a gate of 0.1 took the failed burst pairs from
-    # 5.9% to 5.2% but the extreme flights' failures from 25.2% to 25.6% (models/README.md).
-    carry_gate: float = 0.0
-    carry_gate_px: float = 2.5
-    spoilt_ratio: float = 0.8
-
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self) -> None:
-        """The options a user sets (``--patches``, ``-e lstm:reset-every=K`` ...), named as written."""
-        if self.chunk < 1:
-            raise BadInput(f"chunk must be at least 1 frame pair, got {self.chunk}")
-        if self.patches not in PATCH_LAYOUTS:
-            raise BadInput(f"patches must be one of {', '.join(map(str, PATCH_LAYOUTS))}, got {self.patches}")
-        if self.refine not in (None, *POLISHERS):
-            raise BadInput(f"refine must be one of {', '.join(POLISHERS)} or none, got {self.refine!r}")
-        if self.reset_every is not None and self.reset_every < 1:
-            raise BadInput(f"reset-every must be at least 1 frame pair, got {self.reset_every}")
-        if self.precision not in PRECISIONS:
-            raise BadInput(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
-        if self.seed not in SEEDS:
-            raise BadInput(f"seed must be one of {', '.join(SEEDS)}, got {self.seed!r}")
-        if self.prior not in PRIORS:
-            raise BadInput(f"prior must be one of {', '.join(PRIORS)}, got {self.prior!r}")
-        if self.fallback not in FALLBACKS:
-            raise BadInput(f"fallback must be one of {', '.join(FALLBACKS)}, got {self.fallback!r}")
-        if self.retry not in RETRIES:
-            raise BadInput(f"retry must be one of {', '.join(RETRIES)}, got {self.retry!r}")
-        if self.carry not in CARRIES:
-            raise BadInput(f"carry must be one of {', '.join(CARRIES)}, got {self.carry!r}")
-        if not 0 <= self.carry_gate < 1:
-            raise BadInput(f"carry-gate must be in [0, 1), got {self.carry_gate}")
-        if self.carry_gate_px <= 0:
-            raise BadInput(f"carry-gate-px must be positive, got {self.carry_gate_px}")
-        if self.carry_limit < 1:
-            raise BadInput(f"carry-limit must be at least 1 pair, got {self.carry_limit}")
-        if not 0 < self.carry_confidence < 1:
-            raise BadInput(f"carry-confidence must be in (0, 1), got {self.carry_confidence}")
-        if not 0 <= self.spoilt_ratio < 1:
-            raise BadInput(f"spoilt-ratio must be in [0, 1), got {self.spoilt_ratio}")
 
 
 @dataclass
@@ -191,23 +80,6 @@ class WorkFrame:
     detail: np.ndarray | None = None  # fine detail (gray minus its 5x5 mean), for the ZNCC check
     features: tuple | None = None  # ORB keypoints and descriptors, when the fallback needed them
     spoilt: bool | None = None  # no motion cue: glare, heavy blur, near black, featureless (see LearnedConfig.carry)
-
-
-def resolve_device(device: str | None) -> torch.device:
-    """"auto" -> cuda when available, else cpu; "cpu"/"cuda"/"cuda:N" as asked (BadInput if absent)."""
-    device = (device or "auto").lower()
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cpu":
-        return torch.device("cpu")
-    if device.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise BadInput("--device cuda: no CUDA GPU is available (use --device cpu or auto)")
-        try:
-            return torch.device(device)
-        except RuntimeError:
-            raise BadInput(f"--device {device}: not a valid device") from None
-    raise BadInput(f"--device must be auto, cpu or cuda, got {device!r}")
 
 
 def patch_positions(work_size: tuple[int, int], patch: int, layout: int) -> np.ndarray:
@@ -501,27 +373,12 @@ class LearnedEstimator(Estimator):
         return H.cpu().numpy(), agreement.cpu().numpy()
 
     def _zncc(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
-        """Zero-normalised cross-correlation between the fine detail (image minus its 5x5 mean)
-        of the patches of frame t and of frame t+1 sampled through ``H``, on pixels whose every
-        bilinear tap lies inside frame t+1, over all patches.  Detail decorrelates within a pixel
-        or two of misregistration, where raw intensities still correlate, and a textureless patch
-        scores low, as it should (docs in models/README.md).  Overlays (set_mask) are left out:
-        no tap on a masked pixel of frame t+1, no masked pixel of frame t."""
+        """The correlation of the pair's fine detail registered by ``H`` (:func:`.correlation.detail_zncc`),
+        each frame's detail made once."""
         for f in (prev, cur):
             if f.detail is None:
-                g = f.gray.astype(np.float32)
-                f.detail = g - cv2.blur(g, (5, 5))
-        ones = self._valid_pixels()
-        P = self.patch
-        target, warped = [], []
-        for x, y in self.positions:
-            to_next = np.asarray(H, np.float64) @ np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]])
-            valid = _sample(ones, to_next, P) > 0.999  # every bilinear tap inside frame t+1 (and unmasked)
-            if self.work_mask is not None:  # nor on an overlay of frame t
-                valid &= self.work_mask[y : y + P, x : x + P] > 0
-            target.append(prev.detail[y : y + P, x : x + P][valid])
-            warped.append(_sample(cur.detail, to_next, P)[valid])
-        return _zncc(np.concatenate(target), np.concatenate(warped), len(self.positions) * P * P)
+                f.detail = fine_detail(f.gray)
+        return detail_zncc(prev.detail, cur.detail, H, self.positions, self.patch, self._valid_pixels(), self.work_mask)
 
     def _valid_pixels(self) -> np.ndarray:
         """1 where a pixel of a working frame may be used (the mask allows it), 0 elsewhere;
@@ -532,17 +389,9 @@ class LearnedEstimator(Estimator):
         return self._zncc_use
 
     def _agreement(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
-        """ZNCC of the images the polish aligns (band-passed), frame t against frame t+1 sampled
-        through ``H``, over the pixels both frames see (and the mask allows): to choose between
-        two registrations of one pair.  Band-passed frames keep the coarse detail that noise and
-        compression spare, where the fine detail of :meth:`_zncc` is mostly noise."""
-        a = prev.aligned.astype(np.float32)
-        inside = cv2.warpPerspective(self._valid_pixels(), H, self.work_size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP)
-        b = cv2.warpPerspective(cur.aligned.astype(np.float32), H, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-        use = inside > 0
-        if self.work_mask is not None:
-            use &= self.work_mask > 0
-        return _zncc(a[use], b[use], a.size)
+        """The correlation of the pair's band-passed frames registered by ``H`` (:func:`.correlation.band_agreement`):
+        to choose between two registrations of one pair."""
+        return band_agreement(prev.aligned, cur.aligned, H, self._valid_pixels(), self.work_mask)
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden
         raise NotImplementedError
@@ -550,48 +399,6 @@ class LearnedEstimator(Estimator):
 
 SPOILT_HISTORY = 15  # frames the detail reference is the median of
 SPOILT_HISTORY_MIN = 2  # frames needed before any is called spoilt
-
-
-def detail_level(gray: np.ndarray) -> float:
-    """RMS of the band-passed detail of a working frame (difference of Gaussians of sigmas 1.5 and
-    6 working px, taken at half size): what glare, a heavy blur, darkness or featureless ground
-    take away, and sensor noise mostly leaves alone (over nearly textureless ground the noise is
-    most of it, and a blur there counts as spoilt only when it takes a fifth of that away)."""
-    half = cv2.pyrDown(gray).astype(np.float32)
-    return float((cv2.GaussianBlur(half, (0, 0), 0.75) - cv2.GaussianBlur(half, (0, 0), 3.0)).std())
-
-
-def _sample(image: np.ndarray, patch_to_image: np.ndarray, size: int) -> np.ndarray:
-    """The ``size`` x ``size`` patch whose pixel (x, y) is ``image`` at ``patch_to_image @ (x, y, 1)``
-    (bilinear, 0 outside)."""
-    return cv2.warpPerspective(image, patch_to_image, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_CONSTANT)
-
-
-def _zncc(a: np.ndarray, b: np.ndarray, total: int) -> float:
-    """ZNCC of the samples ``a`` and ``b``; 0 when they are fewer than a quarter of ``total``."""
-    if len(a) <= 0.25 * total:
-        return 0.0
-    a, b = a.astype(np.float64), b.astype(np.float64)
-    a, b = a - a.mean(), b - b.mean()
-    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
-
-
-def default_weights(kind: str) -> Path:
-    """The shipped weights for ``kind`` ("lstm" or "cnn"): ``<kind>.safetensors`` in the
-    ``mosaic_cli.models`` package data, ``mosaic_cli/weights/``, or the repository's ``models/``."""
-    name = f"{kind}.safetensors"
-    candidates: list[Path] = []
-    for package in ("mosaic_cli.models", "mosaic_cli.weights"):
-        try:
-            candidates.append(Path(str(importlib.resources.files(package) / name)))
-        except (ModuleNotFoundError, TypeError):
-            pass
-    candidates += [Path(__file__).resolve().parents[1] / "weights" / name, REPO_MODELS / name]
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise BadInput(f"no shipped weights for {kind!r} yet: pass --weights FILE (train one with mosaic train)")
 
 
 def make_learned_estimator(
@@ -618,5 +425,4 @@ __all__ = [
     "default_weights",
     "make_learned_estimator",
     "patch_positions",
-    "resolve_device",
 ]

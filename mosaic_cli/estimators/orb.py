@@ -14,13 +14,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator
-from mosaic_cli.estimators.refine import PolishConfig, align_pixels, erode_mask, track_points
+from mosaic_cli.estimators.options import check_choices, option
+from mosaic_cli.estimators.refine import PolishConfig, Polisher, align_pixels, erode_mask, track_points
 from mosaic_cli.geometry import is_valid
 
 ROBUST_METHODS = {"usac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
-REFINERS = (None, "ecc", "lk")
 
 
 @dataclass
@@ -38,7 +37,7 @@ class OrbConfig:
     # Keypoints are located to about a pixel, with errors that do not average out over a chain
     # of frames; "lk" (Lucas-Kanade tracking of the inliers) and "ecc" (direct alignment)
     # polish the fit to a small fraction of a pixel.  LK is both cheaper and more accurate.
-    refine: str | None = "lk"
+    refine: Polisher | None = option("lk")  # -e orb:refine=VALUE, track --refine
     lk_window: int = 15  # Lucas-Kanade window (pixels at working resolution)
     lk_threshold: float = 0.5  # reprojection threshold of the refit on tracked points
     ecc_iterations: int = 20
@@ -53,8 +52,7 @@ class OrbConfig:
         # The method is the estimator's name (orb: usac, orb-ransac: ransac), never a user's value.
         if self.method not in ROBUST_METHODS:
             raise ValueError(f"method must be one of {', '.join(ROBUST_METHODS)}, got {self.method!r}")
-        if self.refine not in REFINERS:  # -e orb:refine=VALUE, track --refine
-            raise BadInput(f"refine must be one of lk, ecc or none, got {self.refine!r}")
+        check_choices(self)
 
     @property
     def polish(self) -> PolishConfig:

@@ -16,13 +16,15 @@ Either keeps the seed when it fails or wanders further than ``max_shift`` from i
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, is_valid, project
 
-POLISHERS = ("lk", "ecc")
+Polisher = Literal["lk", "ecc"]
+POLISHERS: tuple[Polisher, ...] = get_args(Polisher)
 
 
 @dataclass
@@ -195,5 +197,5 @@ def points_to_track(gray: np.ndarray, config: CornerConfig, mask: np.ndarray | N
     return found.reshape(-1, 2)
 
 
-__all__ = ["POLISHERS", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "band_pass", "erode_mask", "points_to_track",
+__all__ = ["POLISHERS", "Polisher", "CornerConfig", "Polish", "PolishConfig", "align_pixels", "band_pass", "erode_mask", "points_to_track",
            "track_points"]

@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import check_writable, write_json
+from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import Estimator, check_device, check_work_width, make_estimator
+from mosaic_cli.estimators import Estimator, check_work_width, make_estimator
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_encoder, check_mask_file, check_timeout
 from mosaic_cli.overlay import MaskOptions, frame_mask
 from mosaic_cli.progress import progress_group

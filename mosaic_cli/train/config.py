@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import check_threads
 from mosaic_cli.model.network import PRESETS as NET_PRESETS
@@ -16,7 +17,6 @@ from mosaic_cli.model.network import VARIANTS
 from mosaic_cli.train.losses import PHOTOMETRIC_SPACES
 
 PRESETS = tuple(NET_PRESETS)
-DEVICES = ("auto", "cpu", "cuda")
 DATA = ("stream", "device")  # windows built per sample by loader processes, or cut from the cache held on the device
 LSTM_STARTS = ("random", "cnn")
 
@@ -89,8 +89,7 @@ class TrainConfig:
             raise BadInput(f"unknown --photometric {self.photometric!r}: choose one of {', '.join(PHOTOMETRIC_SPACES)}")
         if self.data not in DATA:
             raise BadInput(f"unknown --data {self.data!r}: choose one of {', '.join(DATA)}")
-        if self.device not in DEVICES and not str(self.device).startswith("cuda:"):
-            raise BadInput(f"unknown --device {self.device!r}: choose one of {', '.join(DEVICES)}")
+        check_device(self.device)
         checks = [
             (self.steps is None or self.steps >= 1, f"--steps must be at least 1, got {self.steps}"),
             (self.batch_size is None or self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),

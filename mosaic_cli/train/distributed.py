@@ -15,7 +15,7 @@ from datetime import timedelta
 import torch
 import torch.distributed as torch_dist
 
-from mosaic_cli.errors import BadInput
+from mosaic_cli.device import resolve_device
 
 # Rank 0 decodes every clip before the others may start: allow that to take long.
 COLLECTIVE_TIMEOUT = timedelta(hours=3)
@@ -42,7 +42,7 @@ class Distributed:
         world = int(os.environ.get("WORLD_SIZE", "1"))
         rank = int(os.environ.get("RANK", "0"))
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-        chosen = pick_device(device, local_rank)
+        chosen = resolve_device(device, gpu=local_rank)  # each process its own GPU
         if world > 1 and not torch_dist.is_initialized():
             backend = "nccl" if chosen.type == "cuda" else "gloo"
             if chosen.type == "cuda":
@@ -73,13 +73,3 @@ class Distributed:
     def close(self) -> None:
         if self.active and torch_dist.is_initialized():
             torch_dist.destroy_process_group()
-
-
-def pick_device(name: str, local_rank: int = 0) -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise BadInput("--device cuda: no CUDA device is available (use --device cpu)")
-        return torch.device(name if ":" in name else f"cuda:{local_rank}")
-    return torch.device("cpu")

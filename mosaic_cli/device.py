@@ -1,0 +1,47 @@
+"""``--device``: the torch device a learned estimator or a training run computes on, one rule for
+every command.
+
+``auto`` is the GPU when torch sees one, else the CPU; ``cpu``; ``cuda`` (the GPU); ``cuda:N``
+(the N-th GPU).  Any case.  :func:`check_device` checks the spelling without importing torch, so
+that options can validate themselves before any work; :func:`resolve_device` also checks that
+the GPU asked for is there.  Both refuse with one ``BadInput`` line naming ``--device``.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import TYPE_CHECKING
+
+from mosaic_cli.errors import BadInput
+
+if TYPE_CHECKING:
+    import torch
+
+SPELLINGS = "auto, cpu, cuda or cuda:N"
+_SPELLING = re.compile(r"auto|cpu|cuda(:\d+)?")
+
+
+def check_device(device: str | None) -> str:
+    """``device`` (None: ``auto``) in lower case, or ``BadInput`` when it is none of :data:`SPELLINGS`."""
+    name = (device or "auto").lower()
+    if not _SPELLING.fullmatch(name):
+        raise BadInput(f"--device must be {SPELLINGS}, got {device!r}")
+    return name
+
+
+def resolve_device(device: str | None, gpu: int | None = None) -> torch.device:
+    """The torch device ``--device`` names.  ``gpu`` is the GPU that ``cuda`` (and ``auto`` on
+    a machine with one) means: torchrun's LOCAL_RANK in training, so that each process takes its
+    own; None: torch's current GPU.  ``BadInput`` when the GPU is not there."""
+    import torch
+
+    name = check_device(device)
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    index = int(name.partition(":")[2]) if ":" in name else gpu
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if count == 0:
+        raise BadInput(f"--device {name}: no CUDA GPU is available (use --device cpu or auto)")
+    if index is not None and index >= count:
+        raise BadInput(f"--device {name}: no GPU cuda:{index} here, the GPUs are cuda:0..cuda:{count - 1} (use --device cpu or auto)")
+    return torch.device("cuda") if index is None else torch.device("cuda", index)

@@ -1,0 +1,212 @@
+"""Decoding: the bundled ffmpeg (imageio-ffmpeg's binary) on a pipe, a process of its own that
+decodes the next frame while mosaic works on this one (docs/developer/video.md has the measured
+rates).  :func:`open_video` streams a file's (or an image folder's) frames; :class:`Decoder` is
+the one ffmpeg decoder under it and under :func:`frames_at` and :func:`frame_at` (picked frames,
+a frame at a time)."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import re
+import subprocess
+import tempfile
+from collections.abc import Iterator, Sequence
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.video.folders import open_folder
+from mosaic_cli.video.info import VideoInfo, VideoStream, scaled_size
+from mosaic_cli.video.policy import refuse_damaged
+from mosaic_cli.video.probe import probe
+
+PIXELS = ("rgb", "gray", "yuv420p")
+
+
+def read_into(pipe, view: memoryview) -> int:
+    """Fill ``view`` from ``pipe`` (a raw-frame pipe: reads may return less than asked); the
+    bytes read, fewer than ``len(view)`` only at the end of the stream."""
+    got = 0
+    while got < len(view):
+        n = pipe.readinto(view[got:])
+        if not n:
+            break
+        got += n
+    return got
+
+
+def ffmpeg_exe() -> str:
+    """The ffmpeg binary imageio-ffmpeg ships (or the one ``IMAGEIO_FFMPEG_EXE`` names), looked up
+    when a video is first read or written, not when mosaic starts."""
+    import imageio_ffmpeg
+
+    return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+_PIX_FMT = {"rgb": "rgb24", "gray": "gray", "yuv420p": "yuv420p"}
+
+
+def frame_shape(pixels: str, size: tuple[int, int]) -> tuple[int, ...]:
+    """The array shape of one frame of ``size`` (w, h): gray (h, w), rgb (h, w, 3), yuv420p
+    the three planes one after the other, (h * 3 // 2, w)."""
+    w, h = size
+    return {"gray": (h, w), "rgb": (h, w, 3), "yuv420p": (h * 3 // 2, w)}[pixels]
+
+
+class Decoder:
+    """One ffmpeg process decoding a file's video stream to raw frames on its standard output.
+
+    Iterate for the frames (each a new writable array); :attr:`error` then holds ffmpeg's first
+    complaint, if it made one.  Close (or use as a context manager) to stop it early."""
+
+    def __init__(self, info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None,
+                 select: str | None = None, seek: float | None = None, frames: int | None = None):
+        if pixels not in PIXELS:
+            raise ValueError(f"pixels must be one of {', '.join(PIXELS)}, got {pixels}")
+        self.size = size or info.source_size
+        if pixels == "yuv420p" and (self.size != info.source_size or self.size[0] % 2 or self.size[1] % 2):
+            raise ValueError(f"yuv420p frames are read at the source size, even only; got {self.size}")
+        self.shape = frame_shape(pixels, self.size)
+        self.error: str | None = None
+        cmd = [ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error"]
+        if seek is not None:
+            cmd += ["-ss", f"{seek:.4f}"]
+        stream = f"0:{info.stream_index}" if info.stream_index is not None else "0:v:0"
+        cmd += ["-i", info.path, "-map", stream]
+        filters = [select] if select else []
+        if self.size != info.source_size:
+            filters.append(f"scale={self.size[0]}:{self.size[1]}:flags=area")
+        if filters:
+            cmd += ["-vf", ",".join(filters)]
+        if frames is not None:
+            cmd += ["-frames:v", str(int(frames))]
+        # Every decoded frame exactly once: ffmpeg's default for a pipe would resample a
+        # variable frame rate to a constant one, duplicating and dropping frames.
+        cmd += ["-fps_mode", "passthrough", "-f", "rawvideo", "-pix_fmt", _PIX_FMT[pixels], "pipe:1"]
+        self._log = tempfile.TemporaryFile()  # ffmpeg's complaints
+        try:
+            # Its own session: the terminal's Ctrl-C reaches mosaic alone, which then stops it.
+            self._proc: subprocess.Popen | None = subprocess.Popen(
+                cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._log, start_new_session=True, bufsize=0)
+        except OSError as exc:
+            self._log.close()
+            raise BadInput(f"{info.path}: cannot start ffmpeg ({exc.strerror})") from None
+        _widen_pipe(self._proc.stdout, int(np.prod(self.shape)))
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        assert self._proc is not None and self._proc.stdout is not None
+        pipe = self._proc.stdout
+        nbytes = int(np.prod(self.shape))
+        got = 0
+        while True:
+            frame = np.empty(self.shape, np.uint8)
+            got = read_into(pipe, memoryview(frame.reshape(-1)))
+            if got < nbytes:
+                break
+            yield frame
+        status = self._proc.wait()
+        self._log.seek(0)
+        lines = [re.sub(r"^(\[[^]]*\] ?)+", "", ln).strip() for ln in self._log.read().decode("utf-8", "replace").splitlines()]
+        lines = [ln for ln in lines if ln]
+        if lines:
+            self.error = lines[0]
+        elif status != 0:
+            self.error = f"ffmpeg exited with status {status}"
+        elif got:
+            self.error = "the last frame ends early"
+
+    def close(self) -> None:
+        if self._proc is not None:
+            if self._proc.poll() is None:
+                with contextlib.suppress(OSError):
+                    self._proc.kill()
+            self._proc.wait()
+            if self._proc.stdout is not None:
+                self._proc.stdout.close()
+            self._proc = None
+        self._log.close()
+
+    def __enter__(self) -> Decoder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _widen_pipe(pipe, frame_bytes: int) -> None:
+    """A pipe buffer of a whole frame where Linux allows it (up to /proc/sys/fs/pipe-max-size,
+    1 MiB by default) rather than 64 KiB: ffmpeg then hands over a 720p gray frame in one write
+    instead of 15, each a wait for the reader to be scheduled on a busy machine."""
+    setpipe = getattr(fcntl, "F_SETPIPE_SZ", None)
+    if setpipe is None or pipe is None:
+        return
+    try:
+        limit = int(Path("/proc/sys/fs/pipe-max-size").read_text())
+    except (OSError, ValueError):
+        limit = 1 << 20
+    with contextlib.suppress(OSError):
+        fcntl.fcntl(pipe.fileno(), setpipe, min(max(frame_bytes, 1 << 16), limit))
+
+
+def open_video(
+    path: str | Path,
+    width: int | None = None,
+    gray: bool = False,
+    fps: float | None = None,
+    start: int = 0,
+    *,
+    yuv420p: bool = False,
+    info: VideoInfo | None = None,
+) -> VideoStream:
+    """Open ``path`` (a video file or a folder of numbered images) as a stream of frames.
+
+    ``width`` downscales inside the decoder (aspect kept); ``gray`` yields (h, w) uint8 frames
+    instead of RGB; ``yuv420p`` (video files of even size, no ``width``) the planes as ffmpeg
+    decodes them, (h * 3 // 2, w), with no conversion; ``fps`` overrides the frame rate of an
+    image folder; ``start`` skips frames.  ``info``: the file's :func:`probe`, when the caller
+    has it (else it is probed here).
+    """
+    p = Path(path)
+    if p.is_dir():
+        if yuv420p:
+            raise ValueError("yuv420p frames are read from video files only")
+        stream = open_folder(p, width, fps, gray)
+        if start:
+            stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
+        return stream
+    if info is None:
+        info = probe(p)
+    else:
+        refuse_damaged(info)  # probed before the command's --strict took effect
+    pixels = "yuv420p" if yuv420p else "gray" if gray else "rgb"
+    size = scaled_size(info.source_size, width)  # (yuv420p: the Decoder refuses a downscale)
+    info = replace(info, size=size)
+    decoder = Decoder(info, pixels, size, select=f"select=gte(n\\,{int(start)})" if start else None)
+
+    def frames() -> Iterator[np.ndarray]:
+        yield from decoder
+        stream.decode_error = decoder.error
+
+    stream = VideoStream(info, frames(), decoder.close)
+    stream.frames_skipped = int(start)  # (a start past the end reads no frame, and says so)
+    return stream
+
+
+def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None) -> Iterator[np.ndarray]:
+    """The RGB frames of ``indices`` (sorted), in one decoder pass that converts and pipes only
+    those (ffmpeg's select filter), yielded as they come; fewer when the file ends first."""
+    if len(indices) == 0:
+        return
+    picks = "+".join(f"eq(n\\,{int(k)})" for k in indices)
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'") as decoder:
+        yield from decoder
+
+
+def frame_at(info: VideoInfo, seconds: float, width: int | None = None) -> np.ndarray | None:
+    """The first RGB frame at or after ``seconds`` (ffmpeg seeks to the keyframe before it and
+    decodes from there), None when there is none."""
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), seek=seconds, frames=1) as decoder:
+        return next(iter(decoder), None)

@@ -1,0 +1,95 @@
+"""What the readers hand out: :class:`VideoInfo` (what a video holds, known before decoding it,
+with its other streams as :class:`StreamMeta`) and :class:`VideoStream` (its frames, one at a
+time, checked against the count the container announced once read to the end)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.video.policy import Shortfall, account_for_frames
+
+
+@dataclass(frozen=True)
+class StreamMeta:
+    """A stream of the file other than the video read (audio, subtitles, data)."""
+
+    index: int  # in the file, as ffmpeg's -map 0:INDEX counts
+    kind: str  # "audio", "subtitle", "data", "attachment", "video"
+    codec: str  # libav's codec name ("aac", "mov_text", "klv", "bin_data", ...; "none" when unknown)
+    tag: str = ""  # the container's codec tag (fourcc), e.g. "KLVA"
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What is known about a video before decoding it.
+
+    ``size`` is the (w, h) of the frames the reader yields (after rotation and any downscale);
+    ``source_size`` the (w, h) at full resolution after rotation, which is the resolution every
+    homography mosaic reports is expressed in.  ``frame_count`` is the container's count (the
+    smaller of its frame count and its duration times the rate: an edit list may leave frames
+    out) or an estimate from the duration (None when unknown).  ``rotation`` is the clockwise
+    turn (0, 90, 180, 270) the file asks for on display; frames are always yielded upright."""
+
+    path: str
+    size: tuple[int, int]
+    source_size: tuple[int, int]
+    fps: float
+    frame_count: int | None
+    duration: float
+    rotation: int = 0
+    audio_codec: str | None = None
+    is_image_folder: bool = False
+    damage: str | None = None  # libav's complaint when the end of the file does not decode
+    stream_index: int | None = None  # of the video stream read, in the file
+    streams: tuple[StreamMeta, ...] = ()  # the file's other streams, in file order
+
+    @property
+    def has_audio(self) -> bool:
+        return self.audio_codec is not None
+
+
+def scaled_size(size: tuple[int, int], width: int | None) -> tuple[int, int]:
+    """(w, h) resized to ``width`` keeping the aspect ratio, height rounded to the nearest pixel
+    (the same rule as the estimators' working size, so frames need no second resize).
+    ``None`` or a larger width keeps ``size``."""
+    w, h = size
+    if width is None or width >= w:
+        return (w, h)
+    return (int(width), max(1, int(round(h * width / w))))
+
+
+class VideoStream:
+    """An iterable, closeable stream of frames; use as a context manager."""
+
+    def __init__(self, info: VideoInfo, frames: Iterator[np.ndarray], closer=None):
+        self.info = info
+        self._frames = frames
+        self._closer = closer
+        self.frames_read = 0
+        self.frames_skipped = 0  # by ``start``: decoded, not yielded
+        self.decode_error: str | None = None  # set when the decoder stopped with an error
+        self.shortfall: Shortfall | None = None  # set when read to the end and short of the count
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for frame in self._frames:
+            self.frames_read += 1
+            yield frame
+        if self.frames_read == 0:
+            why = f" ({self.decode_error})" if self.decode_error else ""
+            raise BadInput(f"{self.info.path}: no decodable frames{why}")
+        self.shortfall = account_for_frames(self.info, self.frames_skipped + self.frames_read, self.decode_error)
+
+    def close(self) -> None:
+        if self._closer is not None:
+            self._closer()
+            self._closer = None
+
+    def __enter__(self) -> VideoStream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
