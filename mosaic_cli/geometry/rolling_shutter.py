@@ -16,6 +16,8 @@ The "mid" pose of a frame is the camera's at its centre row, ``(h - 1) / 2``: th
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from mosaic_cli.geometry.homography import normalize
@@ -141,7 +143,7 @@ ROUGHNESS = 1e-4  # weight of the integral of u''^2 (px^2 frames^3), against 1 p
 READOUTS = tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2))  # the grid `auto` tries
 
 
-def _interp_rows(times: np.ndarray, steps: int, nodes: int):
+def _interp_rows(times: np.ndarray, steps: int, nodes: int) -> Any:
     """Sparse (len(times), nodes): linear interpolation of grid values at ``times`` (frames)."""
     from scipy import sparse
 
