@@ -26,7 +26,8 @@ from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.crop import border_fraction, output_warps, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MotionModel, camera_motion, motion_model
-from mosaic_cli.stabilize.render import Renderer, parse_border
+from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border
+from mosaic_cli.stabilize.rolling import RollingCorrection, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.track import track_video
 from mosaic_cli.video import VideoInfo, probe
@@ -61,6 +62,7 @@ class StabilizeOptions:
     # two passes, unless the input or the output is live (then DEFAULT_LATENCY there).
     latency: float | None = None
     timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
+    rolling_shutter: str | float = "off"  # auto, off or a readout in [0, 1] (stabilize/rolling.py)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -82,6 +84,7 @@ class StabilizeOptions:
         if self.latency is not None and not self.latency > 0:
             raise BadInput(f"--latency must be positive, got {self.latency}")
         check_timeout(self.timeout)
+        parse_rolling_shutter(self.rolling_shutter)
 
 
 @dataclass
@@ -96,6 +99,7 @@ class StabilizeResult:
     # output frame's view in its input frame (see plots.camera_path_series).
     motion: np.ndarray | None = None
     views: np.ndarray | None = None
+    rolling: RollingCorrection | None = None  # --rolling-shutter: the readout and each band's correction
 
     @property
     def cropping(self) -> float:
@@ -134,13 +138,16 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     # A truncated input (the track pass read fewer frames than announced) is said in every output.
     short = track.meta.get("input")
     tags = {"comment": f"mosaic stabilize: {_shortfall_text(short)}"} if short else None
-    written = plan.renderer.render(video, out, warps, info, compare=compare, show_progress=show_progress, metadata=tags)
+    rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress)
+    per_row = rolling.warper(BORDERS[plan.renderer.border], YUV_BLACK) if rolling is not None and rolling.applied else None
+    written = plan.renderer.render(video, out, warps, info, compare=compare, show_progress=show_progress, metadata=tags, per_row=per_row)
     warps = _match_length(warps, written)
     if warps_out is not None:
         write_warps(warps_out, warps, info.source_size, input_meta=short)
     seconds["render"] = time.perf_counter() - clock - seconds["track"] - seconds["plan"]
     seconds["total"] = time.perf_counter() - clock
-    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=motion, views=views)
+    return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=motion, views=views,
+                           rolling=rolling)
 
 
 def _shortfall_text(short: dict) -> str:

@@ -118,11 +118,13 @@ class Renderer:
 
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray, info: VideoInfo,
                compare: str | Path | None = None, show_progress: bool = True,
-               metadata: dict[str, str] | None = None) -> int:
+               metadata: dict[str, str] | None = None,
+               per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray] | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         Frames beyond ``len(warps)`` (a decoder that finds one more frame the second time)
-        reuse the last warp."""
+        reuse the last warp.  ``per_row(frame, t, warp)``: a warp of its own instead, row by row
+        (``stabilize/rolling.py``)."""
         size = info.source_size
         yuv = _yuv_possible(info, compare is not None)
         pix_fmt = "yuv420p" if yuv else "rgb24"
@@ -139,7 +141,8 @@ class Renderer:
             with open_video(video, yuv420p=yuv, info=info) as frames, progress_task("stabilize: render", len(warps), disable=not show_progress) as advance:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
                     for t, frame in enumerate(_background(frames)):
-                        result = warp(frame, warps[min(t, len(warps) - 1)], size, self.border)
+                        W = warps[min(t, len(warps) - 1)]
+                        result = warp(frame, W, size, self.border) if per_row is None else per_row(frame, t, W)
                         yield (result, join(frame, result)) if compare is not None else (result,)
 
                 written = _drain(outputs(), [w.write for w in writers], advance)
