@@ -77,7 +77,8 @@ def measure_band_motion(video: str | Path, info: VideoInfo, bands: int = BANDS, 
     each pair's weight (1, or 0 where too few corners were tracked); of the first ``max_frames`` frames only, if given."""
     full = info.source_size
     width = min(width, full[0])
-    motions, weights = [], []
+    motions: list[np.ndarray] = []
+    weights: list[float] = []
     with open_video(video, width=width, gray=True, info=info) as frames, \
             progress_task("stabilize: rolling shutter", info.frame_count, disable=not show_progress) as advance:
         prev = None
@@ -142,22 +143,27 @@ class RollingCorrection:
             v = y - (dy + rot * (x - cx) + sc * (y - cy))
             return u.astype(np.float32), v.astype(np.float32)
 
-        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
         cw, ch = w // 2, h // 2
-        # chroma pixel centres in luma pixels (yuv420p): x = 2 j + 0.5
+        # The maps are smooth (a homography and corrections that vary over tens of rows): they are
+        # computed on the chroma grid, whose pixel centres sit at luma x = 2 j + 0.5, and resized to
+        # the luma grid (cv2.resize's convention is that very grid: exact but for the outermost
+        # row and column, extrapolated flat, off by at most half the map's slope).
         cgx, cgy = np.meshgrid(np.arange(cw, dtype=np.float32) * 2 + 0.5, np.arange(ch, dtype=np.float32) * 2 + 0.5)
 
+        def maps(t: int, warp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            u, v = coords(t, warp, cgx, cgy)
+            full_u = cv2.resize(u, (w, h), interpolation=cv2.INTER_LINEAR)
+            full_v = cv2.resize(v, (w, h), interpolation=cv2.INTER_LINEAR)
+            return full_u, full_v, (u + 0.5) / 2 - 0.5, (v + 0.5) / 2 - 0.5
+
         def warp_frame(frame: np.ndarray, t: int, warp: np.ndarray) -> np.ndarray:
+            u, v, cu, cv_ = maps(t, warp)
             if frame.ndim == 3:
-                u, v = coords(t, warp, gx, gy)
                 return cv2.remap(frame, u, v, cv2.INTER_LINEAR, borderMode=border, borderValue=(0, 0, 0))
             out = np.empty_like(frame)
             flat_in, flat_out = frame.reshape(-1), out.reshape(-1)
-            u, v = coords(t, warp, gx, gy)
             flat_out[:w * h] = cv2.remap(flat_in[:w * h].reshape(h, w), u, v, cv2.INTER_LINEAR, borderMode=border,
                                          borderValue=black[0]).reshape(-1)
-            cu, cv_ = coords(t, warp, cgx, cgy)
-            cu, cv_ = (cu + 0.5) / 2 - 0.5, (cv_ + 0.5) / 2 - 0.5
             q = cw * ch
             for i, start in enumerate((w * h, w * h + q)):
                 plane = flat_in[start:start + q].reshape(ch, cw)
