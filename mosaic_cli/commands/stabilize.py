@@ -58,7 +58,7 @@ def stabilize(
     strict: Strict = False,
     latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
-    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.")] = "off",
+    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.", rich_help_panel=SMOOTHING)] = "off",
     quiet: Quiet = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "

@@ -140,6 +140,10 @@ def similarity_matrix(channels: np.ndarray, size: tuple[int, int]) -> np.ndarray
 
 GRID_STEPS = 24  # nodes per frame interval of the reconstructed path
 ROUGHNESS = 1e-4  # weight of the integral of u''^2 (px^2 frames^3), against 1 per measured px^2
+# A global shutter unless readout 0 costs this many times the best: rolling-shutter flights
+# (readout 0.5-0.9, 8-20 Hz vibration) cost 500-1700 times more at 0, global-shutter ones 1-2.1
+# (a 'shaky' flight's 3-8 Hz shake read as 0.44 without this test).
+GLOBAL_COST_RATIO = 10.0
 READOUTS = tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2))  # the grid `auto` tries
 
 
@@ -204,10 +208,12 @@ def estimate_readout(motion: np.ndarray, height: int, weights: np.ndarray | None
                      readouts: tuple[float, ...] = READOUTS) -> tuple[float, np.ndarray]:
     """The readout under which the bands' pair motions are samples of one smooth path: the
     least-squares cost of :func:`solve_path` over ``readouts``, its minimum refined by a
-    parabola through the log costs around it.  Global-shutter footage has its minimum at 0
-    (any other readout spreads its bands' equal motions over time).  Returns (readout, costs)."""
+    parabola through the log costs around it; 0 (a global shutter) unless readout 0 costs
+    ``GLOBAL_COST_RATIO`` times the best.  Returns (readout, costs)."""
     costs = np.array([solve_path(motion, r, height, weights)[1] for r in readouts])
     i = int(np.argmin(costs))
+    if readouts[0] == 0.0 and costs[0] < GLOBAL_COST_RATIO * costs[i]:
+        return 0.0, costs
     if i == 0 or i == len(costs) - 1:
         return float(readouts[i]), costs
     a, b, c = np.log(np.maximum(costs[i - 1:i + 2], 1e-300))
