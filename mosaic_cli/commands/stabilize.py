@@ -58,6 +58,7 @@ def stabilize(
     strict: Strict = False,
     latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
+    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.", rich_help_panel=SMOOTHING)] = "off",
     quiet: Quiet = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "
@@ -70,14 +71,17 @@ def stabilize(
     from mosaic_cli.plots import check_plot_request
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
+    from mosaic_cli.stabilize.rolling import parse_rolling_shutter
 
     check_plot_request(plot)  # before any long work
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
-        mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout,
+        mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout, rolling_shutter=rolling_shutter,
     )
     if is_live_request(video, out, options):
+        if parse_rolling_shutter(options.rolling_shutter) != "off":
+            raise BadInput("--rolling-shutter needs the whole video: not with --latency or a live input or output")
         if plot is not None:
             raise BadInput("--plot needs the whole camera path: not with --latency or a live input or output")
         live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
@@ -98,10 +102,15 @@ def stabilize(
         s = result.seconds
         console.print(
             f"{result.frames} frames -> {out}: {result.frames / max(s['total'], 1e-9):.1f} fr/s "
-            f"(overlays {s['overlays']:.1f} s; track {s['track']:.1f} s, path {s['plan']:.1f} s of it, "
+            f"(overlays {s['overlays']:.1f} s; " + (f"rolling shutter {s['rolling']:.1f} s; " if result.rolling is not None else "")
+            + f"track {s['track']:.1f} s, path {s['plan']:.1f} s of it, "
             f"beside the render {s['render']:.1f} s); "
             f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
         )
+        if result.rolling is not None:
+            rs = result.rolling
+            said = f"readout {rs.readout:.2f} ({'estimated' if rs.estimated else 'given'})"
+            console.print(f"rolling shutter: {said}, " + ("each row corrected" if rs.applied else "a global shutter: left alone"))
 
 
 def _plot(path: Path, result) -> None:

@@ -21,7 +21,15 @@ from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load
 from mosaic_cli.simulate.maps import load_map, procedural_map
 from mosaic_cli.simulate.overlay import OverlayBurner, OverlaySpec, overlay_mask_path, write_mask
 from mosaic_cli.simulate.render import MapPyramid, render_frames, render_view
-from mosaic_cli.simulate.trajectory import PROFILES, FlightPlan, Profile, centre_motion, plan_flight
+from mosaic_cli.simulate.trajectory import (
+    PROFILES,
+    FlightPlan,
+    Profile,
+    RollingShutter,
+    add_rolling_shutter,
+    centre_motion,
+    plan_flight,
+)
 
 __all__ = [
     "procedural_map",
@@ -34,6 +42,8 @@ __all__ = [
     "ground_truth_path",
     "GroundTruth",
     "FlightPlan",
+    "RollingShutter",
+    "parse_vibration",
     "Profile",
     "PROFILES",
     "MapPyramid",
@@ -104,6 +114,7 @@ class SimulateOptions:
     preset: str = "medium"  # x264's
     overlays: OverlaySpec = field(default_factory=OverlaySpec)  # burned in, with their exact mask
     bursts: BurstSpec | None = None  # frames without a motion cue; None: the profile's own
+    rolling: RollingShutter = field(default_factory=RollingShutter)  # readout and vibration; default: global shutter
 
     def __post_init__(self) -> None:
         self.validate()
@@ -118,6 +129,20 @@ class SimulateOptions:
         if self.seed < 0:
             raise BadInput(f"--seed must be 0 or more, got {self.seed}")
         check_encoder(self.crf, self.preset)
+
+
+def parse_vibration(text: str | None) -> tuple[float, float]:
+    """``--vibration HZ,PX`` -> (hz, px); None or "none" -> no vibration."""
+    if text is None or text.strip().lower() in ("", "none", "0"):
+        return 0.0, 0.0
+    parts = text.split(",")
+    try:
+        hz, px = (float(v) for v in parts)
+    except ValueError:
+        raise BadInput(f"--vibration must be HZ,PX (e.g. 12,3), got {text!r}") from None
+    if not (np.isfinite(hz) and np.isfinite(px)):
+        raise BadInput(f"--vibration must be HZ,PX (e.g. 12,3), got {text!r}")
+    return hz, px
 
 
 def check_outputs(out_path: str | Path, map_path: str | Path | None, options: SimulateOptions) -> None:
@@ -159,6 +184,7 @@ def plan_simulated_flight(map_size: tuple[int, int], options: SimulateOptions) -
     o = options
     spec = o.bursts if o.bursts is not None else BurstSpec(PROFILES[o.profile].bursts)
     plan = plan_flight(map_size, o.profile, frames_to_plan(o.frames, spec), o.size, o.seed, o.fps)
+    plan = add_rolling_shutter(plan, o.rolling)  # the flown frames, before bursts drop or repeat some
     if not spec.any:
         return plan
     bursts = plan_bursts(o.frames, spec, o.seed)

@@ -114,12 +114,15 @@ def apply_bursts(plan, bursts: list[Burst], frames: int, seed: int):
     if len(index) < frames:
         raise ValueError(f"plan of {plan.frames} frames is too short for {frames} frames and {len(drops)} drops")
     M, smooth = plan.map_to_frame[index].copy(), plan.smooth_map_to_frame[index].copy()
+    bands = None if plan.row_bands is None else plan.row_bands[index].copy()
     effects = {k: np.asarray(v)[index].copy() for k, v in plan.effects.items()}
     code, level, angle = np.zeros(frames, np.int64), np.zeros(frames), np.zeros(frames)
     for b in bursts:
         t = b.frame
         if b.kind == "duplicate":
             M[t], smooth[t] = M[t - 1], smooth[t - 1]
+            if bands is not None:
+                bands[t] = bands[t - 1]
             for v in effects.values():  # the same pixels: the same effects too
                 v[t] = v[t - 1]
         elif b.kind in CODES:
@@ -129,7 +132,7 @@ def apply_bursts(plan, bursts: list[Burst], frames: int, seed: int):
             angle[t] = rng.uniform(0.0, np.pi)
     if code.any():
         effects.update({"burst": code, "burst_level": level, "burst_angle": angle})
-    return replace(plan, map_to_frame=M, smooth_map_to_frame=smooth, effects=effects)
+    return replace(plan, map_to_frame=M, smooth_map_to_frame=smooth, effects=effects, row_bands=bands)
 
 
 def burst_pairs(bursts: list[dict] | list[Burst], pairs: int) -> np.ndarray:

@@ -8,7 +8,18 @@
 
 ``map_to_frame[t]`` maps map pixels to pixels of frame t; ``pairwise[t]`` maps frame t to
 frame t+1 (= map_to_frame[t+1] @ inv(map_to_frame[t])); ``smooth_map_to_frame`` is the path
-without the shake of the 'shaky' profile (equal to ``map_to_frame`` otherwise).  All pixel
+without the shake of the 'shaky' profile (equal to ``map_to_frame`` otherwise).
+
+A rolling-shutter flight (``mosaic simulate --rolling-shutter R --vibration HZ,PX``) adds::
+
+    "rolling_shutter": {"readout": R, "vibration_hz": f, "vibration_px": a, "bands": K,
+                        "band_rows": [K], "row_bands": [N [K 3x3]]}
+
+``row_bands[t][k]`` maps map pixels to frame t as seen by the rows of band k (the camera at
+time t + R * band_rows[k] / h); rows between band centres blend the two bands' inverses
+linearly (:mod:`mosaic_cli.geometry.rolling_shutter`).  ``map_to_frame`` is then the camera at
+the frame's mid time (its centre row) and ``smooth_map_to_frame`` that path without shake or
+vibration.  Global-shutter flights have no ``rolling_shutter`` key.  All pixel
 coordinates follow the OpenCV pixel-centre convention at full frame resolution.
 """
 
@@ -22,6 +33,7 @@ import numpy as np
 
 from mosaic_cli.atomic import write_json
 from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry.rolling_shutter import band_centres
 from mosaic_cli.inputs import ground_truth_path
 from mosaic_cli.simulate.trajectory import FlightPlan, pairwise_from_absolute
 
@@ -41,6 +53,14 @@ class GroundTruth:
     map_name: str
     map_size: tuple[int, int]
     bursts: list[dict] = field(default_factory=list)  # {"frame": t, "kind": k}: frames without a motion cue
+    # Rolling shutter: {"readout", "vibration_hz", "vibration_px"} and the bands' map -> frame
+    # (N, K, 3, 3); empty and None for a global-shutter flight.
+    rolling: dict = field(default_factory=dict)
+    row_bands: np.ndarray | None = None
+
+    @property
+    def readout(self) -> float:
+        return float(self.rolling.get("readout", 0.0))
 
     @property
     def frames(self) -> int:
@@ -59,6 +79,9 @@ class GroundTruth:
             str(map_name),
             (int(plan.map_size[0]), int(plan.map_size[1])),
             [{"frame": int(b.frame), "kind": str(b.kind)} for b in plan.bursts],
+            {} if plan.rolling is None else {"readout": float(plan.rolling.readout), "vibration_hz": float(plan.rolling.vibration_hz),
+                                             "vibration_px": float(plan.rolling.vibration_px)},
+            None if plan.row_bands is None else np.array(plan.row_bands, dtype=np.float64),
         )
 
     def to_json(self) -> dict:
@@ -82,6 +105,10 @@ class GroundTruth:
         }
         if self.bursts:  # flights without bursts keep the format they always had
             doc["bursts"] = [dict(b) for b in self.bursts]
+        if self.row_bands is not None:  # likewise global-shutter flights
+            h, K = self.size[1], self.row_bands.shape[1]
+            doc["rolling_shutter"] = {**self.rolling, "bands": K, "band_rows": [float(r) for r in band_centres(h, K)],
+                                      "row_bands": [mats(bands) for bands in self.row_bands]}
         return doc
 
     def save(self, path: str | Path) -> None:
@@ -119,6 +146,10 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
             int(data.get("seed", 0)), str(data.get("map", "?")), (map_size[0], map_size[1]),
             [{"frame": int(b["frame"]), "kind": str(b["kind"])} for b in data.get("bursts", [])],
         )
+        if "rolling_shutter" in data:
+            rs = data["rolling_shutter"]
+            gt.rolling = {key: float(rs[key]) for key in ("readout", "vibration_hz", "vibration_px")}
+            gt.row_bands = np.array(rs["row_bands"], dtype=np.float64).reshape(len(M), int(rs["bands"]), 3, 3)
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise BadInput(f"{p}: malformed ground-truth file ({exc.__class__.__name__}: {exc})") from None
     if len(M) < 2 or len(smooth) != len(M) or len(pairwise) != len(M) - 1:

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, resize_matrix
+from mosaic_cli.geometry.rolling_shutter import row_frame_to_ref
 from mosaic_cli.simulate.bursts import CODES, PIXEL_KINDS
 from mosaic_cli.simulate.trajectory import FlightPlan
 
@@ -81,6 +82,34 @@ def render_view(pyramid: MapPyramid, map_to_frame: np.ndarray, size: tuple[int, 
         return a
     b = _warp(pyramid, k0 + 1, map_to_frame, size)
     return cv2.addWeighted(a, 1.0 - frac, b, frac, 0.0)
+
+
+def render_rolling(pyramid: MapPyramid, band_map_to_frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """One anti-aliased RGB frame of a rolling-shutter camera: each row sees the map through its
+    own homography (the bands' (K, 3, 3), blended by :func:`row_frame_to_ref`), by one
+    ``cv2.remap`` per pyramid level.  The level is the mid band's, for the whole frame."""
+    w, h = int(size[0]), int(size[1])
+    rows = np.arange(h, dtype=np.float64)
+    F = row_frame_to_ref(np.linalg.inv(band_map_to_frame), rows, h)  # (h, 3, 3) frame -> map per row
+    x = np.arange(w, dtype=np.float64)[None, :]
+    mid = band_map_to_frame[len(band_map_to_frame) // 2]
+    scale = max_scale(np.linalg.inv(mid), size)
+    lod = 2.0 * np.log2(scale) if scale > 1.0 else 0.0
+    k0 = int(np.floor(lod))
+    frac = lod - k0
+
+    def remap(k: int) -> np.ndarray:
+        img, S = pyramid.level(k)
+        G = S @ F  # frame -> level pixels, per row
+        z = G[:, 2, 0, None] * x + (G[:, 2, 1] * rows + G[:, 2, 2])[:, None]
+        u = (G[:, 0, 0, None] * x + (G[:, 0, 1] * rows + G[:, 0, 2])[:, None]) / z
+        v = (G[:, 1, 0, None] * x + (G[:, 1, 1] * rows + G[:, 1, 2])[:, None]) / z
+        return cv2.remap(img, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT101)
+
+    a = remap(k0)
+    if frac < 1e-3:
+        return a
+    return cv2.addWeighted(a, 1.0 - frac, remap(k0 + 1), frac, 0.0)
 
 
 def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, seed: int) -> np.ndarray:
@@ -164,7 +193,10 @@ def render_frames(map_rgb: np.ndarray, plan: FlightPlan) -> Iterator[np.ndarray]
         raise ValueError(f"plan made for a {plan.map_size} map, got {map_rgb.shape[1]}x{map_rgb.shape[0]}")
     pyramid = MapPyramid(map_rgb)
     for t in range(plan.frames):
-        frame = render_view(pyramid, plan.map_to_frame[t], plan.size)
+        if plan.row_bands is not None and plan.rolling is not None and plan.rolling.readout > 0:
+            frame = render_rolling(pyramid, plan.row_bands[t], plan.size)
+        else:
+            frame = render_view(pyramid, plan.map_to_frame[t], plan.size)
         if plan.effects:
             frame = apply_effects(frame, plan.effects, t, plan.seed)
         yield frame

@@ -15,12 +15,13 @@ the paper (a frame of width w moves ``speed * w / 1280`` of its own pixels per f
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import frame_corners, normalize, project
+from mosaic_cli.geometry.rolling_shutter import ROW_BANDS, band_centres, mid_row, row_times
 
 REFERENCE_WIDTH = 1280.0
 MIN_GROUND_SAMPLE = 1.0 / 8.0  # at most 8x upsampling of the map
@@ -101,6 +102,35 @@ PROFILES: dict[str, Profile] = {
 }
 
 
+@dataclass(frozen=True)
+class RollingShutter:
+    """A rolling-shutter camera on a vibrating drone (``mosaic simulate --rolling-shutter R
+    --vibration HZ,PX``): row y of frame t sees the camera at time ``t + readout * y / h``.
+
+    Vibration: a sinusoidal shake of the camera at ``vibration_hz``, ``vibration_px`` (1280-wide
+    px) of translation in x and y (phases drawn from the seed) and a rotation that moves the
+    frame corners by a fifth of that, added to the trajectory and sampled at each row's time."""
+
+    readout: float = 0.0  # fraction of the frame interval, 0..1 (0: global shutter)
+    vibration_hz: float = 0.0
+    vibration_px: float = 0.0
+    bands: int = ROW_BANDS  # row bands of the ground truth (and of the rendering's rule)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.readout <= 1.0:
+            raise BadInput(f"--rolling-shutter must be in [0, 1] (a fraction of the frame interval), got {self.readout:g}")
+        if self.vibration_px < 0 or not 0.0 <= self.vibration_hz <= 240.0:
+            raise BadInput(f"--vibration must be HZ,PX with 0 <= HZ <= 240 and PX >= 0, got {self.vibration_hz:g},{self.vibration_px:g}")
+        if self.vibration_px > 50:
+            raise BadInput(f"--vibration amplitude must be at most 50 px, got {self.vibration_px:g}")
+        if self.bands < 1:
+            raise ValueError(f"row bands must be at least 1, got {self.bands}")
+
+    @property
+    def any(self) -> bool:
+        return self.readout > 0 or (self.vibration_px > 0 and self.vibration_hz > 0)
+
+
 @dataclass
 class FlightPlan:
     """The exact geometry of one simulated flight (and the effects to render, if any)."""
@@ -114,6 +144,10 @@ class FlightPlan:
     fps: float = 30.0
     effects: dict[str, np.ndarray] = field(default_factory=dict)  # per-frame arrays (hard profile)
     bursts: list = field(default_factory=list)  # simulate.bursts.Burst: the frames without a motion cue
+    # A rolling shutter (and vibration): the camera of each row band, (N, K, 3, 3) map -> frame;
+    # None: global shutter, every row sees map_to_frame (the mid-time pose otherwise).
+    rolling: RollingShutter | None = None
+    row_bands: np.ndarray | None = None
 
     @property
     def frames(self) -> int:
@@ -387,6 +421,59 @@ def _effects(rng: np.random.Generator, plan: FlightPlan, deg: Degradation) -> di
         c_lo, c_hi = deg.contrast
         out["contrast"] = c_lo + (c_hi - c_lo) * (0.5 + 0.5 * smooth_signal(rng, n, fps, (5, 20)))
     return out
+
+
+VIBRATION_ROTATION = 0.2  # the vibration's rotation moves the frame corners by this share of its translation
+
+
+def add_rolling_shutter(plan: FlightPlan, rolling: RollingShutter) -> FlightPlan:
+    """``plan`` seen by a rolling-shutter camera on a vibrating drone.
+
+    The trajectory between frames is the cubic spline of the (normalised) entries of
+    ``map_to_frame`` over time (extrapolated for the last frame's late rows); the vibration is
+    an exact sinusoid of time.  ``row_bands[t, k]`` is the camera at band k's centre row time,
+    ``map_to_frame[t]`` (and ``smooth_map_to_frame[t]``, without shake or vibration) the
+    camera at the frame's mid time, so pairwise motions stay mid-time to mid-time."""
+    from scipy.interpolate import CubicSpline
+
+    if not rolling.any:
+        return plan
+    n = plan.frames
+    w, h = plan.size
+    frame_index = np.arange(n, dtype=np.float64)
+    shaken = CubicSpline(frame_index, normalize(plan.map_to_frame).reshape(n, 9), axis=0)
+    smooth = CubicSpline(frame_index, normalize(plan.smooth_map_to_frame).reshape(n, 9), axis=0)
+    rng = np.random.default_rng([int(plan.seed), 6007])
+    phases = rng.uniform(0.0, 2.0 * np.pi, 3)
+
+    def camera(times: np.ndarray) -> np.ndarray:
+        base = shaken(times).reshape(*times.shape, 3, 3)
+        return normalize(vibration_matrix(plan.size, rolling, phases, times / plan.fps) @ base)
+
+    bands = frame_index[:, None] + row_times(band_centres(h, rolling.bands), h, rolling.readout)[None]  # (N, K)
+    mid = frame_index + float(row_times(np.array([mid_row(h)]), h, rolling.readout)[0])
+    out = replace(plan, map_to_frame=camera(mid), smooth_map_to_frame=normalize(smooth(mid).reshape(n, 3, 3)),
+                  rolling=rolling, row_bands=camera(bands))
+    check_inside(out)
+    return out
+
+
+def vibration_matrix(size: tuple[int, int], rolling: RollingShutter, phases: np.ndarray, seconds: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the vibration's frame -> frame offset at each time (seconds): a translation of
+    ``vibration_px`` (1280-wide px) amplitude in x and y and a small rotation about the centre."""
+    w, h = size
+    seconds = np.asarray(seconds, dtype=np.float64)
+    amp = rolling.vibration_px * w / REFERENCE_WIDTH
+    rot = VIBRATION_ROTATION * amp / (0.5 * np.hypot(w, h))
+    wave = [np.sin(2.0 * np.pi * rolling.vibration_hz * seconds + p) for p in phases]
+    jx, jy, angle = amp * wave[0], amp * wave[1], rot * wave[2]
+    c, s = np.cos(angle), np.sin(angle)
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    J = np.zeros(seconds.shape + (3, 3))
+    J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = c, -s, cx - c * cx + s * cy + jx
+    J[..., 1, 0], J[..., 1, 1], J[..., 1, 2] = s, c, cy - s * cx - c * cy + jy
+    J[..., 2, 2] = 1.0
+    return J
 
 
 def footprints(plan: FlightPlan) -> np.ndarray:

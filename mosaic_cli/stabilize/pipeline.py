@@ -31,7 +31,8 @@ from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MotionModel, motion_model
-from mosaic_cli.stabilize.render import Renderer, parse_border
+from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border
+from mosaic_cli.stabilize.rolling import RollingCorrection, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
@@ -67,6 +68,7 @@ class StabilizeOptions:
     # two passes, unless the input or the output is live (then DEFAULT_LATENCY there).
     latency: float | None = None
     timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
+    rolling_shutter: str | float = "off"  # auto, off or a readout in [0, 1] (stabilize/rolling.py)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -88,6 +90,7 @@ class StabilizeOptions:
         if self.latency is not None and not self.latency > 0:
             raise BadInput(f"--latency must be positive, got {self.latency}")
         check_timeout(self.timeout)
+        parse_rolling_shutter(self.rolling_shutter)
 
 
 @dataclass
@@ -102,6 +105,7 @@ class StabilizeResult:
     # output frame's view in its input frame (see plots.camera_path_series).
     motion: np.ndarray | None = None
     views: np.ndarray | None = None
+    rolling: RollingCorrection | None = None  # --rolling-shutter: the readout and each band's correction
 
     @property
     def cropping(self) -> float:
@@ -130,6 +134,11 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
     seconds = {"overlays": time.perf_counter() - clock}
 
+    # Rolling shutter: each row band's correction, from a tracking pass of its own (rolling.py).
+    rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress)
+    per_row = rolling.warper(BORDERS[plan.renderer.border], YUV_BLACK) if rolling is not None and rolling.applied else None
+    seconds["rolling"] = time.perf_counter() - clock - seconds["overlays"]
+
     # The path is planned as the pairs come in, and the render follows the plan (stream.py).
     feed = PathFeed(info.source_size, plan.model, plan.smoother, plan.crop)
     tracking = TrackingPass(video, estimator, info, feed, show_progress)
@@ -138,7 +147,7 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         tracking.start()
         try:
             written = plan.renderer.render(video, out, feed.warp, info, compare=compare, show_progress=show_progress,
-                                           frames=info.frame_count)
+                                           frames=info.frame_count, per_row=per_row)
         except BaseException:
             feed.cancel()
             tracking.join()
@@ -158,7 +167,8 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         write_warps(warps_out, warps, info.source_size, input_meta=short)
     seconds["total"] = time.perf_counter() - clock
     return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=feed.motion,
-                           views=feed.views)
+                           views=feed.views,
+                           rolling=rolling)
 
 
 class TrackingPass(threading.Thread):

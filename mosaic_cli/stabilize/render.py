@@ -118,13 +118,15 @@ class Renderer:
 
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray | Callable[[int], np.ndarray], info: VideoInfo,
                compare: str | Path | None = None, show_progress: bool = True,
-               metadata: dict[str, str] | None = None, frames: int | None = None) -> int:
+               metadata: dict[str, str] | None = None, frames: int | None = None,
+               per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray] | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         ``warps``: (N, 3, 3), or a function giving frame t's warp (which may wait until it is
         known: :meth:`~.stream.PathFeed.warp`); then ``frames`` is the count expected, which
         cuts the audio (None: the audio is not cut).  Frames beyond ``len(warps)`` (a decoder
-        that finds one more frame the second time) reuse the last warp."""
+        that finds one more frame the second time) reuse the last warp.  ``per_row(frame, t,
+        warp)``: a warp of its own instead, row by row (``stabilize/rolling.py``)."""
         if isinstance(warps, np.ndarray):
             frames, known = len(warps), warps
             warps = lambda t: known[min(t, len(known) - 1)]  # noqa: E731
@@ -145,7 +147,8 @@ class Renderer:
             with open_video(video, yuv420p=yuv, info=info) as decoded, progress_task("stabilize: render", frames, disable=not show_progress) as advance:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
                     for t, frame in enumerate(_background(decoded)):
-                        result = warp(frame, warp_of(t), size, self.border)
+                        W = warp_of(t)
+                        result = warp(frame, W, size, self.border) if per_row is None else per_row(frame, t, W)
                         yield (result, join(frame, result)) if compare is not None else (result,)
 
                 written = _drain(outputs(), [w.write for w in writers], advance)
