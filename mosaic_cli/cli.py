@@ -137,6 +137,9 @@ def entry() -> None:
     that has loaded torch takes another 0.4 s (docs/measurements/speed.md), a third of a short
     command's start-up.  So the exit handlers run, the streams are flushed and any worker
     thread still running is waited for, then the process ends without the teardown."""
+    if sys.getprofile() is not None or sys.gettrace() is not None:
+        main()  # a profiler or a coverage tool writes its data at the teardown: keep it
+        return
     try:
         main()
         code: int | str | None = 0

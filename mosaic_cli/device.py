@@ -45,3 +45,30 @@ def resolve_device(device: str | None, gpu: int | None = None) -> torch.device:
     if index is not None and index >= count:
         raise BadInput(f"--device {name}: no GPU cuda:{index} here, the GPUs are cuda:0..cuda:{count - 1} (use --device cpu or auto)")
     return torch.device("cuda") if index is None else torch.device("cuda", index)
+
+
+# --- CPU threads of the network ------------------------------------------------------------------
+# One unless --threads says otherwise: the network's batches are small, and its intra-op threads
+# wait on each other whenever another process holds a core (the encoder beside stabilize's
+# tracking pass, anything else on a shared machine).  Under load two threads took twice the CPU
+# of one for the same stitch, and a second longer to start (docs/measurements/speed.md).
+DEFAULT_CPU_THREADS = 1
+_cpu_threads: dict[str, int | None] = {"asked": None}
+
+
+def ask_cpu_threads(threads: int | None) -> None:
+    """``--threads``: the CPU threads a learned estimator will run on (None: :data:`DEFAULT_CPU_THREADS`);
+    applied now if torch is loaded, else when the estimator is made (:func:`use_cpu_threads`)."""
+    _cpu_threads["asked"] = threads
+    import sys
+
+    if "torch" in sys.modules:
+        use_cpu_threads()
+
+
+def use_cpu_threads() -> None:
+    """Set torch's intra-op threads to what was asked (:func:`ask_cpu_threads`), or one."""
+    import torch
+
+    asked = _cpu_threads["asked"]
+    torch.set_num_threads(asked if asked is not None else DEFAULT_CPU_THREADS)

@@ -93,3 +93,32 @@ def test_every_command_says_the_same_line(capsys, no_gpu, tiny_clip, tmp_path, c
     assert_one_line_error(code, err)
     assert err.strip() == f"mosaic: error: {line}"
     assert list(work.iterdir()) == []
+
+
+def test_a_commands_network_runs_on_one_cpu_thread_unless_told(monkeypatch):
+    """One torch thread by default (two wait on each other on a busy machine), --threads N
+    when given, and a network made for training's validation leaves training's threads alone."""
+    import torch
+
+    import mosaic_cli.device as device
+    from mosaic_cli.commands.options import use_threads
+    from mosaic_cli.estimators import make_estimator
+    from mosaic_cli.estimators.learned import LearnedEstimator
+
+    before = torch.get_num_threads()
+    monkeypatch.setitem(device._cpu_threads, "asked", None)
+    try:
+        torch.set_num_threads(2)
+        make_estimator("lstm", device="cpu")
+        assert torch.get_num_threads() == 1
+        use_threads(2)  # --threads 2, after the estimator was made
+        assert torch.get_num_threads() == 2
+        make_estimator("cnn", device="cpu")
+        assert torch.get_num_threads() == 2
+        torch.set_num_threads(2)
+        shipped = make_estimator("lstm", device="cpu")
+        monkeypatch.setitem(device._cpu_threads, "asked", None)
+        LearnedEstimator(shipped.model, shipped.meta, device="cpu")  # as train/validate.py makes it
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

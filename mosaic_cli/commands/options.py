@@ -50,7 +50,7 @@ Weights = Annotated[Path | None, typer.Option("--weights", help="A trained check
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda (learned estimators).", rich_help_panel=ESTIMATOR)]
 Threads = Annotated[int | None, typer.Option(
     "--threads",
-    help="Learned, on the CPU: threads for the network (default: torch's, one per core; 1 is cheaper on a busy machine).", rich_help_panel=ESTIMATOR)]
+    help="Learned, on the CPU: threads for the network (default: 1; more can help on an idle machine with cores to spare).", rich_help_panel=ESTIMATOR)]
 
 # -- the input ------------------------------------------------------------------------------------
 
@@ -90,10 +90,9 @@ def mask_options(mask: Path | None, detect: bool):
 
 def use_threads(threads: int | None) -> None:
     """``--threads``: torch's CPU threads for the network (checked by the command's options)."""
-    if threads is not None:
-        import torch
+    from mosaic_cli.device import ask_cpu_threads
 
-        torch.set_num_threads(threads)
+    ask_cpu_threads(threads)
 
 
 def check_json_report(path: Path | None) -> None:

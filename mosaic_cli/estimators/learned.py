@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 import torch
 
-from mosaic_cli.device import resolve_device
+from mosaic_cli.device import resolve_device, use_cpu_threads
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
@@ -411,10 +411,12 @@ def make_learned_estimator(
         if name not in LEARNED:
             raise BadInput(f"unknown learned estimator {name!r}: choose lstm or cnn, or pass --weights FILE")
         weights = default_weights(name)
-    resolve_device(device)  # bad --device fails before loading anything
+    on = resolve_device(device)  # bad --device fails before loading anything
     model, meta = load_weights(weights, device="cpu")
     if name in LEARNED and name != model.config.head:
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
+    if on.type == "cpu":  # a command's estimator: --threads, or one (training sets its own)
+        use_cpu_threads()
     return LearnedEstimator(model, meta, device=device, config=config)
 
 
