@@ -27,11 +27,11 @@ from mosaic_cli.commands.options import (
     use_threads,
 )
 from mosaic_cli.errors import BadInput, warn
-from mosaic_cli.estimators import make_estimator
+from mosaic_cli.estimators import plan_estimator
 from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
-from mosaic_cli.overlay import frame_mask
+from mosaic_cli.overlay import frame_mask_while
 from mosaic_cli.progress import console
 from mosaic_cli.track import TrackOptions, save_track, track_video
 from mosaic_cli.video import probe
@@ -80,13 +80,15 @@ def track(
     live = is_live_source(video)
     info = None if live else probe(video)  # the input's one probe, passed down
     check_mask_file(options.mask, info)
-    est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
-                         patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
+    build = plan_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
+                           patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
     use_threads(options.threads)
     masked = None
     clock = time.perf_counter()
-    if not live:  # a live input's mask is made when its first frame gives the size (live_mask)
-        masked = frame_mask(video, options.mask, info, show_progress=not quiet)
+    if live:  # a live input's mask is made when its first frame gives the size (live_mask)
+        est = build()
+    else:
+        masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
         est.set_mask(masked.use)
     overlay_seconds = time.perf_counter() - clock
     if live or is_jsonl(out):

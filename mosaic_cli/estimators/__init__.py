@@ -6,6 +6,7 @@ An estimator is named on the command line as ``NAME[:OPTION=VALUE]...``, e.g. ``
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from mosaic_cli.device import check_device
@@ -15,6 +16,7 @@ from mosaic_cli.estimators.learned_config import LearnedConfig
 from mosaic_cli.estimators.options import Option, options_of
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
+from mosaic_cli.estimators.weights import default_weights
 
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
@@ -93,9 +95,11 @@ def check_work_width(width: int) -> None:
         raise BadInput(f"--work-width must be in {MIN_WORK_WIDTH}..{MAX_WORK_WIDTH}, got {width}")
 
 
-def make_estimator(name: str | None = None, work_width: int | None = None, weights: str | None = None, device: str = "auto",
-                   default_width: int = DEFAULT_WORK_WIDTH, **options) -> Estimator:
-    """Build the estimator a user named on the command line.
+def plan_estimator(name: str | None = None, work_width: int | None = None, weights: str | None = None, device: str = "auto",
+                   default_width: int = DEFAULT_WORK_WIDTH, **options) -> Callable[[], Estimator]:
+    """Check the estimator a user named on the command line, and return the function that builds
+    it: every mistake is found here, before any work, while the build (for a network: torch's
+    import, the weights, the int8 network, a second or two) can run beside other work.
 
     ``name`` (None: :data:`DEFAULT_ESTIMATOR`) may carry options (``cnn:patches=5``, ``lstm:weights=run/weights.safetensors``);
     keyword ``options`` (from flags, None = not given) add to them.  ``weights`` goes with a
@@ -122,12 +126,23 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
     given = {**spec_options, **{k: v for k, v in options.items() if v is not None}}
     typed = typed_options(kind, given) if base in NAMES or learned else {}
     if learned:
-        from mosaic_cli.estimators.learned import make_learned_estimator
-
         weights = typed.pop("weights", weights)
         if work_width is not None:  # before the weights are loaded: their header says their width
             _check_learned_width(base or "the network", work_width, weights)
-        return make_learned_estimator(base, weights=weights, device=device, config=LearnedConfig(**typed))
+        if weights is None:
+            if base not in LEARNED:
+                raise BadInput(f"unknown learned estimator {base!r}: choose lstm or cnn, or pass --weights FILE")
+            default_weights(base)  # shipped: found, or the one line that says they are not
+        elif not Path(weights).is_file():
+            raise BadInput(f"{weights}: " + ("a folder, not a weights file (.safetensors)" if Path(weights).is_dir() else "no such weights file"))
+        config = LearnedConfig(**typed)
+
+        def build() -> Estimator:
+            from mosaic_cli.estimators.learned import make_learned_estimator  # torch: imported by the build
+
+            return make_learned_estimator(base, weights=weights, device=device, config=config)
+
+        return build
     if base not in CLASSICAL:
         raise BadInput(f"unknown estimator {base!r}: choose one of {', '.join(NAMES)}")
     width = default_width if work_width is None else work_width
@@ -139,7 +154,13 @@ def make_estimator(name: str | None = None, work_width: int | None = None, weigh
     else:
         estimator = IdentityEstimator(width)
     estimator.never_upscale, estimator.width_given = True, work_width is not None
-    return estimator
+    return lambda: estimator
+
+
+def make_estimator(name: str | None = None, work_width: int | None = None, weights: str | None = None, device: str = "auto",
+                   default_width: int = DEFAULT_WORK_WIDTH, **options) -> Estimator:
+    """The estimator a user named on the command line, built (:func:`plan_estimator`)."""
+    return plan_estimator(name, work_width, weights, device, default_width, **options)()
 
 
 def _check_learned_width(name: str, work_width: int, weights: str | Path | None) -> None:
@@ -169,6 +190,7 @@ __all__ = [
     "PaperOrbEstimator",
     "estimate_stream",
     "make_estimator",
+    "plan_estimator",
     "options_help",
     "parse_spec",
     "typed_options",

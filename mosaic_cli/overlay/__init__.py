@@ -12,7 +12,7 @@ The mask operations every stage uses (:func:`~mosaic_cli.mask.load_mask`,
 
 from mosaic_cli.mask import fill_masked, load_mask, work_mask
 from mosaic_cli.overlay.detect import Detection, Letterbox, OverlayOptions, detect_overlays
-from mosaic_cli.overlay.merge import LIVE_DETECTION_SKIPPED, FrameMask, MaskOptions, frame_mask, live_mask
+from mosaic_cli.overlay.merge import LIVE_DETECTION_SKIPPED, FrameMask, MaskOptions, frame_mask, frame_mask_while, live_mask
 from mosaic_cli.overlay.samples import VideoSamples, sample_frames, sample_width
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "detect_overlays",
     "fill_masked",
     "frame_mask",
+    "frame_mask_while",
     "live_mask",
     "load_mask",
     "sample_frames",

@@ -5,8 +5,11 @@ file's alone (:func:`live_mask`); and ``--mask``'s options."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -17,6 +20,8 @@ from mosaic_cli.overlay.detect import Detection, OverlayOptions, detect_overlays
 from mosaic_cli.overlay.samples import VideoSamples, sample_width
 from mosaic_cli.progress import note
 from mosaic_cli.video import VideoInfo, probe
+
+T = TypeVar("T")
 
 # Said once for a live input (stdin, a URL): frames cannot be sampled ahead of the stream.
 LIVE_DETECTION_SKIPPED = "overlay detection is skipped for a live input (it samples frames ahead of the stream)"
@@ -136,4 +141,16 @@ def _file_mask(options: MaskOptions, full_size: tuple[int, int]) -> np.ndarray |
     return use
 
 
-__all__ = ["LIVE_DETECTION_SKIPPED", "FrameMask", "MaskOptions", "frame_mask", "live_mask"]
+def frame_mask_while(build: Callable[[], T], video: str | Path, options: MaskOptions | None = None,
+                     info: VideoInfo | None = None, show_progress: bool = False) -> tuple[FrameMask, T]:
+    """:func:`frame_mask`, and ``build()`` at the same time in a thread of its own: the
+    detector's frames are decoded by ffmpeg in a process of its own, so building the estimator
+    (torch's import, the weights, the int8 network: a second or two) costs no time beside it.
+    An error of either is raised once both have ended."""
+    with ThreadPoolExecutor(1, thread_name_prefix="mosaic-build") as pool:
+        built = pool.submit(build)
+        mask = frame_mask(video, options, info, show_progress)
+        return mask, built.result()
+
+
+__all__ = ["LIVE_DETECTION_SKIPPED", "FrameMask", "MaskOptions", "frame_mask", "frame_mask_while", "live_mask"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,9 +25,9 @@ import numpy as np
 from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import Estimator, check_work_width, make_estimator
+from mosaic_cli.estimators import Estimator, check_work_width, plan_estimator
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_encoder, check_mask_file, check_timeout
-from mosaic_cli.overlay import MaskOptions, frame_mask
+from mosaic_cli.overlay import MaskOptions, frame_mask_while
 from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
@@ -129,9 +130,9 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     info, plan = check_request(video, out, options, warps_out, compare)
     clock = time.perf_counter()
 
-    estimator = plan.estimator
-    assert estimator is not None  # check_request made it
-    estimator.set_mask(frame_mask(video, options.mask, info, show_progress).use)
+    assert plan.build is not None  # check_request planned it
+    masked, estimator = frame_mask_while(plan.build, video, options.mask, info, show_progress)
+    estimator.set_mask(masked.use)
     seconds = {"overlays": time.perf_counter() - clock}
 
     # Rolling shutter: each row band's correction, from a tracking pass of its own (rolling.py).
@@ -210,7 +211,7 @@ def _shortfall_text(short: dict) -> str:
 class _Plan:
     """The stages, configured from the options."""
 
-    estimator: Estimator | None
+    build: Callable[[], Estimator] | None  # the estimator, built beside the overlay detection
     model: MotionModel
     smoother: L1Smoother | GaussianSmoother
     crop: float | None  # None: --crop auto
@@ -242,7 +243,7 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     crop = parse_crop(options.crop)
     border = options.border if options.border is not None else ("replicate" if crop is None else "black")
     plan = _Plan(
-        estimator=None,
+        build=None,
         model=motion_model(options.model),
         smoother=make_smoother(options.smoothing, options.radius),
         crop=crop,
@@ -250,8 +251,8 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
     )
     info = probe(video)
     check_mask_file(options.mask, info)
-    plan.estimator = make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
-                                    default_width=WORK_WIDTH)
+    plan.build = plan_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
+                                default_width=WORK_WIDTH)
     return info, plan
 
 
