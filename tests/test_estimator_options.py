@@ -123,3 +123,35 @@ def test_help_lists_every_option_with_its_choices(monkeypatch):
     for command in ("track", "stitch", "stabilize"):
         shown = CliRunner().invoke(app, [command, "--help"], terminal_width=2000).output
         assert " ".join(text.split()) in " ".join(shown.split()), command
+
+
+def test_an_estimator_is_checked_without_torch_and_built_later():
+    """plan_estimator finds every mistake before any work without importing torch; the build
+    (torch, the weights, the int8 network) is what the commands run beside overlay detection."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from mosaic_cli.estimators import plan_estimator; build = plan_estimator('lstm'); "
+            "print('torch' in sys.modules); e = build(); print(type(e).__name__, 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "LearnedEstimator", "True"]
+
+
+def test_the_build_beside_overlay_detection_gives_both_or_the_error(tmp_path):
+    import numpy as np
+
+    from conftest import write_clip
+    from mosaic_cli.overlay import MaskOptions, frame_mask, frame_mask_while
+
+    rng = np.random.default_rng(0)
+    clip = write_clip(tmp_path / "c.mp4", [rng.integers(0, 255, (90, 160, 3), dtype=np.uint8) for _ in range(12)], fps=10)
+    mask, built = frame_mask_while(lambda: "built", clip, MaskOptions())
+    alone = frame_mask(clip, MaskOptions())
+    assert built == "built"
+    assert {k: v for k, v in mask.to_json().items() if k != "seconds"} == {k: v for k, v in alone.to_json().items() if k != "seconds"}
+
+    def failing():
+        raise BadInput("no such weights file")
+
+    with pytest.raises(BadInput, match="no such weights file"):
+        frame_mask_while(failing, clip, MaskOptions())
