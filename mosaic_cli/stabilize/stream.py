@@ -11,6 +11,7 @@ previous one settled.  A smoother with no windows (``gaussian``) settles every v
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,6 +78,7 @@ class PathFeed:
         self._done = False
         self._error: BaseException | None = None
         self._cancelled = False
+        self._smooth_seconds = 0.0  # a smoother with no windows: its one solve at the end
 
     # -- the tracking side -------------------------------------------------------------------
 
@@ -92,8 +94,10 @@ class PathFeed:
         if self._planner is not None:
             views = self._planner.finish()
         else:
+            clock = time.perf_counter()
             motion = np.array(self._motion).reshape(-1, 3, 3)
             views = self.smoother.smooth(motion, self.size, self.model, self.crop)
+            self._smooth_seconds = time.perf_counter() - clock
         self._publish(views, done=True)
 
     def fail(self, error: BaseException) -> None:
@@ -136,7 +140,7 @@ class PathFeed:
 
     @property
     def plan_seconds(self) -> float:
-        return self._planner.solve_seconds if self._planner is not None else 0.0
+        return self._planner.solve_seconds if self._planner is not None else self._smooth_seconds
 
     @property
     def warps(self) -> np.ndarray:
