@@ -295,7 +295,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         info = info if info is not None else probe(source)
         # A file read as a stream is there whole: its overlays are found before the scan starts.
         masked = frame_mask(source, options.mask, info, show_progress)
-    track = _load_track(source, out, options, live, info)
+    track = _georef_telemetry(source, out, options, live, info)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
@@ -352,10 +352,10 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         return result
 
 
-def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
+def _georef_telemetry(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
     """The telemetry, before any work: an explicit --telemetry file; a file read as live may
     hold a track of its own, a stream (stdin, URL) cannot be probed for one."""
-    from mosaic_cli.geo.stitching import check_plain_output, load_track, map_output_flag
+    from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, map_output_flag
 
     georef = options.georef
     if georef is None:
@@ -365,7 +365,7 @@ def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool
         if wanted := map_output_flag(out) + georef.without_telemetry():
             raise BadInput(f"{wanted[0]} with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
         return None
-    return load_track(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan
+    return georef_telemetry(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan
 
 
 def check_live_request(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:

@@ -34,7 +34,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
-from mosaic_cli.geo.stitching import check_plain_output, gps_straightener, load_track, map_homographies, write_outputs
+from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
@@ -150,7 +150,7 @@ def stitch(
         check_plain_output(out, "photo folders are not georeferenced")
         track = None
     else:
-        track = load_track(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
+        track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
