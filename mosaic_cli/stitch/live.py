@@ -36,6 +36,7 @@ from mosaic_cli.atomic import atomic_path, check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
+from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import LiveStream, is_live_source
 from mosaic_cli.live.timeline import Timeline
@@ -44,7 +45,7 @@ from mosaic_cli.stitch.canvas import MIN_SIZE, CanvasOptions, parse_reference, p
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
 from mosaic_cli.stitch.output import check_outputs
-from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, finish_stitch
+from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, finish_stitch, make_stitch_estimator
 from mosaic_cli.stitch.registration import (
     Link,
     RegistrationOptions,
@@ -281,18 +282,23 @@ class LivePreview:
         out[y0:y1, x0:x1] = region
 
 
-def stitch_live(source: str, out: str | Path, estimator: Estimator, options: StitchOptions | None = None,
+def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None, options: StitchOptions | None = None,
                 transforms: str | Path | None = None, preview: PreviewOptions | None = None,
                 show_progress: bool = True, info: VideoInfo | None = None) -> StitchResult:
     """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
-    preview on the way when ``preview.path`` is given.  ``info``: a file's probe, when the caller has it."""
+    preview on the way when ``preview.path`` is given.  ``estimator``: None builds the one
+    ``options`` name once the request is checked.  ``info``: a file's probe, when the caller has it."""
     options = options or StitchOptions()
     preview = preview or PreviewOptions()
     reference = check_live_request(out, transforms, options, preview)
     live = is_live_source(source)
-    masked = None
     if not live:
         info = info if info is not None else probe(source)
+    check_mask_file(options.mask, None if live else info)
+    if estimator is None:
+        estimator = make_stitch_estimator(options)
+    masked = None
+    if not live:
         # A file read as a stream is there whole: its overlays are found before the scan starts.
         masked = frame_mask(source, options.mask, info, show_progress)
     track = _georef_telemetry(source, out, options, live, info)
