@@ -313,6 +313,28 @@ def test_bad_input_is_one_line_exit_2_and_no_file(short_clip, tmp_path, capsys, 
     assert list(out.iterdir()) == []
 
 
+def test_the_library_builds_the_estimator_its_options_name_once_the_input_is_checked(short_clip, tmp_path, monkeypatch):
+    from mosaic_cli.errors import BadInput
+    from mosaic_cli.stitch import CanvasOptions, pipeline
+
+    built = []
+    real = pipeline.make_estimator
+
+    def spy(name=None, **kwargs):
+        built.append((name, kwargs))
+        return real(name, **kwargs)
+
+    monkeypatch.setattr(pipeline, "make_estimator", spy)
+    late = StitchOptions(estimator="orb", canvas=CanvasOptions(reference="5000"))
+    with pytest.raises(BadInput, match="past the end"):
+        stitch(short_clip, tmp_path / "p.png", options=late, show_progress=False)
+    assert built == []  # refused before the estimator (a learned one loads weights)
+    options = StitchOptions(estimator="orb", work_width=128, registration=RegistrationOptions(enabled=False))
+    result = stitch(short_clip, tmp_path / "p.png", options=options, show_progress=False)
+    assert built == [("orb", {"work_width": 128, "weights": None, "device": "auto"})]
+    assert len(result.transforms) >= 2 and (tmp_path / "p.png").stat().st_size > 0
+
+
 def test_missing_or_unreadable_video_is_one_line_exit_2(tmp_path, capsys):
     (tmp_path / "out").mkdir()
     code, err = run_cli(capsys, "stitch", tmp_path / "nope.mp4", "-o", tmp_path / "out" / "p.png", "-q")

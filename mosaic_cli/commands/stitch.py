@@ -26,11 +26,8 @@ from mosaic_cli.commands.options import (
     overlay_detect_option,
     quiet_option,
 )
-from mosaic_cli.estimators import make_estimator
-from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
-from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("estimation and the panorama")
@@ -75,10 +72,13 @@ def stitch(
     from mosaic_cli.live.source import is_live_source
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
-    from mosaic_cli.stitch.live import PreviewOptions, check_live_request, stitch_live
-    from mosaic_cli.stitch.output import check_outputs
+    from mosaic_cli.stitch.live import PreviewOptions, stitch_live
 
     options = StitchOptions(
+        estimator=estimator,
+        work_width=work_width,
+        weights=str(weights) if weights else None,
+        device=device,
         keyframes=KeyframeOptions(new_ground=overlap),
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
         canvas=CanvasOptions(reference=reference, max_size=max_size or None),
@@ -89,22 +89,13 @@ def stitch(
         georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground, html),
         timeout=timeout,
     )
-    live = live or is_live_source(video) or preview is not None
-    preview_options = PreviewOptions(preview, every) if live else None
-    # Output checks come before the estimator is built (a learned one loads weights).
-    if live:
-        check_live_request(out, transforms, options, preview_options)
-    else:
-        check_outputs(out, transforms, options.canvas.max_size)
-    info = None if is_live_source(video) else probe(video)  # the input's one probe, passed down
-    check_mask_file(options.mask, info)
-    est = make_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
-    if live:
-        result = stitch_live(video, out, est, options, transforms=transforms, preview=preview_options, show_progress=not quiet,
-                             info=info)
+    # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
+    if live or is_live_source(video) or preview is not None:
+        result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
+                             show_progress=not quiet)
     else:
         with reading_policy(strict):
-            result = run_stitch(video, out, est, options, transforms=transforms, show_progress=not quiet, info=info)
+            result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

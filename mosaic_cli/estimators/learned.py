@@ -112,7 +112,7 @@ class LearnedEstimator(Estimator):
         self.precision = "fp32"
         self._features = self.model.features
         if self.device.type == "cpu":
-            self.model = self.model.to(memory_format=torch.channels_last)
+            self.model = self.model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stubs lack Module.to(memory_format=)
             if self.config.precision != "fp32":
                 int8 = quantized_features(self.model, meta.get("int8"))
                 if int8 is not None:
@@ -126,7 +126,7 @@ class LearnedEstimator(Estimator):
         self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
-        self._state = None
+        self._state: tuple[torch.Tensor, torch.Tensor] | None = None  # the LSTM's (h, c) between chunks
         self._pairs_done = 0
         self._motion = np.eye(3)
         self._detail_levels: list[float] = []
@@ -157,7 +157,7 @@ class LearnedEstimator(Estimator):
         self._confirmed_once = False  # a pair was placed by the frames: there is a motion to carry
         self._carried_run = 0  # pairs carried in a row
         self.path_counts = dict.fromkeys(PATHS, 0)
-        self._zncc_use = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
+        self._zncc_use: np.ndarray | None = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
         if self._fallback is not None:
             self._fallback.set_mask(self.mask)  # the fallback's ORB keypoints and polish skip overlays too
             self._fallback.reset(full_size)
@@ -209,7 +209,7 @@ class LearnedEstimator(Estimator):
         """Polish the seed, confirm it by the correlation of the registered detail, and where the
         learned path cannot confirm the pair, let the classical fallback try it."""
         usable = bool(offsets_ok) and prev.textured and cur.textured
-        valid = usable and is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio)
+        valid = bool(usable and is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio))
         polished, settled = self._polish(prev, cur, seed) if valid else (None, False)
         zncc = self._zncc(prev, cur, polished.H) if polished is not None else 0.0
         related = self.config.min_zncc is None or zncc >= self.config.min_zncc
@@ -222,7 +222,8 @@ class LearnedEstimator(Estimator):
             orb_ok = H_orb is not None and np.all(np.isfinite(H_orb))
             # Only the wide polish placed the pair: where its large windows were fooled, ORB's
             # features may do better; the registration whose band-passed frames agree more wins.
-            if orb_ok and (not confirmed or self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H)):
+            # (confirmed: polished is set)
+            if orb_ok and (not confirmed or (polished is not None and self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H))):
                 return self._gated(prev, cur, seed, valid, H_orb, orb_confidence, "fallback")
         if polished is None or not related:
             if self._can_carry() and (prev.spoilt or cur.spoilt):
@@ -310,7 +311,10 @@ class LearnedEstimator(Estimator):
         return (fine, True) if fine.refined else (wide, False)
 
     def _polish_once(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray, config: PolishConfig) -> Polish:
+        # Only textured frames are polished, and _describe gave those their aligned image (and corners, lk).
+        assert prev.aligned is not None and cur.aligned is not None
         if self.config.refine == "lk":
+            assert prev.points is not None
             return track_points(prev.aligned, cur.aligned, H, prev.points, config, self.work_mask)
         return align_pixels(prev.aligned, cur.aligned, H, config, self.work_mask)
 
@@ -378,19 +382,22 @@ class LearnedEstimator(Estimator):
         for f in (prev, cur):
             if f.detail is None:
                 f.detail = fine_detail(f.gray)
+        assert prev.detail is not None and cur.detail is not None
         return detail_zncc(prev.detail, cur.detail, H, self.positions, self.patch, self._valid_pixels(), self.work_mask)
 
     def _valid_pixels(self) -> np.ndarray:
         """1 where a pixel of a working frame may be used (the mask allows it), 0 elsewhere;
         made once per video."""
-        if self._zncc_use is None:
-            self._zncc_use = (np.ones(self.work_size[::-1], np.float32) if self.work_mask is None
-                              else (self.work_mask > 0).astype(np.float32))
-        return self._zncc_use
+        use = self._zncc_use
+        if use is None:
+            use = self._zncc_use = (np.ones(self.work_size[::-1], np.float32) if self.work_mask is None
+                                    else (self.work_mask > 0).astype(np.float32))
+        return use
 
     def _agreement(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
         """The correlation of the pair's band-passed frames registered by ``H`` (:func:`.correlation.band_agreement`):
         to choose between two registrations of one pair."""
+        assert prev.aligned is not None and cur.aligned is not None  # asked only of polished (textured) pairs
         return band_agreement(prev.aligned, cur.aligned, H, self._valid_pixels(), self.work_mask)
 
     def _estimate(self, prev, cur):  # pragma: no cover - feed/finish are overridden

@@ -15,12 +15,14 @@ from mosaic_cli.telemetry import Track, find_telemetry, read_telemetry
 from mosaic_cli.video import VideoInfo
 
 
-def load_track(video: str | Path, out: str | Path, options: GeorefOptions | None, span: tuple[float, float] | None = None,
-               info: VideoInfo | None = None) -> Track | None:
+def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions | None, span: tuple[float, float] | None = None,
+                     info: VideoInfo | None = None) -> Track | None:
     """The telemetry to georeference with: the file given, else a track inside the video
-    (None when there is none, or when it holds no GPS, e.g. captions).  ``span``: the seconds
-    of video to stitch, when known, to refuse a log that misses them before any work;
-    ``info``: the video's probe (its streams are where an embedded track is looked for)."""
+    (None when there is none, or when it holds no GPS, e.g. captions), with the outputs that
+    need it checked before any work.  (Not ``mosaic_cli.track.load_track``, which reads a
+    track JSON back.)  ``span``: the seconds of video to stitch, when known, to refuse a log
+    that misses them before any work; ``info``: the video's probe (its streams are where an
+    embedded track is looked for)."""
     if options is None:
         check_plain_output(out, "--telemetry none was given")
         return None

@@ -36,6 +36,7 @@ from mosaic_cli.atomic import atomic_path, check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
+from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import LiveStream, is_live_source
 from mosaic_cli.live.timeline import Timeline
@@ -44,7 +45,7 @@ from mosaic_cli.stitch.canvas import MIN_SIZE, CanvasOptions, parse_reference, p
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
 from mosaic_cli.stitch.output import check_outputs
-from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, finish_stitch
+from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, finish_stitch, make_stitch_estimator
 from mosaic_cli.stitch.registration import (
     Link,
     RegistrationOptions,
@@ -281,21 +282,26 @@ class LivePreview:
         out[y0:y1, x0:x1] = region
 
 
-def stitch_live(source: str, out: str | Path, estimator: Estimator, options: StitchOptions | None = None,
+def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None, options: StitchOptions | None = None,
                 transforms: str | Path | None = None, preview: PreviewOptions | None = None,
                 show_progress: bool = True, info: VideoInfo | None = None) -> StitchResult:
     """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
-    preview on the way when ``preview.path`` is given.  ``info``: a file's probe, when the caller has it."""
+    preview on the way when ``preview.path`` is given.  ``estimator``: None builds the one
+    ``options`` name once the request is checked.  ``info``: a file's probe, when the caller has it."""
     options = options or StitchOptions()
     preview = preview or PreviewOptions()
     reference = check_live_request(out, transforms, options, preview)
     live = is_live_source(source)
-    masked = None
     if not live:
         info = info if info is not None else probe(source)
+    check_mask_file(options.mask, None if live else info)
+    if estimator is None:
+        estimator = make_stitch_estimator(options)
+    masked = None
+    if not live:
         # A file read as a stream is there whole: its overlays are found before the scan starts.
         masked = frame_mask(source, options.mask, info, show_progress)
-    track = _load_track(source, out, options, live, info)
+    track = _georef_telemetry(source, out, options, live, info)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
@@ -352,10 +358,10 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator, options: Sti
         return result
 
 
-def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
+def _georef_telemetry(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
     """The telemetry, before any work: an explicit --telemetry file; a file read as live may
     hold a track of its own, a stream (stdin, URL) cannot be probed for one."""
-    from mosaic_cli.geo.stitching import check_plain_output, load_track, map_output_flag
+    from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, map_output_flag
 
     georef = options.georef
     if georef is None:
@@ -365,7 +371,7 @@ def _load_track(source: str, out: str | Path, options: StitchOptions, live: bool
         if wanted := map_output_flag(out) + georef.without_telemetry():
             raise BadInput(f"{wanted[0]} with a live input needs --telemetry (a stream cannot be searched for a GPS track)")
         return None
-    return load_track(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan
+    return georef_telemetry(source, out, georef, info=info)  # the stream's length is unknown: coverage is checked after the scan
 
 
 def check_live_request(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:

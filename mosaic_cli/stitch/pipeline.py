@@ -31,12 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import Estimator
+from mosaic_cli.estimators import Estimator, make_estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
-from mosaic_cli.geo.stitching import check_plain_output, gps_straightener, load_track, map_homographies, write_outputs
+from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
-from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_mask_file, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -58,6 +58,12 @@ from mosaic_cli.video.reader import refuse_damaged, scaled_size
 
 @dataclass
 class StitchOptions:
+    # The estimator of the scan, as stabilize's (``make_estimator``), built once the input and
+    # the outputs are checked: a learned one loads weights.
+    estimator: str | None = None  # None: DEFAULT_ESTIMATOR, or the network --weights hold
+    work_width: int | None = None  # --work-width; None: DEFAULT_WORK_WIDTH
+    weights: str | None = None
+    device: str = "auto"
     keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
     features: FeatureOptions = field(default_factory=FeatureOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
@@ -127,7 +133,7 @@ class StitchResult:
 def stitch(
     video: str | Path,
     out: str | Path,
-    estimator: Estimator,
+    estimator: Estimator | None = None,
     options: StitchOptions | None = None,
     transforms: str | Path | None = None,
     show_progress: bool = True,
@@ -136,7 +142,9 @@ def stitch(
     """Stitch ``video`` into the panorama ``out`` (format by extension), optionally writing
     every keyframe's frame -> panorama homography to ``transforms``.  Raises ``BadInput``
     before any work for unusable input, ``ProcessingError`` when the flight cannot be
-    stitched; never leaves a partial file.  ``info``: the video's probe, when the caller has it."""
+    stitched; never leaves a partial file.  ``estimator``: None builds the one ``options``
+    name (:func:`make_stitch_estimator`) once the input is checked.  ``info``: the video's
+    probe, when the caller has it."""
     options = options or StitchOptions()
     info, reference = _check_inputs(video, out, transforms, options, info)
     if info.is_image_folder:
@@ -150,7 +158,9 @@ def stitch(
         check_plain_output(out, "photo folders are not georeferenced")
         track = None
     else:
-        track = load_track(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
+        track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
+    if estimator is None:
+        estimator = make_stitch_estimator(options)
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -285,7 +295,14 @@ def _check_inputs(video, out, transforms, options: StitchOptions, info: VideoInf
         raise BadInput(f"--start {options.start} is past the end of {video} ({info.frame_count} frames)")
     if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
         raise BadInput(f"--reference {reference} is past the end of {video} ({info.frame_count} frames)")
+    check_mask_file(options.mask, info)
     return info, reference
+
+
+def make_stitch_estimator(options: StitchOptions) -> Estimator:
+    """The scan's estimator as ``options`` name it (``--estimator``, ``--work-width``,
+    ``--weights``, ``--device``)."""
+    return make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device)
 
 
 def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] | None:
