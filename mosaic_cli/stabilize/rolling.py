@@ -21,7 +21,15 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import resize_matrix
-from mosaic_cli.geometry.rolling_shutter import band_blend, band_centres, band_corrections, band_motion, estimate_readout, similarity_matrix
+from mosaic_cli.geometry.rolling_shutter import (
+    band_blend,
+    band_centres,
+    band_corrections,
+    band_motion,
+    estimate_readout,
+    similarity_matrix,
+    undo_row_correction,
+)
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
 
@@ -117,6 +125,12 @@ class RollingCorrection:
         k, a = band_blend(rows, band_centres(self.size[1], len(C)))
         return (1.0 - a)[:, None] * C[k] + a[:, None] * C[np.minimum(k + 1, len(C) - 1)]
 
+    def correct_points(self, t: int, points: np.ndarray) -> np.ndarray:
+        """(P, 2) points of frame t (P, 2) moved by their row's correction to the frame's mid-time pose."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        S = similarity_matrix(self.row_channels(t, pts[:, 1]), self.size)  # (P, 3, 3)
+        return np.einsum("pij,pj->pi", S[:, :2, :2], pts) + S[:, :2, 2]
+
     def band_warps(self, warps: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(N, R, 3, 3) input -> output of the rows ``rows`` of each frame: the stabilising warp
         after the row's correction (for scoring against the ground truth's bands)."""
@@ -134,13 +148,7 @@ class RollingCorrection:
             z = Wi[2, 0] * grid_x + Wi[2, 1] * grid_y + Wi[2, 2]
             x = (Wi[0, 0] * grid_x + Wi[0, 1] * grid_y + Wi[0, 2]) / z
             y = (Wi[1, 0] * grid_x + Wi[1, 1] * grid_y + Wi[1, 2]) / z
-            table = self.row_channels(t, rows).astype(np.float32)  # (h, 4)
-            r = np.clip(np.rint(y), 0, h - 1).astype(np.intp)
-            dx, dy, rot, sc = (table[r, i] for i in range(4))
-            cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
-            # the correction moves band pixels by (dx + sc (x - cx) - rot (y - cy), ...); undo it
-            u = x - (dx + sc * (x - cx) - rot * (y - cy))
-            v = y - (dy + rot * (x - cx) + sc * (y - cy))
+            u, v = undo_row_correction(self.row_channels(t, rows).astype(np.float32), self.size, x, y)
             return u.astype(np.float32), v.astype(np.float32)
 
         cw, ch = w // 2, h // 2
