@@ -202,8 +202,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     map homographies in the transforms).  ``rolling`` (applied): each keyframe is drawn row band
     by row band (its bands' correction, then its placement)."""
     clock = time.perf_counter()
-    if rolling is not None and not rolling.applied:
-        rolling = None
+    planned, rolling = rolling, rolling if rolling is not None and rolling.applied else None  # `auto` may read a global shutter
     if rolling is not None:
         _to_mid_time(scan, rolling)
     groups, report = _register(scan, reference, options, show_progress, track)
@@ -262,7 +261,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
-        seconds, panoramas, scan.dropped, scan.photos, mask, first.georef, rolling,
+        seconds, panoramas, scan.dropped, scan.photos, mask, first.georef, planned,
     )
 
 
