@@ -39,8 +39,12 @@ CORNERS = 600  # 1200 cost twice the time (LK is most of this pass) for no bette
 MIN_TRACKS = 40  # a pair with fewer inliers is left out of the path (weight 0)
 GLOBAL_READOUT = 0.1  # `auto` below this: global shutter, no correction
 # `auto` reads the readout from the first pairs only; a global shutter costs no more than that
-# (the whole video is measured only when there is a rolling shutter to take out)
-AUTO_PROBE_FRAMES = 60
+# (the whole video is measured only when there is a rolling shutter to take out, and the readout
+# then read from all of it).  The probe only tells a rolling shutter from a global one: at 20
+# frames readout 0 still costs 530-1360x the best on rolling-shutter flights (readout 0.5-0.9)
+# and 1.0-2.8x on global-shutter ones (GLOBAL_COST_RATIO is 10), as at 60 (530-1290x, 1.0-1.9x),
+# for a third of the cost (docs/measurements/rolling-shutter.md)
+AUTO_PROBE_FRAMES = 20
 
 
 def parse_rolling_shutter(value: str | float | None) -> str | float:
