@@ -177,7 +177,7 @@ def stitch(
         rolling = None
         if parse_rolling_shutter(options.rolling_shutter) != "off":
             clock = time.perf_counter()
-            rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress)
+            rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress, "stitch: rolling shutter")
             seconds["rolling"] = time.perf_counter() - clock
 
         clock = time.perf_counter()
