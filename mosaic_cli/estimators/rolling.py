@@ -36,7 +36,7 @@ GLOBAL_READOUT = 0.1  # `auto` below this: global shutter, no correction
 # (the whole video is measured only when there is a rolling shutter to take out, and the readout
 # then read from all of it).  The probe only tells a rolling shutter from a global one: at 20
 # frames readout 0 still costs 530-1360x the best on rolling-shutter flights (readout 0.5-0.9)
-# and 1.0-2.8x on global-shutter ones (GLOBAL_COST_RATIO is 10), as at 60 (530-1290x, 1.0-1.9x),
+# and 1.0-2.8x on global-shutter ones (GLOBAL_COST_RATIO is 10), as at 60 (530-1320x, 1.0-1.9x),
 # for a third of the cost (docs/measurements/rolling-shutter.md)
 AUTO_PROBE_FRAMES = 20
 
