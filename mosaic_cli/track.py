@@ -14,6 +14,8 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, estimate_stream
+from mosaic_cli.estimators.rolling import BandPlan, parse_rolling_shutter, plan_bands
+from mosaic_cli.geometry.rolling_shutter import CHANNELS, band_centres
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_threads, check_timeout
 from mosaic_cli.overlay import MaskOptions
 from mosaic_cli.progress import progress_task
@@ -30,11 +32,13 @@ class TrackOptions:
     threads: int | None = None  # torch's CPU threads for a learned estimator; None: torch's default
     timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
     mask: MaskOptions = field(default_factory=MaskOptions)  # --mask, burned-in overlays
+    rolling_shutter: str | float = "off"  # auto, off or a readout: the row bands' motion in the track file
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
+        parse_rolling_shutter(self.rolling_shutter)
         check_max_frames(self.max_frames)
         check_threads(self.threads)
         check_timeout(self.timeout)
@@ -48,6 +52,8 @@ class TrackResult:
     confidence: np.ndarray  # (N-1,)
     meta: dict = field(default_factory=dict)
     paths: list[str] | None = None  # the learned estimator: which path made each pair
+    # --rolling-shutter: the "rolling_shutter" block of the track file (see rolling_block)
+    rolling: dict | None = None
 
     @property
     def frames(self) -> int:
@@ -59,6 +65,8 @@ class TrackResult:
         doc["confidence"] = [float(c) for c in self.confidence]
         if self.paths is not None:
             doc["path"] = list(self.paths)
+        if self.rolling is not None:
+            doc["rolling_shutter"] = self.rolling
         doc["meta"] = self.meta
         return doc
 
@@ -83,6 +91,8 @@ class TrackResult:
         fh.write(json.dumps(np.asarray(self.confidence, dtype=np.float64).tolist()))
         if self.paths is not None:
             fh.write(', "path": ' + json.dumps(list(self.paths)))
+        if self.rolling is not None:
+            fh.write(', "rolling_shutter": ' + json.dumps(self.rolling))
         fh.write(', "meta": ' + json.dumps(self.meta) + "}\n")
 
 
@@ -93,10 +103,13 @@ def track_video(
     show_progress: bool = True,
     info: VideoInfo | None = None,
     on_pair: Callable[[np.ndarray, float], None] | None = None,
+    rolling_shutter: str | float = "off",
 ) -> TrackResult:
     """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
     ``info``: the video's probe, when the caller has it; ``on_pair(H, confidence)`` is told of
-    each pair as it is estimated (stabilize plans its path meanwhile)."""
+    each pair as it is estimated (stabilize plans its path meanwhile).  ``rolling_shutter``
+    (auto or a readout): also each row band's motion and correction, from a pass of its own
+    (:func:`estimators.rolling.plan_bands`), in ``TrackResult.rolling``."""
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
     paths: list[str | None] = []
@@ -121,10 +134,31 @@ def track_video(
         meta["paths"] = dict(estimator.path_counts)
     if stream.shortfall is not None:  # read to the end, and the end came early
         meta["input"] = stream.shortfall.as_meta()
+    rolling = None
+    mode = parse_rolling_shutter(rolling_shutter)
+    if mode != "off":
+        clock = time.perf_counter()
+        plan = plan_bands(path, info, mode, show_progress, "track: rolling shutter", max_frames=n)
+        meta["rolling_seconds"] = time.perf_counter() - clock
+        if plan is not None:
+            rolling = rolling_block(plan, info.source_size)
     return TrackResult(
         info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta,
-        [str(p) for p in paths] if paths and all(p is not None for p in paths) else None,
+        [str(p) for p in paths] if paths and all(p is not None for p in paths) else None, rolling,
     )
+
+
+def rolling_block(plan: BandPlan, size: tuple[int, int]) -> dict:
+    """The track file's ``rolling_shutter`` block (docs/guide/track.md): the readout, the bands'
+    centre rows, each pair's band motion and each frame's band corrections, as lists."""
+    K = plan.motion.shape[1]
+    block: dict = {"readout": float(plan.readout), "estimated": bool(plan.estimated), "applied": bool(plan.applied), "bands": K,
+                   "band_rows": [float(r) for r in band_centres(size[1], K)], "channels": list(CHANNELS)}
+    if plan.applied:
+        block["band_motion"] = np.round(plan.motion, 6).tolist()
+        block["weights"] = [float(w) for w in plan.weights]
+        block["corrections"] = np.round(plan.corrections, 6).tolist()
+    return block
 
 
 def save_track(result: TrackResult, out: str | Path) -> None:
@@ -178,5 +212,7 @@ def load_track(path: str | Path) -> TrackResult:
     except (ValueError, TypeError) as exc:
         raise BadInput(f"{path}: not a mosaic track file ({exc.__class__.__name__})") from None
     paths = data.get("path")
+    rolling = data.get("rolling_shutter")
     return TrackResult(info, data.get("estimator", "?"), pairwise, conf, data.get("meta", {}),
-                       [str(p) for p in paths] if isinstance(paths, list) and len(paths) == len(pairwise) else None)
+                       [str(p) for p in paths] if isinstance(paths, list) and len(paths) == len(pairwise) else None,
+                       rolling if isinstance(rolling, dict) else None)

@@ -26,6 +26,7 @@ from mosaic_cli.commands.options import (
     overlay_detect_option,
     quiet_option,
 )
+from mosaic_cli.errors import BadInput
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
 from mosaic_cli.video.reader import reading_policy
@@ -53,6 +54,7 @@ def stitch(
     blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.", rich_help_panel=OUTPUT_QUALITY)] = "multiband",
     seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.", rich_help_panel=OUTPUT_QUALITY)] = "dp",
     exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.", rich_help_panel=OUTPUT_QUALITY)] = "gain-blocks",
+    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Draw a rolling-shutter camera's frames row band by row band, each where it belongs (not smeared or doubled): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1).", rich_help_panel=OUTPUT_QUALITY)] = "off",
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
     telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.", rich_help_panel=TELEMETRY)] = None,
@@ -70,6 +72,7 @@ def stitch(
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
     from mosaic_cli.live.source import is_live_source
+    from mosaic_cli.stabilize.rolling import parse_rolling_shutter
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
     from mosaic_cli.stitch.live import PreviewOptions, stitch_live
@@ -88,9 +91,13 @@ def stitch(
         max_frames=max_frames,
         georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground, html),
         timeout=timeout,
+        rolling_shutter=rolling_shutter,
     )
+    live = live or is_live_source(video) or preview is not None
+    if live and parse_rolling_shutter(rolling_shutter) != "off":
+        raise BadInput("--rolling-shutter needs the whole video: not with --live or a live input")
     # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
-    if live or is_live_source(video) or preview is not None:
+    if live:
         result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
                              show_progress=not quiet)
     else:
@@ -112,6 +119,10 @@ def stitch(
             console.print(on_ground[0][1].telemetry.summary())
         for path, georef in on_ground:
             console.print(georef.summary() + (f" ({path})" if len(result.panoramas) > 1 else ""))
+        if result.rolling is not None:
+            rs = result.rolling
+            said = f"readout {rs.readout:.2f}" + (" (estimated)" if rs.estimated else "")
+            console.print(f"rolling shutter: {said}, " + ("each row band drawn where it belongs" if rs.applied else "a global shutter: left alone"))
     # Said even with -q: nothing leaves the panorama silently.
     for line in _notices(video, result):
         print(f"mosaic: warning: {line}", file=sys.stderr)

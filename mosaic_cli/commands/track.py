@@ -59,6 +59,7 @@ def track(
     strict: Strict = False,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Also each row band's motion and correction (a rolling shutter's wobble) in the track file's \"rolling_shutter\" block: auto (readout estimated; a global shutter reads 0, no motion written), off, or the readout as a fraction of the frame interval (0..1). .json output only.", rich_help_panel=INPUT_OUTPUT)] = "off",
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw each pair's confidence over time, failed pairs marked, to "
                                               "this PNG (needs matplotlib: pip install 'mosaic-cli[plot]').",
                                               rich_help_panel=INPUT_OUTPUT)] = None,
@@ -67,10 +68,14 @@ def track(
 
     pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
     """
+    from mosaic_cli.estimators.rolling import parse_rolling_shutter
     from mosaic_cli.plots import check_plot_request
 
     check_plot_request(plot)  # before any long work
-    options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect))
+    options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect),
+                           rolling_shutter=rolling_shutter)
+    if parse_rolling_shutter(rolling_shutter) != "off" and (is_live_source(video) or is_jsonl(out) or not out.lower().endswith(".json")):
+        raise BadInput("--rolling-shutter writes its block to a .json track file: not with .npy, JSON Lines or a live input")
     if not is_jsonl(out):
         check_writable(out)
         if Path(out).suffix.lower() not in (".json", ".npy"):
@@ -100,7 +105,8 @@ def track(
             save_track(result, out)
     else:
         with reading_policy(strict):
-            result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info)
+            result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info,
+                                 rolling_shutter=options.rolling_shutter)
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
     if plot is not None:

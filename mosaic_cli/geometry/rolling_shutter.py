@@ -221,3 +221,17 @@ def estimate_readout(motion: np.ndarray, height: int, weights: np.ndarray | None
     shift = 0.5 * (a - c) / bend if bend > 0 else 0.0
     step = readouts[i + 1] - readouts[i]
     return float(np.clip(readouts[i] + np.clip(shift, -0.5, 0.5) * step, 0.0, 1.0)), costs
+
+
+def undo_row_correction(table: np.ndarray, size: tuple[int, int], x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the frame's own pixels are that a row correction moved to (x, y): ``table`` (h, 4)
+    holds each row's correction channels (a similarity about the frame centre, small), looked up
+    at the row (x, y) lies on and undone to first order (exact but for the correction's change
+    over the pixel's few px of travel)."""
+    w, h = size
+    r = np.clip(np.rint(y), 0, h - 1).astype(np.intp)
+    dx, dy, rot, sc = (table[r, i] for i in range(4))
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    # the correction moves row pixels by (dx + sc (x - cx) - rot (y - cy), ...); undo it
+    return x - (dx + sc * (x - cx) - rot * (y - cy)), y - (dy + rot * (x - cx) + sc * (y - cy))
+

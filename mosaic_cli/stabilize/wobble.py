@@ -87,3 +87,36 @@ def video_wobble(video: str | Path, bands: int = 16, width: int = 640) -> float:
     row_part = flow - np.nanmean(flow, axis=1, keepdims=True)
     change = np.diff(row_part, axis=0)
     return float(np.sqrt(np.nanmean(np.sum(change ** 2, axis=-1))))
+
+
+def ground_truth_band_placement(row_bands: np.ndarray, map_to_frame: np.ndarray, size: tuple[int, int],
+                                transforms: list[tuple[int, np.ndarray]], bands: list[np.ndarray] | None = None) -> dict[str, float]:
+    """How far a panorama puts each keyframe's row bands from where they belong, panorama px.
+
+    ``transforms``: (frame index, frame -> panorama) per keyframe (``stitch``'s, whose placement
+    is the frame's mid-time pose); ``bands``: each keyframe's (K, 3, 3) frame -> panorama of its
+    band centre rows when it was drawn band by band (None: its transform for every row).  The
+    map -> panorama gauge is fitted (least squares) to the keyframes' mid-time poses, which
+    ``transforms``: (frame index, frame -> panorama) per keyframe; ``bands``: each keyframe's
+    (K, 3, 3) frame -> panorama of its band centre rows when it was drawn band by band (None:
+    its transform for every row).  Points along each band's centre row go to the map through
+    the band's true camera; the map -> panorama gauge is the homography that best fits them
+    (least squares over all keyframes and bands) to where the panorama drew them, each way of
+    drawing given its own best gauge.  Returns the RMS distance of each point from there
+    (``rms``) and the same with each keyframe's mean displacement taken out (``shape``: what
+    is smeared or doubled between rows rather than a shift of the whole frame)."""
+    import cv2
+
+    w, h = size
+    xs = np.linspace(0.05 * w, 0.95 * w, COLUMNS)
+    K = row_bands.shape[1]
+    on_map, drawn = np.empty((len(transforms), K, COLUMNS, 2)), np.empty((len(transforms), K, COLUMNS, 2))
+    for j, (i, H) in enumerate(transforms):
+        for k, yk in enumerate(band_centres(h, K)):
+            pts = np.stack([xs, np.full(COLUMNS, yk)], 1)
+            on_map[j, k] = project(np.linalg.inv(row_bands[i, k]), pts)
+            drawn[j, k] = project(H if bands is None else bands[j][k], pts)
+    gauge, _ = cv2.findHomography(on_map.reshape(-1, 2), drawn.reshape(-1, 2), 0)
+    errors = drawn - project(gauge, on_map.reshape(-1, 2)).reshape(drawn.shape)
+    shape = errors - errors.mean(axis=(1, 2), keepdims=True)
+    return {"rms": float(np.sqrt(np.mean(np.sum(errors ** 2, -1)))), "shape": float(np.sqrt(np.mean(np.sum(shape ** 2, -1))))}

@@ -57,11 +57,19 @@ class ComposeOptions:
             raise BadInput(f"--exposure must be one of {', '.join(EXPOSURES)}, got {self.exposure!r}")
 
 
+RowMap = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 @dataclass
 class PlacedImage:
     image: Pixels | None  # RGB uint8, in memory or spilled to a file; compose() drops it once drawn
     to_canvas: np.ndarray  # image pixels -> canvas pixels
     use: np.ndarray | None = None  # pixels to draw (uint8, 255 = use, any size of the image's aspect); None: all
+    # A rolling shutter (stitch --rolling-shutter): ``to_canvas`` places the image's mid-time pose
+    # and ``rows`` maps points of that pose (x, y arrays, image px) to where the image's own rows
+    # have them; each canvas pixel is then sampled through both (a remap, not one homography).
+    rows: RowMap | None = None
+    reach: float = 0.0  # image px the rows' pixels can lie beyond the mid-time outline
 
 
 @dataclass(frozen=True)
@@ -81,11 +89,13 @@ class Roi:
         return Roi(x0, y0, max(1, x1 - x0), max(1, y1 - y0))
 
 
-def bounding_roi(H: np.ndarray, image_size: tuple[int, int], canvas_size: tuple[int, int]) -> Roi | None:
-    """The canvas pixels an image mapped by ``H`` can touch, clipped to the canvas."""
+def bounding_roi(H: np.ndarray, image_size: tuple[int, int], canvas_size: tuple[int, int], reach: float = 0.0) -> Roi | None:
+    """The canvas pixels an image mapped by ``H`` can touch (its outline grown by ``reach``
+    image px), clipped to the canvas."""
     q = project(H, rect_corners(-0.5, -0.5, *image_size))
-    x0, y0 = np.floor(q.min(axis=0) + 0.5).astype(int)
-    x1, y1 = np.ceil(q.max(axis=0) - 0.5).astype(int)
+    pad = reach * _local_scale(H, *image_size) if reach > 0 else 0.0
+    x0, y0 = np.floor(q.min(axis=0) - pad + 0.5).astype(int)
+    x1, y1 = np.ceil(q.max(axis=0) + pad - 0.5).astype(int)
     x0, y0 = max(x0, 0), max(y0, 0)
     x1, y1 = min(x1, canvas_size[0] - 1), min(y1, canvas_size[1] - 1)
     if x1 < x0 or y1 < y0:
@@ -93,20 +103,34 @@ def bounding_roi(H: np.ndarray, image_size: tuple[int, int], canvas_size: tuple[
     return Roi(int(x0), int(y0), int(x1 - x0 + 1), int(y1 - y0 + 1))
 
 
-def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi, use: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi, use: np.ndarray | None = None,
+              rows: RowMap | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The image and its coverage mask warped by ``H`` (image -> canvas) into ``roi`` only; the
     pixels ``use`` excludes (burned-in overlays) are not covered.  Shrinks the image first when
-    the warp shrinks it, so that bilinear sampling does not alias."""
+    the warp shrinks it, so that bilinear sampling does not alias.  ``rows`` (see
+    :class:`PlacedImage`): each canvas pixel is sampled through ``H``, then through ``rows``."""
+    S = np.eye(3)
     scale = _local_scale(H, image.shape[1], image.shape[0])
     if scale < 0.8:
         size = (max(2, round(image.shape[1] * scale)), max(2, round(image.shape[0] * scale)))
         S = resize_matrix((image.shape[1], image.shape[0]), size)
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        H = H @ np.linalg.inv(S)
-    T = np.array([[1, 0, -roi.x], [0, 1, -roi.y], [0, 0, 1.0]]) @ H
-    warped = cv2.warpPerspective(image, T, (roi.w, roi.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    shift = np.array([[1, 0, -roi.x], [0, 1, -roi.y], [0, 0, 1.0]])
+    T = shift @ H @ np.linalg.inv(S)
     ones = np.full(image.shape[:2], 255, np.uint8) if use is None else work_mask(use, (image.shape[1], image.shape[0]))
-    mask = cv2.warpPerspective(ones, T, (roi.w, roi.h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+    if rows is None:
+        warped = cv2.warpPerspective(image, T, (roi.w, roi.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mask = cv2.warpPerspective(ones, T, (roi.w, roi.h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        return warped, mask
+    # canvas -> the image's mid-time pose (its pixels before any shrinking) -> its rows -> the shrunk pixels
+    gx, gy = np.meshgrid(np.arange(roi.w, dtype=np.float64), np.arange(roi.h, dtype=np.float64))
+    Hi = np.linalg.inv(shift @ H)
+    z = Hi[2, 0] * gx + Hi[2, 1] * gy + Hi[2, 2]
+    x, y = rows((Hi[0, 0] * gx + Hi[0, 1] * gy + Hi[0, 2]) / z, (Hi[1, 0] * gx + Hi[1, 1] * gy + Hi[1, 2]) / z)
+    u = (S[0, 0] * x + S[0, 2]).astype(np.float32)
+    v = (S[1, 1] * y + S[1, 2]).astype(np.float32)
+    warped = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    mask = cv2.remap(ones, u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return warped, mask
 
 
@@ -131,7 +155,7 @@ def compose(
     ``advance(n)`` is called with the canvas rows finished, strip by strip."""
     W, H = canvas_size
     # compose() is given every image with its pixels (it drops them itself): image is not None here.
-    found = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size) for p in placed]  # type: ignore[union-attr]
+    found = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size, p.reach) for p in placed]  # type: ignore[union-attr]
     keep = [k for k, r in enumerate(found) if r is not None]
     for k, r in enumerate(found):
         if r is None:  # entirely off the canvas
@@ -165,7 +189,7 @@ def compose(
             if k not in loaded:
                 loaded[k] = load_pixels(placed[k].image)  # type: ignore[arg-type]  # dropped only once finished
             image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gains[k] if gains else None, seam_masks[k],
-                                      placed[k].use)
+                                      placed[k].use, placed[k].rows)
             blender.feed(image, mask, (roi.x, roi.y + rows[0]))
             fed = True
         if fed:
@@ -191,13 +215,13 @@ def compose(
 
 
 def _strip_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, rows: tuple[int, int], gain: np.ndarray | None,
-                seam_mask: np.ndarray, use: np.ndarray | None = None):
+                seam_mask: np.ndarray, use: np.ndarray | None = None, row_map: RowMap | None = None):
     """Rows ``rows`` (of its bounding box ``roi``) of an image: warped, exposure-compensated
     (``gain``: a scalar or a block map over the whole box, from ``getMatGains``) as int16 for
     the blender, and its blend mask (the seam mask within the image's coverage)."""
     r0, r1 = rows
     part = Roi(roi.x, roi.y + r0, roi.w, r1 - r0)
-    warped, mask = warp_into(pixels, to_canvas, part, use)
+    warped, mask = warp_into(pixels, to_canvas, part, use, row_map)
     if gain is not None and gain.size == 1:
         warped = np.multiply(warped, float(gain.ravel()[0]), dtype=np.float32)
     elif gain is not None:
@@ -232,7 +256,7 @@ def _seams_and_exposure(placed, rois, seam_scale, options):
     S = resize_matrix((1.0, 1.0), (seam_scale, seam_scale))
     images, masks = [], []
     for p, roi in zip(placed, small_rois):
-        warped, mask = warp_into(load_pixels(p.image), normalize(S @ p.to_canvas), roi, p.use)
+        warped, mask = warp_into(load_pixels(p.image), normalize(S @ p.to_canvas), roi, p.use, p.rows)
         images.append(warped)
         masks.append(mask)
     corners = [r.corner for r in small_rois]

@@ -2,6 +2,9 @@
 
 0. overlays  burned-in logos, text and letterbox bars found on frames sampled over the clip,
              merged with --mask: kept out of estimation, registration and the panorama
+   rolling   --rolling-shutter auto|R only: each row band's correction to its frame's mid-time
+             pose, from a tracking pass of its own (stabilize/rolling.py); compose then draws
+             each keyframe's rows through their correction and the keyframe's placement
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one (photos: registered
              directly, no estimator); a cut starts a new segment
@@ -36,11 +39,13 @@ from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
+from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_mask_file, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
 from mosaic_cli.progress import progress_task
+from mosaic_cli.stabilize.rolling import RollingCorrection, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
-from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
 from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
@@ -79,6 +84,7 @@ class StitchOptions:
     # Telemetry to lay the mosaic on the ground with (see mosaic_cli/geo); None: a plain panorama.
     georef: GeorefOptions | None = None
     timeout: float = DEFAULT_TIMEOUT  # a live input (stitch/live.py) ends when it sends nothing for this long
+    rolling_shutter: str | float = "off"  # auto, off or a readout in [0, 1]: each keyframe drawn row band by row band
 
     def __post_init__(self) -> None:
         self.validate()
@@ -89,6 +95,7 @@ class StitchOptions:
             raise BadInput(f"--start must be 0 or more, got {self.start}")
         check_max_frames(self.max_frames)
         check_timeout(self.timeout)
+        parse_rolling_shutter(self.rolling_shutter)
 
 
 @dataclass
@@ -103,6 +110,9 @@ class Panorama:
     # The frames (photos) of the flight it stands for, as inclusive runs of indices: a video
     # keyframe stands for the frames up to the next one, those placed nowhere left out.
     spans: list[tuple[int, int]] = field(default_factory=list)
+    # --rolling-shutter (applied): each keyframe's (K, 3, 3) frame -> panorama of its row bands'
+    # centre rows (the band's correction, then the keyframe's transform), in the order of transforms.
+    bands: list[np.ndarray] | None = None
 
     @property
     def size(self) -> int:
@@ -124,6 +134,7 @@ class StitchResult:
     photos: bool = False
     mask: FrameMask | None = None  # what was kept out of estimation and the panoramas
     georef: Georeference | None = None  # the first panorama's, with telemetry (see Panorama.georef for the others)
+    rolling: RollingCorrection | None = None  # --rolling-shutter: the readout and each band's correction
 
     @property
     def frames_per_second(self) -> float:
@@ -156,6 +167,8 @@ def stitch(
                                            or options.georef.html is not None):
             raise BadInput(f"{video}: --telemetry, --footprints and --html apply to videos, not to photo folders")
         check_plain_output(out, "photo folders are not georeferenced")
+        if parse_rolling_shutter(options.rolling_shutter) != "off":
+            raise BadInput(f"{video}: --rolling-shutter applies to videos, not to photo folders")
         track = None
     else:
         track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
@@ -171,26 +184,37 @@ def stitch(
         estimator.set_mask(mask.use)
         seconds["overlays"] = time.perf_counter() - clock
 
+        rolling = None
+        if parse_rolling_shutter(options.rolling_shutter) != "off":
+            clock = time.perf_counter()
+            rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress, "stitch: rolling shutter")
+            seconds["rolling"] = time.perf_counter() - clock
+
         clock = time.perf_counter()
         scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None, mask.use)
         seconds["scan"] = time.perf_counter() - clock
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
-        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track)
+        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track, rolling)
 
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
                   transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
-                  mask: FrameMask | None = None, track: Track | None = None) -> StitchResult:
+                  mask: FrameMask | None = None, track: Track | None = None,
+                  rolling: RollingCorrection | None = None) -> StitchResult:
     """The stages after the scan, shared by the offline and the live stitch: register the
     keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
     write each panorama; the overlays of ``scan.use`` are drawn in none (``mask``: what the
     result reports of them).  ``seconds`` gains each stage's time.  With ``track`` (telemetry,
     see geo/stitching.py) drift control starts from GPS-straightened placements and each
     panorama whose keyframes the log covers is laid north-up on the ground (GeoTIFF, footprints,
-    map homographies in the transforms)."""
+    map homographies in the transforms).  ``rolling`` (applied): each keyframe is drawn row band
+    by row band (its bands' correction, then its placement)."""
     clock = time.perf_counter()
+    planned, rolling = rolling, rolling if rolling is not None and rolling.applied else None  # `auto` may read a global shutter
+    if rolling is not None:
+        _to_mid_time(scan, rolling)
     groups, report = _register(scan, reference, options, show_progress, track)
     seconds["register"] = time.perf_counter() - clock
     # The user's name goes to the largest part, the others numbered in decreasing size (ties:
@@ -217,7 +241,8 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         drawn = [k.composited for k in keyframes]
         canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress, scan.use)
+        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress, scan.use,
+                            rolling)
         seconds["compose"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
@@ -238,11 +263,15 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         if json_path is not None:
             write_transforms(json_path, canvas.size, frames, extra)
         seconds["write"] += time.perf_counter() - clock
-        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number]))
+        bands = None
+        if rolling is not None:
+            centres = band_centres(scan.source_size[1], rolling.corrections.shape[1])
+            bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
-        seconds, panoramas, scan.dropped, scan.photos, mask, first.georef,
+        seconds, panoramas, scan.dropped, scan.photos, mask, first.georef, planned,
     )
 
 
@@ -411,14 +440,59 @@ def _add_report(total: RegistrationReport, report: RegistrationReport) -> None:
 
 
 def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool,
-             use: np.ndarray | None = None):
+             use: np.ndarray | None = None, rolling: RollingCorrection | None = None):
     placed = []
     for keyframe, H in zip(keyframes, frame_to_canvas):
         if not keyframe.composited:
             continue
         image, keyframe.image = keyframe.image, None  # compose() frees each image once drawn
         to_source = np.linalg.inv(resize_matrix(source_size, (image.shape[1], image.shape[0])))
-        placed.append(PlacedImage(image, normalize(H @ to_source), use))
+        rows, reach = (None, 0.0) if rolling is None else _row_map(rolling, keyframe.index, source_size, to_source)
+        placed.append(PlacedImage(image, normalize(H @ to_source), use, rows, reach))
         del image
     with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", canvas_size[1], unit="rows/s", disable=not show_progress) as advance:
         return compose(placed, canvas_size, options, advance)
+
+
+def _row_map(rolling: RollingCorrection, index: int, source_size: tuple[int, int], to_source: np.ndarray) -> tuple[RowMap, float]:
+    """A keyframe's rows for compose (see ``PlacedImage.rows``), in the pixels it is held at
+    (``to_source``: those -> the source's), and how far (held px) they reach beyond its outline.
+    Its placement is its mid-time pose's (the keyframes were registered on corrected points)."""
+    table = rolling.row_channels(index, np.arange(source_size[1], dtype=np.float64))  # (h, 4), source px
+    sx, bx, sy, by = to_source[0, 0], to_source[0, 2], to_source[1, 1], to_source[1, 2]
+
+    def rows(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u, v = undo_row_correction(table, source_size, sx * x + bx, sy * y + by)
+        return (u - bx) / sx, (v - by) / sy
+
+    w, h = source_size
+    edge_y = np.tile(np.arange(h, dtype=np.float64), 2)  # the left and right edges, every row
+    edge_x = np.repeat([0.0, w - 1.0], h)
+    u, v = rows((edge_x - bx) / sx, (edge_y - by) / sy)
+    u, v = sx * u + bx, sy * v + by
+    reach = float(max(np.max(np.abs(u - edge_x)), np.max(np.abs(v - edge_y)))) / min(sx, sy) + 1.0
+    return rows, reach
+
+
+
+def _to_mid_time(scan: FlightScan, rolling: RollingCorrection) -> None:
+    """The keyframes' points (features, their links' correspondences) moved from the rows that
+    saw them to their frame's mid-time pose, and the links' homographies refitted to them: the
+    keyframes are then registered (and placed) as their mid-time poses, which compose draws each
+    row band from.  (Registered on the raw points, a placement fits the rows the overlap with
+    its neighbour happens to hold, and the errors chain along the flight.)"""
+    import cv2
+
+    def moved(index: int, points: np.ndarray) -> np.ndarray:
+        return rolling.correct_points(index, points).astype(points.dtype)
+
+    for key in scan.keyframes:
+        key.features.points = moved(key.index, key.features.points)
+        if key.link is not None and key.link_to is not None:
+            to = scan.keyframes[key.link_to]
+            link = key.link
+            link.points_a, link.points_b = moved(key.index, link.points_a), moved(to.index, link.points_b)
+            if len(link.points_a) >= 4:
+                H, _ = cv2.findHomography(link.points_a.astype(np.float64), link.points_b.astype(np.float64), 0)
+                if H is not None:
+                    link.H = normalize(H)

@@ -1,0 +1,149 @@
+"""A rolling-shutter video's row bands: their motion frame to frame, the readout, each band's
+correction (``--rolling-shutter auto|off|R`` of stabilize, stitch and track).
+
+1. measure: a pass over the video at ``TRACK_WIDTH`` px, gray: corners tracked frame to frame
+   (pyramidal Lucas-Kanade, checked backwards, RANSAC homography inliers), and each row band's
+   motion fitted to them (:func:`geometry.rolling_shutter.band_motion`);
+2. readout: given, or ``auto`` (:func:`geometry.rolling_shutter.estimate_readout`; global-shutter
+   footage reads under ``GLOBAL_READOUT`` and is left alone);
+3. correct: each band's pose within its frame relative to the frame's mid-time pose
+   (:func:`geometry.rolling_shutter.band_corrections`).
+
+What each command does with them: stabilize/rolling.py (the per-row render), stitch/pipeline.py
+(keyframes registered and drawn per row band), track.py (the track file's ``rolling_shutter``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry import resize_matrix
+from mosaic_cli.geometry.rolling_shutter import band_corrections, band_motion, estimate_readout
+from mosaic_cli.progress import progress_task
+from mosaic_cli.video import VideoInfo, open_video
+
+BANDS = 16
+TRACK_WIDTH = 640  # corners tracked at this width: finer than a band's wobble needs
+CORNERS = 600  # 1200 cost twice the time (LK is most of this pass) for no better readout
+MIN_TRACKS = 40  # a pair with fewer inliers is left out of the path (weight 0)
+GLOBAL_READOUT = 0.1  # `auto` below this: global shutter, no correction
+# `auto` reads the readout from the first pairs only; a global shutter costs no more than that
+# (the whole video is measured only when there is a rolling shutter to take out, and the readout
+# then read from all of it).  The probe only tells a rolling shutter from a global one: at 20
+# frames readout 0 still costs 530-1360x the best on rolling-shutter flights (readout 0.5-0.9)
+# and 1.0-2.8x on global-shutter ones (GLOBAL_COST_RATIO is 10), as at 60 (530-1320x, 1.0-1.9x),
+# for a third of the cost (docs/measurements/rolling-shutter.md)
+AUTO_PROBE_FRAMES = 20
+
+
+
+def parse_rolling_shutter(value: str | float | None) -> str | float:
+    """``off``, ``auto`` or a readout in [0, 1] (0 is off)."""
+    if value is None:
+        return "off"
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text in ("off", "auto"):
+            return text
+        try:
+            value = float(text)
+        except ValueError:
+            raise BadInput(f"--rolling-shutter must be auto, off or a readout in [0, 1], got {text!r}") from None
+    if not 0.0 <= float(value) <= 1.0:
+        raise BadInput(f"--rolling-shutter must be auto, off or a readout in [0, 1], got {value:g}")
+    return "off" if float(value) == 0.0 else float(value)
+
+
+def track_corners(a: np.ndarray, b: np.ndarray, corners: int = CORNERS) -> tuple[np.ndarray, np.ndarray]:
+    """Corners of gray frame ``a`` tracked into ``b`` (forward-backward checked, RANSAC
+    homography inliers): (P, 2) and (P, 2) in the frames' pixels."""
+    pts = cv2.goodFeaturesToTrack(a, corners, 0.005, max(4, a.shape[1] // 80))
+    if pts is None or len(pts) < 8:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    params = dict(winSize=(15, 15), maxLevel=3, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    fwd, ok1, _ = cv2.calcOpticalFlowPyrLK(a, b, pts, None, **params)
+    back, ok2, _ = cv2.calcOpticalFlowPyrLK(b, a, fwd, None, **params)
+    good = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm((back - pts)[:, 0], axis=1) < 0.5)
+    src, dst = pts[good, 0].astype(np.float64), fwd[good, 0].astype(np.float64)
+    if len(src) < 8:
+        return src, dst
+    # a generous threshold: the rolling shutter's wobble is what a single homography misses
+    _, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 3.0)
+    keep = inliers[:, 0].astype(bool) if inliers is not None else np.ones(len(src), bool)
+    return src[keep], dst[keep]
+
+
+def measure_band_motion(video: str | Path, info: VideoInfo, bands: int = BANDS, width: int = TRACK_WIDTH,
+                        show_progress: bool = True, max_frames: int | None = None,
+                        label: str = "rolling shutter") -> tuple[np.ndarray, np.ndarray]:
+    """(N-1, K, 4) each row band's motion frame t -> t+1 in full-resolution pixels, and (N-1,)
+    each pair's weight (1, or 0 where too few corners were tracked); of the first ``max_frames`` frames only, if given."""
+    full = info.source_size
+    width = min(width, full[0])
+    motions: list[np.ndarray] = []
+    weights: list[float] = []
+    with open_video(video, width=width, gray=True, info=info) as frames, \
+            progress_task(label, info.frame_count, disable=not show_progress) as advance:
+        prev = None
+        for frame in frames:
+            if prev is not None:
+                work = (frame.shape[1], frame.shape[0])
+                src, dst = track_corners(prev, frame)
+                up = resize_matrix(work, full)
+                scale, shift = np.diag(up)[:2], up[:2, 2]
+                if len(src) >= MIN_TRACKS:
+                    motions.append(band_motion(src * scale + shift, dst * scale + shift, full, bands))
+                    weights.append(1.0)
+                else:
+                    motions.append(np.zeros((bands, 4)))
+                    weights.append(0.0)
+            prev = frame
+            advance(1)
+            if max_frames is not None and len(motions) + 1 >= max_frames:
+                break
+    return np.array(motions).reshape(-1, bands, 4), np.array(weights)
+
+
+@dataclass
+class BandPlan:
+    """What ``--rolling-shutter`` found: the readout, each band's correction to its frame's
+    mid-time pose (N, K, 4), and the bands' pair motions it came from (N-1, K, 4) with each
+    pair's weight (N-1,)."""
+
+    readout: float
+    corrections: np.ndarray
+    motion: np.ndarray
+    weights: np.ndarray
+    estimated: bool  # auto, not given
+    applied: bool = True  # False: `auto` read a global shutter (corrections all 0; motion: the probe's pairs only)
+
+
+def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True, label: str = "rolling shutter",
+               max_frames: int | None = None) -> BandPlan | None:
+    """The bands ``mode`` asks for (None: off, or too few frames to tell), of the first
+    ``max_frames`` frames if given; under ``GLOBAL_READOUT`` `auto` returns them all 0, not applied."""
+    if mode == "off":
+        return None
+    h = info.source_size[1]
+    if mode == "auto":
+        probe_frames = AUTO_PROBE_FRAMES if max_frames is None else min(AUTO_PROBE_FRAMES, max_frames)
+        motion, weights = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label)
+        if len(motion) < 2 or weights.sum() < 2:
+            return None
+        readout, _ = estimate_readout(motion, h, weights)
+        if readout < GLOBAL_READOUT:
+            frames = max_frames or info.frame_count or len(motion) + 1
+            return BandPlan(readout, np.zeros((frames, motion.shape[1], 4)), motion, weights, True, applied=False)
+    motion, weights = measure_band_motion(video, info, show_progress=show_progress, max_frames=max_frames, label=label)
+    if len(motion) < 2 or weights.sum() < 2:
+        return None
+    if mode == "auto":
+        readout, _ = estimate_readout(motion, h, weights)  # from the whole video, now it is measured
+    else:
+        readout = float(mode)
+    return BandPlan(readout, band_corrections(motion, readout, h, weights), motion, weights, mode == "auto")
