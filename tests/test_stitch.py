@@ -318,13 +318,13 @@ def test_the_library_builds_the_estimator_its_options_name_once_the_input_is_che
     from mosaic_cli.stitch import CanvasOptions, pipeline
 
     built = []
-    real = pipeline.make_estimator
+    real = pipeline.plan_estimator
 
     def spy(name=None, **kwargs):
         built.append((name, kwargs))
         return real(name, **kwargs)
 
-    monkeypatch.setattr(pipeline, "make_estimator", spy)
+    monkeypatch.setattr(pipeline, "plan_estimator", spy)
     late = StitchOptions(estimator="orb", canvas=CanvasOptions(reference="5000"))
     with pytest.raises(BadInput, match="past the end"):
         stitch(short_clip, tmp_path / "p.png", options=late, show_progress=False)

@@ -28,20 +28,21 @@ import dataclasses
 import itertools
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.estimators import Estimator, plan_estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_mask_file, check_max_frames, check_timeout
-from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask
+from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask_while
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.rolling import RollingCorrection, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
@@ -172,16 +173,17 @@ def stitch(
         track = None
     else:
         track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
-    if estimator is None:
-        estimator = make_stitch_estimator(options)
+    given = estimator
+    build: Callable[[], Estimator] = plan_stitch_estimator(options) if given is None else (lambda: given)
 
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        mask = frame_mask(video, options.mask, info, show_progress)
-        estimator.set_mask(mask.use)
+        # The estimator is built (a network: torch, the weights) while the overlays are looked for.
+        mask, scanner = frame_mask_while(build, video, options.mask, info, show_progress)
+        scanner.set_mask(mask.use)
         seconds["overlays"] = time.perf_counter() - clock
 
         rolling = None
@@ -191,7 +193,7 @@ def stitch(
             seconds["rolling"] = time.perf_counter() - clock
 
         clock = time.perf_counter()
-        scan = _scan(video, info, estimator, options, show_progress, spill if options.spill else None, mask.use)
+        scan = _scan(video, info, scanner, options, show_progress, spill if options.spill else None, mask.use)
         seconds["scan"] = time.perf_counter() - clock
 
         if not scan.keyframes:
@@ -328,10 +330,15 @@ def _check_inputs(video, out, transforms, options: StitchOptions, info: VideoInf
     return info, reference
 
 
-def make_stitch_estimator(options: StitchOptions) -> Estimator:
+def plan_stitch_estimator(options: StitchOptions) -> Callable[[], Estimator]:
     """The scan's estimator as ``options`` name it (``--estimator``, ``--work-width``,
-    ``--weights``, ``--device``)."""
-    return make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device)
+    ``--weights``, ``--device``), checked now and built when the returned function is called."""
+    return plan_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device)
+
+
+def make_stitch_estimator(options: StitchOptions) -> Estimator:
+    """The scan's estimator as ``options`` name it, built."""
+    return plan_stitch_estimator(options)()
 
 
 def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] | None:
