@@ -93,7 +93,8 @@ def main() -> None:
         truth = ""
         if args.truth and gt.readout > 0:
             plan = stitch_pipeline.plan_rolling
-            stitch_pipeline.plan_rolling = lambda *a, **k: truth_corrections(gt)  # the stitch's one call of it
+            exact = truth_corrections(gt)
+            stitch_pipeline.plan_rolling = lambda *a, **k: exact  # the stitch's one call of it
             try:
                 result = stitch(clip, clip.with_suffix(".truth.png"), make_estimator(args.estimator),
                                 StitchOptions(rolling_shutter=gt.readout), show_progress=False)
