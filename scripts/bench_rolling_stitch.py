@@ -94,7 +94,7 @@ def main() -> None:
         if args.truth and gt.readout > 0:
             plan = stitch_pipeline.plan_rolling
             exact = truth_corrections(gt)
-            stitch_pipeline.plan_rolling = lambda *a, **k: exact  # the stitch's one call of it
+            stitch_pipeline.plan_rolling = lambda *a, exact=exact, **k: exact  # the stitch's one call of it
             try:
                 result = stitch(clip, clip.with_suffix(".truth.png"), make_estimator(args.estimator),
                                 StitchOptions(rolling_shutter=gt.readout), show_progress=False)
