@@ -15,6 +15,7 @@ What each command does with them: stabilize/rolling.py (the per-row render), sti
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,33 +79,43 @@ def track_corners(a: np.ndarray, b: np.ndarray, corners: int = CORNERS) -> tuple
     return src[keep], dst[keep]
 
 
+def tracked_corners(video: str | Path, width: int = TRACK_WIDTH, info: VideoInfo | None = None) -> Generator[tuple[np.ndarray, np.ndarray], None, None]:
+    """For each frame pair t -> t+1 of ``video``, the corners tracked between them
+    (:func:`track_corners`, frames decoded ``width`` wide and gray): (M, 2) where they are in
+    frame t and (M, 2) in frame t+1, in full-resolution pixels."""
+    with open_video(video, width=width, gray=True, info=info) as frames:
+        full = frames.info.source_size
+        prev = None
+        for frame in frames:
+            if prev is not None:
+                src, dst = track_corners(prev, frame)
+                up = resize_matrix((frame.shape[1], frame.shape[0]), full)
+                scale, shift = np.diag(up)[:2], up[:2, 2]
+                yield src * scale + shift, dst * scale + shift
+            prev = frame
+
+
 def measure_band_motion(video: str | Path, info: VideoInfo, bands: int = BANDS, width: int = TRACK_WIDTH,
                         show_progress: bool = True, max_frames: int | None = None,
                         label: str = "rolling shutter") -> tuple[np.ndarray, np.ndarray]:
     """(N-1, K, 4) each row band's motion frame t -> t+1 in full-resolution pixels, and (N-1,)
     each pair's weight (1, or 0 where too few corners were tracked); of the first ``max_frames`` frames only, if given."""
     full = info.source_size
-    width = min(width, full[0])
     motions: list[np.ndarray] = []
     weights: list[float] = []
-    with open_video(video, width=width, gray=True, info=info) as frames, \
-            progress_task(label, info.frame_count, disable=not show_progress) as advance:
-        prev = None
-        for frame in frames:
-            if prev is not None:
-                work = (frame.shape[1], frame.shape[0])
-                src, dst = track_corners(prev, frame)
-                up = resize_matrix(work, full)
-                scale, shift = np.diag(up)[:2], up[:2, 2]
-                if len(src) >= MIN_TRACKS:
-                    motions.append(band_motion(src * scale + shift, dst * scale + shift, full, bands))
-                    weights.append(1.0)
-                else:
-                    motions.append(np.zeros((bands, 4)))
-                    weights.append(0.0)
-            prev = frame
+    with progress_task(label, info.frame_count, disable=not show_progress) as advance:
+        advance(1)  # the first frame makes no pair
+        pairs = tracked_corners(video, min(width, full[0]), info)
+        for src, dst in pairs:
+            if len(src) >= MIN_TRACKS:
+                motions.append(band_motion(src, dst, full, bands))
+                weights.append(1.0)
+            else:
+                motions.append(np.zeros((bands, 4)))
+                weights.append(0.0)
             advance(1)
             if max_frames is not None and len(motions) + 1 >= max_frames:
+                pairs.close()  # the decoder stops here
                 break
     return np.array(motions).reshape(-1, bands, 4), np.array(weights)
 

@@ -53,31 +53,22 @@ def ground_truth_wobble(row_bands: np.ndarray, map_to_frame: np.ndarray, size: t
 def band_flow(video: str | Path, bands: int = 16, width: int = 640, margin: float = 0.06) -> tuple[np.ndarray, np.ndarray]:
     """(N-1, K, 2) each band's median motion frame t -> t+1 (full-resolution px, NaN where the
     band has fewer than 5 tracked corners), and (N-1,) the frames' median motion."""
-    from mosaic_cli.geometry import resize_matrix
-    from mosaic_cli.stabilize.rolling import track_corners
-    from mosaic_cli.video import open_video
+    from mosaic_cli.estimators.rolling import tracked_corners
+    from mosaic_cli.video import probe
 
+    info = probe(video)
+    w, h = info.source_size
     out, whole = [], []
-    with open_video(video, width=width, gray=True) as frames:
-        full = frames.info.source_size
-        prev = None
-        for frame in frames:
-            if prev is not None:
-                work = (frame.shape[1], frame.shape[0])
-                src, dst = track_corners(prev, frame)
-                up = resize_matrix(work, full)
-                src, dst = src * np.diag(up)[:2] + up[:2, 2], dst * np.diag(up)[:2] + up[:2, 2]
-                w, h = full
-                inside = (src[:, 0] > margin * w) & (src[:, 0] < (1 - margin) * w) & (src[:, 1] > margin * h) & (src[:, 1] < (1 - margin) * h)
-                src, dst = src[inside], dst[inside]
-                band = np.clip((src[:, 1] + 0.5) * bands / h, 0, bands - 1).astype(int)
-                motion = np.full((bands, 2), np.nan)
-                for k in range(bands):
-                    if np.sum(band == k) >= 5:
-                        motion[k] = np.median(dst[band == k] - src[band == k], axis=0)
-                out.append(motion)
-                whole.append(np.median(dst - src, axis=0) if len(src) else np.full(2, np.nan))
-            prev = frame
+    for src, dst in tracked_corners(video, width, info):
+        inside = (src[:, 0] > margin * w) & (src[:, 0] < (1 - margin) * w) & (src[:, 1] > margin * h) & (src[:, 1] < (1 - margin) * h)
+        src, dst = src[inside], dst[inside]
+        band = np.clip((src[:, 1] + 0.5) * bands / h, 0, bands - 1).astype(int)
+        motion = np.full((bands, 2), np.nan)
+        for k in range(bands):
+            if np.sum(band == k) >= 5:
+                motion[k] = np.median(dst[band == k] - src[band == k], axis=0)
+        out.append(motion)
+        whole.append(np.median(dst - src, axis=0) if len(src) else np.full(2, np.nan))
     return np.array(out).reshape(-1, bands, 2), np.array(whole).reshape(-1, 2)
 
 
