@@ -36,6 +36,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput, MosaicError
 from mosaic_cli.estimators import LEARNED
+from mosaic_cli.inputs import check_weights_file
 from mosaic_cli.simulate import SimulateOptions
 
 DEFAULT_ESTIMATORS = (*LEARNED, "orb", "orb-paper", "identity")
@@ -260,8 +261,8 @@ def check_request(options: BenchOptions) -> None:
         raise BadInput(f"{options.video}: no such file or folder")
     if options.flights is not None and not options.flights.is_dir():
         raise BadInput(f"--flights {options.flights}: no such folder")
-    if options.weights is not None and not Path(options.weights).is_file():
-        raise BadInput(f"{options.weights}: no such weights file")
+    if options.weights is not None:
+        check_weights_file(options.weights)
     if options.map_image is not None and not options.map_image.exists():
         raise BadInput(f"{options.map_image}: no such file")
 

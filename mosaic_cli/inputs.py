@@ -127,3 +127,14 @@ def output_format(out: str | Path) -> str | None:
     if str(out).endswith(("/", os.sep)) or Path(out).is_dir():
         return "tiles"
     return FORMATS.get(Path(out).suffix.lower())
+
+
+def check_weights_file(path: str | os.PathLike) -> Path:
+    """A weights file the user named: it must be a file (one ``BadInput`` line otherwise).
+    Without torch, so that a command refuses it before anything loads."""
+    p = Path(path)
+    if p.is_dir():
+        raise BadInput(f"{p}: a folder, not a weights file (.safetensors)")
+    if not p.is_file():
+        raise BadInput(f"{p}: no such weights file")
+    return p

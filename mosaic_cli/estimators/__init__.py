@@ -17,6 +17,7 @@ from mosaic_cli.estimators.options import Option, options_of
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
 from mosaic_cli.estimators.weights import default_weights
+from mosaic_cli.inputs import check_weights_file
 
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
 LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
@@ -129,12 +130,10 @@ def plan_estimator(name: str | None = None, work_width: int | None = None, weigh
         weights = typed.pop("weights", weights)
         if work_width is not None:  # before the weights are loaded: their header says their width
             _check_learned_width(base or "the network", work_width, weights)
-        if weights is None:
-            if base not in LEARNED:
-                raise BadInput(f"unknown learned estimator {base!r}: choose lstm or cnn, or pass --weights FILE")
+        if weights is None:  # (then the name is lstm or cnn: see ``learned``)
             default_weights(base)  # shipped: found, or the one line that says they are not
-        elif not Path(weights).is_file():
-            raise BadInput(f"{weights}: " + ("a folder, not a weights file (.safetensors)" if Path(weights).is_dir() else "no such weights file"))
+        else:
+            check_weights_file(weights)
         config = LearnedConfig(**typed)
 
         def build() -> Estimator:

@@ -23,6 +23,7 @@ from safetensors.torch import save_file
 
 from mosaic_cli.atomic import atomic_path
 from mosaic_cli.errors import BadInput
+from mosaic_cli.inputs import check_weights_file
 from mosaic_cli.model.network import VARIANTS, HomographyNet, NetConfig
 
 FORMAT = "mosaic-homography"
@@ -66,11 +67,7 @@ def save_weights(
 
 def read_metadata(path: str | Path) -> dict:
     """The decoded metadata of a mosaic checkpoint; BadInput if it is not one."""
-    p = Path(path)
-    if p.is_dir():
-        raise BadInput(f"{p}: a folder, not a weights file (.safetensors)")
-    if not p.is_file():
-        raise BadInput(f"{p}: no such weights file")
+    p = check_weights_file(path)
     try:
         with safe_open(str(p), framework="pt") as fh:
             raw = fh.metadata() or {}
