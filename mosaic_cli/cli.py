@@ -206,8 +206,8 @@ def _flags_take_no_value_in_help() -> None:
     ``<bool>`` type column, which reads as ``-q true``; a flag takes no value: show none."""
     from typer.core import TyperOption
 
-    shown = TyperOption.display_type_rich
-    if getattr(shown, "mosaic_flags", False):
+    shown = getattr(TyperOption, "display_type_rich", None)
+    if shown is None or getattr(shown, "mosaic_flags", False):  # a typer without that column: nothing to mend
         return
 
     def display_type_rich(self, ctx):

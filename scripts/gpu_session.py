@@ -15,8 +15,9 @@ Stages, each timed into session.log, a summary table printed last:
 6. train      the BASE from the shipped cnn, then LSTM-REG-T with bursts from the shipped lstm,
               each for the time left, validated on the burst flights (the network alone)
 
-Back under $OUT (at most 8 files): cnn.safetensors, lstm.safetensors, bench.json, tests.xml,
-logs.tar.gz (every run's log.csv / val.csv, the speed probes, env.json), session.log.
+Back under $OUT (at most 8 files of 16 MB): cnn.safetensors, lstm.safetensors, bench.json, tests.xml,
+logs.tar.gz (every run's log.csv / val.csv, the speed probes, env.json), session.log.  A file over
+15 MiB (lstm's weights are 17.4 MB) comes back in parts, NAME.part1, NAME.part2: `cat NAME.part* > NAME`.
 Score the weights on the CPU afterwards: mosaic bench --flights ... -e lstm:weights=$OUT/lstm.safetensors.
 
 ``--tiny --device cpu`` runs every stage on tiny data on a CPU, as tests/test_gpu_session.py does,
@@ -233,17 +234,34 @@ def train(s: Session, rates: dict | None) -> str:
     base_steps = max(2, int(rates["base"] * 60 * base_min / p.base_batch * 0.9))
     s.run(*train_args(s, "base", "models/cnn.safetensors", base_run, p.base_batch, base_steps, base_min, ("--lr", "3e-4")),
           timeout=120 + 60 * base_min * 1.5)
-    shutil.copy(base_run / "weights.safetensors", s.out / "cnn.safetensors")
+    deliver(base_run / "weights.safetensors", s.out / "cnn.safetensors")
     results.append(f"base {base_steps} steps x {p.base_batch} at {rate_of(base_run):.0f} samples/s")
     lstm_steps = max(2, int(rates["lstm-reg-t"] * 60 * lstm_min / p.lstm_batch * 0.9))
     val = ("--val", str(s.work / "val"), "--val-every", str(max(1, lstm_steps // 2)))
     s.run(*train_args(s, "lstm-reg-t", "models/lstm.safetensors", lstm_run, p.lstm_batch, lstm_steps, lstm_min,
                       ("--lr", "1e-4", "--bursts", "0.5", *val)), timeout=180 + 60 * lstm_min * 1.5)
-    shutil.copy(lstm_run / "weights.safetensors", s.out / "lstm.safetensors")
+    deliver(lstm_run / "weights.safetensors", s.out / "lstm.safetensors")
     results.append(f"lstm-reg-t {lstm_steps} steps x {p.lstm_batch} at {rate_of(lstm_run):.0f} windows/s")
     for run in (base_run, lstm_run):
         s.logs += [f for f in (run / "log.csv", run / "val.csv") if f.is_file()]
     return "; ".join(results)
+
+
+PART_BYTES = 15 * 2**20  # the device tool returns files of at most 16 MB
+
+
+def deliver(source: Path, target: Path, part_bytes: int = PART_BYTES) -> list[Path]:
+    """``source`` copied to ``target``, or, when larger than ``part_bytes``, cut into
+    ``target.part1``, ``target.part2``, ... that ``cat`` joins again."""
+    if source.stat().st_size <= part_bytes:
+        shutil.copy(source, target)
+        return [target]
+    parts = []
+    with open(source, "rb") as f:
+        while chunk := f.read(part_bytes):
+            parts.append(target.with_name(f"{target.name}.part{len(parts) + 1}"))
+            parts[-1].write_bytes(chunk)
+    return parts
 
 
 def pack(s: Session) -> str:

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Prepare what a device call of scripts/gpu_session.sh carries, in .gpu/ (ignored by git):
-# the wheels the device machine lacks (kornia), and a few of ../shared/data's stills, reduced to
+# the wheels the device machine lacks (kornia) or holds in other versions (typer, click), and a few of ../shared/data's stills, reduced to
 # 1600 px (the data does not travel otherwise; about 6 MB here).  The last still in name order
 # (zz_*) is kept out of training: the validation flights fly over it.
 set -euo pipefail
@@ -11,7 +11,8 @@ grep -qxF '/.gpu/' .git/info/exclude 2>/dev/null || echo '/.gpu/' >> .git/info/e
 mkdir -p .gpu/wheels .gpu/stills
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-  -d .gpu/wheels kornia==0.9.0 kornia_rs==0.2.0
+  -d .gpu/wheels kornia==0.9.0 kornia_rs==0.2.0 typer==0.29.2 click==8.5.1 \
+  pydantic==2.14.4 pydantic_core==2.50.5 annotated_types==0.8.0 typing_inspection==0.4.5 annotated_doc==0.0.7
 stills=(
   aerial_stills/odm_orthomosaic_previews/aukerman.png
   aerial_stills/odm_orthomosaic_previews/zoo.png

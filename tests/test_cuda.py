@@ -124,6 +124,10 @@ def test_a_one_process_nccl_ddp_step_gives_the_plain_gradients():
         objective(ddp, batch)["total"].backward()
         objective(twin, batch)["total"].backward()
         for a, b in zip(net.parameters(), twin.parameters()):
-            torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-6)
+            # cuDNN's weight gradients sum in no fixed order (1.9e-6 apart on an H200 for a
+            # gradient of 1e-3): the tolerance follows each tensor's scale; a wrong DDP
+            # averaging would be off by whole factors.
+            scale = float(b.grad.abs().max())
+            torch.testing.assert_close(a.grad, b.grad, rtol=1e-3, atol=1e-4 * scale)
     finally:
         dist.destroy_process_group()

@@ -62,3 +62,22 @@ def test_the_device_session_runs_every_stage_and_returns_its_files(tmp_path):
     suite = ET.parse(out / "tests.xml").getroot()
     cases = suite.findall(".//testcase")
     assert cases and all(c.find("skipped") is not None for c in cases)  # no GPU here: every CUDA test skips cleanly
+
+
+def test_a_file_over_the_device_limit_comes_back_in_parts_that_cat_joins(tmp_path, monkeypatch):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gpu_session", ROOT / "scripts" / "gpu_session.py")
+    gpu_session = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "gpu_session", gpu_session)  # its dataclasses look their module up
+    spec.loader.exec_module(gpu_session)
+    source = tmp_path / "weights.bin"
+    source.write_bytes(os.urandom(2500))
+    (tmp_path / "out").mkdir()
+    parts = gpu_session.deliver(source, tmp_path / "out" / "lstm.safetensors", part_bytes=1000)
+    assert [p.name for p in parts] == ["lstm.safetensors.part1", "lstm.safetensors.part2", "lstm.safetensors.part3"]
+    assert [p.stat().st_size for p in parts] == [1000, 1000, 500]
+    joined = subprocess.run("cat lstm.safetensors.part*", shell=True, cwd=tmp_path / "out", capture_output=True, check=True).stdout
+    assert joined == source.read_bytes()
+    small = gpu_session.deliver(source, tmp_path / "out" / "cnn.safetensors")  # under the limit: one plain copy
+    assert small == [tmp_path / "out" / "cnn.safetensors"] and small[0].read_bytes() == source.read_bytes()

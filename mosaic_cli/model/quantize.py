@@ -76,6 +76,9 @@ def _no_stack_traces():
     at start-up (docs/measurements/speed.md); the traced graph is the same."""
     import torch.fx.config
 
+    if not hasattr(torch.fx.config, "do_not_emit_stack_traces"):  # torch 2.11 (the GPU machine's) has no such switch
+        yield
+        return
     before = torch.fx.config.do_not_emit_stack_traces
     torch.fx.config.do_not_emit_stack_traces = True
     try:
