@@ -9,7 +9,8 @@ machine); every test here skips cleanly without one, as in CI.
   16 pairs give the same estimates;
 - one training step of every variant under mixed precision: finite terms, finite non-zero
   gradients;
-- a one-process nccl DistributedDataParallel step gives the gradients of the plain model.
+- a one-process nccl DistributedDataParallel step gives the gradients of the plain model;
+- the benchmark warms the GPU up before timing and times chunks of 1, 16 and 64 pairs.
 """
 
 from __future__ import annotations
@@ -131,3 +132,15 @@ def test_a_one_process_nccl_ddp_step_gives_the_plain_gradients():
             torch.testing.assert_close(a.grad, b.grad, rtol=1e-3, atol=1e-4 * scale)
     finally:
         dist.destroy_process_group()
+
+
+def test_the_gpu_benchmark_warms_the_device_up_and_times_chunks_of_1_16_and_64(flight):
+    from mosaic_cli.bench import _gpu_batch, _warm_up
+    from mosaic_cli.estimators import make_estimator
+
+    frames, _ = flight
+    est = make_estimator("lstm", device="cuda")
+    assert _warm_up(est, frames, (640, 360)) > 0
+    assert _warm_up(make_estimator("lstm", device="cpu"), frames, (640, 360)) is None  # a CPU starts cold, as a command does
+    batch = _gpu_batch("lstm", 320, None, frames[:33], (640, 360))
+    assert set(batch) == {"chunk_1", "chunk_16", "chunk_64"} and all(v["fps"] > 0 for v in batch.values())
