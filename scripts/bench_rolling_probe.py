@@ -1,38 +1,55 @@
 """``--rolling-shutter auto``'s probe: does it tell rolling from global shutters, and what does it cost?
 
-* ``separation CLIP...``: the bands of each clip's first 60 frames, then the readout and the
-  cost of readout 0 against the best (``estimate_readout``; a global shutter under
-  ``GLOBAL_COST_RATIO``) from the first 60, 30 and 20 of them;
+* ``separation CLIP... [--width 320]``: `auto`'s probe on each clip's first frames as the
+  tracking pass decodes them, then the readout and the cost of readout 0 against the best
+  (``estimate_readout``; a global shutter under ``GLOBAL_COST_RATIO``), and its CPU time;
 * ``overhead --out DIR``: global-shutter clips of 120, 600 and 1200 frames at 1280x720
   (simulated once), ``stabilize`` with ``--rolling-shutter off`` and ``auto`` in A-B-B-A order:
   the probe's stage seconds against ``off``'s total (say whether the machine was shared).
 
-    python scripts/bench_rolling_probe.py separation /tmp/rs/*.mp4
+    python scripts/bench_rolling_probe.py separation /tmp/rs/*.mp4 [--width 320]
     python scripts/bench_rolling_probe.py overhead --out /tmp/rsprobe [--frames 120 600 1200]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
+import time
 from pathlib import Path
 
-from mosaic_cli.estimators.rolling import AUTO_PROBE_FRAMES, measure_band_motion
+from mosaic_cli.estimators.rolling import AUTO_PROBE_FRAMES, PROBE_CORNERS, PROBE_READOUTS, RollingProbe
 from mosaic_cli.geometry.rolling_shutter import estimate_readout
 from mosaic_cli.simulate import SimulateOptions, simulate_flight
 from mosaic_cli.stabilize import StabilizeOptions, stabilize
-from mosaic_cli.video import probe
+from mosaic_cli.video import open_video, probe
+
+PROBE_WIDTH = 320  # the default estimator's (lstm) frames, which the probe rides on
 
 
-def separation(clips: list[Path]) -> None:
+def separation(clips: list[Path], width: int = PROBE_WIDTH) -> None:
+    """`auto`'s probe as stabilize, stitch and track run it (:class:`RollingProbe` on the first
+    ``AUTO_PROBE_FRAMES`` frames, decoded ``width`` wide and gray: the default estimator's
+    tracking pass), its readout and the cost of readout 0 against the best over ``PROBE_READOUTS``;
+    CPU seconds of its tracking and of the readouts."""
+    print(f"probe: {AUTO_PROBE_FRAMES} frames at {width} px, {PROBE_CORNERS} corners, readouts {PROBE_READOUTS}")
     for clip in clips:
         info = probe(clip)
-        motion, weights = measure_band_motion(clip, info, show_progress=False, max_frames=60)
-        cells = []
-        for frames in (60, 30, 20):
-            readout, costs = estimate_readout(motion[:frames - 1], info.source_size[1], weights[:frames - 1])
-            cells.append(f"{frames}: {readout:.2f} (x{costs[0] / costs.min():.1f} at 0)")
-        print(f"{clip.name:<40} " + " | ".join(cells), flush=True)
+        rolling_probe = RollingProbe(info)
+        cpu = 0.0
+        with open_video(clip, width=width, gray=True, info=info) as frames:
+            for frame in itertools.islice(frames, AUTO_PROBE_FRAMES):
+                clock = time.process_time()
+                rolling_probe.push(frame)
+                cpu += time.process_time() - clock
+        rolling_probe.finish()
+        motion, weights = rolling_probe.measured()
+        clock = time.process_time()
+        readout, costs = estimate_readout(motion, info.source_size[1], weights, PROBE_READOUTS)
+        fit = time.process_time() - clock
+        print(f"{clip.name:<40} readout {readout:.2f} (x{costs[0] / costs.min():.1f} at 0); CPU: tracking "
+              f"{1000 * cpu / max(len(motion), 1):.1f} ms a pair, readouts {1000 * fit:.0f} ms", flush=True)
 
 
 def overhead(out: Path, lengths: list[int]) -> None:
@@ -60,12 +77,13 @@ def main() -> None:
     sub = parser.add_subparsers(dest="command", required=True)
     sep = sub.add_parser("separation")
     sep.add_argument("clips", type=Path, nargs="+")
+    sep.add_argument("--width", type=int, default=PROBE_WIDTH, help="frames decoded this wide (the estimator's; default: lstm's 320)")
     ov = sub.add_parser("overhead")
     ov.add_argument("--out", type=Path, required=True)
     ov.add_argument("--frames", type=int, nargs="+", default=[120, 600, 1200])
     args = parser.parse_args()
     if args.command == "separation":
-        separation(args.clips)
+        separation(args.clips, args.width)
     else:
         overhead(args.out, args.frames)
 
