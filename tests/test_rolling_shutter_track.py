@@ -49,7 +49,8 @@ def test_the_bands_corrections_match_the_truth(flight, tmp_path):
             true.append(truth - p)
     rms = lambda a: float(np.sqrt(np.mean(np.sum(np.array(a) ** 2, -1))))  # noqa: E731
     assert rms(true) > 1.0  # there is a wobble to measure
-    assert rms(err) < 0.25 * rms(true)
+    # 0.050 of it (0.081 with the path's prior ten times weaker, ROUGHNESS 1e-4: issue #27's stitch goal)
+    assert rms(err) < 0.065 * rms(true)
     # a band's pair motion is the motion of its rows between the frames: their true positions
     t, k = gt.frames // 2, K // 2
     p = np.stack([xs, np.full(9, rs["band_rows"][k])], 1)
