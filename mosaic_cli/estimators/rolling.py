@@ -44,9 +44,9 @@ GLOBAL_READOUT = 0.1  # `auto` below this: global shutter, no correction
 AUTO_PROBE_FRAMES = 20
 # The probe rides on frames another pass decodes (RollingProbe: the tracking pass's, 320 px wide
 # for the default estimator) and needs less than the measurement: with 200 corners at 320 px and
-# readouts 0, 0.2, ..., 1 tried, readout 0 costs 338-896x the best on the rolling-shutter bench
-# flights and 1.0-2.7x on the global-shutter ones (100 corners: 122-157x; 600 at 640 px and
-# every 0.05: 530-1360x), for about 6 ms a pair and 12 ms for the readouts instead of 16 and 45.
+# readouts 0, 0.2, ..., 1 tried, readout 0 costs 60-299x the best on the rolling-shutter bench
+# flights and 1.0-1.6x on the global-shutter ones (at ROUGHNESS 1e-4: 338-896x and 1.0-2.7x;
+# 100 corners: 122-157x), for about 5 ms a pair and 13 ms for the readouts instead of 16 and 45.
 PROBE_CORNERS = 200
 PROBE_READOUTS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 

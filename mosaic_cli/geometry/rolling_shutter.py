@@ -148,6 +148,7 @@ GRID_STEPS = 24  # nodes per frame interval of the reconstructed path
 ROUGHNESS = 1e-3
 # A global shutter unless readout 0 costs this many times the best: rolling-shutter flights
 # (readout 0.5-0.9, 8-20 Hz vibration) cost 500-1700 times more at 0, global-shutter ones 1-2.1
+# (at ROUGHNESS 1e-4; `auto`'s probe at 1e-3: 60-299x and 1.0-1.6x)
 # (a 'shaky' flight's 3-8 Hz shake read as 0.44 without this test).
 GLOBAL_COST_RATIO = 10.0
 READOUTS = tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2))  # the grid `auto` tries
