@@ -14,7 +14,7 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, estimate_stream
-from mosaic_cli.estimators.rolling import BandPlan, parse_rolling_shutter, plan_bands
+from mosaic_cli.estimators.rolling import BandPlan, RollingProbe, parse_rolling_shutter, plan_bands
 from mosaic_cli.geometry.rolling_shutter import CHANNELS, band_centres
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_threads, check_timeout
 from mosaic_cli.overlay import MaskOptions
@@ -104,23 +104,29 @@ def track_video(
     info: VideoInfo | None = None,
     on_pair: Callable[[np.ndarray, float], None] | None = None,
     rolling_shutter: str | float = "off",
+    probe: RollingProbe | None = None,
 ) -> TrackResult:
     """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
     ``info``: the video's probe, when the caller has it; ``on_pair(H, confidence)`` is told of
     each pair as it is estimated (stabilize plans its path meanwhile).  ``rolling_shutter``
     (auto or a readout): also each row band's motion and correction, from a pass of its own
-    (:func:`estimators.rolling.plan_bands`), in ``TrackResult.rolling``."""
+    (:func:`estimators.rolling.plan_bands`; `auto`'s probe rides on this pass's first frames), in
+    ``TrackResult.rolling``.  ``probe``: fed this pass's frames (stabilize's `auto`)."""
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
     paths: list[str | None] = []
+    mode = parse_rolling_shutter(rolling_shutter)
     with open_video(path, width=estimator.input_width, gray=True, info=info) as stream:
         info = stream.info
+        if mode == "auto" and probe is None:
+            probe = RollingProbe(info)
         total = info.frame_count if max_frames is None else min(max_frames, info.frame_count or max_frames)
 
         start = time.perf_counter()
         with progress_task(f"track ({estimator.name})", total, disable=not show_progress) as advance:
             advance(1)  # the first frame yields no pair
-            for estimate in estimate_stream(estimator, itertools.islice(stream, max_frames), info.source_size):
+            frames = itertools.islice(stream, max_frames)
+            for estimate in estimate_stream(estimator, frames if probe is None else probe.tap(frames), info.source_size):
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
                 paths.append(estimate.path)
@@ -135,11 +141,10 @@ def track_video(
     if stream.shortfall is not None:  # read to the end, and the end came early
         meta["input"] = stream.shortfall.as_meta()
     rolling = None
-    mode = parse_rolling_shutter(rolling_shutter)
     if mode != "off":
         clock = time.perf_counter()
-        plan = plan_bands(path, info, mode, show_progress, "track: rolling shutter", max_frames=n)
-        meta["rolling_seconds"] = time.perf_counter() - clock
+        plan = plan_bands(path, info, mode, show_progress, "track: rolling shutter", max_frames=n, probe=probe)
+        meta["rolling_seconds"] = time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
         if plan is not None:
             rolling = rolling_block(plan, info.source_size)
     return TrackResult(

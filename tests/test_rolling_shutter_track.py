@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from conftest import cli_exit
+from mosaic_cli.estimators import make_estimator
 from mosaic_cli.geometry import project
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix
 from mosaic_cli.simulate import RollingShutter, SimulateOptions, load_ground_truth, simulate_flight
-from mosaic_cli.track import load_track
+from mosaic_cli.track import load_track, track_video
+from mosaic_cli.video import probe as probe_video
 
 SIZE = (640, 360)
 
@@ -47,7 +49,8 @@ def test_the_bands_corrections_match_the_truth(flight, tmp_path):
             true.append(truth - p)
     rms = lambda a: float(np.sqrt(np.mean(np.sum(np.array(a) ** 2, -1))))  # noqa: E731
     assert rms(true) > 1.0  # there is a wobble to measure
-    assert rms(err) < 0.25 * rms(true)
+    # 0.050 of it (0.081 with the path's prior ten times weaker, ROUGHNESS 1e-4: issue #27's stitch goal)
+    assert rms(err) < 0.065 * rms(true)
     # a band's pair motion is the motion of its rows between the frames: their true positions
     t, k = gt.frames // 2, K // 2
     p = np.stack([xs, np.full(9, rs["band_rows"][k])], 1)
@@ -60,3 +63,31 @@ def test_off_writes_no_block_and_other_outputs_are_refused(flight, tmp_path):
     assert cli_exit(["track", flight, "-o", out, "-e", "orb", "--max-frames", "5", "-q"]) == 0
     assert "rolling_shutter" not in json.loads(out.read_text()) and load_track(out).rolling is None
     assert cli_exit(["track", flight, "-o", tmp_path / "t.npy", "-e", "orb", "--rolling-shutter", "auto", "-q"]) == 2
+
+
+def test_auto_probe_rides_on_the_tracking_pass(flight, tmp_path, monkeypatch):
+    """`auto`'s probe takes the tracking pass's frames: a global shutter is told apart (readout 0,
+    left alone) without a decoder of its own; a rolling shutter is then measured by one pass."""
+    import mosaic_cli.estimators.rolling as rolling
+
+    opened = []
+    real_open = rolling.open_video
+    monkeypatch.setattr(rolling, "open_video", lambda *a, **k: opened.append(a[0]) or real_open(*a, **k))
+    gs = tmp_path / "gs.mp4"
+    simulate_flight(gs, None, SimulateOptions(profile="fast", frames=30, size=SIZE, seed=5, preset="ultrafast",
+                                              rolling=RollingShutter(0.0, 15.0, 5.0)), show_progress=False)
+    result = track_video(gs, make_estimator("orb"), show_progress=False, rolling_shutter="auto")
+    assert result.rolling is not None and not result.rolling["applied"] and result.rolling["readout"] == 0.0
+    assert opened == []
+    result = track_video(flight, make_estimator("orb"), show_progress=False, rolling_shutter="auto")
+    assert result.rolling["applied"] and abs(result.rolling["readout"] - 0.7) < 0.14
+    assert opened == [flight]
+    # a stream shorter than the probe: what there is decides
+    probe = rolling.RollingProbe(probe_video(flight))
+    with real_open(flight, width=320, gray=True) as frames:
+        tap = probe.tap(frames)
+        for _ in zip(range(5), tap):
+            pass
+        tap.close()  # the stream's end (or its failure) finishes the probe
+    motion, weights = probe.measured(timeout=5.0)
+    assert motion.shape == (4, rolling.BANDS, 4) and weights.sum() == 4

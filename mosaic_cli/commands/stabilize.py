@@ -102,9 +102,9 @@ def stabilize(
         s = result.seconds
         console.print(
             f"{result.frames} frames -> {out}: {result.frames / max(s['total'], 1e-9):.1f} fr/s "
-            f"(overlays {s['overlays']:.1f} s; " + (f"rolling shutter {s['rolling']:.1f} s; " if result.rolling is not None else "")
-            + f"track {s['track']:.1f} s, path {s['plan']:.1f} s of it, "
-            f"beside the render {s['render']:.1f} s); "
+            f"(overlays {s['overlays']:.1f} s; track {s['track']:.1f} s, path {s['plan']:.1f} s of it, "
+            f"beside the render {s['render']:.1f} s" + (f", rolling shutter {s['rolling']:.1f} s of those" if result.rolling is not None else "")
+            + "); "
             f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
         )
         if result.rolling is not None:

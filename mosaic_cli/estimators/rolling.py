@@ -15,7 +15,9 @@ What each command does with them: stabilize/rolling.py (the per-row render), sti
 
 from __future__ import annotations
 
-from collections.abc import Generator
+import threading
+import time
+from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +42,13 @@ GLOBAL_READOUT = 0.1  # `auto` below this: global shutter, no correction
 # and 1.0-2.8x on global-shutter ones (GLOBAL_COST_RATIO is 10), as at 60 (530-1320x, 1.0-1.9x),
 # for a third of the cost (docs/measurements/rolling-shutter.md)
 AUTO_PROBE_FRAMES = 20
-
+# The probe rides on frames another pass decodes (RollingProbe: the tracking pass's, 320 px wide
+# for the default estimator) and needs less than the measurement: with 200 corners at 320 px and
+# readouts 0, 0.2, ..., 1 tried, readout 0 costs 60-299x the best on the rolling-shutter bench
+# flights and 1.0-1.6x on the global-shutter ones (at ROUGHNESS 1e-4: 338-896x and 1.0-2.7x;
+# 100 corners: 122-157x), for about 5 ms a pair and 13 ms for the readouts instead of 16 and 45.
+PROBE_CORNERS = 200
+PROBE_READOUTS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 
 
 def parse_rolling_shutter(value: str | float | None) -> str | float:
@@ -120,6 +128,75 @@ def measure_band_motion(video: str | Path, info: VideoInfo, bands: int = BANDS, 
     return np.array(motions).reshape(-1, bands, 4), np.array(weights)
 
 
+class RollingProbe:
+    """`auto`'s probe on frames another pass decodes anyway (stabilize's and track's tracking
+    pass): fed its gray frames as they come (:meth:`tap`), it tracks corners between consecutive
+    ones (no wider than ``TRACK_WIDTH``; at the estimator's width when that is narrower) and
+    fits each pair's band motion, for the first ``frames`` frames; :meth:`measured` waits for
+    them.  No decoding of its own: what the separate probe pass cost was mostly its decoder."""
+
+    def __init__(self, info: VideoInfo, frames: int = AUTO_PROBE_FRAMES, bands: int = BANDS):
+        self.full, self.frames, self.bands = info.source_size, frames, bands
+        self._motion: list[np.ndarray] = []
+        self._weights: list[float] = []
+        self._prev: np.ndarray | None = None
+        self._seen = 0
+        self._done = threading.Event()
+        self.seconds = 0.0  # spent tracking and fitting (in the caller's thread)
+        self.cpu_seconds = 0.0  # the same in that thread's CPU time
+        self.width = 0  # the width the corners were tracked at
+
+    def push(self, frame: np.ndarray) -> None:
+        """The next frame, gray or RGB, of any width (downscaled to ``TRACK_WIDTH`` if wider)."""
+        if self._done.is_set():
+            return
+        clock, cpu = time.perf_counter(), time.thread_time()
+        h, w = frame.shape[:2]
+        if w > TRACK_WIDTH:
+            frame = cv2.resize(frame, (TRACK_WIDTH, max(1, round(h * TRACK_WIDTH / w))), interpolation=cv2.INTER_AREA)
+        if frame.ndim == 3:
+            frame = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        elif w <= TRACK_WIDTH:
+            frame = frame.copy()  # kept for the next pair: the pass that decoded it may change it
+        self.width = frame.shape[1]
+        if self._prev is not None:
+            src, dst = track_corners(self._prev, frame, PROBE_CORNERS)
+            if len(src) >= MIN_TRACKS:
+                up = resize_matrix((frame.shape[1], frame.shape[0]), self.full)
+                scale, shift = np.diag(up)[:2], up[:2, 2]
+                self._motion.append(band_motion(src * scale + shift, dst * scale + shift, self.full, self.bands))
+                self._weights.append(1.0)
+            else:
+                self._motion.append(np.zeros((self.bands, 4)))
+                self._weights.append(0.0)
+        self._prev = frame
+        self._seen += 1
+        self.seconds += time.perf_counter() - clock
+        self.cpu_seconds += time.thread_time() - cpu
+        if self._seen >= self.frames:
+            self.finish()
+
+    def finish(self) -> None:
+        """No more frames (the stream ended, or failed): :meth:`measured` has what there is."""
+        self._prev = None
+        self._done.set()
+
+    def tap(self, frames: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+        """``frames``, each also pushed to the probe; the probe is finished when they end."""
+        try:
+            for frame in frames:
+                self.push(frame)
+                yield frame
+        finally:
+            self.finish()
+
+    def measured(self, timeout: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(P, K, 4) the probed pairs' band motions (full-resolution pixels) and (P,) their
+        weights, once the probe has its frames or the stream ended."""
+        self._done.wait(timeout)
+        return np.array(self._motion).reshape(-1, self.bands, 4), np.array(self._weights)
+
+
 @dataclass
 class BandPlan:
     """What ``--rolling-shutter`` found: the readout, each band's correction to its frame's
@@ -135,18 +212,23 @@ class BandPlan:
 
 
 def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True, label: str = "rolling shutter",
-               max_frames: int | None = None) -> BandPlan | None:
+               max_frames: int | None = None, probe: RollingProbe | None = None) -> BandPlan | None:
     """The bands ``mode`` asks for (None: off, or too few frames to tell), of the first
-    ``max_frames`` frames if given; under ``GLOBAL_READOUT`` `auto` returns them all 0, not applied."""
+    ``max_frames`` frames if given; under ``GLOBAL_READOUT`` `auto` returns them all 0, not applied.
+    ``probe``: `auto`'s probe fed by a pass that decodes the frames anyway (waited for here);
+    None: a pass of its own over the first ``AUTO_PROBE_FRAMES`` frames."""
     if mode == "off":
         return None
     h = info.source_size[1]
     if mode == "auto":
-        probe_frames = AUTO_PROBE_FRAMES if max_frames is None else min(AUTO_PROBE_FRAMES, max_frames)
-        motion, weights = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label)
+        if probe is not None:
+            motion, weights = probe.measured()
+        else:
+            probe_frames = AUTO_PROBE_FRAMES if max_frames is None else min(AUTO_PROBE_FRAMES, max_frames)
+            motion, weights = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label)
         if len(motion) < 2 or weights.sum() < 2:
             return None
-        readout, _ = estimate_readout(motion, h, weights)
+        readout, _ = estimate_readout(motion, h, weights, PROBE_READOUTS)
         if readout < GLOBAL_READOUT:
             frames = max_frames or info.frame_count or len(motion) + 1
             return BandPlan(readout, np.zeros((frames, motion.shape[1], 4)), motion, weights, True, applied=False)

@@ -33,7 +33,7 @@ from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MotionModel, motion_model
 from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border
-from mosaic_cli.stabilize.rolling import RollingCorrection, parse_rolling_shutter, plan_rolling
+from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, RowWarpLater, parse_rolling_shutter
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
@@ -135,14 +135,16 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     estimator.set_mask(masked.use)
     seconds = {"overlays": time.perf_counter() - clock}
 
-    # Rolling shutter: each row band's correction, from a tracking pass of its own (rolling.py).
-    rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress)
-    per_row = rolling.warper(BORDERS[plan.renderer.border], YUV_BLACK) if rolling is not None and rolling.applied else None
-    seconds["rolling"] = time.perf_counter() - clock - seconds["overlays"]
+    # Rolling shutter: each row band's correction (rolling.py), planned at the render's first
+    # frame: `auto`'s probe rides on the tracking pass's first frames, and a rolling shutter
+    # found (or a readout given) is measured by a pass of its own beside the tracking.
+    mode = parse_rolling_shutter(options.rolling_shutter)
+    probe = RollingProbe(info) if mode == "auto" else None
+    per_row = RowWarpLater(video, info, mode, BORDERS[plan.renderer.border], YUV_BLACK, show_progress, probe) if mode != "off" else None
 
     # The path is planned as the pairs come in, and the render follows the plan (stream.py).
     feed = PathFeed(info.source_size, plan.model, plan.smoother, plan.crop)
-    tracking = TrackingPass(video, estimator, info, feed, show_progress)
+    tracking = TrackingPass(video, estimator, info, feed, show_progress, probe)
     render_clock = time.perf_counter()
     with progress_group(disable=not show_progress):
         tracking.start()
@@ -154,7 +156,11 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
             tracking.join()
             raise
         track = tracking.outcome()
-    seconds.update(track=tracking.seconds, plan=feed.plan_seconds, render=time.perf_counter() - render_clock)
+    rolling = per_row.plan() if per_row is not None else None  # (planned already unless no frame was rendered)
+    seconds.update(track=tracking.seconds, plan=feed.plan_seconds, render=time.perf_counter() - render_clock,
+                   rolling=per_row.seconds if per_row is not None else 0.0)
+    if per_row is not None:
+        seconds["rolling_cpu"] = per_row.cpu_seconds
 
     # What only the tracking pass knows, said in the outputs: where the audio ends (with the
     # frames it counted), and a truncated input (fewer frames than announced).
@@ -176,9 +182,11 @@ class TrackingPass(threading.Thread):
     """The tracking pass in a thread of its own, each pair handed to the path's feed as it is
     estimated; :meth:`outcome` waits for it and gives its result or raises its error."""
 
-    def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed, show_progress: bool):
+    def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed, show_progress: bool,
+                 probe: RollingProbe | None = None):
         super().__init__(name="mosaic-track", daemon=True)
         self.video, self.estimator, self.info, self.feed, self.show_progress = video, estimator, info, feed, show_progress
+        self.probe = probe  # --rolling-shutter auto: fed the first frames (estimators/rolling.py)
         self.result: TrackResult | None = None
         self.error: BaseException | None = None
         self.seconds = 0.0
@@ -187,7 +195,7 @@ class TrackingPass(threading.Thread):
         clock = time.perf_counter()
         try:
             self.result = track_video(self.video, self.estimator, show_progress=self.show_progress, info=self.info,
-                                      on_pair=self.feed.add_pair)
+                                      on_pair=self.feed.add_pair, probe=self.probe)
             self.feed.finish()
         except BaseException as exc:  # the render learns of it from the feed; the caller from outcome()
             self.error = exc

@@ -119,14 +119,14 @@ class Renderer:
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray | Callable[[int], np.ndarray], info: VideoInfo,
                compare: str | Path | None = None, show_progress: bool = True,
                metadata: dict[str, str] | None = None, frames: int | None = None,
-               per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray] | None = None) -> int:
+               per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray | None] | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         ``warps``: (N, 3, 3), or a function giving frame t's warp (which may wait until it is
         known: :meth:`~.stream.PathFeed.warp`); then ``frames`` is the count expected, which
         cuts the audio (None: the audio is not cut).  Frames beyond ``len(warps)`` (a decoder
         that finds one more frame the second time) reuse the last warp.  ``per_row(frame, t,
-        warp)``: a warp of its own instead, row by row (``stabilize/rolling.py``)."""
+        warp)``: a warp of its own instead, row by row (``stabilize/rolling.py``), or None for the usual one."""
         if isinstance(warps, np.ndarray):
             frames, known = len(warps), warps
             warps = lambda t: known[min(t, len(known) - 1)]  # noqa: E731
@@ -148,7 +148,9 @@ class Renderer:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
                     for t, frame in enumerate(_background(decoded)):
                         W = warp_of(t)
-                        result = warp(frame, W, size, self.border) if per_row is None else per_row(frame, t, W)
+                        result = per_row(frame, t, W) if per_row is not None else None
+                        if result is None:
+                            result = warp(frame, W, size, self.border)
                         yield (result, join(frame, result)) if compare is not None else (result,)
 
                 written = _drain(outputs(), [w.write for w in writers], advance)

@@ -8,6 +8,7 @@ row it lands on.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,7 @@ from mosaic_cli.estimators.rolling import (
     BANDS,
     GLOBAL_READOUT,
     TRACK_WIDTH,
+    RollingProbe,
     measure_band_motion,
     parse_rolling_shutter,
     plan_bands,
@@ -28,8 +30,8 @@ from mosaic_cli.estimators.rolling import (
 from mosaic_cli.geometry.rolling_shutter import band_blend, band_centres, similarity_matrix, undo_row_correction
 from mosaic_cli.video import VideoInfo
 
-__all__ = ["AUTO_PROBE_FRAMES", "BANDS", "GLOBAL_READOUT", "TRACK_WIDTH", "RollingCorrection", "measure_band_motion",
-           "parse_rolling_shutter", "plan_rolling", "track_corners"]
+__all__ = ["AUTO_PROBE_FRAMES", "BANDS", "GLOBAL_READOUT", "TRACK_WIDTH", "RollingCorrection", "RollingProbe", "RowWarpLater",
+           "measure_band_motion", "parse_rolling_shutter", "plan_rolling", "track_corners"]
 
 
 @dataclass
@@ -106,10 +108,44 @@ class RollingCorrection:
 
 
 def plan_rolling(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True,
-                 label: str = "stabilize: rolling shutter") -> RollingCorrection | None:
+                 label: str = "stabilize: rolling shutter", probe: RollingProbe | None = None) -> RollingCorrection | None:
     """The corrections ``mode`` asks for (None: off, or too few frames to tell); under
-    ``GLOBAL_READOUT`` `auto` returns them all 0, not applied (:func:`estimators.rolling.plan_bands`)."""
-    plan = plan_bands(video, info, mode, show_progress, label)
+    ``GLOBAL_READOUT`` `auto` returns them all 0, not applied (:func:`estimators.rolling.plan_bands`;
+    ``probe``: `auto`'s, fed by another pass)."""
+    plan = plan_bands(video, info, mode, show_progress, label, probe=probe)
     if plan is None:
         return None
     return RollingCorrection(plan.readout, plan.corrections, info.source_size, plan.estimated, plan.applied)
+
+
+class RowWarpLater:
+    """The render's ``per_row``, planned at the render's first frame rather than before the
+    tracking pass starts: by then (the path's first window is solved after 120 pairs) `auto`'s
+    probe, fed by the tracking pass (:class:`RollingProbe`), has its frames, so a global shutter
+    costs no pass of its own; a rolling shutter (or a given readout) is then measured over the
+    whole video beside the tracking.  Returns None for a frame rendered as without (a global shutter)."""
+
+    def __init__(self, video: str | Path, info: VideoInfo, mode: str | float, border: int, black: tuple[int, int, int],
+                 show_progress: bool = True, probe: RollingProbe | None = None):
+        self.video, self.info, self.mode, self.border, self.black = video, info, mode, border, black
+        self.show_progress, self.probe = show_progress, probe
+        self.rolling: RollingCorrection | None = None
+        self.seconds = 0.0  # planning in the render's thread, and the probe's share of the tracking's
+        self.cpu_seconds = 0.0  # the same in CPU time
+        self._planned = False
+        self._warp: Callable[[np.ndarray, int, np.ndarray], np.ndarray] | None = None
+
+    def plan(self) -> RollingCorrection | None:
+        if not self._planned:
+            clock, cpu = time.perf_counter(), time.thread_time()
+            self._planned = True
+            self.rolling = plan_rolling(self.video, self.info, self.mode, self.show_progress, probe=self.probe)
+            if self.rolling is not None and self.rolling.applied:
+                self._warp = self.rolling.warper(self.border, self.black)
+            self.seconds = time.perf_counter() - clock + (self.probe.seconds if self.probe is not None else 0.0)
+            self.cpu_seconds = time.thread_time() - cpu + (self.probe.cpu_seconds if self.probe is not None else 0.0)
+        return self.rolling
+
+    def __call__(self, frame: np.ndarray, t: int, warp: np.ndarray) -> np.ndarray | None:
+        self.plan()
+        return None if self._warp is None else self._warp(frame, t, warp)

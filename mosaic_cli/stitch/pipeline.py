@@ -2,12 +2,13 @@
 
 0. overlays  burned-in logos, text and letterbox bars found on frames sampled over the clip,
              merged with --mask: kept out of estimation, registration and the panorama
-   rolling   --rolling-shutter auto|R only: each row band's correction to its frame's mid-time
-             pose, from a tracking pass of its own (stabilize/rolling.py); compose then draws
-             each keyframe's rows through their correction and the keyframe's placement
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one (photos: registered
              directly, no estimator); a cut starts a new segment
+   rolling   --rolling-shutter auto|R only: each row band's correction to its frame's mid-time
+             pose, from a tracking pass of its own (stabilize/rolling.py; `auto` first probes
+             the scan's first frames, and a global shutter stops there); compose then draws
+             each keyframe's rows through their correction and the keyframe's placement
 2. register  relocalise segments on each other, close loops, refine all placements jointly
              (drift control); segments that join nothing become panoramas of their own
 3. canvas    pick the reference keyframe, size the canvas (``max_size``), refuse degenerate chains
@@ -44,7 +45,7 @@ from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix,
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_mask_file, check_max_frames, check_timeout
 from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask_while
 from mosaic_cli.progress import progress_task
-from mosaic_cli.stabilize.rolling import RollingCorrection, parse_rolling_shutter, plan_rolling
+from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
@@ -186,15 +187,18 @@ def stitch(
         scanner.set_mask(mask.use)
         seconds["overlays"] = time.perf_counter() - clock
 
-        rolling = None
-        if parse_rolling_shutter(options.rolling_shutter) != "off":
-            clock = time.perf_counter()
-            rolling = plan_rolling(video, info, parse_rolling_shutter(options.rolling_shutter), show_progress, "stitch: rolling shutter")
-            seconds["rolling"] = time.perf_counter() - clock
-
+        # `auto`'s probe rides on the scan's first frames: a global shutter costs no pass of its own.
+        mode = parse_rolling_shutter(options.rolling_shutter)
+        probe = RollingProbe(info) if mode == "auto" else None
         clock = time.perf_counter()
-        scan = _scan(video, info, scanner, options, show_progress, spill if options.spill else None, mask.use)
+        scan = _scan(video, info, scanner, options, show_progress, spill if options.spill else None, mask.use, probe)
         seconds["scan"] = time.perf_counter() - clock
+
+        rolling = None
+        if mode != "off":
+            clock = time.perf_counter()
+            rolling = plan_rolling(video, info, mode, show_progress, "stitch: rolling shutter", probe)
+            seconds["rolling"] = time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
@@ -350,7 +354,7 @@ def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] |
 
 
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
-          use: np.ndarray | None = None) -> FlightScan:
+          use: np.ndarray | None = None, probe: RollingProbe | None = None) -> FlightScan:
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None
@@ -370,8 +374,9 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
         if info.is_image_folder:
             with progress_task("scan (photos, features)", total, unit="photos/s", disable=not show_progress) as advance:
                 return scan_photos(itertools.islice(stream, options.max_frames), scanner, advance)
+        frames = itertools.islice(stream, options.max_frames)
         with progress_task(f"scan ({estimator.name})", total, disable=not show_progress) as advance:
-            return scan_flight(itertools.islice(stream, options.max_frames), estimator, scanner, advance)
+            return scan_flight(frames if probe is None else probe.tap(frames), estimator, scanner, advance)
 
 
 def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: Track | None = None):
