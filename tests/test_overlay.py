@@ -248,6 +248,7 @@ def test_a_hovering_camera_or_too_few_frames_masks_nothing():
 def test_long_clips_are_sampled_by_seeking_as_short_ones_by_decoding(flights, monkeypatch):
     import mosaic_cli.overlay.samples as overlay
 
+    monkeypatch.setattr(overlay, "NEAR_SPACING", 10**6)  # the picks themselves, not the reference frames after them
     decoded = sample_frames(flights.burned, 12, 160)
     monkeypatch.setattr(overlay, "DECODE_ALL_BELOW", 10)  # as if the clip were long ...
     monkeypatch.setattr(overlay, "keyframe_indices", lambda info: None)  # ... and its keyframes unknown
@@ -529,3 +530,35 @@ def test_sparse_keyframes_make_one_decoder_pass_cheaper_than_seeking():
     # cheaper sought 32 times (the costs are frames decoded).
     assert _seeking_cost(_picked(1200, 32), list(range(0, 1200, 250))) > 1200
     assert _seeking_cost(_picked(12000, 32), list(range(0, 12000, 250))) < 12000
+
+
+def test_near_picks_are_reference_frames_of_a_full_decode_at_or_just_after_each_pick(tmp_path):
+    """One pass that decodes only the frames others refer to (x264 with B-frames: about half):
+    each pick becomes the first of those at or after it, bit for bit the frame a full decode
+    gives there; a codec that cannot skip (MPEG-4 part 2 here) gives the exact picks."""
+    from conftest import ffmpeg
+    from mosaic_cli.video import probe
+    from mosaic_cli.video.reader import Decoder, frames_at
+
+    ground = procedural_map((1024, 1024), seed=7)
+    clip = tmp_path / "flight.mp4"
+    write_flight(clip, ground, plan_flight((1024, 1024), "fast", frames=120, size=(320, 180), seed=7), crf=18,
+                 preset="veryfast", show_progress=False)
+    info = probe(clip)
+    assert info.video_codec == "h264"
+    with Decoder(info, "rgb", (160, 90)) as decoder:
+        every = list(decoder)
+    picks = [0, 13, 40, 45, 77, 118]  # more than x264's 3 B-frames apart: a reference frame each
+    near = list(frames_at(info, picks, 160, near=True))
+    assert len(near) == len(picks)
+    found = [next((j for j in range(k, min(k + 4, len(every))) if np.array_equal(every[j], f)), None) for k, f in zip(picks, near)]
+    assert None not in found and found == sorted(found) and found[0] == 0
+    assert all(0 <= j - k <= 3 for j, k in zip(found, picks))
+    exact = list(frames_at(info, picks, 160))
+    assert all(np.array_equal(every[k], f) for k, f in zip(picks, exact))
+
+    other = tmp_path / "mpeg4.avi"
+    ffmpeg("-i", str(clip), "-c:v", "mpeg4", "-bf", "2", "-q:v", "3", str(other))
+    other_info = probe(other)
+    assert other_info.video_codec == "mpeg4"
+    assert [f.shape for f in frames_at(other_info, picks, 160, near=True)] == [(90, 160, 3)] * len(picks)

@@ -24,6 +24,7 @@ from mosaic_cli.video.policy import refuse_damaged
 from mosaic_cli.video.probe import probe
 
 PIXELS = ("rgb", "gray", "yuv420p")
+REFERENCE_SKIPPING_CODECS = ("h264", "hevc")  # whose decoders skip unreferenced frames exactly (frames_at)
 
 
 def read_into(pipe, view: memoryview) -> int:
@@ -63,7 +64,7 @@ class Decoder:
     complaint, if it made one.  Close (or use as a context manager) to stop it early."""
 
     def __init__(self, info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None,
-                 select: str | None = None, seek: float | None = None, frames: int | None = None):
+                 select: str | None = None, seek: float | None = None, frames: int | None = None, references_only: bool = False):
         if pixels not in PIXELS:
             raise ValueError(f"pixels must be one of {', '.join(PIXELS)}, got {pixels}")
         self.size = size or info.source_size
@@ -74,6 +75,8 @@ class Decoder:
         cmd = [ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error"]
         if seek is not None:
             cmd += ["-ss", f"{seek:.4f}"]
+        if references_only:  # frames no other frame refers to are not decoded at all
+            cmd += ["-skip_frame", "noref"]
         stream = f"0:{info.stream_index}" if info.stream_index is not None else "0:v:0"
         cmd += ["-i", info.path, "-map", stream]
         filters = [select] if select else []
@@ -195,13 +198,25 @@ def open_video(
     return stream
 
 
-def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None) -> Iterator[np.ndarray]:
+def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None, near: bool = False) -> Iterator[np.ndarray]:
     """The RGB frames of ``indices`` (sorted), in one decoder pass that converts and pipes only
-    those (ffmpeg's select filter), yielded as they come; fewer when the file ends first."""
+    those (ffmpeg's select filter), yielded as they come; fewer when the file ends first.
+
+    ``near``: for each index, the first *reference* frame at or after its time instead, in a pass
+    that does not decode the others (H.264 and HEVC: the frames are those of a full decode, bit
+    for bit; about half of an x264 clip's frames, 40% less decoding).  Other codecs: exact."""
     if len(indices) == 0:
         return
-    picks = "+".join(f"eq(n\\,{int(k)})" for k in indices)
-    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'") as decoder:
+    if near and info.video_codec in REFERENCE_SKIPPING_CODECS:
+        fps = info.fps if info.fps > 0 else 30.0
+        # A frame is picked when it is the first at or after an index's time: the frame picked
+        # before it came earlier than that time (or there was none).
+        times = [f"{(int(k) - 0.25) / fps:.6f}" for k in indices]
+        picks = "+".join(f"gte(t-start_t\\,{T})*(isnan(prev_selected_t)+lt(prev_selected_t-start_t\\,{T}))" for T in times)
+        references_only = True
+    else:
+        picks, references_only = "+".join(f"eq(n\\,{int(k)})" for k in indices), False
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'", references_only=references_only) as decoder:
         yield from decoder
 
 

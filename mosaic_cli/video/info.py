@@ -46,6 +46,7 @@ class VideoInfo:
     damage: str | None = None  # libav's complaint when the end of the file does not decode
     stream_index: int | None = None  # of the video stream read, in the file
     streams: tuple[StreamMeta, ...] = ()  # the file's other streams, in file order
+    video_codec: str | None = None  # libav's name of the video stream's codec ("h264", "hevc", ...)
 
     @property
     def has_audio(self) -> bool:

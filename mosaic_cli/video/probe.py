@@ -85,7 +85,7 @@ def _probe_container(p: Path, container) -> VideoInfo:
     others = tuple(_stream_meta(s) for s in container.streams if s.index != video.index)
     audio = next((s.codec for s in others if s.kind == "audio"), None)
     return VideoInfo(str(p), size, size, fps, count, duration, rotation, audio, damage=damage,
-                     stream_index=video.index, streams=others)
+                     stream_index=video.index, streams=others, video_codec=video.codec_context.name if video.codec_context else None)
 
 
 def audio_codec_of(path: str | Path) -> str | None:
