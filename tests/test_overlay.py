@@ -538,7 +538,7 @@ def test_near_picks_are_reference_frames_of_a_full_decode_at_or_just_after_each_
     gives there; a codec that cannot skip (MPEG-4 part 2 here) gives the exact picks."""
     from conftest import ffmpeg
     from mosaic_cli.video import probe
-    from mosaic_cli.video.reader import Decoder, frames_at
+    from mosaic_cli.video.reader import Decoder, frame_at, frames_at
 
     ground = procedural_map((1024, 1024), seed=7)
     clip = tmp_path / "flight.mp4"
@@ -556,6 +556,9 @@ def test_near_picks_are_reference_frames_of_a_full_decode_at_or_just_after_each_
     assert all(0 <= j - k <= 3 for j, k in zip(found, picks))
     exact = list(frames_at(info, picks, 160))
     assert all(np.array_equal(every[k], f) for k, f in zip(picks, exact))
+    for k in (45, 77):  # a seek to the pick, the unreferenced frames on the way not decoded
+        sought = frame_at(info, (k - 0.25) / info.fps, 160, near=True)
+        assert any(np.array_equal(every[j], sought) for j in range(k, k + 4))
 
     other = tmp_path / "mpeg4.avi"
     ffmpeg("-i", str(clip), "-c:v", "mpeg4", "-bf", "2", "-q:v", "3", str(other))

@@ -61,7 +61,8 @@ class VideoSamples:
             at_keys = _nearest_keyframes(picks, keys, total / max(1, len(picks)))
             if at_keys is not None:
                 return _keyframes_at(info, at_keys, width)
-            seek = _seeking_cost(picks, keys) < _decoding_cost(picks, info)
+            share = _decoding_share(picks, info)
+            seek = _seeking_cost(picks, keys, share) < share * float(picks[-1] + 1)  # against one pass up to the last pick
         if seek:
             return _sample_by_seeking(count, width, info)
         return frames_at(info, picks, width, near=_far_apart(picks))  # one decoder pass, the picked frames piped
@@ -153,17 +154,17 @@ def _far_apart(picks) -> bool:
     return len(picks) < 2 or float(np.min(np.diff(picks))) >= NEAR_SPACING
 
 
-def _decoding_cost(picks: np.ndarray, info: VideoInfo) -> float:
-    """Frames' worth of decoding in one pass up to the last pick (:func:`frames_at` ``near``)."""
-    share = REFERENCE_DECODE_SHARE if info.video_codec in REFERENCE_SKIPPING_CODECS and _far_apart(picks) else 1.0
-    return share * float(picks[-1] + 1)
+def _decoding_share(picks: np.ndarray, info: VideoInfo) -> float:
+    """What decoding a frame on the way to the picks costs, against a full decode's."""
+    return REFERENCE_DECODE_SHARE if info.video_codec in REFERENCE_SKIPPING_CODECS and _far_apart(picks) else 1.0
 
 
-def _seeking_cost(picks: np.ndarray, keys: list[int]) -> float:
-    """Frames decoded (a decoder start counted as :data:`SEEK_START_FRAMES`) sampling by seeking."""
+def _seeking_cost(picks: np.ndarray, keys: list[int], share: float = 1.0) -> float:
+    """Frames decoded (a decoder start counted as :data:`SEEK_START_FRAMES`) sampling by seeking,
+    each frame on the way counted as ``share`` of one."""
     keyed = np.asarray(keys)
     before = keyed[np.clip(np.searchsorted(keyed, picks, side="right") - 1, 0, None)]
-    return float(np.sum(picks - before + 1) + SEEK_START_FRAMES * len(picks))
+    return float(share * np.sum(picks - before + 1) + SEEK_START_FRAMES * len(picks))
 
 
 def _keyframes_at(info: VideoInfo, indices: list[int], width: int) -> Iterator[np.ndarray]:
@@ -195,11 +196,13 @@ def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.n
     """One decoder start per picked frame, seeking to it: each decodes from the keyframe
     before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
     fps = info.fps if info.fps > 0 else 30.0
-    for index in _picked(info.frame_count, count):
+    picks = _picked(info.frame_count, count)
+    near = _far_apart(picks)
+    for index in picks:
         # A seek past the last decodable frame (the container's duration can run a little
         # long) steps back a frame or two.
         for back in (0, 1, 2):
-            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width)  # the first frame at or after
+            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width, near=near)  # the first (reference) frame at or after
             if frame is not None:
                 yield frame
                 break
