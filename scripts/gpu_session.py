@@ -191,7 +191,8 @@ def bench(s: Session) -> str:
     parts = []
     for name, e in report["estimators"].items():
         st = e["stages"]
-        parts.append(f"{name} {e['ms_per_frame']:.2f} ms/frame (estimate p50 {st['estimate']['p50']:.2f} p95 {st['estimate']['p95']:.2f})")
+        warm = f", warm-up {e['warmup_ms']:.0f} ms" if e.get("warmup_ms") is not None else ""
+        parts.append(f"{name} {e['ms_per_frame']:.2f} ms/frame (estimate p50 {st['estimate']['p50']:.2f} p95 {st['estimate']['p95']:.2f}{warm})")
     return "; ".join(parts)
 
 
