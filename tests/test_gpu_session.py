@@ -81,3 +81,26 @@ def test_a_file_over_the_device_limit_comes_back_in_parts_that_cat_joins(tmp_pat
     assert joined == source.read_bytes()
     small = gpu_session.deliver(source, tmp_path / "out" / "cnn.safetensors")  # under the limit: one plain copy
     assert small == [tmp_path / "out" / "cnn.safetensors"] and small[0].read_bytes() == source.read_bytes()
+
+
+def test_the_cli_and_the_int8_network_work_without_what_the_gpu_machine_lacked(monkeypatch):
+    """The GPU machine's first session found every command failing at import: its typer had no
+    ``display_type_rich`` on its options (mended for the help) and its torch 2.11 no
+    ``torch.fx.config.do_not_emit_stack_traces`` (set while tracing the int8 network).  Both
+    taken away, the mend is skipped and the tracing leaves the config alone (torch 2.13's own
+    quantisation tracer reads that switch, so the int8 build itself cannot run without it here)."""
+    import torch.fx.config
+    import typer.core
+
+    from mosaic_cli import cli
+    from mosaic_cli.model import quantize
+
+    for owner in typer.core.TyperOption.__mro__:
+        if "display_type_rich" in vars(owner):
+            monkeypatch.delattr(owner, "display_type_rich")
+    monkeypatch.delattr(torch.fx.config, "do_not_emit_stack_traces")
+    cli._flags_take_no_value_in_help()
+    assert not hasattr(typer.core.TyperOption, "display_type_rich")
+    with quantize._no_stack_traces():
+        assert not hasattr(torch.fx.config, "do_not_emit_stack_traces")
+    assert not hasattr(torch.fx.config, "do_not_emit_stack_traces")
