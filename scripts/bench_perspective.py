@@ -21,6 +21,7 @@ known jitter-free path as a share of the input's (``ground_truth_jitter``), crop
 
     python scripts/bench_perspective.py                          # 4 maps x 2 seeds x 2 profiles, 640x360, 240 frames
     python scripts/bench_perspective.py --seeds 1 --frames 150   # a quick look
+    python scripts/bench_perspective.py --seeds 1 --profiles "" --tilt 0.05,0.1,0.15   # weaker pitch and roll shake
 """
 
 from __future__ import annotations
@@ -29,12 +30,13 @@ import argparse
 import os
 import shlex
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, plan_estimator
-from mosaic_cli.simulate import load_ground_truth, load_map, plan_flight, write_flight
+from mosaic_cli.simulate import PROFILES, load_ground_truth, load_map, plan_flight, write_flight
 from mosaic_cli.stabilize import smoothing
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion, ground_truth_jitter
@@ -82,6 +84,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--maps", default=",".join(HELD_OUT), help=f"comma-separated, of {', '.join(HELD_OUT)}")
     parser.add_argument("--profiles", default="shaky-tilt,shaky")
+    parser.add_argument("--tilt", default="", help="also shaky-tilt flights with these pitch and roll amplitudes (degrees, comma-separated)")
     parser.add_argument("--seeds", type=int, default=2, help="flights per map and profile (seeds 1, 2, ...)")
     parser.add_argument("--frames", type=int, default=240)
     parser.add_argument("--size", default="640x360")
@@ -96,6 +99,11 @@ def main() -> None:
     except ImportError:
         pass
     size = tuple(int(v) for v in args.size.lower().split("x"))
+    profiles = [p for p in args.profiles.split(",") if p]
+    for deg in (float(v) for v in args.tilt.split(",") if v):
+        name = f"shaky-tilt-{deg:g}"  # the shaky-tilt profile with another amplitude (this run only)
+        PROFILES[name] = replace(PROFILES["shaky-tilt"], name=name, jitter_tilt_deg=deg)
+        profiles.append(name)
     args.out.mkdir(parents=True, exist_ok=True)
     options = StabilizeOptions(estimator=args.estimator)
     build = plan_estimator(options.estimator, work_width=None, weights=None, device="cpu", default_width=WORK_WIDTH)
@@ -103,7 +111,7 @@ def main() -> None:
     header = f"{'profile':<11} {'clip':<16} {'input px':>8} " + " ".join(f"{m:>20}" for m in METHODS)
     print("gt jitter ratio / cropping / distortion per method")
     print(header)
-    for profile in args.profiles.split(","):
+    for profile in profiles:
         for name in args.maps.split(","):
             for seed in range(1, args.seeds + 1):
                 clip = make_clip(args.out, name, profile, seed, args.frames, size)
@@ -128,7 +136,7 @@ def main() -> None:
     print("\nmedian (min-max) over the clips, as Markdown:\n")
     print("| profile | method | gt jitter ratio | cropping | distortion (worst) |")
     print("|---|---|---|---|---|")
-    for profile in args.profiles.split(","):
+    for profile in profiles:
         for method in METHODS:
             sel = np.array([r[3:] for r in rows if r[0] == profile and r[2] == method])
             if not len(sel):

@@ -205,7 +205,7 @@ def camera_motion(pairwise: np.ndarray, size: tuple[int, int], model: MotionMode
 
 # What tells a camera's pitch and roll shake from noise in the estimates' perspective terms.
 SUPPORT_SIGMA = 9.0  # frames (0.3 s at 30 fps): the slow part of the motion, left out of the comparison
-SUPPORT_RANGE = (0.1, 0.4)  # share of the perspective shake that moves with the shift: none taken / all taken
+SUPPORT_RANGE = (0.05, 0.25)  # share of the perspective shake that moves with the shift: none taken / all taken
 SUPPORT_MIN_FRAMES = 24  # fewer motions than this: a similarity
 
 
