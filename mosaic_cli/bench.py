@@ -513,7 +513,7 @@ def run_flights(options: BenchOptions, show_progress: bool = True) -> dict:
     }
 
 
-PROFILE_ORDER = ("paper", "survey", "fast", "shaky", "hard", "extreme", "bursts")
+PROFILE_ORDER = ("paper", "survey", "fast", "shaky", "shaky-tilt", "hard", "extreme", "bursts")
 
 
 def _machine() -> dict:

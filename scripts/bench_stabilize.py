@@ -132,7 +132,7 @@ def variants(clip: Path, gt, track_width: int) -> list[Row]:
     size = gt.size
     rows = []
     for smoother_name, smoother in (("l1", L1Smoother()), ("gaussian r30", GaussianSmoother(30))):
-        for model_name in ("similarity", "affine", "homography"):
+        for model_name in ("tilt", "similarity", "affine", "homography"):
             model = motion_model(model_name)
             start = time.perf_counter()
             motion = camera_motion(track.pairwise, size, model, track.confidence)
@@ -170,7 +170,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(".dev/bench_stabilize"), help="working folder (clips are cached)")
     parser.add_argument("--crf", type=int, default=18)
     parser.add_argument("--preset", default="veryfast")
-    parser.add_argument("--model", default="similarity")
+    parser.add_argument("--model", default=StabilizeOptions().model)
     parser.add_argument("--smoothing", default="l1")
     parser.add_argument("--variants", action="store_true", help="also compare models and smoothers (planning only)")
     parser.add_argument("--estimators", type=lambda text: [e.strip() for e in text.split(",") if e.strip()],

@@ -110,6 +110,29 @@ def test_shaky_has_3_to_8_hz_jitter_around_the_smooth_path():
     assert spectrum[band].sum() > 0.8 * spectrum.sum()
 
 
+def test_shaky_tilt_adds_pitch_and_roll_shake():
+    size, f = (1280, 720), 1280.0  # the simulator's focal length is the frame width
+    for profile in ("shaky", "shaky-tilt"):
+        plan = plan_flight((4096, 4096), profile, frames=300, size=size, seed=8)
+        # the shake, frame of the jitter-free camera -> frame: K R(pitch, roll) K^-1 on top of
+        # the in-plane shake (an affine map), so its perspective row is the tilt's alone
+        shake = plan.map_to_frame @ np.linalg.inv(plan.smooth_map_to_frame)
+        shake /= shake[:, 2:3, 2:3]
+        tilt = np.degrees(np.arcsin(np.clip(shake[:, 2, :2] * f, -1, 1)))  # (N, 2) about the y and x axes
+        if profile == "shaky":
+            assert np.abs(tilt).max() < 1e-6
+            continue
+        for angle in tilt.T:
+            assert 0.1 < np.abs(angle).max() <= 0.31  # up to 0.3 degrees (and the in-plane shake's turn of it)
+            spectrum = np.abs(np.fft.rfft(angle - angle.mean()))
+            freqs = np.fft.rfftfreq(len(angle), 1 / plan.fps)
+            assert spectrum[(freqs >= 2.5) & (freqs <= 8.5)].sum() > 0.8 * spectrum.sum()
+        # pitch and roll move the view too: by about f * angle at the centre
+        c = np.array([[639.5, 359.5]])
+        moved = np.array([project(m, c)[0] for m in shake]) - c
+        assert np.abs(moved).max() > 0.2 * np.radians(np.abs(tilt).max()) * f
+
+
 def test_survey_revisits_ground():
     plan = plan_flight((4096, 4096), "survey", frames=300, size=SIZE, seed=1)
     c = np.array([[SIZE[0] / 2 - 0.5, SIZE[1] / 2 - 0.5]])

@@ -19,7 +19,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.path import camera_motion, fill_failed, motion_model
-from mosaic_cli.stabilize.pipeline import WORK_WIDTH
+from mosaic_cli.stabilize.pipeline import WORK_WIDTH, StabilizeOptions
 from mosaic_cli.stabilize.smoothing import L1Smoother, solve_window
 from mosaic_cli.stabilize.stream import FailedPairFill, PathFeed
 from mosaic_cli.track import track_video
@@ -113,7 +113,7 @@ def test_stabilize_warps_are_those_of_its_track_planned_afterwards(tmp_path, cap
     assert code == 0, err
     estimator = make_estimator("orb", default_width=WORK_WIDTH)  # as stabilize makes it
     track = track_video(clip, estimator, show_progress=False)
-    model = motion_model("similarity")
+    model = motion_model(StabilizeOptions().model)  # the default, as stabilize plans it
     motion = np.concatenate([camera_motion(H[None], SIZE, model) for H in fill_failed(track.pairwise, track.confidence)])
     expected = output_warps(L1Smoother().smooth(motion, SIZE, model, None), SIZE)
     np.testing.assert_allclose(np.array(json.loads(warps_json.read_text())["warps"]), expected, atol=1e-9)

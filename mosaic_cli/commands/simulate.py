@@ -23,7 +23,7 @@ Quiet = quiet_option("No progress bar.")
 def simulate(
     out: Annotated[Path, typer.Option("-o", "--out", help="Output video (.mp4); the ground truth goes to <stem>.gt.json beside it.", rich_help_panel=INPUT_OUTPUT)],
     map_image: Annotated[Path | None, typer.Argument(help="Aerial image to fly over (RGBA: cropped to its opaque part). Default: a procedural map.")] = None,
-    profile: Annotated[str, typer.Option("--profile", "-p", help="paper, survey, fast, shaky, hard, extreme or bursts.", rich_help_panel=FLIGHT)] = "paper",
+    profile: Annotated[str, typer.Option("--profile", "-p", help="paper, survey, fast, shaky, shaky-tilt, hard, extreme or bursts.", rich_help_panel=FLIGHT)] = "paper",
     frames: Annotated[int, typer.Option("--frames", "-n", help="Number of frames.", rich_help_panel=FLIGHT)] = 300,
     size: Annotated[str, typer.Option("--size", help="Frame size WxH.", rich_help_panel=FLIGHT)] = "1280x720",
     fps: Annotated[float, typer.Option("--fps", help="Frame rate.", rich_help_panel=FLIGHT)] = 30.0,
@@ -47,6 +47,7 @@ def simulate(
 
     Profiles: paper (1-2 px/frame, slow heading changes, altitude drift), survey (lawnmower
     lines that revisit the ground), fast (10-20 px/frame), shaky (paper + 3-8 Hz shake),
+    shaky-tilt (shaky + 3-8 Hz pitch and roll shake of up to 0.3 degrees: the view shifts and keystones),
     hard (paper + exposure drift, noise, motion blur), extreme (25-60 px/frame, fast yaw turns
     and altitude changes, exposure drift and jumps, noise, motion blur, vignetting, haze,
     low-bitrate H.264), bursts (8-30 px/frame, exposure drift, noise and blur, and every 12-30

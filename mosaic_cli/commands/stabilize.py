@@ -37,7 +37,7 @@ def stabilize(
     out: Annotated[str, typer.Argument(help="Output video (.mp4, .mov, .m4v or .mkv), H.264 with the input's audio; with --latency or a live input also - (MPEG-TS on standard output) or a URL (udp://, srt://, tcp://).")],
     smoothing: Annotated[str, typer.Option("--smoothing", help="l1 (L1-optimal camera path) or gaussian.", rich_help_panel=SMOOTHING)] = "l1",
     radius: Annotated[int, typer.Option("--radius", help="Gaussian smoothing radius in frames (sigma = radius / 3).", rich_help_panel=SMOOTHING)] = 30,
-    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: similarity, affine or homography.", rich_help_panel=SMOOTHING)] = "similarity",
+    model: Annotated[str, typer.Option("--model", help="Motion model of the correction: tilt (a similarity, plus the pitch and roll shake where the estimates show it), similarity, affine or homography.", rich_help_panel=SMOOTHING)] = "tilt",
     crop: Annotated[str, typer.Option("--crop", help="auto (zoom just enough that no border shows) or the share of "
                                       "width and height to keep, 0.5..1 (borders may then show, filled as --border says).", rich_help_panel=SMOOTHING)] = "auto",
     border: Annotated[str | None, typer.Option("--border", help="Fill of uncovered areas with a fixed --crop: black "

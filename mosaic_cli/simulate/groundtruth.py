@@ -8,7 +8,7 @@
 
 ``map_to_frame[t]`` maps map pixels to pixels of frame t; ``pairwise[t]`` maps frame t to
 frame t+1 (= map_to_frame[t+1] @ inv(map_to_frame[t])); ``smooth_map_to_frame`` is the path
-without the shake of the 'shaky' profile (equal to ``map_to_frame`` otherwise).
+without the shake of the 'shaky' and 'shaky-tilt' profiles (equal to ``map_to_frame`` otherwise).
 
 A rolling-shutter flight (``mosaic simulate --rolling-shutter R --vibration HZ,PX``) adds::
 

@@ -58,6 +58,10 @@ class Profile:
     altitude_drift: float = 0.06  # relative amplitude of altitude changes
     jitter_px: float = 0.0  # 3-8 Hz shake amplitude, 1280x720-equivalent px
     jitter_deg: float = 0.0  # 3-8 Hz shake rotation amplitude
+    # 3-8 Hz pitch and roll shake amplitude, degrees: the camera turns about its own centre, which
+    # shifts the view by about focal * angle and keystones it (a perspective change no in-plane
+    # shake has).  Drawn after the in-plane shake, so the flights of the other profiles stay as they were.
+    jitter_tilt_deg: float = 0.0
     effects: Degradation | None = None  # exposure, noise, blur, vignetting, haze (pixels only)
     speed_periods: tuple[float, float] = (4.0, 15.0)  # seconds: how fast the speed changes
     heading_periods: tuple[float, float] = (20.0, 60.0)  # seconds: how fast the heading turns
@@ -73,6 +77,9 @@ PROFILES: dict[str, Profile] = {
         Profile("survey", "lawnmower back-and-forth lines that revisit the ground, 4-7 px/frame", (4.0, 7.0), path="lawnmower", heading_deg=2.0),
         Profile("fast", "fast flight, 10-20 px/frame", (10.0, 20.0), heading_deg=20.0),
         Profile("shaky", "the paper path plus 3-8 Hz shake (a few px, small rotation)", (1.0, 2.0), jitter_px=3.0, jitter_deg=0.3),
+        Profile("shaky-tilt", "the shaky flight with 3-8 Hz pitch and roll shake as well (the camera tilting up to "
+                "0.3 degrees about its own centre: the view shifts and keystones)", (1.0, 2.0), jitter_px=3.0,
+                jitter_deg=0.3, jitter_tilt_deg=0.3),
         Profile("hard", "the paper path with exposure drift, sensor noise and motion blur", (1.0, 2.0), effects=Degradation()),
         Profile(
             "extreme",
@@ -324,7 +331,7 @@ def plan_flight(
     # Ground sample from the map size: the footprint's bounding circle at the highest altitude
     # and largest tilt spans FOOTPRINT_FRACTION of the map's shorter side.
     half_diag = 0.5 * np.hypot(w, h)
-    max_tilt = tilt0 + 2 * sway
+    max_tilt = tilt0 + 2 * sway + np.radians(prof.jitter_tilt_deg)
     radius_per_s = (half_diag * (1 + np.tan(max_tilt) * half_diag / focal) + focal * np.tan(max_tilt)) * (1 + prof.altitude_drift)
     s0 = FOOTPRINT_FRACTION * min(W, H) / 2 / radius_per_s
     if s0 < SMALL_MAP_SAMPLE:  # a small map: fly lower over more of it rather than blow it up
@@ -362,6 +369,13 @@ def plan_flight(
             c, si = np.cos(ja[t]), np.sin(ja[t])
             J = np.array([[c, -si, cx - c * cx + si * cy + jx[t]], [si, c, cy - si * cx - c * cy + jy[t]], [0, 0, 1.0]])
             map_to_frame[t] = normalize(J @ smooth[t])
+    if prof.jitter_tilt_deg > 0:  # the camera turning about its own centre: K @ R(pitch, roll) @ K^-1 on the left
+        amp = np.radians(prof.jitter_tilt_deg)
+        pitch_shake, roll_shake = amp * _shake(rng, n, fps), amp * _shake(rng, n, fps)
+        K = np.array([[focal, 0, (w - 1) / 2.0], [0, focal, (h - 1) / 2.0], [0, 0, 1.0]])
+        K_inv = np.linalg.inv(K)
+        for t in range(n):
+            map_to_frame[t] = normalize(K @ _rotation(pitch_shake[t], roll_shake[t], 0.0) @ K_inv @ map_to_frame[t])
 
     plan = FlightPlan(map_to_frame, smooth, (w, h), profile, int(seed), (W, H), float(fps))
     if prof.effects is not None:

@@ -19,7 +19,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.stabilize.crop import zoom_matrix
-from mosaic_cli.stabilize.path import MotionModel, fit_model, to_normalized
+from mosaic_cli.stabilize.path import MotionModel, reduce_motion, to_normalized
 from mosaic_cli.stabilize.smoothing import CARRIED, L1Smoother, solve_window
 
 # Part of the latency budget left for the work itself (tracking, warping, encoding, queues).
@@ -125,7 +125,7 @@ class OnlineL1Path:
             raise ValueError("every frame after the first needs its pairwise motion")
         if confidence > 0 or self._last_good is None:
             backward = np.linalg.inv(to_normalized(np.asarray(pairwise, dtype=np.float64), self.size))
-            motion = fit_model(backward, self.model)
+            motion = reduce_motion(backward, self.model)
             if confidence > 0:
                 self._last_good = motion
         else:

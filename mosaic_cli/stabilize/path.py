@@ -34,6 +34,9 @@ class MotionModel:
     kinds: tuple[str, ...]  # per parameter: "scale", "rotation", "shift" or "perspective"
     projective: bool = False
     entry_weights: tuple[float, ...] | None = None  # default 1 per compared entry
+    # The perspective terms of the camera's motion are taken only as far as the estimates
+    # support them (:func:`perspective_support`); where they do not, the model is a similarity.
+    gated: bool = False
 
     @property
     def n_params(self) -> int:
@@ -87,6 +90,17 @@ MODELS: dict[str, MotionModel] = {
         _TOP + ((2, 0), (2, 1)),
         ("scale", "rotation", "shift", "rotation", "scale", "shift", "perspective", "perspective"),
         projective=True,
+    ),
+    # A similarity and the perspective terms of a camera's pitch and roll (no shear, no stretch).
+    "tilt": MotionModel(
+        "tilt",
+        np.stack([_unit(0, 0) + _unit(1, 1), _unit(1, 0) - _unit(0, 1), _unit(0, 2), _unit(1, 2), _unit(2, 0), _unit(2, 1)]),
+        _LIFT,
+        np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]),
+        ((0, 0), (1, 0), (0, 2), (1, 2), (2, 0), (2, 1)),
+        ("scale", "rotation", "shift", "shift", "perspective", "perspective"),
+        entry_weights=(2.0, 2.0, 1.0, 1.0, 1.0, 1.0),
+        gated=True,
     ),
 }
 
@@ -145,6 +159,8 @@ def fit_model(H: np.ndarray, model: MotionModel, grid: int = 5) -> np.ndarray:
     pts = np.stack(np.meshgrid(u, 0.6 * u), axis=-1).reshape(-1, 2)
     dst = project(H, pts)  # (..., P, 2)
     homog = np.concatenate([pts, np.ones((len(pts), 1))], axis=1)
+    if np.any(model.basis[:, 2, :]):
+        return _fit_perspective(dst, homog, model)
     # Design rows: the x and y of M(p) @ point for each basis matrix.
     cols = np.einsum("kij,pj->pik", model.basis[:, :2, :], homog)  # (P, 2, K)
     A = cols.reshape(-1, model.n_params)
@@ -154,15 +170,97 @@ def fit_model(H: np.ndarray, model: MotionModel, grid: int = 5) -> np.ndarray:
     return model.matrices(params.reshape(*H.shape[:-2], model.n_params))
 
 
+def _fit_perspective(dst: np.ndarray, homog: np.ndarray, model: MotionModel) -> np.ndarray:
+    """:func:`fit_model` for a model with perspective terms: the linear (algebraic) fit
+    ``M(p)[0] . x - x' M(p)[2] . x = 0`` (and the same for y) over the grid points."""
+    batch = dst.shape[:-2]
+    d = dst.reshape(-1, len(homog), 2)  # (B, P, 2)
+    top = np.einsum("kij,pj->pik", model.basis[:, :2, :], homog)  # (P, 2, K)
+    bottom = np.einsum("kj,pj->pk", model.basis[:, 2, :], homog)  # (P, K)
+    A = top[None] - d[..., None] * bottom[None, :, None, :]  # (B, P, 2, K)
+    b = d * (homog @ model.offset[2])[None, :, None] - (homog @ model.offset[:2].T)[None]  # (B, P, 2)
+    A, b = A.reshape(len(d), -1, model.n_params), b.reshape(len(d), -1)
+    params = np.linalg.solve(np.einsum("bpk,bpl->bkl", A, A), np.einsum("bpk,bp->bk", A, b)[..., None])[..., 0]
+    return normalize(model.matrices(params.reshape(*batch, model.n_params)))
+
+
+def reduce_motion(H: np.ndarray, model: MotionModel) -> np.ndarray:
+    """Normalised homographies ``H`` (..., 3, 3) as the smoother takes them: fitted to ``model``,
+    or, for a gated model, whole (the smoother decides, a window at a time, how much of their
+    perspective to believe: :func:`supported_motion`)."""
+    return normalize(H) if model.gated else fit_model(H, model)
+
+
 def camera_motion(pairwise: np.ndarray, size: tuple[int, int], model: MotionModel,
                   confidence: np.ndarray | None = None) -> np.ndarray:
     """(N-1, 3, 3): the motion from frame t+1 back to frame t in normalised coordinates,
-    reduced to ``model``.  This is Grundmann et al.'s F_{t+1}; the camera path is their chain."""
+    reduced to ``model`` (:func:`reduce_motion`).  This is Grundmann et al.'s F_{t+1}; the
+    camera path is their chain."""
     forward = fill_failed(pairwise, confidence)
     if len(forward) == 0:
         return np.zeros((0, 3, 3))
     backward = np.linalg.inv(to_normalized(forward, size))
-    return fit_model(backward, model)
+    return reduce_motion(backward, model)
+
+
+# What tells a camera's pitch and roll shake from noise in the estimates' perspective terms.
+SUPPORT_SIGMA = 9.0  # frames (0.3 s at 30 fps): the slow part of the motion, left out of the comparison
+SUPPORT_RANGE = (0.05, 0.25)  # share of the perspective shake that moves with the shift: none taken / all taken
+SUPPORT_MIN_FRAMES = 24  # fewer motions than this: a similarity
+
+
+def perspective_support(motion: np.ndarray) -> float:
+    """How far the perspective terms of ``motion`` (N, 3, 3, normalised) are to be believed, 0..1.
+
+    A camera turning about its centre by a small pitch or roll shifts the view by f * angle and
+    changes its perspective by -angle / f (f: the focal length, normalised): the perspective
+    terms' shake (g, h) moves with the shift's (x, y) as g = c x, h = c y with one c = -1/f^2 < 0
+    for both.  Noise of the estimates does not.  The support is the squared correlation of
+    the two shakes (the share of the perspective shake that c x, c y explain; 0 when the best c
+    is not negative), mapped from :data:`SUPPORT_RANGE` onto 0..1."""
+    motion = np.asarray(motion, dtype=np.float64).reshape(-1, 3, 3)
+    if len(motion) < SUPPORT_MIN_FRAMES:
+        return 0.0
+    motion = fit_model(motion, MODELS["tilt"])
+    radius = int(np.ceil(3 * SUPPORT_SIGMA))
+    weights = gaussian_weights(radius, SUPPORT_SIGMA)
+
+    def shake(x: np.ndarray) -> np.ndarray:
+        padded = np.concatenate([np.repeat(x[:1], radius, axis=0), x, np.repeat(x[-1:], radius, axis=0)])
+        low = np.stack([np.convolve(padded[:, i], weights, mode="valid") for i in range(x.shape[1])], axis=1)
+        return x - low
+
+    shift, perspective = shake(motion[:, :2, 2]), shake(motion[:, 2, :2])
+    sxx, syy, sxy = float(np.sum(shift ** 2)), float(np.sum(perspective ** 2)), float(np.sum(shift * perspective))
+    if sxy >= 0 or sxx <= 0 or syy <= 0:
+        return 0.0
+    share = sxy ** 2 / (sxx * syy)
+    lo, hi = SUPPORT_RANGE
+    return float(np.clip((share - lo) / (hi - lo), 0.0, 1.0))
+
+
+def supported_motion(motion: np.ndarray, model: MotionModel, support: float) -> np.ndarray:
+    """``motion`` (N, 3, 3, normalised homographies) fitted to a gated ``model`` with its
+    perspective taken at ``support`` (0..1): the similarity fit at 0, the model's own fit at 1,
+    linear in the parameters between."""
+    motion = np.asarray(motion, dtype=np.float64).reshape(-1, 3, 3)
+    own = fit_model(motion, model)
+    if support >= 1.0 or len(motion) == 0:
+        return own
+    basis = model.basis.reshape(model.n_params, 9).T
+    own_p = np.linalg.lstsq(basis, (own - model.offset).reshape(-1, 9).T, rcond=None)[0].T
+    base_p = np.linalg.lstsq(basis, (fit_model(motion, MODELS["similarity"]) - model.offset).reshape(-1, 9).T, rcond=None)[0].T
+    return model.matrices(base_p + support * (own_p - base_p))
+
+
+def gated_motion(motion: np.ndarray, model: MotionModel, window: int = 120) -> np.ndarray:
+    """:func:`supported_motion` over a whole clip, each run of ``window`` motions with its own support
+    (for smoothers without windows of their own)."""
+    motion = np.asarray(motion, dtype=np.float64).reshape(-1, 3, 3)
+    if not model.gated:
+        return motion
+    parts = [motion[k:k + window] for k in range(0, len(motion), window)]
+    return np.concatenate([supported_motion(part, model, perspective_support(part)) for part in parts]) if parts else motion
 
 
 def gaussian_weights(radius: int, sigma: float | None = None) -> np.ndarray:

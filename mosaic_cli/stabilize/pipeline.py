@@ -54,7 +54,9 @@ class StabilizeOptions:
     device: str = "auto"
     smoothing: str = "l1"  # or "gaussian"
     radius: int = 30  # gaussian only, frames
-    model: str = "similarity"  # of the stabilising correction: similarity, affine or homography
+    # Of the stabilising correction: tilt (a similarity, plus the camera's pitch and roll shake
+    # where the estimates show it: path.perspective_support), similarity, affine or homography.
+    model: str = "tilt"
     crop: str | float | None = "auto"  # or the share of width and height kept, 0.5..1
     # What fills uncovered areas: black, replicate or reflect.  None: black with a fixed crop;
     # with --crop auto there are none (replicate keeps the half-pixel rim and the rare frame

@@ -28,7 +28,17 @@ from scipy.optimize import linprog
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.geometry import four_point_to_homography
 from mosaic_cli.stabilize.crop import largest_inside_zoom, rect_corners_normalized, zoom_matrix, zoomed
-from mosaic_cli.stabilize.path import MotionModel, fit_model, gaussian_weights, neighbour_mean, normalized_frame_rect
+from mosaic_cli.stabilize.path import (
+    MODELS,
+    MotionModel,
+    fit_model,
+    gated_motion,
+    gaussian_weights,
+    neighbour_mean,
+    normalized_frame_rect,
+    perspective_support,
+    supported_motion,
+)
 
 SMOOTHERS = ("l1", "gaussian")
 # Boundary transforms fixed from the previous window: enough to carry D, D^2 and D^3 across.
@@ -56,6 +66,12 @@ class L1Smoother:
     max_shift: float = 0.5  # normalised units of correction (0.5 = a quarter of the width)
     max_anisotropy: float = 0.02  # |a - d| and |b + c| of affine and homography corrections
     max_perspective: float = 0.05  # |g|, |h| of homography corrections (normalised)
+    # |g|, |h| of the tilt model's corrections (angle / focal length, normalised): a pitch or roll of
+    # 0.6 degrees at a 90-degree field of view, 1.1 at 53 degrees (the simulator's)
+    max_tilt: float = 0.01
+    # per frame and unit of |g|, |h| of the tilt model's corrections: none where the camera's
+    # motion has no perspective shake (it would only buy a larger crop)
+    tilt_cost: float = 10.0
     # HiGHS's interior point method is the faster on the long offline windows; the dual simplex
     # on the short windows of a live path (stabilize/online.py).
     method: str = "highs-ipm"
@@ -153,7 +169,7 @@ def _bounds(model: MotionModel, crop: float | None, opts: L1Smoother) -> list[tu
         "scale": (1.0 / opts.max_zoom, top_scale),
         "rotation": (-opts.max_rotation - opts.max_anisotropy, opts.max_rotation + opts.max_anisotropy),
         "shift": (-opts.max_shift, opts.max_shift),
-        "perspective": (-opts.max_perspective, opts.max_perspective),
+        "perspective": (-opts.max_tilt, opts.max_tilt) if model.gated else (-opts.max_perspective, opts.max_perspective),
     }
     return [limits[kind] for kind in model.kinds]
 
@@ -213,6 +229,16 @@ def solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | Non
     L, K = len(motion) + 1, model.n_params
     if L == 1:
         return model.identity[None].copy() if fixed is None else fixed[:1].copy()
+    if model.gated:  # the camera's perspective shake as far as the estimates support it
+        support = perspective_support(motion)
+        tilt = [k for k, kind in enumerate(model.kinds) if kind == "perspective"]
+        if support == 0 and (fixed is None or not np.any(fixed[:, tilt])):
+            # none: the similarity's own program (the tilt model's first parameters are a similarity's)
+            similar = MODELS["similarity"]
+            params = solve_window(fit_model(motion, similar), similar, None if fixed is None else fixed[:, :similar.n_params],
+                                  size, crop, opts)
+            return np.pad(params, ((0, 0), (0, K - similar.n_params)))
+        motion = supported_motion(motion, model, support)
     explicit = crop is not None
     scale = model.scale_weights()
     lp = _Program()
@@ -239,13 +265,24 @@ def solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | Non
     if shape is not None:  # affine corrections close to a similarity: what the distortion score sees
         lp.at_most([(p, sp.kron(sp.identity(L), shape))], np.full(L * len(shape), opts.max_anisotropy))
 
+    tilt = [k for k, kind in enumerate(model.kinds) if kind == "perspective"] if model.gated else []
+    if tilt:  # v >= |g|, |h| of each correction, paid for
+        v = lp.variables(L * len(tilt), opts.tilt_cost)
+        pick = sp.csr_matrix((np.ones(len(tilt)), (np.arange(len(tilt)), tilt)), shape=(len(tilt), K))
+        rows, eye = sp.kron(sp.identity(L), pick), sp.identity(L * len(tilt))
+        lp.at_most([(p, rows), (v, -eye)], np.zeros(L * len(tilt)))
+        lp.at_most([(p, -rows), (v, -eye)], np.zeros(L * len(tilt)))
+
     if explicit:  # the zoom stays at the ratio the user chose: u >= |scale - 1|
         u = lp.variables(L, opts.fixed_zoom_cost)
         scale_rows, eye = sp.kron(sp.identity(L), scale[None, :]), sp.identity(L)
         lp.at_most([(p, scale_rows), (u, -eye)], np.ones(L))
         lp.at_most([(p, -scale_rows), (u, -eye)], -np.ones(L))
 
-    return lp.solve(opts.method)[p].reshape(L, K)
+    params = lp.solve(opts.method)[p].reshape(L, K)
+    if tilt:  # the solver's round-off (1e-11) would send every frame to the slower perspective warp
+        params[:, tilt] = np.where(np.abs(params[:, tilt]) < 1e-9, 0.0, params[:, tilt])
+    return params
 
 
 def _derivatives(motion: np.ndarray, model: MotionModel, weights) -> list[tuple[sp.csr_matrix, np.ndarray, np.ndarray]]:
@@ -320,6 +357,7 @@ class GaussianSmoother:
     def smooth(self, motion: np.ndarray, size: tuple[int, int], model: MotionModel, crop: float | None,
                advance: Callable[[int], None] | None = None) -> np.ndarray:
         corners = rect_corners_normalized(size)
+        motion = gated_motion(motion, model)
         smoothed = neighbour_mean(motion, corners, gaussian_weights(self.radius))
         V = fit_model(four_point_to_homography(corners, smoothed - corners), model)
         if crop is not None:
