@@ -80,3 +80,17 @@ def test_rolling_shutter_refused_live(capsys, tmp_path):
     assert cli_exit(["stabilize", str(tmp_path / "in.mp4"), "-", "--rolling-shutter", "auto", "-q"]) == 2
     err = capsys.readouterr().err
     assert "--rolling-shutter" in err
+
+
+@pytest.mark.slow
+def test_auto_is_the_default_for_a_video_file_and_off_for_a_live_run(flights, tmp_path, capsys):
+    """Without --rolling-shutter, stabilize reads a file's rows (a rolling shutter found and
+    taken out, a global one left alone); a one-pass run (--latency) goes on without, and only an
+    explicit --rolling-shutter there is refused."""
+    rs, gs = flights
+    assert cli_exit(["stabilize", str(rs), str(tmp_path / "rs.mp4")]) == 0
+    assert "(estimated), each row corrected" in capsys.readouterr().err
+    assert cli_exit(["stabilize", str(gs), str(tmp_path / "gs.mp4")]) == 0
+    assert "a global shutter: left alone" in capsys.readouterr().err
+    assert cli_exit(["stabilize", str(rs), str(tmp_path / "live.mp4"), "--latency", "1", "-q"]) == 0
+    assert cli_exit(["stabilize", str(rs), str(tmp_path / "live2.mp4"), "--latency", "1", "--rolling-shutter", "auto", "-q"]) == 2

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import cli_exit
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.geometry import project
@@ -89,3 +90,19 @@ def test_auto_places_the_row_bands(tmp_path):
                       q[:, 1].astype(np.float32)[None], cv2.INTER_LINEAR)[0]
     seen = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY).astype(np.float32)[int(round(y)), 100:540:4]
     assert np.corrcoef(drawn, seen)[0, 1] > 0.8
+
+
+@pytest.mark.slow
+def test_auto_is_the_default_for_a_video_file_and_off_for_photo_folders(tmp_path, capsys):
+    clip = tmp_path / "rs.mp4"
+    simulate_flight(clip, None, SimulateOptions(profile="fast", frames=60, size=SIZE, seed=3, preset="ultrafast",
+                                                rolling=RollingShutter(0.7, 15.0, 4.0)), show_progress=False)
+    assert cli_exit(["stitch", str(clip), "-o", str(tmp_path / "p.png"), "-e", "orb"]) == 0
+    assert "(estimated), each row band drawn where it belongs" in capsys.readouterr().err
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    with open_video(clip) as frames:
+        for i, frame in enumerate(itertools.islice(frames, 0, 60, 6)):
+            cv2.imwrite(str(folder / f"{i:03d}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    assert cli_exit(["stitch", str(folder), "-o", str(tmp_path / "photos.png"), "-q"]) == 0
+    assert cli_exit(["stitch", str(folder), "-o", str(tmp_path / "refused.png"), "--rolling-shutter", "auto", "-q"]) == 2

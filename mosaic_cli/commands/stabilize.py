@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Annotated
 
@@ -58,7 +59,7 @@ def stabilize(
     strict: Strict = False,
     latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
-    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.", rich_help_panel=SMOOTHING)] = "off",
+    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction. [default: auto; off for --latency and live input or output]", rich_help_panel=SMOOTHING, show_default=False)] = None,
     quiet: Quiet = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "
@@ -77,11 +78,13 @@ def stabilize(
     options = StabilizeOptions(
         estimator=estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
         smoothing=smoothing, radius=radius, model=model, crop=crop, border=border, crf=crf, preset=preset,
-        mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout, rolling_shutter=rolling_shutter,
+        mask=mask_options(mask, overlay_detect), latency=latency, timeout=timeout,
+        rolling_shutter="auto" if rolling_shutter is None else rolling_shutter,
     )
     if is_live_request(video, out, options):
-        if parse_rolling_shutter(options.rolling_shutter) != "off":
+        if rolling_shutter is not None and parse_rolling_shutter(rolling_shutter) != "off":
             raise BadInput("--rolling-shutter needs the whole video: not with --latency or a live input or output")
+        options = dataclasses.replace(options, rolling_shutter="off")
         if plot is not None:
             raise BadInput("--plot needs the whole camera path: not with --latency or a live input or output")
         live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,

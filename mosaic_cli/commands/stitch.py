@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -54,7 +55,7 @@ def stitch(
     blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.", rich_help_panel=OUTPUT_QUALITY)] = "multiband",
     seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.", rich_help_panel=OUTPUT_QUALITY)] = "dp",
     exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.", rich_help_panel=OUTPUT_QUALITY)] = "gain-blocks",
-    rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Draw a rolling-shutter camera's frames row band by row band, each where it belongs (not smeared or doubled): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1).", rich_help_panel=OUTPUT_QUALITY)] = "off",
+    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Draw a rolling-shutter camera's frames row band by row band, each where it belongs (not smeared or doubled): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). [default: auto for a video file; off for photo folders and live input]", rich_help_panel=OUTPUT_QUALITY, show_default=False)] = None,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
     telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.", rich_help_panel=TELEMETRY)] = None,
@@ -91,11 +92,13 @@ def stitch(
         max_frames=max_frames,
         georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground, html),
         timeout=timeout,
-        rolling_shutter=rolling_shutter,
+        rolling_shutter="off" if rolling_shutter is None else rolling_shutter,
     )
     live = live or is_live_source(video) or preview is not None
-    if live and parse_rolling_shutter(rolling_shutter) != "off":
+    if live and rolling_shutter is not None and parse_rolling_shutter(rolling_shutter) != "off":
         raise BadInput("--rolling-shutter needs the whole video: not with --live or a live input")
+    if rolling_shutter is None and not live and not Path(video).is_dir():  # the default: a video file's rows are checked
+        options = dataclasses.replace(options, rolling_shutter="auto")
     # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
     if live:
         result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
