@@ -229,9 +229,9 @@ def solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | Non
     L, K = len(motion) + 1, model.n_params
     if L == 1:
         return model.identity[None].copy() if fixed is None else fixed[:1].copy()
+    tilt = [k for k, kind in enumerate(model.kinds) if kind == "perspective"] if model.gated else []
     if model.gated:  # the camera's perspective shake as far as the estimates support it
         support = perspective_support(motion)
-        tilt = [k for k, kind in enumerate(model.kinds) if kind == "perspective"]
         if support == 0 and (fixed is None or not np.any(fixed[:, tilt])):
             # none: the similarity's own program (the tilt model's first parameters are a similarity's)
             similar = MODELS["similarity"]
@@ -265,7 +265,6 @@ def solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | Non
     if shape is not None:  # affine corrections close to a similarity: what the distortion score sees
         lp.at_most([(p, sp.kron(sp.identity(L), shape))], np.full(L * len(shape), opts.max_anisotropy))
 
-    tilt = [k for k, kind in enumerate(model.kinds) if kind == "perspective"] if model.gated else []
     if tilt:  # v >= |g|, |h| of each correction, paid for
         v = lp.variables(L * len(tilt), opts.tilt_cost)
         pick = sp.csr_matrix((np.ones(len(tilt)), (np.arange(len(tilt)), tilt)), shape=(len(tilt), K))
