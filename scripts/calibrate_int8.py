@@ -2,9 +2,12 @@
 final weights; this is for weights taken from a checkpoint, or trained before it did).
 
     python scripts/calibrate_int8.py WEIGHTS CLIPS [--pairs 512] [--seed 0]
+    python scripts/calibrate_int8.py WEIGHTS --head-only
 
 The ranges are measured on patch pairs cut from CLIPS (the training clips) at the checkpoint's
-working size, and written back into WEIGHTS' metadata (atomically; the weights are unchanged).
+working size, and written back into WEIGHTS' metadata (atomically; the weights are unchanged),
+with the int8 LSTM's error on this machine's int8 engine (quantize.with_head_error), which spares
+loading the probe.  ``--head-only``: that error alone, added to the ranges WEIGHTS already has.
 """
 
 from __future__ import annotations
@@ -23,13 +26,23 @@ FRAMES_PER_CLIP = 64  # decoded per clip (spread over it): plenty for 512 pairs,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("weights", type=Path)
-    parser.add_argument("clips", type=Path)
+    parser.add_argument("clips", type=Path, nargs="?")
+    parser.add_argument("--head-only", action="store_true", help="only measure the int8 LSTM's error; keep the ranges")
     parser.add_argument("--pairs", type=int, default=512)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
     model, meta = load_weights(args.weights)
     work_size = tuple(meta["work_size"])
+    if args.head_only:
+        if not meta.get("int8"):
+            parser.error(f"{args.weights} has no int8 ranges: calibrate it with CLIPS first")
+        ranges = quantize.with_head_error(model, meta["int8"])
+        save_weights(args.weights, model, meta["config"], meta["variant"], extra=meta["extra"], work_size=work_size, int8=ranges)
+        print(f"{args.weights}: int8 LSTM error {ranges.get('head_error')} px (tolerance {quantize.HEAD_TOLERANCE_PX})")
+        return
+    if args.clips is None:
+        parser.error("CLIPS is needed unless --head-only")
     with tempfile.TemporaryDirectory() as cache:
         found = discover_clips(args.clips)
         budget = FRAMES_PER_CLIP * len(found) * work_size[0] * work_size[1]

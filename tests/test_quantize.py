@@ -96,7 +96,7 @@ def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
     from mosaic_cli.estimators.learned import default_weights
     from mosaic_cli.model.checkpoint import load_weights
 
-    shipped, _ = load_weights(default_weights("lstm"))
+    shipped, shipped_meta = load_weights(default_weights("lstm"))
     torch.manual_seed(0)
     fresh = HomographyNet(NetConfig(head="lstm", patch=PATCH)).eval()
     for model in (fresh, shipped):
@@ -118,6 +118,8 @@ def test_int8_lstm_steps_like_fp32_through_a_carried_state_or_is_not_used():
             assert keeps_int8, error  # a small random LSTM steps alike in int8 (under 0.01 px measured)
         head = quantize.quantized_head(model)
         assert (head is not None) == keeps_int8
+        if model is shipped:  # and the verdict stored with its weights (no probe at load) is the same
+            assert (quantize.quantized_head(model, shipped_meta["int8"]) is not None) == keeps_int8
         if head is not None:
             assert type(head.lstm).__module__.startswith("torch.ao.nn.quantized.dynamic")
         assert type(model.lstm) is torch.nn.LSTM  # the fp32 network itself is left as it was
@@ -134,3 +136,55 @@ def test_the_shipped_int8_estimator_loads_without_the_compiler_stack():
             "print(e.precision, 'torch._dynamo' in sys.modules, 'torch._inductor' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["int8", "False", "False"]
+
+
+def test_a_head_error_stored_with_the_ranges_decides_only_when_clearly_on_one_side(monkeypatch):
+    """with_head_error stores the int8 LSTM's probe error; quantized_head then skips the probe
+    when the stored error is a factor STORED_VERDICT_MARGIN away from the tolerance, and probes
+    near it, or without one for this engine."""
+    torch.manual_seed(0)
+    model = HomographyNet(NetConfig(head="lstm", patch=PATCH)).eval()
+    ranges = quantize.with_head_error(model, {"format": quantize.RANGES_FORMAT, "activations": {}})
+    engine = quantize.engine()
+    measured = ranges["head_error"][engine]
+    assert measured == quantize.head_error(model, quantize.quantize_dynamic_lstm(model))  # the probe, stored
+    probes = []
+    real_probe = quantize.head_error
+    monkeypatch.setattr(quantize, "head_error", lambda *a, **k: probes.append(1) or real_probe(*a, **k))
+    tolerance = quantize.HEAD_TOLERANCE_PX
+
+    def verdict(stored: float | None, engine_name: str = engine) -> bool:
+        held = {} if stored is None else {"head_error": {engine_name: stored}}
+        return quantize.quantized_head(model, {**ranges, **held} if stored is not None else {"activations": {}}) is not None
+
+    probes.clear()
+    assert verdict(tolerance * 2.5) is False and not probes  # clearly outside: no int8 head, no probe
+    assert verdict(tolerance / 2.5) is True and not probes  # clearly inside: int8, no probe
+    keeps = measured <= tolerance
+    assert verdict(tolerance * 1.1) is keeps and len(probes) == 1  # near the line: the probe decides
+    assert verdict(None) is keeps and len(probes) == 2  # none stored: the probe decides
+    assert verdict(tolerance * 2.5, "another-engine") is keeps and len(probes) == 3  # stored for another engine
+
+
+def test_int8_features_from_the_patterns_the_net_uses_equal_those_from_every_pattern():
+    """quantize._backend_config keeps only the native backend's patterns the feature graph can
+    match: the converted graph and its int8 outputs are those of the full pattern set, bit for bit."""
+    from torch.ao.quantization.backend_config import get_native_backend_config
+
+    from mosaic_cli.estimators.learned import default_weights
+    from mosaic_cli.model.checkpoint import load_weights
+
+    model, meta = load_weights(default_weights("lstm"))
+    fewer = quantize.quantized_features(model, meta["int8"])
+    native = get_native_backend_config()
+    assert len(quantize._backend_config(quantize._Features(model)).configs) < len(native.configs) / 10
+    original = quantize._backend_config
+    quantize._backend_config = lambda features: native
+    try:
+        every = quantize.quantized_features(model, meta["int8"])
+    finally:
+        quantize._backend_config = original
+    assert fewer is not None and every is not None and fewer.code == every.code
+    pairs = patch_pairs(8, seed=5) if model.config.patch == PATCH else torch.rand(8, 2, model.config.patch, model.config.patch) * 2 - 1
+    with torch.inference_mode():
+        assert torch.equal(fewer(pairs), every(pairs))

@@ -117,7 +117,7 @@ class LearnedEstimator(Estimator):
                 int8 = quantized_features(self.model, meta.get("int8"))
                 if int8 is not None:
                     self._features, self.precision = int8, "int8"
-                    self.model = quantized_head(self.model) or self.model
+                    self.model = quantized_head(self.model, meta.get("int8")) or self.model
         if self.config.precision == "int8" and self.precision != "int8":
             raise BadInput("int8 needs a CPU with an int8 engine and weights with calibrated ranges "
                            "(mosaic train writes them; scripts/calibrate_int8.py adds them)")

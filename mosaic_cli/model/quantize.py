@@ -10,10 +10,11 @@ loading is deterministic and needs no data:
     quantized_features(model, ranges) -> a module (N, 2, P, P) -> (N, F), or None where the
                                         platform has no int8 engine or the ranges do not fit
 
-    quantized_head(model)            -> a copy of ``model`` whose LSTM has int8 weights
+    quantized_head(model, ranges)    -> a copy of ``model`` whose LSTM has int8 weights
                                         (dynamic: activations quantised on the fly, so no
                                         ranges are needed), or None where there is none, or
-                                        where its offsets would stray from fp32's
+                                        where its offsets would stray from fp32's (measured
+                                        when the ranges were, and stored with them)
 
 Stepped one 16-pair chunk at a time, the LSTM reads its 4 MB of weights once a pair: in int8 a
 chunk took 0.55 ms instead of 5.5 on the development machine.  The regressor stays in fp32.
@@ -55,7 +56,8 @@ def engine() -> str | None:
 
 def _prepare(model: HomographyNet, observer, example: Tensor):
     """The features of ``model`` traced with ``observer`` after every activation (weights:
-    per-channel symmetric int8, the engine's default)."""
+    per-channel symmetric int8, the engine's default), and the backend patterns they were
+    prepared with (for :func:`convert_fx`)."""
     from torch.ao.quantization import QConfig, QConfigMapping, default_per_channel_weight_observer
     from torch.ao.quantization.quantize_fx import prepare_fx
 
@@ -66,7 +68,35 @@ def _prepare(model: HomographyNet, observer, example: Tensor):
     features = _Features(copy.deepcopy(model).cpu().eval())
     with warnings.catch_warnings(), _no_stack_traces():
         warnings.simplefilter("ignore")  # torch.ao announces its move to torchao
-        return prepare_fx(features, QConfigMapping().set_global(qconfig), (example,))
+        backend = _backend_config(features)
+        return prepare_fx(features, QConfigMapping().set_global(qconfig), (example,), backend_config=backend), backend
+
+
+def _backend_config(features: nn.Module):
+    """The native int8 backend's patterns that can match in ``features``: those made only of
+    the module types, functions and methods its graph calls, and the fused modules they fuse
+    into.  The same quantised graph as with all 194 patterns, whose handler classes took 80 ms
+    of the start-up to build (docs/measurements/speed.md)."""
+    import torch.ao.quantization.quantize_fx  # noqa: F401  (backend_config needs its utils loaded)
+    from torch.ao.quantization.backend_config import BackendConfig, get_native_backend_config
+
+    with _no_stack_traces():
+        graph = torch.fx.symbolic_trace(features)
+    called: set = set()
+    for node in graph.graph.nodes:
+        if node.op == "call_module":
+            called.add(type(graph.get_submodule(node.target)))
+        elif node.op in ("call_function", "call_method"):
+            called.add(node.target)
+
+    def parts(pattern):
+        return [p for q in pattern for p in parts(q)] if isinstance(pattern, tuple) else [pattern]
+
+    native = get_native_backend_config()
+    kept = [c for c in native.configs if all(p in called for p in parts(c.pattern if c.pattern is not None else c._pattern_complex_format))]
+    fused = {c.fused_module for c in kept if c.fused_module is not None}
+    kept += [c for c in native.configs if c.pattern in fused]
+    return BackendConfig(native.name).set_backend_pattern_configs(kept)
 
 
 @contextlib.contextmanager
@@ -103,7 +133,7 @@ def calibrate(model: HomographyNet, pairs: Tensor, batch: int = 64) -> dict:
     if engine() is None:
         raise RuntimeError("this PyTorch build has no int8 engine")
     torch.backends.quantized.engine = engine()
-    prepared = _prepare(model, HistogramObserver, pairs[:1])
+    prepared, _ = _prepare(model, HistogramObserver, pairs[:1])
     for chunk in pairs.split(batch):
         prepared(chunk.float())
     ranges = {}
@@ -113,7 +143,20 @@ def calibrate(model: HomographyNet, pairs: Tensor, batch: int = 64) -> dict:
         scale, zero = (float(v) for v in obs.calculate_qparams())
         # The range [lo, hi] whose min-max quantisation gives exactly this scale and zero point.
         ranges[name] = [(obs.quant_min - zero) * scale, (obs.quant_max - zero) * scale]
-    return {"format": RANGES_FORMAT, "pairs": int(len(pairs)), "activations": ranges}
+    return with_head_error(model, {"format": RANGES_FORMAT, "pairs": int(len(pairs)), "activations": ranges})
+
+
+def with_head_error(model: HomographyNet, ranges: dict) -> dict:
+    """``ranges`` with the int8 LSTM's :func:`head_error` on this platform's engine added (key
+    ``head_error``: {engine: px}), so that loading need not probe it (a quarter of a second of
+    the start-up); unchanged for a net without an LSTM."""
+    if model.lstm is None or engine() is None:
+        return ranges
+    torch.backends.quantized.engine = engine()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        int8 = quantize_dynamic_lstm(model)
+    return {**ranges, "head_error": {**ranges.get("head_error", {}), engine(): head_error(model, int8)}}
 
 
 def quantized_features(model: HomographyNet, ranges: dict | None) -> nn.Module | None:
@@ -126,7 +169,7 @@ def quantized_features(model: HomographyNet, ranges: dict | None) -> nn.Module |
         return None
     torch.backends.quantized.engine = engine()
     P = model.config.patch
-    prepared = _prepare(model, MinMaxObserver, torch.zeros(1, 2, P, P))
+    prepared, backend = _prepare(model, MinMaxObserver, torch.zeros(1, 2, P, P))
     observers = {name: obs for name, obs in _observers(prepared).items() if getattr(obs, "dtype", None) == torch.quint8}
     stored = ranges.get("activations", {})
     if set(observers) != set(stored):
@@ -137,7 +180,7 @@ def quantized_features(model: HomographyNet, ranges: dict | None) -> nn.Module |
         obs.max_val = torch.tensor(float(hi))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return convert_fx(prepared).eval()
+        return convert_fx(prepared, backend_config=backend).eval()
 
 
 # The int8 LSTM is kept only where its offsets stay this close to fp32's (working px) on a probe:
@@ -146,19 +189,36 @@ def quantized_features(model: HomographyNet, ranges: dict | None) -> nn.Module |
 HEAD_TOLERANCE_PX = 0.05
 
 
-def quantized_head(model: HomographyNet, tolerance: float = HEAD_TOLERANCE_PX) -> HomographyNet | None:
+# A head error stored with the weights decides alone only this far from the tolerance (a factor):
+# another CPU's int8 kernels may round a little differently.
+STORED_VERDICT_MARGIN = 2.0
+
+
+def quantized_head(model: HomographyNet, ranges: dict | None = None, tolerance: float = HEAD_TOLERANCE_PX) -> HomographyNet | None:
     """A copy of ``model`` with its LSTM's weights in int8; None without an LSTM or an int8
     engine, or where the int8 head's offsets stray more than ``tolerance`` working px from
-    fp32's on a probe (:func:`head_error`)."""
-    from torch.ao.quantization import quantize_dynamic
-
+    fp32's on a probe (:func:`head_error`).  The probe's error as measured when ``ranges`` were
+    (:func:`with_head_error`, for this engine) is used instead where it is clearly on one side of
+    the tolerance; near it, or missing, the probe runs here."""
     if model.lstm is None or engine() is None:
         return None
     torch.backends.quantized.engine = engine()
+    stored = (ranges or {}).get("head_error", {}).get(engine())
+    if stored is not None and stored >= tolerance * STORED_VERDICT_MARGIN:
+        return None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torch.ao announces its move to torchao
-        int8 = quantize_dynamic(model.eval(), {nn.LSTM}, dtype=torch.qint8)  # a copy: not in place
+        int8 = quantize_dynamic_lstm(model)
+    if stored is not None and stored <= tolerance / STORED_VERDICT_MARGIN:
+        return int8
     return int8 if head_error(model, int8) <= tolerance else None
+
+
+def quantize_dynamic_lstm(model: HomographyNet) -> HomographyNet:
+    """A copy of ``model`` (not in place) whose LSTM has int8 weights."""
+    from torch.ao.quantization import quantize_dynamic
+
+    return quantize_dynamic(model.eval(), {nn.LSTM}, dtype=torch.qint8)
 
 
 @torch.inference_mode()
@@ -190,4 +250,5 @@ def head_error(model: HomographyNet, int8: HomographyNet, pairs: int = 48, chunk
     return float((offsets(int8) - offsets(model)).abs().max())
 
 
-__all__ = ["HEAD_TOLERANCE_PX", "RANGES_FORMAT", "engine", "calibrate", "head_error", "quantized_features", "quantized_head"]
+__all__ = ["HEAD_TOLERANCE_PX", "RANGES_FORMAT", "STORED_VERDICT_MARGIN", "engine", "calibrate", "head_error", "quantized_features",
+           "quantized_head", "quantize_dynamic_lstm", "with_head_error"]
