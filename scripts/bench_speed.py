@@ -9,10 +9,14 @@ For each clip (made once with ``mosaic simulate -p shaky`` over a real image of
   stabiliser that re-encodes);
 * vid.stab: ``vidstabdetect`` then ``vidstabtransform`` with the same encoder settings;
 * ``mosaic stabilize``, ``mosaic track`` and ``mosaic stitch`` with their defaults, each
-  command's own stage times read from its final line;
+  command's own stage times read from its final line, and each again with
+  ``--no-overlay-detect``: what overlay detection costs a command is the difference;
 
-then the medians and the ratios the speed goals are stated in, with the machine's load average
-before and after.  Also the start-up: ``mosaic track`` of a one-frame clip (median of 5).
+then the medians (wall, and CPU seconds of user and system time), the ratios the speed goals are
+stated in, with the machine's load average before and after.  Also the start-up: ``mosaic
+track`` of a one-frame clip (median of 5); and the floor of any stabiliser that warps every
+pixel and re-encodes on this machine: the transcode's CPU seconds plus those of warping every
+frame (mosaic's yuv420p warp, one thread), over the cores, before any tracking.
 
     python scripts/bench_speed.py                       # 1280x720 x 1200 frames and 3840x2160 x 300
     python scripts/bench_speed.py --sizes 720p --rounds 2
@@ -25,6 +29,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shlex
 import statistics
 import subprocess
@@ -45,13 +50,21 @@ MOSAIC = [sys.executable, "-m", "mosaic_cli"]
 X264 = ["-c:v", "libx264", "-preset", "veryfast", "-crf", "18", "-pix_fmt", "yuv420p"]
 
 
-def run(cmd: list[str], cwd: Path) -> tuple[float, str]:
-    """(wall seconds, stderr) of one command, which must succeed."""
+CPU: dict[str, list[float]] = {}  # CPU seconds (user + system) of each method's runs, by method
+
+
+def run(cmd: list[str], cwd: Path, name: str | None = None) -> tuple[float, str]:
+    """(wall seconds, stderr) of one command, which must succeed; its CPU seconds are added to
+    ``CPU[name]``."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     done = subprocess.run(cmd, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise SystemExit(f"failed ({done.returncode}): {shlex.join(cmd)}\n{done.stderr[-2000:]}")
+    if name is not None:
+        CPU.setdefault(name, []).append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
     return wall, done.stderr
 
 
@@ -82,6 +95,8 @@ def methods(clip: Path, work: Path, vidstab: bool) -> dict[str, list[str]]:
         "mosaic track": [*MOSAIC, "track", str(clip), "-o", f"{out}_track.json"],
         "mosaic stitch": [*MOSAIC, "stitch", str(clip), "-o", f"{out}_pano.png"],
     }
+    for command in ("stabilize", "track", "stitch"):
+        table[f"mosaic {command} -O"] = [*table[f"mosaic {command}"], "--no-overlay-detect"]
     if vidstab:
         table["vid.stab"] = ["vidstab"]  # two commands: see run_vidstab
     return table
@@ -89,10 +104,34 @@ def methods(clip: Path, work: Path, vidstab: bool) -> dict[str, list[str]]:
 
 def run_vidstab(clip: Path, work: Path) -> float:
     trf = f"{clip.stem}.trf"
-    detect, _ = run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-vf", f"vidstabdetect=result={trf}", "-f", "null", "-"], work)
+    detect, _ = run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-vf", f"vidstabdetect=result={trf}", "-f", "null", "-"], work, "vid.stab")
     transform, _ = run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-vf", f"vidstabtransform=input={trf}", *X264,
-                        "-c:a", "copy", f"{clip.stem}_vidstab.mp4"], work)
+                        "-c:a", "copy", f"{clip.stem}_vidstab.mp4"], work, "vid.stab")
+    CPU["vid.stab"][-2:] = [sum(CPU["vid.stab"][-2:])]
     return detect + transform
+
+
+def warp_cpu_ms(clip: Path, frames: int = 20) -> float:
+    """CPU milliseconds of warping one frame of ``clip`` as stabilize's render does (yuv420p, a
+    similarity with a slight zoom), on one OpenCV thread: median over ``frames`` frames."""
+    import cv2
+    import numpy as np
+
+    from mosaic_cli.stabilize.render import warp_yuv
+    from mosaic_cli.video import open_video, probe
+
+    info = probe(clip)
+    cv2.setNumThreads(1)
+    warp = np.array([[1.02, 0.01, -10.0], [-0.01, 1.02, -8.0], [0.0, 0.0, 1.0]])
+    spent = []
+    with open_video(clip, yuv420p=True, info=info) as stream:
+        for k, frame in enumerate(stream):
+            if k == frames:
+                break
+            start = time.process_time()
+            warp_yuv(frame, warp, info.source_size, "replicate")
+            spent.append(1000 * (time.process_time() - start))
+    return statistics.median(spent)
 
 
 STAGE = re.compile(r"(overlays|track|path|render|scan|register|compose|write) ([0-9.]+) s")
@@ -136,14 +175,17 @@ def main() -> None:
                 if name == "vid.stab":
                     times[name].append(run_vidstab(clip, work))
                     continue
-                wall, err = run(table[name], work)
+                wall, err = run(table[name], work, name)
                 times[name].append(wall)
                 if name.startswith("mosaic"):
                     stage_times[name].append(stages(err))
             print(f"{clip.name}: round {k + 1} of {args.rounds} done, load {os.getloadavg()[0]:.2f}", file=sys.stderr)
         median = {name: statistics.median(v) for name, v in times.items()}
-        report["clips"][clip.name] = {"times": times, "stages": stage_times, "median": median}
-        _print_clip(clip, median, stage_times)
+        cpu = {name: statistics.median(CPU[name]) for name in order}
+        CPU.clear()
+        floor = floor_of_stabilizing(clip, cpu["transcode"])
+        report["clips"][clip.name] = {"times": times, "stages": stage_times, "median": median, "cpu": cpu, "floor": floor}
+        _print_clip(clip, median, cpu, stage_times, floor)
     first = clips[0]
     report["startup_one_frame_track"] = startup(work, first)
     report["load_end"] = os.getloadavg()
@@ -153,17 +195,31 @@ def main() -> None:
         args.json.write_text(json.dumps(report, indent=1))
 
 
-def _print_clip(clip: Path, median: dict[str, float], stage_times: dict[str, list[dict[str, float]]]) -> None:
+def floor_of_stabilizing(clip: Path, transcode_cpu: float) -> dict[str, float]:
+    """The least wall time any stabiliser that warps every pixel and re-encodes with the same
+    settings can take here: the transcode's CPU seconds and the warps', spread over every core
+    with nothing lost to waiting; no tracking counted."""
+    from mosaic_cli.video import probe
+
+    frames = probe(clip).frame_count
+    warp_ms = warp_cpu_ms(clip)
+    cpu = transcode_cpu + frames * warp_ms / 1000
+    return {"warp_cpu_ms": warp_ms, "transcode_cpu_s": transcode_cpu, "cpu_s": cpu, "cores": os.cpu_count() or 1,
+            "wall_s": cpu / (os.cpu_count() or 1)}
+
+
+def _print_clip(clip: Path, median: dict[str, float], cpu: dict[str, float], stage_times: dict[str, list[dict[str, float]]],
+                floor: dict[str, float]) -> None:
     from mosaic_cli.video import probe
 
     info = probe(clip)
     print(f"\n{clip.name}: {info.source_size[0]}x{info.source_size[1]}, {info.frame_count} frames")
-    print(f"{'method':<18} {'wall s':>7}  stages (medians, s)")
+    print(f"{'method':<22} {'wall s':>7} {'CPU s':>7}  stages (medians, s)")
     for name, seconds in median.items():
         runs = stage_times.get(name) or []
         keys = list(runs[0]) if runs else []
         parts = ", ".join(f"{key} {statistics.median(r.get(key, 0.0) for r in runs):.1f}" for key in keys)
-        print(f"{name:<18} {seconds:7.1f}  {parts}")
+        print(f"{name:<22} {seconds:7.1f} {cpu.get(name, float('nan')):7.1f}  {parts}")
     ratios = [
         ("mosaic stabilize / transcode", "mosaic stabilize", "transcode", "<= 1.5"),
         ("vid.stab / mosaic stabilize", "vid.stab", "mosaic stabilize", ">= 2"),
@@ -174,10 +230,14 @@ def _print_clip(clip: Path, median: dict[str, float], stage_times: dict[str, lis
         if a in median and b in median:
             print(f"{label:<32} {median[a] / median[b]:6.2f}   (goal {goal})")
     for name in ("mosaic stabilize", "mosaic track", "mosaic stitch"):
-        runs = stage_times.get(name) or []
-        if runs and "overlays" in runs[0]:
-            share = statistics.median(r["overlays"] for r in runs) / median[name]
-            print(f"overlay detection in {name:<17} {100 * share:5.1f}% of its wall time (goal <= 5%)")
+        if name in median and f"{name} -O" in median:
+            cost = median[name] - median[f"{name} -O"]
+            print(f"overlay detection in {name:<17} {100 * cost / median[name]:5.1f}% of its wall time "
+                  f"({cost:+.1f} s against --no-overlay-detect; goal <= 5%)")
+    print(f"floor of warping every pixel and re-encoding: {floor['wall_s']:.1f} s on {floor['cores']} cores "
+          f"(transcode {floor['transcode_cpu_s']:.1f} s of CPU, warp {floor['warp_cpu_ms']:.1f} ms a frame); "
+          f"against the transcode {floor['wall_s'] / median['transcode']:.2f}x"
+          + (f", vid.stab / floor {median['vid.stab'] / floor['wall_s']:.2f}x" if "vid.stab" in median else ""))
 
 
 if __name__ == "__main__":
