@@ -182,7 +182,17 @@ def test_stabilize_warps_are_those_of_the_mask_given_first(clips, held_detection
 
 
 @pytest.mark.parametrize("name,restart", [("plain", False), ("burned", True)])
-def test_stitch_panorama_is_that_of_the_mask_given_first(clips, held_detection, tmp_path, name, restart):
+def test_stitch_panorama_is_that_of_the_mask_given_first(clips, held_detection, tmp_path, monkeypatch, name, restart):
+    import mosaic_cli.stitch.pipeline as pipeline
+
+    probes = []  # each stitch's `auto` probe, fed by the scan (the discarded one's too)
+
+    class Recorded(pipeline.RollingProbe):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            probes.append(self)
+
+    monkeypatch.setattr(pipeline, "RollingProbe", Recorded)
     video = clips[name]
     spec = stitch(video, tmp_path / "spec.png", options=StitchOptions(estimator="orb", rolling_shutter="auto"),
                   show_progress=False)
@@ -193,6 +203,8 @@ def test_stitch_panorama_is_that_of_the_mask_given_first(clips, held_detection, 
     assert seq.overlay_restart is False
     assert [i for i, _ in spec.transforms] == [i for i, _ in seq.transforms]
     assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(spec.transforms, seq.transforms))
+    for a, b in zip(probes[0].measured(0), probes[1].measured(0)):
+        assert np.array_equal(a, b)
     a = cv2.imread(str(tmp_path / "spec.png"), cv2.IMREAD_UNCHANGED)
     b = cv2.imread(str(tmp_path / "seq.png"), cv2.IMREAD_UNCHANGED)
     assert a.shape == b.shape and np.array_equal(a, b)
