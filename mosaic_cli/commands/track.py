@@ -113,8 +113,9 @@ def track(
                 result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info,
                                      rolling_shutter=options.rolling_shutter, mask=pending)
         masked = pending.result()
-        # The overlays' share of the wall time: the build (the detection beside it), the
-        # tracking's end waiting for the detection, and a pass discarded for an overlay found.
+        # The "overlays" figure: the time before the tracking could start (the build, the
+        # detection beside it), and the time the tracking then lost to the detection (its end
+        # waiting for it, a pass discarded for an overlay found); "track" is the kept pass.
         overlay_seconds = built + result.meta["overlay_wait_seconds"] + result.meta["overlay_lost_seconds"]
         result.meta["mask"] = masked.to_json()
         save_track(result, out)

@@ -10,6 +10,10 @@ but the per-frame matrices (72 bytes a frame):
 3. render: decode again at full resolution, warp, encode with the input's audio, each frame
    as soon as its window is solved: on two cores the tracking runs beside the encoder instead
    of before it.
+
+Burned-in overlays are looked for beside the tracking, which starts once the estimator is
+built: its pairs reach the plan (and so the render) only once the mask is settled, and it
+starts again from the first frame if an overlay was found (mosaic_cli/overlay/speculate.py).
 """
 
 from __future__ import annotations
@@ -102,6 +106,11 @@ class StabilizeResult:
     size: tuple[int, int]
     fps: float
     warps: np.ndarray  # (N, 3, 3) input pixels -> output pixels
+    # Wall seconds of each stage: "overlays" the time before the tracking could start (the
+    # estimator's build, the overlays looked for beside it) and the time the tracking then lost
+    # to them (its end waiting for the detection, a pass discarded for an overlay found); "track"
+    # the kept tracking pass, "plan" its path's solves, "render" the render beside it from the
+    # tracking's start, "rolling" the rolling shutter's share, "total" the whole.
     seconds: dict[str, float] = field(default_factory=dict)
     input_meta: dict | None = None  # set when the input decoded short (see video.reader.Shortfall)
     # The camera path as planned, for --plot: F_{t+1} (frame t+1 -> t, normalised) and each

@@ -1,7 +1,9 @@
 """``stitch()``: a video in, a panorama out, in five stages.
 
 0. overlays  burned-in logos, text and letterbox bars found on frames sampled over the clip,
-             merged with --mask: kept out of estimation, registration and the panorama
+             merged with --mask: kept out of estimation, registration and the panorama; found
+             beside the scan, which starts with --mask's alone and starts again (its keyframes
+             dropped) if an overlay is found (mosaic_cli/overlay/speculate.py)
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one (photos: registered
              directly, no estimator); a cut starts a new segment
@@ -131,6 +133,10 @@ class StitchResult:
     frames: int
     keyframes: int
     registration: RegistrationReport
+    # Wall seconds of each stage: "overlays" the time before the scan could start (the
+    # estimator's build, the overlays looked for beside it) and the time the scan then lost to
+    # them (its end waiting for the detection, a scan discarded for an overlay found); "scan" the
+    # kept scan; then "rolling", "register", "compose", "write": together about the wall time.
     seconds: dict[str, float]
     panoramas: list[Panorama] = field(default_factory=list)  # all of them, the largest first
     dropped: list[tuple[int, str]] = field(default_factory=list)  # (frame index, why) not placed anywhere
