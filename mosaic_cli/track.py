@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import time
@@ -17,9 +18,10 @@ from mosaic_cli.estimators import Estimator, estimate_stream
 from mosaic_cli.estimators.rolling import BandPlan, RollingProbe, parse_rolling_shutter, plan_bands
 from mosaic_cli.geometry.rolling_shutter import CHANNELS, band_centres
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_threads, check_timeout
-from mosaic_cli.overlay import MaskOptions
+from mosaic_cli.overlay import FrameMask, Gate, MaskOptions, PendingMask, speculate
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
+from mosaic_cli.video.policy import Shortfall
 
 TRACK_FORMAT_VERSION = 1
 
@@ -105,41 +107,36 @@ def track_video(
     on_pair: Callable[[np.ndarray, float], None] | None = None,
     rolling_shutter: str | float = "off",
     probe: RollingProbe | None = None,
+    mask: PendingMask | None = None,
 ) -> TrackResult:
     """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
     ``info``: the video's probe, when the caller has it; ``on_pair(H, confidence)`` is told of
     each pair as it is estimated (stabilize plans its path meanwhile).  ``rolling_shutter``
     (auto or a readout): also each row band's motion and correction, from a pass of its own
     (:func:`estimators.rolling.plan_bands`; `auto`'s probe rides on this pass's first frames), in
-    ``TrackResult.rolling``.  ``probe``: fed this pass's frames (stabilize's `auto`)."""
-    pairwise: list[np.ndarray] = []
-    confidence: list[float] = []
-    paths: list[str | None] = []
-    mode = parse_rolling_shutter(rolling_shutter)
-    with open_video(path, width=estimator.input_width, gray=True, info=info) as stream:
-        info = stream.info
-        if mode == "auto" and probe is None:
-            probe = RollingProbe(info)
-        total = info.frame_count if max_frames is None else min(max_frames, info.frame_count or max_frames)
+    ``TrackResult.rolling``.  ``probe``: fed this pass's frames (stabilize's `auto`).
 
-        start = time.perf_counter()
-        with progress_task(f"track ({estimator.name})", total, disable=not show_progress) as advance:
-            advance(1)  # the first frame yields no pair
-            frames = itertools.islice(stream, max_frames)
-            for estimate in estimate_stream(estimator, frames if probe is None else probe.tap(frames), info.source_size):
-                pairwise.append(estimate.H)
-                confidence.append(estimate.confidence)
-                paths.append(estimate.path)
-                if on_pair is not None:
-                    on_pair(estimate.H, estimate.confidence)
-                advance(1)
-        elapsed = time.perf_counter() - start
-    n = len(pairwise) + 1
-    meta = {"ms_per_frame": 1000.0 * elapsed / n, "seconds": elapsed, "work_width": estimator.work_width}
+    ``mask``: the use mask while the overlays are still being looked for
+    (:func:`~mosaic_cli.overlay.frame_mask_pending`): the pass starts with what is known of it,
+    ``on_pair`` and the progress held back until it settles, and starts again from the first
+    frame if an overlay was found (:mod:`mosaic_cli.overlay.speculate`); ``meta`` then says so
+    (``overlay_restart``) and what the wait cost (``overlay_wait_seconds``: the pass's end
+    waiting for the detection; ``overlay_lost_seconds``: the discarded attempt), which
+    ``meta["seconds"]`` leaves out.  None: the estimator's own mask, as set."""
+    mode = parse_rolling_shutter(rolling_shutter)
+    pending = mask if mask is not None else PendingMask.settled(FrameMask(estimator.mask))
+    with contextlib.ExitStack() as bar:
+        tracking = _TrackPass(path, estimator, max_frames, show_progress, info, on_pair, mode, probe, bar)
+        tracked, speculation = speculate(pending, tracking.attempt)
+    info, probe = tracked.info, tracking.probe
+    n = len(tracked.pairwise) + 1
+    meta: dict = {"ms_per_frame": 1000.0 * tracked.seconds / n, "seconds": tracked.seconds, "work_width": estimator.work_width}
+    if mask is not None:
+        meta.update(speculation.to_meta())
     if getattr(estimator, "path_counts", None):  # the learned estimator: which path made each pair
         meta["paths"] = dict(estimator.path_counts)
-    if stream.shortfall is not None:  # read to the end, and the end came early
-        meta["input"] = stream.shortfall.as_meta()
+    if tracked.shortfall is not None:  # read to the end, and the end came early
+        meta["input"] = tracked.shortfall.as_meta()
     rolling = None
     if mode != "off":
         clock = time.perf_counter()
@@ -147,10 +144,70 @@ def track_video(
         meta["rolling_seconds"] = time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
         if plan is not None:
             rolling = rolling_block(plan, info.source_size)
+    paths = tracked.paths
     return TrackResult(
-        info, estimator.name, np.array(pairwise).reshape(-1, 3, 3), np.array(confidence, dtype=np.float64), meta,
+        info, estimator.name, np.array(tracked.pairwise).reshape(-1, 3, 3), np.array(tracked.confidence, dtype=np.float64), meta,
         [str(p) for p in paths] if paths and all(p is not None for p in paths) else None, rolling,
     )
+
+
+@dataclass
+class _Tracked:
+    """One tracking attempt's estimates, in frame order, and its time (its wait for the mask left out)."""
+
+    info: VideoInfo
+    pairwise: list[np.ndarray]
+    confidence: list[float]
+    paths: list[str | None]
+    seconds: float
+    shortfall: Shortfall | None
+
+
+class _TrackPass:
+    """What the attempts of one :func:`track_video` share: the video's info (probed by the
+    first), the `auto` probe (made by the first, restarted by a second), the progress bar
+    (opened by the first, on ``bar``, and kept: a discarded attempt's progress was never shown)."""
+
+    def __init__(self, path: str | Path, estimator: Estimator, max_frames: int | None, show_progress: bool,
+                 info: VideoInfo | None, on_pair: Callable[[np.ndarray, float], None] | None, mode: str | float,
+                 probe: RollingProbe | None, bar: contextlib.ExitStack):
+        self.path, self.estimator, self.max_frames, self.show_progress = path, estimator, max_frames, show_progress
+        self.info, self.on_pair, self.mode, self.probe, self.bar = info, on_pair, mode, probe, bar
+        self._advance: Callable[..., None] | None = None
+
+    def attempt(self, use: np.ndarray | None, gate: Gate) -> _Tracked:
+        """Track from the first frame with the use mask ``use`` (see :func:`~mosaic_cli.overlay.speculate`)."""
+        self.estimator.set_mask(use)
+        pairwise: list[np.ndarray] = []
+        confidence: list[float] = []
+        paths: list[str | None] = []
+        with open_video(self.path, width=self.estimator.input_width, gray=True, info=self.info) as stream:
+            info = self.info = stream.info
+            if self.mode == "auto" and self.probe is None:
+                self.probe = RollingProbe(info)
+            elif gate.restarted and self.probe is not None:
+                self.probe.restart()
+            advance = self._progress(info)
+            start = time.perf_counter()
+            frames = gate.frames(itertools.islice(stream, self.max_frames))
+            for estimate in estimate_stream(self.estimator, frames if self.probe is None else self.probe.tap(frames), info.source_size):
+                pairwise.append(estimate.H)
+                confidence.append(estimate.confidence)
+                paths.append(estimate.path)
+                if self.on_pair is not None:
+                    gate.emit(self.on_pair, estimate.H, estimate.confidence)
+                gate.emit(advance, 1)
+            elapsed = time.perf_counter() - start
+        gate.wait()  # the decoder closed (and the input's end accounted for) first
+        return _Tracked(info, pairwise, confidence, paths, elapsed, stream.shortfall)
+
+    def _progress(self, info: VideoInfo) -> Callable[..., None]:
+        """The progress bar's ``advance``, the bar opened at the first attempt."""
+        if self._advance is None:
+            total = info.frame_count if self.max_frames is None else min(self.max_frames, info.frame_count or self.max_frames)
+            self._advance = self.bar.enter_context(progress_task(f"track ({self.estimator.name})", total, disable=not self.show_progress))
+            self._advance(1)  # the first frame yields no pair
+        return self._advance
 
 
 def rolling_block(plan: BandPlan, size: tuple[int, int]) -> dict:

@@ -31,8 +31,8 @@ from mosaic_cli.estimators import plan_estimator
 from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
-from mosaic_cli.overlay import frame_mask_while
-from mosaic_cli.progress import console
+from mosaic_cli.overlay import frame_mask_pending, frame_mask_while
+from mosaic_cli.progress import console, progress_group
 from mosaic_cli.track import TrackOptions, save_track, track_video
 from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
@@ -90,13 +90,13 @@ def track(
     use_threads(options.threads)
     masked = None
     clock = time.perf_counter()
-    if live:  # a live input's mask is made when its first frame gives the size (live_mask)
-        est = build()
-    else:
-        masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
-        est.set_mask(masked.use)
-    overlay_seconds = time.perf_counter() - clock
     if live or is_jsonl(out):
+        if live:  # a live input's mask is made when its first frame gives the size (live_mask)
+            est = build()
+        else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
+            masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
+            est.set_mask(masked.use)
+        overlay_seconds = time.perf_counter() - clock
         result = track_stream(video, est, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
                               mask=options.mask if live else None, info=info)
         if masked is not None:
@@ -104,9 +104,19 @@ def track(
         if not is_jsonl(out):
             save_track(result, out)
     else:
-        with reading_policy(strict):
-            result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info,
-                                 rolling_shutter=options.rolling_shutter)
+        # The tracking starts once the estimator is built, the overlays still being looked for
+        # beside it, and starts again if one is found (track_video's ``mask``).
+        with reading_policy(strict), progress_group(disable=quiet):
+            pending, est = frame_mask_pending(build, video, options.mask, info, show_progress=not quiet)
+            with pending:
+                built = time.perf_counter() - clock
+                result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info,
+                                     rolling_shutter=options.rolling_shutter, mask=pending)
+        masked = pending.result()
+        # The "overlays" figure: the time before the tracking could start (the build, the
+        # detection beside it), and the time the tracking then lost to the detection (its end
+        # waiting for it, a pass discarded for an overlay found); "track" is the kept pass.
+        overlay_seconds = built + result.meta["overlay_wait_seconds"] + result.meta["overlay_lost_seconds"]
         result.meta["mask"] = masked.to_json()
         save_track(result, out)
     if plot is not None:

@@ -181,6 +181,18 @@ class RollingProbe:
         self._prev = None
         self._done.set()
 
+    def restart(self) -> None:
+        """Forget every frame pushed: the pass that fed them starts again from its first frame
+        (an overlay found after tracking had started, :mod:`mosaic_cli.overlay.speculate`).  Only
+        before anyone has read :meth:`measured`: the pass that feeds it holds back what would
+        let a reader in (stabilize's render waits for the pass's pairs)."""
+        self._motion, self._weights = [], []
+        self._prev = None
+        self._seen = 0
+        self._done.clear()
+        self.seconds = self.cpu_seconds = 0.0  # the discarded pass's share is counted as the overlays'
+        self.width = 0
+
     def tap(self, frames: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
         """``frames``, each also pushed to the probe; the probe is finished when they end."""
         try:

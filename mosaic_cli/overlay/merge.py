@@ -1,12 +1,17 @@
 """The use mask of a video (uint8, full resolution, 255 = ground to use): the user's ``--mask``
 file merged with the overlays detected in it (:func:`frame_mask`), or, for a live input, the
-file's alone (:func:`live_mask`); and ``--mask``'s options."""
+file's alone (:func:`live_mask`); and ``--mask``'s options.
+
+While the overlays are looked for, the mask is a :class:`PendingMask` (:func:`frame_mask_pending`):
+what is known of it at once (the file's) and, in a thread of its own, the detection; tracking
+starts with the former and settles on the latter (:mod:`mosaic_cli.overlay.speculate`)."""
 
 from __future__ import annotations
 
+import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -103,21 +108,59 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     options = options or MaskOptions()
     clock = time.perf_counter()
     info = info or probe(video)
-    use = _file_mask(options, info.source_size)
+    return _detected(video, options, info, _file_mask(options, info.source_size), show_progress, clock)
+
+
+def _detected(video: str | Path, options: MaskOptions, info: VideoInfo, use: np.ndarray | None, show_progress: bool,
+              clock: float, stop: threading.Event | None = None) -> FrameMask:
+    """``use`` (the file's mask, or None) merged with the overlays detected in ``video`` unless
+    detection is off; its ``seconds`` counted from ``clock``.  ``stop``, once set, ends the
+    detection at its next frame with :class:`DetectionStopped`."""
     detection = None
     if options.detect:
         width = sample_width(info.source_size, options.overlay)
+        samples: Iterable[np.ndarray] = VideoSamples(video, options.overlay.samples, width, info)
+        if stop is not None:
+            samples = _Stoppable(samples, stop)
         if show_progress:
             from mosaic_cli.progress import progress_task
 
             with progress_task("overlays", None, unit="fr/s") as advance:
-                detection = detect_overlays(VideoSamples(video, options.overlay.samples, width, info), info.source_size, options.overlay)
+                detection = detect_overlays(samples, info.source_size, options.overlay)
                 advance(detection.samples, status=f"{100 * detection.excluded:.1f}% masked")  # frames sampled
         else:
-            detection = detect_overlays(VideoSamples(video, options.overlay.samples, width, info), info.source_size, options.overlay)
+            detection = detect_overlays(samples, info.source_size, options.overlay)
         if detection.use is not None:
             use = detection.use if use is None else np.minimum(use, detection.use)
     return FrameMask(use, detection, options.file is not None, time.perf_counter() - clock)
+
+
+class DetectionStopped(Exception):
+    """The detection was stopped (:meth:`PendingMask.cancel`): its result is not wanted."""
+
+
+class _Stoppable:
+    """``samples`` (read anew on each iteration, as :class:`VideoSamples`), ending with
+    :class:`DetectionStopped` before the next frame once ``stop`` is set: the decoder is closed
+    there and then, not after the detection's last frame."""
+
+    def __init__(self, samples: Iterable[np.ndarray], stop: threading.Event):
+        self.samples, self.stop = samples, stop
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        frames = iter(self.samples)
+        try:
+            while not self.stop.is_set():
+                try:
+                    frame = next(frames)
+                except StopIteration:
+                    return
+                yield frame
+            raise DetectionStopped("overlay detection stopped")
+        finally:
+            close = getattr(frames, "close", None)
+            if close is not None:
+                close()  # a generator's decoder (an ffmpeg process) ends now
 
 
 def live_mask(options: MaskOptions | None, full_size: tuple[int, int], show_progress: bool = True) -> FrameMask:
@@ -141,16 +184,107 @@ def _file_mask(options: MaskOptions, full_size: tuple[int, int]) -> np.ndarray |
     return use
 
 
+class PendingMask:
+    """A video's use mask while its overlays are still being looked for (:func:`frame_mask_pending`).
+
+    ``known``: the mask so far, (h, w) uint8 at the source size or None: the ``--mask`` file's,
+    which the final one can only add to.  :meth:`done` says whether the detection has ended;
+    :meth:`result` waits for it and gives the merged :class:`FrameMask` (or raises the
+    detection's error).  :meth:`cancel` stops a detection whose result is no longer wanted (the
+    run failed); :meth:`close` (also the context manager's exit) stops it and joins its thread,
+    so that no decoder outlives the command.  Thread-safe: the tracking may wait on it in a
+    thread of its own while the caller cancels it."""
+
+    def __init__(self, known: np.ndarray | None, settled: FrameMask | None = None):
+        self.known = known
+        self._future: Future[FrameMask] = Future()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if settled is not None:
+            self._future.set_result(settled)
+
+    @classmethod
+    def settled(cls, mask: FrameMask) -> PendingMask:
+        """A mask known from the start (detection off, or the caller's own): done at once."""
+        return cls(mask.use, mask)
+
+    def start(self, detect: Callable[[threading.Event], FrameMask]) -> None:
+        """Run ``detect(stop)`` in a thread of its own; its result or error is :meth:`result`'s."""
+        def run() -> None:
+            try:
+                self._future.set_result(detect(self._stop))
+            except BaseException as exc:  # handed to whoever waits on result()
+                self._future.set_exception(exc)
+
+        self._thread = threading.Thread(target=run, name="mosaic-overlays", daemon=True)
+        self._thread.start()
+
+    def done(self) -> bool:
+        return self._future.done()
+
+    def result(self) -> FrameMask:
+        """The merged mask, once the detection has ended; its error if it failed."""
+        return self._future.result()
+
+    def cancel(self) -> None:
+        """Stop the detection at its next frame (:class:`DetectionStopped` for whoever waits);
+        nothing if it has ended."""
+        self._stop.set()
+
+    def close(self) -> None:
+        """Stop the detection if it still runs, and wait for its thread to end."""
+        self.cancel()
+        if self._thread is not None:
+            self._thread.join()
+
+    def __enter__(self) -> PendingMask:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def frame_mask_pending(build: Callable[[], T], video: str | Path, options: MaskOptions | None = None,
+                       info: VideoInfo | None = None, show_progress: bool = False) -> tuple[PendingMask, T]:
+    """:func:`frame_mask` as a :class:`PendingMask`, and ``build()``: the detection runs in a
+    thread of its own (its frames decoded by ffmpeg in a process of its own) while ``build``
+    (torch's import, the weights, the int8 network: a second or two) runs in the caller's; this
+    returns once ``build`` has, the detection maybe still going (the caller closes the mask:
+    ``with pending:``).  The ``--mask`` file is read first, in the caller's thread: a bad one
+    fails before any other work.  An error of the build is raised once the detection has ended,
+    and the detection's own error first, as :func:`frame_mask_while` always did.  With a
+    progress bar, run inside :func:`mosaic_cli.progress.progress_group` when other bars will
+    show while the detection runs (rich shows one display at a time)."""
+    options = options or MaskOptions()
+    clock = time.perf_counter()
+    info = info or probe(video)
+    known = _file_mask(options, info.source_size)
+    if not options.detect:
+        pending = PendingMask.settled(FrameMask(known, None, options.file is not None, time.perf_counter() - clock))
+    else:
+        pending = PendingMask(known)
+        pending.start(lambda stop: _detected(video, options, info, known, show_progress, clock, stop))
+    try:
+        built = build()
+    except Exception:
+        with pending:
+            pending.result()  # the detection's error first (chained to the build's)
+        raise
+    except BaseException:  # Ctrl-C: the detection is not waited for
+        pending.close()
+        raise
+    return pending, built
+
+
 def frame_mask_while(build: Callable[[], T], video: str | Path, options: MaskOptions | None = None,
                      info: VideoInfo | None = None, show_progress: bool = False) -> tuple[FrameMask, T]:
-    """:func:`frame_mask`, and ``build()`` at the same time in a thread of its own: the
-    detector's frames are decoded by ffmpeg in a process of its own, so building the estimator
-    (torch's import, the weights, the int8 network: a second or two) costs no time beside it.
-    An error of either is raised once both have ended."""
-    with ThreadPoolExecutor(1, thread_name_prefix="mosaic-build") as pool:
-        built = pool.submit(build)
-        mask = frame_mask(video, options, info, show_progress)
-        return mask, built.result()
+    """:func:`frame_mask`, and ``build()`` at the same time (:func:`frame_mask_pending`), both
+    waited for: for a caller that needs the mask before its first frame (JSON Lines written as
+    the pairs are estimated).  An error of either is raised once both have ended."""
+    pending, built = frame_mask_pending(build, video, options, info, show_progress)
+    with pending:
+        return pending.result(), built
 
 
-__all__ = ["LIVE_DETECTION_SKIPPED", "FrameMask", "MaskOptions", "frame_mask", "frame_mask_while", "live_mask"]
+__all__ = ["LIVE_DETECTION_SKIPPED", "DetectionStopped", "FrameMask", "MaskOptions", "PendingMask", "frame_mask", "frame_mask_pending",
+           "frame_mask_while", "live_mask"]

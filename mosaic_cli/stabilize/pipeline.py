@@ -10,6 +10,10 @@ but the per-frame matrices (72 bytes a frame):
 3. render: decode again at full resolution, warp, encode with the input's audio, each frame
    as soon as its window is solved: on two cores the tracking runs beside the encoder instead
    of before it.
+
+Burned-in overlays are looked for beside the tracking, which starts once the estimator is
+built: its pairs reach the plan (and so the render) only once the mask is settled, and it
+starts again from the first frame if an overlay was found (mosaic_cli/overlay/speculate.py).
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_work_width, plan_estimator
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_encoder, check_mask_file, check_timeout
-from mosaic_cli.overlay import MaskOptions, frame_mask_while
+from mosaic_cli.overlay import MaskOptions, PendingMask, frame_mask_pending
 from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
@@ -102,6 +106,11 @@ class StabilizeResult:
     size: tuple[int, int]
     fps: float
     warps: np.ndarray  # (N, 3, 3) input pixels -> output pixels
+    # Wall seconds of each stage: "overlays" the time before the tracking could start (the
+    # estimator's build, the overlays looked for beside it) and the time the tracking then lost
+    # to them (its end waiting for the detection, a pass discarded for an overlay found); "track"
+    # the kept tracking pass, "plan" its path's solves, "render" the render beside it from the
+    # tracking's start, "rolling" the rolling shutter's share, "total" the whole.
     seconds: dict[str, float] = field(default_factory=dict)
     input_meta: dict | None = None  # set when the input decoded short (see video.reader.Shortfall)
     # The camera path as planned, for --plot: F_{t+1} (frame t+1 -> t, normalised) and each
@@ -109,6 +118,9 @@ class StabilizeResult:
     motion: np.ndarray | None = None
     views: np.ndarray | None = None
     rolling: RollingCorrection | None = None  # --rolling-shutter: the readout and each band's correction
+    # An overlay was found after the tracking had started without it: the tracking started again
+    # (mosaic_cli/overlay/speculate.py); the warps are those of the final mask either way.
+    overlay_restart: bool = False
 
     @property
     def cropping(self) -> float:
@@ -133,10 +145,6 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     clock = time.perf_counter()
 
     assert plan.build is not None  # check_request planned it
-    masked, estimator = frame_mask_while(plan.build, video, options.mask, info, show_progress)
-    estimator.set_mask(masked.use)
-    seconds = {"overlays": time.perf_counter() - clock}
-
     # Rolling shutter: each row band's correction (rolling.py), planned at the render's first
     # frame: `auto`'s probe rides on the tracking pass's first frames, and a rolling shutter
     # found (or a readout given) is measured by a pass of its own beside the tracking.
@@ -146,20 +154,31 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
 
     # The path is planned as the pairs come in, and the render follows the plan (stream.py).
     feed = PathFeed(info.source_size, plan.model, plan.smoother, plan.crop)
-    tracking = TrackingPass(video, estimator, info, feed, show_progress, probe)
-    render_clock = time.perf_counter()
     with progress_group(disable=not show_progress):
-        tracking.start()
-        try:
-            written = plan.renderer.render(video, out, feed.warp, info, compare=compare, show_progress=show_progress,
-                                           frames=info.frame_count, per_row=per_row)
-        except BaseException:
-            feed.cancel()
-            tracking.join()
-            raise
-        track = tracking.outcome()
+        # The tracking starts once the estimator is built, the overlays still being looked for
+        # beside it; its pairs reach the feed (and so the render) only once the mask is settled,
+        # and it starts again if an overlay was found (track_video's ``mask``).
+        pending, estimator = frame_mask_pending(plan.build, video, options.mask, info, show_progress)
+        with pending:
+            built = time.perf_counter() - clock
+            tracking = TrackingPass(video, estimator, info, feed, show_progress, probe, pending)
+            render_clock = time.perf_counter()
+            tracking.start()
+            try:
+                written = plan.renderer.render(video, out, feed.warp, info, compare=compare, show_progress=show_progress,
+                                               frames=info.frame_count, per_row=per_row)
+            except BaseException:
+                feed.cancel()
+                pending.cancel()  # a tracking pass still holding its pairs back ends at its next frame
+                tracking.join()
+                raise
+            track = tracking.outcome()
+    # The overlays' share: the build (the detection beside it), the tracking's end waiting for
+    # the detection, and a tracking pass discarded for an overlay found (left out of "track").
+    lost = track.meta["overlay_wait_seconds"] + track.meta["overlay_lost_seconds"]
+    seconds = {"overlays": built + lost}
     rolling = per_row.plan() if per_row is not None else None  # (planned already unless no frame was rendered)
-    seconds.update(track=tracking.seconds, plan=feed.plan_seconds, render=time.perf_counter() - render_clock,
+    seconds.update(track=tracking.seconds - lost, plan=feed.plan_seconds, render=time.perf_counter() - render_clock,
                    rolling=per_row.seconds if per_row is not None else 0.0)
     if per_row is not None:
         seconds["rolling_cpu"] = per_row.cpu_seconds
@@ -176,19 +195,20 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         write_warps(warps_out, warps, info.source_size, input_meta=short)
     seconds["total"] = time.perf_counter() - clock
     return StabilizeResult(written, info.source_size, info.fps, warps, seconds, input_meta=short, motion=feed.motion,
-                           views=feed.views,
-                           rolling=rolling)
+                           views=feed.views, rolling=rolling, overlay_restart=track.meta["overlay_restart"])
 
 
 class TrackingPass(threading.Thread):
     """The tracking pass in a thread of its own, each pair handed to the path's feed as it is
-    estimated; :meth:`outcome` waits for it and gives its result or raises its error."""
+    estimated (with ``mask``, a pending one: once it is settled, :func:`~mosaic_cli.track.track_video`);
+    :meth:`outcome` waits for it and gives its result or raises its error."""
 
     def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed, show_progress: bool,
-                 probe: RollingProbe | None = None):
+                 probe: RollingProbe | None = None, mask: PendingMask | None = None):
         super().__init__(name="mosaic-track", daemon=True)
         self.video, self.estimator, self.info, self.feed, self.show_progress = video, estimator, info, feed, show_progress
         self.probe = probe  # --rolling-shutter auto: fed the first frames (estimators/rolling.py)
+        self.mask = mask
         self.result: TrackResult | None = None
         self.error: BaseException | None = None
         self.seconds = 0.0
@@ -197,7 +217,7 @@ class TrackingPass(threading.Thread):
         clock = time.perf_counter()
         try:
             self.result = track_video(self.video, self.estimator, show_progress=self.show_progress, info=self.info,
-                                      on_pair=self.feed.add_pair, probe=self.probe)
+                                      on_pair=self.feed.add_pair, probe=self.probe, mask=self.mask)
             self.feed.finish()
         except BaseException as exc:  # the render learns of it from the feed; the caller from outcome()
             self.error = exc

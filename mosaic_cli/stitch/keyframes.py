@@ -297,6 +297,15 @@ class FlightScanner:
             self._new_segment()
         self._add(self.index, frame, quality, np.eye(3), features)
 
+    def discard(self) -> None:
+        """Drop every keyframe and its pixels (their spilled files deleted now): the scan is
+        void (an overlay found after it started, :mod:`mosaic_cli.overlay.speculate`)."""
+        for keyframe in self.keyframes:
+            drop_pixels(keyframe.image)
+            keyframe.image = None
+        self.keyframes = []
+        self._candidate = self._last = None
+
     def finish(self) -> FlightScan:
         # The flight's last ground: the best frame since the last keyframe, if it adds any.
         ending = self._candidate or self._last

@@ -1,7 +1,9 @@
 """``stitch()``: a video in, a panorama out, in five stages.
 
 0. overlays  burned-in logos, text and letterbox bars found on frames sampled over the clip,
-             merged with --mask: kept out of estimation, registration and the panorama
+             merged with --mask: kept out of estimation, registration and the panorama; found
+             beside the scan, which starts with --mask's alone and starts again (its keyframes
+             dropped) if an overlay is found (mosaic_cli/overlay/speculate.py)
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one (photos: registered
              directly, no estimator); a cut starts a new segment
@@ -26,6 +28,7 @@ map homographies in the transforms).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import tempfile
 import time
@@ -43,8 +46,8 @@ from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_s
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_mask_file, check_max_frames, check_timeout
-from mosaic_cli.overlay import FrameMask, MaskOptions, frame_mask_while
-from mosaic_cli.progress import progress_task
+from mosaic_cli.overlay import FrameMask, Gate, MaskChanged, MaskOptions, PendingMask, Speculation, frame_mask_pending, speculate
+from mosaic_cli.progress import progress_group, progress_task
 from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose
@@ -130,6 +133,10 @@ class StitchResult:
     frames: int
     keyframes: int
     registration: RegistrationReport
+    # Wall seconds of each stage: "overlays" the time before the scan could start (the
+    # estimator's build, the overlays looked for beside it) and the time the scan then lost to
+    # them (its end waiting for the detection, a scan discarded for an overlay found); "scan" the
+    # kept scan; then "rolling", "register", "compose", "write": together about the wall time.
     seconds: dict[str, float]
     panoramas: list[Panorama] = field(default_factory=list)  # all of them, the largest first
     dropped: list[tuple[int, str]] = field(default_factory=list)  # (frame index, why) not placed anywhere
@@ -137,6 +144,9 @@ class StitchResult:
     mask: FrameMask | None = None  # what was kept out of estimation and the panoramas
     georef: Georeference | None = None  # the first panorama's, with telemetry (see Panorama.georef for the others)
     rolling: RollingCorrection | None = None  # --rolling-shutter: the readout and each band's correction
+    # An overlay was found after the scan had started without it: the scan started again
+    # (mosaic_cli/overlay/speculate.py); the panoramas are those of the final mask either way.
+    overlay_restart: bool = False
 
     @property
     def frames_per_second(self) -> float:
@@ -182,17 +192,25 @@ def stitch(
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        # The estimator is built (a network: torch, the weights) while the overlays are looked for.
-        mask, scanner = frame_mask_while(build, video, options.mask, info, show_progress)
-        scanner.set_mask(mask.use)
-        seconds["overlays"] = time.perf_counter() - clock
-
         # `auto`'s probe rides on the scan's first frames: a global shutter costs no pass of its own.
         mode = parse_rolling_shutter(options.rolling_shutter)
         probe = RollingProbe(info) if mode == "auto" else None
-        clock = time.perf_counter()
-        scan = _scan(video, info, scanner, options, show_progress, spill if options.spill else None, mask.use, probe)
-        seconds["scan"] = time.perf_counter() - clock
+        with progress_group(disable=not show_progress):
+            # The estimator is built (a network: torch, the weights) while the overlays are looked
+            # for, and the scan starts once it is, the overlays still being looked for; it starts
+            # again if one is found (_scan).
+            pending, scanner = frame_mask_pending(build, video, options.mask, info, show_progress)
+            with pending:
+                built = time.perf_counter() - clock
+                clock = time.perf_counter()
+                scan, speculation = _scan(video, info, scanner, options, show_progress, spill if options.spill else None,
+                                          pending, probe)
+                scanned = time.perf_counter() - clock
+        mask = pending.result()
+        # The overlays' share: the build (the detection beside it), the scan's end waiting for
+        # the detection, and a scan discarded for an overlay found (left out of "scan").
+        seconds["overlays"] = built + speculation.seconds
+        seconds["scan"] = scanned - speculation.seconds
 
         rolling = None
         if mode != "off":
@@ -202,7 +220,9 @@ def stitch(
 
         if not scan.keyframes:
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
-        return finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track, rolling)
+        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track, rolling)
+        result.overlay_restart = speculation.restarted
+        return result
 
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
@@ -354,29 +374,46 @@ def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] |
 
 
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
-          use: np.ndarray | None = None, probe: RollingProbe | None = None) -> FlightScan:
+          mask: PendingMask, probe: RollingProbe | None = None) -> tuple[FlightScan, Speculation]:
+    """The scan (keyframes, their placements and pixels), started with the mask known so far
+    and started again, its keyframes and their spilled pixels dropped, if the overlays found
+    change it (:func:`~mosaic_cli.overlay.speculate`); its progress is shown once the mask is settled."""
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None
     if max_size and max(info.source_size) > max_size:
         width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
     decode_size = scaled_size(info.source_size, width)
-    with open_video(video, width=width, start=options.start, info=info) as stream:
-        total = stream.info.frame_count
-        if total is not None:
-            total = max(0, total - options.start)
-            if options.max_frames is not None:
-                total = min(total, options.max_frames)
-        scanner = FlightScanner(
-            info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features, max_size, spill, use
-        )
+    total = info.frame_count  # (the reader's own count: it rescales, it does not recount)
+    if total is not None:
+        total = max(0, total - options.start)
+        if options.max_frames is not None:
+            total = min(total, options.max_frames)
+    photos = info.is_image_folder
+    label, unit = ("scan (photos, features)", "photos/s") if photos else (f"scan ({estimator.name})", "fr/s")
 
-        if info.is_image_folder:
-            with progress_task("scan (photos, features)", total, unit="photos/s", disable=not show_progress) as advance:
-                return scan_photos(itertools.islice(stream, options.max_frames), scanner, advance)
-        frames = itertools.islice(stream, options.max_frames)
-        with progress_task(f"scan ({estimator.name})", total, disable=not show_progress) as advance:
-            return scan_flight(frames if probe is None else probe.tap(frames), estimator, scanner, advance)
+    def attempt(use: np.ndarray | None, gate: Gate) -> FlightScan:
+        if gate.restarted and probe is not None:
+            probe.restart()
+        estimator.set_mask(use)
+        scanner = FlightScanner(info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features,
+                                max_size, spill, use)
+        try:
+            with open_video(video, width=width, start=options.start, info=info) as stream:
+                frames = gate.frames(itertools.islice(stream, options.max_frames))
+                shown = functools.partial(gate.emit, advance)
+                if photos:
+                    scan = scan_photos(frames, scanner, shown)
+                else:
+                    scan = scan_flight(frames if probe is None else probe.tap(frames), estimator, scanner, shown)
+            gate.wait()
+        except MaskChanged:
+            scanner.discard()  # its spilled pixels go now, not with the stitch's folder
+            raise
+        return scan
+
+    with progress_task(label, total, unit=unit, disable=not show_progress) as advance:
+        return speculate(mask, attempt)
 
 
 def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: Track | None = None):
