@@ -10,6 +10,8 @@ machine); every test here skips cleanly without one, as in CI.
 - one training step of every variant under mixed precision: finite terms, finite non-zero
   gradients;
 - a one-process nccl DistributedDataParallel step gives the gradients of the plain model;
+- the int8 ranges and head error of a net on the GPU (what ``mosaic train --device cuda`` stores
+  in its final weights) are those of the same net on the CPU, and the net stays on the GPU;
 - the benchmark warms the GPU up before timing and times chunks of 1, 16 and 64 pairs.
 """
 
@@ -144,3 +146,23 @@ def test_the_gpu_benchmark_warms_the_device_up_and_times_chunks_of_1_16_and_64(f
     assert _warm_up(make_estimator("lstm", device="cpu"), frames, (640, 360)) is None  # a CPU starts cold, as a command does
     batch = _gpu_batch("lstm", 320, None, frames[:33], (640, 360))
     assert set(batch) == {"chunk_1", "chunk_16", "chunk_64"} and all(v["fps"] > 0 for v in batch.values())
+
+
+def test_int8_calibration_of_a_net_on_the_gpu_is_that_of_its_cpu_copy():
+    """The int8 LSTM exists only on the CPU: ``train --device cuda`` failed when it saved its
+    final weights (quantized::make_quantized_cell_params_dynamic has no CUDA kernel)."""
+    from mosaic_cli.model import HomographyNet, NetConfig, quantize
+
+    if quantize.engine() is None:
+        pytest.skip("this PyTorch has no int8 engine")
+    torch.manual_seed(0)
+    cpu = HomographyNet(NetConfig(head="lstm", patch=64)).eval()
+    gpu = HomographyNet(NetConfig(head="lstm", patch=64)).eval()
+    gpu.load_state_dict(cpu.state_dict())
+    gpu.cuda()
+    pairs = torch.rand(16, 2, 64, 64, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    on_cpu = quantize.calibrate(cpu, pairs)
+    on_gpu = quantize.calibrate(gpu, pairs.cuda())
+    assert on_gpu["head_error"] == on_cpu["head_error"]
+    assert on_gpu["activations"] == on_cpu["activations"]
+    assert all(p.is_cuda for p in gpu.parameters())

@@ -133,6 +133,9 @@ def calibrate(model: HomographyNet, pairs: Tensor, batch: int = 64) -> dict:
     if engine() is None:
         raise RuntimeError("this PyTorch build has no int8 engine")
     torch.backends.quantized.engine = engine()
+    # int8 runs on the CPU only (its LSTM kernels exist for no other backend): a net trained on a
+    # GPU is measured as a CPU copy, and the training net stays where it is.
+    model, pairs = _on_cpu(model), pairs.cpu()
     prepared, _ = _prepare(model, HistogramObserver, pairs[:1])
     for chunk in pairs.split(batch):
         prepared(chunk.float())
@@ -146,6 +149,13 @@ def calibrate(model: HomographyNet, pairs: Tensor, batch: int = 64) -> dict:
     return with_head_error(model, {"format": RANGES_FORMAT, "pairs": int(len(pairs)), "activations": ranges})
 
 
+def _on_cpu(model: HomographyNet) -> HomographyNet:
+    """``model`` itself when its weights are on the CPU, else a CPU copy of it."""
+    if all(p.device.type == "cpu" for p in model.parameters()):
+        return model
+    return copy.deepcopy(model).cpu()
+
+
 def with_head_error(model: HomographyNet, ranges: dict) -> dict:
     """``ranges`` with the int8 LSTM's :func:`head_error` on this platform's engine added (key
     ``head_error``: {engine: px}), so that loading need not probe it (a quarter of a second of
@@ -153,6 +163,7 @@ def with_head_error(model: HomographyNet, ranges: dict) -> dict:
     if model.lstm is None or engine() is None:
         return ranges
     torch.backends.quantized.engine = engine()
+    model = _on_cpu(model)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         int8 = quantize_dynamic_lstm(model)
