@@ -439,3 +439,78 @@ def test_each_command_probes_its_input_once(tmp_path, capsys, flight_clip, media
     assert opened == [str(flight_clip)] * 2
     assert len(decoders(started)) == decodes and len(encoders(started)) == encodes
     assert len(started) == decodes + encodes, started
+
+
+def _ffmpeg_frames(path, pix_fmt: str = "rgb24") -> list[np.ndarray]:
+    """Every frame as ffmpeg itself converts it (the independent truth)."""
+    import subprocess
+
+    from conftest import FFMPEG
+
+    w, h = probe(path).source_size
+    raw = subprocess.run([FFMPEG, "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", pix_fmt, "-"],
+                         capture_output=True, check=True).stdout
+    return list(np.frombuffer(raw, np.uint8).reshape((-1, h, w, 3) if pix_fmt == "rgb24" else (-1, h, w)))
+
+
+def test_full_size_rgb_of_bt601_yuv420p_is_converted_here_as_ffmpeg_converts_it(tmp_path):
+    """An untagged or BT.601 limited-range yuv420p stream read as RGB at full size is piped as
+    yuv420p and converted here: the pixels are ffmpeg's within 3 levels (rounding: ffmpeg's
+    are about a level darker), and each frame keeps its luma plane, whose gray copy is ffmpeg's
+    own gray (what ``track`` decodes) exactly at full size, and within a level once resized."""
+    from mosaic_cli.video.decode import LumaRGB, gray_at
+
+    frames = [textured_image(320, 180, seed=k) for k in range(4)]
+    for name, extra in (("untagged", []), ("bt601", ["-colorspace", "smpte170m", "-color_range", "tv"])):
+        path = write_clip(tmp_path / f"{name}.mp4", frames, extra=extra)
+        rgb, gray = _ffmpeg_frames(path), _ffmpeg_frames(path, "gray")
+        with open_video(path) as stream:
+            got = list(stream)
+        assert len(got) == len(rgb) == len(gray) == 4
+        for mine, theirs, their_gray in zip(got, rgb, gray):
+            assert isinstance(mine, LumaRGB) and mine.luma is not None, name
+            assert np.abs(mine.astype(int) - theirs).max() <= 3, name
+            assert np.abs(mine.astype(float) - theirs).mean() < 1.5, name
+            assert np.array_equal(gray_at(mine, (320, 180)), their_gray), name
+            for size in ((160, 90), (64, 36)):
+                expected = cv2.resize(their_gray, size, interpolation=cv2.INTER_AREA)
+                assert np.abs(gray_at(mine, size).astype(int) - expected).max() <= 1, (name, size)
+
+
+@pytest.mark.parametrize("extra, pix_fmt, size", [
+    (["-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709"], "yuv420p", (320, 180)),  # another matrix
+    ([], "yuvj420p", (320, 180)),  # full range
+    ([], "yuv444p", (320, 180)),  # another layout
+])
+def test_rgb_of_other_streams_is_ffmpeg_s_own_conversion(tmp_path, extra, pix_fmt, size):
+    """Streams whose conversion OpenCV would not repeat (another matrix, full range, another
+    layout) are converted by ffmpeg as before: bit for bit its frames, with no luma kept."""
+    from mosaic_cli.video.decode import LumaRGB
+
+    frames = [textured_image(*size, seed=k) for k in range(3)]
+    path = write_clip(tmp_path / "clip.mp4", frames, pix_fmt=pix_fmt, extra=extra)
+    truth = _ffmpeg_frames(path)
+    with open_video(path) as stream:
+        got = list(stream)
+    expect_here = pix_fmt == "yuv420p" and not extra
+    assert all(isinstance(f, LumaRGB) for f in got) == expect_here
+    if not expect_here:
+        assert all(np.array_equal(a, b) for a, b in zip(got, truth))
+
+
+def test_a_downscaled_or_odd_sized_rgb_read_is_ffmpeg_s_and_slices_drop_the_luma(tmp_path):
+    from mosaic_cli.video.decode import LumaRGB, gray_at
+
+    frames = [textured_image(320, 180, seed=k) for k in range(2)]
+    path = write_clip(tmp_path / "clip.mp4", frames)
+    with open_video(path, width=160) as stream:
+        assert not any(isinstance(f, LumaRGB) for f in stream)
+    odd = write_clip(tmp_path / "odd.mkv", [textured_image(321, 181, seed=k) for k in range(2)], codec="ffv1", pix_fmt="yuv420p")
+    with open_video(odd) as stream:
+        assert not any(isinstance(f, LumaRGB) for f in stream)
+    with open_video(path) as stream:
+        frame = next(iter(stream))
+    part = frame[10:90, 20:180]
+    assert getattr(part, "luma", None) is None
+    assert np.array_equal(gray_at(part, (80, 40)), cv2.resize(cv2.cvtColor(np.ascontiguousarray(part), cv2.COLOR_RGB2GRAY), (80, 40),
+                                                                 interpolation=cv2.INTER_AREA))

@@ -22,6 +22,7 @@ import numpy as np
 
 from mosaic_cli.geometry import to_resolution
 from mosaic_cli.mask import work_mask
+from mosaic_cli.video.decode import gray_at
 
 
 @dataclass(frozen=True)
@@ -119,10 +120,7 @@ class Estimator(ABC):
 
     def prepare(self, frame: np.ndarray) -> np.ndarray:
         """Gray frame at the working resolution (from a frame at any resolution)."""
-        gray = to_gray(frame)
-        if (gray.shape[1], gray.shape[0]) != self.work_size:
-            gray = cv2.resize(gray, self.work_size, interpolation=cv2.INTER_AREA)
-        return gray
+        return gray_at(frame, self.work_size)
 
     def prepared(self, frame: np.ndarray) -> np.ndarray:
         """``prepare(frame)``, timed into :attr:`timings` when it is set: what ``feed`` calls."""

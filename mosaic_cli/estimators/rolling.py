@@ -29,6 +29,7 @@ from mosaic_cli.geometry import resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_corrections, band_motion, estimate_readout
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
+from mosaic_cli.video.decode import gray_at
 
 BANDS = 16
 TRACK_WIDTH = 640  # corners tracked at this width: finer than a band's wobble needs
@@ -152,12 +153,9 @@ class RollingProbe:
             return
         clock, cpu = time.perf_counter(), time.thread_time()
         h, w = frame.shape[:2]
-        if w > TRACK_WIDTH:
-            frame = cv2.resize(frame, (TRACK_WIDTH, max(1, round(h * TRACK_WIDTH / w))), interpolation=cv2.INTER_AREA)
-        if frame.ndim == 3:
-            frame = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
-        elif w <= TRACK_WIDTH:
-            frame = frame.copy()  # kept for the next pair: the pass that decoded it may change it
+        small = gray_at(frame, (TRACK_WIDTH, max(1, round(h * TRACK_WIDTH / w))) if w > TRACK_WIDTH else (w, h))
+        # Kept for the next pair: a copy, since the pass that decoded the frame may change it.
+        frame = small.copy() if small is frame else small
         self.width = frame.shape[1]
         if self._prev is not None:
             src, dst = track_corners(self._prev, frame, PROBE_CORNERS)

@@ -42,6 +42,7 @@ from mosaic_cli.geometry import frame_corners, is_valid, project
 from mosaic_cli.mask import fill_masked
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions, Features, PairMatch, corner_distance
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
+from mosaic_cli.video.decode import gray_at
 
 
 @dataclass
@@ -176,6 +177,7 @@ class KeyframeStore:
                 k.image = self._held(image)
 
     def _held(self, image: np.ndarray) -> Pixels:
+        image = np.asarray(image)  # the pixels alone: a decoded frame's luma plane is not kept
         return SpilledImage(image, self.spill) if self.spill is not None else image
 
     def _resized(self, image: np.ndarray, have: float, want: float) -> tuple[np.ndarray, float]:
@@ -372,9 +374,7 @@ class FlightScanner:
 
     # -- keyframe choice -------------------------------------------------------------
     def _quality(self, frame: np.ndarray) -> FrameQuality:
-        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
-        gray = cv2.resize(gray, self._quality_size, interpolation=cv2.INTER_AREA)
-        quality = measure_quality(gray)
+        quality = measure_quality(gray_at(frame, self._quality_size))
         if quality.well_exposed(self.o):
             self._sharpness.append(quality.sharpness)
         return quality

@@ -47,6 +47,12 @@ class VideoInfo:
     stream_index: int | None = None  # of the video stream read, in the file
     streams: tuple[StreamMeta, ...] = ()  # the file's other streams, in file order
     video_codec: str | None = None  # libav's name of the video stream's codec ("h264", "hevc", ...)
+    # The first decoded frame's pixel format ("yuv420p", ...) and libav's codes of its colour
+    # matrix (AVColorSpace: 1 BT.709, 2 unspecified, 5 and 6 BT.601) and range (AVColorRange:
+    # 0 unspecified, 1 limited, 2 full); None where not known (image folders).
+    pixel_format: str | None = None
+    color_matrix: int | None = None
+    color_range: int | None = None
 
     @property
     def has_audio(self) -> bool:

@@ -85,7 +85,17 @@ def _probe_container(p: Path, container) -> VideoInfo:
     others = tuple(_stream_meta(s) for s in container.streams if s.index != video.index)
     audio = next((s.codec for s in others if s.kind == "audio"), None)
     return VideoInfo(str(p), size, size, fps, count, duration, rotation, audio, damage=damage,
-                     stream_index=video.index, streams=others, video_codec=video.codec_context.name if video.codec_context else None)
+                     stream_index=video.index, streams=others, video_codec=video.codec_context.name if video.codec_context else None,
+                     pixel_format=first.format.name, color_matrix=_code(first, "colorspace"), color_range=_code(first, "color_range"))
+
+
+def _code(frame, name: str) -> int | None:
+    """libav's integer code of a frame's colour property (PyAV gives ints or enums)."""
+    value = getattr(frame, name, None)
+    try:
+        return int(value) if value is not None else None
+    except (TypeError, ValueError):
+        return None
 
 
 def audio_codec_of(path: str | Path) -> str | None:
