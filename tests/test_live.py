@@ -422,3 +422,21 @@ def test_the_previews_incremental_drift_control_places_keyframes_as_well_as_the_
 
     final = errors([H for _, H in result.transforms])
     assert errors(seen["placements"]) <= 1.5 * final + 0.1
+
+
+@pytest.mark.parametrize("extra", [[], ["-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709"]])
+def test_live_rgb_frames_are_the_file_reader_s(tmp_path, extra):
+    """A live source's RGB frames are converted as a file's are (yuv420p piped, converted in
+    mosaic), whatever the stream's colour tags: a live stitch sees the pixels an offline one does."""
+    from conftest import textured_image, write_clip
+    from mosaic_cli.live.source import LiveStream
+    from mosaic_cli.video import open_video
+
+    clip = write_clip(tmp_path / "clip.mp4", [textured_image(320, 180, seed=k) for k in range(4)], extra=extra)
+    with LiveStream(str(clip), "rgb", live=False, quiet=True) as live:
+        received = list(live)
+    with open_video(clip) as stream:
+        decoded = list(stream)
+    assert len(received) == len(decoded) == 4
+    assert all(np.array_equal(a, b) for a, b in zip(received, decoded))
+    assert all(np.array_equal(a.luma, b.luma) for a, b in zip(received, decoded))

@@ -441,16 +441,21 @@ def test_each_command_probes_its_input_once(tmp_path, capsys, flight_clip, media
     assert len(started) == decodes + encodes, started
 
 
-def _ffmpeg_frames(path, pix_fmt: str = "rgb24") -> list[np.ndarray]:
-    """Every frame as ffmpeg itself converts it (the independent truth)."""
+def _ffmpeg_frames(path, pix_fmt: str = "rgb24", even: bool = False) -> list[np.ndarray]:
+    """Every frame as ffmpeg itself converts it (the independent truth).  ``even``: padded to an
+    even size first and cut back, so that an odd-sized frame takes ffmpeg's even-size conversion
+    (nearest chroma, as OpenCV's) rather than its odd-size one (interpolated chroma)."""
     import subprocess
 
     from conftest import FFMPEG
 
     w, h = probe(path).source_size
-    raw = subprocess.run([FFMPEG, "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", pix_fmt, "-"],
+    W, H = (w + w % 2, h + h % 2) if even else (w, h)
+    pad = ["-vf", f"pad={W}:{H}"] if even else []
+    raw = subprocess.run([FFMPEG, "-v", "error", "-i", str(path), *pad, "-f", "rawvideo", "-pix_fmt", pix_fmt, "-"],
                          capture_output=True, check=True).stdout
-    return list(np.frombuffer(raw, np.uint8).reshape((-1, h, w, 3) if pix_fmt == "rgb24" else (-1, h, w)))
+    frames = np.frombuffer(raw, np.uint8).reshape((-1, H, W, 3) if pix_fmt == "rgb24" else (-1, H, W))
+    return list(frames[:, :h, :w])
 
 
 def test_full_size_rgb_of_bt601_yuv420p_is_converted_here_as_ffmpeg_converts_it(tmp_path):
@@ -477,36 +482,45 @@ def test_full_size_rgb_of_bt601_yuv420p_is_converted_here_as_ffmpeg_converts_it(
                 assert np.abs(gray_at(mine, size).astype(int) - expected).max() <= 1, (name, size)
 
 
-@pytest.mark.parametrize("extra, pix_fmt, size", [
-    (["-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709"], "yuv420p", (320, 180)),  # another matrix
-    ([], "yuvj420p", (320, 180)),  # full range
-    ([], "yuv444p", (320, 180)),  # another layout
+@pytest.mark.parametrize("name, extra, pix_fmt, codec, suffix, size, levels", [
+    ("bt709", ["-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709"], "yuv420p", "libx264", "mp4", (320, 180), 8),
+    ("full range", [], "yuvj420p", "libx264", "mp4", (320, 180), 3),
+    ("odd size", [], "yuv420p", "ffv1", "mkv", (321, 181), 3),
 ])
-def test_rgb_of_other_streams_is_ffmpeg_s_own_conversion(tmp_path, extra, pix_fmt, size):
-    """Streams whose conversion OpenCV would not repeat (another matrix, full range, another
-    layout) are converted by ffmpeg as before: bit for bit its frames, with no luma kept."""
+def test_rgb_of_other_4_2_0_streams_is_converted_here_near_ffmpeg_s(tmp_path, name, extra, pix_fmt, codec, suffix, size, levels):
+    """Another colour matrix or range is brought to BT.601 limited range by ffmpeg before the
+    conversion here; an odd size is converted with its luma padded: each near ffmpeg's own RGB.
+    (For the odd size the truth is ffmpeg's conversion of the frame padded to an even size,
+    whose last row and column carry the pad filter's own edge, so those are left out.)"""
     from mosaic_cli.video.decode import LumaRGB
 
     frames = [textured_image(*size, seed=k) for k in range(3)]
-    path = write_clip(tmp_path / "clip.mp4", frames, pix_fmt=pix_fmt, extra=extra)
-    truth = _ffmpeg_frames(path)
+    path = write_clip(tmp_path / f"clip.{suffix}", frames, codec=codec, pix_fmt=pix_fmt, extra=extra)
+    odd = size[0] % 2 or size[1] % 2
+    truth = _ffmpeg_frames(path, even=bool(odd))
     with open_video(path) as stream:
         got = list(stream)
-    expect_here = pix_fmt == "yuv420p" and not extra
-    assert all(isinstance(f, LumaRGB) for f in got) == expect_here
-    if not expect_here:
-        assert all(np.array_equal(a, b) for a, b in zip(got, truth))
+    assert len(got) == len(truth) == 3
+    inner = np.s_[:-1, :-1] if odd else np.s_[:, :]
+    for mine, theirs in zip(got, truth):
+        assert isinstance(mine, LumaRGB) and mine.shape == theirs.shape, name
+        difference = np.abs(mine.astype(int) - theirs)[inner]
+        assert difference.max() <= levels, name
+        assert difference.mean() < 1.5, name
 
 
-def test_a_downscaled_or_odd_sized_rgb_read_is_ffmpeg_s_and_slices_drop_the_luma(tmp_path):
+def test_rgb_of_4_4_4_or_downscaled_is_ffmpeg_s_own_conversion(tmp_path):
+    """A 4:4:4 stream keeps ffmpeg's conversion (bit for bit: no chroma lost to a 4:2:0 pipe), as
+    does a downscaled read; slices of a converted frame drop the luma plane."""
     from mosaic_cli.video.decode import LumaRGB, gray_at
 
-    frames = [textured_image(320, 180, seed=k) for k in range(2)]
-    path = write_clip(tmp_path / "clip.mp4", frames)
+    path = write_clip(tmp_path / "444.mp4", [textured_image(320, 180, seed=k) for k in range(3)], pix_fmt="yuv444p")
+    with open_video(path) as stream:
+        got = list(stream)
+    assert not any(isinstance(f, LumaRGB) for f in got)
+    assert all(np.array_equal(a, b) for a, b in zip(got, _ffmpeg_frames(path)))
+    path = write_clip(tmp_path / "clip.mp4", [textured_image(320, 180, seed=k) for k in range(2)])
     with open_video(path, width=160) as stream:
-        assert not any(isinstance(f, LumaRGB) for f in stream)
-    odd = write_clip(tmp_path / "odd.mkv", [textured_image(321, 181, seed=k) for k in range(2)], codec="ffv1", pix_fmt="yuv420p")
-    with open_video(odd) as stream:
         assert not any(isinstance(f, LumaRGB) for f in stream)
     with open_video(path) as stream:
         frame = next(iter(stream))

@@ -17,7 +17,6 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from mosaic_cli.geometry import to_resolution
@@ -52,11 +51,6 @@ class StageTimer:
     def total(self, stage: str) -> float:
         """All the milliseconds ``stage`` took so far."""
         return float(sum(self.ms.get(stage, ())))
-
-
-def to_gray(frame: np.ndarray) -> np.ndarray:
-    """(h, w) uint8 from an RGB (h, w, 3) or already-gray frame."""
-    return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
 
 
 def working_size(size: tuple[int, int], work_width: int) -> tuple[int, int]:

@@ -33,6 +33,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import DEFAULT_TIMEOUT
 from mosaic_cli.progress import note
+from mosaic_cli.video.decode import CONVERTED_HERE, TO_BT601, rgb_from_yuv420p, yuv420p_bytes
 from mosaic_cli.video.reader import VideoInfo, ffmpeg_exe, read_into, scaled_size
 
 STDIN = "-"
@@ -144,6 +145,10 @@ class LiveStream:
         self._audio: str | None = None
         self._queue: queue.Queue | None = None
         self._probed = info
+        # RGB comes as yuv420p and is converted here, as a file's is (video/decode.py): a live
+        # stitch then sees the frames an offline one does.  Only a probed file of another layout
+        # (4:4:4) keeps ffmpeg's conversion, as offline.
+        self._rgb_here = pixels == "rgb" and (info is None or info.pixel_format in CONVERTED_HERE)
         self._proc = self._start()
         try:
             self.info = self._wait_for_header(width)
@@ -153,7 +158,7 @@ class LiveStream:
 
     # -- the decoder --------------------------------------------------------------------
     def _start(self) -> subprocess.Popen:
-        pix_fmt = {"gray": "gray", "rgb": "rgb24", "yuv420p": "yuv420p"}[self.pixels]
+        pix_fmt = "yuv420p" if self._rgb_here else {"gray": "gray", "rgb": "rgb24", "yuv420p": "yuv420p"}[self.pixels]
         cmd = [ffmpeg_exe(), "-hide_banner", "-nostats", "-v", "info"]
         if self.source != STDIN and not self.live:
             cmd += ["-nostdin"]
@@ -167,8 +172,10 @@ class LiveStream:
         cmd += ["-analyzeduration", str(int(PROBE_SECONDS * 1_000_000)), "-probesize", str(PROBE_BYTES)]
         probed = self._probed.stream_index if self._probed is not None else None
         cmd += ["-i", "pipe:0" if self.source == STDIN else self.source,
-                "-map", f"0:{probed}" if probed is not None else "0:v:0", "-an", "-sn", "-fps_mode", "passthrough",
-                "-f", "rawvideo", "-pix_fmt", pix_fmt, "pipe:1"]
+                "-map", f"0:{probed}" if probed is not None else "0:v:0", "-an", "-sn", "-fps_mode", "passthrough"]
+        if self._rgb_here:
+            cmd += ["-vf", TO_BT601]
+        cmd += ["-f", "rawvideo", "-pix_fmt", pix_fmt, "pipe:1"]
         stdin = sys.stdin.buffer if self.source == STDIN else subprocess.DEVNULL
         if self.source == STDIN:
             # pytest and some shells hand us no usable stdin; say so rather than hang.
@@ -248,9 +255,11 @@ class LiveStream:
         if self.pixels == "yuv420p" and (w % 2 or h % 2):
             raise BadInput(f"{source_name(self.source)}: odd frame size {w}x{h}")
         self._frame_shape = {"gray": (h, w), "rgb": (h, w, 3), "yuv420p": (h * 3 // 2, w)}[self.pixels]
-        frame_bytes = int(np.prod(self._frame_shape))
+        frame_bytes = int(np.prod(self._frame_shape))  # as queued
         self._queue = queue.Queue(maxsize=max(QUEUE_MIN_FRAMES, QUEUE_BYTES // frame_bytes))
-        threading.Thread(target=self._read_frames, args=(frame_bytes,), daemon=True).start()
+        self._source_size = source_size
+        piped = yuv420p_bytes(source_size) if self._rgb_here else frame_bytes
+        threading.Thread(target=self._read_frames, args=(piped,), daemon=True).start()
         return VideoInfo(source_name(self.source), size, source_size, fps, None, 0.0, 0, audio)
 
     def _read_frames(self, frame_bytes: int) -> None:
@@ -260,7 +269,9 @@ class LiveStream:
                 buffer = bytearray(frame_bytes)
                 if read_into(pipe, memoryview(buffer)) < frame_bytes:
                     break  # the end (a partial last frame is not a frame)
-                arrival = Arrival(np.frombuffer(buffer, np.uint8).reshape(self._frame_shape), time.monotonic())
+                flat = np.frombuffer(buffer, np.uint8)
+                frame = rgb_from_yuv420p(flat, self._source_size) if self._rgb_here else flat.reshape(self._frame_shape)
+                arrival = Arrival(frame, time.monotonic())
                 self._queue.put(arrival)
         except (OSError, ValueError):
             pass

@@ -50,21 +50,33 @@ def ffmpeg_exe() -> str:
 _PIX_FMT = {"rgb": "rgb24", "gray": "gray", "yuv420p": "yuv420p"}
 
 
-# Colour matrices (libav's AVColorSpace codes) for which ffmpeg's yuv420p -> RGB conversion is
-# BT.601's, as OpenCV's I420 conversion is: unspecified, BT.470BG and SMPTE 170M.
-BT601_MATRICES = (2, 5, 6)
+# Full-size RGB frames of 8-bit 4:2:0 streams are piped as yuv420p, half the bytes of RGB, and
+# converted here; ffmpeg first brings any other colour matrix or range to BT.601 limited range,
+# the one OpenCV's conversion assumes (a no-op on untagged and BT.601 video).
+CONVERTED_HERE = ("yuv420p", "yuvj420p")
+TO_BT601 = "scale=out_color_matrix=bt601:out_range=tv"
 
 
 def rgb_converted_here(info: VideoInfo, size: tuple[int, int]) -> bool:
-    """Whether RGB frames of ``size`` are decoded as yuv420p and converted in this process: at
-    full size, of even width and height, from limited-range BT.601 (or untagged) yuv420p.  The
-    pipe then carries half the bytes (12 instead of 25 MB a 4K frame), for OpenCV's conversion
-    (3.5 ms a 4K frame on one core); the pixels are ffmpeg's within 3 levels (rounding).  Other
-    streams (BT.709, full range, other formats, a downscale) keep ffmpeg's conversion, which
-    follows their tags."""
+    """Whether RGB frames of ``size`` are decoded as yuv420p and converted in this process
+    (:func:`rgb_from_yuv420p`): at full size, from an 8-bit 4:2:0 stream.  The pipe then
+    carries half the bytes; the pixels are ffmpeg's own conversion's within a few levels
+    (docs/developer/video.md).  Other layouts (4:4:4: no chroma lost) and downscaled reads keep
+    ffmpeg's conversion."""
+    return size == info.source_size and info.pixel_format in CONVERTED_HERE
+
+
+def is_bt601_limited(info: VideoInfo) -> bool:
+    """Whether the stream is already what :data:`TO_BT601` makes (untagged counts: ffmpeg reads
+    it so), when the filter, a no-op there, would only cost a copy of each frame."""
+    return info.pixel_format == "yuv420p" and info.color_matrix in (2, 5, 6) and info.color_range in (0, 1)
+
+
+def yuv420p_bytes(size: tuple[int, int]) -> int:
+    """The bytes of one yuv420p frame of ``size`` (w, h) as ffmpeg writes it: the luma plane,
+    then two chroma planes of ceil(w/2) x ceil(h/2)."""
     w, h = size
-    return (size == info.source_size and w % 2 == 0 and h % 2 == 0 and info.pixel_format == "yuv420p"
-            and info.color_matrix in BT601_MATRICES and info.color_range in (0, 1))
+    return w * h + 2 * ((w + 1) // 2) * ((h + 1) // 2)
 
 
 class LumaRGB(np.ndarray):
@@ -84,10 +96,34 @@ class LumaRGB(np.ndarray):
 _LIMITED_TO_FULL = np.clip(np.round((np.arange(256) - 16) * 255.0 / 219.0), 0, 255).astype(np.uint8)
 
 
+def rgb_from_yuv420p(flat: np.ndarray, size: tuple[int, int]) -> LumaRGB:
+    """The RGB frame (h, w, 3) of a BT.601 limited-range yuv420p frame ``flat`` (its bytes, as
+    :func:`yuv420p_bytes` counts them), keeping its luma plane (a view of ``flat``).  An odd
+    width or height is converted with the luma padded by its last column or row (the chroma
+    planes already cover it), then cut back."""
+    import cv2
+
+    w, h = size
+    W, H = w + w % 2, h + h % 2
+    luma = flat[:w * h].reshape(h, w)
+    if (W, H) == (w, h):
+        planes = flat.reshape(H * 3 // 2, W)
+    else:
+        planes = np.empty((H * 3 // 2, W), np.uint8)
+        planes[:H] = cv2.copyMakeBorder(luma, 0, H - h, 0, W - w, cv2.BORDER_REPLICATE)
+        planes[H:].reshape(-1)[:] = flat[w * h:]
+    rgb = cv2.cvtColor(planes, cv2.COLOR_YUV2RGB_I420)
+    if (W, H) != (w, h):
+        rgb = np.ascontiguousarray(rgb[:h, :w])
+    frame = rgb.view(LumaRGB)
+    frame.luma = luma
+    return frame
+
+
 def gray_at(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(h, w) uint8 gray of an RGB (h, w, 3) or gray ``frame``, resized to ``size`` (w, h) with
-    area averaging.  A :class:`LumaRGB` frame is resized from its luma plane (at 4K, 1.3 instead
-    of 4.3 ms), the same gray within a level or two."""
+    area averaging.  A :class:`LumaRGB` frame is resized from its luma plane instead of being
+    converted whole (on BT.601 video, exactly ffmpeg's own gray at full size)."""
     import cv2
 
     luma = getattr(frame, "luma", None)
@@ -121,7 +157,7 @@ class Decoder:
         self.shape = frame_shape(pixels, self.size)
         self._to_rgb = pixels == "rgb" and rgb_converted_here(info, self.size)
         piped = "yuv420p" if self._to_rgb else pixels
-        self._piped_shape = frame_shape(piped, self.size)
+        self._piped_bytes = yuv420p_bytes(self.size) if self._to_rgb else int(np.prod(self.shape))
         self.error: str | None = None
         cmd = [ffmpeg_exe(), "-hide_banner", "-nostdin", "-loglevel", "error"]
         if seek is not None:
@@ -131,6 +167,8 @@ class Decoder:
         stream = f"0:{info.stream_index}" if info.stream_index is not None else "0:v:0"
         cmd += ["-i", info.path, "-map", stream]
         filters = [select] if select else []
+        if self._to_rgb and not is_bt601_limited(info):
+            filters.append(TO_BT601)
         if self.size != info.source_size:
             filters.append(f"scale={self.size[0]}:{self.size[1]}:flags=area")
         if filters:
@@ -148,24 +186,19 @@ class Decoder:
         except OSError as exc:
             self._log.close()
             raise BadInput(f"{info.path}: cannot start ffmpeg ({exc.strerror})") from None
-        _widen_pipe(self._proc.stdout, int(np.prod(self._piped_shape)))
+        _widen_pipe(self._proc.stdout, self._piped_bytes)
 
     def __iter__(self) -> Iterator[np.ndarray]:
         assert self._proc is not None and self._proc.stdout is not None
         pipe = self._proc.stdout
-        nbytes = int(np.prod(self._piped_shape))
+        nbytes = self._piped_bytes
         got = 0
-        if self._to_rgb:
-            import cv2
         while True:
-            frame = np.empty(self._piped_shape, np.uint8)
-            got = read_into(pipe, memoryview(frame.reshape(-1)))
+            flat = np.empty(nbytes, np.uint8)
+            got = read_into(pipe, memoryview(flat))
             if got < nbytes:
                 break
-            if self._to_rgb:
-                planes, frame = frame, cv2.cvtColor(frame, cv2.COLOR_YUV2RGB_I420).view(LumaRGB)
-                frame.luma = planes[:self.size[1]]
-            yield frame
+            yield rgb_from_yuv420p(flat, self.size) if self._to_rgb else flat.reshape(self.shape)
         status = self._proc.wait()
         self._log.seek(0)
         lines = [re.sub(r"^(\[[^]]*\] ?)+", "", ln).strip() for ln in self._log.read().decode("utf-8", "replace").splitlines()]
