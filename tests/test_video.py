@@ -507,6 +507,30 @@ def test_rgb_of_other_4_2_0_streams_is_converted_here_near_ffmpeg_s(tmp_path, na
         difference = np.abs(mine.astype(int) - theirs)[inner]
         assert difference.max() <= levels, name
         assert difference.mean() < 1.5, name
+    if odd:  # the whole frame, last row and column too, against BT.601's formula on ffmpeg's planes
+        for mine, formula in zip(got, _bt601_of_yuv420p(path)):
+            assert np.abs(mine.astype(float) - formula).max() <= 2, name
+
+
+def _bt601_of_yuv420p(path) -> list[np.ndarray]:
+    """RGB by BT.601's limited-range formula (float, then rounded) from the yuv420p planes ffmpeg
+    decodes, each chroma sample covering its 2x2 pixels (the last ones cut at an odd edge)."""
+    import subprocess
+
+    from conftest import FFMPEG
+
+    w, h = probe(path).source_size
+    cw, ch = (w + 1) // 2, (h + 1) // 2
+    raw = np.frombuffer(subprocess.run([FFMPEG, "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "yuv420p", "-"],
+                                       capture_output=True, check=True).stdout, np.uint8)
+    out = []
+    for frame in raw.reshape(-1, w * h + 2 * cw * ch):
+        y = frame[:w * h].reshape(h, w).astype(float) - 16
+        u, v = (frame[w * h + k * cw * ch:w * h + (k + 1) * cw * ch].reshape(ch, cw).repeat(2, 0).repeat(2, 1)[:h, :w].astype(float) - 128
+                for k in (0, 1))
+        rgb = np.stack([1.164 * y + 1.596 * v, 1.164 * y - 0.392 * u - 0.813 * v, 1.164 * y + 2.017 * u], axis=-1)
+        out.append(np.clip(np.round(rgb), 0, 255))
+    return out
 
 
 def test_rgb_of_4_4_4_or_downscaled_is_ffmpeg_s_own_conversion(tmp_path):
