@@ -15,6 +15,7 @@ import numpy as np
 
 from mosaic_cli.geometry import frame_corners, is_valid, project, resize_matrix
 from mosaic_cli.mask import work_mask
+from mosaic_cli.video.decode import gray_at
 
 MASK_MARGIN = 4  # px at the feature width: keypoints this close to an overlay are not kept
 
@@ -88,10 +89,7 @@ class FeatureExtractor:
         self._mask = work_mask(use, self.size, margin=MASK_MARGIN)
 
     def __call__(self, frame: np.ndarray) -> Features:
-        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
-        if (gray.shape[1], gray.shape[0]) != self.size:
-            gray = cv2.resize(gray, self.size, interpolation=cv2.INTER_AREA)
-        keypoints, descriptors = self._sift.detectAndCompute(gray, self._mask)
+        keypoints, descriptors = self._sift.detectAndCompute(gray_at(frame, self.size), self._mask)
         if not keypoints or descriptors is None:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
         points = project(self._to_source, np.array([k.pt for k in keypoints], np.float64)).astype(np.float32)
