@@ -462,7 +462,8 @@ def test_full_size_rgb_of_bt601_yuv420p_is_converted_here_as_ffmpeg_converts_it(
     """An untagged or BT.601 limited-range yuv420p stream read as RGB at full size is piped as
     yuv420p and converted here: the pixels are ffmpeg's within 3 levels (rounding: ffmpeg's
     are about a level darker), and each frame keeps its luma plane, whose gray copy is ffmpeg's
-    own gray (what ``track`` decodes) exactly at full size, and within a level once resized."""
+    own gray (what ``track`` decodes) exactly at full size, and within a level once resized
+    (each size made once, read-only)."""
     from mosaic_cli.video.decode import LumaRGB, gray_at
 
     frames = [textured_image(320, 180, seed=k) for k in range(4)]
@@ -480,6 +481,11 @@ def test_full_size_rgb_of_bt601_yuv420p_is_converted_here_as_ffmpeg_converts_it(
             for size in ((160, 90), (64, 36)):
                 expected = cv2.resize(their_gray, size, interpolation=cv2.INTER_AREA)
                 assert np.abs(gray_at(mine, size).astype(int) - expected).max() <= 1, (name, size)
+                # Made once per size: every stage that asks shares it, and none may change it.
+                again = gray_at(mine, size)
+                assert again is gray_at(mine, size) and not again.flags.writeable
+                with pytest.raises(ValueError):
+                    again[0, 0] = 0
 
 
 @pytest.mark.parametrize("name, extra, pix_fmt, codec, suffix, size, levels", [

@@ -82,13 +82,16 @@ def yuv420p_bytes(size: tuple[int, int]) -> int:
 class LumaRGB(np.ndarray):
     """An RGB frame (h, w, 3) converted in this process from yuv420p, with its luma plane (h, w)
     kept beside it as ``luma``, so that a small gray copy costs a resize of that plane instead of
-    a conversion of the whole frame (:func:`gray_at`).  Anything made from it (a slice, a copy,
-    arithmetic) is a frame without ``luma``."""
+    a conversion of the whole frame (:func:`gray_at`), and each size is made once however many
+    stages ask for it (``grays``).  Anything made from it (a slice, a copy, arithmetic) is a
+    frame without ``luma``."""
 
     luma: np.ndarray | None
+    grays: dict[tuple[int, int], np.ndarray]
 
     def __array_finalize__(self, obj) -> None:
         self.luma = None
+        self.grays = {}
 
 
 # BT.601's RGB -> gray undoes its YUV -> RGB (the chroma terms cancel): the gray of a converted
@@ -123,13 +126,21 @@ def rgb_from_yuv420p(flat: np.ndarray, size: tuple[int, int]) -> LumaRGB:
 def gray_at(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(h, w) uint8 gray of an RGB (h, w, 3) or gray ``frame``, resized to ``size`` (w, h) with
     area averaging.  A :class:`LumaRGB` frame is resized from its luma plane instead of being
-    converted whole (on BT.601 video, exactly ffmpeg's own gray at full size)."""
+    converted whole (on BT.601 video, exactly ffmpeg's own gray at full size), once per size:
+    the same read-only array for each call."""
     import cv2
 
     luma = getattr(frame, "luma", None)
     if luma is not None:
-        small = luma if (luma.shape[1], luma.shape[0]) == size else cv2.resize(luma, size, interpolation=cv2.INTER_AREA)
-        return cv2.LUT(small, _LIMITED_TO_FULL)
+        grays = frame.grays  # type: ignore[attr-defined]  (a LumaRGB)
+        size = (int(size[0]), int(size[1]))
+        gray = grays.get(size)
+        if gray is None:  # stitch's estimator and its frame quality both ask for the working size
+            small = luma if (luma.shape[1], luma.shape[0]) == size else cv2.resize(luma, size, interpolation=cv2.INTER_AREA)
+            gray = cv2.LUT(small, _LIMITED_TO_FULL)
+            gray.flags.writeable = False  # shared by every stage that asks: none may change it
+            grays[size] = gray
+        return gray
     gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
     return gray if (gray.shape[1], gray.shape[0]) == size else cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
 
