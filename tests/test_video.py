@@ -488,6 +488,31 @@ def test_full_size_rgb_of_bt601_yuv420p_is_converted_here_as_ffmpeg_converts_it(
                     again[0, 0] = 0
 
 
+def test_lazy_rgb_frames_are_the_converted_ones_converted_only_when_asked(tmp_path):
+    """``open_video(..., lazy_rgb=True)`` (stitch's scan): each frame is RGB only once its pixels
+    are asked for, then exactly the eagerly converted frame; its gray copies are those of the
+    eager frame without any conversion; a stream that is not converted here comes as arrays."""
+    from mosaic_cli.video.decode import YuvFrame, gray_at
+
+    path = write_clip(tmp_path / "clip.mp4", [textured_image(320, 180, seed=k) for k in range(3)])
+    with open_video(path) as stream:
+        eager = list(stream)
+    with open_video(path, lazy_rgb=True) as stream:
+        lazy = list(stream)
+    assert len(lazy) == len(eager) == 3
+    for mine, theirs in zip(lazy, eager):
+        assert isinstance(mine, YuvFrame) and mine.shape == theirs.shape and mine._rgb is None
+        for size in ((320, 180), (160, 90)):
+            assert np.array_equal(gray_at(mine, size), gray_at(theirs, size))
+        assert mine._rgb is None  # the gray copies converted nothing
+        pixels = np.asarray(mine)
+        assert type(pixels) is np.ndarray and np.array_equal(pixels, theirs)
+        assert np.asarray(mine) is pixels  # converted once
+    path = write_clip(tmp_path / "444.mp4", [textured_image(320, 180, seed=0)], pix_fmt="yuv444p")
+    with open_video(path, lazy_rgb=True) as stream:
+        assert all(type(f) is np.ndarray for f in stream)
+
+
 @pytest.mark.parametrize("name, extra, pix_fmt, codec, suffix, size, levels", [
     ("bt709", ["-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709"], "yuv420p", "libx264", "mp4", (320, 180), 8),
     ("full range", [], "yuvj420p", "libx264", "mp4", (320, 180), 3),

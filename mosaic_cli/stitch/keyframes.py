@@ -177,7 +177,7 @@ class KeyframeStore:
                 k.image = self._held(image)
 
     def _held(self, image: np.ndarray) -> Pixels:
-        image = np.asarray(image)  # the pixels alone: a decoded frame's luma plane is not kept
+        image = np.asarray(image)  # the pixels alone: a decoded frame's luma plane and gray copies are not kept
         return SpilledImage(image, self.spill) if self.spill is not None else image
 
     def _resized(self, image: np.ndarray, have: float, want: float) -> tuple[np.ndarray, float]:
@@ -439,8 +439,10 @@ class FlightScanner:
         if not coverage.covered or coverage.new_fraction(cells) >= self.o.min_new_coverage:
             coverage.add(cells)
             # Overlay pixels are replaced by the ground around them: the blender's pyramid
-            # reaches a few pixels past the mask's edge.
-            self.store.keep(keyframe, frame if self.use is None else fill_masked(frame, self.use), world)
+            # reaches a few pixels past the mask's edge.  (A video's frame becomes RGB only here:
+            # see video.YuvFrame.)
+            pixels = np.asarray(frame)
+            self.store.keep(keyframe, pixels if self.use is None else fill_masked(pixels, self.use), world)
             self.store.shrink(self.keyframes)
         self.keyframes.append(keyframe)
         self.previous = len(self.keyframes) - 1

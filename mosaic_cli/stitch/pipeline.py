@@ -399,7 +399,9 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
         scanner = FlightScanner(info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features,
                                 max_size, spill, use)
         try:
-            with open_video(video, width=width, start=options.start, info=info) as stream:
+            # Frames whose pixels the scan keeps (about one in fifty) are converted to RGB; the
+            # others serve only their gray copies.
+            with open_video(video, width=width, start=options.start, info=info, lazy_rgb=True) as stream:
                 frames = gate.frames(itertools.islice(stream, options.max_frames))
                 shown = functools.partial(gate.emit, advance)
                 if photos:

@@ -94,6 +94,42 @@ class LumaRGB(np.ndarray):
         self.grays = {}
 
 
+class YuvFrame:
+    """A full-size frame decoded as BT.601 limited-range yuv420p and kept so, standing for its RGB
+    frame (h, w, 3) where only some frames' pixels are ever needed (``stitch`` keeps about one
+    frame in fifty): every gray copy is resized from its luma plane (:func:`gray_at`, each size
+    once), and the RGB frame is converted once, when its pixels are first asked for
+    (``np.asarray(frame)``), as :func:`rgb_from_yuv420p` converts it.  Read with
+    ``open_video(..., lazy_rgb=True)``."""
+
+    __slots__ = ("_flat", "size", "luma", "grays", "_rgb")
+    ndim = 3
+    dtype = np.dtype(np.uint8)
+
+    def __init__(self, flat: np.ndarray, size: tuple[int, int]):
+        w, h = size
+        self._flat, self.size = flat, size
+        self.luma = flat[:w * h].reshape(h, w)
+        self.grays: dict[tuple[int, int], np.ndarray] = {}
+        self._rgb: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.size[1], self.size[0], 3)
+
+    @property
+    def rgb(self) -> np.ndarray:
+        """The RGB frame, converted on the first call (a plain array: slices and copies of it
+        carry no luma plane)."""
+        if self._rgb is None:
+            self._rgb = np.asarray(rgb_from_yuv420p(self._flat, self.size))
+        return self._rgb
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        rgb = self.rgb
+        return rgb if dtype is None or np.dtype(dtype) == rgb.dtype else rgb.astype(dtype)
+
+
 # BT.601's RGB -> gray undoes its YUV -> RGB (the chroma terms cancel): the gray of a converted
 # frame is its luma stretched from the limited range 16-235 to 0-255 (but where a channel clipped).
 _LIMITED_TO_FULL = np.clip(np.round((np.arange(256) - 16) * 255.0 / 219.0), 0, 255).astype(np.uint8)
@@ -159,7 +195,8 @@ class Decoder:
     complaint, if it made one.  Close (or use as a context manager) to stop it early."""
 
     def __init__(self, info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None,
-                 select: str | None = None, seek: float | None = None, frames: int | None = None, references_only: bool = False):
+                 select: str | None = None, seek: float | None = None, frames: int | None = None, references_only: bool = False,
+                 lazy_rgb: bool = False):
         if pixels not in PIXELS:
             raise ValueError(f"pixels must be one of {', '.join(PIXELS)}, got {pixels}")
         self.size = size or info.source_size
@@ -167,6 +204,7 @@ class Decoder:
             raise ValueError(f"yuv420p frames are read at the source size, even only; got {self.size}")
         self.shape = frame_shape(pixels, self.size)
         self._to_rgb = pixels == "rgb" and rgb_converted_here(info, self.size)
+        self._lazy = lazy_rgb and self._to_rgb
         piped = "yuv420p" if self._to_rgb else pixels
         self._piped_bytes = yuv420p_bytes(self.size) if self._to_rgb else int(np.prod(self.shape))
         self.error: str | None = None
@@ -209,7 +247,10 @@ class Decoder:
             got = read_into(pipe, memoryview(flat))
             if got < nbytes:
                 break
-            yield rgb_from_yuv420p(flat, self.size) if self._to_rgb else flat.reshape(self.shape)
+            if self._lazy:
+                yield YuvFrame(flat, self.size)  # type: ignore[misc]  (it stands for the RGB frame: see YuvFrame)
+            else:
+                yield rgb_from_yuv420p(flat, self.size) if self._to_rgb else flat.reshape(self.shape)
         status = self._proc.wait()
         self._log.seek(0)
         lines = [re.sub(r"^(\[[^]]*\] ?)+", "", ln).strip() for ln in self._log.read().decode("utf-8", "replace").splitlines()]
@@ -263,6 +304,7 @@ def open_video(
     *,
     yuv420p: bool = False,
     info: VideoInfo | None = None,
+    lazy_rgb: bool = False,
 ) -> VideoStream:
     """Open ``path`` (a video file or a folder of numbered images) as a stream of frames.
 
@@ -270,7 +312,8 @@ def open_video(
     instead of RGB; ``yuv420p`` (video files of even size, no ``width``) the planes as ffmpeg
     decodes them, (h * 3 // 2, w), with no conversion; ``fps`` overrides the frame rate of an
     image folder; ``start`` skips frames.  ``info``: the file's :func:`probe`, when the caller
-    has it (else it is probed here).
+    has it (else it is probed here).  ``lazy_rgb``: full-size RGB frames that are converted here
+    come as :class:`YuvFrame`, converted only when their pixels are asked for.
     """
     p = Path(path)
     if p.is_dir():
@@ -287,7 +330,7 @@ def open_video(
     pixels = "yuv420p" if yuv420p else "gray" if gray else "rgb"
     size = scaled_size(info.source_size, width)  # (yuv420p: the Decoder refuses a downscale)
     info = replace(info, size=size)
-    decoder = Decoder(info, pixels, size, select=f"select=gte(n\\,{int(start)})" if start else None)
+    decoder = Decoder(info, pixels, size, select=f"select=gte(n\\,{int(start)})" if start else None, lazy_rgb=lazy_rgb)
 
     def frames() -> Iterator[np.ndarray]:
         yield from decoder
