@@ -399,7 +399,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
         scanner = FlightScanner(info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features,
                                 max_size, spill, use)
         try:
-            # Frames whose pixels the scan keeps (about one in fifty) are converted to RGB; the
+            # Only frames whose pixels the scan keeps (the keyframes) are converted to RGB; the
             # others serve only their gray copies.
             with open_video(video, width=width, start=options.start, info=info, lazy_rgb=True) as stream:
                 frames = gate.frames(itertools.islice(stream, options.max_frames))

@@ -96,8 +96,8 @@ class LumaRGB(np.ndarray):
 
 class YuvFrame:
     """A full-size frame decoded as BT.601 limited-range yuv420p and kept so, standing for its RGB
-    frame (h, w, 3) where only some frames' pixels are ever needed (``stitch`` keeps about one
-    frame in fifty): every gray copy is resized from its luma plane (:func:`gray_at`, each size
+    frame (h, w, 3) where only some frames' pixels are ever needed (``stitch`` keeps its
+    keyframes' alone): every gray copy is resized from its luma plane (:func:`gray_at`, each size
     once), and the RGB frame is converted once, when its pixels are first asked for
     (``np.asarray(frame)``), as :func:`rgb_from_yuv420p` converts it.  Read with
     ``open_video(..., lazy_rgb=True)``."""
