@@ -161,14 +161,14 @@ def rgb_from_yuv420p(flat: np.ndarray, size: tuple[int, int]) -> LumaRGB:
 
 def gray_at(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(h, w) uint8 gray of an RGB (h, w, 3) or gray ``frame``, resized to ``size`` (w, h) with
-    area averaging.  A :class:`LumaRGB` frame is resized from its luma plane instead of being
-    converted whole (on BT.601 video, exactly ffmpeg's own gray at full size), once per size:
-    the same read-only array for each call."""
+    area averaging.  A :class:`LumaRGB` or :class:`YuvFrame` frame is resized from its luma plane
+    instead of being converted whole (on BT.601 video, exactly ffmpeg's own gray at full size),
+    once per size: the same read-only array for each call."""
     import cv2
 
     luma = getattr(frame, "luma", None)
     if luma is not None:
-        grays = frame.grays  # type: ignore[attr-defined]  (a LumaRGB)
+        grays = frame.grays  # type: ignore[attr-defined]  (a LumaRGB or a YuvFrame)
         size = (int(size[0]), int(size[1]))
         gray = grays.get(size)
         if gray is None:  # stitch's estimator and its frame quality both ask for the working size
