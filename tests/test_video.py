@@ -508,6 +508,8 @@ def test_lazy_rgb_frames_are_the_converted_ones_converted_only_when_asked(tmp_pa
         pixels = np.asarray(mine)
         assert type(pixels) is np.ndarray and np.array_equal(pixels, theirs)
         assert np.asarray(mine) is pixels  # converted once
+        copied = np.array(mine)  # a copy asked for is one
+        assert copied is not pixels and np.array_equal(copied, pixels) and not np.shares_memory(copied, pixels)
     path = write_clip(tmp_path / "444.mp4", [textured_image(320, 180, seed=0)], pix_fmt="yuv444p")
     with open_video(path, lazy_rgb=True) as stream:
         assert all(type(f) is np.ndarray for f in stream)

@@ -126,8 +126,12 @@ class YuvFrame:
         return self._rgb
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        """The RGB frame itself (``np.asarray``), or a copy where one is asked for (``np.array``,
+        another dtype): the converted frame is shared, never handed out to be changed."""
         rgb = self.rgb
-        return rgb if dtype is None or np.dtype(dtype) == rgb.dtype else rgb.astype(dtype)
+        if dtype is not None and np.dtype(dtype) != rgb.dtype:
+            return rgb.astype(dtype)
+        return rgb.copy() if copy else rgb
 
 
 # BT.601's RGB -> gray undoes its YUV -> RGB (the chroma terms cancel): the gray of a converted
