@@ -255,3 +255,93 @@ def score(prediction: str | Path, options: EvalOptions) -> dict:
                    "pairs": int(len(pred)), "frames": int(len(pred) + 1), "units": "1280x720-equivalent px"}
     metrics["prediction"] = str(prediction)
     return metrics
+
+
+# ----------------------------------------------------------------------------- the memory probe
+
+
+@dataclass
+class MemoryProbe:
+    """What the sequence model's state is worth on one flight with bursts, the network alone
+    (no polish, no fallback, no checks): per pair corner errors (1280x720-equivalent px) with
+    the state carried through the whole flight (``carried``), restarted just before each burst's
+    first pair (``restart_burst``), and restarted as often at ordinary places, half way between
+    bursts (``restart_ordinary``); ``burst`` marks the pairs that touch a burst and ``after_ordinary``
+    the ordinary pairs that follow an ordinary restart, as many as the burst before it spans."""
+
+    carried: np.ndarray
+    restart_burst: np.ndarray
+    restart_ordinary: np.ndarray
+    burst: np.ndarray
+    after_ordinary: np.ndarray
+
+    def failures(self) -> dict[str, int]:
+        """Failed pairs (corner error over FAILURE_PX) of each kind under each condition."""
+        fail = {k: getattr(self, k) > FAILURE_PX for k in ("carried", "restart_burst", "restart_ordinary")}
+        return {
+            "burst_pairs": int(self.burst.sum()),
+            "burst_failed_carried": int(fail["carried"][self.burst].sum()),
+            "burst_failed_restarted": int(fail["restart_burst"][self.burst].sum()),
+            "ordinary_pairs": int(self.after_ordinary.sum()),
+            "ordinary_failed_carried": int(fail["carried"][self.after_ordinary].sum()),
+            "ordinary_failed_restarted": int(fail["restart_ordinary"][self.after_ordinary].sum()),
+        }
+
+
+def memory_probe(video: str | Path, weights: str | Path | None = None, device: str = "cpu") -> MemoryProbe:
+    """:class:`MemoryProbe` of the sequence model (``weights``, default the shipped ``lstm``) on
+    a simulated ``video`` with bursts (its ``.gt.json`` beside it), the centre patch read as the
+    estimator reads it (its int8 features on a CPU)."""
+    import torch
+
+    from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator, make_learned_estimator
+    from mosaic_cli.geometry import to_resolution
+    from mosaic_cli.model.patches import offsets_to_homography
+    from mosaic_cli.simulate import load_ground_truth
+    from mosaic_cli.simulate.bursts import burst_pairs
+    from mosaic_cli.video.decode import open_video
+
+    gt = load_ground_truth(video)
+    if not gt.bursts:
+        raise BadInput(f"{video}: its ground truth lists no bursts (make one with mosaic simulate -p bursts)")
+    estimator: LearnedEstimator = make_learned_estimator("lstm", weights=weights, device=device, config=LearnedConfig())
+    net = estimator.model
+    estimator.reset(tuple(gt.size))
+    grays = []
+    with open_video(video, gray=True) as stream:
+        for frame in stream:
+            grays.append(estimator.prepare(frame))
+    P = net.config.patch
+    x, y = (int(v) for v in estimator.positions[0])
+    patches = torch.from_numpy(np.stack([g[y:y + P, x:x + P] for g in grays])).float() * (2.0 / 255.0) - 1.0
+    pairs = torch.stack([patches[:-1], patches[1:]], dim=1).to(estimator.device)  # (n, 2, P, P)
+    with torch.inference_mode():
+        features = torch.cat([estimator._features(chunk) for chunk in pairs.split(256)])[None]  # (1, n, F)
+
+    n = len(pairs)
+    burst = burst_pairs(gt.bursts, n)
+    starts = [t for t in range(n) if burst[t] and (t == 0 or not burst[t - 1])]
+    spans = [int(np.argmin(burst[t:])) if not burst[t:].all() else n - t for t in starts]
+    ordinary, after = [], np.zeros(n, bool)
+    for (t, span), t_next in zip(zip(starts, spans), starts[1:] + [n]):
+        middle = (t + span + t_next) // 2
+        if middle + span <= t_next and middle >= t + span:
+            ordinary.append(middle)
+            after[middle:middle + span] = True
+
+    def run(restarts: list[int]) -> np.ndarray:
+        cuts = sorted(set([0, *restarts, n]))
+        outputs = []
+        with torch.inference_mode():
+            state = None
+            for a, b in zip(cuts[:-1], cuts[1:]):
+                if a in restarts:
+                    state = None
+                offsets, state = net.step(features[:, a:b], state)
+                outputs.append(offsets[0])
+        offsets = torch.cat(outputs).double().cpu()
+        H_work = offsets_to_homography(offsets, torch.tensor([x, y]), P).numpy()
+        H = np.stack([to_resolution(h, estimator.work_size, tuple(gt.size)) for h in H_work])
+        return corner_errors(H, np.asarray(gt.pairwise), tuple(gt.size))
+
+    return MemoryProbe(run([]), run(starts), run(ordinary), burst, after)

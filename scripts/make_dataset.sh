@@ -112,4 +112,18 @@ for split in dev test; do
       --size 1280x720 --seed "$seed" --preset veryfast --quiet
   done
 done
+# More flights with bursts (issue 38): four more per held-out site for development and for test,
+# so that each split holds 25 burst flights (about 1,100 burst pairs) and the sequence model's
+# goals are counted on over 1,000 burst pairs.  Seeds continue after the ones above.
+for split in dev test; do
+  for k in 2 3 4 5; do
+    for map in "${dev_maps[@]}"; do
+      name=$(basename "${map%.*}")
+      seed=$((seed + 1))
+      clip="$out/$split/${name}_bursts${k}.mp4"
+      [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile bursts --frames 300 \
+        --size 1280x720 --seed "$seed" --preset veryfast --quiet
+    done
+  done
+done
 echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)), $out/dev ($(ls "$out/dev"/*.mp4 | wc -l)) and $out/test ($(ls "$out/test"/*.mp4 | wc -l))"

@@ -61,7 +61,7 @@ from mosaic_cli.estimators.weights import default_weights
 from mosaic_cli.geometry import corner_error, frame_corners, is_valid
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.model.network import SEQUENCE_HEADS, HomographyNet
 from mosaic_cli.model.patches import offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 
@@ -126,7 +126,7 @@ class LearnedEstimator(Estimator):
         self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
-        self._state: tuple[torch.Tensor, torch.Tensor] | None = None  # the LSTM's (h, c) between chunks
+        self._state: tuple[torch.Tensor, ...] | None = None  # the sequence head's state between chunks
         self._pairs_done = 0
         self._motion = np.eye(3)
         self._detail_levels: list[float] = []
@@ -345,7 +345,7 @@ class LearnedEstimator(Estimator):
 
     def _step(self, feats: torch.Tensor) -> torch.Tensor:
         """Regress the chunk's offsets, carrying (and if asked, periodically resetting) the LSTM state."""
-        every = self.config.reset_every if self.model.head == "lstm" else None
+        every = self.config.reset_every if self.model.head in SEQUENCE_HEADS else None
         if not every:
             offsets, self._state = self.model.step(feats, self._state)
             self._pairs_done += feats.shape[1]
@@ -420,7 +420,7 @@ def make_learned_estimator(
         weights = default_weights(name)
     on = resolve_device(device)  # bad --device fails before loading anything
     model, meta = load_weights(weights, device="cpu")
-    if name in LEARNED and name != model.config.head:
+    if name in LEARNED and name != model.config.head and not (name == "lstm" and model.config.head in SEQUENCE_HEADS):
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
     if on.type == "cpu":  # a command's estimator: --threads, or one (training sets its own)
         use_cpu_threads()

@@ -6,6 +6,8 @@
       -> embed               [dropout] Linear -> ReLU                       features (B, T, F)
       -> head "cnn"          dropout -> Linear(F, 8)                        (BASE, REG-*)
          head "lstm"         LSTM(F, hidden) -> dropout -> Linear(hidden, 8) (LSTM, LSTM-REG-ALL)
+         head "carry"        the CNN's Linear(F, 8), then a gated LSTM cell    (CARRY: the sequence
+                             that blends a carried motion with it (CarryHead)  model that remembers)
       -> offsets (B, T, 4, 2)
 
 The 8 outputs are the displacements, in working-frame pixels, of the patch's four outer corners
@@ -36,19 +38,21 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-HEADS = ("cnn", "lstm")
+HEADS = ("cnn", "lstm", "carry")
+SEQUENCE_HEADS = ("lstm", "carry")  # the heads with a state carried from pair to pair
 # The paper's training variants (Table 2; what each trains: mosaic_cli.train.objective).  A
 # checkpoint records the variant that made it, so the model side knows their names.
 # lstm-reg-t is not in the paper: the LSTM with the temporal priors alone, which costs a tenth of
 # lstm-reg-all's forward passes (that reads two patches of every pair, and for R_s four quadrants of each).
-VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-t", "lstm-reg-all")
+# carry is not in the paper either: the CARRY head (below) trained on cached features against a teacher (train.carry).
+VARIANTS = ("base", "reg-p", "reg-s", "reg-t", "reg-all", "lstm", "lstm-reg-t", "lstm-reg-all", "carry")
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": dict(backbone=(64, 64, "M", 64, 64, "M", 128, 128, "M", 128, 128), embed=1024, hidden=1024, dropout=0.5),
     "compact": dict(backbone=((32, 2), 32, 32, "M", 64, 64, "M", 64, 64, "M"), embed=512, hidden=512, dropout=0.3),
 }
 
-LSTMState = tuple[Tensor, Tensor]
+LSTMState = tuple[Tensor, ...]  # (h, c) of the "lstm" head, (h, c, previous offsets) of the "carry" head
 
 
 @dataclass
@@ -63,6 +67,9 @@ class NetConfig:
     backbone: tuple | None = None
     embed: int | None = None  # feature size F (the first Linear)
     hidden: int | None = None  # LSTM hidden size
+    carry_code: int = 64  # carry head: the features' code its cell and gate read
+    carry_hidden: int = 128  # carry head: its LSTM cell's size
+    carry_window: int = 32  # carry head: the training window (frames); its forget gates start at timescales up to it
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -131,6 +138,86 @@ def make_backbone(spec: tuple, in_channels: int = 2) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+
+# The carry head's cell reads offsets divided by this (working px): the motions of a frame pair
+# are a few to some tens of px, which this brings to order one.
+OFFSET_SCALE = 8.0
+# The gate's starting logit: sigmoid(-5) = 0.0067 of the carried motion, the rest the CNN's.  A
+# window's first pair is the CNN's exactly; later pairs differ from it by 0.7% of the carried
+# motion's distance to it.  Far from saturation (its slope 0.0066 against the paper LSTM's
+# 0.0025 at -6), and the head's own learning rate (train.carry) moves it that far in a few
+# hundred steps where the data ask for it.
+GATE_START = -5.0
+GATE_HIDDEN = 32
+
+
+class CarryHead(nn.Module):
+    """A sequence head that carries the motion itself (issue 38).  Per frame pair t, from the
+    pair's features f_t, the CNN's offsets o_t (the frozen BASE head on f_t) and its own
+    previous output y_{t-1}::
+
+        x_t = [relu(code(f_t)), o_t / S, y_{t-1} / S]
+        h_t, c_t = LSTMCell(x_t, (h_{t-1}, c_{t-1}))         the memory
+        m_t = y_{t-1} + S * motion(h_t)                       the carried motion, corrected
+        w_t = sigmoid(gate([h_t, x_t, |o_t - y_{t-1}| / S]))  how far to trust it
+        y_t = o_t + w_t (m_t - o_t)
+
+    ``motion`` starts at zero and the gate at GATE_START, so the head starts as the CNN (exactly
+    on a sequence's first pair, where y_{-1} is o_0, then within 0.7% of the carried motion's
+    distance); the cell's forget gates start with chrono initialisation (biases log U(1, W-1),
+    the input gates' their negatives: Tallec & Ollivier, 2018) so that its memory spans up to
+    a training window of W frames from the first step.  The state is (h, c, y_{t-1}); none
+    starts a sequence."""
+
+    def __init__(self, features: int, code: int, hidden: int, window: int):
+        super().__init__()
+        self.hidden = hidden
+        self.code = nn.Linear(features, code)
+        self.cell = nn.LSTMCell(code + 16, hidden)
+        self.motion = nn.Linear(hidden, 8)
+        self.gate = nn.Sequential(nn.Linear(hidden + code + 24, GATE_HIDDEN), nn.ReLU(), nn.Linear(GATE_HIDDEN, 1))
+        self.window = window
+
+    @torch.no_grad()
+    def reset_parameters(self) -> None:
+        nn.init.kaiming_normal_(self.code.weight, nonlinearity="relu")
+        nn.init.zeros_(self.code.bias)
+        self.cell.reset_parameters()
+        h = self.hidden
+        chrono = torch.log(torch.empty(h).uniform_(1.0, max(2.0, float(self.window - 1))))
+        self.cell.bias_ih[h : 2 * h] = chrono  # gates in torch's order: i, f, g, o
+        self.cell.bias_ih[:h] = -chrono
+        self.cell.bias_hh.zero_()
+        nn.init.zeros_(self.motion.weight)
+        nn.init.zeros_(self.motion.bias)
+        nn.init.kaiming_normal_(self.gate[0].weight, nonlinearity="relu")
+        nn.init.zeros_(self.gate[0].bias)
+        nn.init.zeros_(self.gate[2].weight)
+        nn.init.constant_(self.gate[2].bias, GATE_START)
+
+    def forward(self, features: Tensor, cnn: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState, Tensor]:
+        """features (B, T, F), the CNN's offsets (B, T, 8) -> offsets (B, T, 8), the state after
+        the last pair, and the gate w (B, T): the weight each pair gave the carried motion."""
+        B, T = cnn.shape[:2]
+        if state is None:
+            zeros = cnn.new_zeros(B, self.hidden)
+            h, c, previous = zeros, zeros, cnn[:, 0]
+        else:
+            h, c, previous = (s[0] for s in state)
+        code = torch.relu(self.code(features))
+        outputs, weights = [], []
+        for t in range(T):
+            x = torch.cat([code[:, t], cnn[:, t] / OFFSET_SCALE, previous / OFFSET_SCALE], dim=1)
+            h, c = self.cell(x, (h, c))
+            carried = previous + OFFSET_SCALE * self.motion(h)
+            disagreement = (cnn[:, t] - previous).abs() / OFFSET_SCALE
+            w = torch.sigmoid(self.gate(torch.cat([h, x, disagreement], dim=1)))
+            previous = cnn[:, t] + w * (carried - cnn[:, t])
+            outputs.append(previous)
+            weights.append(w[:, 0])
+        return torch.stack(outputs, 1), (h[None], c[None], previous[None]), torch.stack(weights, 1)
+
+
 class HomographyNet(nn.Module):
     """Patch pairs -> corner offsets (working pixels, frame t -> frame t+1); see the module doc."""
 
@@ -146,7 +233,9 @@ class HomographyNet(nn.Module):
             self.lstm = None
             regressor_in = config.embed
         self.dropout = nn.Dropout(config.dropout)
-        self.regressor = nn.Linear(regressor_in, 8)
+        self.regressor = nn.Linear(regressor_in, 8)  # the carry head: the CNN's, which it reads
+        self.carry = (CarryHead(config.embed, config.carry_code, config.carry_hidden, config.carry_window)
+                      if config.head == "carry" else None)
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -158,6 +247,8 @@ class HomographyNet(nn.Module):
                 nn.init.zeros_(m.bias)
         nn.init.normal_(self.regressor.weight, std=1e-3)
         nn.init.zeros_(self.regressor.bias)
+        if self.carry is not None:
+            self.carry.reset_parameters()
 
     @property
     def head(self) -> str:
@@ -167,13 +258,18 @@ class HomographyNet(nn.Module):
         """(N, 2, P, P) patch pairs -> (N, F) features (backbone, flatten, first Linear, ReLU)."""
         x = self.backbone(patches).flatten(1)
         if self.lstm is None:
-            x = self.dropout(x)  # the paper drops out before both Linears of the CNN head only
+            # The paper drops out before both Linears of the CNN head only.  The carry head reads
+            # the CNN's features as they are, the same graph, so the CNN's int8 ranges fit it.
+            x = self.dropout(x)
         return torch.relu(self.embed(x))
 
     def step(self, features: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState | None]:
         """(B, T, F) features of T consecutive pairs -> offsets (B, T, 4, 2) and the new LSTM
-        state (h, c), each (1, B, hidden); ``state=None`` starts from zeros.  The CNN head has no
-        state and returns None."""
+        state (h, c), each (1, B, hidden); ``state=None`` starts from zeros.  The carry head's
+        state is (h, c, y) (:class:`CarryHead`); the CNN head has no state and returns None."""
+        if self.carry is not None:
+            offsets, state, _ = self.carry(features, self.regressor(features), state)
+            return offsets.unflatten(-1, (4, 2)), state
         if self.lstm is not None:
             features, state = self.lstm(features, state)
         else:
@@ -188,8 +284,19 @@ class HomographyNet(nn.Module):
         return self.step(feats, state)
 
     def feature_parameters(self) -> list[nn.Parameter]:
-        """Backbone and first Linear: the part an LSTM variant takes (frozen) from a trained CNN."""
-        return list(self.backbone.parameters()) + list(self.embed.parameters())
+        """Backbone and first Linear: the part an LSTM variant takes (frozen) from a trained CNN;
+        for the carry head also the CNN's regressor, which it reads."""
+        frozen = list(self.backbone.parameters()) + list(self.embed.parameters())
+        return frozen + (list(self.regressor.parameters()) if self.carry is not None else [])
+
+    @torch.no_grad()
+    def start_as_carry(self, cnn: HomographyNet) -> None:
+        """A carry head on ``cnn``: its features and regressor copied (the head then starts as
+        the CNN: :class:`CarryHead`)."""
+        if self.carry is None or cnn.config.head != "cnn":
+            raise ValueError("start_as_carry makes a carry head from a CNN head")
+        self.load_features_from(cnn)
+        self.regressor.load_state_dict(cnn.regressor.state_dict())
 
     def load_features_from(self, other: HomographyNet) -> None:
         """Copy backbone and first Linear from another net of the same preset (e.g. BASE -> LSTM)."""
@@ -251,6 +358,10 @@ def macs_per_pair(config: NetConfig) -> int:
         macs += config.hidden * 8
     else:
         macs += config.embed * 8
+    if config.head == "carry":
+        code, hidden = config.carry_code, config.carry_hidden
+        macs += config.embed * code + 4 * hidden * (code + 16 + hidden) + hidden * 8
+        macs += (hidden + code + 24) * GATE_HIDDEN + GATE_HIDDEN
     return macs
 
 
@@ -268,6 +379,9 @@ def count_macs(model: HomographyNet) -> int:
         steps = output[0].shape[0] * output[0].shape[1]
         total[0] += steps * 4 * m.hidden_size * (m.input_size + m.hidden_size)
 
+    def cell_hook(m: nn.LSTMCell, inputs, output):
+        total[0] += output[0].shape[0] * 4 * m.hidden_size * (m.input_size + m.hidden_size)
+
     hooks = []
     for m in model.modules():
         if isinstance(m, nn.Conv2d):
@@ -276,6 +390,8 @@ def count_macs(model: HomographyNet) -> int:
             hooks.append(m.register_forward_hook(linear_hook))
         elif isinstance(m, nn.LSTM):
             hooks.append(m.register_forward_hook(lstm_hook))
+        elif isinstance(m, nn.LSTMCell):
+            hooks.append(m.register_forward_hook(cell_hook))
     p = model.config.patch
     was_training = model.training
     model.eval()
@@ -289,7 +405,9 @@ def count_macs(model: HomographyNet) -> int:
 
 __all__ = [
     "HEADS",
+    "SEQUENCE_HEADS",
     "VARIANTS",
+    "CarryHead",
     "PRESETS",
     "NetConfig",
     "HomographyNet",

@@ -26,18 +26,23 @@ PAPER_STEPS = {"base": 300_000}
 PAPER_FINETUNE_STEPS = 90_000
 PAPER_BATCH = {"base": 64, "lstm": 8, "lstm-reg-t": 8, "lstm-reg-all": 8}
 PAPER_REG_BATCH = 32
+# The carry head (not in the paper) trains on cached features: many cheap steps of large batches,
+# at a learning rate of its own (its gate must move by several units: models/README.md), and with
+# events (bursts, drops, duplicates) in most windows.
+CARRY = {"steps": 8000, "batch_size": 64, "lr": 3e-3, "bursts": 0.75}
+DEFAULT_LR = 1e-3
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
-                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data")
+                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows")
 
 
 def paper_steps(variant: str) -> int:
-    return PAPER_STEPS.get(variant, PAPER_FINETUNE_STEPS)
+    return CARRY["steps"] if variant == "carry" else PAPER_STEPS.get(variant, PAPER_FINETUNE_STEPS)
 
 
 def paper_batch_size(variant: str) -> int:
-    return PAPER_BATCH.get(variant, PAPER_REG_BATCH)
+    return CARRY["batch_size"] if variant == "carry" else PAPER_BATCH.get(variant, PAPER_REG_BATCH)
 
 
 @dataclass
@@ -50,7 +55,7 @@ class TrainConfig:
     freeze: bool = True  # LSTM from a CNN checkpoint: keep the copied backbone + first Linear fixed
     steps: int | None = None  # None: the paper's count for the variant
     batch_size: int | None = None  # windows per step per process; None: the paper's for the variant
-    lr: float = 1e-3
+    lr: float | None = None  # None: DEFAULT_LR, or the carry head's own (CARRY)
     lr_decay: float = 0.1
     lr_milestones: tuple[float, ...] = (1 / 3, 2 / 3)  # fractions of ``steps`` where lr *= lr_decay
     device: str = "auto"
@@ -65,7 +70,8 @@ class TrainConfig:
     lstm_start: str = "random"  # an LSTM from a CNN --init: "random" head (the paper) or "cnn" (starts as the CNN's head)
     photometric: str = "gray"  # what the photometric terms compare: "gray" (the paper) or "band" (band-passed)
     flip: bool = False  # mirror windows left-right and/or upside down (off: runs saved before it resume unchanged)
-    bursts: float = 0.0  # share of the windows with a burst of spoilt frames the network reads (train.bursts)
+    bursts: float | None = None  # share of the windows with a burst of spoilt frames the network reads (train.bursts); None: 0, carry CARRY's
+    feature_windows: int = 4096  # carry: training windows in the feature cache (train.carry)
     data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
     num_workers: int = 1
     max_minutes: float | None = None  # stop (checkpoint and final weights) after this long, whatever --steps says
@@ -93,7 +99,7 @@ class TrainConfig:
         checks = [
             (self.steps is None or self.steps >= 1, f"--steps must be at least 1, got {self.steps}"),
             (self.batch_size is None or self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
-            (self.lr > 0, f"--lr must be positive, got {self.lr}"),
+            (self.lr is None or self.lr > 0, f"--lr must be positive, got {self.lr}"),
             (0 < self.lr_decay <= 1, f"the learning-rate decay must be in (0, 1], got {self.lr_decay}"),
             (all(0 < m < 1 for m in self.lr_milestones), "learning-rate milestones must be fractions in (0, 1)"),
             (self.seed >= 0, f"--seed must be 0 or more, got {self.seed}"),
@@ -106,7 +112,8 @@ class TrainConfig:
             (self.checkpoint_minutes > 0, f"--checkpoint-minutes must be positive, got {self.checkpoint_minutes}"),
             (self.cache_gb > 0, f"--cache-gb must be positive, got {self.cache_gb}"),
             (self.max_minutes is None or self.max_minutes > 0, f"--max-minutes must be positive, got {self.max_minutes}"),
-            (0 <= self.bursts <= 1, f"--bursts must be a share of the windows in [0, 1], got {self.bursts}"),
+            (self.bursts is None or 0 <= self.bursts <= 1, f"--bursts must be a share of the windows in [0, 1], got {self.bursts}"),
+            (self.feature_windows >= 1, f"--feature-windows must be at least 1, got {self.feature_windows}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -115,10 +122,13 @@ class TrainConfig:
 
     def resolved(self) -> TrainConfig:
         """A copy with the paper's defaults filled in for the variant."""
+        carry = self.variant == "carry"
         return replace(
             self,
             steps=paper_steps(self.variant) if self.steps is None else int(self.steps),
             batch_size=paper_batch_size(self.variant) if self.batch_size is None else int(self.batch_size),
+            lr=(CARRY["lr"] if carry else DEFAULT_LR) if self.lr is None else float(self.lr),
+            bursts=(CARRY["bursts"] if carry else 0.0) if self.bursts is None else float(self.bursts),
             work_size=tuple(int(v) for v in self.work_size),
             lr_milestones=tuple(float(m) for m in self.lr_milestones),
         )

@@ -1,0 +1,347 @@
+"""Training the carry head (``mosaic train --variant carry``): the sequence model that carries the
+motion across the frames that carry none (issue 38; the head: :class:`mosaic_cli.model.network.CarryHead`).
+
+The backbone, first Linear and regressor are the frozen BASE of ``--init``, so a training window
+costs the backbone once, ever: its features are computed once into a cache and the head trains on
+them at thousands of windows a second on one CPU thread.
+
+    1. teacher tracks   the product's own estimator (the --init CNN, its Lucas-Kanade polish and
+                        ORB fallback) run once over every clean clip of the frame cache: a
+                        homography per consecutive pair, kept where it confirmed the pair
+    2. windows          W frames of one clip, with (in a share ``bursts`` of them) 1-2 events
+                        where only the sequence can place the pairs: 1-3 frames spoilt (glare,
+                        blur, dark, flat: :mod:`.bursts`), a dropped frame (the pair spans two
+                        intervals), a duplicated one (no motion); time-reversed and mirrored as
+                        the other variants' windows; one patch position per window
+    3. feature cache    the features of every pair the network reads (spoilt frames included),
+                        and the teacher's offsets of the same pair at the same patch, composed
+                        over a drop, inverted when reversed, mirrored when flipped (exact), the
+                        identity on a duplicate (exact); RUN_DIR/features/*.npy
+    4. objective        Huber distance (working px, per corner) between the head's offsets and
+                        the teacher's, on every pair with a teacher: on a clean pair leaving
+                        the teacher's answer costs, and on a spoilt pair, where the photometric
+                        loss has no basin to pull from, the teacher still says where the pair lies
+
+No label is read: the teacher is the product's own estimate from the clean frames, which the head
+never sees on a spoilt pair.  Each window starts from no state, as a video does (the state is
+then carried through the whole video; the windows are long enough, W frames, that the memory the
+head learns is spent well within one; see models/README.md, "The carry head").
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mosaic_cli.atomic import write_json
+from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.model.patches import crop, homography_to_offsets
+from mosaic_cli.progress import progress_task
+from mosaic_cli.train.bursts import LEVELS, spoil
+from mosaic_cli.train.data import CachedClip
+
+WINDOW = 32  # frames a training window spans (31 pairs)
+EVENTS = ("clean", "glare", "blur", "dark", "flat", "drop", "duplicate")  # a pair's event code: its index
+DROP, DUPLICATE = EVENTS.index("drop"), EVENTS.index("duplicate")
+WARM_UP = 3  # pairs before a window's first event: there is a motion to carry
+HUBER_PX = 1.0  # the loss is quadratic within this corner distance, linear beyond (teacher outliers)
+CACHE_FORMAT = 1
+FEATURE_BATCH = 1024  # pairs through the backbone at once while the cache is built
+
+
+# ----------------------------------------------------------------------------- 1. teacher tracks
+
+
+def teacher_track(clip: CachedClip, weights: str) -> tuple[np.ndarray, np.ndarray]:
+    """The product's estimate of every consecutive pair of ``clip``'s cached frames, working px:
+    (n-1, 3, 3) homographies frame t -> t+1 and (n-1,) whether the estimator confirmed each (a
+    pair across a segment boundary of the cache is never confirmed)."""
+    from mosaic_cli.estimators.base import estimate_stream
+    from mosaic_cli.estimators.learned import make_learned_estimator
+
+    frames = np.load(clip.file, mmap_mode="r")
+    n, h, w = frames.shape
+    H = np.repeat(np.eye(3)[None], max(n - 1, 0), axis=0)
+    ok = np.zeros(max(n - 1, 0), bool)
+    for first, length in clip.segments:
+        estimator = make_learned_estimator("cnn", weights=weights, device="cpu")
+        estimates = estimate_stream(estimator, (np.asarray(f) for f in frames[first:first + length]), (w, h))
+        for k, e in enumerate(estimates):
+            if e.confidence > 0 and e.path in ("learned", "fallback"):
+                H[first + k], ok[first + k] = e.H, True
+    return H, ok
+
+
+def teacher_tracks(clips: Sequence[CachedClip], weights: str, folder: Path, show_progress: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`teacher_track` of every clip, each kept in ``folder`` (a resumed run reads them back)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    key = _digest({"weights": _file_digest(weights), "format": CACHE_FORMAT})
+    out = []
+    with progress_task("teacher tracks", len(clips), unit="clips", disable=not show_progress) as advance:
+        for clip in clips:
+            path = folder / f"{Path(clip.file).stem}-{key}.npz"
+            if path.is_file():
+                with np.load(path) as saved:
+                    out.append((saved["H"], saved["ok"]))
+            else:
+                H, ok = teacher_track(clip, weights)
+                tmp = path.with_name(f".{path.stem}.part.npz")
+                np.savez(tmp, H=H, ok=ok)
+                tmp.replace(path)
+                out.append((H, ok))
+            advance(1)
+    return out
+
+
+# ----------------------------------------------------------------------------- 2. windows
+
+
+@dataclass
+class Window:
+    """One training window: the clip, the frames it reads (rows of the clip's cache, in reading
+    order: a drop skips a row, a duplicate repeats one, a reversed window runs backwards), each
+    frame's burst code, level and blur angle (:mod:`.bursts`), each pair's event code
+    (:data:`EVENTS`), the mirrors and the patch's top-left."""
+
+    clip: int
+    rows: np.ndarray  # (W,)
+    burst: np.ndarray  # (W,) 0 clean, else the pixel kind's code
+    level: np.ndarray  # (W,)
+    angle: np.ndarray  # (W,)
+    events: np.ndarray  # (W - 1,)
+    left_right: bool
+    upside_down: bool
+    position: tuple[int, int]
+
+
+def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], cumulative: np.ndarray,
+                frame_size: tuple[int, int], patch: int, bursts: float, flip: bool, window: int = WINDOW) -> Window:
+    """A window drawn from ``rng`` alone.  ``segments`` are (clip, first row, length) with room for
+    ``window + 2`` rows (two drops), ``cumulative`` their running count of starts."""
+    T = window - 1
+    steps = np.ones(T, np.int64)
+    burst = np.zeros(window, np.int64)
+    level = np.zeros(window, np.float32)
+    angle = np.zeros(window, np.float32)
+    events = np.zeros(T, np.int64)
+    if rng.random() < bursts:
+        count = int(rng.integers(1, 3))
+        for _ in range(count):
+            kind = int(rng.integers(1, len(EVENTS)))
+            t = int(rng.integers(WARM_UP, T - 1))
+            if kind in (DROP, DUPLICATE):
+                steps[t] = 2 if kind == DROP else 0
+                events[t] = kind
+                continue
+            length = int(rng.integers(1, 4))
+            for f in range(t, min(t + length, window - 1)):  # never the window's last frame
+                burst[f] = kind
+                level[f] = rng.uniform(*LEVELS[kind])
+                angle[f] = rng.uniform(0.0, 180.0)
+                events[f - 1] = events[f - 1] or kind  # the pairs on both sides of a spoilt frame
+                events[f] = events[f] or kind
+    flat = int(rng.integers(int(cumulative[-1])))
+    s = int(np.searchsorted(cumulative, flat, side="right"))
+    clip, first, length = segments[s]
+    start = first + flat - (int(cumulative[s - 1]) if s else 0)  # a segment has room for WINDOW + 2 rows from it
+    rows = start + np.concatenate([[0], np.cumsum(steps)])
+    if rng.random() < 0.5:  # time-reversed: read backwards, the events with it
+        rows, burst, level, angle, events = rows[::-1], burst[::-1], level[::-1], angle[::-1], events[::-1]
+    w, h = frame_size
+    position = (int(rng.integers(0, w - patch + 1)), int(rng.integers(0, h - patch + 1)))
+    left_right, upside_down = (rng.random(2) < 0.5) if flip else (False, False)
+    return Window(clip, rows.copy(), burst.copy(), level.copy(), angle.copy(), events.copy(),
+                  bool(left_right), bool(upside_down), position)
+
+
+def teacher_offsets(window: Window, H: np.ndarray, ok: np.ndarray, frame_size: tuple[int, int], patch: int) -> tuple[np.ndarray, np.ndarray]:
+    """The teacher's corner offsets (W-1, 4, 2) of every pair of ``window`` at its patch, and
+    whether the teacher knows each pair: composed over a drop, the exact identity on a
+    duplicate, inverted when the window runs backwards, mirrored with it."""
+    w, h = frame_size
+    mirror = np.diag([-1.0 if window.left_right else 1.0, -1.0 if window.upside_down else 1.0, 1.0])
+    mirror[0, 2] = w - 1 if window.left_right else 0.0  # pixel centres on integers: x -> w - 1 - x
+    mirror[1, 2] = h - 1 if window.upside_down else 0.0
+    pairs, known = [], []
+    for a, b in zip(window.rows[:-1], window.rows[1:]):
+        lo, hi = min(a, b), max(a, b)
+        M = np.eye(3)
+        good = True
+        for t in range(lo, hi):
+            M = H[t] @ M
+            good = good and bool(ok[t])
+        if b < a:
+            M = np.linalg.inv(M)
+        pairs.append(mirror @ M @ mirror)
+        known.append(good)
+    Hs = torch.from_numpy(np.stack(pairs))
+    position = torch.tensor(window.position, dtype=torch.float64)
+    offsets = homography_to_offsets(Hs, position, patch).numpy().astype(np.float32)
+    return offsets, np.array(known) & np.isfinite(offsets).all(axis=(1, 2))
+
+
+# ----------------------------------------------------------------------------- 3. feature cache
+
+
+@dataclass
+class FeatureCache:
+    """The cached training windows: features (N, W-1, F) float16 of the pairs the network reads,
+    the teacher's offsets (N, W-1, 8), whether it knows each pair (N, W-1) and each pair's event
+    code (N, W-1)."""
+
+    features: np.ndarray
+    teacher: np.ndarray
+    known: np.ndarray
+    events: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+
+def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip], teachers, count: int, patch: int,
+                        seed: int, bursts: float, flip: bool, folder: Path, identity: dict,
+                        show_progress: bool) -> FeatureCache:
+    """Draw ``count`` windows and cache what the head trains on (in ``folder``, reused by a run
+    with the same ``identity``: the weights, clips, seed and options).  ``features`` turns patch
+    pairs (N, 2, P, P) in [-1, 1] into (N, F): the network's own, or the estimator's int8 one."""
+    folder.mkdir(parents=True, exist_ok=True)
+    key = _digest({**identity, "count": count, "format": CACHE_FORMAT, "window": WINDOW})
+    names = ("features", "teacher", "known", "events")
+    paths = {name: folder / f"{name}-{key}.npy" for name in names}
+    if all(p.is_file() for p in paths.values()):
+        return FeatureCache(*(np.load(paths[n], mmap_mode="r") for n in names))
+    arrays = [np.load(c.file, mmap_mode="r") for c in clips]
+    h, w = arrays[0].shape[1:]
+    segments = [(c, first, length) for c, clip in enumerate(clips) for first, length in clip.segments if length >= WINDOW + 2]
+    if not segments:
+        from mosaic_cli.errors import BadInput
+
+        raise BadInput(f"no clip holds {WINDOW + 2} consecutive frames, the carry head's training window")
+    cumulative = np.cumsum([length - WINDOW - 1 for _, _, length in segments])
+    T, F = WINDOW - 1, net.config.embed
+    feats = np.lib.format.open_memmap(_part(paths["features"]), "w+", np.float16, (count, T, F))
+    teacher = np.zeros((count, T, 8), np.float32)
+    known = np.zeros((count, T), bool)
+    events = np.zeros((count, T), np.int8)
+    per_batch = max(1, FEATURE_BATCH // T)
+    with progress_task("feature cache", count, unit="windows", disable=not show_progress) as advance, torch.inference_mode():
+        for first in range(0, count, per_batch):
+            batch = range(first, min(count, first + per_batch))
+            read, positions = [], []
+            for i in batch:
+                rng = np.random.default_rng([seed, i, 38])
+                win = draw_window(rng, segments, cumulative, (w, h), patch, bursts, flip)
+                H, ok = teachers[win.clip]
+                teacher[i], known[i] = (v.reshape(T, -1) if v.ndim > 2 else v for v in teacher_offsets(win, H, ok, (w, h), patch))
+                events[i] = win.events
+                frames = np.asarray(arrays[win.clip][win.rows])
+                frames = frames[:, ::-1 if win.upside_down else 1, ::-1 if win.left_right else 1]
+                clean = torch.from_numpy(np.ascontiguousarray(frames))[None, :, None].float() / 127.5 - 1.0
+                spoilt = spoil(clean, *(torch.from_numpy(v)[None] for v in (win.burst, win.level, win.angle)),
+                               generator=torch.Generator().manual_seed(seed * 7919 + i))
+                read.append(spoilt[0])
+                positions.append(win.position)
+            frames = torch.stack(read)  # (b, W, 1, h, w)
+            pos = torch.tensor(positions)[:, None].expand(len(read), WINDOW, 2).reshape(-1, 1, 2)
+            crops = crop(frames.flatten(0, 1), pos, patch)[:, 0, 0].unflatten(0, (len(read), WINDOW))  # (b, W, P, P)
+            pairs = torch.stack([crops[:, :-1], crops[:, 1:]], dim=2).flatten(0, 1)  # (b*T, 2, P, P)
+            feats[batch.start:batch.stop] = features(pairs).unflatten(0, (len(read), T)).numpy().astype(np.float16)
+            advance(len(read))
+    feats.flush()
+    del feats
+    _part(paths["features"]).replace(paths["features"])
+    for name, array in (("teacher", teacher), ("known", known), ("events", events)):
+        np.save(_part(paths[name]), array)
+        _part(paths[name]).replace(paths[name])
+    write_json(folder / f"cache-{key}.json", {**identity, "count": count, "window": WINDOW,
+                                              "known": float(known.mean()), "event_pairs": int((events > 0).sum())})
+    return FeatureCache(*(np.load(paths[n], mmap_mode="r") for n in names))
+
+
+class FeatureWindows:
+    """Batches of cached windows for step s, drawn from ``(seed, step)`` alone (so that a resumed
+    run draws what an uninterrupted one did), on ``device``, as :class:`CarryObjective` reads them."""
+
+    def __init__(self, cache: FeatureCache, seed: int, device: torch.device):
+        self.cache, self.seed, self.device = cache, int(seed), torch.device(device)
+        # The cache is a few hundred MB: held in memory (as float16) for random access.
+        self.features = torch.from_numpy(np.array(cache.features)).to(self.device)
+        self.teacher = torch.from_numpy(np.array(cache.teacher)).to(self.device)
+        self.known = torch.from_numpy(np.array(cache.known)).to(self.device)
+        self.events = torch.from_numpy(np.array(cache.events)).long().to(self.device)
+
+    def batch(self, step: int, batch_size: int, rank: int = 0, world: int = 1) -> dict[str, Tensor]:
+        g = torch.Generator()
+        g.manual_seed((self.seed * 1_000_003 + step) * 4099 + rank * 131 + world)
+        index = torch.randint(len(self.cache), (int(batch_size),), generator=g).to(self.device)
+        return {"features": self.features[index].float(), "teacher": self.teacher[index].unflatten(-1, (4, 2)),
+                "known": self.known[index], "events": self.events[index]}
+
+
+# ----------------------------------------------------------------------------- 4. objective
+
+
+class CarryObjective:
+    """``objective(model, batch)`` -> the loss terms of the carry head: ``total`` (the Huber
+    distance to the teacher, per corner, averaged over the pairs it knows) and, for the log, the
+    mean corner error (working px) on clean and on event pairs, and the gate's mean weight on the
+    carried motion on each."""
+
+    variant = "carry"
+    head = "carry"
+    window = WINDOW + 2  # the rows a window may span (two drops): what the frame cache must hold
+    positions = 1
+    check_positions = False
+
+    def __call__(self, model, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        net = getattr(model, "module", model)
+        features = batch["features"]
+        with torch.no_grad():
+            cnn = net.regressor(features)  # frozen: the BASE's offsets of each pair
+        offsets, _, gate = net.carry(features, cnn)
+        error = (offsets.unflatten(-1, (4, 2)) - batch["teacher"]).norm(dim=-1)  # (B, T, 4) working px
+        huber = torch.where(error < HUBER_PX, 0.5 * error**2 / HUBER_PX, error - 0.5 * HUBER_PX).mean(-1)
+        known = batch["known"].float()
+        event = (batch["events"] > 0).float()
+        corner = error.mean(-1).detach()
+
+        def mean(values: Tensor, weights: Tensor) -> Tensor:
+            return (values * weights).sum() / weights.sum().clamp(min=1.0)
+
+        return {
+            "total": mean(huber, known),
+            "clean_px": mean(corner, known * (1 - event)),
+            "event_px": mean(corner, known * event),
+            "gate_clean": mean(gate.detach(), 1 - event),
+            "gate_event": mean(gate.detach(), event),
+        }
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _digest(data: dict) -> str:
+    return hashlib.sha1(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _file_digest(path: str) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def _part(path: Path) -> Path:
+    return path.with_name(f".{path.stem}.part.npy")
+
+
+__all__ = ["WINDOW", "EVENTS", "CarryObjective", "FeatureCache", "FeatureWindows", "Window", "build_feature_cache",
+           "draw_window", "teacher_offsets", "teacher_track", "teacher_tracks"]

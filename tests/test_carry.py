@@ -1,0 +1,245 @@
+"""The carry head (issue 38): a sequence head that starts as its CNN, whose memory can open under
+training, trained from cached features against teacher offsets that are exact for drops,
+duplicates, reversed and mirrored windows; and the estimator that runs it."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from conftest import Flight
+from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator
+from mosaic_cli.model import HomographyNet, NetConfig, load_weights
+from mosaic_cli.model.network import GATE_START, SEQUENCE_HEADS
+from mosaic_cli.model.patches import patch_corners
+from mosaic_cli.train.carry import DROP, DUPLICATE, EVENTS, WARM_UP, WINDOW, CarryObjective, Window, draw_window, teacher_offsets
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+CNN = "models/cnn.safetensors"
+
+
+def flight_patches(n: int = 24, size=(320, 180), step: float = 5.0, patch: int = 128) -> torch.Tensor:
+    """(1, n-1, 2, P, P) centre patch pairs of a panning flight over a texture, in [-1, 1]."""
+    flight = Flight(n_frames=n, frame_size=size, map_size=(1600, 900), seed=3, step=step)
+    gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in flight.frames]
+    x, y = (size[0] - patch) // 2, (size[1] - patch) // 2
+    crops = torch.from_numpy(np.stack([g[y:y + patch, x:x + patch] for g in gray])).float() / 127.5 - 1.0
+    return torch.stack([crops[:-1], crops[1:]], dim=1)[None]
+
+
+def carry_from(cnn: HomographyNet) -> HomographyNet:
+    torch.manual_seed(0)
+    net = HomographyNet(NetConfig(preset=cnn.config.preset, head="carry", patch=cnn.config.patch))
+    net.start_as_carry(cnn)
+    return net.eval()
+
+
+# ----------------------------------------------------------------------------- the head
+
+
+def test_the_carry_head_starts_as_the_cnn_it_reads():
+    cnn, _ = load_weights(CNN)
+    net = carry_from(cnn)
+    pairs = flight_patches()
+    with torch.no_grad():
+        base, _ = cnn(pairs)
+        carried, state = net(pairs)
+    assert len(state) == 3 and "carry" in SEQUENCE_HEADS
+    torch.testing.assert_close(carried[:, 0], base[:, 0], rtol=0, atol=1e-6)  # the first pair: the CNN exactly
+    # Later pairs: the CNN but for sigmoid(GATE_START) of the carried motion's distance to it.
+    leak = 1.0 / (1.0 + np.exp(-GATE_START))
+    jumps = (base[:, 1:] - base[:, :-1]).abs().max()
+    assert float((carried - base).abs().max()) <= 1.05 * leak * float(jumps) + 1e-5
+    assert float(base.abs().mean()) > 1.0  # a flight that moves: the comparison is not of zeros
+
+
+def test_the_carry_heads_memory_starts_open_for_a_window():
+    net = HomographyNet(NetConfig(head="carry"))
+    h = net.config.carry_hidden
+    forget, inputs = net.carry.cell.bias_ih[h:2 * h].detach(), net.carry.cell.bias_ih[:h].detach()
+    timescale = 1 + torch.exp(forget)  # chrono: a forget bias log(T - 1) keeps a state about T steps
+    assert float(timescale.min()) >= 2.0 - 1e-4 and float(timescale.max()) <= WINDOW + 1e-3
+    torch.testing.assert_close(inputs, -forget)
+    assert float(net.carry.gate[2].bias.detach()) == GATE_START
+
+
+def test_the_carry_head_learns_to_carry_the_motion_across_spoilt_pairs_in_a_few_hundred_steps():
+    """Sequences of a smoothly turning motion whose spoilt pairs the CNN gets wildly wrong (and
+    whose features say so): trained on the truth, the head places the spoilt pairs from its
+    memory; the CNN, and the head restarted at the spoilt pair, cannot."""
+    torch.manual_seed(0)
+    head = HomographyNet(NetConfig(head="carry")).carry
+    F, T = head.code.in_features, 24
+
+    def batch(n: int) -> tuple[torch.Tensor, ...]:
+        velocity = torch.randn(n, 1, 8) * 6.0
+        turn = torch.randn(n, 1, 8) * 0.2
+        truth = velocity + turn * torch.arange(T)[None, :, None]
+        spoilt = torch.zeros(n, T, dtype=torch.bool)
+        where = torch.randint(WARM_UP, T - 3, (n,))
+        for k in range(3):
+            spoilt[torch.arange(n), where + k] = torch.rand(n) < 0.8
+        cnn = truth + 0.3 * torch.randn(n, T, 8)
+        cnn[spoilt] = 20.0 * torch.randn(int(spoilt.sum()), 8)
+        features = torch.randn(n, T, F) * 0.5
+        features[..., 0] += 4.0 * spoilt  # a spoilt frame shows in its features
+        return features, cnn, truth, spoilt
+
+    optimizer = torch.optim.Adam(head.parameters(), lr=3e-3)
+    for _ in range(300):
+        features, cnn, truth, _ = batch(32)
+        out, _, _ = head(features, cnn)
+        loss = (out - truth).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    features, cnn, truth, spoilt = batch(256)
+    with torch.no_grad():
+        out, _, gate = head(features, cnn)
+        first = spoilt.float().argmax(1)
+        restarted = out.clone()
+        for b in range(len(out)):  # the state restarted just before each sequence's first spoilt pair
+            if spoilt[b].any():
+                t = int(first[b])
+                restarted[b, t:] = head(features[b:b + 1, t:], cnn[b:b + 1, t:], None)[0][0]
+    error = (out - truth).abs().mean(-1)
+    cnn_error = (cnn - truth).abs().mean(-1)
+    restart_error = (restarted - truth).abs().mean(-1)
+    assert float(error[spoilt].mean()) < 0.2 * float(cnn_error[spoilt].mean())
+    assert float(restart_error[spoilt].mean()) > 3 * float(error[spoilt].mean())
+    assert float(error[~spoilt].mean()) < 1.5 * float(cnn_error[~spoilt].mean())  # clean pairs: still the CNN's
+    assert float(gate[spoilt].mean()) > 0.8 and float(gate[spoilt].mean()) > float(gate[~spoilt].mean()) + 0.4
+
+
+# ----------------------------------------------------------------------------- training windows
+
+
+def similarity(angle: float, scale: float, tx: float, ty: float) -> np.ndarray:
+    c, s = scale * np.cos(angle), scale * np.sin(angle)
+    return np.array([[c, -s, tx], [s, c, ty], [0, 0, 1.0]])
+
+
+def test_teacher_offsets_are_exact_over_drops_duplicates_reversal_and_mirrors():
+    rng = np.random.default_rng(1)
+    size, patch = (320, 180), 128
+    # Frame t sees the ground at G[t] (frame -> ground); the pair a -> b moves by G[b]^-1 G[a].
+    G = [np.eye(3)]
+    for _ in range(12):
+        G.append(G[-1] @ similarity(rng.normal(0, 0.02), 1 + rng.normal(0, 0.01), *rng.normal(0, 4, 2)))
+    H = np.stack([np.linalg.inv(G[t + 1]) @ G[t] for t in range(12)])
+    ok = np.ones(12, bool)
+    ok[9] = False  # the teacher could not confirm pair 9
+    rows = np.array([2, 3, 5, 5, 6, 7, 8, 9, 10])  # a drop (3 -> 5), a duplicate (5, 5)
+    events = np.array([0, DROP, DUPLICATE, 0, 0, 0, 0, 0])
+    for reverse in (False, True):
+        for left_right, upside_down in ((False, False), (True, False), (True, True)):
+            r, e = (rows[::-1], events[::-1]) if reverse else (rows, events)
+            window = Window(0, r.copy(), np.zeros(9, np.int64), np.zeros(9, np.float32), np.zeros(9, np.float32),
+                            e.copy(), left_right, upside_down, (40, 30))
+            offsets, known = teacher_offsets(window, H, ok, size, patch)
+            corners = patch_corners(torch.tensor([40, 30]), patch).numpy().astype(np.float64)
+            w, h = size
+            for k, (a, b) in enumerate(zip(r[:-1], r[1:])):
+                # Independent truth: the mirrored corners, through the ground (OpenCV), mirrored back.
+                mirrored = corners.copy()
+                if left_right:
+                    mirrored[:, 0] = w - 1 - mirrored[:, 0]
+                if upside_down:
+                    mirrored[:, 1] = h - 1 - mirrored[:, 1]
+                pair = np.linalg.inv(G[b]) @ G[a]
+                moved = cv2.perspectiveTransform(mirrored[None], pair)[0]
+                if left_right:
+                    moved[:, 0] = w - 1 - moved[:, 0]
+                if upside_down:
+                    moved[:, 1] = h - 1 - moved[:, 1]
+                np.testing.assert_allclose(offsets[k], moved - corners, atol=1e-3, err_msg=f"{a}->{b}")
+                assert known[k] == (not (min(a, b) <= 9 < max(a, b)))
+                if a == b:
+                    np.testing.assert_allclose(offsets[k], 0, atol=1e-4)
+
+
+def test_windows_place_their_events_as_they_say():
+    segments = [(0, 0, 300)]
+    cumulative = np.cumsum([300 - WINDOW - 1])
+    seen = set()
+    for i in range(300):
+        rng = np.random.default_rng([0, i, 38])
+        win = draw_window(rng, segments, cumulative, (320, 180), 128, bursts=1.0, flip=True)
+        assert len(win.rows) == WINDOW and 0 <= win.rows.min() and win.rows.max() < 300
+        steps = np.diff(win.rows)
+        forward = steps.sum() > 0
+        s = steps if forward else -steps
+        for t, event in enumerate(win.events):
+            seen.add(EVENTS[event])
+            if event == DROP:
+                assert s[t] == 2
+            elif event == DUPLICATE:
+                assert s[t] == 0
+            else:
+                assert s[t] == 1
+        spoilt = np.flatnonzero(win.burst)
+        assert not {0, WINDOW - 1} & set(spoilt.tolist())  # never a window's first or last frame
+        for f in spoilt:  # both pairs beside a spoilt frame are events
+            assert win.events[f - 1] > 0 and win.events[f] > 0
+        assert 0 <= win.position[0] <= 320 - 128 and 0 <= win.position[1] <= 180 - 128
+        again = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True)
+        assert np.array_equal(again.rows, win.rows) and np.array_equal(again.events, win.events)
+    assert seen == set(EVENTS)
+
+
+def test_the_objective_is_zero_at_the_teacher_and_counts_only_the_pairs_it_knows():
+    cnn, _ = load_weights(CNN)
+    net = carry_from(cnn)
+    features = torch.randn(4, 6, net.config.embed).abs()
+    with torch.no_grad():
+        offsets, _, _ = net.carry(features, net.regressor(features))
+    known = torch.ones(4, 6, dtype=torch.bool)
+    events = torch.zeros(4, 6, dtype=torch.long)
+    batch = {"features": features, "teacher": offsets.unflatten(-1, (4, 2)), "known": known, "events": events}
+    assert float(CarryObjective()(net, batch)["total"]) < 1e-10
+    batch["teacher"] = batch["teacher"] + 3.0
+    batch["known"][:, 2] = False
+    batch["teacher"][:, 2] += 100.0  # a pair the teacher does not know adds nothing
+    terms = CarryObjective()(net, batch)
+    assert float(terms["total"]) == pytest.approx(3.0 * np.sqrt(2) - 0.5, rel=1e-4)  # Huber beyond 1 px
+
+
+# ----------------------------------------------------------------------------- the estimator
+
+
+def test_the_estimator_runs_a_carry_head_as_lstm_and_restarted_every_pair_it_is_the_cnn(tmp_path):
+    from mosaic_cli.model.checkpoint import save_weights
+
+    cnn, meta = load_weights(CNN)
+    net = carry_from(cnn)
+    with torch.no_grad():  # a head that leans on its memory, so that a restart shows
+        net.carry.gate[2].bias.fill_(0.0)
+    path = tmp_path / "carry.safetensors"
+    save_weights(path, net, variant="carry", int8=meta["int8"])
+    flight = Flight(n_frames=20, frame_size=(640, 360), map_size=(2400, 1400), seed=4, step=12.0)
+
+    def run(model, variant: str, **options) -> np.ndarray:
+        config = LearnedConfig(refine=None, fallback="none", min_zncc=None, carry="none", **options)
+        est = LearnedEstimator(model, {**meta, "variant": variant}, device="cpu", config=config)
+        est.reset((640, 360))
+        out = [e.H for f in flight.frames for e in est.feed(f)] + [e.H for e in est.finish()]
+        return np.stack(out)
+
+    carried, _ = load_weights(path)
+    base = run(cnn, "base")
+    restarted = run(carried, "carry", reset_every=1)
+    np.testing.assert_allclose(restarted, base, rtol=1e-5, atol=1e-4)  # float32 sums of other batch sizes
+    assert np.abs(run(load_weights(path)[0], "carry") - base).max() > 1e-3  # carried, it is not
+
+
+def test_the_lstm_estimator_takes_carry_weights(tmp_path):
+    from mosaic_cli.estimators.learned import make_learned_estimator
+    from mosaic_cli.model.checkpoint import save_weights
+
+    cnn, meta = load_weights(CNN)
+    path = tmp_path / "carry.safetensors"
+    save_weights(path, carry_from(cnn), variant="carry", int8=meta["int8"])
+    est = make_learned_estimator("lstm", weights=path, device="cpu")
+    assert est.model.head == "carry" and est.name == "carry"
