@@ -1,21 +1,17 @@
 """How mosaic recognises its inputs, one rule each: what counts as a video file, where the
 simulated flights of a folder are (``X.<video>`` with ``X.gt.json`` beside it), how a
 ``WxH`` size is written, and the bounds of the flags several commands share (``--max-frames``,
-``--threads``, ``--timeout``, ``--crf``, ``--preset``), which their options' ``validate()`` apply,
-and a ``--mask`` image against the input's size."""
+``--threads``, ``--timeout``), which their options' ``validate()`` apply.  (The encoder's
+``--crf`` and ``--preset`` are ``video.writer``'s; a ``--mask`` image is checked against the input
+by ``overlay.check_mask_file``.)"""
 
 from __future__ import annotations
 
 import os
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from mosaic_cli.errors import BadInput
-
-if TYPE_CHECKING:
-    from mosaic_cli.overlay import MaskOptions
-    from mosaic_cli.video.reader import VideoInfo
 
 # Containers ffmpeg reads that a drone or an editor writes: a folder scan takes these and no
 # others, and a ``--telemetry`` file with one of them is a video whose embedded track is read.
@@ -27,10 +23,6 @@ VIDEO_SUFFIXES = frozenset(
 
 # A live input ends when it sends nothing for this long (``--timeout``, seconds).
 DEFAULT_TIMEOUT = 10.0
-
-# The H.264 encoder's ``--preset`` values (libx264's), fastest first.
-PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
-
 
 def is_video_file(path: str | Path) -> bool:
     """A visible file whose suffix is one of :data:`VIDEO_SUFFIXES` (any case)."""
@@ -90,27 +82,7 @@ def check_timeout(seconds: float) -> None:
         raise BadInput(f"--timeout must be positive, got {seconds}")
 
 
-def check_encoder(crf: int | None, preset: str) -> None:
-    """``--crf`` (None: the command's default) and ``--preset`` of the H.264 encoder."""
-    if crf is not None and not 0 <= crf <= 51:
-        raise BadInput(f"--crf must be in 0..51, got {crf}")
-    if preset not in PRESETS:
-        raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
-
-
-def check_mask_file(mask: MaskOptions, info: VideoInfo | None) -> None:
-    """A bad ``--mask`` image fails before any work (a network's weights, a decode), against the
-    input's probe ``info``; a live input (None: no probe) has its mask checked when its first
-    frame gives the size."""
-    if mask.file is None or info is None:
-        return
-    from mosaic_cli.mask import load_mask
-
-    load_mask(mask.file, info.source_size)
-
-
-__all__ = ["DEFAULT_TIMEOUT", "PRESETS", "VIDEO_SUFFIXES", "check_encoder", "check_mask_file", "check_max_frames", "check_threads",
-           "check_timeout", "find_flights", "ground_truth_path", "is_video_file", "parse_size"]
+__all__ = ["DEFAULT_TIMEOUT", "VIDEO_SUFFIXES", "check_max_frames", "check_threads", "check_timeout", "find_flights", "ground_truth_path", "is_video_file", "parse_size"]
 
 
 # What an output's name makes it (stitch's panorama, geo's maps): PNG, JPEG or TIFF by extension;

@@ -98,8 +98,8 @@ def test_every_module_of_the_package_sits_in_a_layer():
 
 
 def test_the_layers_hold():
-    """import-linter's contracts (every import, in a function or not; only ``TYPE_CHECKING``
-    imports are left out), as ``.ci/run`` runs them with ``lint-imports``."""
+    """import-linter's contracts (every import, in a function or not, ``TYPE_CHECKING`` imports
+    included), as ``.ci/run`` runs them with ``lint-imports``."""
     pytest.importorskip("importlinter")
     import os
     import subprocess
@@ -110,3 +110,71 @@ def test_the_layers_hold():
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
     run = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+def top_level_cycle(graph) -> list[str] | None:
+    """One circle of imports between mosaic_cli's top-level modules and subpackages (each import of
+    a module inside one counted as the package's), as the list of modules round it; None if none."""
+    edges: dict[str, set[str]] = {}
+
+    def top(module: str) -> str | None:
+        parts = module.split(".")
+        return ".".join(parts[:2]) if len(parts) > 1 else None
+
+    for module in graph.modules:
+        source = top(module)
+        if source is None:
+            continue
+        for imported in graph.find_modules_directly_imported_by(module):
+            target = top(imported)
+            if target is not None and target != source:
+                edges.setdefault(source, set()).add(target)
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            if nxt not in state and (found := visit(nxt)):
+                return found
+        path.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(edges):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+def test_the_cycle_finder_finds_a_circle():
+    class Graph:
+        modules = {"mosaic_cli", "mosaic_cli.inputs", "mosaic_cli.overlay.merge", "mosaic_cli.video.writer"}
+        imports = {"mosaic_cli.inputs": {"mosaic_cli.overlay.merge"}, "mosaic_cli.overlay.merge": {"mosaic_cli.video.writer"},
+                   "mosaic_cli.video.writer": {"mosaic_cli.inputs"}}
+
+        def find_modules_directly_imported_by(self, module):
+            return self.imports.get(module, set())
+
+    found = top_level_cycle(Graph())
+    assert found is not None and found[0] == found[-1]
+    assert set(found) == {"mosaic_cli.inputs", "mosaic_cli.overlay", "mosaic_cli.video"}
+    del Graph.imports["mosaic_cli.video.writer"]
+    assert top_level_cycle(Graph()) is None
+
+
+def test_no_import_circle_between_the_packages_type_checking_imports_included():
+    """No circle of imports between mosaic_cli's modules and subpackages, not even through an import
+    made only for the type checker (``inputs`` once imported ``overlay`` for a type, ``overlay``
+    imports ``video``, and ``video.writer`` imported ``inputs.check_encoder``).  The layers contract
+    counts ``TYPE_CHECKING`` imports too (``exclude_type_checking_imports = false``)."""
+    grimp = pytest.importorskip("grimp")
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    assert config.get("exclude_type_checking_imports") is False
+    graph = grimp.build_graph("mosaic_cli", exclude_type_checking_imports=False, cache_dir=None)
+    assert top_level_cycle(graph) is None

@@ -28,10 +28,9 @@ from mosaic_cli.commands.options import (
 )
 from mosaic_cli.errors import BadInput, warn
 from mosaic_cli.estimators import plan_estimator
-from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
-from mosaic_cli.overlay import frame_mask_pending, frame_mask_while
+from mosaic_cli.overlay import check_mask_file, frame_mask_pending, frame_mask_while
 from mosaic_cli.progress import console, progress_group
 from mosaic_cli.track import TrackOptions, save_track, track_video
 from mosaic_cli.video import probe

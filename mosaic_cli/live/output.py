@@ -13,9 +13,9 @@ from fractions import Fraction
 import numpy as np
 
 from mosaic_cli.errors import BadInput, ProcessingError
-from mosaic_cli.inputs import PRESETS
 from mosaic_cli.live.source import _URL, STDIN
 from mosaic_cli.video.reader import ffmpeg_exe
+from mosaic_cli.video.writer import PRESETS
 
 OUTPUT_SCHEMES = ("udp", "srt", "tcp", "rtp", "rist")
 # MPEG-TS packets are 188 bytes: 7 of them fill a UDP datagram without IP fragmentation.

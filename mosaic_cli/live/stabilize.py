@@ -41,7 +41,6 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, make_estimator
-from mosaic_cli.inputs import check_mask_file
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import (
@@ -53,7 +52,7 @@ from mosaic_cli.live.source import (
     source_name,
 )
 from mosaic_cli.live.timeline import Timeline
-from mosaic_cli.overlay import frame_mask, live_mask
+from mosaic_cli.overlay import check_mask_file, frame_mask, live_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path, Window
 from mosaic_cli.stabilize.path import motion_model

@@ -101,6 +101,15 @@ class FrameMask:
         }
 
 
+def check_mask_file(mask: MaskOptions, info: VideoInfo | None) -> None:
+    """A bad ``--mask`` image fails before any work (a network's weights, a decode), against the
+    input's probe ``info``; a live input (None: no probe) has its mask checked when its first
+    frame gives the size."""
+    if mask.file is None or info is None:
+        return
+    load_mask(mask.file, info.source_size)
+
+
 def frame_mask(video: str | Path, options: MaskOptions | None = None, info: VideoInfo | None = None,
                show_progress: bool = False) -> FrameMask:
     """The merged use mask of ``video``: the ``--mask`` file's, and the detector's unless off.

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.inputs import check_encoder
 from mosaic_cli.simulate.bursts import BurstSpec, apply_bursts, frames_to_plan, plan_bursts
 from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load_ground_truth
 from mosaic_cli.simulate.maps import load_map, procedural_map
@@ -30,6 +29,7 @@ from mosaic_cli.simulate.trajectory import (
     centre_motion,
     plan_flight,
 )
+from mosaic_cli.video.writer import check_encoder
 
 __all__ = [
     "procedural_map",

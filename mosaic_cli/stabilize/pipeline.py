@@ -30,8 +30,8 @@ from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_work_width, plan_estimator
-from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_encoder, check_mask_file, check_timeout
-from mosaic_cli.overlay import MaskOptions, PendingMask, frame_mask_pending
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_timeout
+from mosaic_cli.overlay import MaskOptions, PendingMask, check_mask_file, frame_mask_pending
 from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
@@ -42,7 +42,7 @@ from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_sm
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.writer import OUTPUT_SUFFIXES, rewrite_container
+from mosaic_cli.video.writer import OUTPUT_SUFFIXES, check_encoder, rewrite_container
 
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
 # on shaky 1280x720 flights ORB at 640 px leaves 0.03-0.09 of the shake where 320 px leaves

@@ -45,8 +45,8 @@ from mosaic_cli.geo.output import transforms_extra
 from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
-from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_mask_file, check_max_frames, check_timeout
-from mosaic_cli.overlay import FrameMask, Gate, MaskChanged, MaskOptions, PendingMask, Speculation, frame_mask_pending, speculate
+from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
+from mosaic_cli.overlay import FrameMask, Gate, MaskChanged, MaskOptions, PendingMask, Speculation, check_mask_file, frame_mask_pending, speculate
 from mosaic_cli.progress import progress_group, progress_task
 from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas

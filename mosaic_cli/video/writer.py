@@ -13,14 +13,25 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
-from mosaic_cli.inputs import PRESETS, check_encoder  # noqa: F401  (PRESETS: the encoder's, named where the flag's bounds live)
 from mosaic_cli.video.reader import VideoInfo, audio_codec_of, ffmpeg_exe
+
+# The H.264 encoder's ``--preset`` values (libx264's), fastest first.
+PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 
 # The containers a stabilised video is written in (H.264 with the source's audio).
 OUTPUT_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv")
 
 # Audio codecs an mp4/mov container takes as they are; anything else is re-encoded to AAC.
 MP4_AUDIO = {"aac", "mp3", "ac3", "eac3", "alac"}
+
+
+def check_encoder(crf: int | None, preset: str) -> None:
+    """``--crf`` (None: the command's default) and ``--preset`` of the H.264 encoder: the flags'
+    bounds, which every command that writes a video (and its options' ``validate()``) applies."""
+    if crf is not None and not 0 <= crf <= 51:
+        raise BadInput(f"--crf must be in 0..51, got {crf}")
+    if preset not in PRESETS:
+        raise BadInput(f"--preset must be one of {', '.join(PRESETS)}, got {preset!r}")
 
 
 def even_size(size: tuple[int, int]) -> tuple[int, int]:
