@@ -189,6 +189,50 @@ def test_yuv_planes_warp_like_rgb():
 
 # --- the command, on a rendered shaky clip with sound ------------------------------------------
 
+@pytest.mark.parametrize("source", ["video", "folder"])
+def test_compare_halves_are_labelled_input_and_stabilised(tmp_path, source):
+    """--compare's video: every frame, the input on the left and the output on the right, each
+    with its label in the top-left corner ("input", and the wider "stabilised" on the output),
+    written on the frames and nowhere else.  A video stays in yuv420p, a folder of images goes
+    through RGB: both paths write the labels."""
+    from mosaic_cli.stabilize.render import Renderer
+
+    n = 12
+    texture = textured_image(420, 300, seed=3)
+    shifts = [_about_centre(0.0, 2.0 * t, 1.0 * t) for t in range(n)]
+    frames = [render(texture, np.linalg.inv(M), SIZE) for M in shifts]
+    if source == "video":
+        clip = write_clip(tmp_path / "in.mp4", frames, fps=FPS)
+    else:
+        clip = tmp_path / "in"
+        clip.mkdir()
+        for t, f in enumerate(frames):
+            cv2.imwrite(str(clip / f"frame_{t:03d}.png"), cv2.cvtColor(f, cv2.COLOR_RGB2BGR))
+    warps = np.repeat(_about_centre(0.0, 3.0, -2.0)[None], n, axis=0)
+    out, side = tmp_path / "out.mp4", tmp_path / "side.mp4"
+    written = Renderer(crf=8).render(clip, out, warps, probe(clip), compare=side, show_progress=False)
+    assert written == n
+    inputs, outputs, sides = decoded(clip), decoded(out), decoded(side)
+    assert len(sides) == len(inputs) == n
+    w, h = SIZE
+    for t in (0, n // 2, n - 1):
+        frame = sides[t].astype(int)
+        assert frame.shape == (h, 2 * w, 3)
+        plain = np.hstack([inputs[t], outputs[t]]).astype(int)  # the same frame without labels
+        changed = np.abs(frame - plain).max(axis=2) > 80
+        top, rest = changed[: h // 4], changed[h // 4:]
+        assert rest.mean() < 0.002  # nothing written below the labels
+        left, right = top[:, :w], top[:, w:]
+        assert left.sum() > 40 and right.sum() > 40  # each half has its label
+        assert not left[:, w // 2:].any() and not right[:, w // 2:].any()  # in its top-left corner
+        # "stabilised" (10 letters) on the output, "input" (5) on the input: wider, more ink
+        cols_left, cols_right = np.flatnonzero(left.sum(axis=0) >= 2), np.flatnonzero(right.sum(axis=0) >= 2)
+        assert np.ptp(cols_right) > 1.5 * np.ptp(cols_left) and right.sum() > 1.5 * left.sum()
+        # white letters outlined in black: both extremes are there, in each half
+        for half in (frame[: h // 4, :w], frame[: h // 4, w:]):
+            assert (half.min(axis=2) > 225).sum() > 20 and (half.max(axis=2) < 30).sum() > 20
+
+
 @pytest.fixture(scope="module")
 def shaky_clip(tmp_path_factory):
     """60 frames, 320x180, 30 fps, a shaky pan over a procedural texture, with a sine sound

@@ -11,6 +11,7 @@ warp, 27 instead of 37 ms of CPU a 1280x720 frame.  Image folders and odd sizes 
 
 from __future__ import annotations
 
+import functools
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -28,6 +29,7 @@ from mosaic_cli.video import VideoInfo, VideoWriter, open_video
 
 BORDERS = {"black": cv2.BORDER_CONSTANT, "replicate": cv2.BORDER_REPLICATE, "reflect": cv2.BORDER_REFLECT}
 COMPARE_PANEL_WIDTH = 960  # wider inputs are shown at half size in --compare videos
+COMPARE_LABELS = ("input", "stabilised")  # written on the --compare video's left and right panels
 
 
 def parse_border(name: str) -> str:
@@ -69,13 +71,49 @@ def side_by_side_yuv(left: np.ndarray, right: np.ndarray, size: tuple[int, int])
     """:func:`side_by_side` for yuv420p frames of ``size``."""
     out_size = compare_size(size)
     out = np.empty((out_size[1] * 3 // 2, out_size[0]), np.uint8)
-    for a, b, dst in zip(yuv_planes(left, size), yuv_planes(right, size), yuv_planes(out, out_size)):
+    text, outline = compare_labels(out_size)
+    small = (out_size[0] // 2, out_size[1] // 2)
+    chroma_text = cv2.resize((text | outline).view(np.uint8), small, interpolation=cv2.INTER_AREA) > 0
+    for i, (a, b, dst) in enumerate(zip(yuv_planes(left, size), yuv_planes(right, size), yuv_planes(out, out_size))):
         panel = (dst.shape[1] // 2, dst.shape[0])
         if (a.shape[1], a.shape[0]) != panel:
             a = cv2.resize(a, panel, interpolation=cv2.INTER_AREA)
             b = cv2.resize(b, panel, interpolation=cv2.INTER_AREA)
         dst[:, :panel[0]], dst[:, panel[0]:] = a, b
+        if i == 0:  # white letters outlined in black (limited range), grey under them in chroma
+            dst[outline], dst[text] = 16, 235
+        else:
+            dst[chroma_text] = 128
     return out
+
+
+@functools.lru_cache(maxsize=4)
+def compare_labels(out_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Where the --compare video's labels go, at its size ``out_size``: (letters, outline), two
+    boolean (h, w) masks, :data:`COMPARE_LABELS` in the top-left corner of each panel.  The text
+    is about a sixteenth of the panel's height (at least 10 px), narrowed to fit a small panel."""
+    w, h = out_size
+    panel_w = w // 2
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    scale = max(10.0, h / 16) / cv2.getTextSize("Ag", font, 1.0, 1)[0][1]
+    widest = max(cv2.getTextSize(label, font, 1.0, 1)[0][0] for label in COMPARE_LABELS)
+    scale = min(scale, 0.8 * panel_w / widest)
+    thickness = max(1, round(scale * 1.5))
+    margin = max(3, round(h / 40))
+    text = np.zeros((h, w), np.uint8)
+    for i, label in enumerate(COMPARE_LABELS):
+        (_, height), _ = cv2.getTextSize(label, font, scale, thickness)
+        cv2.putText(text, label, (i * panel_w + margin, margin + height), font, scale, 255, thickness, cv2.LINE_AA)
+    letters = text > 127
+    outline = cv2.dilate(letters.view(np.uint8), np.ones((3, 3), np.uint8), iterations=max(1, thickness // 2)) > 0
+    return letters, outline & ~letters
+
+
+def label_panels(frame: np.ndarray) -> np.ndarray:
+    """An RGB side-by-side frame with :data:`COMPARE_LABELS` written on its panels (in place)."""
+    text, outline = compare_labels((frame.shape[1], frame.shape[0]))
+    frame[outline], frame[text] = 0, 255
+    return frame
 
 
 def _warp_plane(plane: np.ndarray, warp: np.ndarray, size: tuple[int, int], border: str, black) -> np.ndarray:
@@ -94,13 +132,14 @@ def _yuv_possible(info: VideoInfo, compare: bool) -> bool:
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Input and output next to each other (halved when the frames are wide)."""
+    """Input and output next to each other (halved when the frames are wide), labelled "input"
+    and "stabilised" (:func:`compare_labels`)."""
     h, w = left.shape[:2]
     if w > COMPARE_PANEL_WIDTH:
         size = (w // 2, h // 2)
         left = cv2.resize(left, size, interpolation=cv2.INTER_AREA)
         right = cv2.resize(right, size, interpolation=cv2.INTER_AREA)
-    return np.hstack([left, right])
+    return label_panels(np.hstack([left, right]))
 
 
 def compare_size(size: tuple[int, int]) -> tuple[int, int]:
