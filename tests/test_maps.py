@@ -310,7 +310,7 @@ def test_stitch_writes_kmz_tiles_and_html(flight, tmp_path):
     track = np.array([[float(v) for v in c.split(",")[:2]] for c in coords])
     truth = srt_positions(srt)
     assert len(truth) < 90  # some cues without a fix: left out of the track
-    np.testing.assert_allclose(track, truth, atol=1e-7)  # the telemetry's positions, every fix
+    np.testing.assert_allclose(track, truth, atol=1e-7)  # the telemetry's positions, every fix (none an outlier here)
     assert html.stat().st_size > 10_000 and "L.imageOverlay" in html.read_text()
     if CHROMIUM is not None:  # the page of a real stitch loads without an error
         dom = chromium("--dump-dom", html.resolve().as_uri())
@@ -360,10 +360,16 @@ def page_console(stderr: str) -> list[str]:
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="needs chromium (apt-get install chromium)")
 def test_quicklook_page_draws_the_map_where_it_belongs_in_a_browser(geotiff, tmp_path):
+    from pyproj import Transformer
+
     from mosaic_cli.geo.quicklook import write_quicklook
 
     page = tmp_path / "quick look.html"
-    write_quicklook(page, geotiff, features(), title="site")
+    fc = features()
+    dropped_at = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True).transform(ORIGIN[0] + 50, ORIGIN[1] + 32)
+    fc["features"].append({"type": "Feature", "geometry": {"type": "Point", "coordinates": list(dropped_at)},
+                           "properties": {"kind": "dropped gps fix", "sample": 7, "time": 0.7, "source": "test.SRT"}})
+    write_quicklook(page, geotiff, fc, title="site")
     text = page.read_text()
     assert not re.search(r"<(script|link|img)\b[^>]*\b(src|href)=", text)  # one file: nothing loaded from beside it or online
     assert "BSD 2-Clause License" in text  # Leaflet's licence travels with it
@@ -410,3 +416,139 @@ def test_quicklook_page_draws_the_map_where_it_belongs_in_a_browser(geotiff, tmp
     x, y = round(x0 + 5 / 64 * (x1 - x0)), round(y0 + (1 - 20 / 42) * (y1 - y0))
     red = image[y - 2:y + 3, x - 2:x + 3].reshape(-1, 3)
     assert ((red[:, 0] > 180) & (red[:, 1] < 80) & (red[:, 2] < 100)).any(), red
+    # a dropped fix: a magenta dot of its own where it is (50 m east, 32 m north of the corner)
+    x, y = round(x0 + 50 / 64 * (x1 - x0)), round(y0 + (1 - 32 / 42) * (y1 - y0))
+    dot = image[y - 2:y + 3, x - 2:x + 3].reshape(-1, 3)
+    assert ((dot[:, 0] > 200) & (dot[:, 1] < 120) & (dot[:, 2] > 200)).sum() >= 9, dot
+
+
+# -- GPS fixes dropped as outliers: drawn apart, never joined into the track (issue 40) ------------
+
+SPIKES = (12, 25, 26)  # the fixes 40-60 m off the line
+
+
+def spiky_collection() -> tuple[dict, np.ndarray, np.ndarray]:
+    """The footprints GeoJSON (geo/output.py's) of a track along the synthetic map, one fix a
+    frame, with three far-off fixes (two in a row) that alignment drops as outliers; and the
+    (lon, lat) of the fixes kept and of those dropped."""
+    from types import SimpleNamespace
+
+    from mosaic_cli.geo.crs import Projection
+    from mosaic_cli.geo.output import footprint_collection
+    from mosaic_cli.telemetry import align_to_frames
+    from mosaic_cli.telemetry.track import Track
+
+    n = 40
+    east = ORIGIN[0] + 5 + 1.5 * np.arange(n)
+    north = ORIGIN[1] + 20 + 0.3 * np.sin(np.arange(n))
+    for i, (de, dn) in zip(SPIKES, ((0, 45), (-30, -50), (-28, -52))):
+        east[i], north[i] = east[i] + de, north[i] + dn
+    projection = Projection(CRS)
+    lonlat = projection.to_wgs84(east, north)
+    nan = np.full(n, np.nan)
+    track = Track("spiky.SRT", np.arange(n) / 10.0, lonlat[:, 1], lonlat[:, 0], nan, nan, nan, nan, nan, nan)
+    aligned = align_to_frames(track, np.arange(n) / 10.0)
+    assert aligned.outliers == len(SPIKES)
+    georef = SimpleNamespace(projection=projection, frame_indices=[], used=np.zeros(0, bool), telemetry=aligned, track=track)
+    fc = footprint_collection(georef, [], (640, 360), 10.0)
+    dropped = np.isin(np.arange(n), SPIKES)
+    return fc, lonlat[~dropped], lonlat[dropped]
+
+
+def test_dropped_fixes_are_points_apart_from_the_track_line():
+    fc, kept, dropped = spiky_collection()
+    (track,) = [f for f in fc["features"] if f["properties"]["kind"] == "gps track"]
+    assert track["geometry"]["type"] == "LineString"
+    np.testing.assert_allclose(track["geometry"]["coordinates"], kept, rtol=0, atol=1e-8)  # every kept fix, none dropped
+    points = [f for f in fc["features"] if f["properties"]["kind"] == "dropped gps fix"]
+    assert [f["geometry"]["type"] for f in points] == ["Point"] * len(SPIKES)
+    assert [f["properties"]["sample"] for f in points] == list(SPIKES)
+    np.testing.assert_allclose([f["geometry"]["coordinates"] for f in points], dropped, rtol=0, atol=1e-8)
+
+
+LEAFLET_STUB = r"""
+const fs = require("fs");
+const data = fs.readFileSync(process.argv[2], "utf8"), script = fs.readFileSync(process.argv[3], "utf8");
+function layer(o) { o.addTo = () => o; o.bindPopup = () => o; return o; }
+let overlays = null;
+global.window = {addEventListener() {}};
+global.document = {getElementById: () => ({textContent: data}), body: {setAttribute(k, v) { if (k === "data-errors") throw new Error(v); }}};
+global.L = {
+  map: () => layer({on() {}, fitBounds() {}}),
+  tileLayer: () => layer({type: "tiles"}),
+  imageOverlay: () => layer({type: "image"}),
+  layerGroup: (items) => layer({type: "group", items: items || []}),
+  circleMarker: (latlng, options) => layer({type: "marker", latlng, options}),
+  geoJSON: (fc, options) => {
+    fc.features.forEach((f) => options.onEachFeature && options.onEachFeature(f, layer({})));
+    return layer({type: "geojson", features: fc.features, styles: fc.features.map((f) => options.style ? options.style(f) : null)});
+  },
+  control: {layers: (base, over) => { overlays = over; return layer({}); }, scale: () => layer({})},
+  Control: {extend: () => function () { return layer({}); }},
+  DomUtil: {create: () => ({})},
+  popup: () => layer({setLatLng() { return this; }, setContent() { return this; }, openOn() { return this; }}),
+};
+eval(script);
+process.stdout.write(JSON.stringify(overlays));
+"""
+
+
+def page_layers(page: Path, tmp_path: Path) -> dict:
+    """The quick-look page's script run in node against a stand-in for Leaflet: the overlays of
+    its layers control (the legend), by their labels, as the script made them."""
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("needs node")
+    text = page.read_text()
+    data = re.search(r'<script type="application/json" id="mosaic-data">(.*?)</script>', text, re.S).group(1)
+    script = re.findall(r"<script>\n(.*?)\n</script>", text, re.S)[-1]
+    paths = [tmp_path / "data.json", tmp_path / "script.js", tmp_path / "stub.js"]
+    for path, content in zip(paths, (data.replace("<\\/", "</"), script.replace("<\\/", "</"), LEAFLET_STUB)):
+        path.write_text(content)
+    run = subprocess.run([node, str(paths[2]), str(paths[0]), str(paths[1])], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout)
+
+
+def test_quicklook_draws_dropped_fixes_in_a_layer_and_colour_of_their_own(geotiff, tmp_path):
+    from mosaic_cli.geo.quicklook import write_quicklook
+
+    fc, kept, dropped = spiky_collection()
+    page = tmp_path / "q.html"
+    write_quicklook(page, geotiff, fc, title="site")
+    overlays = page_layers(page, tmp_path)
+    (track_label,) = [k for k in overlays if "GPS track" in k]
+    (dropped_label,) = [k for k in overlays if "dropped" in k.lower()]
+    track, points = overlays[track_label], overlays[dropped_label]
+    # the track's line: every kept fix, not one dropped
+    lines = [f["geometry"]["coordinates"] for f in track["features"]]
+    assert [f["geometry"]["type"] for f in track["features"]] == ["LineString"]
+    np.testing.assert_allclose(lines[0], kept, rtol=0, atol=1e-8)
+    assert not any(np.allclose(v, d, rtol=0, atol=1e-8) for v in lines[0] for d in dropped)
+    # the dropped fixes: markers of their own, where they are, in a colour that is not the track's
+    assert points["type"] == "group" and all(m["type"] == "marker" for m in points["items"])
+    np.testing.assert_allclose([m["latlng"][::-1] for m in points["items"]], dropped, rtol=0, atol=1e-8)
+    fill = {m["options"]["fillColor"] for m in points["items"]}
+    assert len(fill) == 1 and fill != {track["styles"][0]["color"]}
+    # the legend names them, with their count and their colour
+    assert "(3)" in dropped_label and f"background:{fill.pop()}" in dropped_label
+    assert f"background:{track['styles'][0]['color']}" in track_label
+
+    # a track without outliers has no such legend entry
+    fc["features"] = [f for f in fc["features"] if f["properties"]["kind"] != "dropped gps fix"]
+    write_quicklook(page, geotiff, fc, title="site")
+    assert not [k for k in page_layers(page, tmp_path) if "dropped" in k.lower()]
+
+
+def test_kmz_puts_dropped_fixes_in_a_folder_of_their_own(geotiff, tmp_path):
+    from mosaic_cli.geo.kmz import write_kmz
+
+    fc, kept, dropped = spiky_collection()
+    out = tmp_path / "site.kmz"
+    write_kmz(out, geotiff, fc)
+    _, root = read_kmz(out)
+    folders = {f.find(f"{KML}name").text: f for f in root.iter(f"{KML}Folder")}
+    coords = folders["Flight track"].find(f".//{KML}LineString/{KML}coordinates").text.split()
+    np.testing.assert_allclose([[float(v) for v in c.split(",")[:2]] for c in coords], kept, rtol=0, atol=1e-8)
+    points = folders["GPS fixes dropped as outliers (3)"].findall(f".//{KML}Point/{KML}coordinates")
+    np.testing.assert_allclose([[float(v) for v in p.text.split(",")[:2]] for p in points], dropped, rtol=0, atol=1e-8)

@@ -190,6 +190,7 @@ def test_alignment_reports_outliers_and_gaps():
     track = Track("t", times, lat, lon, nan, nan, nan, nan, nan, nan)
     a = align_to_frames(track, np.arange(0, 19.9, 1 / 30))
     assert a.outliers == 1 and a.without_fix == 50
+    assert a.dropped.shape == (n,) and np.flatnonzero(a.dropped).tolist() == [50]  # which sample, for the maps
     assert len(a.gaps) == 1 and a.gaps[0][1] == pytest.approx(5.1)
     inside_gap = (a.frame_times > 9.9) & (a.frame_times < 15.0)
     assert not a.fix[inside_gap].any() and a.fix[~inside_gap].all()

@@ -1,7 +1,8 @@
 """A KMZ that Google Earth opens: the map as a Region-based super-overlay (a KML pyramid of
 PNG/JPEG tiles, each level shown by its <Region>/<Lod> and reached through NetworkLinks, as
-GDAL's KMLSUPEROVERLAY driver writes it: a large map stays light), with the flight track
-and the keyframes' footprints as KML layers (Placemarks in WGS84 lon/lat)."""
+GDAL's KMLSUPEROVERLAY driver writes it: a large map stays light), with the flight track, the
+GPS fixes dropped as outliers (points of their own, not in the track) and the keyframes'
+footprints as KML layers (Placemarks in WGS84 lon/lat)."""
 
 from __future__ import annotations
 
@@ -39,8 +40,9 @@ def _style(doc: ET.Element, ident: str, colour: str, width: str, fill: str | Non
 
 
 def add_layers(doc_kml: bytes, features: dict, name: str) -> bytes:
-    """GDAL's root doc.kml named ``name``, with two folders added: the GPS track (a LineString)
-    and the keyframes' footprints (a Polygon each, named by frame, with its time and centre)."""
+    """GDAL's root doc.kml named ``name``, with folders added: the GPS track (a LineString), the
+    fixes dropped as outliers (a Point each, when there are any) and the keyframes' footprints (a
+    Polygon each, named by frame, with its time and centre)."""
     ET.register_namespace("", KML_NS)
     ET.register_namespace("gx", "http://www.google.com/kml/ext/2.2")
     root = ET.fromstring(doc_kml)
@@ -63,6 +65,22 @@ def add_layers(doc_kml: bytes, features: dict, name: str) -> bytes:
         line = _el(place, "LineString")
         _el(line, "tessellate", "1")
         _el(line, "coordinates", _coordinates(track[0]["geometry"]["coordinates"]))
+    dropped = [f for f in features["features"] if f["properties"].get("kind") == "dropped gps fix"]
+    if dropped:
+        style = _el(doc, "Style", id="dropped")  # magenta dots
+        icon = _el(style, "IconStyle")
+        _el(icon, "color", "fff53dff")
+        _el(icon, "scale", "0.6")
+        _el(_el(icon, "Icon"), "href", "http://maps.google.com/mapfiles/kml/shapes/shaded_dot.png")
+        folder = _el(doc, "Folder")
+        _el(folder, "name", f"GPS fixes dropped as outliers ({len(dropped)})")
+        for f in dropped:
+            p = f["properties"]
+            place = _el(folder, "Placemark")
+            _el(place, "name", f"dropped fix {p['sample']}")
+            _el(place, "description", f"time {p['time']:.2f} s in the log: an outlier, left out of the track and the placement")
+            _el(place, "styleUrl", "#dropped")
+            _el(_el(place, "Point"), "coordinates", _coordinates([f["geometry"]["coordinates"]]))
     prints = [f for f in features["features"] if f["properties"].get("kind") == "footprint"]
     if prints:
         folder = _el(doc, "Folder")

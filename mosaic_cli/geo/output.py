@@ -115,8 +115,9 @@ def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndar
 def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> dict:
     """GeoJSON (RFC 7946, WGS84 lon/lat): a Polygon per keyframe's ground footprint (``gps``:
     whether its fix agreed with the images, was an outlier, or was missing; ``centre``: where
-    the frame's centre lies, lon/lat), the GPS track as read (every fix), and the camera path
-    as placed."""
+    the frame's centre lies, lon/lat), the GPS track as read (a LineString of every fix but those
+    dropped as outliers), each dropped fix apart (a Point, ``kind`` "dropped gps fix", with its
+    ``sample`` number and ``time`` in the log), and the camera path as placed."""
     corners = frame_corners(*frame_size)
     proj = georef.projection
 
@@ -136,11 +137,17 @@ def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_si
                            "centre": lonlat(project(M, centre))[0]},
         })
     track = georef.track
-    fixed = track.has_fix
-    if fixed.sum() >= 2:
-        coords = [[round(float(lon), 9), round(float(lat), 9)] for lat, lon in zip(track.lat[fixed], track.lon[fixed])]
+    dropped = georef.telemetry.dropped if len(georef.telemetry.dropped) == len(track) else np.zeros(len(track), bool)
+    kept = track.has_fix & ~dropped
+    if kept.sum() >= 2:
+        coords = [[round(float(lon), 9), round(float(lat), 9)] for lat, lon in zip(track.lat[kept], track.lon[kept])]
         features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
                          "properties": {"kind": "gps track", "source": track.source}})
+    for i in np.nonzero(dropped)[0]:  # never joined into the track: each on its own
+        features.append({"type": "Feature",
+                         "geometry": {"type": "Point", "coordinates": [round(float(track.lon[i]), 9), round(float(track.lat[i]), 9)]},
+                         "properties": {"kind": "dropped gps fix", "sample": int(i), "time": round(float(track.time[i]), 3),
+                                        "source": track.source}})
     if len(map_h) >= 2:
         path_ground = np.array([project(M, centre)[0] for M in map_h])
         features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": lonlat(path_ground)},

@@ -3,8 +3,10 @@
 The page holds everything it shows: Leaflet (vendored in geo/vendor/leaflet with its
 licence, inlined), the map warped to Web Mercator and downsampled (a WebP data URI placed by
 its bounds: Leaflet draws in Web Mercator, so a north-up image between two latitudes and two
-longitudes lands exactly), the GPS track, the keyframes' footprints and centres (click one for
-its frame, time and position), a metric scale bar and a north arrow.  An OpenStreetMap layer
+longitudes lands exactly), the GPS track, the fixes georeferencing dropped as outliers (points
+of their own colour, never joined into the track), the keyframes' footprints and centres (click
+one for its frame, time and position), a legend in the layers control, a metric scale bar and a
+north arrow.  An OpenStreetMap layer
 is offered, off by default: with it off the page asks nothing of the network."""
 
 from __future__ import annotations
@@ -104,20 +106,41 @@ SCRIPT = r"""
       fmt(lonlat[1], 7) + " N, " + fmt(lonlat[0], 7) + " E<br>GPS fix: " + p.gps;
   }
   var feats = data.features.features;
-  var prints = L.geoJSON({type: "FeatureCollection", features: feats.filter(function (f) { return f.properties.kind === "footprint"; })}, {
-    style: function (f) { return {color: f.properties.gps === "outlier" ? "#ff8000" : "#ffd400", weight: 1.5, fillOpacity: 0.04}; },
+  function kind(k) { return feats.filter(function (f) { return f.properties.kind === k; }); }
+  var colour = {footprint: "#ffd400", outlier: "#ff8000", track: "#e8112d", dropped: "#ff3df5", droppedEdge: "#5b0a66", centre: "#1f6fe5"};
+  var prints = L.geoJSON({type: "FeatureCollection", features: kind("footprint")}, {
+    style: function (f) { return {color: f.properties.gps === "outlier" ? colour.outlier : colour.footprint, weight: 1.5, fillOpacity: 0.04}; },
     onEachFeature: function (f, layer) { layer.bindPopup(framePopup(f.properties, f.properties.centre || f.geometry.coordinates[0][0])); }
   }).addTo(map);
-  var track = L.geoJSON({type: "FeatureCollection", features: feats.filter(function (f) { return f.properties.kind === "gps track"; })}, {
-    style: function () { return {color: "#e8112d", weight: 3}; }
+  var track = L.geoJSON({type: "FeatureCollection", features: kind("gps track")}, {
+    style: function () { return {color: colour.track, weight: 3}; }
   }).addTo(map);
-  var centres = L.layerGroup(feats.filter(function (f) { return f.properties.kind === "footprint" && f.properties.centre; }).map(function (f) {
+  // the fixes georeferencing dropped as outliers: points apart, never a vertex of the track's line
+  var droppedFixes = kind("dropped gps fix");
+  var dropped = L.layerGroup(droppedFixes.map(function (f) {
+    var c = f.geometry.coordinates, p = f.properties;
+    return L.circleMarker([c[1], c[0]], {radius: 5, color: colour.droppedEdge, weight: 2, fillColor: colour.dropped, fillOpacity: 1})
+      .bindPopup("<b>GPS fix dropped as an outlier</b><br>sample " + p.sample + ", time " + fmt(p.time, 2) + " s in the log<br>" +
+        fmt(c[1], 7) + " N, " + fmt(c[0], 7) + " E");
+  })).addTo(map);
+  var centres = L.layerGroup(kind("footprint").filter(function (f) { return f.properties.centre; }).map(function (f) {
     var c = f.properties.centre;
-    return L.circleMarker([c[1], c[0]], {radius: 5, color: "#fff", weight: 1.5, fillColor: "#1f6fe5", fillOpacity: 1})
+    return L.circleMarker([c[1], c[0]], {radius: 5, color: "#fff", weight: 1.5, fillColor: colour.centre, fillOpacity: 1})
       .bindPopup(framePopup(f.properties, c));
   })).addTo(map);
-  L.control.layers({"No basemap (offline)": none, "OpenStreetMap (online)": osm},
-    {"Map": image, "Footprints": prints, "GPS track": track, "Frame centres": centres}, {collapsed: false}).addTo(map);
+  // the layers control is the legend: each entry with its colour
+  function swatch(fill, edge, round) {
+    return '<span class="swatch' + (round ? " round" : "") + '" style="background:' + fill + ';border-color:' + (edge || fill) + '"></span>';
+  }
+  var overlays = {"Map": image};
+  var outliers = kind("footprint").some(function (f) { return f.properties.gps === "outlier"; });
+  overlays[swatch(colour.footprint) + "Footprints" + (outliers ? " (" + swatch(colour.outlier) + "fix disagreed)" : "")] = prints;
+  overlays[swatch(colour.track) + "GPS track"] = track;
+  if (droppedFixes.length) {
+    overlays[swatch(colour.dropped, colour.droppedEdge, true) + "GPS fixes dropped as outliers (" + droppedFixes.length + ")"] = dropped;
+  }
+  overlays[swatch(colour.centre, "#fff", true) + "Frame centres"] = centres;
+  L.control.layers({"No basemap (offline)": none, "OpenStreetMap (online)": osm}, overlays, {collapsed: false}).addTo(map);
   L.control.scale({imperial: false, maxWidth: 200}).addTo(map);
   var North = L.Control.extend({options: {position: "topright"}, onAdd: function () {
     var div = L.DomUtil.create("div", "north-arrow");
@@ -148,6 +171,8 @@ TEMPLATE = """<!DOCTYPE html>
 {leaflet_css}
 html, body {{ margin: 0; height: 100%; }}
 #map {{ position: absolute; inset: 0; background: #dddddd; }}
+.swatch {{ display: inline-block; width: 14px; height: 6px; margin: 0 5px 1px 2px; border: 1px solid; vertical-align: middle; }}
+.swatch.round {{ width: 8px; height: 8px; border-radius: 50%; border-width: 2px; margin: 0 7px 1px 4px; }}
 .north-arrow {{ background: rgba(255, 255, 255, 0.8); border-radius: 4px; padding: 2px 3px 0; line-height: 0; }}
 .title {{ position: absolute; left: 54px; top: 10px; z-index: 1000; background: rgba(255, 255, 255, 0.85); padding: 4px 8px;
          border-radius: 4px; font: 14px sans-serif; }}

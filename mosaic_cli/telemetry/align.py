@@ -47,6 +47,9 @@ class AlignedTelemetry:
     span: tuple[float, float] = (0.0, 0.0)  # first and last usable fix
     source: str = ""
     notes: list[str] = field(default_factory=list)
+    # over the track's samples: the fixes dropped as outliers (``outliers`` of them), which no
+    # frame's position comes from and no drawn track should join
+    dropped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def summary(self) -> str:
         rate = (self.samples - 1) / max(self.span[1] - self.span[0], 1e-9) if self.samples > 1 else 0.0
@@ -111,6 +114,8 @@ def align_to_frames(track: Track, frame_times: np.ndarray, options: AlignOptions
         xy = local_metres(lat, lon, float(np.median(lat)), float(np.median(lon)))
         outliers = find_outliers(times, xy, options)
     good_t, good_lat, good_lon = times[~outliers], lat[~outliers], lon[~outliers]
+    dropped = np.zeros(len(track), bool)
+    dropped[np.nonzero(fixed)[0][outliers]] = True
     n = len(t)
     frame_lat = np.full(n, np.nan)
     frame_lon = np.full(n, np.nan)
@@ -139,5 +144,5 @@ def align_to_frames(track: Track, frame_times: np.ndarray, options: AlignOptions
         t, frame_lat, frame_lon,
         _interp(t, all_t, track.height), _interp(t, all_t, track.yaw, angle=True),
         _interp(t, all_t, track.pitch), _interp(t, all_t, track.roll), _interp(t, all_t, track.hfov),
-        fix, len(track), int((~fixed).sum()), int(outliers.sum()), gaps, span, track.source, list(track.notes),
+        fix, len(track), int((~fixed).sum()), int(outliers.sum()), gaps, span, track.source, list(track.notes), dropped,
     )
