@@ -39,8 +39,15 @@ class Interrupted(MosaicError):
     exit_code = EXIT_INTERRUPTED
 
 
+def install_hint(extra: str) -> str:
+    """The one command that adds an extra (``plot``, ``geo``) to an installed mosaic, named the
+    same in every message and doc: it works in the environment mosaic is installed in, from any
+    folder, whether mosaic came from a checkout (``pip install -e .``) or a wheel."""
+    return f"pip install 'mosaic-cli[{extra}]'"
+
+
 # Maps (georeferencing, COG, footprints, GPX) need packages only the ``geo`` extra installs.
-GEO_EXTRA = "maps need the geo extra: pip install 'mosaic-cli[geo]'"
+GEO_EXTRA = f"maps need the geo extra: {install_hint('geo')}"
 GEO_PACKAGES = ("pyproj", "rasterio", "rio_cogeo", "gpxpy")
 
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, install_hint
 
-INSTALL = "pip install 'mosaic-cli[plot]'"
+INSTALL = install_hint("plot")
 
 
 def check_plot_request(path: str | Path | None) -> None:

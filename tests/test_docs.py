@@ -106,3 +106,46 @@ def test_relative_links_resolve(path: Path):
         if anchor and resolved.suffix == ".md" and anchor not in _anchors(resolved):
             broken.append(f"{target} (no heading #{anchor})")
     assert not broken, f"{path.relative_to(ROOT)}: broken links: {broken}"
+
+
+# -- one install hint for each extra (issue 40) -------------------------------------------------
+
+EXTRA_INSTALL = re.compile(r"pip install [^`\n]*?\[(\w+)\]'?")  # a pip install that names an extra
+
+
+def _install_hints() -> dict[str, set[str]]:
+    """Every ``pip install ... [extra]`` written in the package's messages and help, README.md and
+    docs/, by extra; the set-up commands (README's, .ci/run's: installing the checkout itself with
+    its tests) left out."""
+    found: dict[str, set[str]] = {}
+    texts = [p.read_text(encoding="utf-8") for p in (ROOT / "mosaic_cli").rglob("*.py")]
+    texts += [p.read_text(encoding="utf-8") for p in [README, *sorted((ROOT / "docs").rglob("*.md"))]]
+    for text in texts:
+        for match in EXTRA_INSTALL.finditer(text):
+            if match.group(1) != "test":
+                found.setdefault(match.group(1), set()).add(match.group(0))
+    return found
+
+
+def test_every_extra_has_one_install_hint_everywhere():
+    """The ``--plot`` error, the maps' error, the commands' help, the README and the guides name
+    the same command for an extra: the one the messages print (``errors.install_hint``)."""
+    from mosaic_cli.errors import GEO_EXTRA, install_hint
+    from mosaic_cli.plots import INSTALL
+
+    assert GEO_EXTRA.endswith(install_hint("geo")) and INSTALL == install_hint("plot")
+    hints = _install_hints()
+    assert hints.get("plot") == {install_hint("plot")} and hints.get("geo") == {install_hint("geo")}, hints
+    readme = README.read_text(encoding="utf-8")
+    assert install_hint("plot") in readme and install_hint("geo") in readme
+    # the --plot help of track and stabilize, as typer shows it
+    import typer.main
+
+    from mosaic_cli.cli import app
+
+    group = typer.main.get_command(app)
+    for name in ("track", "stabilize"):
+        (plot,) = [p for p in group.commands[name].params if p.name == "plot"]
+        assert install_hint("plot") in plot.help
+    # the finder sees another form, should one come back
+    assert EXTRA_INSTALL.search("needs `pip install -e '.[plot]'` (matplotlib)").group(0) == "pip install -e '.[plot]'"

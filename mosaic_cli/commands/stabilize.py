@@ -24,7 +24,7 @@ from mosaic_cli.commands.options import (
     overlay_detect_option,
     quiet_option,
 )
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, install_hint
 from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
 from mosaic_cli.video.reader import reading_policy
@@ -63,7 +63,7 @@ def stabilize(
     quiet: Quiet = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "
-                                              "pip install 'mosaic-cli[plot]').", rich_help_panel=INPUT_OUTPUT)] = None,
+                                              f"{install_hint('plot')}).", rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 

@@ -26,7 +26,7 @@ from mosaic_cli.commands.options import (
     quiet_option,
     use_threads,
 )
-from mosaic_cli.errors import BadInput, warn
+from mosaic_cli.errors import BadInput, install_hint, warn
 from mosaic_cli.estimators import plan_estimator
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
@@ -60,7 +60,7 @@ def track(
     quiet: Quiet = False,
     rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Also each row band's motion and correction (a rolling shutter's wobble) in the track file's \"rolling_shutter\" block: auto (readout estimated; a global shutter reads 0, no motion written), off, or the readout as a fraction of the frame interval (0..1). .json output only.", rich_help_panel=INPUT_OUTPUT)] = "off",
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw each pair's confidence over time, failed pairs marked, to "
-                                              "this PNG (needs matplotlib: pip install 'mosaic-cli[plot]').",
+                                              f"this PNG (needs matplotlib: {install_hint('plot')}).",
                                               rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.
