@@ -85,6 +85,12 @@ def test_readme_starts_with_exactly_two_setup_commands():
         assert "\n" not in command, f"a set-up block is not one command: {command!r}"
         assert command.startswith("python3 -m venv .venv && "), command
     assert "pip install -e . " in commands[0] and "mosaic stitch" in commands[0]
+    # the main job makes a panorama worth looking at: a survey flight (several keyframes), as in
+    # the README's picture and the maps guide, stitched from the video just simulated
+    (simulate,) = [step for step in commands[0].split(" && ") if step.startswith("mosaic simulate ")]
+    assert re.search(r"\s(-p|--profile)[ =]survey\b", simulate), simulate
+    flight = re.search(r"\s(-o|--out)[ =](\S+)", simulate)
+    assert flight and f"mosaic stitch {flight.group(2)} -o " in commands[0], commands[0]
     assert "pip install -e '.[test]'" in commands[1] and commands[1].endswith("python -m pytest -q")
     # No other fenced block comes before the set-up section.
     assert "```" not in sections[0]
