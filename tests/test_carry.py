@@ -243,3 +243,27 @@ def test_the_lstm_estimator_takes_carry_weights(tmp_path):
     save_weights(path, carry_from(cnn), variant="carry", int8=meta["int8"])
     est = make_learned_estimator("lstm", weights=path, device="cpu")
     assert est.model.head == "carry" and est.name == "carry"
+
+
+# ----------------------------------------------------------------------------- the memory probe
+
+
+@pytest.mark.slow
+def test_the_shipped_sequence_model_carries_the_motion_in_its_state(tmp_path):
+    """The memory probe of the shipped `lstm` on a fresh flight with bursts (a procedural map the
+    network never saw): restarting the state just before each burst makes the network-alone burst
+    pairs clearly worse, while a restart at an ordinary place changes little.  The weights before
+    issue 38 (an LSTM whose forget gate stayed shut) failed it: the same failures both ways."""
+    import subprocess
+    import sys
+
+    from mosaic_cli.evaluate import memory_probe
+
+    flight = tmp_path / "bursts.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-p", "bursts", "-n", "240", "--size", "640x360",
+                    "--seed", "11", "--preset", "veryfast", "-q", "-o", str(flight)], check=True, timeout=300)
+    counts = memory_probe(flight).failures()
+    assert counts["burst_pairs"] >= 20 and counts["ordinary_pairs"] >= 20
+    carried, restarted = counts["burst_failed_carried"], counts["burst_failed_restarted"]
+    assert restarted >= 1.5 * carried + 3, counts
+    assert counts["ordinary_failed_restarted"] <= counts["ordinary_failed_carried"] + 0.1 * counts["ordinary_pairs"], counts

@@ -33,7 +33,9 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -79,24 +81,42 @@ def teacher_track(clip: CachedClip, weights: str) -> tuple[np.ndarray, np.ndarra
     return H, ok
 
 
-def teacher_tracks(clips: Sequence[CachedClip], weights: str, folder: Path, show_progress: bool) -> list[tuple[np.ndarray, np.ndarray]]:
-    """:func:`teacher_track` of every clip, each kept in ``folder`` (a resumed run reads them back)."""
+def _teacher_job(job: tuple[CachedClip, str, str]) -> str:
+    """:func:`teacher_track` of one clip, saved to ``path`` (in a worker process)."""
+    clip, weights, path = job
+    H, ok = teacher_track(clip, weights)
+    tmp = Path(path).with_name(f".{Path(path).stem}.part.npz")
+    np.savez(tmp, H=H, ok=ok)
+    tmp.replace(path)
+    return path
+
+
+def teacher_tracks(clips: Sequence[CachedClip], weights: str, folder: Path, show_progress: bool,
+                   workers: int = 1) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`teacher_track` of every clip, on ``workers`` processes, each kept in ``folder`` (a
+    resumed run reads them back)."""
     folder.mkdir(parents=True, exist_ok=True)
     key = _digest({"weights": _file_digest(weights), "format": CACHE_FORMAT})
-    out = []
+    paths = [str(folder / f"{Path(clip.file).stem}-{key}.npz") for clip in clips]
+    jobs = [(clip, weights, path) for clip, path in zip(clips, paths) if not Path(path).is_file()]
     with progress_task("teacher tracks", len(clips), unit="clips", disable=not show_progress) as advance:
-        for clip in clips:
-            path = folder / f"{Path(clip.file).stem}-{key}.npz"
-            if path.is_file():
-                with np.load(path) as saved:
-                    out.append((saved["H"], saved["ok"]))
-            else:
-                H, ok = teacher_track(clip, weights)
-                tmp = path.with_name(f".{path.stem}.part.npz")
+        advance(len(clips) - len(jobs))
+        if workers > 1 and len(jobs) > 1:
+            # spawn, not fork: the parent's torch (its thread pool, perhaps CUDA) must not be forked.
+            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=get_context("spawn")) as pool:
+                for _ in pool.map(_teacher_job, jobs):
+                    advance(1)
+        else:
+            for job in jobs:
+                H, ok = teacher_track(job[0], weights)
+                tmp = Path(job[2]).with_name(f".{Path(job[2]).stem}.part.npz")
                 np.savez(tmp, H=H, ok=ok)
-                tmp.replace(path)
-                out.append((H, ok))
-            advance(1)
+                tmp.replace(job[2])
+                advance(1)
+    out = []
+    for path in paths:
+        with np.load(path) as saved:
+            out.append((saved["H"], saved["ok"]))
     return out
 
 

@@ -273,7 +273,7 @@ def carry_batches(cfg: TrainConfig, net: HomographyNet, cached, run: RunDir, dis
     from mosaic_cli.model.quantize import quantized_features
 
     folder = run.root / "features"
-    teachers = teacher_tracks(cached, cfg.init, folder, show_progress)
+    teachers = teacher_tracks(cached, cfg.init, folder, show_progress, workers=cfg.num_workers)
     features = None
     if dist.device.type == "cpu":
         features = quantized_features(net, init_ranges(cfg))
