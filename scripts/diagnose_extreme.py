@@ -44,11 +44,11 @@ def shift(dx: float, dy: float) -> np.ndarray:
     return np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])
 
 
-def diagnose(video: Path, frames: int) -> dict:
+def diagnose(video: Path, frames: int, weights: str | None = None) -> dict:
     gt = load_ground_truth(ground_truth_path(video))
     s = WORK[0] / gt.size[0]
     S = np.diag([s, s, 1.0])
-    network = make_learned_estimator("lstm", config=LearnedConfig(refine=None, fallback="none", min_zncc=None))
+    network = make_learned_estimator("lstm", weights=weights, config=LearnedConfig(refine=None, fallback="none", min_zncc=None))
     pairwise = np.asarray(track_video(str(video), network, max_frames=frames, show_progress=False).pairwise)
     to_work = lambda H: S @ H @ np.linalg.inv(S)  # noqa: E731
     seeds_net = [to_work(H) for H in pairwise]
@@ -110,13 +110,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("flights", nargs="+", type=Path)
     parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--weights", default=None, help="the network's weights (default: the shipped lstm)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     print("| flight | seed within 10 px: network / velocity / identity | failed after the polish: network / velocity / identity "
           "| best of the three seeds (oracle) | correctly placed pairs whose basin holds |")
     print("| --- | --- | --- | ---: | ---: |")
     for video in args.flights:
-        r = diagnose(video, args.frames)
+        r = diagnose(video, args.frames, args.weights)
         w, f = r["seed_within"], r["failed"]
         print(f"| {r['flight']} | {w['network']:.0%} / {w['velocity']:.0%} / {w['identity']:.0%} "
               f"| {f['network']:.1%} / {f['velocity']:.1%} / {f['identity']:.1%} | {r['oracle_failed']:.1%} "

@@ -201,9 +201,15 @@ def test_the_objective_is_zero_at_the_teacher_and_counts_only_the_pairs_it_knows
     assert float(CarryObjective()(net, batch)["total"]) < 1e-10
     batch["teacher"] = batch["teacher"] + 3.0
     batch["known"][:, 2] = False
-    batch["teacher"][:, 2] += 100.0  # a pair the teacher does not know adds nothing
+    batch["teacher"][:, 2] += 100.0  # a pair the teacher does not know: the BASE's answer is its target
+    batch["events"][:, 3] = EVENTS.index("glare")
+    batch["known"][:, 3] = False  # an event pair nobody knows adds nothing
     terms = CarryObjective()(net, batch)
-    assert float(terms["total"]) == pytest.approx(3.0 * np.sqrt(2) - 0.5, rel=1e-4)  # Huber beyond 1 px
+    with torch.no_grad():
+        to_base = float((offsets[:, 2] - net.regressor(features)[:, 2]).unflatten(-1, (4, 2)).norm(dim=-1).mean())
+    assert to_base < 0.01  # the head starts at the BASE: that pair costs (almost) nothing
+    expected = (4 * (3.0 * np.sqrt(2) - 0.5) + 0.5 * to_base**2) / 5  # Huber beyond 1 px, over the 5 scored pairs of 6
+    assert float(terms["total"]) == pytest.approx(expected, rel=1e-3)
 
 
 # ----------------------------------------------------------------------------- the estimator

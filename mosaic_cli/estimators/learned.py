@@ -208,8 +208,12 @@ class LearnedEstimator(Estimator):
     def _finish_pair(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, offsets_ok: bool, agreement: float) -> PairEstimate:
         """Polish the seed, confirm it by the correlation of the registered detail, and where the
         learned path cannot confirm the pair, let the classical fallback try it."""
-        usable = bool(offsets_ok) and prev.textured and cur.textured
-        valid = bool(usable and is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio))
+        # The network's estimate is plausible (finite, not a fold or a blow-up) whatever the frames;
+        # only on textured frames can the polish and the checks confirm it.  A carried pair may
+        # take a plausible estimate (carry=network): a sequence model's, on a frame without
+        # texture, is what its state carried over.
+        plausible = bool(offsets_ok) and bool(is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio))
+        valid = bool(plausible and prev.textured and cur.textured)
         polished, settled = self._polish(prev, cur, seed) if valid else (None, False)
         zncc = self._zncc(prev, cur, polished.H) if polished is not None else 0.0
         related = self.config.min_zncc is None or zncc >= self.config.min_zncc
@@ -224,31 +228,31 @@ class LearnedEstimator(Estimator):
             # features may do better; the registration whose band-passed frames agree more wins.
             # (confirmed: polished is set)
             if orb_ok and (not confirmed or (polished is not None and self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H))):
-                return self._gated(prev, cur, seed, valid, H_orb, orb_confidence, "fallback")
+                return self._gated(prev, cur, seed, plausible, H_orb, orb_confidence, "fallback")
         if polished is None or not related:
             if self._can_carry() and (prev.spoilt or cur.spoilt):
-                return self._carried(seed, valid)
+                return self._carried(seed, plausible)
             return self._result(None, 0.0, "failed")
         confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
-        return self._gated(prev, cur, seed, valid, polished.H, confidence, "learned")
+        return self._gated(prev, cur, seed, plausible, polished.H, confidence, "learned")
 
-    def _gated(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, valid: bool, H: np.ndarray, confidence: float,
+    def _gated(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, plausible: bool, H: np.ndarray, confidence: float,
                path: str) -> PairEstimate:
         """An estimate that touches a spoilt frame, weakly confirmed and far from the motion carried
         over, is a registration the spoilt detail fooled (a heavy blur's streaks lock onto the
         wrong place): the carried motion takes its place.  Every other estimate stands."""
         c = self.config
         if (prev.spoilt or cur.spoilt) and confidence < c.carry_gate and self._can_carry():
-            carried = self._carry_estimate(seed, valid)
+            carried = self._carry_estimate(seed, plausible)
             if float(corner_error(H, carried, self.work_size)) > c.carry_gate_px:
-                return self._carried(seed, valid)
+                return self._carried(seed, plausible)
         return self._result(H, confidence, path)
 
-    def _carry_estimate(self, seed: np.ndarray, valid: bool) -> np.ndarray:
-        return seed if self.config.carry == "network" and valid else self._motion
+    def _carry_estimate(self, seed: np.ndarray, plausible: bool) -> np.ndarray:
+        return seed if self.config.carry == "network" and plausible else self._motion
 
-    def _carried(self, seed: np.ndarray, valid: bool) -> PairEstimate:
-        return self._result(self._carry_estimate(seed, valid), self.config.carry_confidence, "carried")
+    def _carried(self, seed: np.ndarray, plausible: bool) -> PairEstimate:
+        return self._result(self._carry_estimate(seed, plausible), self.config.carry_confidence, "carried")
 
     def _can_carry(self) -> bool:
         """Whether a pair no path confirms may take the carried motion (see LearnedConfig.carry)."""

@@ -20,7 +20,10 @@ them at thousands of windows a second on one CPU thread.
     4. objective        Huber distance (working px, per corner) between the head's offsets and
                         the teacher's, on every pair with a teacher: on a clean pair leaving
                         the teacher's answer costs, and on a spoilt pair, where the photometric
-                        loss has no basin to pull from, the teacher still says where the pair lies
+                        loss has no basin to pull from, the teacher still says where the pair
+                        lies; on a clean pair the teacher could not confirm, the BASE's own
+                        answer is the target (where nothing better is known, the head must not
+                        wander from it)
 
 No label is read: the teacher is the product's own estimate from the clean frames, which the head
 never sees on a spoilt pair.  Each window starts from no state, as a video does (the state is
@@ -309,10 +312,12 @@ class FeatureWindows:
 
 
 class CarryObjective:
-    """``objective(model, batch)`` -> the loss terms of the carry head: ``total`` (the Huber
-    distance to the teacher, per corner, averaged over the pairs it knows) and, for the log, the
-    mean corner error (working px) on clean and on event pairs, and the gate's mean weight on the
-    carried motion on each."""
+    """``objective(model, batch)`` -> the loss terms of the carry head: ``total``, the Huber
+    distance (per corner, working px) to the teacher on every pair it knows, and to the BASE's own
+    answer on the clean pairs it does not (the frames gave the teacher nothing to confirm: there,
+    leaving the BASE's answer for a carried motion must cost, or the head drifts wherever no
+    teacher watches); and, for the log, the mean corner error (working px) against the teacher on
+    clean and on event pairs, and the gate's mean weight on the carried motion on each."""
 
     variant = "carry"
     head = "carry"
@@ -326,17 +331,19 @@ class CarryObjective:
         with torch.no_grad():
             cnn = net.regressor(features)  # frozen: the BASE's offsets of each pair
         offsets, _, gate = net.carry(features, cnn)
-        error = (offsets.unflatten(-1, (4, 2)) - batch["teacher"]).norm(dim=-1)  # (B, T, 4) working px
-        huber = torch.where(error < HUBER_PX, 0.5 * error**2 / HUBER_PX, error - 0.5 * HUBER_PX).mean(-1)
         known = batch["known"].float()
         event = (batch["events"] > 0).float()
+        target = torch.where(batch["known"][..., None, None], batch["teacher"], cnn.unflatten(-1, (4, 2)))
+        scored = known + (1 - known) * (1 - event)  # a teacher, or a clean pair: the BASE's answer
+        error = (offsets.unflatten(-1, (4, 2)) - target).norm(dim=-1)  # (B, T, 4) working px
+        huber = torch.where(error < HUBER_PX, 0.5 * error**2 / HUBER_PX, error - 0.5 * HUBER_PX).mean(-1)
         corner = error.mean(-1).detach()
 
         def mean(values: Tensor, weights: Tensor) -> Tensor:
             return (values * weights).sum() / weights.sum().clamp(min=1.0)
 
         return {
-            "total": mean(huber, known),
+            "total": mean(huber, scored),
             "clean_px": mean(corner, known * (1 - event)),
             "event_px": mean(corner, known * event),
             "gate_clean": mean(gate.detach(), 1 - event),
