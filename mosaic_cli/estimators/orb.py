@@ -9,6 +9,7 @@ docs/measurements/estimators.md for the numbers and the commands that reproduce 
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -66,17 +67,26 @@ class OrbEstimator(Estimator):
     def __init__(self, work_width: int = 320, config: OrbConfig | None = None):
         super().__init__(work_width)
         self.config = config or OrbConfig()
-        c = self.config
-        self._orb = cv2.ORB_create(
-            nfeatures=c.n_features,
-            scaleFactor=c.scale_factor,
-            nlevels=c.n_levels,
-            fastThreshold=c.fast_threshold,
-            edgeThreshold=15,
-            patchSize=15,
-        )
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        # The learned estimator calls ``_describe`` and ``register`` from the threads of its pool:
+        # each thread has a detector and a matcher of its own (same settings, same results), so
+        # no OpenCV object is shared between threads.  Nothing else here changes after ``reset``.
+        self._per_thread = threading.local()
         self._prev_features = None
+
+    def _tools(self) -> tuple[cv2.ORB, cv2.DescriptorMatcher]:
+        """This thread's ORB detector and matcher, made at its first call."""
+        tools = getattr(self._per_thread, "tools", None)
+        if tools is None:
+            c = self.config
+            orb = cv2.ORB_create(nfeatures=c.n_features, scaleFactor=c.scale_factor, nlevels=c.n_levels,
+                                 fastThreshold=c.fast_threshold, edgeThreshold=15, patchSize=15)
+            tools = self._per_thread.tools = (orb, cv2.BFMatcher(cv2.NORM_HAMMING))
+        return tools
+
+    @property
+    def _orb(self) -> cv2.ORB:
+        """This thread's ORB detector."""
+        return self._tools()[0]
 
     def reset(self, full_size):
         super().reset(full_size)
@@ -101,7 +111,7 @@ class OrbEstimator(Estimator):
         (the learned estimator's fallback), from their features (described here when not given)."""
         prev_pts, prev_desc = prev_features if prev_features is not None else self._describe(prev)
         cur_pts, cur_desc = cur_features if cur_features is not None else self._describe(cur)
-        H, confidence, src = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._matcher, self.config, self.work_size)
+        H, confidence, src = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._tools()[1], self.config, self.work_size)
         if H is not None and self.config.refine == "ecc":
             H = align_pixels(prev, cur, H, self.config.polish, self.work_mask).H
         elif H is not None and self.config.refine == "lk":
