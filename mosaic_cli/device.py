@@ -9,6 +9,7 @@ the GPU asked for is there.  Both refuse with one ``BadInput`` line naming ``--d
 
 from __future__ import annotations
 
+import os
 import re
 from typing import TYPE_CHECKING
 
@@ -47,18 +48,22 @@ def resolve_device(device: str | None, gpu: int | None = None) -> torch.device:
     return torch.device("cuda") if index is None else torch.device("cuda", index)
 
 
-# --- CPU threads of the network ------------------------------------------------------------------
-# One unless --threads says otherwise: the network's batches are small, and its intra-op threads
+# --- CPU threads of the network and of the per-pair pool -----------------------------------------
+# The network: one unless --threads says otherwise: its batches are small, and its intra-op threads
 # wait on each other whenever another process holds a core (the encoder beside stabilize's
 # tracking pass, anything else on a shared machine).  Under load two threads took twice the CPU
 # of one for the same stitch, and a second longer to start (docs/measurements/speed.md).
+# The per-pair work of a learned estimator (polish, correlation check, fallback: OpenCV, which
+# lets go of the GIL) runs on a pool of Python threads, as many as --threads says, else one a core
+# (:func:`pair_threads`); its results do not depend on how many.
 DEFAULT_CPU_THREADS = 1
 _cpu_threads: dict[str, int | None] = {"asked": None}
 
 
 def ask_cpu_threads(threads: int | None) -> None:
-    """``--threads``: the CPU threads a learned estimator will run on (None: :data:`DEFAULT_CPU_THREADS`);
-    applied now if torch is loaded, else when the estimator is made (:func:`use_cpu_threads`)."""
+    """``--threads``: the CPU threads a learned estimator will run on: the network's (None:
+    :data:`DEFAULT_CPU_THREADS`) and its per-pair pool's (None: every core, :func:`pair_threads`);
+    the network's applied now if torch is loaded, else when the estimator is made (:func:`use_cpu_threads`)."""
     _cpu_threads["asked"] = threads
     import sys
 
@@ -72,3 +77,11 @@ def use_cpu_threads() -> None:
 
     asked = _cpu_threads["asked"]
     torch.set_num_threads(asked if asked is not None else DEFAULT_CPU_THREADS)
+
+
+def pair_threads() -> int:
+    """The threads of a learned estimator's per-pair pool: what ``--threads`` asked
+    (:func:`ask_cpu_threads`), else the machine's cores (``os.cpu_count()``).  One: no pool, each
+    pair finished on the calling thread."""
+    asked = _cpu_threads["asked"]
+    return asked if asked is not None else max(1, os.cpu_count() or 1)

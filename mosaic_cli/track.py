@@ -31,7 +31,7 @@ class TrackOptions:
     """``mosaic track``'s options besides the estimator's (see :func:`mosaic_cli.estimators.make_estimator`)."""
 
     max_frames: int | None = None  # None: every frame
-    threads: int | None = None  # torch's CPU threads for a learned estimator; None: torch's default
+    threads: int | None = None  # a learned estimator's threads: its per-pair pool and torch's (None: one a core, and one)
     timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
     mask: MaskOptions = field(default_factory=MaskOptions)  # --mask, burned-in overlays
     rolling_shutter: str | float = "off"  # auto, off or a readout: the row bands' motion in the track file

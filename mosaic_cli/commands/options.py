@@ -50,7 +50,9 @@ Weights = Annotated[Path | None, typer.Option("--weights", help="A trained check
 Device = Annotated[str, typer.Option("--device", help="auto, cpu or cuda (learned estimators).", rich_help_panel=ESTIMATOR)]
 Threads = Annotated[int | None, typer.Option(
     "--threads",
-    help="Learned, on the CPU: threads for the network (default: 1; more can help on an idle machine with cores to spare).", rich_help_panel=ESTIMATOR)]
+    help="Learned: threads that finish the frame pairs (polish, checks, fallback; default: one a core) and, on the CPU, "
+         "run the network (default: 1; more can help on an idle machine with cores to spare). 1: one thread in all. "
+         "The estimates are the same whatever the number.", rich_help_panel=ESTIMATOR)]
 
 # -- the input ------------------------------------------------------------------------------------
 
@@ -89,7 +91,8 @@ def mask_options(mask: Path | None, detect: bool):
 
 
 def use_threads(threads: int | None) -> None:
-    """``--threads``: torch's CPU threads for the network (checked by the command's options)."""
+    """``--threads``: the learned estimator's threads, its per-pair pool's and torch's for the
+    network (checked by the command's options; see :func:`mosaic_cli.device.ask_cpu_threads`)."""
     from mosaic_cli.device import ask_cpu_threads
 
     ask_cpu_threads(threads)

@@ -27,6 +27,9 @@
              (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
     ``path_counts`` says which path made each pair: learned, fallback, carried or failed.
+    A chunk's frames are described and its pairs polished, checked and tried by the fallback on a
+    pool of threads (``--threads``, default one a core; OpenCV lets go of the GIL); the carry, the
+    gate and the prior then follow pair by pair, in order: the same estimates on any number.
 
 Beside it: its options (:mod:`.learned_config`), the correlation checks (:mod:`.correlation`),
 where the shipped weights are (:mod:`.weights`) and the polish (:mod:`.refine`).
@@ -34,14 +37,17 @@ where the shipped weights are (:mod:`.weights`) and the polish (:mod:`.refine`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from mosaic_cli.device import resolve_device, use_cpu_threads
+from mosaic_cli.device import pair_threads, resolve_device, use_cpu_threads
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import Estimator, PairEstimate
@@ -79,7 +85,24 @@ class WorkFrame:
     aligned: np.ndarray | None = None  # the image the polish aligns (band-passed gray)
     detail: np.ndarray | None = None  # fine detail (gray minus its 5x5 mean), for the ZNCC check
     features: tuple | None = None  # ORB keypoints and descriptors, when the fallback needed them
+    level: float | None = None  # band-passed detail (correlation.detail_level), when a spoilt frame is looked for
     spoilt: bool | None = None  # no motion cue: glare, heavy blur, near black, featureless (see LearnedConfig.carry)
+    # ``detail`` and ``features`` are made when a pair first needs them; two pairs share the frame,
+    # and on the pool their threads may ask at once: the lock has one make it.
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class PairCheck:
+    """What a pair's own frames say of it, whatever the pairs before (so pairs are checked on the
+    pool in any order): the network's estimate is plausible, the polish, the correlation of the
+    registered detail, and the fallback's registration when it is to take the pair."""
+
+    plausible: bool
+    polished: Polish | None  # None: not polished (an implausible estimate, a frame without texture)
+    zncc: float
+    related: bool  # the registered detail correlates (or no minimum is asked)
+    fallback: tuple[np.ndarray, float] | None  # the fallback's (H, confidence) when it wins the pair
 
 
 def patch_positions(work_size: tuple[int, int], patch: int, layout: int) -> np.ndarray:
@@ -100,10 +123,24 @@ def patch_positions(work_size: tuple[int, int], patch: int, layout: int) -> np.n
 
 
 class LearnedEstimator(Estimator):
-    """Streaming inference with a trained net; ``feed`` returns estimates a chunk at a time."""
+    """Streaming inference with a trained net; ``feed`` returns estimates a chunk at a time.
 
-    def __init__(self, model: HomographyNet, meta: dict, device: str = "auto", config: LearnedConfig | None = None):
+    ``threads``: the threads that finish a chunk's pairs (None: ``--threads``, else every core; see
+    :func:`mosaic_cli.device.pair_threads`), read at each ``reset``.  What a pair's own frames
+    say of it (describing the frames, the polish and its wide retry, the correlation check, the
+    fallback's registration: :meth:`_check`) runs on a pool of that many threads, OpenCV's calls
+    letting go of the GIL; what follows from the pairs before it (the carried motion, the gate,
+    the prior, the counts: :meth:`_decide`) runs after, pair by pair, in order.  Every result is
+    the same, to the bit, whatever the number; with one, each pair is finished in turn on the
+    calling thread, with no pool."""
+
+    def __init__(self, model: HomographyNet, meta: dict, device: str = "auto", config: LearnedConfig | None = None,
+                 threads: int | None = None):
         self.meta = meta
+        self.threads = threads
+        self._workers = 1  # the pool's threads for this video (reset)
+        self._pool: ThreadPoolExecutor | None = None
+        self._pool_size = 0
         self.work_size_trained = tuple(int(v) for v in meta.get("work_size", (320, 180)))
         super().__init__(self.work_size_trained[0])
         self.config = config or LearnedConfig()
@@ -158,6 +195,9 @@ class LearnedEstimator(Estimator):
         self._carried_run = 0  # pairs carried in a row
         self.path_counts = dict.fromkeys(PATHS, 0)
         self._zncc_use: np.ndarray | None = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
+        self._workers = self.threads if self.threads is not None else pair_threads()
+        if self._workers < 1:
+            raise ValueError(f"threads must be at least 1, got {self._workers}")
         if self._fallback is not None:
             self._fallback.set_mask(self.mask)  # the fallback's ORB keypoints and polish skip overlays too
             self._fallback.reset(full_size)
@@ -178,25 +218,66 @@ class LearnedEstimator(Estimator):
     def _run_chunk(self) -> list[PairEstimate]:
         frames = self._pending
         self._pending = [frames[-1]]  # the last frame starts the next chunk's first pair
-        for f in frames:
-            self._describe(f)
+        pool = self._pair_pool()
+        described = self._describe_all(frames, pool)  # on the pool: while the network runs
         pairs = list(zip(frames[:-1], frames[1:]))
-        if self.config.seed == "velocity":  # each pair starts from the one before: no batch
+        if self.config.seed == "velocity":  # each pair starts from the one before: no batch, in turn
+            described()
             return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
+        seeds, offsets_ok, agreement = self._seeds(frames)
+        described()
+        if pool is None:  # one thread: each pair finished in turn
+            return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
+        self._valid_pixels()  # made once, before the threads read it
+        checks = pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), range(len(pairs)))
+        # map yields in the pairs' order: each decided once those before it are
+        return [self._decide(prev, cur, seeds[k], agreement[k], check) for k, ((prev, cur), check) in enumerate(zip(pairs, checks))]
+
+    def _seeds(self, frames: list[WorkFrame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each pair's starting estimate (n, 3, 3), whether the network's offsets were finite, and
+        how much its patches agreed: the network's (after the motion prior), or the identity."""
+        n = len(frames) - 1
         firsts, seconds = [f.gray for f in frames[:-1]], [f.gray for f in frames[1:]]
         if self.config.seed == "identity":
-            seeds, offsets_ok, agreement = np.repeat(np.eye(3)[None], len(pairs), 0), np.ones(len(pairs), bool), np.ones(len(pairs))
-        elif self._prior_warp:
+            return np.repeat(np.eye(3)[None], n, 0), np.ones(n, bool), np.ones(n)
+        if self._prior_warp:
             # The motion prior P (the last confirmed motion when the chunk starts): the network reads
             # frame t+1 pre-aligned by P and regresses the rest R, so frame t -> t+1 is P @ R.
             prior = self._motion
             seconds = [cv2.warpPerspective(g, prior, self.work_size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                            borderMode=cv2.BORDER_REPLICATE) for g in seconds]
             residual, offsets_ok, agreement = self._network(firsts, seconds)
-            seeds = prior[None] @ residual
-        else:
-            seeds, offsets_ok, agreement = self._network(firsts, seconds)
-        return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
+            return prior[None] @ residual, offsets_ok, agreement
+        return self._network(firsts, seconds)
+
+    def _pair_pool(self) -> ThreadPoolExecutor | None:
+        """The pool of this video's threads; None for one thread."""
+        if self._workers <= 1:
+            return None
+        if self._pool is None or self._pool_size != self._workers:
+            if self._pool is not None:
+                self._pool.shutdown(wait=False)
+            self._pool = ThreadPoolExecutor(self._workers, thread_name_prefix="mosaic-pairs")
+            self._pool_size = self._workers
+        return self._pool
+
+    def _describe_all(self, frames: list[WorkFrame], pool: ThreadPoolExecutor | None) -> Callable[[], None]:
+        """Describe the frames not yet described (:meth:`_describe`): now, in turn, without a pool;
+        with one, their own part on the pool (:meth:`_texture`), and the call returned waits for it
+        and tells the spoilt frames in the flight's order (:meth:`_spoil`)."""
+        todo = [f for f in frames if f.textured is None]
+        if pool is None:
+            for f in todo:
+                self._describe(f)
+            return lambda: None
+        futures: list[Future] = [pool.submit(self._texture, f) for f in todo]
+
+        def described() -> None:
+            for f, future in zip(todo, futures):
+                future.result()
+                self._spoil(f)
+
+        return described
 
     def _network(self, firsts: list[np.ndarray], seconds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The network's homographies (n, 3, 3) for the n pairs (firsts[k], seconds[k]), whether
@@ -208,6 +289,11 @@ class LearnedEstimator(Estimator):
     def _finish_pair(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, offsets_ok: bool, agreement: float) -> PairEstimate:
         """Polish the seed, confirm it by the correlation of the registered detail, and where the
         learned path cannot confirm the pair, let the classical fallback try it."""
+        return self._decide(prev, cur, seed, agreement, self._check(prev, cur, seed, offsets_ok))
+
+    def _check(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, offsets_ok: bool) -> PairCheck:
+        """What the pair's own frames say of it (see :class:`PairCheck`): nothing here reads or
+        changes what the pairs before it left (run on the pool's threads)."""
         # The network's estimate is plausible (finite, not a fold or a blow-up) whatever the frames;
         # only on textured frames can the polish and the checks confirm it.  A carried pair may
         # take a plausible estimate (carry=network): a sequence model's, on a frame without
@@ -218,23 +304,37 @@ class LearnedEstimator(Estimator):
         zncc = self._zncc(prev, cur, polished.H) if polished is not None else 0.0
         related = self.config.min_zncc is None or zncc >= self.config.min_zncc
         confirmed = polished is not None and related and (polished.refined or self.config.refine is None)
+        fallback = None
         if (not confirmed or not settled) and self._fallback is not None and prev.textured and cur.textured:
-            for f in (prev, cur):
-                if f.features is None:
-                    f.features = self._fallback._describe(f.gray)
-            H_orb, orb_confidence = self._fallback.register(prev.gray, cur.gray, prev.features, cur.features)
+            H_orb, orb_confidence = self._fallback.register(prev.gray, cur.gray, self._orb_features(prev), self._orb_features(cur))
             orb_ok = H_orb is not None and np.all(np.isfinite(H_orb))
             # Only the wide polish placed the pair: where its large windows were fooled, ORB's
             # features may do better; the registration whose band-passed frames agree more wins.
             # (confirmed: polished is set)
             if orb_ok and (not confirmed or (polished is not None and self._agreement(prev, cur, H_orb) > self._agreement(prev, cur, polished.H))):
-                return self._gated(prev, cur, seed, plausible, H_orb, orb_confidence, "fallback")
-        if polished is None or not related:
+                fallback = (H_orb, orb_confidence)
+        return PairCheck(plausible, polished, zncc, related, fallback)
+
+    def _decide(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, agreement: float, check: PairCheck) -> PairEstimate:
+        """The pair's estimate from its check and what the pairs before it left (the carried
+        motion, the gate): pairs are decided one at a time, in order."""
+        if check.fallback is not None:
+            return self._gated(prev, cur, seed, check.plausible, *check.fallback, "fallback")
+        polished = check.polished
+        if polished is None or not check.related:
             if self._can_carry() and (prev.spoilt or cur.spoilt):
-                return self._carried(seed, plausible)
+                return self._carried(seed, check.plausible)
             return self._result(None, 0.0, "failed")
-        confidence = max(0.0, zncc) * float(agreement) * self._polish_weight(polished)
-        return self._gated(prev, cur, seed, plausible, polished.H, confidence, "learned")
+        confidence = max(0.0, check.zncc) * float(agreement) * self._polish_weight(polished)
+        return self._gated(prev, cur, seed, check.plausible, polished.H, confidence, "learned")
+
+    def _orb_features(self, frame: WorkFrame) -> tuple:
+        """The frame's ORB features for the fallback, described once (the first pair to ask)."""
+        assert self._fallback is not None
+        with frame.lock:
+            if frame.features is None:
+                frame.features = self._fallback._describe(frame.gray)
+            return frame.features
 
     def _gated(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, plausible: bool, H: np.ndarray, confidence: float,
                path: str) -> PairEstimate:
@@ -275,9 +375,15 @@ class LearnedEstimator(Estimator):
 
     def _describe(self, frame: WorkFrame) -> None:
         """Whether the frame has texture to register (black, blown-out, flat or badly blurred
-        frames do not) and, for the polish, its band-passed image and corners."""
+        frames do not) and, for the polish, its band-passed image and corners; whether it is spoilt."""
         if frame.textured is not None:
             return
+        self._texture(frame)
+        self._spoil(frame)
+
+    def _texture(self, frame: WorkFrame) -> None:
+        """The part of :meth:`_describe` that reads the frame alone (run on the pool's threads):
+        its texture, corners and band-passed image, and its detail level if it is textured."""
         c = self.config
         if c.refine == "lk":
             frame.points = points_to_track(frame.gray, c.corners, self._corner_mask)
@@ -286,8 +392,13 @@ class LearnedEstimator(Estimator):
             frame.textured = bool(cv2.cornerMinEigenVal(frame.gray, c.corners.block_size).max() >= c.corners.min_response)
         if c.refine is not None and frame.textured:
             frame.aligned = band_pass(frame.gray, *self._band) if self._band else frame.gray
-        if c.carry != "none":  # only the carried motion asks whether a frame is spoilt
-            frame.spoilt = not frame.textured or self._spoilt(detail_level(frame.gray))
+        if c.carry != "none" and frame.textured:  # only the carried motion asks whether a frame is spoilt
+            frame.level = detail_level(frame.gray)
+
+    def _spoil(self, frame: WorkFrame) -> None:
+        """Whether the frame is spoilt, against the frames before it: frames are told in order."""
+        if self.config.carry != "none":  # a frame without texture has no level, and is spoilt
+            frame.spoilt = frame.level is None or self._spoilt(frame.level)
 
     def _spoilt(self, level: float) -> bool:
         """Whether a frame of this band-passed detail carries no motion cue: far less detail than
@@ -383,11 +494,14 @@ class LearnedEstimator(Estimator):
     def _zncc(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray) -> float:
         """The correlation of the pair's fine detail registered by ``H`` (:func:`.correlation.detail_zncc`),
         each frame's detail made once."""
-        for f in (prev, cur):
-            if f.detail is None:
-                f.detail = fine_detail(f.gray)
-        assert prev.detail is not None and cur.detail is not None
-        return detail_zncc(prev.detail, cur.detail, H, self.positions, self.patch, self._valid_pixels(), self.work_mask)
+        return detail_zncc(self._detail(prev), self._detail(cur), H, self.positions, self.patch, self._valid_pixels(), self.work_mask)
+
+    def _detail(self, frame: WorkFrame) -> np.ndarray:
+        """The frame's fine detail, made once (the first pair to ask)."""
+        with frame.lock:
+            if frame.detail is None:
+                frame.detail = fine_detail(frame.gray)
+            return frame.detail
 
     def _valid_pixels(self) -> np.ndarray:
         """1 where a pixel of a working frame may be used (the mask allows it), 0 elsewhere;
