@@ -316,7 +316,7 @@ def memory_probe(video: str | Path, weights: str | Path | None = None, device: s
     patches = torch.from_numpy(np.stack([g[y:y + P, x:x + P] for g in grays])).float() * (2.0 / 255.0) - 1.0
     pairs = torch.stack([patches[:-1], patches[1:]], dim=1).to(estimator.device)  # (n, 2, P, P)
     with torch.inference_mode():
-        features = torch.cat([estimator._features(chunk) for chunk in pairs.split(256)])[None]  # (1, n, F)
+        features = torch.cat([net.head_inputs(chunk, estimator._features(chunk)) for chunk in pairs.split(256)])[None]  # (1, n, F)
 
     n = len(pairs)
     burst = burst_pairs(gt.bursts, n)

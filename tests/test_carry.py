@@ -273,3 +273,25 @@ def test_the_shipped_sequence_model_carries_the_motion_in_its_state(tmp_path):
     carried, restarted = counts["burst_failed_carried"], counts["burst_failed_restarted"]
     assert restarted >= 1.5 * carried + 3, counts
     assert counts["ordinary_failed_restarted"] <= counts["ordinary_failed_carried"] + 0.1 * counts["ordinary_pairs"], counts
+
+
+def test_the_image_cues_tell_a_washed_out_dark_or_flat_frame_and_reach_the_head():
+    from mosaic_cli.model.network import CUES, patch_cues
+    from mosaic_cli.train.bursts import DARK, FLAT, GLARE, spoil
+
+    pairs = flight_patches(n=6)[0]  # (5, 2, P, P)
+    clean = patch_cues(pairs)
+    assert clean.shape == (5, CUES)
+    frames = pairs[:, :1][None]  # the first patch of each pair as a 5-frame window (1, 5, 1, P, P)
+    for code in (GLARE, DARK, FLAT):
+        spoilt = spoil(frames, torch.full((1, 5), code), torch.full((1, 5), 0.05), torch.zeros(1, 5),
+                       generator=torch.Generator().manual_seed(0))[0]
+        cues = patch_cues(torch.cat([spoilt, pairs[:, 1:]], dim=1))
+        assert bool((cues[:, 2] < clean[:, 2] / 3).all()), code  # the spoilt patch's contrast collapses
+        torch.testing.assert_close(cues[:, [1, 3, 5]], clean[:, [1, 3, 5]])  # the other patch's cues stay
+    cnn, _ = load_weights(CNN)
+    net = HomographyNet(NetConfig(head="carry", carry_cues=CUES))
+    net.start_as_carry(cnn)
+    features = torch.zeros(5, net.config.embed)
+    assert net.head_inputs(pairs, features).shape == (5, net.config.embed + CUES)
+    assert cnn.head_inputs(pairs, features) is features

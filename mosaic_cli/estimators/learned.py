@@ -451,7 +451,10 @@ class LearnedEstimator(Estimator):
         pairs = torch.stack([crops[:n], crops[n:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P) in [-1, 1]
         if self.device.type == "cpu" and self.precision == "fp32":
             pairs = pairs.contiguous(memory_format=torch.channels_last)
-        feats = self._features(pairs).unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
+        feats = self._features(pairs)
+        if self.model.carry is not None:  # a carry head may also read the pairs' image cues
+            feats = self.model.head_inputs(pairs, feats)
+        feats = feats.unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
         offsets = self._step(feats)  # (M, n, 4, 2)
         ok = torch.isfinite(offsets).flatten(2).all(-1).all(0).cpu().numpy()
         offsets = torch.nan_to_num(offsets.double(), nan=0.0, posinf=0.0, neginf=0.0)

@@ -70,6 +70,7 @@ class NetConfig:
     carry_code: int = 64  # carry head: the features' code its cell and gate read
     carry_hidden: int = 128  # carry head: its LSTM cell's size
     carry_window: int = 32  # carry head: the training window (frames); its forget gates start at timescales up to it
+    carry_cues: int = 0  # carry head: per-pair image cues it also reads (patch_cues: 0 or CUES)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -149,6 +150,17 @@ OFFSET_SCALE = 8.0
 # hundred steps where the data ask for it.
 GATE_START = -5.0
 GATE_HIDDEN = 32
+CUES = 6  # patch_cues per pair
+
+
+def patch_cues(pairs: Tensor) -> Tensor:
+    """(N, 2, P, P) patch pairs in [-1, 1] -> (N, 6) cues of whether each frame can show motion:
+    per patch its mean, its contrast (standard deviation) and the log of its mean absolute
+    gradient.  Glare, darkness, flat ground and blur move them, which the features alone show
+    the head less directly."""
+    x = pairs.float()
+    gradient = (x[..., :, 1:] - x[..., :, :-1]).abs().mean((-1, -2)) + (x[..., 1:, :] - x[..., :-1, :]).abs().mean((-1, -2))
+    return torch.cat([x.mean((-1, -2)), x.std((-1, -2)), torch.log(gradient + 1e-3)], dim=1)
 
 
 class CarryHead(nn.Module):
@@ -169,13 +181,13 @@ class CarryHead(nn.Module):
     a training window of W frames from the first step.  The state is (h, c, y_{t-1}); none
     starts a sequence."""
 
-    def __init__(self, features: int, code: int, hidden: int, window: int):
+    def __init__(self, features: int, code: int, hidden: int, window: int, cues: int = 0):
         super().__init__()
-        self.hidden = hidden
+        self.hidden, self.features, self.cues = hidden, features, cues
         self.code = nn.Linear(features, code)
-        self.cell = nn.LSTMCell(code + 16, hidden)
+        self.cell = nn.LSTMCell(code + cues + 16, hidden)
         self.motion = nn.Linear(hidden, 8)
-        self.gate = nn.Sequential(nn.Linear(hidden + code + 24, GATE_HIDDEN), nn.ReLU(), nn.Linear(GATE_HIDDEN, 1))
+        self.gate = nn.Sequential(nn.Linear(hidden + code + cues + 24, GATE_HIDDEN), nn.ReLU(), nn.Linear(GATE_HIDDEN, 1))
         self.window = window
 
     @torch.no_grad()
@@ -196,15 +208,18 @@ class CarryHead(nn.Module):
         nn.init.constant_(self.gate[2].bias, GATE_START)
 
     def forward(self, features: Tensor, cnn: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState, Tensor]:
-        """features (B, T, F), the CNN's offsets (B, T, 8) -> offsets (B, T, 8), the state after
-        the last pair, and the gate w (B, T): the weight each pair gave the carried motion."""
+        """features (B, T, F) (with cues, (B, T, F + cues): :func:`patch_cues` appended), the
+        CNN's offsets (B, T, 8) -> offsets (B, T, 8), the state after the last pair, and the gate
+        w (B, T): the weight each pair gave the carried motion."""
         B, T = cnn.shape[:2]
         if state is None:
             zeros = cnn.new_zeros(B, self.hidden)
             h, c, previous = zeros, zeros, cnn[:, 0]
         else:
             h, c, previous = (s[0] for s in state)
-        code = torch.relu(self.code(features))
+        code = torch.relu(self.code(features[..., : self.features]))
+        if self.cues:
+            code = torch.cat([code, features[..., self.features:]], dim=-1)
         outputs, weights = [], []
         for t in range(T):
             x = torch.cat([code[:, t], cnn[:, t] / OFFSET_SCALE, previous / OFFSET_SCALE], dim=1)
@@ -234,7 +249,7 @@ class HomographyNet(nn.Module):
             regressor_in = config.embed
         self.dropout = nn.Dropout(config.dropout)
         self.regressor = nn.Linear(regressor_in, 8)  # the carry head: the CNN's, which it reads
-        self.carry = (CarryHead(config.embed, config.carry_code, config.carry_hidden, config.carry_window)
+        self.carry = (CarryHead(config.embed, config.carry_code, config.carry_hidden, config.carry_window, config.carry_cues)
                       if config.head == "carry" else None)
         self._init_weights()
 
@@ -268,7 +283,7 @@ class HomographyNet(nn.Module):
         state (h, c), each (1, B, hidden); ``state=None`` starts from zeros.  The carry head's
         state is (h, c, y) (:class:`CarryHead`); the CNN head has no state and returns None."""
         if self.carry is not None:
-            offsets, state, _ = self.carry(features, self.regressor(features), state)
+            offsets, state, _ = self.carry(features, self.regressor(features[..., : self.config.embed]), state)
             return offsets.unflatten(-1, (4, 2)), state
         if self.lstm is not None:
             features, state = self.lstm(features, state)
@@ -277,10 +292,18 @@ class HomographyNet(nn.Module):
         offsets = self.regressor(self.dropout(features))
         return offsets.unflatten(-1, (4, 2)), state
 
+    def head_inputs(self, patches: Tensor, features: Tensor) -> Tensor:
+        """What :meth:`step` reads of the pairs (N, 2, P, P) whose features (N, F) these are: the
+        features, with :func:`patch_cues` appended for a carry head that reads them."""
+        if self.carry is None or not self.config.carry_cues:
+            return features
+        return torch.cat([features, patch_cues(patches).to(features.dtype)], dim=-1)
+
     def forward(self, patches: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState | None]:
         """(B, T, 2, P, P) -> offsets (B, T, 4, 2), state (see :meth:`step`)."""
         B, T = patches.shape[:2]
-        feats = self.features(patches.flatten(0, 1)).unflatten(0, (B, T))
+        flat = patches.flatten(0, 1)
+        feats = self.head_inputs(flat, self.features(flat)).unflatten(0, (B, T))
         return self.step(feats, state)
 
     def feature_parameters(self) -> list[nn.Parameter]:
@@ -359,9 +382,9 @@ def macs_per_pair(config: NetConfig) -> int:
     else:
         macs += config.embed * 8
     if config.head == "carry":
-        code, hidden = config.carry_code, config.carry_hidden
-        macs += config.embed * code + 4 * hidden * (code + 16 + hidden) + hidden * 8
-        macs += (hidden + code + 24) * GATE_HIDDEN + GATE_HIDDEN
+        code, hidden, cues = config.carry_code, config.carry_hidden, config.carry_cues
+        macs += config.embed * code + 4 * hidden * (code + cues + 16 + hidden) + hidden * 8
+        macs += (hidden + code + cues + 24) * GATE_HIDDEN + GATE_HIDDEN
     return macs
 
 
@@ -408,6 +431,8 @@ __all__ = [
     "SEQUENCE_HEADS",
     "VARIANTS",
     "CarryHead",
+    "CUES",
+    "patch_cues",
     "PRESETS",
     "NetConfig",
     "HomographyNet",

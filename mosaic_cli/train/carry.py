@@ -248,7 +248,7 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
 
         raise BadInput(f"no clip holds {WINDOW + 2} consecutive frames, the carry head's training window")
     cumulative = np.cumsum([length - WINDOW - 1 for _, _, length in segments])
-    T, F = WINDOW - 1, net.config.embed
+    T, F = WINDOW - 1, net.config.embed + net.config.carry_cues
     feats = np.lib.format.open_memmap(_part(paths["features"]), "w+", np.float16, (count, T, F))
     teacher = np.zeros((count, T, 8), np.float32)
     known = np.zeros((count, T), bool)
@@ -275,7 +275,8 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
             pos = torch.tensor(positions)[:, None].expand(len(read), WINDOW, 2).reshape(-1, 1, 2)
             crops = crop(frames.flatten(0, 1), pos, patch)[:, 0, 0].unflatten(0, (len(read), WINDOW))  # (b, W, P, P)
             pairs = torch.stack([crops[:, :-1], crops[:, 1:]], dim=2).flatten(0, 1)  # (b*T, 2, P, P)
-            feats[batch.start:batch.stop] = features(pairs).unflatten(0, (len(read), T)).numpy().astype(np.float16)
+            read_by_head = net.head_inputs(pairs, features(pairs))
+            feats[batch.start:batch.stop] = read_by_head.unflatten(0, (len(read), T)).numpy().astype(np.float16)
             advance(len(read))
     feats.flush()
     del feats
@@ -329,7 +330,7 @@ class CarryObjective:
         net = getattr(model, "module", model)
         features = batch["features"]
         with torch.no_grad():
-            cnn = net.regressor(features)  # frozen: the BASE's offsets of each pair
+            cnn = net.regressor(features[..., : net.config.embed])  # frozen: the BASE's offsets of each pair
         offsets, _, gate = net.carry(features, cnn)
         known = batch["known"].float()
         event = (batch["events"] > 0).float()

@@ -34,7 +34,7 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, Interrupted, MosaicError, ProcessingError
 from mosaic_cli.model import quantize
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.network import HomographyNet, NetConfig
+from mosaic_cli.model.network import CUES, HomographyNet, NetConfig
 from mosaic_cli.progress import console, progress_task
 from mosaic_cli.train.carry import CarryObjective, FeatureWindows, build_feature_cache, teacher_tracks
 from mosaic_cli.train.config import RUN_DEFINING, TrainConfig
@@ -155,7 +155,8 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     if resume:
         net, optimizer_tensors = load_checkpoint(run, state, dist.device)
     else:
-        net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch)).to(dist.device)
+        cues = CUES if carry else 0  # a new carry head reads the pairs' image cues too
+        net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch, carry_cues=cues)).to(dist.device)
         if init_net is not None:
             initialise_from(net, init_net, dataset if cfg.lstm_start == "cnn" else None, cfg.seed)
     trainable = set_trainable(net, cfg)
@@ -281,7 +282,8 @@ def carry_batches(cfg: TrainConfig, net: HomographyNet, cached, run: RunDir, dis
     if features is None:
         features = net.eval().features
     identity = {"init": cfg.init, "clips": [c.clip for c in cached], "frames": [c.frames for c in cached],
-                "seed": cfg.seed, "bursts": cfg.bursts, "flip": cfg.flip, "patch": cfg.patch, "precision": precision}
+                "seed": cfg.seed, "bursts": cfg.bursts, "flip": cfg.flip, "patch": cfg.patch, "precision": precision,
+                "cues": net.config.carry_cues}
     cache = build_feature_cache(net, features, cached, teachers, cfg.feature_windows, cfg.patch, cfg.seed, float(cfg.bursts or 0.0),
                                 cfg.flip, folder, identity, show_progress)
     windows = FeatureWindows(cache, cfg.seed, dist.device)
