@@ -71,6 +71,7 @@ class NetConfig:
     carry_hidden: int = 128  # carry head: its LSTM cell's size
     carry_window: int = 32  # carry head: the training window (frames); its forget gates start at timescales up to it
     carry_cues: int = 0  # carry head: per-pair image cues it also reads (patch_cues: 0 or CUES)
+    carry_correction: float | None = None  # carry head: the most its cell may move the carried motion (working px); None: unbounded
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -171,6 +172,7 @@ class CarryHead(nn.Module):
         x_t = [relu(code(f_t)), o_t / S, y_{t-1} / S]
         h_t, c_t = LSTMCell(x_t, (h_{t-1}, c_{t-1}))         the memory
         m_t = y_{t-1} + S * motion(h_t)                       the carried motion, corrected
+                                                              (or by at most C px: C tanh(motion(h_t)))
         w_t = sigmoid(gate([h_t, x_t, |o_t - y_{t-1}| / S]))  how far to trust it
         y_t = o_t + w_t (m_t - o_t)
 
@@ -181,9 +183,9 @@ class CarryHead(nn.Module):
     a training window of W frames from the first step.  The state is (h, c, y_{t-1}); none
     starts a sequence."""
 
-    def __init__(self, features: int, code: int, hidden: int, window: int, cues: int = 0):
+    def __init__(self, features: int, code: int, hidden: int, window: int, cues: int = 0, correction: float | None = None):
         super().__init__()
-        self.hidden, self.features, self.cues = hidden, features, cues
+        self.hidden, self.features, self.cues, self.correction = hidden, features, cues, correction
         self.code = nn.Linear(features, code)
         self.cell = nn.LSTMCell(code + cues + 16, hidden)
         self.motion = nn.Linear(hidden, 8)
@@ -224,7 +226,8 @@ class CarryHead(nn.Module):
         for t in range(T):
             x = torch.cat([code[:, t], cnn[:, t] / OFFSET_SCALE, previous / OFFSET_SCALE], dim=1)
             h, c = self.cell(x, (h, c))
-            carried = previous + OFFSET_SCALE * self.motion(h)
+            step = OFFSET_SCALE * self.motion(h) if self.correction is None else self.correction * torch.tanh(self.motion(h))
+            carried = previous + step
             disagreement = (cnn[:, t] - previous).abs() / OFFSET_SCALE
             w = torch.sigmoid(self.gate(torch.cat([h, x, disagreement], dim=1)))
             previous = cnn[:, t] + w * (carried - cnn[:, t])
@@ -249,8 +252,8 @@ class HomographyNet(nn.Module):
             regressor_in = config.embed
         self.dropout = nn.Dropout(config.dropout)
         self.regressor = nn.Linear(regressor_in, 8)  # the carry head: the CNN's, which it reads
-        self.carry = (CarryHead(config.embed, config.carry_code, config.carry_hidden, config.carry_window, config.carry_cues)
-                      if config.head == "carry" else None)
+        self.carry = (CarryHead(config.embed, config.carry_code, config.carry_hidden, config.carry_window, config.carry_cues,
+                                config.carry_correction) if config.head == "carry" else None)
         self._init_weights()
 
     def _init_weights(self) -> None:

@@ -18,12 +18,9 @@ them at thousands of windows a second on one CPU thread.
                         over a drop, inverted when reversed, mirrored when flipped (exact), the
                         identity on a duplicate (exact); RUN_DIR/features/*.npy
     4. objective        Huber distance (working px, per corner) between the head's offsets and
-                        the teacher's, on every pair with a teacher: on a clean pair leaving
-                        the teacher's answer costs, and on a spoilt pair, where the photometric
-                        loss has no basin to pull from, the teacher still says where the pair
-                        lies; on a clean pair the teacher could not confirm, the BASE's own
-                        answer is the target (where nothing better is known, the head must not
-                        wander from it)
+                        the teacher's on the event pairs it knows (where the photometric loss
+                        has no basin to pull from, the teacher still says where the pair lies),
+                        and the BASE's own answer on the clean pairs (leaving it must cost)
 
 No label is read: the teacher is the product's own estimate from the clean frames, which the head
 never sees on a spoilt pair.  Each window starts from no state, as a video does (the state is
@@ -314,11 +311,13 @@ class FeatureWindows:
 
 class CarryObjective:
     """``objective(model, batch)`` -> the loss terms of the carry head: ``total``, the Huber
-    distance (per corner, working px) to the teacher on every pair it knows, and to the BASE's own
-    answer on the clean pairs it does not (the frames gave the teacher nothing to confirm: there,
-    leaving the BASE's answer for a carried motion must cost, or the head drifts wherever no
-    teacher watches); and, for the log, the mean corner error (working px) against the teacher on
-    clean and on event pairs, and the gate's mean weight on the carried motion on each."""
+    distance (per corner, working px) to the teacher on the event pairs it knows (a spoilt,
+    dropped or duplicated frame: what only the sequence can place) and to the BASE's own answer
+    on every clean pair (leaving it must cost: trained towards the teacher there too, the head
+    learned to smooth the BASE's answers with its carried motion, and lagged behind the turns of
+    flights over ground it never saw; models/README.md, "The carry head"); and, for the log, the
+    mean corner error (working px) against the teacher on clean and on event pairs, and the
+    gate's mean weight on the carried motion on each."""
 
     variant = "carry"
     head = "carry"
@@ -334,8 +333,12 @@ class CarryObjective:
         offsets, _, gate = net.carry(features, cnn)
         known = batch["known"].float()
         event = (batch["events"] > 0).float()
-        target = torch.where(batch["known"][..., None, None], batch["teacher"], cnn.unflatten(-1, (4, 2)))
-        scored = known + (1 - known) * (1 - event)  # a teacher, or a clean pair: the BASE's answer
+        # Clean pairs: the BASE's own answer (leaving it must cost: the head is to add memory where
+        # the frames show nothing, not to second-guess the BASE where they do); event pairs: the
+        # teacher's, where it confirmed the pair.
+        target = torch.where((batch["known"] & (batch["events"] > 0))[..., None, None], batch["teacher"],
+                             cnn.unflatten(-1, (4, 2)))
+        scored = known * event + (1 - event)
         error = (offsets.unflatten(-1, (4, 2)) - target).norm(dim=-1)  # (B, T, 4) working px
         huber = torch.where(error < HUBER_PX, 0.5 * error**2 / HUBER_PX, error - 0.5 * HUBER_PX).mean(-1)
         corner = error.mean(-1).detach()

@@ -66,6 +66,7 @@ CALIBRATION_PAIRS = 512  # training patch pairs that set the int8 activation ran
 # then amplify a smaller hidden state as much, and the optimiser's first steps on the LSTM's
 # weights move it that much more: 2x starts within about a working px of the CNN.
 LSTM_START_MARGIN = 2.0
+CARRY_CORRECTION_PX = 1.0  # the carry head's bound on its correction of the carried motion (working px)
 MAX_SKIPPED_STEPS = 50  # consecutive non-finite losses before the run is declared diverged
 
 
@@ -155,8 +156,10 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     if resume:
         net, optimizer_tensors = load_checkpoint(run, state, dist.device)
     else:
-        cues = CUES if carry else 0  # a new carry head reads the pairs' image cues too
-        net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch, carry_cues=cues)).to(dist.device)
+        # A new carry head reads the pairs' image cues too, and its cell may move the carried motion
+        # by at most CARRY_CORRECTION_PX (unbounded, it pushed the carried motion off on held-out ground).
+        extra = dict(carry_cues=CUES, carry_correction=CARRY_CORRECTION_PX) if carry else {}
+        net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch, **extra)).to(dist.device)
         if init_net is not None:
             initialise_from(net, init_net, dataset if cfg.lstm_start == "cnn" else None, cfg.seed)
     trainable = set_trainable(net, cfg)
