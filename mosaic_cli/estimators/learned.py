@@ -452,7 +452,7 @@ class LearnedEstimator(Estimator):
         if self.device.type == "cpu" and self.precision == "fp32":
             pairs = pairs.contiguous(memory_format=torch.channels_last)
         feats = self._features(pairs)
-        if self.model.carry is not None:  # a carry head may also read the pairs' image cues
+        if getattr(self.model, "carry", None) is not None:  # a carry head may also read the pairs' image cues
             feats = self.model.head_inputs(pairs, feats)
         feats = feats.unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
         offsets = self._step(feats)  # (M, n, 4, 2)
