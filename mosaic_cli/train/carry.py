@@ -96,7 +96,7 @@ def teacher_tracks(clips: Sequence[CachedClip], weights: str, folder: Path, show
     """:func:`teacher_track` of every clip, on ``workers`` processes, each kept in ``folder`` (a
     resumed run reads them back)."""
     folder.mkdir(parents=True, exist_ok=True)
-    key = _digest({"weights": _file_digest(weights), "format": CACHE_FORMAT})
+    key = _digest({"weights": file_digest(weights), "format": CACHE_FORMAT})
     paths = [str(folder / f"{Path(clip.file).stem}-{key}.npz") for clip in clips]
     jobs = [(clip, weights, path) for clip, path in zip(clips, paths) if not Path(path).is_file()]
     with progress_task("teacher tracks", len(clips), unit="clips", disable=not show_progress) as advance:
@@ -362,7 +362,7 @@ def _digest(data: dict) -> str:
     return hashlib.sha1(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def _file_digest(path: str) -> str:
+def file_digest(path: str) -> str:
     h = hashlib.sha1()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -374,5 +374,5 @@ def _part(path: Path) -> Path:
     return path.with_name(f".{path.stem}.part.npy")
 
 
-__all__ = ["WINDOW", "EVENTS", "CarryObjective", "FeatureCache", "FeatureWindows", "Window", "build_feature_cache",
+__all__ = ["WINDOW", "EVENTS", "CarryObjective", "FeatureCache", "FeatureWindows", "Window", "build_feature_cache", "file_digest",
            "draw_window", "teacher_offsets", "teacher_track", "teacher_tracks"]
