@@ -146,9 +146,9 @@ def make_backbone(spec: tuple, in_channels: int = 2) -> nn.Sequential:
 OFFSET_SCALE = 8.0
 # The gate's starting logit: sigmoid(-5) = 0.0067 of the carried motion, the rest the CNN's.  A
 # window's first pair is the CNN's exactly; later pairs differ from it by 0.7% of the carried
-# motion's distance to it.  Far from saturation (its slope 0.0066 against the paper LSTM's
-# 0.0025 at -6), and the head's own learning rate (train.carry) moves it that far in a few
-# hundred steps where the data ask for it.
+# motion's distance to it.  The gate opens through the weights of its input layer, which start
+# far from saturation, not through this bias: the shipped head's stayed near -5 while its gate
+# learned to weigh the carried motion 0.79 on event pairs (models/README.md, "The carry head").
 GATE_START = -5.0
 GATE_HIDDEN = 32
 CUES = 6  # patch_cues per pair
@@ -157,8 +157,8 @@ CUES = 6  # patch_cues per pair
 def patch_cues(pairs: Tensor) -> Tensor:
     """(N, 2, P, P) patch pairs in [-1, 1] -> (N, 6) cues of whether each frame can show motion:
     per patch its mean, its contrast (standard deviation) and the log of its mean absolute
-    gradient.  Glare, darkness, flat ground and blur move them, which the features alone show
-    the head less directly."""
+    gradient.  Glare, darkness and flat ground collapse the contrast, which the features alone
+    show the head less directly."""
     x = pairs.float()
     gradient = (x[..., :, 1:] - x[..., :, :-1]).abs().mean((-1, -2)) + (x[..., 1:, :] - x[..., :-1, :]).abs().mean((-1, -2))
     return torch.cat([x.mean((-1, -2)), x.std((-1, -2)), torch.log(gradient + 1e-3)], dim=1)
@@ -166,10 +166,10 @@ def patch_cues(pairs: Tensor) -> Tensor:
 
 class CarryHead(nn.Module):
     """A sequence head that carries the motion itself (issue 38).  Per frame pair t, from the
-    pair's features f_t, the CNN's offsets o_t (the frozen BASE head on f_t) and its own
-    previous output y_{t-1}::
+    pair's features f_t, its image cues k_t (:func:`patch_cues`, where the config asks for them),
+    the CNN's offsets o_t (the frozen BASE head on f_t) and its own previous output y_{t-1}::
 
-        x_t = [relu(code(f_t)), o_t / S, y_{t-1} / S]
+        x_t = [relu(code(f_t)), k_t, o_t / S, y_{t-1} / S]
         h_t, c_t = LSTMCell(x_t, (h_{t-1}, c_{t-1}))         the memory
         m_t = y_{t-1} + S * motion(h_t)                       the carried motion, corrected
                                                               (or by at most C px: C tanh(motion(h_t)))

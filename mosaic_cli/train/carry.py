@@ -3,7 +3,7 @@ motion across the frames that carry none (issue 38; the head: :class:`mosaic_cli
 
 The backbone, first Linear and regressor are the frozen BASE of ``--init``, so a training window
 costs the backbone once, ever: its features are computed once into a cache and the head trains on
-them at thousands of windows a second on one CPU thread.
+them at over a thousand windows a second on one CPU thread.
 
     1. teacher tracks   the product's own estimator (the --init CNN, its Lucas-Kanade polish and
                         ORB fallback) run once over every clean clip of the frame cache: a
@@ -23,9 +23,9 @@ them at thousands of windows a second on one CPU thread.
                         and the BASE's own answer on the clean pairs (leaving it must cost)
 
 No label is read: the teacher is the product's own estimate from the clean frames, which the head
-never sees on a spoilt pair.  Each window starts from no state, as a video does (the state is
-then carried through the whole video; the windows are long enough, W frames, that the memory the
-head learns is spent well within one; see models/README.md, "The carry head").
+never sees on a spoilt pair.  Each window starts from no state, as a video does; the state is then
+carried through the whole video, and the cell's forget gates start at timescales of up to W frames
+(models/README.md, "The carry head").
 """
 
 from __future__ import annotations
