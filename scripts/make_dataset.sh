@@ -103,27 +103,24 @@ done
 # frames carry no motion cue (glare, a gust's blur, near-black, featureless, a dropped or a
 # duplicated frame): where only the motion carried across the frames can place a pair.  One per
 # held-out site for development and one for test; seeds continue after the ones above.
+# A flight with bursts over held-out MAP into SPLIT as NAME_bursts[SUFFIX].mp4, with the next seed.
+burst_flight() {  # SPLIT MAP SUFFIX
+  local name clip
+  name=$(basename "${2%.*}")
+  seed=$((seed + 1))
+  clip="$out/$1/${name}_bursts$3.mp4"
+  [ -f "$clip" ] || mosaic simulate "$data/$2" -o "$clip" --profile bursts --frames 300 \
+    --size 1280x720 --seed "$seed" --preset veryfast --quiet
+}
 for split in dev test; do
-  for map in "${dev_maps[@]}"; do
-    name=$(basename "${map%.*}")
-    seed=$((seed + 1))
-    clip="$out/$split/${name}_bursts.mp4"
-    [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile bursts --frames 300 \
-      --size 1280x720 --seed "$seed" --preset veryfast --quiet
-  done
+  for map in "${dev_maps[@]}"; do burst_flight "$split" "$map" ""; done
 done
 # More flights with bursts (issue 38): four more per held-out site for development and for test,
 # so that each split holds 25 burst flights (about 1,100 burst pairs) and the sequence model's
 # goals are counted on over 1,000 burst pairs.  Seeds continue after the ones above.
 for split in dev test; do
   for k in 2 3 4 5; do
-    for map in "${dev_maps[@]}"; do
-      name=$(basename "${map%.*}")
-      seed=$((seed + 1))
-      clip="$out/$split/${name}_bursts${k}.mp4"
-      [ -f "$clip" ] || mosaic simulate "$data/$map" -o "$clip" --profile bursts --frames 300 \
-        --size 1280x720 --seed "$seed" --preset veryfast --quiet
-    done
+    for map in "${dev_maps[@]}"; do burst_flight "$split" "$map" "$k"; done
   done
 done
 echo "clips in $out/train ($(ls "$out/train"/*.mp4 | wc -l)), $out/dev ($(ls "$out/dev"/*.mp4 | wc -l)) and $out/test ($(ls "$out/test"/*.mp4 | wc -l))"

@@ -65,14 +65,14 @@ def save_on_base(path: str | Path, model: HomographyNet, base: str | Path, varia
     base = Path(base)
     if base.resolve().parent != Path(path).resolve().parent:
         raise ValueError(f"{base} must sit beside {path}")
-    shared = {k: v for k, v in _tensors(base).items()}
-    own = {k: v for k, v in model.state_dict().items()}
+    shared = _tensors(base)
+    own = model.state_dict()
     for key, tensor in shared.items():
         if key in own and not torch.equal(own[key].detach().cpu().float(), tensor.float()):
             raise ValueError(f"{key} differs from {base}'s: the model was not made on that BASE")
     kept = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in own.items() if k not in shared}
     metadata = _metadata(model.config, variant, extra, work_size, int8)
-    metadata.update({"base": base.name, "base_sha256": _sha256(base)})
+    metadata.update({"base": base.name, "base_sha256": file_sha256(base)})
     with atomic_path(path) as tmp:
         save_file(kept, str(tmp), metadata=metadata)
 
@@ -82,7 +82,8 @@ def _tensors(path: str | Path) -> dict[str, torch.Tensor]:
         return {k: fh.get_tensor(k) for k in fh.keys()}
 
 
-def _sha256(path: str | Path) -> str:
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file (hex), read a MiB at a time."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -163,9 +164,9 @@ def _base_tensors(path: Path, meta: dict) -> dict[str, torch.Tensor]:
     base = path.parent / meta["base"]
     if not base.is_file():
         raise BadInput(f"{path} is a head saved on {meta['base']}, which is not beside it")
-    if _sha256(base) != meta["base_sha256"]:
+    if file_sha256(base) != meta["base_sha256"]:
         raise BadInput(f"{path} was saved on another {meta['base']} than the one beside it")
     return _tensors(base)
 
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "DEFAULT_WORK_SIZE", "save_weights", "save_on_base", "read_metadata", "load_weights"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "DEFAULT_WORK_SIZE", "save_weights", "save_on_base", "file_sha256", "read_metadata", "load_weights"]

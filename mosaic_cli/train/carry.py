@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from mosaic_cli.atomic import write_json
+from mosaic_cli.model.checkpoint import file_sha256
 from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.model.patches import crop, homography_to_offsets
 from mosaic_cli.progress import progress_task
@@ -96,7 +97,7 @@ def teacher_tracks(clips: Sequence[CachedClip], weights: str, folder: Path, show
     """:func:`teacher_track` of every clip, on ``workers`` processes, each kept in ``folder`` (a
     resumed run reads them back)."""
     folder.mkdir(parents=True, exist_ok=True)
-    key = _digest({"weights": file_digest(weights), "format": CACHE_FORMAT})
+    key = _digest({"weights": file_sha256(weights), "format": CACHE_FORMAT})
     paths = [str(folder / f"{Path(clip.file).stem}-{key}.npz") for clip in clips]
     jobs = [(clip, weights, path) for clip, path in zip(clips, paths) if not Path(path).is_file()]
     with progress_task("teacher tracks", len(clips), unit="clips", disable=not show_progress) as advance:
@@ -108,10 +109,7 @@ def teacher_tracks(clips: Sequence[CachedClip], weights: str, folder: Path, show
                     advance(1)
         else:
             for job in jobs:
-                H, ok = teacher_track(job[0], weights)
-                tmp = Path(job[2]).with_name(f".{Path(job[2]).stem}.part.npz")
-                np.savez(tmp, H=H, ok=ok)
-                tmp.replace(job[2])
+                _teacher_job(job)
                 advance(1)
     out = []
     for path in paths:
@@ -259,7 +257,8 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
                 rng = np.random.default_rng([seed, i, 38])
                 win = draw_window(rng, segments, cumulative, (w, h), patch, bursts, flip)
                 H, ok = teachers[win.clip]
-                teacher[i], known[i] = (v.reshape(T, -1) if v.ndim > 2 else v for v in teacher_offsets(win, H, ok, (w, h), patch))
+                offsets, known[i] = teacher_offsets(win, H, ok, (w, h), patch)
+                teacher[i] = offsets.reshape(T, 8)
                 events[i] = win.events
                 frames = np.asarray(arrays[win.clip][win.rows])
                 frames = frames[:, ::-1 if win.upside_down else 1, ::-1 if win.left_right else 1]
@@ -362,17 +361,9 @@ def _digest(data: dict) -> str:
     return hashlib.sha1(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def file_digest(path: str) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
-
-
 def _part(path: Path) -> Path:
     return path.with_name(f".{path.stem}.part.npy")
 
 
-__all__ = ["WINDOW", "EVENTS", "CarryObjective", "FeatureCache", "FeatureWindows", "Window", "build_feature_cache", "file_digest",
+__all__ = ["WINDOW", "EVENTS", "CarryObjective", "FeatureCache", "FeatureWindows", "Window", "build_feature_cache",
            "draw_window", "teacher_offsets", "teacher_track", "teacher_tracks"]

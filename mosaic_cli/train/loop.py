@@ -33,10 +33,10 @@ from torch import nn
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, Interrupted, MosaicError, ProcessingError
 from mosaic_cli.model import quantize
-from mosaic_cli.model.checkpoint import load_weights
+from mosaic_cli.model.checkpoint import file_sha256, load_weights
 from mosaic_cli.model.network import CUES, HomographyNet, NetConfig
 from mosaic_cli.progress import console, progress_task
-from mosaic_cli.train.carry import CarryObjective, FeatureWindows, build_feature_cache, file_digest, teacher_tracks
+from mosaic_cli.train.carry import CarryObjective, FeatureWindows, build_feature_cache, teacher_tracks
 from mosaic_cli.train.config import RUN_DEFINING, TrainConfig
 from mosaic_cli.train.data import (
     DeviceWindows,
@@ -284,7 +284,7 @@ def carry_batches(cfg: TrainConfig, net: HomographyNet, cached, run: RunDir, dis
     precision = "int8" if features is not None else "fp32"
     if features is None:
         features = net.eval().features
-    identity = {"init": file_digest(cfg.init), "clips": [c.clip for c in cached], "frames": [c.frames for c in cached],
+    identity = {"init": file_sha256(cfg.init), "clips": [c.clip for c in cached], "frames": [c.frames for c in cached],
                 "seed": cfg.seed, "bursts": cfg.bursts, "flip": cfg.flip, "patch": cfg.patch, "precision": precision,
                 "cues": net.config.carry_cues}
     cache = build_feature_cache(net, features, cached, teachers, cfg.feature_windows, cfg.patch, cfg.seed, float(cfg.bursts or 0.0),
