@@ -1,8 +1,9 @@
 """Decoding: the bundled ffmpeg (imageio-ffmpeg's binary) on a pipe, a process of its own that
 decodes the next frame while mosaic works on this one (docs/developer/video.md has the measured
-rates).  :func:`open_video` streams a file's (or an image folder's) frames; :class:`Decoder` is
-the one ffmpeg decoder under it and under :func:`frames_at` and :func:`frame_at` (picked frames,
-a frame at a time)."""
+rates), or, where there is no ffmpeg binary, libav in this process through PyAV
+(:mod:`.backend` picks).  :func:`open_video` streams a file's (or an image folder's) frames;
+:func:`Decoder` gives the decoder under it and under :func:`frames_at` and :func:`frame_at`
+(picked frames, a frame at a time): an :class:`FfmpegDecoder` or a :class:`PyAVDecoder`."""
 
 from __future__ import annotations
 
@@ -192,20 +193,53 @@ def frame_shape(pixels: str, size: tuple[int, int]) -> tuple[int, ...]:
     return {"gray": (h, w), "rgb": (h, w, 3), "yuv420p": (h * 3 // 2, w)}[pixels]
 
 
-class Decoder:
+def _checked_size(info: VideoInfo, pixels: str, size: tuple[int, int] | None) -> tuple[int, int]:
+    """The (w, h) of the frames a decoder yields, refusing what neither backend can give."""
+    if pixels not in PIXELS:
+        raise ValueError(f"pixels must be one of {', '.join(PIXELS)}, got {pixels}")
+    size = size or info.source_size
+    if pixels == "yuv420p" and (size != info.source_size or size[0] % 2 or size[1] % 2):
+        raise ValueError(f"yuv420p frames are read at the source size, even only; got {size}")
+    return size
+
+
+def _select_filter(select: str | None, start: int | None, picks: Sequence[int] | None,
+                   near_times: Sequence[float] | None) -> str | None:
+    """ffmpeg's select filter for a request made with the structured arguments the PyAV decoder
+    takes too (so both backends get the same request): ``start``, the frames from the
+    ``start``-th decoded on; ``picks``, the decoded frames of those numbers; ``near_times``
+    (seconds from the first frame), for each time the first frame at or after it, unless the
+    frame picked before it already came at or after that time.  ``select``: a filter of the
+    caller's own (ffmpeg only), when none of these is given."""
+    if sum(x is not None for x in (select, start, picks, near_times)) > 1:
+        raise ValueError("give one of select, start, picks, near_times")
+    if start:
+        return f"select=gte(n\\,{int(start)})"
+    if picks is not None:
+        return "select='" + "+".join(f"eq(n\\,{int(k)})" for k in picks) + "'"
+    if near_times is not None:
+        # A frame is picked when it is the first at or after a time: the frame picked before it
+        # came earlier than that time (or there was none).
+        return "select='" + "+".join(f"gte(t-start_t\\,{T:.6f})*(isnan(prev_selected_t)+lt(prev_selected_t-start_t\\,{T:.6f}))"
+                                     for T in near_times) + "'"
+    return select
+
+
+class FfmpegDecoder:
     """One ffmpeg process decoding a file's video stream to raw frames on its standard output.
 
     Iterate for the frames (each a new writable array); :attr:`error` then holds ffmpeg's first
-    complaint, if it made one.  Close (or use as a context manager) to stop it early."""
+    complaint, if it made one.  Close (or use as a context manager) to stop it early.  Which
+    frames: all, or one request of ``start``, ``picks``, ``near_times`` (:func:`_select_filter`)
+    or ``select`` (a select filter of the caller's own); ``seek`` (seconds) starts at the first
+    frame at or after it; ``frames`` stops after that many."""
 
     def __init__(self, info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None,
                  select: str | None = None, seek: float | None = None, frames: int | None = None, references_only: bool = False,
-                 lazy_rgb: bool = False):
-        if pixels not in PIXELS:
-            raise ValueError(f"pixels must be one of {', '.join(PIXELS)}, got {pixels}")
-        self.size = size or info.source_size
-        if pixels == "yuv420p" and (self.size != info.source_size or self.size[0] % 2 or self.size[1] % 2):
-            raise ValueError(f"yuv420p frames are read at the source size, even only; got {self.size}")
+                 lazy_rgb: bool = False, *, start: int | None = None, picks: Sequence[int] | None = None,
+                 near_times: Sequence[float] | None = None):
+        self.size = _checked_size(info, pixels, size)
+        select = _select_filter(select, start, picks, near_times)
         self.shape = frame_shape(pixels, self.size)
         self._to_rgb = pixels == "rgb" and rgb_converted_here(info, self.size)
         self._lazy = lazy_rgb and self._to_rgb
@@ -277,11 +311,181 @@ class Decoder:
             self._proc = None
         self._log.close()
 
-    def __enter__(self) -> Decoder:
+    def __enter__(self) -> FfmpegDecoder:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class PyAVDecoder:
+    """libav decoding the file's video stream in this process (PyAV), for machines without an
+    ffmpeg binary: the same constructor and frames as :class:`FfmpegDecoder`.
+
+    Iterate for the frames (each a new writable array, turned upright as ffmpeg turns them);
+    :attr:`error` then holds libav's first complaint (an error that stopped decoding), if any.
+    Close (or use as a context manager) to stop early.  ``select`` (an ffmpeg filter string) is
+    refused: requests come as ``start``, ``picks`` or ``near_times`` (:func:`_select_filter`
+    says what each means)."""
+
+    def __init__(self, info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None,
+                 select: str | None = None, seek: float | None = None, frames: int | None = None, references_only: bool = False,
+                 lazy_rgb: bool = False, *, start: int | None = None, picks: Sequence[int] | None = None,
+                 near_times: Sequence[float] | None = None):
+        import av  # PyAV, loaded with the first video decoded by it
+
+        self.size = _checked_size(info, pixels, size)
+        _select_filter(select, start, picks, near_times)  # (one request at most)
+        if select is not None:
+            raise ValueError("the PyAV decoder takes start, picks or near_times, not an ffmpeg select filter")
+        self.info, self.pixels = info, pixels
+        self.shape = frame_shape(pixels, self.size)
+        self._to_rgb = pixels == "rgb" and rgb_converted_here(info, self.size)
+        self._lazy = lazy_rgb and self._to_rgb
+        self._turns = (-(info.rotation // 90)) % 4  # np.rot90's counter-clockwise quarter turns
+        w, h = self.size
+        self._decoded_size = (h, w) if self._turns % 2 else (w, h)  # (w, h) before the turn
+        self._start, self._picks = int(start or 0), (set(int(k) for k in picks) if picks is not None else None)
+        self._near = [float(f"{T:.6f}") for T in near_times] if near_times is not None else None  # as ffmpeg is told them
+        self._seek = float(f"{seek:.4f}") if seek is not None else None
+        self._frames = int(frames) if frames is not None else None
+        self.error: str | None = None
+        try:
+            self._container = av.open(info.path, metadata_errors="replace")
+        except (av.error.FFmpegError, OSError, ValueError) as exc:
+            raise BadInput(f"{info.path}: cannot decode ({_libav_reason(exc)})") from None
+        try:
+            if info.stream_index is not None:
+                self._stream = self._container.streams[info.stream_index]
+            else:
+                self._stream = self._container.streams.video[0]
+            # Frame threads: several frames decode at once (H.264 at 720p: about twice the rate).
+            self._stream.thread_type = "AUTO"
+            if references_only:  # frames no other frame refers to are not decoded at all
+                self._stream.codec_context.skip_frame = "NONREF"
+        except (IndexError, av.error.FFmpegError) as exc:
+            self._container.close()
+            raise BadInput(f"{info.path}: cannot decode its video stream ({_libav_reason(exc)})") from None
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        import av
+
+        container, stream = self._container, self._stream
+        # ffmpeg's timeline: -ss counts from the file's start time; select's t - start_t from the
+        # first frame that reaches the filter.
+        origin = container.start_time / av.time_base if container.start_time is not None else 0.0
+        half_tick = float(stream.time_base) / 2 if stream.time_base else 1e-6
+        fps = self.info.fps if self.info.fps > 0 else 30.0
+        n, yielded, first_t, prev_picked = -1, 0, None, None
+        try:
+            if self._seek is not None:  # to the keyframe before; the frames before the time are dropped below
+                container.seek(int(round((origin + self._seek) * av.time_base)), backward=True)
+            for frame in container.decode(stream):
+                t = frame.time
+                if self._seek is not None and t is not None and t - origin < self._seek - half_tick:
+                    continue
+                n += 1
+                if t is None:
+                    t = n / fps
+                if first_t is None:
+                    first_t = t
+                if not self._wanted(n, t - first_t, prev_picked):
+                    continue
+                prev_picked = t - first_t
+                yield self._pixels(frame)
+                yielded += 1
+                if self._frames is not None and yielded >= self._frames:
+                    break
+        except av.error.FFmpegError as exc:
+            self.error = _libav_reason(exc)
+
+    def _wanted(self, n: int, t: float, prev: float | None) -> bool:
+        """Whether the ``n``-th frame (0 first), ``t`` seconds after the first, is yielded."""
+        if n < self._start:
+            return False
+        if self._picks is not None:
+            return n in self._picks
+        if self._near is not None:
+            return any(t >= T and (prev is None or prev < T) for T in self._near)
+        return True
+
+    def _pixels(self, frame) -> np.ndarray:
+        """The frame as the ffmpeg decoder pipes it: gray (h, w) and downscaled RGB by swscale's
+        area filter, yuv420p planes as decoded (converted to RGB here where ffmpeg's are)."""
+        w, h = self._decoded_size
+        if self.pixels == "gray":
+            return self._upright(_writable(frame.to_ndarray(width=w, height=h, format="gray", interpolation="AREA")))
+        if self.pixels == "yuv420p" or self._to_rgb:
+            if self._to_rgb and not is_bt601_limited(self.info):
+                # TO_BT601: the matrix and range OpenCV's conversion assumes.
+                frame = frame.reformat(format="yuv420p", dst_colorspace="ITU601", dst_color_range="MPEG")
+            elif frame.format.name != "yuv420p":
+                frame = frame.reformat(format="yuv420p")
+            flat = self._upright_planes(_yuv420p_flat(frame))
+            if not self._to_rgb:
+                return flat.reshape(self.shape)
+            if self._lazy:
+                return YuvFrame(flat, self.size)  # type: ignore[return-value]  (it stands for the RGB frame)
+            return rgb_from_yuv420p(flat, self.size)
+        interpolation = "AREA" if (w, h) != (frame.width, frame.height) else None
+        return self._upright(_writable(frame.to_ndarray(width=w, height=h, format="rgb24", interpolation=interpolation)))
+
+    def _upright(self, image: np.ndarray) -> np.ndarray:
+        """``image`` (h, w[, 3]) turned as the display matrix asks (ffmpeg's autorotate)."""
+        return np.ascontiguousarray(np.rot90(image, self._turns)) if self._turns else image
+
+    def _upright_planes(self, flat: np.ndarray) -> np.ndarray:
+        """yuv420p bytes (:func:`yuv420p_bytes`) with each plane turned upright."""
+        if not self._turns:
+            return flat
+        w, h = self._decoded_size
+        cw, ch = (w + 1) // 2, (h + 1) // 2
+        luma, chroma = flat[:w * h].reshape(h, w), flat[w * h:].reshape(2, ch, cw)
+        return np.concatenate([np.rot90(luma, self._turns).reshape(-1), np.rot90(chroma, self._turns, axes=(1, 2)).reshape(-1)])
+
+    def close(self) -> None:
+        if self._container is not None:
+            self._container.close()
+            self._container = None
+
+    def __enter__(self) -> PyAVDecoder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _writable(image: np.ndarray) -> np.ndarray:
+    """``image`` itself when the caller may change it (a frame of its own), else a copy."""
+    return image if image.flags.writeable and image.flags.c_contiguous else image.copy()
+
+
+def _yuv420p_flat(frame) -> np.ndarray:
+    """The bytes of a yuv420p ``frame`` as ffmpeg's rawvideo writes them (:func:`yuv420p_bytes`:
+    each plane's rows without libav's line padding), a new array."""
+    w, h = frame.width, frame.height
+    cw, ch = (w + 1) // 2, (h + 1) // 2
+    flat = np.empty(w * h + 2 * cw * ch, np.uint8)
+    offset = 0
+    for plane, (pw, ph) in zip(frame.planes, ((w, h), (cw, ch), (cw, ch))):
+        rows = np.frombuffer(plane, np.uint8)[:plane.line_size * ph].reshape(ph, plane.line_size)
+        flat[offset:offset + pw * ph].reshape(ph, pw)[:] = rows[:, :pw]
+        offset += pw * ph
+    return flat
+
+
+def _libav_reason(exc: BaseException) -> str:
+    """libav's words for an error PyAV raised, without its errno prefix."""
+    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+
+
+def Decoder(info: VideoInfo, pixels: str = "rgb", size: tuple[int, int] | None = None, **request) -> FfmpegDecoder | PyAVDecoder:
+    """The decoder of the backend :func:`~mosaic_cli.video.backend.video_backend` picks: an
+    :class:`FfmpegDecoder` or a :class:`PyAVDecoder`, which take the same arguments."""
+    from mosaic_cli.video.backend import video_backend
+
+    kind = PyAVDecoder if video_backend() == "pyav" else FfmpegDecoder
+    return kind(info, pixels, size, **request)
 
 
 def _widen_pipe(pipe, frame_bytes: int) -> None:
@@ -334,7 +538,7 @@ def open_video(
     pixels = "yuv420p" if yuv420p else "gray" if gray else "rgb"
     size = scaled_size(info.source_size, width)  # (yuv420p: the Decoder refuses a downscale)
     info = replace(info, size=size)
-    decoder = Decoder(info, pixels, size, select=f"select=gte(n\\,{int(start)})" if start else None, lazy_rgb=lazy_rgb)
+    decoder = Decoder(info, pixels, size, start=int(start) if start else None, lazy_rgb=lazy_rgb)
 
     def frames() -> Iterator[np.ndarray]:
         yield from decoder
@@ -356,14 +560,11 @@ def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None,
         return
     if near and info.video_codec in REFERENCE_SKIPPING_CODECS:
         fps = info.fps if info.fps > 0 else 30.0
-        # A frame is picked when it is the first at or after an index's time: the frame picked
-        # before it came earlier than that time (or there was none).
-        times = [f"{(int(k) - 0.25) / fps:.6f}" for k in indices]
-        picks = "+".join(f"gte(t-start_t\\,{T})*(isnan(prev_selected_t)+lt(prev_selected_t-start_t\\,{T}))" for T in times)
-        references_only = True
+        # Each index's time less a quarter frame: its frame's time, whatever the rounding.
+        request: dict = {"near_times": [(int(k) - 0.25) / fps for k in indices], "references_only": True}
     else:
-        picks, references_only = "+".join(f"eq(n\\,{int(k)})" for k in indices), False
-    with Decoder(info, "rgb", scaled_size(info.source_size, width), select=f"select='{picks}'", references_only=references_only) as decoder:
+        request = {"picks": [int(k) for k in indices]}
+    with Decoder(info, "rgb", scaled_size(info.source_size, width), **request) as decoder:
         yield from decoder
 
 

@@ -5,12 +5,24 @@ The names live in modules of one job each, re-exported here:
 
 * :mod:`.info`: :class:`VideoInfo`, :class:`StreamMeta`, :class:`VideoStream`, :func:`scaled_size`;
 * :mod:`.probe`: probing with PyAV, in-process, once per command;
-* :mod:`.decode`: the bundled ffmpeg on a pipe (:class:`Decoder`, :func:`open_video`, picked frames);
+* :mod:`.decode`: the bundled ffmpeg on a pipe, or PyAV where there is none (:func:`Decoder`,
+  :func:`open_video`, picked frames);
 * :mod:`.folders`: folders of numbered images;
 * :mod:`.policy`: the reading policy for a video short of its announced frames (``--strict``).
 """
 
-from mosaic_cli.video.decode import PIXELS, Decoder, ffmpeg_exe, frame_at, frame_shape, frames_at, open_video, read_into
+from mosaic_cli.video.decode import (
+    PIXELS,
+    Decoder,
+    FfmpegDecoder,
+    PyAVDecoder,
+    ffmpeg_exe,
+    frame_at,
+    frame_shape,
+    frames_at,
+    open_video,
+    read_into,
+)
 from mosaic_cli.video.folders import DEFAULT_FOLDER_FPS, IMAGE_SUFFIXES, folder_images, read_image_rgb
 from mosaic_cli.video.info import StreamMeta, VideoInfo, VideoStream, scaled_size
 from mosaic_cli.video.policy import (
@@ -33,6 +45,7 @@ __all__ = [
     "SHORTFALL_TOLERANCE",
     "TAIL_SECONDS",
     "Decoder",
+    "FfmpegDecoder",
     "Shortfall",
     "StreamMeta",
     "VideoInfo",
@@ -46,6 +59,7 @@ __all__ = [
     "frames_at",
     "open_video",
     "probe",
+    "PyAVDecoder",
     "read_image_rgb",
     "read_into",
     "reading_policy",

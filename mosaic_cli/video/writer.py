@@ -1,4 +1,5 @@
-"""Streaming H.264 writer (the ffmpeg of imageio-ffmpeg), atomic, optionally carrying a source's audio."""
+"""Streaming H.264 writer (the ffmpeg of imageio-ffmpeg, or libav in this process through PyAV
+where there is no ffmpeg binary: :mod:`.backend`), atomic, optionally carrying a source's audio."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 
 from mosaic_cli.atomic import check_writable, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.video.backend import video_backend
 from mosaic_cli.video.reader import VideoInfo, audio_codec_of, ffmpeg_exe
 
 # The H.264 encoder's ``--preset`` values (libx264's), fastest first.
@@ -77,6 +79,7 @@ class VideoWriter:
         self._tmp: Path | None = None
         self._encoder: subprocess.Popen | None = None
         self._log = None
+        self._pyav: _PyAVEncoder | None = None
         if isinstance(audio_from, VideoInfo):
             source_audio, audio_from = audio_from.audio_codec, audio_from.path
         else:
@@ -91,7 +94,10 @@ class VideoWriter:
             # would lose the encoder, which would then make the file again after it was removed.
             with signals_held():
                 self._tmp = temporary_beside(self.path, f".part{self.path.suffix or '.mp4'}")
-                self._start_encoder(fps, crf, preset, audio)
+                if video_backend() == "pyav":
+                    self._pyav = _PyAVEncoder(self._tmp, self.path, self.out_size, fps, crf, preset, audio, audio_seconds, self.metadata)
+                else:
+                    self._start_encoder(fps, crf, preset, audio)
         except BaseException:
             self.abort()
             raise
@@ -140,6 +146,14 @@ class VideoWriter:
                 frame = np.repeat(frame[:, :, None], 3, axis=2)
             if self.out_size != self.size:
                 frame = np.pad(frame, ((0, self.out_size[1] - self.size[1]), (0, self.out_size[0] - self.size[0]), (0, 0)), mode="edge")
+        if self._pyav is not None:
+            try:
+                self._pyav.write(np.ascontiguousarray(frame, dtype=np.uint8), self.pix_fmt_in)
+            except ProcessingError:
+                self.abort()
+                raise
+            self.frames_written += 1
+            return
         try:
             self._encoder.stdin.write(np.ascontiguousarray(frame, dtype=np.uint8).data)
         except OSError:  # the encoder is gone
@@ -150,10 +164,13 @@ class VideoWriter:
     def close(self) -> Path:
         """Finish encoding and move the file into place (or, whatever stops that, remove it)."""
         try:
-            with contextlib.suppress(OSError):
-                self._encoder.stdin.close()
-            if self._encoder.wait() != 0:
-                raise ProcessingError(f"{self.path}: encoding failed ({self._complaint()})")
+            if self._pyav is not None:
+                self._pyav.close()
+            else:
+                with contextlib.suppress(OSError):
+                    self._encoder.stdin.close()
+                if self._encoder.wait() != 0:
+                    raise ProcessingError(f"{self.path}: encoding failed ({self._complaint()})")
             if self.frames_written == 0:
                 raise ProcessingError(f"{self.path}: no frames to write")
             give_default_permissions(self._tmp)
@@ -161,11 +178,14 @@ class VideoWriter:
         except BaseException:
             self.abort()
             raise
-        self._log.close()
+        if self._log is not None:
+            self._log.close()
         return self.path
 
     def abort(self) -> None:
         """Stop the encoder, wait until it has exited (it could still create the file), remove the file."""
+        if self._pyav is not None:
+            self._pyav.abort()
         if self._encoder is not None:
             with contextlib.suppress(OSError):
                 self._encoder.kill()
@@ -225,3 +245,139 @@ def rewrite_container(path: str | os.PathLike, audio_seconds: float | None = Non
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+_DEFAULT_LAYOUTS = {1: "mono", 2: "stereo", 3: "2.1", 4: "4.0", 5: "5.0", 6: "5.1", 7: "6.1", 8: "7.1"}
+
+
+class _PyAVEncoder:
+    """The ffmpeg command of :meth:`VideoWriter._start_encoder` done in this process with PyAV,
+    for machines without an ffmpeg binary: libx264, yuv420p, the same CRF, preset, frame rate,
+    ``+faststart`` and tags, and the source's first audio stream copied (or encoded, ``audio``'s
+    codec) and cut at ``audio_seconds``, its packets interleaved with the video's as they come.
+    Errors are :class:`ProcessingError` naming ``name`` (the final path)."""
+
+    def __init__(self, tmp: Path, name: Path, size: tuple[int, int], fps: float, crf: int, preset: str,
+                 audio: tuple[str, str] | None, audio_seconds: float | None, metadata: dict[str, str]):
+        import av  # PyAV, loaded with the first video written by it
+
+        self._av, self._name = av, name
+        self._out = self._source = None
+        self._audio_stream = self._audio_in = self._packets = None
+        self._held: tuple[float, list] | None = None  # an audio packet read past the video's time
+        try:
+            self._out = av.open(str(tmp), "w", options={"movflags": "+faststart"})
+            self._rate = Fraction(fps).limit_denominator()
+            self._video = self._out.add_stream("libx264", rate=self._rate, options={"crf": str(crf), "preset": preset})
+            self._video.width, self._video.height = size
+            self._video.pix_fmt = "yuv420p"
+            self._video.codec_context.time_base = 1 / self._rate
+            for key, value in metadata.items():
+                self._out.metadata[key] = value
+            if audio is not None:
+                self._open_audio(audio[0], audio[1], audio_seconds)
+        except (av.error.FFmpegError, OSError, ValueError, IndexError) as exc:
+            self.abort()
+            raise self._failure(exc) from None
+        self._frames = 0
+
+    def _failure(self, exc: BaseException) -> ProcessingError:
+        return ProcessingError(f"{self._name}: encoding failed ({getattr(exc, 'strerror', None) or exc})")
+
+    def _open_audio(self, source: str, codec: str, seconds: float | None) -> None:
+        av = self._av
+        self._source = av.open(source, metadata_errors="replace")
+        self._audio_in = self._source.streams.audio[0]
+        if codec == "copy":
+            self._audio_stream = self._out.add_stream_from_template(self._audio_in)
+        else:
+            self._audio_stream = self._out.add_stream(codec, rate=self._audio_in.codec_context.sample_rate)
+            layout = self._audio_in.codec_context.layout
+            # A layout of channels in no known order ("1 channels", pcm in mkv) does not open
+            # the AAC encoder: ffmpeg's default layout for that many channels instead.
+            if layout.name.endswith("channels"):
+                layout = _DEFAULT_LAYOUTS.get(layout.nb_channels, layout)
+            self._audio_stream.layout = layout
+        # ffmpeg's timeline: the input's timestamps less its start time, cut at -t from there.
+        origin = self._source.start_time / av.time_base if self._source.start_time is not None else 0.0
+        self._packets = self._audio_packets(codec == "copy", origin, seconds)
+
+    def _audio_packets(self, copy: bool, origin: float, until: float | None):
+        """(seconds from the source's start, the output packets) of each audio packet read, in order."""
+        stream, out = self._audio_in, self._audio_stream
+        shift = int(round(origin / stream.time_base)) if stream.time_base else 0
+        for packet in self._source.demux(stream):
+            stamp = packet.pts if packet.pts is not None else packet.dts
+            if stamp is None:  # the demuxer's empty packet at the end
+                continue
+            t = float(stamp * stream.time_base) - origin
+            if until is not None and t >= until:
+                break
+            if copy:
+                packet.pts = None if packet.pts is None else packet.pts - shift
+                packet.dts = None if packet.dts is None else packet.dts - shift
+                packet.stream = out
+                yield t, [packet]
+            else:
+                packets = []
+                for frame in packet.decode():
+                    frame.pts = None  # the encoder counts its samples from zero
+                    packets += out.encode(frame)
+                yield t, packets
+        if not copy:
+            yield float("inf"), out.encode(None)
+
+    def _mux_audio(self, until: float) -> None:
+        """Mux the audio read so far up to ``until`` seconds (everything: ``inf``)."""
+        if self._packets is None:
+            return
+        while True:
+            if self._held is None:
+                self._held = next(self._packets, None)
+                if self._held is None:
+                    self._packets = None
+                    return
+            if self._held[0] > until:
+                return
+            self._out.mux(self._held[1])
+            self._held = None
+
+    def write(self, frame: np.ndarray, pix_fmt: str) -> None:
+        """One frame: RGB (h, w, 3) or yuv420p planes (h * 3 // 2, w), at the even size."""
+        av = self._av
+        try:
+            picture = av.VideoFrame.from_ndarray(frame, format=pix_fmt)
+            if pix_fmt != "yuv420p":  # as ffmpeg converts its rawvideo input (swscale's bicubic)
+                picture = picture.reformat(format="yuv420p", interpolation="BICUBIC")
+            picture.pts, picture.time_base = self._frames, 1 / self._rate
+            self._out.mux(self._video.encode(picture))
+            self._frames += 1
+            self._mux_audio(float(self._frames / self._rate))
+        except (av.error.FFmpegError, OSError, ValueError) as exc:
+            raise self._failure(exc) from None
+
+    def close(self) -> None:
+        """Flush the encoder, the rest of the audio and the trailer."""
+        av = self._av
+        try:
+            self._out.mux(self._video.encode(None))
+            self._mux_audio(float("inf"))
+            self._out.close()
+            self._out = None
+        except (av.error.FFmpegError, OSError, ValueError) as exc:
+            raise self._failure(exc) from None
+        finally:
+            self._close_source()
+
+    def abort(self) -> None:
+        """Close the files without finishing them (the caller removes the partial file)."""
+        self._close_source()
+        if self._out is not None:
+            with contextlib.suppress(Exception):  # (writing a trailer to a file about to go)
+                self._out.close()
+            self._out = None
+
+    def _close_source(self) -> None:
+        if self._source is not None:
+            self._source.close()
+            self._source = None
