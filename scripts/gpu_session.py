@@ -3,7 +3,8 @@
     bash scripts/prepare_gpu_session.sh          # here, once: wheels and stills into .gpu/
     # then one device call:  bash scripts/gpu_session.sh   (carry: [".gpu"])
 
-Stages, each timed into session.log, a summary table printed last:
+Stages, each timed into session.log, a summary table printed last (``--stages``: ``training``,
+``throughput`` or ``all``; the two travel differently, see scripts/gpu_session.sh):
 
 1. env        the GPU, torch, CUDA
 2. data       training flights rendered from the carried stills on the machine's cores (the
@@ -15,8 +16,14 @@ Stages, each timed into session.log, a summary table printed last:
 6. train      the BASE from the shipped cnn, then the sequence model (--variant carry: the carry
               head on that BASE, its teacher tracks on the machine's cores, its feature cache
               on the GPU), each for the time left, validated on the burst flights (the network alone)
+7. throughput a 720p and a 4K clip rendered there over two real stills (x264 through PyAV: that
+              machine has no ffmpeg binary, so mosaic reads and writes video with its PyAV
+              backend), the probes (lscpu, nvidia-smi, NVDEC), then, side by side, the wall times
+              of track, stabilize and stitch with --device cuda and --device cpu (all cores, and
+              track on one thread too) and the plain x264 transcode with the same settings, into
+              gpu_throughput.json (issue 39: docs/measurements/gpu_throughput.json)
 
-Back under $OUT (at most 8 files of 16 MB): cnn.safetensors, lstm.safetensors (the carry head on
+Back under $OUT (at most 8 files of 16 MB): gpu_throughput.json (throughput), cnn.safetensors, lstm.safetensors (the carry head on
 that cnn: ship the two together), bench.json, tests.xml, logs.tar.gz (every run's log.csv / val.csv,
 the speed probes, env.json), session.log.  A file over 15 MiB comes back in parts, NAME.part1,
 NAME.part2: `cat NAME.part* > NAME`.
@@ -33,6 +40,7 @@ import concurrent.futures
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -258,6 +266,194 @@ def train(s: Session, rates: dict | None) -> str:
     return "; ".join(results)
 
 
+FOOTAGE = ROOT / ".gpu" / "footage"
+# (name, frame size, the still flown over: a prefix of a file in .gpu/footage), as scripts/bench_speed.py
+CLIPS = (("1280x720", (1280, 720), "720p"), ("3840x2160", (3840, 2160), "4k"))
+X264 = {"preset": "veryfast", "crf": "18"}  # scripts/bench_speed.py's transcode settings, and stabilize's here
+
+
+def transcode(source: str, target: str) -> int:
+    """The plain x264 transcode, in-process with PyAV (every frame decoded on frame threads and
+    encoded as scripts/bench_speed.py's ``ffmpeg -c:v libx264 -preset veryfast -crf 18``): the
+    floor of any stabiliser that re-encodes.  Returns the frames written."""
+    import av
+
+    frames = 0
+    with av.open(source) as src, av.open(target, "w") as dst:
+        video = src.streams.video[0]
+        video.thread_type = "AUTO"
+        out = dst.add_stream("libx264", rate=video.average_rate, options=dict(X264))
+        out.width, out.height, out.pix_fmt = video.codec_context.width, video.codec_context.height, "yuv420p"
+        for frame in src.decode(video):
+            frame.pts = None
+            dst.mux(out.encode(frame))
+            frames += 1
+        dst.mux(out.encode(None))
+    return frames
+
+
+def nvdec_probe(clip: Path, frames: int = 120) -> dict:
+    """Whether NVDEC decodes H.264 here (PyAV's h264_cuvid, which needs the driver's libnvcuvid),
+    and at what rate, against the software decoder on frame threads, over the same frames."""
+    import av
+
+    result: dict = {}
+    for name in ("h264", "h264_cuvid"):
+        try:
+            with av.open(str(clip)) as src:
+                stream = src.streams.video[0]
+                codec = av.CodecContext.create(name, "r")
+                if stream.codec_context.extradata:
+                    codec.extradata = stream.codec_context.extradata
+                codec.thread_type = "AUTO"
+                start, n = time.perf_counter(), 0
+                for packet in src.demux(stream):
+                    for _ in codec.decode(packet):
+                        n += 1
+                    if n >= frames:
+                        break
+                result[name] = {"frames": n, "fps": round(n / (time.perf_counter() - start), 1)}
+        except Exception as exc:  # noqa: BLE001 - what fails is the finding
+            result[name] = {"error": f"{exc.__class__.__name__}: {str(exc)[:200]}"}
+    return result
+
+
+def probes() -> dict:
+    found = {}
+    for name, cmd in (("lscpu", ["lscpu"]), ("nvidia-smi", ["nvidia-smi", "--query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm", "--format=csv"])):
+        try:
+            found[name] = subprocess.run(cmd, capture_output=True, text=True, timeout=30).stdout.strip()
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            found[name] = f"not run: {exc}"
+    return found
+
+
+def footage(tiny: bool, key: str) -> Path | None:
+    found = sorted(FOOTAGE.glob(f"{key}_*")) if FOOTAGE.is_dir() and not tiny else []
+    return found[0] if found else None
+
+
+STAGE = re.compile(r"(overlays|track|path|render|scan|register|compose|write) ([0-9.]+) s")
+
+
+def stage_seconds(stderr: str) -> dict[str, float]:
+    """The stage seconds of a mosaic command's final line (as scripts/bench_speed.py reads them)."""
+    lines = [line for line in stderr.strip().splitlines() if STAGE.search(line)]
+    return {name: float(value) for name, value in STAGE.findall(lines[-1])} if lines else {}
+
+
+def agreement(folder: Path, size: str, pair: tuple[str, str] = ("cuda", "cpu")) -> dict:
+    """How far one device's outputs are from the other's (the GPU's from the CPU's): the tracks'
+    corner differences (px, at the frame size, mean over the corners), the share of pairs that
+    took the same path, the stabilised videos' and the panoramas' mean absolute grey difference.
+    (The CPU rehearsal compares the CPU's with themselves: the code runs, the figures are zero.)"""
+    from mosaic_cli.geometry import corner_error
+
+    found: dict = {}
+    try:
+        tracks = [json.loads((folder / f"track_{size}_{d}.json").read_text()) for d in pair]
+        diffs = corner_error(np.array(tracks[0]["pairwise"]), np.array(tracks[1]["pairwise"]), tuple(tracks[0]["size"]))
+        same_path = float(np.mean([a == b for a, b in zip(tracks[0]["path"], tracks[1]["path"])]))
+        found["track"] = {"corner_px_median": float(np.median(diffs)), "corner_px_p99": float(np.percentile(diffs, 99)),
+                          "same_path": same_path}
+    except Exception as exc:  # noqa: BLE001
+        found["track"] = {"error": str(exc)[:200]}
+    try:
+        import av
+
+        def grays(path: Path):
+            with av.open(str(path)) as src:
+                for frame in src.decode(video=0):
+                    yield frame.to_ndarray(format="gray").astype(np.int16)
+
+        a_b = [float(np.abs(a - b).mean()) for a, b in zip(grays(folder / f"stable_{size}_{pair[0]}.mp4"), grays(folder / f"stable_{size}_{pair[1]}.mp4"))]
+        found["stabilize"] = {"mean_abs_grey": float(np.mean(a_b)) if a_b else None, "frames": len(a_b)}
+    except Exception as exc:  # noqa: BLE001
+        found["stabilize"] = {"error": str(exc)[:200]}
+    try:
+        a, b = (cv2.imread(str(folder / f"pano_{size}_{d}.png"), cv2.IMREAD_GRAYSCALE) for d in pair)
+        found["stitch"] = ({"mean_abs_grey": float(np.abs(a.astype(np.int16) - b).mean()), "size": list(a.shape[::-1])}
+                           if a.shape == b.shape else {"sizes": [list(a.shape[::-1]), list(b.shape[::-1])]})
+    except Exception as exc:  # noqa: BLE001
+        found["stitch"] = {"error": str(exc)[:200]}
+    return found
+
+
+def throughput(s: Session) -> str:
+    """track, stabilize and stitch on the GPU and on every core, against the plain transcode, at
+    720p and 4K: one JSON of wall times (issue 39's goals are ratios of these)."""
+    p = s.plan
+    folder = s.work / "throughput"
+    folder.mkdir(exist_ok=True)
+    report = {"machine": "", "commit": os.environ.get("MOSAIC_COMMIT", "unknown"), "runs": [], "probes": probes()}
+    cpu_model = next((ln.split(":", 1)[1].strip() for ln in report["probes"]["lscpu"].splitlines() if ln.startswith("Model name")), "CPU")
+    gpu = report["probes"]["nvidia-smi"].splitlines()[1:2] if p.device == "cuda" else []
+    report["machine"] = f"{gpu[0] if gpu else 'no GPU'}; {os.cpu_count()} cores of {cpu_model}"
+    out = s.out / "gpu_throughput.json"
+
+    def save() -> None:  # after every run: what a run cut short by the time limit measured comes back
+        out.write_text(json.dumps(report, indent=1))
+
+    devices = ("cuda", "cpu") if p.device == "cuda" else ("cpu",)
+    clips = CLIPS if not p.tiny else (("160x96", (160, 96), "720p"), ("320x192", (320, 192), "4k"))
+    frames = 300 if not p.tiny else 16
+    plans = []  # (size, the runs of that clip)
+    for size, (w, h), key in clips:
+        clip = folder / f"flight_{size}.mp4"
+        still = footage(p.tiny, key)
+        t0 = time.monotonic()
+        s.run(*mosaic("simulate", *([str(still)] if still else []), "-p", "shaky", "-n", str(frames), "--size", f"{w}x{h}",
+                      "--seed", "3", "--preset", "veryfast", "-o", str(clip), "-q"), timeout=600)
+        s.say(f"rendered {clip.name} over {still.name if still else 'a procedural map'} in {time.monotonic() - t0:.1f} s")
+        if key == "720p":
+            report["nvdec"] = nvdec_probe(clip)
+            save()
+        runs: list[tuple[str, str, int | None, tuple[str, ...]]] = [
+            ("transcode", "cpu", None, (sys.executable, str(Path(__file__).resolve()), "--transcode", str(clip), str(folder / f"transcode_{size}.mp4")))]
+        for device in devices:
+            runs.append(("track", device, None, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_{device}.json"), "--device", device)))
+        runs.append(("track", "cpu", 1, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_cpu1.json"), "--device", "cpu", "--threads", "1")))
+        for device in devices:
+            runs.append(("stabilize", device, None, mosaic("stabilize", str(clip), str(folder / f"stable_{size}_{device}.mp4"), "--device", device,
+                                                          "--preset", X264["preset"], "--crf", X264["crf"])))
+        for device in devices:
+            runs.append(("stitch", device, None, mosaic("stitch", str(clip), "-o", str(folder / f"pano_{size}_{device}.png"), "--device", device)))
+        plans.append((size, runs))
+    # Round 1 in order, round 2 (while time is left: its runs are repeats, skipped silently) in
+    # reverse, so that a drifting machine weighs on every command alike; the medians are the figures.
+    for round_, order in ((1, plans), (2, [(size, runs[::-1]) for size, runs in plans[::-1]])):
+        for size, runs in order:
+            for command, device, threads, args in runs:
+                if s.left() < (30 if round_ == 1 else 90):
+                    if round_ == 1:
+                        report["runs"].append({"command": command, "device": device, "size": size, "threads": threads, "frames": frames,
+                                               "wall_s": None, "note": "not run: the session's time ran out"})
+                    continue
+                t0 = time.perf_counter()
+                row = {"command": command, "device": device, "size": size, "threads": threads, "frames": frames, "round": round_}
+                try:
+                    proc = s.run(*args, timeout=max(30.0, min(300.0, s.left() - 20)), check=False)
+                    wall = time.perf_counter() - t0
+                    row["wall_s"] = round(wall, 3) if not proc.returncode else None
+                    if command != "transcode" and not proc.returncode:
+                        row["stages"] = stage_seconds(proc.stderr)
+                    if proc.returncode:
+                        row["note"] = f"exited {proc.returncode}: {proc.stderr.strip()[-300:]}"
+                except subprocess.TimeoutExpired:
+                    wall, row["wall_s"], row["note"] = time.perf_counter() - t0, None, "timed out"
+                report["runs"].append(row)
+                s.say(f"  {command} {device}{'' if threads is None else f' x{threads}'} {size}: "
+                      f"{row.get('note') or f'{wall:.2f} s, {frames / wall:.0f} frames/s'}")
+                save()
+            if round_ == 1:
+                report.setdefault("agreement", {})[size] = agreement(folder, size, ("cuda", "cpu") if "cuda" in devices else ("cpu", "cpu"))
+                report["runs"].append({"command": "vidstab", "device": "cpu", "size": size, "threads": None, "frames": frames, "wall_s": None,
+                                       "note": "not run: the machine has no ffmpeg binary, and PyAV's libavfilter has no vid.stab"})
+                save()
+    done = [r for r in report["runs"] if r["wall_s"] is not None]
+    return f"{len(done)} of {len(report['runs'])} runs timed into {out.name}"
+
+
 PART_BYTES = 15 * 2**20  # the device tool returns files of at most 16 MB
 
 
@@ -290,17 +486,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--minutes", type=float, default=7.0, help="the whole session's budget")
     ap.add_argument("--tiny", action="store_true", help="tiny data, for a rehearsal on a CPU")
+    ap.add_argument("--stages", choices=("training", "throughput", "all"), default="training",
+                    help="training: data, tests, bench, speed, train; throughput: the timed commands; all: both")
+    ap.add_argument("--transcode", nargs=2, metavar=("IN", "OUT"), help=argparse.SUPPRESS)  # the timed transcode's own process
     args = ap.parse_args(argv)
+    if args.transcode:
+        transcode(*args.transcode)
+        return 0
     args.out.mkdir(parents=True, exist_ok=True)
     work = args.work or Path(os.environ.get("TMPDIR", "/tmp")) / f"mosaic-gpu-{os.getpid()}"
     work.mkdir(parents=True, exist_ok=True)
     s = Session(args.out, work, Plan.make(args.device, args.minutes, args.tiny))
     s.stage("env", lambda: environment(s))
-    s.stage("data", lambda: make_data(s))
-    s.stage("tests", lambda: cuda_tests(s))
-    s.stage("bench", lambda: bench(s))
-    rates = s.stage("speed", lambda: speed(s))
-    s.stage("train", lambda: train(s, rates if isinstance(rates, dict) else None))
+    if args.stages in ("throughput", "all"):  # first: its figures are the ones only this machine gives
+        s.stage("throughput", lambda: throughput(s))
+    if args.stages in ("training", "all"):
+        s.stage("data", lambda: make_data(s))
+        s.stage("tests", lambda: cuda_tests(s))
+        s.stage("bench", lambda: bench(s))
+        rates = s.stage("speed", lambda: speed(s))
+        s.stage("train", lambda: train(s, rates if isinstance(rates, dict) else None))
     s.stage("pack", lambda: pack(s))
     width = max(len(r[0]) for r in s.rows)
     s.say("summary")

@@ -106,3 +106,32 @@ def test_the_cli_and_the_int8_network_work_without_what_the_gpu_machine_lacked(m
     with quantize._no_stack_traces():
         assert not hasattr(torch.fx.config, "do_not_emit_stack_traces")
     assert not hasattr(torch.fx.config, "do_not_emit_stack_traces")
+
+
+@pytest.mark.slow
+def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
+    """The throughput call as the device machine runs it: no ffmpeg binary (imageio-ffmpeg made
+    unimportable), so every clip is written and read through mosaic's PyAV backend; every command
+    is timed at both sizes and the JSON the issue asks for comes back."""
+    blocker = tmp_path / "site"
+    blocker.mkdir()
+    (blocker / "sitecustomize.py").write_text("import sys\nsys.modules['imageio_ffmpeg'] = None\n")
+    env = {**os.environ, "PYTHONPATH": f"{blocker}{os.pathsep}{ROOT}", "OMP_NUM_THREADS": "1", "MOSAIC_COMMIT": "abc123"}
+    env.pop("MOSAIC_VIDEO_BACKEND", None)
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "scripts/gpu_session.py", "--tiny", "--device", "cpu", "--stages", "throughput",
+                           "--out", str(out), "--work", str(tmp_path / "work"), "--minutes", "4"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert sorted(p.name for p in out.iterdir()) == ["gpu_throughput.json", "logs.tar.gz", "session.log"]
+    report = json.loads((out / "gpu_throughput.json").read_text())
+    assert report["commit"] == "abc123" and "cores" in report["machine"]
+    assert all(set(r) >= {"command", "device", "size", "threads", "frames", "wall_s"} for r in report["runs"])
+    assert {r["command"] for r in report["runs"] if r["wall_s"] is None} == {"vidstab"}  # with its reason
+    for size in ("160x96", "320x192"):
+        first = {(r["command"], r["threads"]) for r in report["runs"] if r["size"] == size and r.get("round") == 1 and r["wall_s"] > 0}
+        assert first == {("transcode", None), ("track", None), ("track", 1), ("stabilize", None), ("stitch", None)}, size
+        agreed = report["agreement"][size]
+        assert agreed["track"]["corner_px_median"] == 0 and agreed["track"]["same_path"] == 1.0
+        assert agreed["stabilize"]["frames"] == 16 and agreed["stitch"]["mean_abs_grey"] == 0
+    assert set(report["nvdec"]) == {"h264", "h264_cuvid"} and report["nvdec"]["h264"]["frames"] == 16
