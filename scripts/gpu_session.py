@@ -284,8 +284,8 @@ def transcode(source: str, target: str) -> int:
         video.thread_type = "AUTO"
         out = dst.add_stream("libx264", rate=video.average_rate, options=dict(X264))
         out.width, out.height, out.pix_fmt = video.codec_context.width, video.codec_context.height, "yuv420p"
+        out.time_base = video.time_base  # the source's timestamps, kept: x264's B-frames need them rising
         for frame in src.decode(video):
-            frame.pts = None
             dst.mux(out.encode(frame))
             frames += 1
         dst.mux(out.encode(None))

@@ -135,3 +135,24 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
         assert agreed["track"]["corner_px_median"] == 0 and agreed["track"]["same_path"] == 1.0
         assert agreed["stabilize"]["frames"] == 16 and agreed["stitch"]["mean_abs_grey"] == 0
     assert set(report["nvdec"]) == {"h264", "h264_cuvid"} and report["nvdec"]["h264"]["frames"] == 16
+
+
+def test_the_timed_transcode_writes_every_frame_of_a_300_frame_clip(tmp_path, monkeypatch):
+    """The throughput stage's plain transcode (PyAV, in-process) of a clip as that stage makes it:
+    every frame comes out.  (The device run of 2026-11-28 lost both transcodes to a muxer error
+    260 frames in: the frames went to x264 without their timestamps.)"""
+    import importlib.util
+
+    import av
+
+    spec = importlib.util.spec_from_file_location("gpu_session", ROOT / "scripts" / "gpu_session.py")
+    gpu_session = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "gpu_session", gpu_session)
+    spec.loader.exec_module(gpu_session)
+    source, target = tmp_path / "clip.mp4", tmp_path / "out.mp4"
+    monkeypatch.setenv("MOSAIC_VIDEO_BACKEND", "pyav")  # the clip written as on the device machine
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-p", "shaky", "-n", "300", "--size", "160x96", "--seed", "3",
+                    "--preset", "veryfast", "-o", str(source), "-q"], cwd=ROOT, check=True, timeout=300)
+    assert gpu_session.transcode(str(source), str(target)) == 300
+    with av.open(str(target)) as out:
+        assert sum(1 for _ in out.decode(video=0)) == 300
