@@ -236,3 +236,50 @@ def test_writer_abort_leaves_nothing(monkeypatch, tmp_path):
     writer = VideoWriter(target, (64, 48), fps=25)
     writer.abort()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_read_ahead_hands_over_every_item_in_order_and_stays_bounded():
+    import threading
+
+    from mosaic_cli.video.decode import ReadAhead
+
+    made = []
+
+    def source():
+        for k in range(50):
+            made.append(k)
+            yield k
+
+    ahead = ReadAhead(source(), 3)
+    first = next(iter(ahead))
+    deadline = threading.Event()
+    deadline.wait(0.2)  # the thread runs ahead as far as it may
+    assert first == 0 and len(made) <= 1 + 3 + 1  # the item read, the queue's 3, one waiting to be queued
+    assert [first, *ahead] == list(range(50))
+    ahead.stop()
+
+
+def test_the_read_ahead_raises_the_sources_error_to_the_reader_and_stops_early_cleanly():
+    from mosaic_cli.video.decode import ReadAhead
+
+    def failing():
+        yield 1
+        raise ValueError("broken frame")
+
+    with pytest.raises(ValueError, match="broken frame"):
+        list(ReadAhead(failing(), 2))
+    closed = []
+
+    def endless():
+        try:
+            k = 0
+            while True:
+                yield k
+                k += 1
+        finally:
+            closed.append(True)
+
+    ahead = ReadAhead(endless(), 2)
+    assert next(iter(ahead)) == 0
+    ahead.stop()  # the reader stops early: the thread ends and closes its source
+    assert closed == [True]

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import queue
 import re
 import subprocess
 import tempfile
+import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -349,6 +351,7 @@ class PyAVDecoder:
         self._near = [float(f"{T:.6f}") for T in near_times] if near_times is not None else None  # as ffmpeg is told them
         self._seek = float(f"{seek:.4f}") if seek is not None else None
         self._frames = int(frames) if frames is not None else None
+        self._ahead: ReadAhead | None = None
         self.error: str | None = None
         try:
             self._container = av.open(info.path, metadata_errors="replace")
@@ -368,6 +371,15 @@ class PyAVDecoder:
             raise BadInput(f"{info.path}: cannot decode its video stream ({_libav_reason(exc)})") from None
 
     def __iter__(self) -> Iterator[np.ndarray]:
+        # Decoded on a thread of its own, a few frames ahead of the reader: the ffmpeg decoder's
+        # process decodes the next frames while mosaic works on this one, and so does this.
+        self._ahead = ReadAhead(self._decoded(), READ_AHEAD)
+        try:
+            yield from self._ahead
+        finally:
+            self._ahead.stop()
+
+    def _decoded(self) -> Iterator[np.ndarray]:
         import av
 
         container, stream = self._container, self._stream
@@ -444,6 +456,8 @@ class PyAVDecoder:
         return np.concatenate([np.rot90(luma, self._turns).reshape(-1), np.rot90(chroma, self._turns, axes=(1, 2)).reshape(-1)])
 
     def close(self) -> None:
+        if self._ahead is not None:  # the decoding thread ends before its container closes
+            self._ahead.stop()
         if self._container is not None:
             self._container.close()
             self._container = None
@@ -453,6 +467,61 @@ class PyAVDecoder:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+READ_AHEAD = 4  # frames the PyAV decoder's thread may decode before they are read (a 4K RGB frame: 25 MB)
+
+
+class ReadAhead:
+    """The items of ``source`` (an iterator) made on a thread of its own, at most ``depth`` of them
+    ahead of the reader; an error raised making them is raised to the reader, in its turn.
+    :meth:`stop` ends the thread (and closes ``source``) whether or not it was read to the end."""
+
+    _END = object()
+
+    def __init__(self, source: Iterator, depth: int):
+        self._queue: queue.Queue = queue.Queue(max(1, depth))
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(source,), name="mosaic-decode", daemon=True)
+        self._thread.start()
+
+    def _run(self, source: Iterator) -> None:
+        try:
+            for item in source:
+                if not self._put(item):
+                    return
+        except BaseException as exc:  # noqa: BLE001 - handed to the reader, who raises it
+            self._error = exc
+        finally:
+            close = getattr(source, "close", None)
+            if close is not None:
+                close()
+            self._put(self._END)
+
+    def _put(self, item: object) -> bool:
+        """Queue ``item``, waiting for room; False once stopped."""
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def __iter__(self) -> Iterator:
+        while True:
+            item = self._queue.get()
+            if item is self._END:
+                if self._error is not None:
+                    raise self._error
+                return
+            yield item
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join()
 
 
 def _writable(image: np.ndarray) -> np.ndarray:
