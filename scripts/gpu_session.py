@@ -318,6 +318,43 @@ def nvdec_probe(clip: Path, frames: int = 120) -> dict:
     return result
 
 
+BUILD_PROBE = """
+import json, sys, time
+t0 = time.perf_counter()
+import torch
+t1 = time.perf_counter()
+from mosaic_cli.estimators.learned import make_learned_estimator
+t2 = time.perf_counter()
+estimator = make_learned_estimator("lstm", device=sys.argv[1])
+t3 = time.perf_counter()
+import numpy as np
+estimator.reset((1280, 720))
+rng = np.random.default_rng(0)
+frames = [rng.integers(0, 255, (720, 1280), dtype=np.uint8) for _ in range(17)]
+for frame in frames:
+    estimator.feed(frame)
+t4 = time.perf_counter()
+for frame in frames[:16]:
+    estimator.feed(frame)
+t5 = time.perf_counter()
+print(json.dumps({"import_torch_s": t1 - t0, "import_mosaic_s": t2 - t1, "build_s": t3 - t2, "first_chunk_s": t4 - t3,
+                  "second_chunk_s": t5 - t4, "precision": estimator.precision, "threads": torch.get_num_threads()}))
+"""
+
+
+def build_probe(s: Session, device: str) -> dict:
+    """Where a command's start-up goes, in a process of its own: torch's import, mosaic's, the
+    default estimator's build (weights; on a CPU its int8 network) and its first two chunks of 16
+    pairs (the first: CUDA's kernels and cuDNN's plans, or the CPU's first int8 calls)."""
+    try:
+        proc = s.run(sys.executable, "-c", BUILD_PROBE, device, timeout=180, check=False)
+        if proc.returncode:
+            return {"error": proc.stderr.strip()[-300:]}
+        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in json.loads(proc.stdout.strip().splitlines()[-1]).items()}
+    except (subprocess.TimeoutExpired, ValueError, IndexError) as exc:
+        return {"error": str(exc)[:300]}
+
+
 def probes() -> dict:
     found = {}
     for name, cmd in (("lscpu", ["lscpu"]), ("nvidia-smi", ["nvidia-smi", "--query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm", "--format=csv"])):
@@ -407,30 +444,35 @@ def throughput(s: Session) -> str:
         s.say(f"rendered {clip.name} over {still.name if still else 'a procedural map'} in {time.monotonic() - t0:.1f} s")
         if key == "720p":
             report["nvdec"] = nvdec_probe(clip)
+            for device in devices:
+                report.setdefault("build", {})[device] = build_probe(s, device)
             save()
-        runs: list[tuple[str, str, int | None, tuple[str, ...]]] = [
-            ("transcode", "cpu", None, (sys.executable, str(Path(__file__).resolve()), "--transcode", str(clip), str(folder / f"transcode_{size}.mp4")))]
+        runs: list[tuple] = [  # (command, device, threads, its arguments, the row's other fields)
+            ("transcode", "cpu", None, (sys.executable, str(Path(__file__).resolve()), "--transcode", str(clip), str(folder / f"transcode_{size}.mp4")), {})]
         for device in devices:
-            runs.append(("track", device, None, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_{device}.json"), "--device", device)))
-        runs.append(("track", "cpu", 1, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_cpu1.json"), "--device", "cpu", "--threads", "1")))
+            runs.append(("track", device, None, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_{device}.json"), "--device", device), {}))
+        for device in devices:  # what the overlay detection adds (the first session's "overlays" was 3-13 s)
+            runs.append(("track", device, None, mosaic("track", str(clip), "-o", str(folder / f"trackO_{size}_{device}.json"), "--device", device,
+                                                        "--no-overlay-detect"), {"options": "--no-overlay-detect"}))
+        runs.append(("track", "cpu", 1, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_cpu1.json"), "--device", "cpu", "--threads", "1"), {}))
         for device in devices:
             runs.append(("stabilize", device, None, mosaic("stabilize", str(clip), str(folder / f"stable_{size}_{device}.mp4"), "--device", device,
-                                                          "--preset", X264["preset"], "--crf", X264["crf"])))
+                                                          "--preset", X264["preset"], "--crf", X264["crf"]), {}))
         for device in devices:
-            runs.append(("stitch", device, None, mosaic("stitch", str(clip), "-o", str(folder / f"pano_{size}_{device}.png"), "--device", device)))
+            runs.append(("stitch", device, None, mosaic("stitch", str(clip), "-o", str(folder / f"pano_{size}_{device}.png"), "--device", device), {}))
         plans.append((size, runs))
     # Round 1 in order, round 2 (while time is left: its runs are repeats, skipped silently) in
     # reverse, so that a drifting machine weighs on every command alike; the medians are the figures.
     for round_, order in ((1, plans), (2, [(size, runs[::-1]) for size, runs in plans[::-1]])):
         for size, runs in order:
-            for command, device, threads, args in runs:
+            for command, device, threads, args, extra in runs:
                 if s.left() < (30 if round_ == 1 else 90):
                     if round_ == 1:
                         report["runs"].append({"command": command, "device": device, "size": size, "threads": threads, "frames": frames,
-                                               "wall_s": None, "note": "not run: the session's time ran out"})
+                                               "wall_s": None, "note": "not run: the session's time ran out", **extra})
                     continue
                 t0 = time.perf_counter()
-                row = {"command": command, "device": device, "size": size, "threads": threads, "frames": frames, "round": round_}
+                row = {"command": command, "device": device, "size": size, "threads": threads, "frames": frames, "round": round_, **extra}
                 try:
                     proc = s.run(*args, timeout=max(30.0, min(300.0, s.left() - 20)), check=False)
                     wall = time.perf_counter() - t0
