@@ -83,6 +83,13 @@ class OverlayOptions:
     bar_ring: float = 64.0  # ... and the rows after them within this one (ringing near the bar's inner edge)
     max_bar: float = 0.25  # letterbox bars cover at most this share of each side
     max_static: float = 0.3  # more of the frame static: the ground did not move, mask nothing
+    # Soft edges and codec halos (issue 40): each masked overlay is grown by as far as the
+    # samples' mean still shows it beyond the mask (its soft, anti-aliased rim, H.264's halo
+    # at a high crf), at most this many full-resolution px; 0: not grown.
+    max_edge_px: int = 4
+    min_edge_area: int = 64  # full-resolution px: smaller masked specks are not grown (no ring to measure)
+    edge_level: float = 0.75  # gray levels: the overlay's mean contrast that still counts as its edge ...
+    edge_sigmas: float = 4.0  # ... and standard errors of that mean (the ground's own noise, over the ring)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -176,6 +183,8 @@ def detect_overlays(frames: Iterable[np.ndarray], full_size: tuple[int, int], op
         # Never beyond the regions' reach: where the trace cannot tell overlay from ground
         # (flat ground around it), the mask is the region and its margin.
         full = np.minimum(_exclude_at(traced, full_size), _exclude_at(reach, full_size))
+        if o.max_edge_px > 0 and first.gray_mean is not None:
+            full = _grow_soft_edges(full, first.gray_mean, len(work), o)
     full[: bars.top] = 255
     full[full.shape[0] - bars.bottom :] = 255
     full[:, : bars.left] = 255
@@ -189,6 +198,7 @@ class _FirstPass:
     work: list[np.ndarray]  # the samples at the working width
     size: tuple[int, int]  # (w, h) of the frames as given
     gray_range: tuple[np.ndarray, np.ndarray] | None  # per-pixel gray min and max at that size; None: work is the frames
+    gray_mean: np.ndarray | None = None  # (h, w) float32 at that size: the samples' mean gray (the soft edges' evidence)
 
 
 def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass | None:
@@ -198,17 +208,21 @@ def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass |
     work: list[np.ndarray] = []
     shape = None
     lo = hi = None
+    total = None
     for frame in frames:
         if shape is None:
             shape = frame.shape
         elif frame.shape != shape:
             return None
         fine_h, fine_w = shape[:2]
+        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        if total is None:
+            total = np.zeros(gray.shape, np.float32)
+        total += gray
         if fine_w <= o.width:
             work.append(frame)
             continue
         work.append(cv2.resize(frame, scaled_size((fine_w, fine_h), o.width), interpolation=cv2.INTER_AREA))
-        gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
         if lo is None:
             lo, hi = gray.copy(), gray.copy()
         else:
@@ -216,7 +230,7 @@ def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass |
             np.maximum(hi, gray, out=hi)
     if shape is None:
         return _FirstPass([], (0, 0), None)
-    return _FirstPass(work, (shape[1], shape[0]), None if lo is None else (lo, hi))
+    return _FirstPass(work, (shape[1], shape[0]), None if lo is None else (lo, hi), total / max(1, len(work)))
 
 
 def _crops(frames: Iterable[np.ndarray], boxes: list[tuple[int, int, int, int]], count: int) -> list[np.ndarray]:
@@ -398,6 +412,74 @@ def _trace(plan: _TracePlan, crops: list[np.ndarray], work: list[np.ndarray], ed
         still = steady & inside & plan.region[y : y + h, x : x + w]
         covered = np.count_nonzero(still & traced) >= o.min_covered * np.count_nonzero(still)
         out[y : y + h, x : x + w] |= traced if explained and covered else inside
+    return out
+
+
+def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, samples: int, o: OverlayOptions) -> np.ndarray:
+    """``full`` (uint8 (H, W), 255 = overlay) with each overlay grown over its soft edge and
+    codec halo, measured: ``mean`` is the samples' mean gray (any size; scaled to ``full``'s).
+
+    The ground moves under a static overlay, so the mean of many samples is a smooth field
+    (the ground's mean, noisy by sigma / sqrt(samples)) plus what the overlay adds at each
+    pixel: alpha * (its colour - the ground) on its soft rim, and the codec's halo around it.
+    Per overlay (connected component), in rings of 1 px around the mask, the mean of that
+    excess signed by the overlay's own contrast at the nearest masked pixel (a white logo
+    lifts its rim, a dark OSD box darkens it; the ground's noise averages out) is compared
+    with ``edge_level`` and ``edge_sigmas`` standard errors; the mask grows by the rings
+    that still show the overlay (then one more: the last ring seen is partly beyond).  The
+    field is the mean beyond ``max_edge_px``, filled in smoothly (normalised convolution).
+    Ground alone grows nothing: it has no overlay to be signed by."""
+    H, W = full.shape
+    if (mean.shape[1], mean.shape[0]) != (W, H):
+        mean = cv2.resize(mean, (W, H), interpolation=cv2.INTER_LINEAR)
+    R = int(o.max_edge_px)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats((full > 0).astype(np.uint8), connectivity=8)
+    out = full.copy()
+    for k in range(1, count):
+        x, y, w, h = (int(v) for v in stats[k, :4])
+        if stats[k, cv2.CC_STAT_AREA] < o.min_edge_area:
+            continue
+        pad = 2 * R + 8
+        x0, y0, x1, y1 = max(0, x - pad), max(0, y - pad), min(W, x + w + pad), min(H, y + h + pad)
+        inside = labels[y0:y1, x0:x1] == k
+        m = mean[y0:y1, x0:x1]
+        dist = cv2.distanceTransform(np.where(inside, 0, 255).astype(np.uint8), cv2.DIST_L2, 5)
+        # The contrast is read a smear deeper than the mask's edge: the mask was grown over the
+        # codec's smear, and the ground there would sign its own neighbours (a bias, not an edge).
+        e = int(np.ceil(o.smear_px)) + 1
+        core = cv2.erode(inside.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * e + 1, 2 * e + 1))) > 0
+        if not core.any():
+            core = inside
+        _, nearest = cv2.distanceTransformWithLabels(np.where(core, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
+                                                     labelType=cv2.DIST_LABEL_PIXEL)
+        field_ring = (dist > R) & (dist <= 2 * R + 8)
+        if np.count_nonzero(field_ring) < 16:
+            continue
+        sigma = max(2.0, R / 2)
+        weight = cv2.GaussianBlur(field_ring.astype(np.float32), (0, 0), sigma)
+        field = cv2.GaussianBlur(m * field_ring, (0, 0), sigma) / np.maximum(weight, 1e-6)
+        excess = m - field
+        # The overlay's contrast at each masked pixel, carried out to the pixels nearest it.
+        sign_of = np.zeros(int(nearest.max()) + 1, np.float32)
+        sign_of[nearest[core]] = np.sign(excess[core])
+        signed = excess * sign_of[nearest]
+        grow, before = 0, np.inf
+        for d in range(1, R + 1):
+            ring = (dist > d - 1) & (dist <= d)
+            n = np.count_nonzero(ring)
+            if n < 8:
+                break
+            values = signed[ring]
+            level = float(values.mean())
+            error = float(values.std()) / np.sqrt(n)
+            # An overlay's edge fades outward; a ring brighter than the one inside it is the ground's own structure.
+            if level < max(o.edge_level, o.edge_sigmas * error) or level > before + o.edge_sigmas * error:
+                break
+            grow, before = d, level
+        if grow:
+            grow = min(R, grow + 1)
+            grown = dist <= grow
+            out[y0:y1, x0:x1][grown] = 255
     return out
 
 
