@@ -1,0 +1,244 @@
+"""Camera lenses: OpenCV's two camera models and what mosaic does with them.
+
+* ``pinhole``: the pinhole with radial and tangential distortion, OpenCV's coefficients
+  (k1, k2, p1, p2[, k3[, k4, k5, k6]]) (4, 5 or 8 of them).
+* ``fisheye``: OpenCV's equidistant fisheye (``cv2.fisheye``), coefficients k1..k4.
+
+A :class:`Lens` holds its camera matrix at a stated calibration size; :meth:`Lens.at` scales it
+to a video's size (OpenCV pixel centres, as :func:`mosaic_cli.geometry.resize_matrix`).
+
+Undistorting maps a frame to a pinhole view of the same size through a *new* camera matrix
+(:func:`undistorted_camera`), chosen so that every output pixel sees the source frame (no black
+corners ever enter the estimator, the stitcher or the renderer): OpenCV's
+``getOptimalNewCameraMatrix`` with alpha = 0, and for a fisheye
+``cv2.fisheye.estimateNewCameraMatrixForUndistortRectify`` with balance = 0.  A barrel lens
+(k1 < 0) keeps its field of view along the frame's axes; what the crop loses is the stretched
+corners.  Keeping every source pixel (alpha = 1) would leave curved black borders that a
+panorama would have to mask.
+
+Pure functions: no I/O (the file readers are :mod:`mosaic_cli.geometry.lens_files`).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from mosaic_cli.geometry.homography import resize_matrix
+
+MODELS = ("pinhole", "fisheye")
+# The iterative undistortion's stopping rule: OpenCV's default (5 iterations) leaves pixels of
+# error at the corners of a strong lens; this one is exact to well under 1e-3 px.
+_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+
+
+@dataclass(frozen=True)
+class Lens:
+    """A camera: ``model`` (pinhole or fisheye), the calibration ``size`` (w, h), the camera
+    matrix (3x3, as a tuple of rows, pixels at ``size``) and the distortion ``coefficients``
+    (OpenCV's order).  Frozen and hashable: the maps are cached per lens and size."""
+
+    model: str
+    size: tuple[int, int]
+    camera_matrix: tuple[tuple[float, ...], ...]
+    coefficients: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"lens model {self.model!r}: pinhole or fisheye")
+        K = np.asarray(self.camera_matrix, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError("camera matrix: 3x3, finite, with positive focal lengths")
+        n = len(self.coefficients)
+        if self.model == "fisheye" and n != 4:
+            raise ValueError(f"a fisheye lens has 4 coefficients (k1..k4), not {n}")
+        if self.model == "pinhole" and n not in (4, 5, 8):
+            raise ValueError(f"a pinhole lens has 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]), not {n}")
+        if not all(np.isfinite(self.coefficients)):
+            raise ValueError("lens coefficients must be finite")
+        if len(self.size) != 2 or min(self.size) < 1:
+            raise ValueError("lens size: (w, h), positive")
+
+    @staticmethod
+    def make(model: str, size, K, coefficients) -> Lens:
+        """A lens from arrays (any sequence types)."""
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"camera matrix: 3x3, not {'x'.join(map(str, K.shape))}")
+        return Lens(str(model), (int(size[0]), int(size[1])), tuple(tuple(float(v) for v in row) for row in K),
+                    tuple(float(c) for c in np.asarray(coefficients, dtype=np.float64).ravel()))
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array(self.camera_matrix, dtype=np.float64)
+
+    @property
+    def D(self) -> np.ndarray:
+        return np.array(self.coefficients, dtype=np.float64)
+
+    def at(self, size: tuple[int, int]) -> Lens:
+        """The same lens for frames of ``size`` (w, h): the camera matrix rescaled.  A frame of
+        another aspect is a crop, not a scaling, of the calibrated one: ValueError."""
+        size = (int(size[0]), int(size[1]))
+        if size == self.size:
+            return self
+        if abs(size[0] * self.size[1] - size[1] * self.size[0]) > 0.01 * size[0] * self.size[1]:
+            raise ValueError(f"the lens was calibrated at {self.size[0]}x{self.size[1]}, another aspect than {size[0]}x{size[1]}")
+        return Lens.make(self.model, size, resize_matrix(self.size, size) @ self.K, self.coefficients)
+
+    def is_identity(self) -> bool:
+        """No distortion at all: undistorting would only resample."""
+        return not any(self.coefficients)
+
+    def to_json(self) -> dict:
+        """mosaic's lens file (docs/guide/stitch.md, "Lenses")."""
+        return {"model": self.model, "size": list(self.size), "camera_matrix": [list(r) for r in self.camera_matrix],
+                "coefficients": list(self.coefficients)}
+
+
+def radial_lens(size: tuple[int, int], focal: float, k1: float, k2: float = 0.0) -> Lens:
+    """A pinhole lens with radial coefficients only, its principal point at the frame's centre."""
+    w, h = size
+    return Lens.make("pinhole", size, [[focal, 0, (w - 1) / 2], [0, focal, (h - 1) / 2], [0, 0, 1]], [k1, k2, 0.0, 0.0, 0.0])
+
+
+def fisheye_lens(size: tuple[int, int], focal: float, k: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)) -> Lens:
+    """An equidistant fisheye lens, its principal point at the frame's centre."""
+    w, h = size
+    k = tuple(k) + (0.0,) * (4 - len(k))
+    return Lens.make("fisheye", size, [[focal, 0, (w - 1) / 2], [0, focal, (h - 1) / 2], [0, 0, 1]], k[:4])
+
+
+def check_lens_covers(lens: Lens) -> None:
+    """ValueError when the lens folds back inside its frame (its distortion stops growing with
+    the radius before the corners: a radial polynomial pushed past its range), where no
+    undistortion is defined."""
+    w, h = lens.size
+    edge = np.concatenate([np.stack([np.linspace(0, w - 1, 33), np.full(33, y)], 1) for y in (0, h - 1)]
+                          + [np.stack([np.full(19, x), np.linspace(0, h - 1, 19)], 1) for x in (0, w - 1)])
+    back = distort_points(lens, undistort_points(lens, edge, lens.K), lens.K)
+    if not np.all(np.isfinite(back)) or np.max(np.abs(back - edge)) > 0.01:
+        raise ValueError("the lens's distortion folds back before the frame's edge (no pinhole view of its corners): "
+                         "a smaller coefficient or a longer focal length")
+
+
+def undistorted_camera(lens: Lens) -> np.ndarray:
+    """The new camera matrix (3x3) of the undistorted frame at ``lens.size``: every output pixel
+    sees the source (see the module doc)."""
+    return _new_camera(lens).copy()
+
+
+@functools.lru_cache(maxsize=32)
+def _new_camera(lens: Lens) -> np.ndarray:
+    if lens.model == "fisheye":
+        P = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(lens.K, lens.D, lens.size, np.eye(3), balance=0.0)
+    else:
+        # OpenCV's alpha = 0 fits x and y each with its own focal length (the undistorted view
+        # would be stretched); the larger of its two zooms, applied to both, keeps square pixels
+        # and still leaves no pixel off the source.
+        crop, _ = cv2.getOptimalNewCameraMatrix(lens.K, lens.D, lens.size, 0.0, lens.size)
+        K = lens.K
+        zoom = max(crop[0, 0] / K[0, 0], crop[1, 1] / K[1, 1])
+        P = K.copy()
+        P[0, 0], P[1, 1], P[0, 1] = K[0, 0] * zoom, K[1, 1] * zoom, K[0, 1] * zoom
+    return np.asarray(P, dtype=np.float64)
+
+
+def undistort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
+    """Distorted pixels (N, 2) -> their pinhole pixels (N, 2) under the camera ``P`` (default
+    :func:`undistorted_camera`; ``lens.K``: the same scale at the centre)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    P = undistorted_camera(lens) if P is None else np.asarray(P, dtype=np.float64)
+    if lens.model == "fisheye":
+        out = cv2.fisheye.undistortPoints(pts, lens.K, lens.D, R=np.eye(3), P=P, criteria=_CRITERIA)
+    else:
+        out = cv2.undistortPoints(pts, lens.K, lens.D, R=None, P=P, criteria=_CRITERIA)
+    return out.reshape(-1, 2)
+
+
+def distort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
+    """Pinhole pixels (N, 2) under the camera ``P`` (default :func:`undistorted_camera`) -> where
+    the lens images them (N, 2)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    P = undistorted_camera(lens) if P is None else np.asarray(P, dtype=np.float64)
+    homog = np.concatenate([pts, np.ones((len(pts), 1))], 1) @ np.linalg.inv(P).T
+    normal = homog[:, :2] / homog[:, 2:3]
+    if lens.model == "fisheye":
+        out = cv2.fisheye.distortPoints(normal.reshape(-1, 1, 2), lens.K, lens.D)
+    else:
+        rays = np.concatenate([normal, np.ones((len(normal), 1))], 1).reshape(-1, 1, 3)
+        out, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), lens.K, lens.D)
+    return np.asarray(out, dtype=np.float64).reshape(-1, 2)
+
+
+def undistort_maps(lens: Lens, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap``'s (map_x, map_y) (h, w) float32 that undistort a frame of ``size``: for each
+    pixel of the undistorted frame (camera ``undistorted_camera(lens.at(size))``), the distorted
+    pixel it shows.  Cached per lens and size: read-only arrays."""
+    return _maps(lens, (int(size[0]), int(size[1])))
+
+
+@functools.lru_cache(maxsize=16)
+def _maps(lens: Lens, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    at = lens.at(size)
+    P = _new_camera(at)
+    if at.model == "fisheye":
+        mx, my = cv2.fisheye.initUndistortRectifyMap(at.K, at.D, np.eye(3), P, size, cv2.CV_32FC1)
+    else:
+        mx, my = cv2.initUndistortRectifyMap(at.K, at.D, None, P, size, cv2.CV_32FC1)
+    mx.setflags(write=False)
+    my.setflags(write=False)
+    return mx, my
+
+
+def distorted_grid(lens: Lens, P: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel of a distorted frame at ``lens.size``, the pinhole pixel it shows under
+    the camera ``P`` (default ``lens.K``): (x, y), each (h, w) float64.  What the simulator
+    renders a lens with (the inverse of :func:`undistort_maps`)."""
+    w, h = lens.size
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    u = undistort_points(lens, np.stack([xs.ravel(), ys.ravel()], 1), lens.K if P is None else P)
+    return u[:, 0].reshape(h, w), u[:, 1].reshape(h, w)
+
+
+def corner_displacement(lens: Lens) -> float:
+    """How far the lens moves the frame's corners, pixels at ``lens.size``: the largest distance,
+    over the four corners, between a corner and its pinhole pixel at the same scale at the
+    centre (camera ``lens.K``).  How estimated coefficients are scored against the truth."""
+    w, h = lens.size
+    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=np.float64)
+    return float(np.max(np.linalg.norm(undistort_points(lens, corners, lens.K) - corners, axis=1)))
+
+
+def corner_error(estimate: Lens, truth: Lens) -> float:
+    """The largest distance, over the four corners, between where ``estimate`` and ``truth``
+    put a corner's pinhole pixel (camera of each lens's own K, at ``truth.size``), pixels."""
+    w, h = truth.size
+    est = estimate.at(truth.size)
+    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=np.float64)
+    a = undistort_points(est, corners, est.K)
+    b = undistort_points(truth, corners, truth.K)
+    return float(np.max(np.linalg.norm(a - b, axis=1)))
+
+
+def remap_frame(frame: np.ndarray, lens: Lens) -> np.ndarray:
+    """A frame (h, w) or (h, w, C) undistorted at its own size (one ``cv2.remap``, bilinear; the
+    rare output pixel just off the source repeats its edge)."""
+    h, w = frame.shape[:2]
+    mx, my = undistort_maps(lens, (w, h))
+    return cv2.remap(frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def frame_to_undistorted(lens: Lens, size: tuple[int, int]) -> np.ndarray:
+    """The matrix (3x3) from the pinhole frame of camera ``lens.at(size).K`` to the undistorted
+    frame's pixels (camera ``undistorted_camera``): how a homography between pinhole frames at
+    the lens's own K (a simulator's truth) reads in the undistorted frames."""
+    at = lens.at(size)
+    return _new_camera(at) @ np.linalg.inv(at.K)

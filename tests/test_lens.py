@@ -1,0 +1,148 @@
+"""Lenses (issue 41): the camera models against OpenCV, the three lens-file formats with values
+checked by hand, bad files, the simulator's lens rendering and ``--lens`` through the pipelines."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry.lens import (
+    Lens,
+    check_lens_covers,
+    corner_displacement,
+    distort_points,
+    fisheye_lens,
+    radial_lens,
+    undistort_maps,
+    undistort_points,
+    undistorted_camera,
+)
+from mosaic_cli.geometry.lens_files import read_lens
+
+SIZE = (1280, 720)
+WIDE = radial_lens(SIZE, 900.0, -0.15, 0.15**2 / 4)  # the issue's test lens: ~71 degrees across
+TANGENTIAL = Lens.make("pinhole", SIZE, [[910, 0, 650], [0, 905, 352], [0, 0, 1]], [-0.2, 0.03, 0.001, -0.0015, 0.004])
+FISHEYE = fisheye_lens(SIZE, 1280 / (2 * np.radians(60)), (0.02, -0.01, 0.0, 0.0))  # ~120 degrees across
+
+
+def random_pixels(n=400, size=SIZE, seed=0):
+    return np.random.default_rng(seed).uniform([0, 0], [size[0] - 1, size[1] - 1], (n, 2))
+
+
+@pytest.mark.parametrize("lens", [WIDE, TANGENTIAL, FISHEYE], ids=["radial", "tangential", "fisheye"])
+def test_points_round_trip_and_maps_agree_with_opencv(lens):
+    pts = random_pixels()
+    undist = undistort_points(lens, pts)
+    assert np.abs(distort_points(lens, undist) - pts).max() < 1e-3
+    # OpenCV's own undistortPoints (default criteria are too loose at the corners: tight ones)
+    P = undistorted_camera(lens)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    if lens.model == "fisheye":
+        ref = cv2.fisheye.undistortPoints(pts.reshape(-1, 1, 2), lens.K, lens.D, R=np.eye(3), P=P, criteria=crit).reshape(-1, 2)
+    else:
+        ref = cv2.undistortPoints(pts.reshape(-1, 1, 2), lens.K, lens.D, R=None, P=P, criteria=crit).reshape(-1, 2)
+    assert np.abs(undist - ref).max() < 1e-6
+    # the remap maps: each undistorted pixel reads the distorted pixel that undistorts onto it
+    mx, my = undistort_maps(lens, SIZE)
+    ij = random_pixels(200, seed=1).round().astype(int)
+    src = np.stack([mx[ij[:, 1], ij[:, 0]], my[ij[:, 1], ij[:, 0]]], 1)
+    assert np.abs(undistort_points(lens, src) - ij).max() < 1e-3
+    # every undistorted pixel sees the source frame (no black corners): within half a pixel
+    assert mx.min() > -0.5 and my.min() > -0.5 and mx.max() < SIZE[0] - 0.5 + 0.5 and my.max() < SIZE[1] - 0.5 + 0.5
+
+
+def test_new_camera_keeps_square_pixels_and_the_lens_scales_with_the_frame():
+    P = undistorted_camera(WIDE)
+    assert P[0, 0] == pytest.approx(P[1, 1]) and P[0, 0] < 900  # a barrel lens: zoomed out, not stretched
+    half = WIDE.at((640, 360))
+    assert half.K[0, 0] == pytest.approx(450.0) and half.K[0, 2] == pytest.approx((639.5 + 0.5) / 2 - 0.5)
+    pts = random_pixels(50)
+    small = (pts + 0.5) / 2 - 0.5
+    assert np.allclose((undistort_points(WIDE, pts, WIDE.K) + 0.5) / 2 - 0.5, undistort_points(half, small, half.K), atol=1e-6)
+    with pytest.raises(ValueError, match="aspect"):
+        WIDE.at((640, 480))
+
+
+def test_corner_displacement_of_the_issue_lens():
+    # The issue's lens: a 10% radial shift at the corners (radius 734 px at 1280x720)
+    radius = np.hypot(639.5, 359.5)
+    assert 0.09 * radius < corner_displacement(WIDE) < 0.16 * radius
+
+
+def test_a_lens_that_folds_inside_the_frame_is_refused():
+    with pytest.raises(ValueError, match="folds"):
+        check_lens_covers(radial_lens(SIZE, 900.0, -0.30, 0.30**2 / 4))  # corners past the polynomial's turn
+    check_lens_covers(radial_lens(SIZE, 1050.0, -0.30, 0.30**2 / 4))
+
+
+# -- the readers -----------------------------------------------------------------------------------
+
+
+def write(tmp_path, name, doc):
+    path = tmp_path / name
+    path.write_text(json.dumps(doc) if not isinstance(doc, str) else doc)
+    return path
+
+
+def test_mosaic_lens_file(tmp_path):
+    path = write(tmp_path, "lens.json", TANGENTIAL.to_json())
+    assert read_lens(path) == TANGENTIAL
+
+
+def test_gyroflow_profile(tmp_path):
+    # As Gyroflow's calibrator writes one (its lens_profiles database): fisheye_params at calib_dimension
+    doc = {
+        "name": "GoPro_HERO9 Black_Wide_16by9", "calibrated_by": "test", "camera_brand": "GoPro", "camera_model": "HERO9 Black",
+        "lens_model": "Wide", "camera_setting": "", "calib_dimension": {"w": 2704, "h": 1520},
+        "orig_dimension": {"w": 2704, "h": 1520}, "output_dimension": {"w": 2704, "h": 1520},
+        "frame_readout_time": 8.9, "input_horizontal_stretch": 1.0, "input_vertical_stretch": 1.0, "num_images": 12,
+        "fps": 59.94, "official": True, "asymmetrical": False,
+        "fisheye_params": {"RMS_error": 0.41, "camera_matrix": [[1184.6, 0.0, 1352.3], [0.0, 1182.9, 758.7], [0.0, 0.0, 1.0]],
+                           "distortion_coeffs": [0.051, 0.012, -0.004, 0.0008]},
+        "distortion_model": "opencv_fisheye", "calibrator_version": "1.5.0", "date": "2023-04-01",
+    }
+    lens = read_lens(write(tmp_path, "gopro.json", doc))
+    assert lens.model == "fisheye" and lens.size == (2704, 1520)
+    assert lens.K[0, 0] == 1184.6 and lens.K[1, 2] == 758.7 and lens.coefficients == (0.051, 0.012, -0.004, 0.0008)
+    # at a 1352x760 video, half of everything (pixel centres: cx' = (cx + 0.5) / 2 - 0.5)
+    assert lens.at((1352, 760)).K[0, 0] == pytest.approx(592.3) and lens.at((1352, 760)).K[0, 2] == pytest.approx(675.9)
+    standard = dict(doc, distortion_model="opencv_standard", fisheye_params={**doc["fisheye_params"], "distortion_coeffs": [-0.2, 0.04, 0.0, 0.0, 0.0]})
+    assert read_lens(write(tmp_path, "std.json", standard)).model == "pinhole"
+    with pytest.raises(BadInput, match="poly3"):
+        read_lens(write(tmp_path, "poly.json", dict(doc, distortion_model="poly3")))
+
+
+def test_opensfm_cameras_json(tmp_path):
+    # ODM writes OpenSfM's cameras.json: focal and principal offsets normalised by max(w, h)
+    brown = {"v2 dji fc6310 4000 3000 brown 0.85 rgb": {
+        "projection_type": "brown", "width": 4000, "height": 3000, "focal_x": 0.85, "focal_y": 0.8525,
+        "c_x": 0.01, "c_y": -0.005, "k1": -0.12, "k2": 0.03, "p1": 0.001, "p2": -0.0005, "k3": -0.002}}
+    lens = read_lens(write(tmp_path, "cameras.json", brown))
+    assert lens.model == "pinhole" and lens.size == (4000, 3000)
+    assert lens.K[0, 0] == pytest.approx(3400.0) and lens.K[1, 1] == pytest.approx(3410.0)
+    assert lens.K[0, 2] == pytest.approx(2000 + 40 - 0.5) and lens.K[1, 2] == pytest.approx(1500 - 20 - 0.5)
+    assert lens.coefficients == (-0.12, 0.03, 0.001, -0.0005, -0.002)
+    fish = {"gopro": {"projection_type": "fisheye", "width": 1920, "height": 1080, "focal": 0.5, "k1": 0.02, "k2": -0.003}}
+    lens = read_lens(write(tmp_path, "fish.json", fish))
+    assert lens.model == "fisheye" and lens.K[0, 0] == pytest.approx(960.0) and lens.K[1, 2] == pytest.approx(539.5)
+    assert lens.coefficients == (0.02, -0.003, 0.0, 0.0)
+    persp = {"cam": {"projection_type": "perspective", "width": 1280, "height": 720, "focal": 0.7, "k1": -0.1, "k2": 0.01}}
+    assert read_lens(write(tmp_path, "p.json", persp)).coefficients == (-0.1, 0.01, 0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("content, fragment", [
+    ("not json {", "not a JSON file"),
+    ('{"hello": 1}', "not a lens file"),
+    ('{"model": "pinhole", "size": [640, 480], "camera_matrix": [[1, 0], [0, 1]], "coefficients": [0, 0, 0, 0]}', "camera matrix"),
+    ('{"model": "fisheye", "size": [640, 480], "camera_matrix": [[500, 0, 320], [0, 500, 240], [0, 0, 1]], "coefficients": [0.1]}', "4 coefficients"),
+    ('{"model": "pinhole", "size": [640, 480], "camera_matrix": [[500, 0, 320], [0, 500, 240], [0, 0, 1]]}', "missing"),
+    ('{"a": {"projection_type": "spherical", "width": 10, "height": 10}}', "spherical"),
+    ('{"a": {"projection_type": "brown", "width": 10, "height": 10}, "b": {"projection_type": "brown"}}', "2 cameras"),
+])
+def test_bad_lens_files_are_one_clear_line(tmp_path, content, fragment):
+    with pytest.raises(BadInput, match=fragment):
+        read_lens(write(tmp_path, "bad.json", content))
