@@ -32,6 +32,9 @@ from mosaic_cli.live.source import DEFAULT_TIMEOUT
 from mosaic_cli.progress import console
 from mosaic_cli.video.reader import reading_policy
 
+# --fill-holes fills holes up to this share of the covered panorama: a masked logo's (under 1%),
+# never a gap between flight lines.
+FILL_HOLES_SHARE = 0.01
 OverlayDetect = overlay_detect_option("estimation and the panorama")
 Quiet = quiet_option("No progress bars.")
 
@@ -56,6 +59,7 @@ def stitch(
     seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.", rich_help_panel=OUTPUT_QUALITY)] = "dp",
     exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.", rich_help_panel=OUTPUT_QUALITY)] = "gain-blocks",
     rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Draw a rolling-shutter camera's frames row band by row band, each where it belongs (not smeared or doubled): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). [default: auto for a video file; off for photo folders and live input]", rich_help_panel=OUTPUT_QUALITY, show_default=False)] = None,
+    fill_holes: Annotated[bool, typer.Option("--fill-holes", help="Fill small interior transparent holes (ground under a masked overlay that no frame saw) from their surroundings, for a closed picture; holes at the panorama's border stay transparent.", rich_help_panel=OUTPUT_QUALITY)] = False,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
     telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.", rich_help_panel=TELEMETRY)] = None,
@@ -86,7 +90,7 @@ def stitch(
         keyframes=KeyframeOptions(new_ground=overlap),
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
         canvas=CanvasOptions(reference=reference, max_size=max_size or None),
-        compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure),
+        compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure, fill_holes=FILL_HOLES_SHARE if fill_holes else 0.0),
         mask=mask_options(mask, overlay_detect),
         start=start,
         max_frames=max_frames,
@@ -126,6 +130,8 @@ def stitch(
             rs = result.rolling
             said = f"readout {rs.readout:.2f}" + (" (estimated)" if rs.estimated else "")
             console.print(f"rolling shutter: {said}, " + ("each row band drawn where it belongs" if rs.applied else "a global shutter: left alone"))
+        if fill_holes:  # the last line: what the panorama holds that no frame showed
+            console.print(f"--fill-holes: {sum(p.filled for p in result.panoramas)} pixels of interior holes filled")
     # Said even with -q: nothing leaves the panorama silently.
     for line in _notices(video, result):
         print(f"mosaic: warning: {line}", file=sys.stderr)

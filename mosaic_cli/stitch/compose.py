@@ -44,6 +44,9 @@ class ComposeOptions:
     seam_canvas_megapix: float = 2.0
     strip_megapix: float = 4.0  # the blender works on horizontal strips of about this size
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
+    # --fill-holes: interior transparent holes (ground under a masked overlay that no keyframe
+    # saw) up to this share of the covered area are inpainted; 0 leaves them transparent.
+    fill_holes: float = 0.0
 
     def __post_init__(self) -> None:
         self.validate()
@@ -53,6 +56,8 @@ class ComposeOptions:
             raise BadInput(f"--blend must be one of {', '.join(BLENDS)}, got {self.blend!r}")
         if self.seam not in SEAMS:
             raise BadInput(f"--seam must be one of {', '.join(SEAMS)}, got {self.seam!r}")
+        if not 0.0 <= self.fill_holes <= 1.0:
+            raise BadInput(f"--fill-holes: the largest hole to fill must be a share of the panorama in 0..1, got {self.fill_holes}")
         if self.exposure not in EXPOSURES:
             raise BadInput(f"--exposure must be one of {', '.join(EXPOSURES)}, got {self.exposure!r}")
 
@@ -298,3 +303,32 @@ def _blend_plan(options: ComposeOptions, frame_side: float) -> _BlendPlan:
     if options.blend == "feather" and width >= 1:
         return _BlendPlan("feather", 0, width, int(np.ceil(width)) + 8)
     return _BlendPlan("none", 0, 1.0, 0)
+
+
+def fill_holes(rgba: np.ndarray, max_share: float, radius: int = 5) -> int:
+    """Inpaint (``cv2.inpaint``, Telea) the small interior transparent holes of a panorama
+    (H, W, 4) uint8 in place; returns the pixels filled.  A hole is a connected transparent
+    region (alpha 0) that touches no edge of the canvas (outside the flight is not a hole)
+    and holds at most ``max_share`` of the covered pixels.  Each hole is filled from its
+    surroundings within a crop around it (a panorama may be gigabytes) and made opaque."""
+    if max_share <= 0:
+        return 0
+    H, W = rgba.shape[:2]
+    empty = (rgba[..., 3] == 0).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(empty, connectivity=4)
+    largest = max_share * max(1, H * W - int(np.count_nonzero(empty)))
+    filled = 0
+    for k in range(1, count):
+        x, y, w, h, area = (int(v) for v in stats[k])
+        if x == 0 or y == 0 or x + w == W or y + h == H or area > largest:
+            continue
+        pad = 2 * radius + 2
+        x0, y0, x1, y1 = max(0, x - pad), max(0, y - pad), min(W, x + w + pad), min(H, y + h + pad)
+        hole = (labels[y0:y1, x0:x1] == k).astype(np.uint8)
+        crop = rgba[y0:y1, x0:x1]
+        painted = cv2.inpaint(np.ascontiguousarray(crop[..., :3]), hole, radius, cv2.INPAINT_TELEA)
+        inside = hole > 0
+        crop[..., :3][inside] = painted[inside]
+        crop[..., 3][inside] = 255
+        filled += area
+    return filled

@@ -50,7 +50,7 @@ from mosaic_cli.overlay import FrameMask, Gate, MaskChanged, MaskOptions, Pendin
 from mosaic_cli.progress import progress_group, progress_task
 from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
-from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose, fill_holes
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
 from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
@@ -118,6 +118,7 @@ class Panorama:
     # --rolling-shutter (applied): each keyframe's (K, 3, 3) frame -> panorama of its row bands'
     # centre rows (the band's correction, then the keyframe's transform), in the order of transforms.
     bands: list[np.ndarray] | None = None
+    filled: int = 0  # --fill-holes: pixels of interior holes inpainted
 
     @property
     def size(self) -> int:
@@ -269,6 +270,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
         panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress, scan.use,
                             rolling)
+        filled = fill_holes(panorama, options.compose.fill_holes)
         seconds["compose"] += time.perf_counter() - clock
 
         clock = time.perf_counter()
@@ -293,7 +295,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         if rolling is not None:
             centres = band_centres(scan.source_size[1], rolling.corrections.shape[1])
             bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
-        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands))
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands, filled))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
