@@ -440,3 +440,36 @@ def test_live_rgb_frames_are_the_file_reader_s(tmp_path, extra):
     assert len(received) == len(decoded) == 4
     assert all(np.array_equal(a, b) for a, b in zip(received, decoded))
     assert all(np.array_equal(a.luma, b.luma) for a, b in zip(received, decoded))
+
+
+@pytest.mark.slow
+def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, flight, monkeypatch):
+    """The socket is open before the network has loaded (here a load held back until a sender
+    has connected): a sender that starts at once is not refused, and every frame comes out."""
+    import mosaic_cli.live.stabilize as live_stabilize
+    from mosaic_cli.stabilize import StabilizeOptions
+
+    build = live_stabilize._estimator
+    connected = threading.Event()
+
+    def held_back(options):
+        assert connected.wait(45), "the load waited for a sender that never connected"
+        return build(options)
+
+    monkeypatch.setattr(live_stabilize, "_estimator", held_back)
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+
+    def sender() -> None:
+        wait_until_bound(port, udp=False)  # listening, though the load has not finished
+        connected.set()
+        send(video, f"tcp://127.0.0.1:{port}")
+
+    thread = threading.Thread(target=sender, daemon=True)
+    thread.start()
+    out = tmp_path / "steady.mp4"
+    result = live_stabilize.stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(out), StabilizeOptions(latency=1.0),
+                                           show_progress=False)
+    thread.join(RUN_LIMIT)
+    assert connected.is_set()
+    assert result.frames_in == result.frames_out == FRAMES and count_frames(out) == FRAMES

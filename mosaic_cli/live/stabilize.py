@@ -28,12 +28,14 @@ Latency is measured per frame from its arrival off the decoder to its hand-over 
 
 from __future__ import annotations
 
+import concurrent.futures
+import contextlib
 import math
 import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -327,19 +329,24 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     border = parse_border(options.border if options.border is not None else ("replicate" if crop is None else "black"))
     live = file_info is None
     notes: list[str] = []
-    # Loading a network takes seconds: before the stream opens, so that no frame waits for it.
-    estimator = _estimator(options) if _learned(options) else None
+    # Loading a network takes seconds.  A file's: before its stream opens, so that no frame
+    # waits for it.  A live input's: beside the opening, so that the socket listens (and a
+    # sender may connect) at once; the frames that come meanwhile queue, and their deadlines
+    # start as they are taken.
+    estimator = _estimator(options) if _learned(options) and not live else None
+    loading = built_beside(lambda: _estimator(options)) if _learned(options) and live else None
     masked = None
     horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
         horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
-    with LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live, info=file_info) as stream:
+    with waited_for(loading), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live,
+                                         info=file_info) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if estimator is None:
-            estimator = _estimator(options)
+            estimator = loading.result() if loading is not None else _estimator(options)
         if horizon is None:
             horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
         if masked is None:
@@ -501,6 +508,31 @@ def _estimator(options: StabilizeOptions) -> Estimator:
     return make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
                           default_width=WORK_WIDTH,
                           **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
+
+
+def built_beside(build: Callable[[], Estimator]) -> concurrent.futures.Future:
+    """``build()`` on a thread of its own: its estimator (or its error) when the future is asked."""
+    future: concurrent.futures.Future = concurrent.futures.Future()
+
+    def run() -> None:
+        try:
+            future.set_result(build())
+        except BaseException as exc:  # noqa: BLE001 - raised to whoever asks for the estimator
+            future.set_exception(exc)
+
+    threading.Thread(target=run, name="stabilize-build", daemon=True).start()
+    return future
+
+
+@contextlib.contextmanager
+def waited_for(future: concurrent.futures.Future | None) -> Iterator[None]:
+    """On the way out, wait for ``future``'s work to end, however the block ends: a network's
+    loading is never left half done (torch's import) as mosaic exits."""
+    try:
+        yield
+    finally:
+        if future is not None:
+            concurrent.futures.wait([future])
 
 
 def _delay(estimator: Estimator | None) -> int:
