@@ -11,10 +11,12 @@ machine; say how loaded it was beside it.
         scan lag of each frame behind the sender, backlog when the stream ends, preview cost,
         placement error of the final panorama
     python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2] [--latency 1] [--hog N]
+                                            [--model tilt,similarity]
         frames in / out / received, latency p50/p95/max from arrival off the decoder to the
         encoded frame's last UDP datagram received (and to the hand-over to the encoder), the
         time of each stage, residual jitter against the offline L1 path on the same frames
-        (ground truth from simulate -p shaky)
+        (ground truth from simulate -p shaky), for each correction model (--model, comma-separated;
+        default: the command's default), the models in turn on each clip
     --hog N runs N busy processes at the benchmark's priority during the run: a loaded machine
     python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
         the online path over an offline track against the offline L1 path of that track, for
@@ -221,10 +223,11 @@ def bench_stabilize(args) -> list[dict]:
     from mosaic_cli.stabilize.metrics import ground_truth_jitter
 
     rows = []
-    for seed in range(args.clips):
+    models = args.model.split(",") if args.model else [StabilizeOptions().model]
+    for seed, model in ((seed, model) for seed in range(args.clips) for model in models):
         video = flight("shaky", args.frames, seed=seed)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
-        options = StabilizeOptions(estimator=args.estimator, latency=args.latency)  # the offline run ignores the latency
+        options = StabilizeOptions(estimator=args.estimator, latency=args.latency, model=model)  # the offline run ignores the latency
         port, out_port = free_port(), free_port()
         url = f"tcp://127.0.0.1:{port}?listen=1"
         received, left = WORKDIR / "received.ts", WORKDIR / "received_times.npy"
@@ -255,14 +258,14 @@ def bench_stabilize(args) -> list[dict]:
         shaky = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps)
         j_live = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, live.warps)
         j_off = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, gt.size, gt.fps, offline.warps)
-        row = {"clip": video.name, "estimator": args.estimator, "frames in": live.frames_in, "frames out": live.frames_out,
+        row = {"clip": video.name, "estimator": args.estimator, "model": model, "frames in": live.frames_in, "frames out": live.frames_out,
                "frames received": count, "encoded frames timed": n, "latency to encoder": percentiles(live.latencies),
                "latency to encoded output": percentiles(leave), "latency p95": float(np.percentile(leave, 95)),
                "jitter input": shaky, "jitter live": j_live, "jitter offline": j_off, "ratio": j_live / j_off,
                "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "breakdown": breakdown(live, out_times),
                "load": load_note()}
         rows.append(row)
-        print(f"stabilize --latency {args.latency:g} ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
+        print(f"stabilize --latency {args.latency:g} --model {model} ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
               f"{count} received over UDP; latency arrival -> encoded output received {row['latency to encoded output']} "
               f"(arrival -> hand-over to the encoder {row['latency to encoder']}); residual jitter live "
               f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; load average "
@@ -271,7 +274,7 @@ def bench_stabilize(args) -> list[dict]:
             print("   ", line)
     print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
           f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
-          + (f" --hog {args.hog}" if args.hog else ""))
+          + (f" --hog {args.hog}" if args.hog else "") + (f" --model {args.model}" if args.model else ""))
     return rows
 
 
@@ -546,6 +549,7 @@ def main() -> None:
     parser.add_argument("--size", default="1280x720", help="horizon: the flight's size")
     parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
+    parser.add_argument("--model", default=None, help="stabilize: correction models, comma-separated (default: the command's)")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
