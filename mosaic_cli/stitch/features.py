@@ -35,6 +35,11 @@ class FeatureOptions:
     min_inlier_ratio: float = 0.15
     # A registered pair may change a frame's area by at most this factor (keyframes of one flight).
     max_area_ratio: float = 4.0
+    # Inliers covering less than this fraction of frame a (their convex hull) do not fix a
+    # homography's two perspective terms: fitted to a strip at the edge of a photo they swung
+    # its far side 8-100 px off on tiles of a real orthophoto whose exact offsets were known
+    # (issue 40); such a pair is registered as an affine map where one explains its inliers.
+    min_homography_spread: float = 0.25
 
     def __post_init__(self) -> None:
         self.validate()
@@ -43,8 +48,8 @@ class FeatureOptions:
         """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
         if min(self.width, self.photo_width) < 32 or min(self.n_features, self.photo_features) < 4:
             raise ValueError(f"feature widths must be at least 32 px and counts at least 4: {self}")
-        if not 0 < self.ratio <= 1 or not 0 <= self.min_inlier_ratio <= 1:
-            raise ValueError(f"ratio and min_inlier_ratio must be fractions, got {self.ratio}, {self.min_inlier_ratio}")
+        if not 0 < self.ratio <= 1 or not 0 <= self.min_inlier_ratio <= 1 or not 0 <= self.min_homography_spread <= 1:
+            raise ValueError(f"ratio, min_inlier_ratio and min_homography_spread must be fractions: {self}")
         if self.min_inliers < 4 or self.reproj_threshold <= 0 or self.max_area_ratio < 1:
             raise ValueError(f"min_inliers >= 4, reproj_threshold > 0, max_area_ratio >= 1 expected: {self}")
 
@@ -129,6 +134,8 @@ class FeatureMatcher:
         if H is None or mask is None:
             return None
         keep = mask.ravel().astype(bool)
+        if spread(src[keep], self.source_size) < o.min_homography_spread:
+            H, keep = self._affine(src, dst, H, keep)
         inliers = int(keep.sum())
         ratio = inliers / len(good)
         if inliers < o.min_inliers or ratio < o.min_inlier_ratio:
@@ -139,6 +146,27 @@ class FeatureMatcher:
         if prior is not None and tolerance is not None and corner_distance(H, prior, self.source_size) > tolerance:
             return None
         return PairMatch(H, src[keep].astype(np.float64), dst[keep].astype(np.float64), ratio)
+
+    def _affine(self, src: np.ndarray, dst: np.ndarray, H: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(3x3, keep) of an affine map fitted to the inliers of homography ``H`` (``src``, ``dst``:
+        (n, 2) matches, ``keep``: (n,) bool): least median of squares, then Levenberg-Marquardt
+        on its inliers.  ``H`` stands where the affine map keeps fewer than 9 in 10 of its
+        inliers: perspective that even a small region shows is real."""
+        A, _ = cv2.estimateAffine2D(src[keep], dst[keep], method=cv2.LMEDS, refineIters=10)
+        if A is None:
+            return H, keep
+        affine = np.vstack([A, [0.0, 0.0, 1.0]])
+        near = np.linalg.norm(project(affine, src.astype(np.float64)) - dst, axis=1) < self.threshold
+        if (near & keep).sum() < 0.9 * keep.sum():
+            return H, keep
+        return affine, near & keep
+
+
+def spread(points: np.ndarray, size: tuple[int, int]) -> float:
+    """The area of the convex hull of ``points`` ((n, 2) pixels) as a fraction of a frame of ``size``."""
+    if len(points) < 3:
+        return 0.0
+    return float(cv2.contourArea(cv2.convexHull(np.asarray(points, np.float32)))) / (size[0] * size[1])
 
 
 def corner_distance(H1: np.ndarray, H2: np.ndarray, size: tuple[int, int]) -> float:
