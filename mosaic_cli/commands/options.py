@@ -68,6 +68,11 @@ def overlay_detect_option(kept_out_of: str):
         help=f"Find burned-in logos, text and letterbox bars (fixed in the frame while the ground moves) and keep them out of {kept_out_of}.", rich_help_panel=OVERLAYS)]
 
 
+LensOption = Annotated[str | None, typer.Option(
+    "--lens",
+    help="The camera's lens, undistorted once as frames are decoded, so that every stage works on a pinhole view: none (default), "
+         "auto (one coefficient estimated from the video, applied only where it clearly fits better) or a FILE: mosaic's lens JSON, "
+         "a Gyroflow lens profile or an OpenSfM/ODM cameras.json (docs/guide/stitch.md, Lenses).", rich_help_panel=INPUT_OUTPUT)]
 MaxFrames = Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames.", rich_help_panel=INPUT_OUTPUT)]
 Strict = Annotated[bool, typer.Option(
     "--strict",

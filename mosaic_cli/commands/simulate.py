@@ -34,6 +34,7 @@ def simulate(
     bursts: Annotated[str | None, typer.Option("--bursts", help="Every 12-30 frames, 1-3 frames with no motion cue: glare, blur, dark, flat, drop, duplicate (comma-separated), all, or none. Default: the profile's (all for -p bursts, none otherwise). Listed in the ground truth.", rich_help_panel=FLIGHT)] = None,
     rolling_shutter: Annotated[float, typer.Option("--rolling-shutter", help="Sensor readout as a fraction of the frame interval (0..1): row y of frame t sees the camera at t + R*y/h. 0: global shutter. The bands' homographies go to the ground truth.", rich_help_panel=FLIGHT)] = 0.0,
     vibration: Annotated[str | None, typer.Option("--vibration", help="HZ,PX: propeller vibration of the camera, a sinusoid of HZ (5-30 typical) and PX 1280-wide px of translation (and a small rotation), sampled at each row's time.", rich_help_panel=FLIGHT)] = None,
+    lens: Annotated[str | None, typer.Option("--lens", help="See the ground through a lens: K1[,K2][,f=PX] (OpenCV's radial model; focal PX default: about 71 degrees across), fisheye[:K1,...][,f=PX] (equidistant; default about 120 degrees across) or a lens FILE (mosaic, Gyroflow or OpenSfM JSON). The truth stays the pinhole frames' and records the lens.", rich_help_panel=FLIGHT)] = None,
     quiet: Quiet = False,
     telemetry: Annotated[str | None, typer.Option("--telemetry", help="Also write the drone's GPS log beside the video: srt (DJI), gpx, csv or klv (MISB ST 0601); truth in <stem>.geo.json.", rich_help_panel=TELEMETRY)] = None,
     origin: Annotated[str, typer.Option("--origin", help="LAT,LON of the map's centre, when the map carries no geotransform (with --telemetry).", rich_help_panel=TELEMETRY)] = "47.3977,8.5456",
@@ -61,15 +62,17 @@ def simulate(
         SimulateOptions,
         check_outputs,
         ground_truth_path,
+        parse_lens,
         parse_vibration,
         simulate_flight,
     )
     from mosaic_cli.simulate.telemetry import GpsErrors, TelemetryOptions, prepare_telemetry, write_telemetry
 
-    options = SimulateOptions(profile=profile, frames=frames, size=parse_size(size, "--size"), fps=fps, seed=seed, crf=crf,
+    frame_size = parse_size(size, "--size")
+    options = SimulateOptions(profile=profile, frames=frames, size=frame_size, fps=fps, seed=seed, crf=crf,
                               preset=preset, overlays=OverlaySpec.parse(overlays),
                               bursts=BurstSpec.parse(bursts) if bursts is not None else None,
-                              rolling=RollingShutter(rolling_shutter, *parse_vibration(vibration)))
+                              rolling=RollingShutter(rolling_shutter, *parse_vibration(vibration)), lens=parse_lens(lens, frame_size))
     log = None
     if telemetry is not None:
         log = TelemetryOptions(format=telemetry, origin=origin, gsd=gsd, rate=telemetry_rate,

@@ -16,6 +16,7 @@ from mosaic_cli.commands.options import (
     SMOOTHING,
     Device,
     EstimatorName,
+    LensOption,
     Mask,
     Strict,
     Timeout,
@@ -61,6 +62,7 @@ def stabilize(
     timeout: Timeout = DEFAULT_TIMEOUT,
     rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction. [default: auto; off for --latency and live input or output]", rich_help_panel=SMOOTHING, show_default=False)] = None,
     quiet: Quiet = False,
+    lens: LensOption = None,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "
                                               f"{install_hint('plot')}).", rich_help_panel=INPUT_OUTPUT)] = None,
@@ -68,6 +70,7 @@ def stabilize(
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
+    from mosaic_cli.estimators.lens import parse_lens_option, undistorting
     from mosaic_cli.live.stabilize import is_live_request, stabilize_live
     from mosaic_cli.plots import check_plot_request
     from mosaic_cli.stabilize import StabilizeOptions
@@ -82,6 +85,8 @@ def stabilize(
         rolling_shutter="auto" if rolling_shutter is None else rolling_shutter,
     )
     if is_live_request(video, out, options):
+        if parse_lens_option(lens) != "none":
+            raise BadInput("--lens undistorts a whole video's frames: not with --latency or a live input or output")
         if rolling_shutter is not None and parse_rolling_shutter(rolling_shutter) != "off":
             raise BadInput("--rolling-shutter needs the whole video: not with --latency or a live input or output")
         options = dataclasses.replace(options, rolling_shutter="off")
@@ -97,7 +102,8 @@ def stabilize(
                 soft_wrap=True,
             )
         return
-    with reading_policy(strict):
+    # The output is the undistorted (pinhole) view: the path and warps are planned on it.
+    with reading_policy(strict), undistorting(lens, video) as lens_choice:
         result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if plot is not None:
         _plot(plot, result)
@@ -114,6 +120,8 @@ def stabilize(
             rs = result.rolling
             said = f"readout {rs.readout:.2f} ({'estimated' if rs.estimated else 'given'})"
             console.print(f"rolling shutter: {said}, " + ("each row corrected" if rs.applied else "a global shutter: left alone"))
+        if lens_choice.source != "none":
+            console.print(lens_choice.describe())
 
 
 def _plot(path: Path, result) -> None:

@@ -17,6 +17,7 @@ from mosaic_cli.commands.options import (
     TELEMETRY,
     Device,
     EstimatorName,
+    LensOption,
     Mask,
     MaxFrames,
     Strict,
@@ -73,9 +74,11 @@ def stitch(
     every: Annotated[float, typer.Option("--every", help="--live: seconds between two previews.", rich_help_panel=LIVE)] = 2.0,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    lens: LensOption = None,
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
+    from mosaic_cli.estimators.lens import parse_lens_option, undistorting
     from mosaic_cli.live.source import is_live_source
     from mosaic_cli.stabilize.rolling import parse_rolling_shutter
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
@@ -103,12 +106,15 @@ def stitch(
         raise BadInput("--rolling-shutter needs the whole video: not with --live or a live input")
     if rolling_shutter is None and not live and not Path(video).is_dir():  # the default: a video file's rows are checked
         options = dataclasses.replace(options, rolling_shutter="auto")
+    if live and parse_lens_option(lens) != "none":
+        raise BadInput("--lens undistorts a whole video's or folder's frames: not with --live or a live input")
+    lens_choice = None
     # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
     if live:
         result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
                              show_progress=not quiet)
     else:
-        with reading_policy(strict):
+        with reading_policy(strict), undistorting(lens, video) as lens_choice:  # the panorama: a pinhole view of the ground
             result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet)
     if not quiet:
         r = result.registration
@@ -130,6 +136,8 @@ def stitch(
             rs = result.rolling
             said = f"readout {rs.readout:.2f}" + (" (estimated)" if rs.estimated else "")
             console.print(f"rolling shutter: {said}, " + ("each row band drawn where it belongs" if rs.applied else "a global shutter: left alone"))
+        if lens_choice is not None and lens_choice.source != "none":
+            console.print(lens_choice.describe())
         if fill_holes:  # the last line: what the panorama holds that no frame showed
             console.print(f"--fill-holes: {sum(p.filled for p in result.panoramas)} pixels of interior holes filled")
     # Said even with -q: nothing leaves the panorama silently.

@@ -14,6 +14,7 @@ from mosaic_cli.commands.options import (
     INPUT_OUTPUT,
     Device,
     EstimatorName,
+    LensOption,
     Mask,
     MaxFrames,
     Strict,
@@ -58,6 +59,7 @@ def track(
     strict: Strict = False,
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
+    lens: LensOption = None,
     rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Also each row band's motion and correction (a rolling shutter's wobble) in the track file's \"rolling_shutter\" block: auto (readout estimated; a global shutter reads 0, no motion written), off, or the readout as a fraction of the frame interval (0..1). .json output only.", rich_help_panel=INPUT_OUTPUT)] = "off",
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw each pair's confidence over time, failed pairs marked, to "
                                               f"this PNG (needs matplotlib: {install_hint('plot')}).",
@@ -67,6 +69,7 @@ def track(
 
     pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
     """
+    from mosaic_cli.estimators.lens import parse_lens_option, undistorting
     from mosaic_cli.estimators.rolling import parse_rolling_shutter
     from mosaic_cli.plots import check_plot_request
 
@@ -82,6 +85,8 @@ def track(
     elif out != "-":
         check_writable(out)
     live = is_live_source(video)
+    if parse_lens_option(lens) != "none" and (live or is_jsonl(out)):
+        raise BadInput("--lens undistorts a video file's frames: not with JSON Lines or a live input")
     info = None if live else probe(video)  # the input's one probe, passed down
     check_mask_file(options.mask, info)
     build = plan_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
@@ -105,7 +110,7 @@ def track(
     else:
         # The tracking starts once the estimator is built, the overlays still being looked for
         # beside it, and starts again if one is found (track_video's ``mask``).
-        with reading_policy(strict), progress_group(disable=quiet):
+        with reading_policy(strict), undistorting(lens, video, info) as lens_choice, progress_group(disable=quiet):
             pending, est = frame_mask_pending(build, video, options.mask, info, show_progress=not quiet)
             with pending:
                 built = time.perf_counter() - clock
@@ -117,6 +122,7 @@ def track(
         # waiting for it, a pass discarded for an overlay found); "track" is the kept pass.
         overlay_seconds = built + result.meta["overlay_wait_seconds"] + result.meta["overlay_lost_seconds"]
         result.meta["mask"] = masked.to_json()
+        result.meta["lens"] = lens_choice.to_meta()  # the pairs are the undistorted frames' (its camera: docs/guide/track.md)
         save_track(result, out)
     if plot is not None:
         from mosaic_cli.plots import write_track_plot
@@ -138,3 +144,5 @@ def track(
             console.print(f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
                           f"median confidence {float(np.median(result.confidence)):.2f} -> {where} "
                           f"(overlays {overlay_seconds:.1f} s, track {result.meta['seconds']:.1f} s)")
+            if "lens" in result.meta and result.meta["lens"]["source"] != "none":
+                console.print(lens_choice.describe())

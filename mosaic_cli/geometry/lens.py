@@ -3,6 +3,10 @@
 * ``pinhole``: the pinhole with radial and tangential distortion, OpenCV's coefficients
   (k1, k2, p1, p2[, k3[, k4, k5, k6]]) (4, 5 or 8 of them).
 * ``fisheye``: OpenCV's equidistant fisheye (``cv2.fisheye``), coefficients k1..k4.
+* ``division``: the one-coefficient division model that ``--lens auto`` estimates: a pixel at
+  normalised radius r (the camera matrix's focal length as the unit) is undistorted to radius
+  r / (1 + lambda r^2), in closed form both ways (Fitzgibbon 2001): barrel lenses up to
+  fisheyes (lambda < 0) never fold back inside the frame, as a radial polynomial can.
 
 A :class:`Lens` holds its camera matrix at a stated calibration size; :meth:`Lens.at` scales it
 to a video's size (OpenCV pixel centres, as :func:`mosaic_cli.geometry.resize_matrix`).
@@ -29,7 +33,7 @@ import numpy as np
 
 from mosaic_cli.geometry.homography import resize_matrix
 
-MODELS = ("pinhole", "fisheye")
+MODELS = ("pinhole", "fisheye", "division")
 # The iterative undistortion's stopping rule: OpenCV's default (5 iterations) leaves pixels of
 # error at the corners of a strong lens; this one is exact to well under 1e-3 px.
 _CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -49,6 +53,8 @@ class Lens:
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"lens model {self.model!r}: pinhole or fisheye")
+        if self.model == "division" and len(self.coefficients) != 1:
+            raise ValueError("a division-model lens has one coefficient (lambda)")
         K = np.asarray(self.camera_matrix, dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError("camera matrix: 3x3, finite, with positive focal lengths")
@@ -63,7 +69,7 @@ class Lens:
             raise ValueError("lens size: (w, h), positive")
 
     @staticmethod
-    def make(model: str, size, K, coefficients) -> Lens:
+    def make(model: str, size: tuple[int, int] | list, K: np.ndarray | list, coefficients: np.ndarray | list | tuple) -> Lens:
         """A lens from arrays (any sequence types)."""
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3):
@@ -133,6 +139,8 @@ def undistorted_camera(lens: Lens) -> np.ndarray:
 
 @functools.lru_cache(maxsize=32)
 def _new_camera(lens: Lens) -> np.ndarray:
+    if lens.model == "division":
+        return _division_crop(lens)
     if lens.model == "fisheye":
         P = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(lens.K, lens.D, lens.size, np.eye(3), balance=0.0)
     else:
@@ -154,6 +162,8 @@ def undistort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None
     if len(pts) == 0:
         return np.zeros((0, 2))
     P = undistorted_camera(lens) if P is None else np.asarray(P, dtype=np.float64)
+    if lens.model == "division":
+        return _division_undistort(lens, pts.reshape(-1, 2), P)
     if lens.model == "fisheye":
         out = cv2.fisheye.undistortPoints(pts, lens.K, lens.D, R=np.eye(3), P=P, criteria=_CRITERIA)
     else:
@@ -170,6 +180,8 @@ def distort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None) 
     P = undistorted_camera(lens) if P is None else np.asarray(P, dtype=np.float64)
     homog = np.concatenate([pts, np.ones((len(pts), 1))], 1) @ np.linalg.inv(P).T
     normal = homog[:, :2] / homog[:, 2:3]
+    if lens.model == "division":
+        return _division_distort(lens, normal)
     if lens.model == "fisheye":
         out = cv2.fisheye.distortPoints(normal.reshape(-1, 1, 2), lens.K, lens.D)
     else:
@@ -189,7 +201,12 @@ def undistort_maps(lens: Lens, size: tuple[int, int]) -> tuple[np.ndarray, np.nd
 def _maps(lens: Lens, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     at = lens.at(size)
     P = _new_camera(at)
-    if at.model == "fisheye":
+    if at.model == "division":
+        w, h = size
+        xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        src = distort_points(at, np.stack([xs.ravel(), ys.ravel()], 1), P)
+        mx, my = (np.ascontiguousarray(src[:, k].reshape(h, w), dtype=np.float32) for k in (0, 1))
+    elif at.model == "fisheye":
         mx, my = cv2.fisheye.initUndistortRectifyMap(at.K, at.D, np.eye(3), P, size, cv2.CV_32FC1)
     else:
         mx, my = cv2.initUndistortRectifyMap(at.K, at.D, None, P, size, cv2.CV_32FC1)
@@ -242,3 +259,57 @@ def frame_to_undistorted(lens: Lens, size: tuple[int, int]) -> np.ndarray:
     the lens's own K (a simulator's truth) reads in the undistorted frames."""
     at = lens.at(size)
     return _new_camera(at) @ np.linalg.inv(at.K)
+
+
+def division_lens(size: tuple[int, int], lam: float) -> Lens:
+    """A division-model lens centred on the frame, its unit radius the half diagonal (so that
+    ``lam`` reads the same at any frame size: r / (1 + lam) at the corners)."""
+    w, h = size
+    unit = 0.5 * float(np.hypot(w, h))
+    return Lens.make("division", size, [[unit, 0, (w - 1) / 2], [0, unit, (h - 1) / 2], [0, 0, 1]], [lam])
+
+
+def _division_undistort(lens: Lens, pts: np.ndarray, P: np.ndarray) -> np.ndarray:
+    K = lens.K
+    n = (pts - K[:2, 2]) / np.diag(K)[:2]
+    r2 = np.sum(n * n, axis=1, keepdims=True)
+    u = n / (1.0 + lens.coefficients[0] * r2)
+    return u * np.diag(P)[:2] + P[:2, 2]
+
+
+def _division_distort(lens: Lens, normal: np.ndarray) -> np.ndarray:
+    """Normalised pinhole points (N, 2) -> distorted pixels: r_d solves lam r_u r_d^2 - r_d + r_u = 0,
+    the root that tends to r_u as lam -> 0 (NaN where there is none: past a pincushion's range)."""
+    lam = lens.coefficients[0]
+    ru = np.linalg.norm(normal, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        disc = np.sqrt(1.0 - 4.0 * lam * ru * ru)
+        # 2 r_u / (1 + sqrt(.)): the stable form of (1 - sqrt(.)) / (2 lam r_u)
+        ratio = np.where(ru > 0, 2.0 / (1.0 + disc), 1.0)
+    K = lens.K
+    return normal * ratio * np.diag(K)[:2] + K[:2, 2]
+
+
+def _division_crop(lens: Lens) -> np.ndarray:
+    """The undistorted camera of a division lens: its own K zoomed (square pixels, same centre)
+    as little as keeps every output pixel on the source, found by bisection on the zoom (what
+    alpha = 0 does for OpenCV's models)."""
+    w, h = lens.size
+    edge = np.concatenate([np.stack([np.linspace(0, w - 1, 65), np.full(65, y)], 1) for y in (0, h - 1)]
+                          + [np.stack([np.full(37, x), np.linspace(0, h - 1, 37)], 1) for x in (0, w - 1)])
+    K = lens.K
+
+    def fits(zoom: float) -> bool:
+        P = K.copy()
+        P[0, 0], P[1, 1] = K[0, 0] * zoom, K[1, 1] * zoom
+        homog = np.concatenate([edge, np.ones((len(edge), 1))], 1) @ np.linalg.inv(P).T
+        src = _division_distort(lens, homog[:, :2])
+        return bool(np.all(np.isfinite(src)) and np.all(src >= -0.5) and np.all(src[:, 0] <= w - 0.5) and np.all(src[:, 1] <= h - 0.5))
+
+    lo, hi = 0.05, 20.0  # zoomed out too far: off the source; zoomed in this far: always on it
+    for _ in range(60):
+        mid = np.sqrt(lo * hi)
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    P = K.copy()
+    P[0, 0], P[1, 1] = K[0, 0] * hi, K[1, 1] * hi
+    return P

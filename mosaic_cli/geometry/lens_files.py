@@ -17,6 +17,8 @@
   (OpenCV's radial-tangential model, the same order); ``perspective``: focal, k1, k2 (radial
   only); ``fisheye``: focal, k1, k2 (equidistant, OpenCV's fisheye with k3 = k4 = 0).
 
+A simulated flight's ground truth (``<stem>.gt.json`` with a ``"lens"``) is read as its lens.
+
 Every failure is one :class:`~mosaic_cli.errors.BadInput` line naming the file.
 """
 
@@ -45,6 +47,8 @@ def read_lens(path: str | Path) -> Lens:
     try:
         if not isinstance(doc, dict):
             raise ValueError("a JSON object was expected")
+        if doc.get("kind") == "mosaic-ground-truth" and isinstance(doc.get("lens"), dict):
+            return mosaic_lens(doc["lens"])  # a simulated flight's truth: the lens it was rendered through
         if "calib_dimension" in doc or "fisheye_params" in doc:
             return gyroflow_lens(doc)
         if "camera_matrix" in doc and "model" in doc:

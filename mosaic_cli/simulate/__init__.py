@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry.lens import Lens, check_lens_covers, fisheye_lens, radial_lens
+from mosaic_cli.geometry.lens_files import read_lens
 from mosaic_cli.simulate.bursts import BurstSpec, apply_bursts, frames_to_plan, plan_bursts
 from mosaic_cli.simulate.groundtruth import GroundTruth, ground_truth_path, load_ground_truth
 from mosaic_cli.simulate.maps import load_map, procedural_map
@@ -44,6 +46,7 @@ __all__ = [
     "FlightPlan",
     "RollingShutter",
     "parse_vibration",
+    "parse_lens",
     "Profile",
     "PROFILES",
     "MapPyramid",
@@ -68,11 +71,14 @@ def write_flight(
     preset: str = "medium",
     show_progress: bool = True,
     overlays: OverlaySpec | None = None,
+    lens: Lens | None = None,
 ) -> GroundTruth:
     """Render ``plan`` over ``map_rgb`` into an H.264 video at ``out_path`` and write its
     ground truth to ``<stem>.gt.json`` beside it; both appear atomically (the JSON last).
     ``overlays`` burns a logo, a timestamp or letterbox bars into every frame; the exact
-    pixels drawn go to ``<stem>.mask.png`` (a ``--mask`` image: white where none was drawn)."""
+    pixels drawn go to ``<stem>.mask.png`` (a ``--mask`` image: white where none was drawn).
+    ``lens``: each frame seen through it (the truth's homographies stay the pinhole frames'; it
+    records the lens)."""
     from mosaic_cli.atomic import check_writable
     from mosaic_cli.progress import progress_task
     from mosaic_cli.video import VideoWriter
@@ -83,13 +89,13 @@ def write_flight(
     out = check_writable(out_path)
     gt_path = check_writable(ground_truth_path(out))
     rate = float(plan.fps if fps is None else fps)
-    gt = GroundTruth.from_plan(plan, fps=rate, map_name=map_name)
+    gt = GroundTruth.from_plan(plan, fps=rate, map_name=map_name).with_lens(None if lens is None else lens.at(plan.size))
     if crf is None:  # the profile's own quality: degraded flights are low-bitrate too
         crf = PROFILES[plan.profile].crf if plan.profile in PROFILES else 18
     burner = OverlayBurner(overlays, plan.size, rate) if overlays is not None and overlays.any else None
     with VideoWriter(out, plan.size, rate, crf=crf, preset=preset) as writer:
         with progress_task(f"simulate ({plan.profile})", plan.frames, disable=not show_progress) as advance:
-            for t, frame in enumerate(render_frames(map_rgb, plan)):
+            for t, frame in enumerate(render_frames(map_rgb, plan, lens)):
                 writer.write(burner.draw(frame, t) if burner else frame)
                 advance(1)
     if burner is not None:
@@ -115,6 +121,7 @@ class SimulateOptions:
     overlays: OverlaySpec = field(default_factory=OverlaySpec)  # burned in, with their exact mask
     bursts: BurstSpec | None = None  # frames without a motion cue; None: the profile's own
     rolling: RollingShutter = field(default_factory=RollingShutter)  # readout and vibration; default: global shutter
+    lens: Lens | None = None  # the frames seen through it (parse_lens); None: a pinhole
 
     def __post_init__(self) -> None:
         self.validate()
@@ -129,6 +136,54 @@ class SimulateOptions:
         if self.seed < 0:
             raise BadInput(f"--seed must be 0 or more, got {self.seed}")
         check_encoder(self.crf, self.preset)
+        if self.lens is not None:
+            if self.rolling.readout > 0:
+                raise BadInput("--lens and --rolling-shutter: one at a time (a lens's rows are not yet exposed at their own times)")
+            try:
+                check_lens_covers(self.lens.at(self.size))
+            except ValueError as exc:
+                raise BadInput(f"--lens: {exc}") from None
+
+
+# The simulator's wide-angle lens: about 71 degrees across (900 px at 1280 wide, as issue 41's
+# trial), and its fisheye: about 120 degrees across (equidistant: half the width at 60 degrees).
+WIDE_FOCAL = 900.0 / 1280.0
+FISHEYE_DEGREES = 120.0
+
+
+def parse_lens(text: str | None, size: tuple[int, int]) -> Lens | None:
+    """``--lens``: None or "none" (a pinhole); ``K1[,K2][,f=PX]`` (OpenCV's radial model, focal
+    length PX at ``size``, default 71 degrees across); ``fisheye[:K1[,K2[,K3[,K4]]]][,f=PX]``
+    (OpenCV's equidistant model, default 120 degrees across); or a lens FILE
+    (:func:`~mosaic_cli.geometry.lens_files.read_lens`), rescaled to ``size``."""
+    if text is None or text.strip().lower() in ("", "none"):
+        return None
+    text = text.strip()
+    fisheye = text.lower().startswith("fisheye")
+    body = text[len("fisheye"):].lstrip(":") if fisheye else text
+    items = [v.strip() for v in body.split(",") if v.strip()]
+    try:
+        focal = [float(v[2:]) for v in items if v.lower().startswith("f=")]
+        values = [float(v) for v in items if not v.lower().startswith("f=")]
+    except ValueError:
+        values, focal = None, []
+    if values is None or (not fisheye and not values):
+        if Path(text).is_file():
+            try:
+                return read_lens(text).at(size)
+            except ValueError as exc:
+                raise BadInput(f"--lens {text}: {exc}") from None
+        raise BadInput(f"--lens must be K1[,K2][,f=PX], fisheye[:K1,...][,f=PX], a lens file or none, got {text!r}")
+    if len(focal) > 1 or (focal and not (np.isfinite(focal[0]) and focal[0] > 0)) or not all(np.isfinite(values)):
+        raise BadInput(f"--lens {text!r}: one positive focal length f=PX, finite coefficients")
+    if fisheye:
+        if len(values) > 4:
+            raise BadInput(f"--lens {text!r}: a fisheye has at most 4 coefficients")
+        f = focal[0] if focal else size[0] / 2 / np.radians(FISHEYE_DEGREES / 2)
+        return fisheye_lens(size, f, tuple(values))
+    if len(values) > 2:
+        raise BadInput(f"--lens {text!r}: K1[,K2] (two radial coefficients at most)")
+    return radial_lens(size, focal[0] if focal else WIDE_FOCAL * size[0], values[0], values[1] if len(values) > 1 else 0.0)
 
 
 def parse_vibration(text: str | None) -> tuple[float, float]:
@@ -175,7 +230,7 @@ def simulate_flight(out_path: str | Path, map_path: str | Path | None = None, op
     plan = plan_simulated_flight((map_rgb.shape[1], map_rgb.shape[0]), o)
     name = "procedural" if map_path is None else Path(map_path).name
     return write_flight(out_path, map_rgb, plan, fps=o.fps, crf=o.crf, map_name=name, preset=o.preset, show_progress=show_progress,
-                        overlays=o.overlays)
+                        overlays=o.overlays, lens=o.lens)
 
 
 def plan_simulated_flight(map_size: tuple[int, int], options: SimulateOptions) -> FlightPlan:

@@ -19,7 +19,12 @@ A rolling-shutter flight (``mosaic simulate --rolling-shutter R --vibration HZ,P
 time t + R * band_rows[k] / h); rows between band centres blend the two bands' inverses
 linearly (:mod:`mosaic_cli.geometry.rolling_shutter`).  ``map_to_frame`` is then the camera at
 the frame's mid time (its centre row) and ``smooth_map_to_frame`` that path without shake or
-vibration.  Global-shutter flights have no ``rolling_shutter`` key.  All pixel
+vibration.  Global-shutter flights have no ``rolling_shutter`` key.
+
+A flight seen through a lens (``mosaic simulate --lens``) adds ``"lens"``: the camera in mosaic's
+lens format (:mod:`mosaic_cli.geometry.lens_files`).  ``map_to_frame`` and ``pairwise`` are then
+those of the *pinhole* frame of the lens's camera matrix: frame pixel p shows the pinhole pixel
+``undistort_points(lens, p, lens.K)`` (the file is itself a ``--lens FILE``).  All pixel
 coordinates follow the OpenCV pixel-centre convention at full frame resolution.
 """
 
@@ -57,6 +62,7 @@ class GroundTruth:
     # (N, K, 3, 3); empty and None for a global-shutter flight.
     rolling: dict = field(default_factory=dict)
     row_bands: np.ndarray | None = None
+    lens: dict | None = None  # the lens the frames were rendered through (mosaic's lens format); None: a pinhole
 
     @property
     def readout(self) -> float:
@@ -84,6 +90,11 @@ class GroundTruth:
             None if plan.row_bands is None else np.array(plan.row_bands, dtype=np.float64),
         )
 
+    def with_lens(self, lens) -> GroundTruth:
+        """The same truth, its frames rendered through ``lens`` (a :class:`~mosaic_cli.geometry.lens.Lens`, or None)."""
+        self.lens = None if lens is None else lens.to_json()
+        return self
+
     def to_json(self) -> dict:
         def mats(a):
             return [[[float(v) for v in row] for row in m] for m in a]
@@ -109,6 +120,8 @@ class GroundTruth:
             h, K = self.size[1], self.row_bands.shape[1]
             doc["rolling_shutter"] = {**self.rolling, "bands": K, "band_rows": [float(r) for r in band_centres(h, K)],
                                       "row_bands": [mats(bands) for bands in self.row_bands]}
+        if self.lens is not None:  # likewise pinhole flights
+            doc["lens"] = self.lens
         return doc
 
     def save(self, path: str | Path) -> None:
@@ -150,6 +163,8 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
             rs = data["rolling_shutter"]
             gt.rolling = {key: float(rs[key]) for key in ("readout", "vibration_hz", "vibration_px")}
             gt.row_bands = np.array(rs["row_bands"], dtype=np.float64).reshape(len(M), int(rs["bands"]), 3, 3)
+        if isinstance(data.get("lens"), dict):
+            gt.lens = dict(data["lens"])
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise BadInput(f"{p}: malformed ground-truth file ({exc.__class__.__name__}: {exc})") from None
     if len(M) < 2 or len(smooth) != len(M) or len(pairwise) != len(M) - 1:

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.geometry import frame_corners, resize_matrix
+from mosaic_cli.geometry.lens import Lens, distorted_grid
 from mosaic_cli.geometry.rolling_shutter import row_frame_to_ref
 from mosaic_cli.simulate.bursts import CODES, PIXEL_KINDS
 from mosaic_cli.simulate.trajectory import FlightPlan
@@ -112,6 +113,43 @@ def render_rolling(pyramid: MapPyramid, band_map_to_frame: np.ndarray, size: tup
     return cv2.addWeighted(a, 1.0 - frac, remap(k0 + 1), frac, 0.0)
 
 
+class LensGrid:
+    """A lens's view of the pinhole frame, for :func:`render_lens`: for each pixel of the
+    distorted frame, the pinhole pixel (camera ``lens.K``) it shows (``x``, ``y``: (h, w)), and
+    the lens's largest local stretch (pinhole pixels per frame pixel), which the pyramid level
+    allows for so that the squeezed edges of a wide lens do not alias."""
+
+    def __init__(self, lens: Lens):
+        self.x, self.y = distorted_grid(lens)
+        # per frame-pixel step along x and along y, the length of the pinhole step it makes
+        self.stretch = float(max(np.max(np.hypot(np.gradient(self.x, axis=axis), np.gradient(self.y, axis=axis))) for axis in (0, 1)))
+
+
+def render_lens(pyramid: MapPyramid, map_to_frame: np.ndarray, grid: LensGrid) -> np.ndarray:
+    """One anti-aliased RGB frame seen through a lens: each pixel shows the map where the
+    pinhole frame of ``map_to_frame`` has the pixel ``grid`` gives it, by one ``cv2.remap`` per
+    pyramid level (one resampling of the map, as :func:`render_view`)."""
+    h, w = grid.x.shape
+    F = np.linalg.inv(map_to_frame)  # pinhole frame -> map
+    scale = max_scale(F, (w, h)) * max(grid.stretch, 1.0)
+    lod = 2.0 * np.log2(scale) if scale > 1.0 else 0.0
+    k0 = int(np.floor(lod))
+    frac = lod - k0
+
+    def remap(k: int) -> np.ndarray:
+        img, S = pyramid.level(k)
+        G = S @ F
+        z = G[2, 0] * grid.x + G[2, 1] * grid.y + G[2, 2]
+        u = (G[0, 0] * grid.x + G[0, 1] * grid.y + G[0, 2]) / z
+        v = (G[1, 0] * grid.x + G[1, 1] * grid.y + G[1, 2]) / z
+        return cv2.remap(img, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT101)
+
+    a = remap(k0)
+    if frac < 1e-3:
+        return a
+    return cv2.addWeighted(a, 1.0 - frac, remap(k0 + 1), frac, 0.0)
+
+
 def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, seed: int) -> np.ndarray:
     """Motion blur, contrast, vignetting, exposure gain and sensor noise of frame ``t`` (degraded profiles),
     and the burst that spoils it, if any (:mod:`mosaic_cli.simulate.bursts`)."""
@@ -187,13 +225,17 @@ def vignette_map(size: tuple[int, int], strength: float) -> np.ndarray:
     return (1.0 - strength * r2 * r2 * (3 - 2 * r2)).astype(np.float32)
 
 
-def render_frames(map_rgb: np.ndarray, plan: FlightPlan) -> Iterator[np.ndarray]:
-    """Stream the RGB uint8 frames (h, w, 3) of ``plan`` over ``map_rgb``."""
+def render_frames(map_rgb: np.ndarray, plan: FlightPlan, lens: Lens | None = None) -> Iterator[np.ndarray]:
+    """Stream the RGB uint8 frames (h, w, 3) of ``plan`` over ``map_rgb``; ``lens``: seen
+    through it (the plan's homographies are then its pinhole frames', camera ``lens.K``)."""
     if (map_rgb.shape[1], map_rgb.shape[0]) != tuple(plan.map_size) and tuple(plan.map_size) != (0, 0):
         raise ValueError(f"plan made for a {plan.map_size} map, got {map_rgb.shape[1]}x{map_rgb.shape[0]}")
     pyramid = MapPyramid(map_rgb)
+    grid = None if lens is None else LensGrid(lens.at(plan.size))
     for t in range(plan.frames):
-        if plan.row_bands is not None and plan.rolling is not None and plan.rolling.readout > 0:
+        if grid is not None:
+            frame = render_lens(pyramid, plan.map_to_frame[t], grid)
+        elif plan.row_bands is not None and plan.rolling is not None and plan.rolling.readout > 0:
             frame = render_rolling(pyramid, plan.row_bands[t], plan.size)
         else:
             frame = render_view(pyramid, plan.map_to_frame[t], plan.size)

@@ -14,7 +14,7 @@ import re
 import subprocess
 import tempfile
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -572,6 +572,57 @@ def _widen_pipe(pipe, frame_bytes: int) -> None:
         fcntl.fcntl(pipe.fileno(), setpipe, min(max(frame_bytes, 1 << 16), limit))
 
 
+# --lens: each input's frames seen through a filter (the lens's undistortion), keyed by the
+# input's resolved path and set for the length of a command (:func:`seen_through`).  Every
+# reader of that input (the estimator's pass, the probes, the stitch's scan, the stabiliser's
+# render) then sees the same undistorted frames, remapped once as they are decoded; its outputs
+# (a stabilised video measured afterwards) are left alone.
+_SEEN_THROUGH: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
+
+
+@contextlib.contextmanager
+def seen_through(path: str | Path, image_filter: Callable[[np.ndarray], np.ndarray] | None) -> Iterator[None]:
+    """While inside, the frames :func:`open_video` and :func:`frames_at` read from ``path`` are
+    ``image_filter(plane)`` of each decoded image (h, w) or (h, w, C), keeping its size; yuv420p
+    frames are filtered plane by plane.  None: nothing changes."""
+    key = str(Path(path).resolve())
+    if image_filter is None:
+        yield
+        return
+    _SEEN_THROUGH[key] = image_filter
+    try:
+        yield
+    finally:
+        _SEEN_THROUGH.pop(key, None)
+
+
+def _filtered(path: str | Path, frames: Iterator, size: tuple[int, int], yuv420p: bool) -> Iterator:
+    """``frames`` through the filter set for ``path`` (:func:`seen_through`), if any."""
+    image_filter = _SEEN_THROUGH.get(str(Path(path).resolve())) if _SEEN_THROUGH else None
+    if image_filter is None:
+        return frames
+
+    def planes(flat: np.ndarray) -> np.ndarray:
+        w, h = size
+        cw, ch = (w + 1) // 2, (h + 1) // 2
+        flat = np.asarray(flat).reshape(-1)
+        out = np.empty_like(flat)
+        out[:w * h] = image_filter(flat[:w * h].reshape(h, w)).reshape(-1)
+        for k in range(2):
+            at = w * h + k * cw * ch
+            out[at:at + cw * ch] = image_filter(flat[at:at + cw * ch].reshape(ch, cw)).reshape(-1)
+        return out
+
+    def through(frame):
+        if isinstance(frame, YuvFrame):
+            return YuvFrame(planes(frame._flat), frame.size)
+        if yuv420p:
+            return planes(frame).reshape(frame.shape)
+        return image_filter(np.asarray(frame))
+
+    return (through(frame) for frame in frames)
+
+
 def open_video(
     path: str | Path,
     width: int | None = None,
@@ -599,6 +650,7 @@ def open_video(
         stream = open_folder(p, width, fps, gray)
         if start:
             stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
+        stream._frames = _filtered(p, stream._frames, stream.info.size, False)
         return stream
     if info is None:
         info = probe(p)
@@ -610,7 +662,7 @@ def open_video(
     decoder = Decoder(info, pixels, size, start=int(start) if start else None, lazy_rgb=lazy_rgb)
 
     def frames() -> Iterator[np.ndarray]:
-        yield from decoder
+        yield from _filtered(p, iter(decoder), size, yuv420p)
         stream.decode_error = decoder.error
 
     stream = VideoStream(info, frames(), decoder.close)
@@ -634,7 +686,7 @@ def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None,
     else:
         request = {"picks": [int(k) for k in indices]}
     with Decoder(info, "rgb", scaled_size(info.source_size, width), **request) as decoder:
-        yield from decoder
+        yield from _filtered(info.path, iter(decoder), scaled_size(info.source_size, width), False)
 
 
 def frame_at(info: VideoInfo, seconds: float, width: int | None = None, near: bool = False) -> np.ndarray | None:
