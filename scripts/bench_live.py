@@ -11,7 +11,7 @@ machine; say how loaded it was beside it.
         scan lag of each frame behind the sender, backlog when the stream ends, preview cost,
         placement error of the final panorama
     python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2] [--latency 1] [--hog N]
-                                            [--model tilt,similarity]
+                                            [--model tilt,similarity] [--profile shaky-tilt]
         frames in / out / received, latency p50/p95/max from arrival off the decoder to the
         encoded frame's last UDP datagram received (and to the hand-over to the encoder), the
         time of each stage, residual jitter against the offline L1 path on the same frames
@@ -225,7 +225,7 @@ def bench_stabilize(args) -> list[dict]:
     rows = []
     models = args.model.split(",") if args.model else [StabilizeOptions().model]
     for seed, model in ((seed, model) for seed in range(args.clips) for model in models):
-        video = flight("shaky", args.frames, seed=seed)
+        video = flight(args.profile, args.frames, seed=seed)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
         options = StabilizeOptions(estimator=args.estimator, latency=args.latency, model=model)  # the offline run ignores the latency
         port, out_port = free_port(), free_port()
@@ -274,7 +274,8 @@ def bench_stabilize(args) -> list[dict]:
             print("   ", line)
     print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
           f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
-          + (f" --hog {args.hog}" if args.hog else "") + (f" --model {args.model}" if args.model else ""))
+          + (f" --hog {args.hog}" if args.hog else "") + (f" --model {args.model}" if args.model else "")
+          + (f" --profile {args.profile}" if args.profile != "shaky" else ""))
     return rows
 
 
@@ -550,6 +551,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
     parser.add_argument("--model", default=None, help="stabilize: correction models, comma-separated (default: the command's)")
+    parser.add_argument("--profile", default="shaky", help="stabilize: the simulated flight (shaky, shaky-tilt)")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")

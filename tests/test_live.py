@@ -454,6 +454,7 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
 
     def held_back(options):
         assert connected.wait(45), "the load waited for a sender that never connected"
+        time.sleep(1.0)  # a second of frames comes before the network is there
         return build(options)
 
     monkeypatch.setattr(live_stabilize, "_estimator", held_back)
@@ -473,3 +474,29 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
     thread.join(RUN_LIMIT)
     assert connected.is_set()
     assert result.frames_in == result.frames_out == FRAMES and count_frames(out) == FRAMES
+    assert any("tracked by ORB while the network loaded" in n for n in result.notes), result.notes
+
+
+def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(shaky_flight):
+    """Frames tracked by ORB until the network has loaded, then by the network from the last
+    frame ORB saw: one estimate per pair, in order, none lost or made twice, each close to the truth."""
+    import concurrent.futures
+
+    from mosaic_cli.estimators import OrbEstimator
+    from mosaic_cli.live.stabilize import Bridged
+    from mosaic_cli.video import open_video
+
+    video, truth = shaky_flight
+    with open_video(video, width=320, gray=True) as stream:
+        grays = [g for _, g in zip(range(30), stream)]
+    loading: concurrent.futures.Future = concurrent.futures.Future()
+    bridged = Bridged(loading, 320, None, SIZE)
+    estimates = []
+    for k, gray in enumerate(grays):
+        if k == 12:
+            loading.set_result(OrbEstimator(320))  # the "network" arrives after 12 frames
+        estimates += bridged.feed(gray)
+    estimates += bridged.finish()
+    assert bridged.bridged == 12 and len(estimates) == len(grays) - 1
+    H = np.array([e.H for e in estimates])
+    assert np.median(corner_error(H, np.array(truth["pairwise"][:len(grays) - 1]))) < 1.0

@@ -345,15 +345,21 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
                                          info=file_info) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
-        if estimator is None:
-            estimator = loading.result() if loading is not None else _estimator(options)
-        if horizon is None:
-            horizon = Horizon.for_latency(latency, fps, estimator_delay=_delay(estimator))
         if masked is None:
             masked = live_mask(options.mask, size, show_progress)
-        estimator.set_mask(masked.use)
-        estimator.reset(size)
-        gray_size = scaled_size(size, estimator.input_width)
+        tracker: Estimator | Bridged
+        if loading is not None and not loading.done() and (width := _trained_width(options)) is not None:
+            # The network still loads: ORB tracks the frames that come meanwhile, at its width.
+            tracker = Bridged(loading, width, masked.use, size)
+            delay = LIVE_CHUNK - 1
+        else:
+            estimator = estimator or (loading.result() if loading is not None else _estimator(options))
+            estimator.set_mask(masked.use)
+            estimator.reset(size)
+            tracker, width, delay = estimator, estimator.input_width, _delay(estimator)
+        if horizon is None:
+            horizon = Horizon.for_latency(latency, fps, estimator_delay=delay)
+        gray_size = scaled_size(size, width)
         if info.has_audio:
             notes.append(f"{source_name(source)}: the audio ({info.audio_codec}) is not carried by a --latency run")
             if show_progress:
@@ -371,7 +377,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         latencies: list[float] = []
         start = time.monotonic()
         stages = [threading.Thread(target=_stage, args=(schedule, job), daemon=True, name=f"stabilize-{name}")
-                  for name, job in (("track", lambda: _track(schedule, estimator, inbox)),
+                  for name, job in (("track", lambda: _track(schedule, tracker, inbox)),
                                     ("plan", lambda: _plan(schedule)),
                                     ("render", lambda: _render(schedule, writer, size, border, latencies)))]
         timeline.watch_gc()
@@ -419,6 +425,10 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     warps_array = np.array(schedule.warps).reshape(-1, 3, 3)
     if warps_out is not None:
         write_warps(warps_out, warps_array, size)
+    if isinstance(tracker, Bridged) and tracker.bridged:
+        notes.append(f"the first {tracker.bridged} frames were tracked by ORB while the network loaded")
+        if show_progress:
+            note(notes[-1])
     if schedule.late:
         notes.append(f"{schedule.late} of {frames_in} frames left at their deadline on the path planned so far "
                      f"({schedule.path.held} of them past its end, moving with the camera): tracking or solving ran late")
@@ -453,7 +463,7 @@ def _put(schedule: LiveSchedule, inbox: queue.Queue, item: object) -> None:
             continue
 
 
-def _track(schedule: LiveSchedule, estimator: Estimator, inbox: queue.Queue) -> None:
+def _track(schedule: LiveSchedule, estimator: Estimator | Bridged, inbox: queue.Queue) -> None:
     first = True
     while True:
         try:
@@ -522,6 +532,61 @@ def built_beside(build: Callable[[], Estimator]) -> concurrent.futures.Future:
 
     threading.Thread(target=run, name="stabilize-build", daemon=True).start()
     return future
+
+
+class Bridged:
+    """The network once it has loaded (``loading``), and ORB until then, on the same gray images
+    (``width`` wide): a live stream's first frames, which come while the network loads, are
+    tracked as they come instead of waiting for it.  The network starts from the last frame
+    ORB saw, so that no pair is lost or estimated twice."""
+
+    def __init__(self, loading: concurrent.futures.Future, width: int, use: np.ndarray | None, size: tuple[int, int]):
+        from mosaic_cli.estimators import OrbEstimator
+
+        self.loading, self.use, self.size = loading, use, size
+        self.orb = OrbEstimator(width)
+        self.orb.set_mask(use)
+        self.orb.reset(size)
+        self.current: Estimator = self.orb
+        self.bridged = 0  # frames ORB took
+        self._last: np.ndarray | None = None
+
+    def feed(self, gray: np.ndarray) -> list:
+        handed = []
+        if self.current is self.orb and self.loading.done():
+            network = self.loading.result()  # (its error, if loading failed: the track stage's)
+            network.set_mask(self.use)
+            network.reset(self.size)
+            handed = self.orb.finish()
+            if self._last is not None:
+                handed += network.feed(self._last)  # its first frame: no pair yet
+            self.current = network
+        if self.current is self.orb:
+            self.bridged += 1
+        self._last = gray
+        return handed + self.current.feed(gray)
+
+    def finish(self) -> list:
+        return self.current.finish()
+
+
+def _trained_width(options: StabilizeOptions) -> int | None:
+    """The width a learned estimator's weights were trained at, read from their header alone
+    (no torch); None where that cannot be read here (the network is then waited for)."""
+    import json
+
+    from safetensors import safe_open
+
+    from mosaic_cli.estimators import DEFAULT_ESTIMATOR, parse_spec
+    from mosaic_cli.estimators.weights import default_weights
+
+    name, spec = parse_spec(options.estimator if options.estimator is not None else ("" if options.weights else DEFAULT_ESTIMATOR))
+    try:
+        weights = spec.get("weights") or options.weights or default_weights(name)
+        with safe_open(str(weights), framework="numpy") as fh:
+            return int(json.loads((fh.metadata() or {}).get("work_size", "[320, 180]"))[0])
+    except Exception:  # noqa: BLE001 - the loading itself reports a bad file, in its own words
+        return None
 
 
 @contextlib.contextmanager
