@@ -24,6 +24,9 @@ machine; say how loaded it was beside it.
     python scripts/bench_live.py stalls     [--estimator lstm] [--frames 600] [--clips 2] [--recover 0.15]
         the live schedule on a test clock over an offline track, with solves that stall now and
         then: residual jitter against the offline L1 path, frames settled at their deadline
+    python scripts/bench_live.py listen     [--clips 5]
+        seconds from starting `mosaic track|stabilize|stitch tcp://...?listen=1` to its socket
+        listening (a sender that connects sooner is refused), median and max of --clips starts
     python scripts/bench_live.py memory     [--frames 54000]
         resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
         sent as fast as mosaic takes it), sampled every second
@@ -71,7 +74,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def wait_listening(port: int, limit: float = 120.0) -> None:
+def wait_listening(port: int, limit: float = 120.0, poll: float = 0.02) -> None:
     needle = f":{port:04X}"
     deadline = time.monotonic() + limit
     while time.monotonic() < deadline:
@@ -79,7 +82,7 @@ def wait_listening(port: int, limit: float = 120.0) -> None:
             fields = line.split()
             if fields[1].upper().endswith(needle) and fields[3] == "0A":
                 return
-        time.sleep(0.02)
+        time.sleep(poll)
     raise SystemExit(f"nothing listened on {port}")
 
 
@@ -307,6 +310,38 @@ def breakdown(live, out_times: np.ndarray) -> list[str]:
         g = 1000 * np.array(timeline.gc_pauses)
         lines.append(f"GC: {len(g)} collections, p95 {np.percentile(g, 95):.1f} ms, max {g.max():.1f} ms")
     return lines
+
+
+def bench_listen(args) -> list[dict]:
+    """How soon each live command listens: a fresh process each time, polled every 10 ms."""
+    rows = []
+    for command in ("track", "stabilize", "stitch"):
+        waits = []
+        for _ in range(args.clips):
+            port = free_port()
+            url = f"tcp://127.0.0.1:{port}?listen=1"
+            out = {"track": ["-o", str(WORKDIR / "listen.json")], "stabilize": [str(WORKDIR / "listen.mp4")],
+                   "stitch": ["-o", str(WORKDIR / "listen.png")]}[command]
+            start = time.monotonic()
+            proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", command, url, *out, "-q"], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL)
+            try:
+                wait_listening(port, limit=60.0, poll=0.01)
+                waits.append(time.monotonic() - start)
+            finally:
+                proc.terminate()  # SIGTERM: mosaic stops its listening ffmpeg too (SIGKILL would leave it)
+                try:
+                    proc.wait(30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        row = {"command": command, "median_s": float(np.median(waits)), "max_s": float(np.max(waits)), "starts": len(waits),
+               "load": load_note()}
+        rows.append(row)
+        print(f"mosaic {command} listens {row['median_s']:.2f} s after it starts (median of {len(waits)}, max {row['max_s']:.2f} s); "
+              f"{row['load']}", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py listen --clips {args.clips}")
+    return rows
 
 
 def receive(args) -> None:
@@ -537,7 +572,7 @@ def bench_stalls(args) -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["track", "stitch", "stabilize", "memory", "horizon", "stalls", "receive"])
+    parser.add_argument("what", choices=["track", "stitch", "stabilize", "listen", "memory", "horizon", "stalls", "receive"])
     parser.add_argument("--recover", type=float, default=0.15, help="stalls: OnlineL1Path.recover")
     parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
     parser.add_argument("--only", default=None, help="memory: only the command starting with this (track, stabilize, stitch)")
@@ -560,10 +595,10 @@ def main() -> None:
         receive(args)
         return
     WORKDIR.mkdir(parents=True, exist_ok=True)
-    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600, "stalls": 600}
+    defaults = {"track": 600, "stitch": 900, "stabilize": 600, "memory": 54000, "horizon": 600, "stalls": 600, "listen": 0}
     args.frames = args.frames or defaults[args.what]
     rows = {"track": bench_track, "stitch": bench_stitch, "stabilize": bench_stabilize, "memory": bench_memory,
-            "horizon": bench_horizon, "stalls": bench_stalls}[args.what](args)
+            "horizon": bench_horizon, "stalls": bench_stalls, "listen": bench_listen}[args.what](args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str) + "\n")
 

@@ -500,3 +500,52 @@ def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(shaky_fl
     assert bridged.bridged == 12 and len(estimates) == len(grays) - 1
     H = np.array([e.H for e in estimates])
     assert np.median(corner_error(H, np.array(truth["pairwise"][:len(grays) - 1]))) < 1.0
+
+
+@pytest.mark.slow
+def test_live_track_and_stitch_listen_while_their_network_is_still_loading(tmp_path, flight, monkeypatch):
+    """As live stabilize: the socket is open before the estimator exists (its load held back
+    until a sender has connected), and every frame sent is tracked, or scanned, once it is."""
+    import concurrent.futures
+
+    import mosaic_cli.stitch.live as stitch_live_module
+    from mosaic_cli.estimators import OrbEstimator
+    from mosaic_cli.live.track import track_stream
+
+    video, _ = flight
+
+    def serve(port: int, connected: threading.Event) -> threading.Thread:
+        def run() -> None:
+            wait_until_bound(port, udp=False)  # listening, though nothing has loaded
+            connected.set()
+            send(video, f"tcp://127.0.0.1:{port}")
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        return thread
+
+    # track: a future of the estimator, set once a sender connected
+    port, connected = free_port(socket.SOCK_STREAM), threading.Event()
+    loading: concurrent.futures.Future = concurrent.futures.Future()
+    threading.Thread(target=lambda: (connected.wait(45), loading.set_result(OrbEstimator(320))), daemon=True).start()
+    sender = serve(port, connected)
+    result = track_stream(f"tcp://127.0.0.1:{port}?listen=1", loading, tmp_path / "live.json", show_progress=False, width=320)
+    sender.join(RUN_LIMIT)
+    assert connected.is_set() and len(result.pairwise) == FRAMES - 1
+
+    # stitch: its estimator's build held back the same way
+    build = stitch_live_module.make_stitch_estimator
+    port, connected = free_port(socket.SOCK_STREAM), threading.Event()
+
+    def held_back(options):
+        assert connected.wait(45), "the load waited for a sender that never connected"
+        return build(options)
+
+    monkeypatch.setattr(stitch_live_module, "make_stitch_estimator", held_back)
+    sender = serve(port, connected)
+    from mosaic_cli.stitch import StitchOptions
+
+    stitched = stitch_live_module.stitch_live(f"tcp://127.0.0.1:{port}?listen=1", tmp_path / "pano.png",
+                                              options=StitchOptions(estimator="orb"), show_progress=False)
+    sender.join(RUN_LIMIT)
+    assert connected.is_set() and (tmp_path / "pano.png").is_file() and stitched.frames == FRAMES

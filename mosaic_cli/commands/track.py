@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import time
 from pathlib import Path
 from typing import Annotated
@@ -28,7 +29,8 @@ from mosaic_cli.commands.options import (
     use_threads,
 )
 from mosaic_cli.errors import BadInput, install_hint, warn
-from mosaic_cli.estimators import plan_estimator
+from mosaic_cli.estimators import Estimator, plan_estimator
+from mosaic_cli.live.loading import built_beside, trained_width
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
 from mosaic_cli.overlay import check_mask_file, frame_mask_pending, frame_mask_while
@@ -95,14 +97,20 @@ def track(
     masked = None
     clock = time.perf_counter()
     if live or is_jsonl(out):
+        tracker: Estimator | concurrent.futures.Future
+        width = None
         if live:  # a live input's mask is made when its first frame gives the size (live_mask)
-            est = build()
+            # A network loads beside the stream's opening (its width read from its weights' header):
+            # the socket listens at once.
+            width = trained_width(estimator, str(weights) if weights else None)
+            tracker = built_beside(build) if width is not None else build()
         else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
             masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
             est.set_mask(masked.use)
+            tracker = est
         overlay_seconds = time.perf_counter() - clock
-        result = track_stream(video, est, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
-                              mask=options.mask if live else None, info=info)
+        result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
+                              mask=options.mask if live else None, info=info, width=width)
         if masked is not None:
             result.meta["mask"] = masked.to_json()
         if not is_jsonl(out):

@@ -29,13 +29,12 @@ Latency is measured per frame from its arrival off the decoder to its hand-over 
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
 import math
 import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,6 +42,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.live.loading import built_beside, trained_width, waited_for
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import (
@@ -348,7 +348,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         if masked is None:
             masked = live_mask(options.mask, size, show_progress)
         tracker: Estimator | Bridged
-        if loading is not None and not loading.done() and (width := _trained_width(options)) is not None:
+        if loading is not None and not loading.done() and (width := trained_width(options.estimator, options.weights)) is not None:
             # The network still loads: ORB tracks the frames that come meanwhile, at its width.
             tracker = Bridged(loading, width, masked.use, size)
             delay = LIVE_CHUNK - 1
@@ -520,20 +520,6 @@ def _estimator(options: StabilizeOptions) -> Estimator:
                           **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
 
 
-def built_beside(build: Callable[[], Estimator]) -> concurrent.futures.Future:
-    """``build()`` on a thread of its own: its estimator (or its error) when the future is asked."""
-    future: concurrent.futures.Future = concurrent.futures.Future()
-
-    def run() -> None:
-        try:
-            future.set_result(build())
-        except BaseException as exc:  # noqa: BLE001 - raised to whoever asks for the estimator
-            future.set_exception(exc)
-
-    threading.Thread(target=run, name="stabilize-build", daemon=True).start()
-    return future
-
-
 class Bridged:
     """The network once it has loaded (``loading``), and ORB until then, on the same gray images
     (``width`` wide): a live stream's first frames, which come while the network loads, are
@@ -568,36 +554,6 @@ class Bridged:
 
     def finish(self) -> list:
         return self.current.finish()
-
-
-def _trained_width(options: StabilizeOptions) -> int | None:
-    """The width a learned estimator's weights were trained at, read from their header alone
-    (no torch); None where that cannot be read here (the network is then waited for)."""
-    import json
-
-    from safetensors import safe_open
-
-    from mosaic_cli.estimators import DEFAULT_ESTIMATOR, parse_spec
-    from mosaic_cli.estimators.weights import default_weights
-
-    name, spec = parse_spec(options.estimator if options.estimator is not None else ("" if options.weights else DEFAULT_ESTIMATOR))
-    try:
-        weights = spec.get("weights") or options.weights or default_weights(name)
-        with safe_open(str(weights), framework="numpy") as fh:
-            return int(json.loads((fh.metadata() or {}).get("work_size", "[320, 180]"))[0])
-    except Exception:  # noqa: BLE001 - the loading itself reports a bad file, in its own words
-        return None
-
-
-@contextlib.contextmanager
-def waited_for(future: concurrent.futures.Future | None) -> Iterator[None]:
-    """On the way out, wait for ``future``'s work to end, however the block ends: a network's
-    loading is never left half done (torch's import) as mosaic exits."""
-    try:
-        yield
-    finally:
-        if future is not None:
-            concurrent.futures.wait([future])
 
 
 def _delay(estimator: Estimator | None) -> int:

@@ -9,6 +9,7 @@ source a ``.json`` or ``.npy`` output is written once, at the end, from every fr
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import itertools
 import json
@@ -23,6 +24,7 @@ import numpy as np
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, estimate_stream
+from mosaic_cli.live.loading import waited_for
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
 from mosaic_cli.overlay import MaskOptions, live_mask
@@ -64,22 +66,36 @@ def _line_sink(out: str | Path, keep_on_failure: bool) -> Iterator[IO[str]]:
     fh.close()
 
 
-def track_stream(source: str | Path, estimator: Estimator, out: str | Path, timeout: float = DEFAULT_TIMEOUT,
+def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.Future, out: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  max_frames: int | None = None, show_progress: bool = True, mask: MaskOptions | None = None,
-                 info: VideoInfo | None = None) -> TrackResult:
+                 info: VideoInfo | None = None, width: int | None = None) -> TrackResult:
     """Track ``source`` (a live source, or a file when ``out`` takes JSON Lines), writing
     each pair as it is estimated when ``out`` takes JSON Lines; returns everything tracked.
     ``mask``: the ``--mask`` of a live input, applied once the stream gives the frame size
     (overlay detection is skipped: see :func:`mosaic_cli.overlay.live_mask`); a file's mask
-    is set on the estimator beforehand; ``info``: a file's probe, when the caller has it."""
+    is set on the estimator beforehand; ``info``: a file's probe, when the caller has it.
+    ``estimator`` may still be loading (a future of it, :func:`~mosaic_cli.live.loading.built_beside`:
+    a live input's stream then opens first, its frames decoded ``width`` wide, and waits for it)."""
+    loading = estimator if isinstance(estimator, concurrent.futures.Future) else None
     live = is_live_source(source)
     pairwise: list[np.ndarray] = []
     confidence: list[float] = []
     paths: list[str | None] = []
-    if live:
-        stream = LiveStream(str(source), "gray", width=estimator.input_width, timeout=timeout, quiet=not show_progress)
-    else:
-        stream = open_video(source, width=estimator.input_width, gray=True, info=info)
+    if loading is not None and (not live or width is None):
+        raise ValueError("a loading estimator goes with a live input and the width it works at")
+    with waited_for(loading):
+        if live:
+            stream = LiveStream(str(source), "gray", width=width if loading is not None else estimator.input_width, timeout=timeout,
+                                quiet=not show_progress)
+        else:
+            stream = open_video(source, width=estimator.input_width, gray=True, info=info)
+        if loading is not None:
+            try:
+                estimator = loading.result()
+            except BaseException:
+                stream.close()  # a failed load: its error, the stream closed first
+                raise
+    assert isinstance(estimator, Estimator)
     lines = is_jsonl(out)
     with stream, (_line_sink(out, keep_on_failure=live) if lines else contextlib.nullcontext()) as sink:
         info = stream.info

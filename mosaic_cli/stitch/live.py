@@ -36,6 +36,7 @@ from mosaic_cli.atomic import atomic_path, check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
+from mosaic_cli.live.loading import built_beside, waited_for
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import LiveStream, is_live_source
 from mosaic_cli.live.timeline import Timeline
@@ -294,7 +295,10 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
     if not live:
         info = info if info is not None else probe(source)
     check_mask_file(options.mask, None if live else info)
-    if estimator is None:
+    loading = None
+    if estimator is None and live:  # the socket listens at once, the network loading beside it
+        loading = built_beside(lambda: make_stitch_estimator(options))
+    elif estimator is None:
         estimator = make_stitch_estimator(options)
     masked = None
     if not live:
@@ -304,8 +308,12 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
-        with LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live, info=info) as stream:
+        with waited_for(loading), LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live,
+                                             info=info) as stream:
             info = stream.info
+            if estimator is None:
+                assert loading is not None
+                estimator = loading.result()
             max_size = options.canvas.max_size
             width = None
             if max_size and max(info.source_size) > max_size:

@@ -1,0 +1,72 @@
+"""A live command's network loaded beside the opening of its stream: the socket listens at once
+(a sender that connects within a second is not refused), and the frames that come meanwhile
+queue.  ``scripts/bench_live.py listen`` times it."""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import gc
+import json
+import threading
+from collections.abc import Callable, Iterator
+from typing import TypeVar
+
+T = TypeVar("T")
+
+
+def built_beside(build: Callable[[], T]) -> concurrent.futures.Future:
+    """``build()`` on a thread of its own: its result (or its error) when the future is asked.
+
+    The cyclic garbage collector waits meanwhile, and what the build made is then frozen out of
+    its later passes: torch's import makes hundreds of thousands of objects, and collecting
+    while it ran stopped every thread of a live run for up to 0.1 s, a few hundred times, as
+    the first frames came in (``bench_live.py stabilize``, cold runs)."""
+    future: concurrent.futures.Future = concurrent.futures.Future()
+
+    def run() -> None:
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            future.set_result(build())
+        except BaseException as exc:  # noqa: BLE001 - raised to whoever asks for the result
+            future.set_exception(exc)
+        finally:
+            if collecting:
+                gc.freeze()
+                gc.enable()
+
+    threading.Thread(target=run, name="mosaic-build", daemon=True).start()
+    return future
+
+
+@contextlib.contextmanager
+def waited_for(future: concurrent.futures.Future | None) -> Iterator[None]:
+    """On the way out, wait for ``future``'s work to end, however the block ends: a network's
+    loading is never left half done (torch's import) as mosaic exits."""
+    try:
+        yield
+    finally:
+        if future is not None:
+            concurrent.futures.wait([future])
+
+
+def trained_width(name: str | None, weights: str | None) -> int | None:
+    """The width a learned estimator (``-e name``, ``--weights``) works at, read from its
+    weights' header alone (no torch); None where that cannot be read here (a bad file: the
+    loading reports it, in its own words)."""
+    from safetensors import safe_open
+
+    from mosaic_cli.estimators import DEFAULT_ESTIMATOR, parse_spec
+    from mosaic_cli.estimators.weights import default_weights
+
+    base, spec = parse_spec(name if name is not None else ("" if weights else DEFAULT_ESTIMATOR))
+    try:
+        path = spec.get("weights") or weights or default_weights(base)
+        with safe_open(str(path), framework="numpy") as fh:
+            return int(json.loads((fh.metadata() or {}).get("work_size", "[320, 180]"))[0])
+    except Exception:  # noqa: BLE001 - see above
+        return None
+
+
+__all__ = ["built_beside", "trained_width", "waited_for"]
