@@ -549,3 +549,68 @@ def test_live_track_and_stitch_listen_while_their_network_is_still_loading(tmp_p
                                               options=StitchOptions(estimator="orb"), show_progress=False)
     sender.join(RUN_LIMIT)
     assert connected.is_set() and (tmp_path / "pano.png").is_file() and stitched.frames == FRAMES
+
+
+@pytest.mark.slow
+def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_and_says_so(tmp_path, shaky_flight, monkeypatch):
+    """Every `tilt` solve takes longer than the whole budget (fault injected), its similarity
+    part does not: the run switches once the frames keep leaving at their deadline, says so in
+    one line, and the frames after the switch leave on a planned path again."""
+    from mosaic_cli.live.stabilize import KEEP_UP_AFTER, stabilize_live
+    from mosaic_cli.stabilize import StabilizeOptions
+    from mosaic_cli.stabilize.online import OnlineL1Path
+
+    solve = OnlineL1Path.solve
+
+    def slow_tilt(self, window):
+        if not self.similar_only:
+            time.sleep(1.5)
+        return solve(self, window)
+
+    monkeypatch.setattr(OnlineL1Path, "solve", slow_tilt)
+    video, _ = shaky_flight
+    port = free_port(socket.SOCK_STREAM)
+    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")), daemon=True)
+    sender.start()
+    result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(tmp_path / "steady.mp4"),
+                            StabilizeOptions(estimator="orb", latency=1.0, model="tilt"), show_progress=False)
+    sender.join(RUN_LIMIT)
+    assert result.frames_in == result.frames_out == 150
+    assert result.simplified_at is not None and KEEP_UP_AFTER < result.simplified_at < 150
+    assert any("could not keep up live" in n for n in result.notes)
+    # The solve under way when it switched still ends late (1.5 s of frames); the last frames are on time.
+    before, after = result.lateness[:result.simplified_at], result.lateness[-15:]
+    assert before.mean() > 0.5 and after.mean() < 0.1, (before.mean(), after.mean())
+
+
+def test_a_path_planned_as_a_similarity_lets_the_settled_tilt_fade_out_smoothly():
+    """After the switch, a window's similarity part is the similarity program's own, and the
+    perspective terms the settled frames carried fall to zero over ``rejoin`` frames, never
+    in one step."""
+    from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
+    from mosaic_cli.stabilize.path import MODELS, fit_model
+    from mosaic_cli.stabilize.smoothing import solve_window
+
+    rng = np.random.default_rng(0)
+    path = OnlineL1Path(MODELS["tilt"], (640, 360), None, Horizon.for_latency(1.0, 30.0, 3))
+    path.push()
+    for _ in range(60):
+        H = np.eye(3)
+        H[0, 2], H[1, 2] = 4 + rng.normal(0, 2), rng.normal(0, 2)
+        H[2, :2] = rng.normal(0, 4e-5, 2)
+        path.push(H, 1.0)
+    window = path.pose()
+    path.adopt(window, path.solve(window))
+    path.commit(40)
+    path.similar_only = True
+    window = path.pose()
+    params = path.solve(window)
+    carried, tilt = len(window.fixed), slice(4, 6)
+    assert np.any(window.fixed[-1, tilt] != 0)  # there is a tilt to fade out
+    np.testing.assert_array_equal(params[:carried], window.fixed)
+    similar = solve_window(fit_model(window.motion, MODELS["similarity"]), MODELS["similarity"], window.fixed[:, :4], (640, 360),
+                           None, path.options)
+    np.testing.assert_allclose(params[:, :4], similar, atol=1e-9)
+    steps = np.abs(np.diff(params[carried - 1:, tilt], axis=0)).max(axis=0)
+    assert np.all(steps <= 1.01 * np.abs(window.fixed[-1, tilt]) * np.pi / (2 * path.rejoin))  # a cosine's steepest step
+    assert np.all(params[carried + path.rejoin:, tilt] == 0)

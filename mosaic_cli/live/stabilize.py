@@ -71,6 +71,10 @@ LIVE_CHUNK = 4  # a learned estimator's frame pairs per batch: its answer comes 
 ENCODE_RESERVE = 0.05
 TRACK_QUEUE = 2 * LIVE_CHUNK  # gray images waiting for the tracker: two of a learned estimator's batches
 RECENT = 60  # the adaptive figures are the 90th percentile of this many recent samples
+# A gated correction (tilt) that leaves more than this share of the last RECENT frames at their
+# deadline, past the first KEEP_UP_AFTER frames, is planned as a similarity from then on.
+LATE_SHARE = 0.1
+KEEP_UP_AFTER = 90
 STAGES = ("arrived", "taken", "estimated", "settled", "render", "handed")
 
 
@@ -93,6 +97,8 @@ class LiveStabilizeResult:
     lookahead_min: int = 0  # the shortest lookahead the adaptation chose
     timeline: Timeline | None = None
     rejoined: int = 0  # plans joined to frames settled at their deadline while they were solved
+    simplified_at: int | None = None  # the frame from which `tilt` was planned as a similarity (it could not keep up)
+    lateness: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per frame rendered: settled at its deadline
 
     def latency(self, q: float) -> float:
         return float(np.percentile(self.latencies, q)) if len(self.latencies) else 0.0
@@ -122,6 +128,7 @@ class _Frame:
     arrived: float  # off the decoder
     taken: float  # by the stabiliser: its deadline counts from here
     warp: np.ndarray | None = None
+    late: bool = False  # settled at its deadline
 
 
 class Abandoned(RuntimeError):
@@ -159,6 +166,9 @@ class LiveSchedule:
         self.stale = 0
         self.lookahead_min = path.horizon.lookahead
         self.solve_seconds = Recent()
+        self.recent_late: deque[bool] = deque(maxlen=RECENT)  # whether each of the last frames rendered was settled at its deadline
+        self.lateness: list[bool] = []  # the same, for every frame rendered
+        self.simplified_at: int | None = None  # the frame from which a gated model (tilt) was planned as a similarity
         self.track_lag = Recent()  # taken -> motion known
         self.render_seconds = Recent()  # taken by the renderer -> handed to the encoder
 
@@ -257,6 +267,7 @@ class LiveSchedule:
             while True:
                 if self._frames and self._frames[0].warp is not None:
                     self.rendered += 1
+                    self._keep_up(self._frames[0].late)
                     self.cond.notify_all()
                     return self._frames.popleft()
                 if not self._frames and self.planned_all:
@@ -277,8 +288,22 @@ class LiveSchedule:
         count = 1
         while count < len(self._frames) and self.deadline(self._frames[count]) <= now:
             count += 1
+        for k in range(count):
+            self._frames[k].late = True
         self.late += count
         self._commit(self.path.settled + count)
+
+    def _keep_up(self, late: bool) -> None:
+        """Whether the correction keeps up: where more than :data:`LATE_SHARE` of the last
+        :data:`RECENT` frames left at their deadline, past the start (torch's and the solver's
+        first calls), a gated model (`tilt`) is planned as a similarity from then on, its
+        programs a third the size (:attr:`OnlineL1Path.similar_only`)."""
+        self.recent_late.append(late)
+        self.lateness.append(late)
+        if (self.simplified_at is None and self.path.model.gated and self.rendered > KEEP_UP_AFTER
+                and len(self.recent_late) == RECENT and sum(self.recent_late) > LATE_SHARE * RECENT):
+            self.path.similar_only = True
+            self.simplified_at = self.rendered
 
     def rendered_one(self, seconds: float) -> None:
         with self.cond:
@@ -429,6 +454,11 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         notes.append(f"the first {tracker.bridged} frames were tracked by ORB while the network loaded")
         if show_progress:
             note(notes[-1])
+    if schedule.simplified_at is not None:
+        notes.append(f"--model {options.model} could not keep up live from frame {schedule.simplified_at} on "
+                     f"(frames left at their deadline): its similarity part alone was planned from there")
+        if show_progress:
+            note(notes[-1])
     if schedule.late:
         notes.append(f"{schedule.late} of {frames_in} frames left at their deadline on the path planned so far "
                      f"({schedule.path.held} of them past its end, moving with the camera): tracking or solving ran late")
@@ -437,7 +467,8 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     return LiveStabilizeResult(frames_in, len(latencies), size, fps, horizon, np.array(latencies),
                                stream.ended_by if live else None, warps_array, time.monotonic() - start, notes,
                                schedule.late, schedule.path.held, schedule.solves, schedule.stale,
-                               schedule.lookahead_min, timeline, schedule.path.rejoined)
+                               schedule.lookahead_min, timeline, schedule.path.rejoined, schedule.simplified_at,
+                               np.array(schedule.lateness, bool))
 
 
 _END = object()

@@ -19,7 +19,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.stabilize.crop import zoom_matrix
-from mosaic_cli.stabilize.path import MotionModel, reduce_motion, to_normalized
+from mosaic_cli.stabilize.path import MODELS, MotionModel, fit_model, reduce_motion, to_normalized
 from mosaic_cli.stabilize.smoothing import CARRIED, L1Smoother, solve_window
 
 # Part of the latency budget left for the work itself (tracking, warping, encoding, queues).
@@ -113,6 +113,7 @@ class OnlineL1Path:
         self._plan_motion = np.zeros((0, 3, 3))  # the motion it was solved with, predicted included
         self._last_good: np.ndarray | None = None
         self._zoom = zoom_matrix(1.0 if self.crop is None else self.crop)
+        self.similar_only = False  # a gated model planned as a similarity from now on (see solve)
 
     def push(self, pairwise: np.ndarray | None = None, confidence: float = 1.0) -> None:
         """The next frame: ``pairwise`` is the previous frame -> this one (pixels), None for the
@@ -152,8 +153,24 @@ class OnlineL1Path:
         return Window(self._start, self.settled, self.frames, motion, fixed)
 
     def solve(self, window: Window) -> np.ndarray:
-        """(n, K) parameters of the window's frames (safe to call from another thread)."""
-        return solve_window(window.motion, self.model, window.fixed, self.size, self.crop, self.options)
+        """(n, K) parameters of the window's frames (safe to call from another thread).  Once
+        :attr:`similar_only` (a live run whose `tilt` could not keep up), a gated model's window
+        is solved as a similarity's, a third of the time, and the perspective terms the settled
+        frames carried fade out over ``rejoin`` frames instead of stopping at once."""
+        if not (self.similar_only and self.model.gated):
+            return solve_window(window.motion, self.model, window.fixed, self.size, self.crop, self.options)
+        similar = MODELS["similarity"]
+        n_similar = similar.n_params
+        fixed = None if window.fixed is None else window.fixed[:, :n_similar]
+        params = solve_window(fit_model(window.motion, similar), similar, fixed, self.size, self.crop, self.options)
+        params = np.pad(params, ((0, 0), (0, self.model.n_params - n_similar)))
+        if window.fixed is not None:
+            carried = len(window.fixed)
+            params[:carried, n_similar:] = window.fixed[:, n_similar:]
+            k = np.arange(1, len(params) - carried + 1)
+            fade = np.where(k < self.rejoin, 0.5 * (1 + np.cos(np.pi * k / self.rejoin)), 0.0)
+            params[carried:, n_similar:] = fade[:, None] * window.fixed[-1, n_similar:]
+        return params
 
     def adopt(self, window: Window, params: np.ndarray) -> bool:
         """Make a solved window the plan.  When frames were settled while it was solved (a
