@@ -266,6 +266,7 @@ def bench_stabilize(args) -> list[dict]:
                "latency to encoded output": percentiles(leave), "latency p95": float(np.percentile(leave, 95)),
                "jitter input": shaky, "jitter live": j_live, "jitter offline": j_off, "ratio": j_live / j_off,
                "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "breakdown": breakdown(live, out_times),
+               "notes": live.notes, "late frames": np.flatnonzero(live.lateness).tolist(),
                "load": load_note()}
         rows.append(row)
         print(f"stabilize --latency {args.latency:g} --model {model} ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
@@ -273,7 +274,7 @@ def bench_stabilize(args) -> list[dict]:
               f"(arrival -> hand-over to the encoder {row['latency to encoder']}); residual jitter live "
               f"{j_live:.3f} px, offline L1 {j_off:.3f} px (x{row['ratio']:.2f}), input {shaky:.3f} px; load average "
               f"{row['load during']} (start -> end of the live run) on {os.cpu_count()} cores", flush=True)
-        for line in row["breakdown"]:
+        for line in row["breakdown"] + [f"frames left at their deadline: {row['late frames']}"] + live.notes:
             print("   ", line)
     print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
           f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")

@@ -552,14 +552,17 @@ def test_live_track_and_stitch_listen_while_their_network_is_still_loading(tmp_p
 
 
 @pytest.mark.slow
-def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_and_says_so(tmp_path, shaky_flight, monkeypatch):
+def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_and_says_so(tmp_path, monkeypatch):
     """Every `tilt` solve takes longer than the whole budget (fault injected), its similarity
-    part does not: the run switches once the frames keep leaving at their deadline, says so in
-    one line, and the frames after the switch leave on a planned path again."""
-    from mosaic_cli.live.stabilize import KEEP_UP_AFTER, stabilize_live
+    part does not: past the start, the run switches once the frames keep leaving at their
+    deadline, says so in one line, and the frames after the switch leave on a planned path again."""
+    from mosaic_cli.live.stabilize import KEEP_UP_AFTER, RECENT, stabilize_live
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize.online import OnlineL1Path
 
+    video = tmp_path / "long.mp4"  # 10 s: the start, the window that decides, and the frames after
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky-tilt", "-n", "300",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
     solve = OnlineL1Path.solve
 
     def slow_tilt(self, window):
@@ -568,18 +571,17 @@ def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_a
         return solve(self, window)
 
     monkeypatch.setattr(OnlineL1Path, "solve", slow_tilt)
-    video, _ = shaky_flight
     port = free_port(socket.SOCK_STREAM)
     sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")), daemon=True)
     sender.start()
     result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(tmp_path / "steady.mp4"),
                             StabilizeOptions(estimator="orb", latency=1.0, model="tilt"), show_progress=False)
     sender.join(RUN_LIMIT)
-    assert result.frames_in == result.frames_out == 150
-    assert result.simplified_at is not None and KEEP_UP_AFTER < result.simplified_at < 150
+    assert result.frames_in == result.frames_out == 300
+    assert result.simplified_at is not None and KEEP_UP_AFTER + RECENT <= result.simplified_at < 300
     assert any("could not keep up live" in n for n in result.notes)
     # The solve under way when it switched still ends late (1.5 s of frames); the last frames are on time.
-    before, after = result.lateness[:result.simplified_at], result.lateness[-15:]
+    before, after = result.lateness[KEEP_UP_AFTER:result.simplified_at], result.lateness[-60:]
     assert before.mean() > 0.5 and after.mean() < 0.1, (before.mean(), after.mean())
 
 

@@ -71,8 +71,8 @@ LIVE_CHUNK = 4  # a learned estimator's frame pairs per batch: its answer comes 
 ENCODE_RESERVE = 0.05
 TRACK_QUEUE = 2 * LIVE_CHUNK  # gray images waiting for the tracker: two of a learned estimator's batches
 RECENT = 60  # the adaptive figures are the 90th percentile of this many recent samples
-# A gated correction (tilt) that leaves more than this share of the last RECENT frames at their
-# deadline, past the first KEEP_UP_AFTER frames, is planned as a similarity from then on.
+# A gated correction (tilt) that leaves more than this share of RECENT frames at their deadline,
+# counted after the first KEEP_UP_AFTER frames, is planned as a similarity from then on.
 LATE_SHARE = 0.1
 KEEP_UP_AFTER = 90
 STAGES = ("arrived", "taken", "estimated", "settled", "render", "handed")
@@ -295,12 +295,15 @@ class LiveSchedule:
 
     def _keep_up(self, late: bool) -> None:
         """Whether the correction keeps up: where more than :data:`LATE_SHARE` of the last
-        :data:`RECENT` frames left at their deadline, past the start (torch's and the solver's
-        first calls), a gated model (`tilt`) is planned as a similarity from then on, its
-        programs a third the size (:attr:`OnlineL1Path.similar_only`)."""
-        self.recent_late.append(late)
+        :data:`RECENT` frames after the first :data:`KEEP_UP_AFTER` (the start: the network's
+        load, the solver's first calls) left at their deadline, a gated model (`tilt`) is
+        planned as a similarity from then on, its programs a third the size
+        (:attr:`OnlineL1Path.similar_only`)."""
         self.lateness.append(late)
-        if (self.simplified_at is None and self.path.model.gated and self.rendered > KEEP_UP_AFTER
+        if self.rendered <= KEEP_UP_AFTER:  # the start's lateness (the network's load) is not the correction's
+            return
+        self.recent_late.append(late)
+        if (self.simplified_at is None and self.path.model.gated
                 and len(self.recent_late) == RECENT and sum(self.recent_late) > LATE_SHARE * RECENT):
             self.path.similar_only = True
             self.simplified_at = self.rendered
