@@ -183,7 +183,9 @@ def _labels(estimators: list[str] | None) -> list[str]:
 def _warm_up(estimator, frames: list[np.ndarray], full_size: tuple[int, int]) -> float | None:
     """On a GPU, one chunk run before the timed pass (ms): CUDA builds its kernels and cuDNN its
     plans on first use (1.6 s for the lstm's first 16 pairs on an H200), which a per-frame figure
-    would otherwise carry.  None on a CPU, where the timed pass starts cold as a command does."""
+    would otherwise carry.  The build now warms the network up itself (``LearnedEstimator.warm_up``,
+    beside the command's other work): this is what is left of it for a real flight's first chunk.
+    None on a CPU, where the timed pass starts cold as a command does."""
     if "cuda" not in str(getattr(estimator, "device", "cpu")):
         return None
     import torch

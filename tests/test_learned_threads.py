@@ -285,3 +285,31 @@ def test_make_estimator_takes_the_pool_size_from_threads(monkeypatch):
     est = make_estimator("lstm", device="cpu")
     est.reset(FULL)
     assert isinstance(est, LearnedEstimator) and est._workers == 5
+
+
+def test_the_builds_warm_up_changes_no_estimate_and_leaves_no_state(tmp_path):
+    """make_learned_estimator runs the network once on blank pairs (CUDA's plans, the first int8
+    calls) before any video: the estimates of a flight are those of an estimator never warmed up,
+    to the bit, and the sequence head starts from no state."""
+    import subprocess
+    import sys
+
+    from mosaic_cli.estimators import estimate_stream
+    from mosaic_cli.estimators.learned import LearnedEstimator, default_weights
+    from mosaic_cli.model import load_weights
+    from mosaic_cli.video import open_video
+
+    video = tmp_path / "flight.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-p", "fast", "-n", "40", "--size", "320x180", "-o", str(video),
+                    "-q"], check=True, timeout=300)
+
+    def track(warm: bool) -> np.ndarray:
+        model, meta = load_weights(default_weights("lstm"), device="cpu")
+        estimator = LearnedEstimator(model, meta, device="cpu", threads=1)
+        if warm:
+            estimator.warm_up()
+            assert estimator._state is None and estimator._pairs_done == 0
+        with open_video(video, width=estimator.input_width, gray=True) as stream:
+            return np.array([e.H for e in estimate_stream(estimator, stream, (320, 180))])
+
+    np.testing.assert_array_equal(track(True), track(False))

@@ -202,6 +202,30 @@ class LearnedEstimator(Estimator):
             self._fallback.set_mask(self.mask)  # the fallback's ORB keypoints and polish skip overlays too
             self._fallback.reset(full_size)
 
+    def warm_up(self) -> None:
+        """Run the network once on a chunk of blank pairs at the trained working size, so that
+        its first real chunk does not pay for CUDA's kernels and cuDNN's plans (1.2-1.3 s on an
+        H200: docs/measurements/gpu.md) or a CPU's first int8 calls.  Called by the build, which
+        the commands run beside other work (the overlay detection, a live stream's opening).
+        Leaves nothing behind: the sequence head's state and the pair count are as they were."""
+        w, h = self.work_size_trained
+        if min(w, h) < self.patch:
+            return
+        kept_state = (self._state, self._pairs_done)
+        kept_positions = (self.positions, self._positions_t) if hasattr(self, "positions") else None  # (after a reset)
+        try:
+            self.positions = patch_positions((w, h), self.patch, self.config.patches)
+            self._positions_t = torch.as_tensor(self.positions, device=self.device)
+            blank = [np.full((h, w), 128, np.uint8)] * self.config.chunk
+            self._state = None
+            self._predict(blank, blank)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+        finally:
+            self._state, self._pairs_done = kept_state
+            if kept_positions is not None:
+                self.positions, self._positions_t = kept_positions
+
     # Streaming ----------------------------------------------------------------------------
 
     def feed(self, frame: np.ndarray) -> list[PairEstimate]:
@@ -545,7 +569,9 @@ def make_learned_estimator(
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
     if on.type == "cpu":  # a command's estimator: --threads, or one (training sets its own)
         use_cpu_threads()
-    return LearnedEstimator(model, meta, device=device, config=config)
+    estimator = LearnedEstimator(model, meta, device=device, config=config)
+    estimator.warm_up()  # here, in the build: beside the work the command runs meanwhile
+    return estimator
 
 
 __all__ = [
