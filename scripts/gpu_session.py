@@ -21,7 +21,9 @@ Stages, each timed into session.log, a summary table printed last (``--stages``:
               backend), the probes (lscpu, nvidia-smi, NVDEC), then, side by side, the wall times
               of track, stabilize and stitch with --device cuda and --device cpu (all cores, and
               track on one thread too) and the plain x264 transcode with the same settings, into
-              gpu_throughput.json (issue 39: docs/measurements/gpu_throughput.json)
+              gpu_throughput.json (issue 39: docs/measurements/gpu_throughput.json); then, while
+              time is left, the default track and stabilize under scripts/profile_command.py
+              (every thread's time) into logs.tar.gz
 
 Back under $OUT (at most 8 files of 16 MB): gpu_throughput.json (throughput), cnn.safetensors, lstm.safetensors (the carry head on
 that cnn: ship the two together), bench.json, tests.xml, logs.tar.gz (every run's log.csv / val.csv,
@@ -461,6 +463,11 @@ def throughput(s: Session) -> str:
         for device in devices:
             runs.append(("stitch", device, None, mosaic("stitch", str(clip), "-o", str(folder / f"pano_{size}_{device}.png"), "--device", device), {}))
         plans.append((size, runs))
+    profiles: list[tuple[str, tuple[str, ...]]] = []  # (name, mosaic's arguments): profiled after round 1
+    for size, runs in plans:
+        for command, device, threads, args, extra in runs:
+            if (command, device, threads, extra) in (("stabilize", p.device, None, {}), ("track", p.device, None, {})):
+                profiles.append((f"{command}_{size}_{device}", args[3:]))  # (after python -m mosaic_cli)
     # Round 1 in order, round 2 (while time is left: its runs are repeats, skipped silently) in
     # reverse, so that a drifting machine weighs on every command alike; the medians are the figures.
     for round_, order in ((1, plans), (2, [(size, runs[::-1]) for size, runs in plans[::-1]])):
@@ -492,6 +499,16 @@ def throughput(s: Session) -> str:
                 report["runs"].append({"command": "vidstab", "device": "cpu", "size": size, "threads": None, "frames": frames, "wall_s": None,
                                        "note": "not run: the machine has no ffmpeg binary, and PyAV's libavfilter has no vid.stab"})
                 save()
+        if round_ == 1:  # where each thread's time goes (scripts/profile_command.py), before the repeats
+            for name, args in profiles:
+                if s.left() < 120:
+                    break
+                text = s.work / f"profile_{name}.txt"
+                proc = s.run(sys.executable, str(ROOT / "scripts" / "profile_command.py"), "--top", "40", "--out", str(text), "--", *args,
+                             timeout=max(30.0, min(200.0, s.left() - 60)), check=False)
+                if text.is_file():
+                    s.logs.append(text)
+                s.say(f"  profiled {name}: {'ok' if text.is_file() else proc.stderr.strip()[-200:]}")
     done = [r for r in report["runs"] if r["wall_s"] is not None]
     return f"{len(done)} of {len(report['runs'])} runs timed into {out.name}"
 

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Prepare what a device call of scripts/gpu_session.sh carries, in .gpu/ (ignored by git):
-#   wheels/     what the device machine lacks (kornia) or holds in other versions (typer, click)
+#   wheels/     what the device machine lacks (kornia; yappi, for scripts/profile_command.py) or holds in
+#               other versions (typer, click)
 #   wheels-rs/  kornia_rs (training calls only: 5 MB)
 #   av/         PyAV (throughput calls only: 36 MB; its libavcodec has libx264 and h264_cuvid)
 #   stills/     a few of ../shared/data's stills reduced to 1600 px, for training (about 6 MB); the
@@ -17,7 +18,7 @@ download() {
   python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d "$@"
 }
-download .gpu/wheels kornia==0.9.0 typer==0.29.2 click==8.5.1 \
+download .gpu/wheels kornia==0.9.0 typer==0.29.2 click==8.5.1 yappi==1.7.6 \
   pydantic==2.14.4 pydantic_core==2.50.5 annotated_types==0.8.0 typing_inspection==0.4.5 annotated_doc==0.0.7
 download .gpu/wheels-rs kornia_rs==0.2.0
 download .gpu/av av==18.1.0

@@ -124,6 +124,10 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert sorted(p.name for p in out.iterdir()) == ["gpu_throughput.json", "logs.tar.gz", "session.log"]
+    with tarfile.open(out / "logs.tar.gz") as tar:  # each thread's time in the default track and stabilize, at both sizes
+        profiles = {m.name: tar.extractfile(m).read().decode() for m in tar.getmembers() if m.name.startswith("profile_")}
+    assert sorted(profiles) == [f"profile_{c}_{s}_cpu.txt" for c in ("stabilize", "track") for s in ("160x96", "320x192")]
+    assert all("exit status 0" in text and "threads" in text for text in profiles.values())
     report = json.loads((out / "gpu_throughput.json").read_text())
     assert report["commit"] == "abc123" and "cores" in report["machine"]
     assert all(set(r) >= {"command", "device", "size", "threads", "frames", "wall_s"} for r in report["runs"])
