@@ -68,3 +68,15 @@ for key, name, longest in (("720p", "aerial_stills/odm_orthomosaic_previews/auke
     print(out, image.shape[1], "x", image.shape[0], out.stat().st_size // 1000, "kB")
 PY
 du -sh .gpu .gpu/*
+# What each call sends, against the 64 MiB a device call takes: the tree (tracked and untracked,
+# not ignored) and what it carries; the throughput call without the two models it moves out.
+tree=$( (git ls-files -z; git ls-files -z --others --exclude-standard) | xargs -0 -r du -cb 2>/dev/null | awk '$2 == "total" {s += $1} END {print s}')
+models=$(du -cb models/cnn.safetensors models/carry.safetensors | tail -1 | cut -f1)
+limit=$((64 * 1024 * 1024))
+for call in "training .gpu/wheels .gpu/wheels-rs .gpu/stills" "throughput .gpu/wheels .gpu/av .gpu/footage"; do
+  set -- $call
+  name=$1; shift
+  size=$((tree + $(du -cb "$@" | tail -1 | cut -f1)))
+  [ "$name" = throughput ] && size=$((size - models))
+  echo "$name call: $((size / 1048576)) MiB of 64 $([ $size -le $limit ] && echo ok || echo 'OVER THE LIMIT')"
+done
