@@ -25,6 +25,7 @@ from mosaic_cli.simulate.render import MapPyramid, render_frames, render_view
 from mosaic_cli.simulate.trajectory import (
     PROFILES,
     FlightPlan,
+    NoiseVibration,
     Profile,
     RollingShutter,
     add_rolling_shutter,
@@ -45,6 +46,7 @@ __all__ = [
     "GroundTruth",
     "FlightPlan",
     "RollingShutter",
+    "NoiseVibration",
     "parse_vibration",
     "parse_lens",
     "Profile",
@@ -186,18 +188,44 @@ def parse_lens(text: str | None, size: tuple[int, int]) -> Lens | None:
     return radial_lens(size, focal[0] if focal else WIDE_FOCAL * size[0], values[0], values[1] if len(values) > 1 else 0.0)
 
 
-def parse_vibration(text: str | None) -> tuple[float, float]:
-    """``--vibration HZ,PX`` -> (hz, px); None or "none" -> no vibration."""
+def parse_vibration(text: str | None) -> tuple:
+    """``--vibration``: the :class:`RollingShutter` fields after the readout.
+
+    ``HZ,PX`` (one tone, as always) -> (hz, px); None or "none" -> (0, 0).  Broadband vibration:
+    items joined by ``+``, each a tone ``HZ,PX`` or band-limited noise ``noise:LO-HI,PX[,DEG]``
+    (between LO and HI Hz, PX 1280-wide px RMS on both shifts, DEG degrees RMS of rotation,
+    default 0), e.g. ``12,2+31,1`` or ``noise:5-40,2.5,0.25`` -> (hz, px, bands, tones, noise)
+    with the first tone in (hz, px)."""
+    from mosaic_cli.simulate.trajectory import ROW_BANDS, NoiseVibration
+
     if text is None or text.strip().lower() in ("", "none", "0"):
         return 0.0, 0.0
-    parts = text.split(",")
-    try:
-        hz, px = (float(v) for v in parts)
-    except ValueError:
-        raise BadInput(f"--vibration must be HZ,PX (e.g. 12,3), got {text!r}") from None
-    if not (np.isfinite(hz) and np.isfinite(px)):
-        raise BadInput(f"--vibration must be HZ,PX (e.g. 12,3), got {text!r}")
-    return hz, px
+    usage = "--vibration must be HZ,PX (e.g. 12,3), tones joined by + (12,2+31,1) or noise:LO-HI,PX[,DEG] (noise:5-40,2.5,0.25)"
+    tones: list[tuple[float, float]] = []
+    noise = None
+    for item in text.strip().lower().split("+"):
+        item = item.strip()
+        try:
+            if item.startswith("noise:"):
+                band, *rest = item[len("noise:"):].split(",")
+                low, high = (float(v) for v in band.split("-"))
+                if noise is not None or len(rest) not in (1, 2):
+                    raise ValueError
+                values = [float(v) for v in rest]
+                if not all(np.isfinite(values)):
+                    raise ValueError
+                noise = NoiseVibration(low, high, *values)
+            else:
+                hz, px = (float(v) for v in item.split(","))
+                if not (np.isfinite(hz) and np.isfinite(px)):
+                    raise ValueError
+                tones.append((hz, px))
+        except ValueError:
+            raise BadInput(f"{usage}, got {text!r}") from None
+    if noise is None and len(tones) == 1:
+        return tones[0]
+    first = tones[0] if tones else (0.0, 0.0)
+    return first[0], first[1], ROW_BANDS, tuple(tones[1:]), noise
 
 
 def check_outputs(out_path: str | Path, map_path: str | Path | None, options: SimulateOptions) -> None:

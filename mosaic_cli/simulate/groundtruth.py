@@ -15,7 +15,9 @@ A rolling-shutter flight (``mosaic simulate --rolling-shutter R --vibration HZ,P
     "rolling_shutter": {"readout": R, "vibration_hz": f, "vibration_px": a, "bands": K,
                         "band_rows": [K], "row_bands": [N [K 3x3]]}
 
-``row_bands[t][k]`` maps map pixels to frame t as seen by the rows of band k (the camera at
+A flight with broadband vibration (several tones, or ``noise:LO-HI,PX,DEG``) adds
+``"vibration"``: its ``--vibration`` text (``vibration_hz``, ``vibration_px``: the first tone,
+0 for noise alone).  ``row_bands[t][k]`` maps map pixels to frame t as seen by the rows of band k (the camera at
 time t + R * band_rows[k] / h); rows between band centres blend the two bands' inverses
 linearly (:mod:`mosaic_cli.geometry.rolling_shutter`).  ``map_to_frame`` is then the camera at
 the frame's mid time (its centre row) and ``smooth_map_to_frame`` that path without shake or
@@ -58,7 +60,7 @@ class GroundTruth:
     map_name: str
     map_size: tuple[int, int]
     bursts: list[dict] = field(default_factory=list)  # {"frame": t, "kind": k}: frames without a motion cue
-    # Rolling shutter: {"readout", "vibration_hz", "vibration_px"} and the bands' map -> frame
+    # Rolling shutter: {"readout", "vibration_hz", "vibration_px"[, "vibration"]} and the bands' map -> frame
     # (N, K, 3, 3); empty and None for a global-shutter flight.
     rolling: dict = field(default_factory=dict)
     row_bands: np.ndarray | None = None
@@ -86,7 +88,8 @@ class GroundTruth:
             (int(plan.map_size[0]), int(plan.map_size[1])),
             [{"frame": int(b.frame), "kind": str(b.kind)} for b in plan.bursts],
             {} if plan.rolling is None else {"readout": float(plan.rolling.readout), "vibration_hz": float(plan.rolling.vibration_hz),
-                                             "vibration_px": float(plan.rolling.vibration_px)},
+                                             "vibration_px": float(plan.rolling.vibration_px),
+                                             **({"vibration": plan.rolling.describe()} if plan.rolling.broadband else {})},
             None if plan.row_bands is None else np.array(plan.row_bands, dtype=np.float64),
         )
 
@@ -162,6 +165,8 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
         if "rolling_shutter" in data:
             rs = data["rolling_shutter"]
             gt.rolling = {key: float(rs[key]) for key in ("readout", "vibration_hz", "vibration_px")}
+            if "vibration" in rs:  # broadband vibration: the --vibration text
+                gt.rolling["vibration"] = str(rs["vibration"])
             gt.row_bands = np.array(rs["row_bands"], dtype=np.float64).reshape(len(M), int(rs["bands"]), 3, 3)
         if isinstance(data.get("lens"), dict):
             gt.lens = dict(data["lens"])

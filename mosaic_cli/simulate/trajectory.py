@@ -110,32 +110,83 @@ PROFILES: dict[str, Profile] = {
 
 
 @dataclass(frozen=True)
+class NoiseVibration:
+    """Band-limited noise vibration (``--vibration noise:LO-HI,PX[,DEG]``): on each of the x and
+    y shifts (``px`` 1280-wide px RMS) and the rotation about the frame centre (``deg`` degrees
+    RMS), an independent sum of ``NOISE_COMPONENTS`` sinusoids whose frequencies are spread evenly
+    (one drawn in each of as many equal slices) over [``low_hz``, ``high_hz``], with random phases:
+    a flat spectrum over the band, Gaussian to the eye, and an exact function of time."""
+
+    low_hz: float
+    high_hz: float
+    px: float
+    deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.low_hz) and np.isfinite(self.high_hz) and 0.0 < self.low_hz < self.high_hz <= 240.0):
+            raise BadInput(f"--vibration noise:LO-HI needs 0 < LO < HI <= 240 Hz, got {self.low_hz:g}-{self.high_hz:g}")
+        if not (0.0 <= self.px <= 50.0 and 0.0 <= self.deg <= 5.0):
+            raise BadInput(f"--vibration noise: PX in [0, 50] and DEG in [0, 5], got {self.px:g},{self.deg:g}")
+
+    @property
+    def any(self) -> bool:
+        return self.px > 0 or self.deg > 0
+
+    def describe(self) -> str:
+        return f"noise:{self.low_hz:g}-{self.high_hz:g},{self.px:g},{self.deg:g}"
+
+
+@dataclass(frozen=True)
 class RollingShutter:
     """A rolling-shutter camera on a vibrating drone (``mosaic simulate --rolling-shutter R
-    --vibration HZ,PX``): row y of frame t sees the camera at time ``t + readout * y / h``.
+    --vibration ...``): row y of frame t sees the camera at time ``t + readout * y / h``.
 
     Vibration: a sinusoidal shake of the camera at ``vibration_hz``, ``vibration_px`` (1280-wide
     px) of translation in x and y (phases drawn from the seed) and a rotation that moves the
-    frame corners by a fifth of that, added to the trajectory and sampled at each row's time."""
+    frame corners by a fifth of that, added to the trajectory and sampled at each row's time.
+    ``tones``: more such sinusoids, (hz, px) each (``--vibration 12,2+31,1``); ``noise``:
+    band-limited noise on the shifts and the rotation (:class:`NoiseVibration`), as a motor and
+    propellers shake a drone.  All of them are summed, exact functions of time."""
 
     readout: float = 0.0  # fraction of the frame interval, 0..1 (0: global shutter)
     vibration_hz: float = 0.0
     vibration_px: float = 0.0
     bands: int = ROW_BANDS  # row bands of the ground truth (and of the rendering's rule)
+    tones: tuple[tuple[float, float], ...] = ()  # further tones (hz, px), after the first
+    noise: NoiseVibration | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.readout <= 1.0:
             raise BadInput(f"--rolling-shutter must be in [0, 1] (a fraction of the frame interval), got {self.readout:g}")
-        if self.vibration_px < 0 or not 0.0 <= self.vibration_hz <= 240.0:
-            raise BadInput(f"--vibration must be HZ,PX with 0 <= HZ <= 240 and PX >= 0, got {self.vibration_hz:g},{self.vibration_px:g}")
-        if self.vibration_px > 50:
-            raise BadInput(f"--vibration amplitude must be at most 50 px, got {self.vibration_px:g}")
+        for hz, px in ((self.vibration_hz, self.vibration_px), *self.tones):
+            if px < 0 or not 0.0 <= hz <= 240.0:
+                raise BadInput(f"--vibration must be HZ,PX with 0 <= HZ <= 240 and PX >= 0, got {hz:g},{px:g}")
+            if px > 50:
+                raise BadInput(f"--vibration amplitude must be at most 50 px, got {px:g}")
         if self.bands < 1:
             raise ValueError(f"row bands must be at least 1, got {self.bands}")
 
     @property
+    def vibrates(self) -> bool:
+        return (self.vibration_px > 0 and self.vibration_hz > 0) or any(px > 0 and hz > 0 for hz, px in self.tones) \
+            or (self.noise is not None and self.noise.any)
+
+    @property
     def any(self) -> bool:
-        return self.readout > 0 or (self.vibration_px > 0 and self.vibration_hz > 0)
+        return self.readout > 0 or self.vibrates
+
+    @property
+    def broadband(self) -> bool:
+        """More than today's one tone: further tones or noise (the truth then records ``vibration``)."""
+        return bool(self.tones) or self.noise is not None
+
+    def describe(self) -> str:
+        """The ``--vibration`` text of this vibration."""
+        items = [f"{self.vibration_hz:g},{self.vibration_px:g}"] if self.vibration_px > 0 or not self.broadband else []
+        items += [f"{hz:g},{px:g}" for hz, px in self.tones]
+        if self.noise is not None:
+            items.append(self.noise.describe())
+        return "+".join(items)
 
 
 @dataclass
@@ -440,14 +491,17 @@ def _effects(rng: np.random.Generator, plan: FlightPlan, deg: Degradation) -> di
 VIBRATION_ROTATION = 0.2  # the vibration's rotation moves the frame corners by this share of its translation
 
 
+NOISE_COMPONENTS = 64  # sinusoids per channel of a noise vibration
+
+
 def add_rolling_shutter(plan: FlightPlan, rolling: RollingShutter) -> FlightPlan:
     """``plan`` seen by a rolling-shutter camera on a vibrating drone.
 
     The trajectory between frames is the cubic spline of the (normalised) entries of
     ``map_to_frame`` over time (extrapolated for the last frame's late rows); the vibration is
-    an exact sinusoid of time.  ``row_bands[t, k]`` is the camera at band k's centre row time,
-    ``map_to_frame[t]`` (and ``smooth_map_to_frame[t]``, without shake or vibration) the
-    camera at the frame's mid time, so pairwise motions stay mid-time to mid-time."""
+    an exact function of time (:func:`vibration_signal`).  ``row_bands[t, k]`` is the camera at
+    band k's centre row time, ``map_to_frame[t]`` (and ``smooth_map_to_frame[t]``, without shake
+    or vibration) the camera at the frame's mid time, so pairwise motions stay mid-time to mid-time."""
     from scipy.interpolate import CubicSpline
 
     if not rolling.any:
@@ -457,12 +511,11 @@ def add_rolling_shutter(plan: FlightPlan, rolling: RollingShutter) -> FlightPlan
     frame_index = np.arange(n, dtype=np.float64)
     shaken = CubicSpline(frame_index, normalize(plan.map_to_frame).reshape(n, 9), axis=0)
     smooth = CubicSpline(frame_index, normalize(plan.smooth_map_to_frame).reshape(n, 9), axis=0)
-    rng = np.random.default_rng([int(plan.seed), 6007])
-    phases = rng.uniform(0.0, 2.0 * np.pi, 3)
+    signal = vibration_signal(plan.size, rolling, plan.seed)
 
     def camera(times: np.ndarray) -> np.ndarray:
         base = shaken(times).reshape(*times.shape, 3, 3)
-        return normalize(vibration_matrix(plan.size, rolling, phases, times / plan.fps) @ base)
+        return normalize(offset_matrix(plan.size, *signal(times / plan.fps)) @ base)
 
     bands = frame_index[:, None] + row_times(band_centres(h, rolling.bands), h, rolling.readout)[None]  # (N, K)
     mid = frame_index + float(row_times(np.array([mid_row(h)]), h, rolling.readout)[0])
@@ -472,22 +525,60 @@ def add_rolling_shutter(plan: FlightPlan, rolling: RollingShutter) -> FlightPlan
     return out
 
 
-def vibration_matrix(size: tuple[int, int], rolling: RollingShutter, phases: np.ndarray, seconds: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the vibration's frame -> frame offset at each time (seconds): a translation of
-    ``vibration_px`` (1280-wide px) amplitude in x and y and a small rotation about the centre."""
+def vibration_signal(size: tuple[int, int], rolling: RollingShutter, seed: int):
+    """``signal(seconds) -> (jx, jy, angle)``: the vibration's shift (frame px) and rotation
+    (radians, about the frame centre) at each time, exactly: the first tone as it always was
+    (phases from the seed's stream 6007), further tones from the same stream after it, the noise
+    from a stream of its own (6011), so that adding either leaves the others unchanged."""
     w, h = size
-    seconds = np.asarray(seconds, dtype=np.float64)
-    amp = rolling.vibration_px * w / REFERENCE_WIDTH
-    rot = VIBRATION_ROTATION * amp / (0.5 * np.hypot(w, h))
-    wave = [np.sin(2.0 * np.pi * rolling.vibration_hz * seconds + p) for p in phases]
-    jx, jy, angle = amp * wave[0], amp * wave[1], rot * wave[2]
+    rng = np.random.default_rng([int(seed), 6007])
+    phases = rng.uniform(0.0, 2.0 * np.pi, 3)
+    tones = [(rolling.vibration_hz, rolling.vibration_px, phases)]
+    tones += [(hz, px, rng.uniform(0.0, 2.0 * np.pi, 3)) for hz, px in rolling.tones]
+    components: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # per channel: freqs, amplitudes, phases
+    noise = rolling.noise
+    if noise is not None and noise.any:
+        nrng = np.random.default_rng([int(seed), 6011])
+        m = NOISE_COMPONENTS
+        for rms in (noise.px * w / REFERENCE_WIDTH, noise.px * w / REFERENCE_WIDTH, np.radians(noise.deg)):
+            freqs = noise.low_hz + (noise.high_hz - noise.low_hz) * (np.arange(m) + nrng.uniform(0.0, 1.0, m)) / m
+            # m sinusoids of amplitude a: RMS a sqrt(m / 2)
+            components.append((freqs, np.full(m, rms * np.sqrt(2.0 / m)), nrng.uniform(0.0, 2.0 * np.pi, m)))
+
+    def signal(seconds: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        seconds = np.asarray(seconds, dtype=np.float64)
+        out = [np.zeros(seconds.shape) for _ in range(3)]
+        for i, (hz, px, ph) in enumerate(tones):
+            if i and not (hz > 0 and px > 0):
+                continue
+            amp = px * w / REFERENCE_WIDTH
+            rot = VIBRATION_ROTATION * amp / (0.5 * np.hypot(w, h))
+            wave = [np.sin(2.0 * np.pi * hz * seconds + p) for p in ph]
+            jx, jy, angle = amp * wave[0], amp * wave[1], rot * wave[2]
+            out = [jx, jy, angle] if i == 0 else [out[0] + jx, out[1] + jy, out[2] + angle]
+        for c, (freqs, amps, ph) in enumerate(components):
+            out[c] = out[c] + np.einsum("m,...m->...", amps, np.sin(2.0 * np.pi * freqs * seconds[..., None] + ph))
+        return out[0], out[1], out[2]
+
+    return signal
+
+
+def offset_matrix(size: tuple[int, int], jx: np.ndarray, jy: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) frame -> frame: a rotation by ``angle`` about the frame centre, then a shift (jx, jy)."""
+    w, h = size
     c, s = np.cos(angle), np.sin(angle)
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
-    J = np.zeros(seconds.shape + (3, 3))
+    J = np.zeros(np.shape(angle) + (3, 3))
     J[..., 0, 0], J[..., 0, 1], J[..., 0, 2] = c, -s, cx - c * cx + s * cy + jx
     J[..., 1, 0], J[..., 1, 1], J[..., 1, 2] = s, c, cy - s * cx - c * cy + jy
     J[..., 2, 2] = 1.0
     return J
+
+
+def vibration_matrix(size: tuple[int, int], rolling: RollingShutter, seed: int, seconds: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the vibration's frame -> frame offset at each time (seconds): a translation of
+    the tones' and noise's shifts in x and y and a small rotation about the centre."""
+    return offset_matrix(size, *vibration_signal(size, rolling, seed)(seconds))
 
 
 def footprints(plan: FlightPlan) -> np.ndarray:
