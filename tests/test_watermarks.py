@@ -63,47 +63,103 @@ def test_the_mask_covers_the_whole_footprint_and_nothing_on_a_clean_flight(fligh
     assert frame_mask(flights["plain"]).use is None
 
 
-def panorama_error(pano: Path, transforms: Path, video: Path, ground: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W) per-pixel error (max over channels) of the panorama against the map drawn
-    through the reference keyframe's placement, and the covered pixels."""
-    image = cv2.cvtColor(cv2.imread(str(pano), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
-    doc = json.loads(transforms.read_text())
-    gt = load_ground_truth(video)
-    truth = []
-    for f in doc["frames"]:
-        to_canvas = np.array(f["H"]) @ gt.map_to_frame[f["index"]]
-        truth.append(cv2.warpPerspective(ground, to_canvas, (image.shape[1], image.shape[0]), flags=cv2.INTER_LINEAR))
-    # Against each keyframe's placement of the map, the nearest (registration drift is not the overlay's).
-    err = np.min([np.abs(image[..., :3].astype(int) - t.astype(int)).max(axis=2) for t in truth], axis=0)
-    return err, image[..., 3] > 0
+HD_SIZE, HD_FRAMES, HD_MAP = (1280, 720), 60, (1536, 1536)
+RIM = 3.0  # px beyond the footprint: the band where a missed soft edge or codec halo shows
+MAX_RIM_EXCESS = 0.1  # gray levels of mean |error| over the clean twin's, on the same pixels
 
 
-def surroundings(video: Path, transforms: Path, canvas: tuple[int, int], grow: int = 12) -> np.ndarray:
-    """(H, W) bool: the overlay footprint, grown by ``grow`` px, drawn through every keyframe."""
-    foot = cv2.dilate(footprint(video).astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1,) * 2))
-    out = np.zeros((canvas[1], canvas[0]), bool)
-    for f in json.loads(transforms.read_text())["frames"]:
-        out |= cv2.warpPerspective(foot, np.array(f["H"]), canvas, flags=cv2.INTER_NEAREST) > 0
+@pytest.fixture(scope="module")
+def hd(tmp_path_factory) -> dict:
+    """A 1280x720 `fast` flight at crf 28 with a half-opaque watermark and the OSD, its clean
+    twin (same seed, no overlays), the map, and the clean twin's panorama."""
+    folder = tmp_path_factory.mktemp("watermarks_hd")
+    ground = procedural_map(HD_MAP, seed=3)
+    plan = plan_flight(HD_MAP, "fast", frames=HD_FRAMES, size=HD_SIZE, seed=3)
+    out = {"ground": ground, "folder": folder}
+    for name, spec in (("plain", None), ("burned", OverlaySpec.parse("watermark:0.5,osd"))):
+        out[name] = folder / f"{name}.mp4"
+        write_flight(out[name], ground, plan, crf=CRF, preset="veryfast", show_progress=False, overlays=spec)
+    out["plain_pano"] = stitched(out["plain"], folder / "plain")
     return out
 
 
+def stitched(video: Path, stem: Path) -> tuple[Path, Path]:
+    pano, tr = stem.with_suffix(".png"), stem.with_suffix(".json")
+    assert cli_exit(["stitch", str(video), "-o", str(pano), "--transforms", str(tr), "-e", "orb", "-q"]) == 0
+    return pano, tr
+
+
+def panorama_error(pano: Path, transforms: Path, video: Path, ground: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) per-pixel error (max over channels) of the panorama against the map drawn
+    through the keyframes' placements (the nearest: registration drift is not the overlay's),
+    and the covered pixels."""
+    image = cv2.cvtColor(cv2.imread(str(pano), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA)
+    doc = json.loads(transforms.read_text())
+    gt = load_ground_truth(video)
+    err = None
+    for f in doc["frames"]:
+        truth = cv2.warpPerspective(ground, np.array(f["H"]) @ gt.map_to_frame[f["index"]], (image.shape[1], image.shape[0]),
+                                    flags=cv2.INTER_LINEAR)
+        e = np.abs(image[..., :3].astype(np.int16) - truth.astype(np.int16)).max(axis=2)
+        err = e if err is None else np.minimum(err, e)
+    return err, image[..., 3] > 0
+
+
+def rim(video: Path, transforms: Path, canvas: tuple[int, int], width: float) -> np.ndarray:
+    """(H, W) bool: the pixels at most ``width`` px beyond the overlay footprint (not inside
+    it), drawn through every keyframe."""
+    foot = footprint(video)
+    dist = cv2.distanceTransform(np.where(foot, 0, 255).astype(np.uint8), cv2.DIST_L2, 5)
+    band = ((dist > 0) & (dist <= width)).astype(np.uint8)
+    out = np.zeros((canvas[1], canvas[0]), bool)
+    for f in json.loads(transforms.read_text())["frames"]:
+        out |= cv2.warpPerspective(band, np.array(f["H"]), canvas, flags=cv2.INTER_NEAREST) > 0
+    return out
+
+
+def on_map(image: np.ndarray, transforms: Path, video: Path, size: tuple[int, int]) -> np.ndarray:
+    """A canvas-sized image drawn back onto the map (``size``), through the first keyframe's
+    true placement: two panoramas of one ground compared pixel by pixel, whatever their canvases."""
+    f = json.loads(transforms.read_text())["frames"][0]
+    to_canvas = np.array(f["H"]) @ load_ground_truth(video).map_to_frame[f["index"]]
+    return cv2.warpPerspective(image, np.linalg.inv(to_canvas), size, flags=cv2.INTER_NEAREST)
+
+
+def rim_excess(hd: dict, name: str) -> tuple[float, int]:
+    """The burned flight's panorama: its mean |error| against the map in the rim ``RIM`` px
+    beyond the footprint, less the clean twin's over the same ground (the flight's own noise:
+    same seed, same keyframes), and the pixels compared."""
+    size = HD_MAP
+    pano, tr = stitched(hd["burned"], hd["folder"] / name)
+    err, covered = panorama_error(pano, tr, hd["burned"], hd["ground"])
+    band = rim(hd["burned"], tr, (err.shape[1], err.shape[0]), RIM) & covered
+    plain_err, plain_covered = panorama_error(*hd["plain_pano"], hd["plain"], hd["ground"])
+    err, band = on_map(err, tr, hd["burned"], size), on_map(band.astype(np.uint8), tr, hd["burned"], size) > 0
+    plain_err = on_map(plain_err, hd["plain_pano"][1], hd["plain"], size)
+    band &= on_map(plain_covered.astype(np.uint8), hd["plain_pano"][1], hd["plain"], size) > 0
+    excess = float(err[band].mean() - plain_err[band].mean())
+    print(f"{name}: rim mean |error| {err[band].mean():.2f}, clean twin {plain_err[band].mean():.2f}, over {np.count_nonzero(band)} px")
+    return excess, int(np.count_nonzero(band))
+
+
 @pytest.mark.slow
-def test_no_panorama_pixel_near_the_overlays_departs_from_the_map_more_than_the_flights_own_noise(flights, tmp_path, capsys):
-    ground = cv2.cvtColor(cv2.imread(str(flights["map"])), cv2.COLOR_BGR2RGB)
-    errors = {}
-    for name in ("plain", "burned"):
-        pano, tr = tmp_path / f"{name}.png", tmp_path / f"{name}.json"
-        code, _, err = run_cli(capsys, "stitch", flights[name], "-o", pano, "--transforms", tr, "-e", "orb", "-q")
-        assert code == 0, err
-        errors[name] = panorama_error(pano, tr, flights[name], ground)
-    err, covered = errors["burned"]
-    near = surroundings(flights["burned"], tmp_path / "burned.json", (err.shape[1], err.shape[0])) & covered
-    plain_err, plain_covered = errors["plain"]
-    # The flight's own noise: the same statistic, over the plain flight's panorama.
-    noise = np.percentile(plain_err[plain_covered], 99.9)
-    print(f"noise {noise:.1f}, near the overlays: p99.9 {np.percentile(err[near], 99.9):.1f} max {err[near].max()}, "
-          f"over noise {np.count_nonzero(err[near] > noise)} of {np.count_nonzero(near)}")
-    assert np.count_nonzero(err[near] > noise) <= 0.001 * np.count_nonzero(near)
+def test_no_panorama_pixel_near_the_overlays_departs_from_the_map_more_than_the_flights_own_noise(hd):
+    """1280x720, crf 28: around a half-opaque watermark and the OSD box, the panorama is as
+    close to the map as the clean twin's; no overlay colour reaches it."""
+    excess, n = rim_excess(hd, "burned")
+    assert n > 2000
+    assert excess <= MAX_RIM_EXCESS, excess
+
+
+@pytest.mark.slow
+def test_the_rim_statistic_sees_an_overlay_edge_left_unmasked(hd, monkeypatch):
+    """The same statistic on the detector without its soft-edge and halo growth (as before
+    issue 40): the white rim and the codec's halo reach the panorama, and the bound above fails."""
+    import mosaic_cli.overlay.detect as detect
+
+    monkeypatch.setattr(detect, "_grow_soft_edges", lambda full, *args, **kwargs: full)
+    excess, _ = rim_excess(hd, "ungrown")
+    assert excess > 2 * MAX_RIM_EXCESS, excess
 
 
 def test_fill_holes_fills_interior_holes_and_leaves_the_border():

@@ -87,6 +87,11 @@ class OverlayOptions:
     # samples' mean still shows it beyond the mask (its soft, anti-aliased rim, H.264's halo
     # at a high crf), at most this many full-resolution px; 0: not grown.
     max_edge_px: int = 4
+    # Codec halos (issue 40): each masked overlay is grown by as far as the samples' mean fine
+    # detail (|Laplacian|) stays raised around it (H.264's ringing at a high crf), at most this
+    # many px at the frames' read resolution; 0: not grown.
+    max_halo_px: int = 16
+    halo_level: float = 0.15  # the halo: detail raised by at least this share of the ground's own ...
     min_edge_area: int = 64  # full-resolution px: smaller masked specks are not grown (no ring to measure)
     edge_level: float = 0.75  # gray levels: the overlay's mean contrast that still counts as its edge ...
     edge_sigmas: float = 4.0  # ... and standard errors of that mean (the ground's own noise, over the ring)
@@ -184,7 +189,7 @@ def detect_overlays(frames: Iterable[np.ndarray], full_size: tuple[int, int], op
         # (flat ground around it), the mask is the region and its margin.
         full = np.minimum(_exclude_at(traced, full_size), _exclude_at(reach, full_size))
         if o.max_edge_px > 0 and first.gray_mean is not None:
-            full = _grow_soft_edges(full, first.gray_mean, len(work), o)
+            full = _grow_soft_edges(full, first.gray_mean, first.detail_mean, len(work), o, bars)
     full[: bars.top] = 255
     full[full.shape[0] - bars.bottom :] = 255
     full[:, : bars.left] = 255
@@ -199,6 +204,7 @@ class _FirstPass:
     size: tuple[int, int]  # (w, h) of the frames as given
     gray_range: tuple[np.ndarray, np.ndarray] | None  # per-pixel gray min and max at that size; None: work is the frames
     gray_mean: np.ndarray | None = None  # (h, w) float32 at that size: the samples' mean gray (the soft edges' evidence)
+    detail_mean: np.ndarray | None = None  # (h, w) float32 at that size: the samples' mean |Laplacian| (the codec halo's evidence)
 
 
 def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass | None:
@@ -208,7 +214,7 @@ def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass |
     work: list[np.ndarray] = []
     shape = None
     lo = hi = None
-    total = None
+    total = detail = None
     for frame in frames:
         if shape is None:
             shape = frame.shape
@@ -218,7 +224,9 @@ def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass |
         gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
         if total is None:
             total = np.zeros(gray.shape, np.float32)
+            detail = np.zeros(gray.shape, np.float32)
         total += gray
+        detail += np.abs(cv2.Laplacian(gray, cv2.CV_32F, borderType=cv2.BORDER_REPLICATE))
         if fine_w <= o.width:
             work.append(frame)
             continue
@@ -230,7 +238,8 @@ def _first_pass(frames: Iterable[np.ndarray], o: OverlayOptions) -> _FirstPass |
             np.maximum(hi, gray, out=hi)
     if shape is None:
         return _FirstPass([], (0, 0), None)
-    return _FirstPass(work, (shape[1], shape[0]), None if lo is None else (lo, hi), total / max(1, len(work)))
+    n = max(1, len(work))
+    return _FirstPass(work, (shape[1], shape[0]), None if lo is None else (lo, hi), total / n, detail / n)
 
 
 def _crops(frames: Iterable[np.ndarray], boxes: list[tuple[int, int, int, int]], count: int) -> list[np.ndarray]:
@@ -415,7 +424,8 @@ def _trace(plan: _TracePlan, crops: list[np.ndarray], work: list[np.ndarray], ed
     return out
 
 
-def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, samples: int, o: OverlayOptions) -> np.ndarray:
+def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, detail: np.ndarray | None, samples: int, o: OverlayOptions,
+                     bars: Letterbox = Letterbox()) -> np.ndarray:
     """``full`` (uint8 (H, W), 255 = overlay) with each overlay grown over its soft edge and
     codec halo, measured: ``mean`` is the samples' mean gray (any size; scaled to ``full``'s).
 
@@ -432,14 +442,25 @@ def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, samples: int, o: Overla
     H, W = full.shape
     if (mean.shape[1], mean.shape[0]) != (W, H):
         mean = cv2.resize(mean, (W, H), interpolation=cv2.INTER_LINEAR)
+    if detail is not None and (detail.shape[1], detail.shape[0]) != (W, H):
+        detail = cv2.resize(detail, (W, H), interpolation=cv2.INTER_LINEAR)
     R = int(o.max_edge_px)
+    halo_r = int(o.max_halo_px) if detail is not None else 0
+    # The ground the halo is measured on: not another overlay, nor a letterbox bar or the rows
+    # its own edge rings (nor the frame's outermost pixels, where the Laplacian sees the border).
+    ground = full == 0
+    edge = BAR_MARGIN + 2
+    ground[: bars.top + edge if bars.top else 2] = False
+    ground[H - (bars.bottom + edge if bars.bottom else 2) :] = False
+    ground[:, : bars.left + edge if bars.left else 2] = False
+    ground[:, W - (bars.right + edge if bars.right else 2) :] = False
     count, labels, stats, _ = cv2.connectedComponentsWithStats((full > 0).astype(np.uint8), connectivity=8)
     out = full.copy()
     for k in range(1, count):
         x, y, w, h = (int(v) for v in stats[k, :4])
         if stats[k, cv2.CC_STAT_AREA] < o.min_edge_area:
             continue
-        pad = 2 * R + 8
+        pad = max(2 * R + 8, halo_r + HALO_FIELD[1] + 2)
         x0, y0, x1, y1 = max(0, x - pad), max(0, y - pad), min(W, x + w + pad), min(H, y + h + pad)
         inside = labels[y0:y1, x0:x1] == k
         m = mean[y0:y1, x0:x1]
@@ -478,9 +499,58 @@ def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, samples: int, o: Overla
             grow, before = d, level
         if grow:
             grow = min(R, grow + 1)
+        if grow and halo_r:
+            # A soft-edged overlay (its rim shows in the mean): the codec halo around it too.
+            # A hard-edged opaque one (a logo, a timestamp) is left to smear_px.
+            grow = max(grow, _halo_rings(detail[y0:y1, x0:x1], dist, ground[y0:y1, x0:x1], halo_r, o))
+        if grow:
             grown = dist <= grow
             out[y0:y1, x0:x1][grown] = 255
     return out
+
+
+HALO_FIELD = (8, 32)  # the ground's own detail is measured this far beyond max_halo_px (px, after the noise rings)
+
+
+def _halo_rings(detail: np.ndarray, dist: np.ndarray, ground: np.ndarray, R: int, o: OverlayOptions) -> int:
+    """How many px of codec halo lie around one overlay (``dist``: each pixel's distance from
+    its mask, in the crop of ``detail``, the samples' mean |Laplacian|); 0 when none shows.
+
+    H.264 quantises an overlay's edge with the ground behind it: ringing and deblocking add
+    fine detail a block or so past the edge, whatever the ground, while the ground moves on.
+    So the mean |Laplacian| of many samples is a smooth field (the ground's mean detail), raised
+    near the overlay as far as its halo reaches.  The field is the mean detail
+    ``R + HALO_FIELD[0]`` to ``R + HALO_FIELD[1]`` px beyond the mask, filled in smoothly
+    (normalised convolution); the rings 1 px wide from ``R`` to ``R + HALO_FIELD[0]`` measure
+    how far that fill is off on ground alone (the noise: their RMS relative excess).  The mask
+    grows by the rings, from the inside, whose relative excess stays above ``halo_level`` and
+    ``edge_sigmas`` times that noise (then one more: the last ring seen is partly beyond), at
+    most ``R``.  An overlay with no halo (a hard edge at a low crf) grows nothing."""
+    near, far = R + HALO_FIELD[0], R + HALO_FIELD[1]
+    band = (dist > near) & (dist <= far) & ground
+    if np.count_nonzero(band) < 64:
+        return 0
+    sigma = max(2.0, R / 2)
+    weight = cv2.GaussianBlur(band.astype(np.float32), (0, 0), sigma)
+    field = cv2.GaussianBlur(detail * band, (0, 0), sigma) / np.maximum(weight, 1e-6)
+    levels = []
+    for d in range(1, near + 1):
+        ring = (dist > d - 1) & (dist <= d) & ground & (weight > 1e-3)
+        expected = float(field[ring].sum()) if np.count_nonzero(ring) >= 8 else 0.0
+        levels.append(float(detail[ring].sum()) / expected - 1.0 if expected > 0 else np.nan)
+    # The noise: how much one ring's level differs from the next's on the ground beyond R
+    # (a smooth field fills in smoothly; what is left from ring to ring is the samples' noise).
+    steps = np.diff(np.array(levels[R - 1 : near]))
+    steps = steps[np.isfinite(steps)]
+    noise = float(np.sqrt(np.mean(steps**2) / 2)) if len(steps) >= 3 else np.inf
+    threshold = max(o.halo_level, o.edge_sigmas * noise)
+    grow, before = 0, np.inf
+    for d in range(1, R + 1):
+        level = levels[d - 1]
+        if not np.isfinite(level) or level < threshold or level > before + threshold:
+            break
+        grow, before = d, level
+    return min(R, grow + 1) if grow else 0
 
 
 def _closed_and_filled(mask: np.ndarray, radius: int) -> np.ndarray:
