@@ -11,10 +11,11 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import cli_exit
 from mosaic_cli.overlay import frame_mask
 from mosaic_cli.simulate import OverlaySpec, load_ground_truth, overlay_mask_path, plan_flight, procedural_map, write_flight
 from mosaic_cli.stitch.compose import fill_holes
-from conftest import cli_exit
+
 
 def run_cli(capsys, *args) -> tuple[int, str, str]:
     """(exit status, stdout, stderr) of ``mosaic ARGS`` run in this process."""
