@@ -79,9 +79,14 @@ def project_rows(frame_to_ref: np.ndarray, points: np.ndarray, height: int) -> n
 
 CHANNELS = ("dx", "dy", "rotation", "scale")
 BAND_SIGMA = 0.5  # Gaussian row weights of a band's fit: sigma in band heights
-BAND_PULL = 0.01  # each band's fit is pulled toward the whole frame's by this share of its weight
-# (both flatten the motion's variation over the rows, which reads as a shorter readout: at
-# sigma 1 and a pull of 0.05 `auto` found 0.7 for 0.9; at 0.5 and 0.01, 0.85)
+# Each band's fit is pulled toward the whole frame's by this share of its weight.  Both flatten
+# the motion's variation over the rows, which reads as a shorter readout (at sigma 1 and a pull
+# of 0.05 `auto` found 0.7 for 0.9; at 0.5 and 0.01, 0.85) and, under broadband vibration
+# (issue 41: noise of 10-25 Hz on the shifts and the rotation, whose motion over the rows is
+# no straight line), left the corrections' error against the truth at 0.096, 0.239, 0.487 px
+# on readouts 0.5, 0.7, 0.9 (640x360); without the pull 0.065, 0.139, 0.296
+# (docs/measurements/rolling-shutter.md).
+BAND_PULL = 0.0
 
 
 def _similarity_rows(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
