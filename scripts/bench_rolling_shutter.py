@@ -29,11 +29,10 @@ import time
 from pathlib import Path
 
 import imageio_ffmpeg
-
-from mosaic_cli.geometry.rolling_shutter import band_centres
 import numpy as np
 
 from mosaic_cli.geometry import project
+from mosaic_cli.geometry.rolling_shutter import band_centres
 from mosaic_cli.simulate import RollingShutter, SimulateOptions, load_ground_truth, parse_vibration, simulate_flight
 from mosaic_cli.stabilize import StabilizeOptions, stabilize
 from mosaic_cli.stabilize.metrics import ground_truth_jitter
