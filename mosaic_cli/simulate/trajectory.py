@@ -15,6 +15,7 @@ the paper (a frame of width w moves ``speed * w / 1280`` of its own pixels per f
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -525,7 +526,7 @@ def add_rolling_shutter(plan: FlightPlan, rolling: RollingShutter) -> FlightPlan
     return out
 
 
-def vibration_signal(size: tuple[int, int], rolling: RollingShutter, seed: int):
+def vibration_signal(size: tuple[int, int], rolling: RollingShutter, seed: int) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """``signal(seconds) -> (jx, jy, angle)``: the vibration's shift (frame px) and rotation
     (radians, about the frame centre) at each time, exactly: the first tone as it always was
     (phases from the seed's stream 6007), further tones from the same stream after it, the noise
