@@ -249,6 +249,45 @@ def test_bad_lens_file_on_the_command_line_is_one_error_line(wide_flight, tmp_pa
     assert_one_line_error(code, err, "aspect")
 
 
+@pytest.mark.parametrize("coefficients", [(-0.3,), (-0.12, -0.09), (-0.48, -0.05), (0.1, -0.05)])
+def test_division_model_round_trips_with_one_or_two_coefficients(coefficients):
+    from mosaic_cli.geometry.lens import division_lens
+
+    lens = division_lens((640, 360), *coefficients)
+    pts = random_pixels(500, (640, 360))
+    for P in (None, lens.K):
+        back = distort_points(lens, undistort_points(lens, pts, P), P)
+        assert np.max(np.abs(back - pts)) < 1e-6
+    # the undistorted frame's every pixel sees the source
+    mx, my = undistort_maps(lens, (640, 360))
+    assert np.all(np.isfinite(mx)) and mx.min() >= -0.5 and mx.max() <= 639.5 and my.min() >= -0.5 and my.max() <= 359.5
+
+
+def test_auto_fits_two_coefficients_to_a_strong_lens_and_a_fisheye():
+    """The fit itself, on exact synthetic matches (no video): pairs of views of random ground
+    points related by homographies, seen through a strong polynomial lens (k1 -0.30 at 71 degrees)
+    and a 120-degree fisheye; the estimate reproduces the corners within 10% (one division
+    coefficient: 27% and 19%)."""
+    from mosaic_cli.estimators.lens import fit_lens
+    from mosaic_cli.geometry.lens import corner_error
+
+    size = (640, 360)
+    rng = np.random.default_rng(5)
+    for truth in (radial_lens(size, 525.0, -0.30, 0.0225), fisheye_lens(size, 320 / np.radians(60))):
+        pairs = []
+        for _ in range(30):
+            a = random_pixels(400, size, int(rng.integers(1 << 30)))
+            shift = rng.uniform(-0.25, 0.25, 2) * size
+            H = np.array([[1, 0.01, shift[0]], [-0.01, 1, shift[1]], [1e-5, 0, 1]])
+            ua = undistort_points(truth, a, truth.K)
+            ub = np.c_[ua, np.ones(len(ua))] @ H.T
+            b = distort_points(truth, ub[:, :2] / ub[:, 2:], truth.K)
+            inside = np.all((b >= 0) & (b <= np.array(size) - 1), axis=1)
+            pairs.append((a[inside], b[inside] + rng.normal(0, 0.1, b[inside].shape)))
+        estimate, _, _ = fit_lens(pairs, size)
+        assert corner_error(estimate, truth) < 0.1 * corner_displacement(truth), (truth.model, estimate)
+
+
 @pytest.mark.slow
 def test_auto_recovers_the_lens_and_leaves_a_pinhole_alone(wide_flight, tmp_path):
     from mosaic_cli.estimators.lens import estimate_lens
@@ -259,8 +298,8 @@ def test_auto_recovers_the_lens_and_leaves_a_pinhole_alone(wide_flight, tmp_path
     truth = read_lens(wide_flight.with_suffix(".gt.json"))
     choice = estimate_lens(probe(wide_flight))
     assert choice.lens is not None
-    # the issue's goal is 10% of the corner displacement; one division coefficient reaches ~15%
-    assert corner_error(choice.lens, truth) < 0.2 * corner_displacement(truth)
+    # the issue's goal: 10% of the corner displacement (one division coefficient reached ~15%)
+    assert corner_error(choice.lens, truth) < 0.1 * corner_displacement(truth)
     pinhole = tmp_path / "pinhole.mp4"
     simulate_flight(pinhole, None, SimulateOptions(profile="survey", frames=40, size=(480, 270), seed=3), show_progress=False)
     assert estimate_lens(probe(pinhole)).lens is None

@@ -1,15 +1,19 @@
 """``--lens auto|none|FILE``: which lens a video is undistorted with, and ``auto``'s estimate.
 
-``auto`` fits one coefficient of the division model (:func:`~mosaic_cli.geometry.lens.division_lens`:
-radius r -> r / (1 + lambda r^2), r in half diagonals, centred) to the video itself.  A homography
-maps one pinhole view of flat ground onto another exactly; through a lens it cannot, and the
-misfit grows toward the corners and with the motion between the two frames.  So: frames sampled
-across the video (decoded small, once), ORB matches between samples 1, 2 and 4 apart (pairs
-that moved by 3-60% of the width), and a bounded 1-D search (scipy's ``minimize_scalar``) over
-lambda for the smallest mean, over the pairs, of the mean reprojection error of each pair's
-homography fitted to the undistorted matches.  The lens is applied only where that residual
-improves on lambda = 0 by :data:`MIN_GAIN` or more and lambda is not negligible (the corner
-displacement above :data:`MIN_CORNER_PX`); otherwise the video is taken as a pinhole's.
+``auto`` fits a radial lens to the video itself.  A homography maps one pinhole view of flat
+ground onto another exactly; through a lens it cannot, and the misfit grows toward the corners
+and with the motion between the two frames.  So: frames sampled across the video (decoded small,
+once), sub-pixel matches between samples 1, 2, 4 and 8 apart (pairs that moved by 3-60% of the
+width, at most :data:`MAX_PAIRS`), and the lens whose undistortion lets each pair's homography fit
+its matches best (:func:`_residual`: the mean error, measured back in the distorted frame).  The
+search: one coefficient of the division model (:func:`~mosaic_cli.geometry.lens.division_lens`,
+radius r -> r / (1 + l1 r^2), r in half diagonals, centred; a bounded 1-D search), and where that
+finds a lens, two coefficients of two families from there (Nelder-Mead): the division model's
+(l1, l2), which follows a fisheye, and OpenCV's radial polynomial (k1, k2 at the half diagonal),
+which is a wide-angle lens's own model; the better fit is kept.  The lens is applied only where
+the residual improves on no lens by :data:`MIN_GAIN` or more and the lens moves the corners by more
+than :data:`MIN_CORNER_PX`; otherwise the video is taken as a pinhole's (and the two-coefficient
+search is not run).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.geometry.lens import Lens, corner_displacement, division_lens, remap_frame, undistort_points
+from mosaic_cli.geometry.lens import Lens, corner_displacement, distort_points, division_lens, radial_lens, remap_frame, undistort_points
 from mosaic_cli.geometry.lens_files import read_lens
 from mosaic_cli.video import VideoInfo
 from mosaic_cli.video.decode import frames_at, seen_through
@@ -37,6 +41,9 @@ MIN_GAIN = 0.15  # the median residual must fall by this fraction over lambda = 
 MIN_CORNER_PX = 0.5  # ... and the lens move the corners this far (px of the sample width) to be applied
 CAP = 0.015  # a match's error counts up to this fraction of the width
 LAMBDA_RANGE = (-0.7, 0.3)  # the search: a strong fisheye (corners 3.3x further out) to a mild pincushion
+LAMBDA2_RANGE = (-0.4, 0.4)  # the second coefficient's (the corners' bend)
+K_RANGE, K2_RANGE = (-0.6, 0.6), (-0.4, 0.4)  # OpenCV's k1, k2 (unit: the half diagonal)
+MAX_PAIRS, MAX_MATCHES = 40, 300  # the fit's sample
 
 
 @dataclass
@@ -62,9 +69,13 @@ class LensChoice:
             return "lens: none"
         if self.estimate is None:
             return f"lens: auto, too few matched pairs ({self.pairs}) to tell: taken as a pinhole"
-        lam = self.estimate.coefficients[0]
+        c = self.estimate.coefficients
+        if self.estimate.model == "division":
+            what = f"division lambda {c[0]:+.3f}" + (f", {c[1]:+.3f}" if len(c) > 1 else "")
+        else:
+            what = f"radial k1 {c[0]:+.3f}, k2 {c[1]:+.3f} (unit: the half diagonal)"
         px = corner_displacement(self.estimate)
-        said = (f"lens: auto, division lambda {lam:+.3f} (corners moved {px:.0f} px), residual "
+        said = (f"lens: auto, {what} (corners moved {px:.0f} px), residual "
                 f"{self.residual_none:.2f} -> {self.residual_fit:.2f} px over {self.pairs} pairs")
         return said + (", frames undistorted" if self.lens is not None else ": a pinhole, left alone")
 
@@ -123,84 +134,173 @@ def estimate_lens(info: VideoInfo, samples: int = SAMPLES) -> LensChoice:
     pairs = _matched_pairs(frames, w)
     if len(pairs) < 3:
         return LensChoice(None, "auto", pairs=len(pairs), seconds=time.perf_counter() - clock)
-    from scipy.optimize import minimize_scalar
-
-    def cost(lam: float) -> float:
-        return _residual(division_lens((w, h), lam), pairs)
-
-    best = minimize_scalar(cost, bounds=LAMBDA_RANGE, method="bounded", options={"xatol": 1e-4})
-    none, fit = cost(0.0), float(best.fun)
-    estimate = division_lens((w, h), float(best.x))
+    estimate, none, fit = fit_lens(pairs, (w, h))
     applied = fit < (1.0 - MIN_GAIN) * none and corner_displacement(estimate) > MIN_CORNER_PX
     return LensChoice(estimate if applied else None, "auto", estimate, none, fit, len(pairs), time.perf_counter() - clock)
+
+
+def fit_lens(pairs: list[tuple[np.ndarray, np.ndarray]], size: tuple[int, int]) -> tuple[Lens, float, float]:
+    """The lens fitted to matched pairs (a, b) of frames of ``size``: (the estimate, the
+    residual with no lens, the residual with it) (px, :func:`_residual`)."""
+    w, h = size
+    pairs = _thinned(pairs)
+    from scipy.optimize import minimize, minimize_scalar
+
+    def cost1(lam: float) -> float:
+        return _residual(division_lens((w, h), lam), pairs)
+
+    def bounded(make, ranges):
+        def cost(x: np.ndarray) -> float:
+            if any(not lo <= v <= hi for v, (lo, hi) in zip(x, ranges)):
+                return float("inf")
+            return _residual(make(*(float(v) for v in x)), pairs)
+        return cost
+
+    def division2(l1: float, l2: float) -> Lens:
+        return division_lens((w, h), l1, l2)
+
+    def polynomial(k1: float, k2: float) -> Lens:
+        return radial_lens((w, h), 0.5 * float(np.hypot(w, h)), k1, k2)
+
+    # one division coefficient first (a bounded 1-D search); where that finds a lens, two
+    # coefficients of each family from there (Nelder-Mead): the division model's (l1, l2) and
+    # OpenCV's radial polynomial (k1, k2; k1 ~ l1 near the centre, halved until the polynomial
+    # covers the frame), the better fit kept
+    one = minimize_scalar(cost1, bounds=LAMBDA_RANGE, method="bounded", options={"xatol": 1e-4})
+    none = cost1(0.0)
+    fit, estimate = float(one.fun), division_lens((w, h), float(one.x))
+    if fit < (1.0 - MIN_GAIN) * none:
+        l1 = float(one.x)
+        for make, ranges, start in ((division2, (LAMBDA_RANGE, LAMBDA2_RANGE), (l1, 0.0)),
+                                    (polynomial, (K_RANGE, K2_RANGE), (l1, 0.0))):
+            cost = bounded(make, ranges)
+            while not np.isfinite(cost(np.array(start))) and abs(start[0]) > 0.01:
+                start = (0.5 * start[0], start[1])
+            simplex = [start, (start[0] + 0.03, start[1]), (start[0], start[1] + 0.03)]
+            res = minimize(cost, np.array(start), method="Nelder-Mead",
+                           options={"initial_simplex": simplex, "xatol": 2e-4, "fatol": 1e-4, "maxfev": 60})
+            if np.isfinite(res.fun) and res.fun < fit:
+                fit, estimate = float(res.fun), make(float(res.x[0]), float(res.x[1]))
+    return estimate, none, fit
+
+
+def _thinned(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """At most :data:`MAX_PAIRS` pairs (spread over the list) of at most :data:`MAX_MATCHES`
+    matches each (every k-th): the fit's cost grows with both, its precision hardly."""
+    if len(pairs) > MAX_PAIRS:
+        pairs = [pairs[int(k)] for k in np.linspace(0, len(pairs) - 1, MAX_PAIRS).round()]
+    out = []
+    for a, b in pairs:
+        step = max(1, int(np.ceil(len(a) / MAX_MATCHES)))
+        out.append((a[::step], b[::step]))
+    return out
 
 
 def _matched_pairs(frames: list[np.ndarray], width: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """ORB matches (a (M, 2), b (M, 2)) between samples ``GAPS`` apart that moved 3-60% of the
     width, gross outliers dropped by a loose homography (a lens's misfit is well under its
-    threshold, a wrong match is not)."""
+    threshold, a wrong match is not).  The candidates are tried in an order spread over the
+    video and the gaps, until :data:`MAX_PAIRS` pairs are found (matching is most of ``auto``'s
+    time)."""
     orb = cv2.ORB_create(nfeatures=1500, fastThreshold=10)
     feats = [orb.detectAndCompute(f, None) for f in frames]
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-    pairs = []
-    for gap in GAPS:
-        for i in range(len(frames) - gap):
-            (ka, da), (kb, db) = feats[i], feats[i + gap]
-            if da is None or db is None or len(ka) < 50 or len(kb) < 50:
-                continue
-            m = matcher.match(da, db)
-            if len(m) < 50:
-                continue
-            a = np.array([ka[x.queryIdx].pt for x in m], dtype=np.float64)
-            b = np.array([kb[x.trainIdx].pt for x in m], dtype=np.float64)
-            H, inl = cv2.findHomography(a, b, cv2.RANSAC, 0.03 * width)
-            if H is None or inl.sum() < 40:
-                continue
-            keep = inl.ravel().astype(bool)
-            shift = float(np.median(np.linalg.norm(a[keep] - b[keep], axis=1)))
-            if not 0.03 * width <= shift <= 0.6 * width:
-                continue
-            # ORB's keypoints sit on its pyramid's coarse grid: the lens's misfit (a fraction of
-            # a pixel away from the corners) needs sub-pixel matches, which LK gives, started
-            # from ORB's homography and checked forward and back.
-            p0 = cv2.goodFeaturesToTrack(frames[i], 1200, 0.005, 6)
-            if p0 is None:
-                continue
-            guess = cv2.perspectiveTransform(p0.astype(np.float32), H)
-            lk = {"winSize": (21, 21), "maxLevel": 2, "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.01)}
-            p1, ok, _ = cv2.calcOpticalFlowPyrLK(frames[i], frames[i + gap], p0.astype(np.float32), guess.copy(),
-                                                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            back, ok2, _ = cv2.calcOpticalFlowPyrLK(frames[i + gap], frames[i], p1, p0.astype(np.float32).copy(),
-                                                    flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
-            good = (ok.ravel() == 1) & (ok2.ravel() == 1) & (np.linalg.norm((back - p0).reshape(-1, 2), axis=1) < 0.3)
-            a2, b2 = p0.reshape(-1, 2)[good].astype(np.float64), p1.reshape(-1, 2)[good].astype(np.float64)
-            if len(a2) < 40:
-                continue
-            # gross outliers out (a lens's misfit stays well under the threshold)
-            H2, inl2 = cv2.findHomography(a2, b2, cv2.RANSAC, 0.02 * width)
-            if H2 is None or inl2.sum() < 40:
-                continue
-            keep = inl2.ravel().astype(bool)
-            pairs.append((a2[keep], b2[keep]))
+    corners: dict[int, np.ndarray | None] = {}
+    pairs: list[tuple[np.ndarray, np.ndarray]] = []
+    candidates = [(i, gap) for gap in GAPS for i in range(len(frames) - gap)]
+    # a bit-reversal order: every prefix spread over the whole list
+    bits = max(1, int(np.ceil(np.log2(max(len(candidates), 2)))))
+    order = sorted(range(len(candidates)), key=lambda k: int(format(k, f"0{bits}b")[::-1], 2))
+    for i, gap in (candidates[k] for k in order):
+        if len(pairs) >= MAX_PAIRS:
+            break
+        (ka, da), (kb, db) = feats[i], feats[i + gap]
+        if da is None or db is None or len(ka) < 50 or len(kb) < 50:
+            continue
+        m = matcher.match(da, db)
+        if len(m) < 50:
+            continue
+        a = np.array([ka[x.queryIdx].pt for x in m], dtype=np.float64)
+        b = np.array([kb[x.trainIdx].pt for x in m], dtype=np.float64)
+        H, inl = cv2.findHomography(a, b, cv2.RANSAC, 0.03 * width)
+        if H is None or inl.sum() < 40:
+            continue
+        keep = inl.ravel().astype(bool)
+        shift = float(np.median(np.linalg.norm(a[keep] - b[keep], axis=1)))
+        if not 0.03 * width <= shift <= 0.6 * width:
+            continue
+        # ORB's keypoints sit on its pyramid's coarse grid: the lens's misfit (a fraction of
+        # a pixel away from the corners) needs sub-pixel matches, which LK gives, started
+        # from ORB's homography and checked forward and back.
+        if i not in corners:
+            corners[i] = cv2.goodFeaturesToTrack(frames[i], 1200, 0.005, 6)
+        p0 = corners[i]
+        if p0 is None:
+            continue
+        guess = cv2.perspectiveTransform(p0.astype(np.float32), H)
+        lk = {"winSize": (21, 21), "maxLevel": 2, "criteria": (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 0.01)}
+        p1, ok, _ = cv2.calcOpticalFlowPyrLK(frames[i], frames[i + gap], p0.astype(np.float32), guess.copy(),
+                                             flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        back, ok2, _ = cv2.calcOpticalFlowPyrLK(frames[i + gap], frames[i], p1, p0.astype(np.float32).copy(),
+                                                flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **lk)
+        good = (ok.ravel() == 1) & (ok2.ravel() == 1) & (np.linalg.norm((back - p0).reshape(-1, 2), axis=1) < 0.3)
+        a2, b2 = p0.reshape(-1, 2)[good].astype(np.float64), p1.reshape(-1, 2)[good].astype(np.float64)
+        if len(a2) < 40:
+            continue
+        # gross outliers out (a lens's misfit stays well under the threshold)
+        H2, inl2 = cv2.findHomography(a2, b2, cv2.RANSAC, 0.02 * width)
+        if H2 is None or inl2.sum() < 40:
+            continue
+        keep = inl2.ravel().astype(bool)
+        pairs.append((a2[keep], b2[keep]))
     return pairs
 
 
 def _residual(lens: Lens, pairs: list[tuple[np.ndarray, np.ndarray]]) -> float:
-    """Mean over the pairs of the mean reprojection error (px, undistorted at the lens's own
-    scale at the centre, each error capped at :data:`CAP` of the width) of each pair's
-    homography fitted to its undistorted matches.  A mean, not a median: the lens's misfit
-    lives in the frame's outer parts, which a median overlooks."""
+    """Mean over the pairs of the mean reprojection error (px of the sample, each error capped at
+    :data:`CAP` of the width) of each pair's homography fitted to its undistorted matches, the
+    error measured where the lens puts the prediction back in the distorted frame.  Measured in
+    the distorted frame, not the undistorted one: undistorting stretches a barrel lens's corners,
+    which would weigh their matches' noise up and pull the fit toward a weaker lens.  The fit is
+    deterministic (least squares, refitted once without the matches beyond three times the
+    median error), so that the search over the coefficients sees a smooth cost.  A mean, not a
+    median: the lens's misfit lives in the frame's outer parts, which a median overlooks."""
     errors = []
+    K = lens.K
+    cap = CAP * lens.size[0]
+    if lens.model == "pinhole" and not _covers(lens):
+        return float("inf")
     for a, b in pairs:
-        ua, ub = undistort_points(lens, a, lens.K), undistort_points(lens, b, lens.K)
-        cap = CAP * lens.size[0]
-        H, _ = cv2.findHomography(ua, ub, cv2.RANSAC, cap)
-        if H is None:
-            continue
-        proj = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ H.T
-        err = np.linalg.norm(proj[:, :2] / proj[:, 2:3] - ub, axis=1)
-        errors.append(float(np.mean(np.minimum(err, cap))))
+        ua, ub = undistort_points(lens, a, K), undistort_points(lens, b, K)
+        if not (np.all(np.isfinite(ua)) and np.all(np.isfinite(ub))):
+            return float("inf")
+        keep = np.ones(len(a), dtype=bool)
+        err = None
+        for _ in range(2):
+            H, _ = cv2.findHomography(ua[keep], ub[keep], 0)
+            if H is None:
+                break
+            proj = np.concatenate([ua, np.ones((len(ua), 1))], 1) @ H.T
+            with np.errstate(invalid="ignore", divide="ignore"):
+                back = distort_points(lens, proj[:, :2] / proj[:, 2:3], K)
+            err = np.linalg.norm(back - b, axis=1)
+            err = np.where(np.isfinite(err), err, cap)
+            keep = err < max(3.0 * float(np.median(err)), 1e-3)
+            if keep.sum() < 8:
+                break
+        if err is not None:
+            errors.append(float(np.mean(np.minimum(err, cap))))
     return float(np.mean(errors)) if errors else float("inf")
+
+
+def _covers(lens: Lens) -> bool:
+    from mosaic_cli.geometry.lens import check_lens_covers
+
+    try:
+        check_lens_covers(lens)
+    except ValueError:
+        return False
+    return True
 
 
 @contextlib.contextmanager

@@ -3,10 +3,12 @@
 * ``pinhole``: the pinhole with radial and tangential distortion, OpenCV's coefficients
   (k1, k2, p1, p2[, k3[, k4, k5, k6]]) (4, 5 or 8 of them).
 * ``fisheye``: OpenCV's equidistant fisheye (``cv2.fisheye``), coefficients k1..k4.
-* ``division``: the one-coefficient division model that ``--lens auto`` estimates: a pixel at
-  normalised radius r (the camera matrix's focal length as the unit) is undistorted to radius
-  r / (1 + lambda r^2), in closed form both ways (Fitzgibbon 2001): barrel lenses up to
-  fisheyes (lambda < 0) never fold back inside the frame, as a radial polynomial can.
+* ``division``: the division model that ``--lens auto`` estimates, with one or two
+  coefficients: a pixel at normalised radius r (the camera matrix's focal length as the unit) is
+  undistorted to radius r / (1 + l1 r^2 + l2 r^4) (Fitzgibbon 2001; one coefficient: in closed
+  form both ways, barrel lenses up to fisheyes never fold back inside the frame; two: the second
+  term bends the corners, which one term cannot do for a strong polynomial lens or a fisheye,
+  and the way back is a dense table of the radius, polished by Newton's method).
 
 A :class:`Lens` holds its camera matrix at a stated calibration size; :meth:`Lens.at` scales it
 to a video's size (OpenCV pixel centres, as :func:`mosaic_cli.geometry.resize_matrix`).
@@ -53,8 +55,8 @@ class Lens:
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"lens model {self.model!r}: pinhole or fisheye")
-        if self.model == "division" and len(self.coefficients) != 1:
-            raise ValueError("a division-model lens has one coefficient (lambda)")
+        if self.model == "division" and len(self.coefficients) not in (1, 2):
+            raise ValueError("a division-model lens has one or two coefficients (l1[, l2])")
         K = np.asarray(self.camera_matrix, dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError("camera matrix: 3x3, finite, with positive focal lengths")
@@ -261,33 +263,73 @@ def frame_to_undistorted(lens: Lens, size: tuple[int, int]) -> np.ndarray:
     return _new_camera(at) @ np.linalg.inv(at.K)
 
 
-def division_lens(size: tuple[int, int], lam: float) -> Lens:
-    """A division-model lens centred on the frame, its unit radius the half diagonal (so that
-    ``lam`` reads the same at any frame size: r / (1 + lam) at the corners)."""
+def division_lens(size: tuple[int, int], lam: float, lam2: float | None = None) -> Lens:
+    """A division-model lens centred on the frame, its unit radius the half diagonal (so that the
+    coefficients read the same at any frame size: r / (1 + lam + lam2) at the corners); ``lam2``
+    None: the one-coefficient model."""
     w, h = size
     unit = 0.5 * float(np.hypot(w, h))
-    return Lens.make("division", size, [[unit, 0, (w - 1) / 2], [0, unit, (h - 1) / 2], [0, 0, 1]], [lam])
+    coefficients = [lam] if lam2 is None else [lam, lam2]
+    return Lens.make("division", size, [[unit, 0, (w - 1) / 2], [0, unit, (h - 1) / 2], [0, 0, 1]], coefficients)
+
+
+def division_denominator(coefficients: tuple[float, ...] | list[float], r2: np.ndarray) -> np.ndarray:
+    """1 + l1 r^2 (+ l2 r^4) at the squared normalised radii ``r2``."""
+    out = 1.0 + coefficients[0] * r2
+    if len(coefficients) > 1:
+        out = out + coefficients[1] * r2 * r2
+    return out
 
 
 def _division_undistort(lens: Lens, pts: np.ndarray, P: np.ndarray) -> np.ndarray:
     K = lens.K
     n = (pts - K[:2, 2]) / np.diag(K)[:2]
     r2 = np.sum(n * n, axis=1, keepdims=True)
-    u = n / (1.0 + lens.coefficients[0] * r2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = n / division_denominator(lens.coefficients, r2)
     return u * np.diag(P)[:2] + P[:2, 2]
 
 
 def _division_distort(lens: Lens, normal: np.ndarray) -> np.ndarray:
-    """Normalised pinhole points (N, 2) -> distorted pixels: r_d solves lam r_u r_d^2 - r_d + r_u = 0,
-    the root that tends to r_u as lam -> 0 (NaN where there is none: past a pincushion's range)."""
-    lam = lens.coefficients[0]
+    """Normalised pinhole points (N, 2) -> distorted pixels.  One coefficient: r_d solves
+    lam r_u r_d^2 - r_d + r_u = 0, the root that tends to r_u as lam -> 0; two: the radius read
+    off a dense table of r_u(r_d) over its increasing range and polished by two Newton steps.
+    NaN where there is none (past the range where the lens's radius grows)."""
     ru = np.linalg.norm(normal, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        disc = np.sqrt(1.0 - 4.0 * lam * ru * ru)
-        # 2 r_u / (1 + sqrt(.)): the stable form of (1 - sqrt(.)) / (2 lam r_u)
-        ratio = np.where(ru > 0, 2.0 / (1.0 + disc), 1.0)
     K = lens.K
+    if len(lens.coefficients) == 1:
+        lam = lens.coefficients[0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            disc = np.sqrt(1.0 - 4.0 * lam * ru * ru)
+            # 2 r_u / (1 + sqrt(.)): the stable form of (1 - sqrt(.)) / (2 lam r_u)
+            ratio = np.where(ru > 0, 2.0 / (1.0 + disc), 1.0)
+        return normal * ratio * np.diag(K)[:2] + K[:2, 2]
+    grid_d, grid_u = _division_table(lens.coefficients)
+    rd = np.interp(ru.ravel(), grid_u, grid_d, right=np.nan)
+    l1, l2 = lens.coefficients
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for _ in range(2):
+            d2 = rd * rd
+            den = 1.0 + l1 * d2 + l2 * d2 * d2
+            f = rd / den - ru.ravel()
+            df = (1.0 - l1 * d2 - 3.0 * l2 * d2 * d2) / (den * den)
+            rd = rd - f / df
+        ratio = np.where(ru.ravel() > 0, rd / np.where(ru.ravel() > 0, ru.ravel(), 1.0), 1.0)[:, None]
     return normal * ratio * np.diag(K)[:2] + K[:2, 2]
+
+
+@functools.lru_cache(maxsize=64)
+def _division_table(coefficients: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(r_d, r_u) sampled densely from the centre out over the range where r_u grows with r_d
+    and the denominator stays positive (at most 4 units: past any frame's corners)."""
+    rd = np.linspace(0.0, 4.0, 16001)
+    den = division_denominator(coefficients, rd * rd)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ru = rd / den
+    ok = (den > 0) & np.isfinite(ru)
+    ok[1:] &= np.diff(ru) > 0
+    end = int(np.argmin(ok)) if not ok.all() else len(rd)
+    return rd[:max(end, 2)], ru[:max(end, 2)]
 
 
 def _division_crop(lens: Lens) -> np.ndarray:
