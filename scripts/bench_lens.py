@@ -55,6 +55,87 @@ def ground_fit(panorama: Path, ground: np.ndarray) -> tuple[float, int]:
     return float(np.median(err[err < 8.0])), int(np.sum(err < 4.0))
 
 
+def straightness(truth, used, warps: np.ndarray, size: tuple[int, int], frames: list[int]) -> float:
+    """How bent straight ground lines come out (px, output frame): lines straight in the true
+    pinhole frame (images of straight ground lines: the ground is a plane) carried through the
+    true lens (the frame as recorded), the lens ``--lens`` used (None: none) and the stabiliser's
+    warp; per line seen across at least half the output, the largest distance of its points from
+    their best straight line; the 95th percentile over the lines of the sampled ``frames``."""
+    from mosaic_cli.geometry.lens import distort_points, undistort_points
+
+    w, h = size
+    bends = []
+    offsets = np.linspace(-0.45, 0.45, 7)
+    for t in frames:
+        for axis in (0, 1):
+            for o in offsets:
+                s = np.linspace(-1.2, 1.2, 400)
+                line = np.stack([s * w + (w - 1) / 2, np.full_like(s, o * h + (h - 1) / 2)], 1) if axis == 0 else \
+                    np.stack([np.full_like(s, o * w + (w - 1) / 2), s * h + (h - 1) / 2], 1)
+                seen = distort_points(truth, line, truth.K) if truth is not None else line
+                inside = np.all(np.isfinite(seen), 1) & np.all((seen >= 0) & (seen <= np.array([w - 1, h - 1])), 1)
+                seen = seen[inside]
+                flat = undistort_points(used, seen) if used is not None else seen
+                out = cv2.perspectiveTransform(flat.reshape(-1, 1, 2), warps[t]).reshape(-1, 2)
+                out = out[np.all((out >= 0) & (out <= np.array([w - 1, h - 1])), 1)]
+                if len(out) < 20 or np.ptp(out[:, axis]) < 0.5 * size[axis]:
+                    continue
+                centre = out.mean(0)
+                _, _, vt = np.linalg.svd(out - centre)
+                bends.append(float(np.max(np.abs((out - centre) @ vt[1]))))
+    return float(np.percentile(bends, 95)) if bends else float("nan")
+
+
+def bench_stabilize(args, size: tuple[int, int]) -> None:
+    """``--stabilize``: a shaky wide-angle flight (and a fisheye one) and its pinhole twin, each
+    stabilised with --lens none, the true lens FILE and auto; the residual jitter of the output
+    against the simulator's smooth path (ground_truth_jitter, in the true pinhole frame's px: the
+    warps composed with the undistortion the lens used, P K^-1, which for the true lens carries
+    the pinhole frame exactly onto the undistorted one) and the straightness of ground lines."""
+    from mosaic_cli.estimators.lens import estimate_lens
+    from mosaic_cli.geometry.lens import frame_to_undistorted
+    from mosaic_cli.simulate import load_ground_truth
+    from mosaic_cli.stabilize.metrics import ground_truth_jitter
+
+    w, h = size
+    map_path = STILLS / HELD_OUT[args.map]
+    rows = []
+    for name in args.flights.split(","):
+        spec = FLIGHTS[name]
+        clip = args.out / f"shaky_{name}.mp4"
+        lens = parse_lens(spec.format(f900=900 * w / 1280, f1050=1050 * w / 1280), (w, h)) if spec else None
+        if not clip.exists():
+            simulate_flight(clip, map_path, SimulateOptions(profile="shaky", frames=args.frames, size=(w, h), seed=2, lens=lens), show_progress=False)
+        gt_path = clip.with_suffix(".gt.json")
+        gt = load_ground_truth(gt_path)
+        truth = read_lens(gt_path).at(size) if spec else None
+        options = {"none": "none", "auto": "auto"} | ({"file": str(gt_path)} if spec else {})
+        for option, value in options.items():
+            out = args.out / f"shaky_{name}_{option}.mp4"
+            warps_path = out.with_suffix(".warps.json")
+            clock = time.perf_counter()
+            run = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(clip), str(out), "--lens", value, "--warps", str(warps_path),
+                                  "--rolling-shutter", "off"], capture_output=True, text=True)
+            seconds = time.perf_counter() - clock
+            if run.returncode:
+                print(name, option, "failed:", run.stderr.strip()[-300:])
+                continue
+            W = np.array(json.loads(warps_path.read_text())["warps"], dtype=np.float64)
+            used = truth if option == "file" else (estimate_lens(probe(clip)).lens if option == "auto" else None)
+            A = np.eye(3) if used is None else frame_to_undistorted(used, size)
+            jitter = ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps, W @ A)
+            row = {"flight": name, "lens": option, "gt_jitter_px": jitter,
+                   "input_jitter_px": ground_truth_jitter(gt.map_to_frame, gt.smooth_map_to_frame, size, gt.fps),
+                   "straightness_px": straightness(truth, used, W, size, list(range(0, gt.frames, 10))),
+                   "stabilize_seconds": seconds}
+            said = [line for line in run.stdout.splitlines() if line.startswith("lens:")]
+            if said:
+                row["said"] = said[0]
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    (args.out / "stabilize.json").write_text(json.dumps({"map": args.map, "frames": args.frames, "size": [w, h], "results": rows}, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/lens"))
@@ -62,9 +143,13 @@ def main() -> None:
     parser.add_argument("--size", default="640x360")
     parser.add_argument("--map", default="boruszyn", choices=sorted(HELD_OUT))
     parser.add_argument("--flights", default=",".join(FLIGHTS))
+    parser.add_argument("--stabilize", action="store_true", help="shaky flights stabilised instead (jitter against the truth, straightness)")
     args = parser.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.stabilize:
+        bench_stabilize(args, (w, h))
+        return
     map_path = STILLS / HELD_OUT[args.map]
     ground = load_map(map_path)
     results = []
