@@ -37,7 +37,7 @@ from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MotionModel, motion_model
 from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border
-from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, RowWarpLater, parse_rolling_shutter
+from mosaic_cli.stabilize.rolling import MidTimeFeed, RollingCorrection, RollingProbe, RowWarpLater, parse_rolling_shutter
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
@@ -152,8 +152,11 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     probe = RollingProbe(info) if mode == "auto" else None
     per_row = RowWarpLater(video, info, mode, BORDERS[plan.renderer.border], YUV_BLACK, show_progress, probe) if mode != "off" else None
 
-    # The path is planned as the pairs come in, and the render follows the plan (stream.py).
+    # The path is planned as the pairs come in, and the render follows the plan (stream.py); with
+    # a rolling shutter, from the motion between the frames' mid-time poses, the frames the rows
+    # are corrected to (the pairs held until the corrections are planned: rolling.MidTimeFeed).
     feed = PathFeed(info.source_size, plan.model, plan.smoother, plan.crop)
+    gate: PathFeed | MidTimeFeed = feed if per_row is None else MidTimeFeed(feed, per_row)
     with progress_group(disable=not show_progress):
         # The tracking starts once the estimator is built, the overlays still being looked for
         # beside it; its pairs reach the feed (and so the render) only once the mask is settled,
@@ -161,14 +164,16 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         pending, estimator = frame_mask_pending(plan.build, video, options.mask, info, show_progress)
         with pending:
             built = time.perf_counter() - clock
-            tracking = TrackingPass(video, estimator, info, feed, show_progress, probe, pending)
+            tracking = TrackingPass(video, estimator, info, gate, show_progress, probe, pending)
             render_clock = time.perf_counter()
             tracking.start()
             try:
-                written = plan.renderer.render(video, out, feed.warp, info, compare=compare, show_progress=show_progress,
+                written = plan.renderer.render(video, out, gate.warp, info, compare=compare, show_progress=show_progress,
                                                frames=info.frame_count, per_row=per_row)
+                if isinstance(gate, MidTimeFeed):
+                    gate.settle()  # (settled already unless no frame was rendered)
             except BaseException:
-                feed.cancel()
+                gate.cancel()
                 pending.cancel()  # a tracking pass still holding its pairs back ends at its next frame
                 tracking.join()
                 raise
@@ -203,7 +208,7 @@ class TrackingPass(threading.Thread):
     estimated (with ``mask``, a pending one: once it is settled, :func:`~mosaic_cli.track.track_video`);
     :meth:`outcome` waits for it and gives its result or raises its error."""
 
-    def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed, show_progress: bool,
+    def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed | MidTimeFeed, show_progress: bool,
                  probe: RollingProbe | None = None, mask: PendingMask | None = None):
         super().__init__(name="mosaic-track", daemon=True)
         self.video, self.estimator, self.info, self.feed, self.show_progress = video, estimator, info, feed, show_progress

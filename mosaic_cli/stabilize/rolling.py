@@ -3,11 +3,16 @@
 The bands' motion, the readout and each band's correction to its frame's mid-time pose come from
 :mod:`mosaic_cli.estimators.rolling` (shared with stitch and track); here the renderer maps each
 output pixel back through the frame's stabilising warp, then through the correction of the input
-row it lands on.
+row it lands on.  The path is planned from the same frames: each pair's homography, which the
+estimator fitted to the rows as they were exposed, is told to the path (:class:`MidTimeFeed`) as
+the motion between the two frames' mid-time poses, so that the warp steadies the frame the rows
+are corrected to, not the raw one (whose one-homography fit reads part of the rows' shear as
+rotation and their stretch as zoom: issue 41).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,11 +32,16 @@ from mosaic_cli.estimators.rolling import (
     plan_bands,
     track_corners,
 )
+from mosaic_cli.geometry import project
 from mosaic_cli.geometry.rolling_shutter import band_blend, band_centres, similarity_matrix, undo_row_correction
+from mosaic_cli.stabilize.stream import WAIT_SLICE, Cancelled, PathFeed
 from mosaic_cli.video import VideoInfo
 
-__all__ = ["AUTO_PROBE_FRAMES", "BANDS", "GLOBAL_READOUT", "TRACK_WIDTH", "RollingCorrection", "RollingProbe", "RowWarpLater",
+__all__ = ["AUTO_PROBE_FRAMES", "BANDS", "GLOBAL_READOUT", "TRACK_WIDTH", "RollingCorrection", "MidTimeFeed", "RollingProbe", "RowWarpLater",
            "measure_band_motion", "parse_rolling_shutter", "plan_rolling", "track_corners"]
+
+
+PAIR_GRID = 9  # points a side of the grid a pair's homography is refitted on (:meth:`RollingCorrection.mid_time_pair`)
 
 
 @dataclass
@@ -43,6 +53,10 @@ class RollingCorrection:
     size: tuple[int, int]
     estimated: bool  # auto, not given
     applied: bool = True  # False: `auto` read a global shutter (corrections all 0, frames rendered as without)
+    # The measurement's pairs (None: not measured): (N-1, K, 4) the bands' motions and (N-1,) the
+    # pairs' weights: the path's motion under a rolling shutter (:meth:`pair_motion`).
+    motion: np.ndarray | None = None
+    weights: np.ndarray | None = None
 
     def row_channels(self, t: int, rows: np.ndarray) -> np.ndarray:
         """(R, 4) the correction of frame t at each of ``rows`` (bands blended as the truth's rule)."""
@@ -55,6 +69,40 @@ class RollingCorrection:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         S = similarity_matrix(self.row_channels(t, pts[:, 1]), self.size)  # (P, 3, 3)
         return np.einsum("pij,pj->pi", S[:, :2, :2], pts) + S[:, :2, 2]
+
+    def mid_time_pair(self, t: int, H: np.ndarray) -> np.ndarray:
+        """Pair t's homography ``H`` (frame t -> t+1, full-resolution pixels, fitted to the rows
+        as exposed) as the motion from frame t's mid-time pose to frame t+1's: a grid of frame
+        t's points and their images under ``H``, each moved by its row's correction, refitted."""
+        w, h = self.size
+        gx, gy = np.meshgrid(np.linspace(0.0, w - 1.0, PAIR_GRID), np.linspace(0.0, h - 1.0, PAIR_GRID))
+        src = np.stack([gx.ravel(), gy.ravel()], 1)
+        dst = project(np.asarray(H, dtype=np.float64), src)
+        if not np.all(np.isfinite(dst)):
+            return H
+        M, _ = cv2.findHomography(self.correct_points(t, src), self.correct_points(t + 1, dst), 0)
+        return H if M is None else M / M[2, 2]
+
+    def pair_motion(self, t: int, H: np.ndarray) -> np.ndarray:
+        """The motion from frame t's mid-time pose to frame t+1's that the path is planned from:
+        points along each band's centre row moved by the band's measured motion, then both ends
+        by their rows' corrections, refitted; where the pair was not measured, :meth:`mid_time_pair`
+        of the estimator's ``H``.  Not the estimator's homography corrected: it is no fit of the
+        rows' motion (the default estimator's, at 320 px, is 2.5 px RMS at the corners from the
+        least-squares fit of the true rows' motion on a 0.7 readout, 10-25 Hz noise flight, and
+        corrected still 2.5 px from the true mid-time motion; this, 0.13 px), nor is a least-squares
+        homography of the measurement's corners (its affine and perspective parts beyond the
+        similarity take up the rows' wobble: corrected, 1.3 px; docs/measurements/rolling-shutter.md).
+        The bands are similarities: the pair's perspective is left out."""
+        if self.motion is None or self.weights is None or t >= len(self.motion) or not self.weights[t] > 0:
+            return self.mid_time_pair(t, H)
+        w, h = self.size
+        S = similarity_matrix(self.motion[t], self.size)  # (K, 3, 3)
+        xs = np.linspace(0.0, w - 1.0, PAIR_GRID)
+        src = np.stack(np.broadcast_arrays(xs[None, :], band_centres(h, len(S))[:, None]), -1)  # (K, X, 2)
+        dst = np.einsum("kij,kxj->kxi", S[:, :2, :2], src) + S[:, None, :2, 2]
+        M, _ = cv2.findHomography(self.correct_points(t, src.reshape(-1, 2)), self.correct_points(t + 1, dst.reshape(-1, 2)), 0)
+        return self.mid_time_pair(t, H) if M is None else M / M[2, 2]
 
     def band_warps(self, warps: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(N, R, 3, 3) input -> output of the rows ``rows`` of each frame: the stabilising warp
@@ -115,7 +163,8 @@ def plan_rolling(video: str | Path, info: VideoInfo, mode: str | float, show_pro
     plan = plan_bands(video, info, mode, show_progress, label, probe=probe)
     if plan is None:
         return None
-    return RollingCorrection(plan.readout, plan.corrections, info.source_size, plan.estimated, plan.applied)
+    return RollingCorrection(plan.readout, plan.corrections, info.source_size, plan.estimated, plan.applied,
+                             plan.motion, plan.weights)
 
 
 class RowWarpLater:
@@ -149,3 +198,81 @@ class RowWarpLater:
     def __call__(self, frame: np.ndarray, t: int, warp: np.ndarray) -> np.ndarray | None:
         self.plan()
         return None if self._warp is None else self._warp(frame, t, warp)
+
+
+class MidTimeFeed:
+    """The path's feed (:class:`~.stream.PathFeed`) behind a gate that tells it each pair as the
+    motion between the frames' mid-time poses (:meth:`RollingCorrection.mid_time_pair`) once the
+    rows' corrections are known, and as estimated where there are none (`auto` read a global
+    shutter: bit-identical to ``off``).  The tracking pass's side (:meth:`add_pair`,
+    :meth:`finish`, :meth:`fail`) never waits: pairs are held until the corrections are planned,
+    which :meth:`warp` (the render's) does at its first frame, after the first pair is in (the
+    overlays' mask then settled, so `auto`'s probe is fed for good)."""
+
+    def __init__(self, feed: PathFeed, per_row: RowWarpLater):
+        self.feed, self.per_row = feed, per_row
+        self._lock = threading.Lock()
+        self._started = threading.Event()  # a pair is in, or the pass ended or failed
+        self._held: list[tuple[np.ndarray, float]] = []
+        self._rolling: RollingCorrection | None = None
+        self._ready = self._finished = self._failed = self._cancelled = False
+        self._pairs = 0
+
+    # -- the tracking side -------------------------------------------------------------------
+
+    def add_pair(self, H: np.ndarray, confidence: float) -> None:
+        if self._cancelled:
+            raise Cancelled
+        with self._lock:
+            if self._ready:
+                self._forward(H, confidence)
+            else:
+                self._held.append((np.asarray(H, dtype=np.float64), confidence))
+        self._started.set()
+
+    def finish(self) -> None:
+        with self._lock:
+            if self._ready:
+                self.feed.finish()
+            else:
+                self._finished = True
+        self._started.set()
+
+    def fail(self, error: BaseException) -> None:
+        self._failed = True
+        self.feed.fail(error)
+        self._started.set()
+
+    # -- the render side ---------------------------------------------------------------------
+
+    def settle(self) -> None:
+        """The corrections planned (once the first pair is in) and the pairs held handed on."""
+        if self._ready:
+            return
+        while not self._started.wait(WAIT_SLICE):
+            pass
+        if self._failed:
+            return  # the feed raises the pass's error
+        rolling = self.per_row.plan()
+        with self._lock:
+            self._rolling = rolling if rolling is not None and rolling.applied else None
+            held, self._held = self._held, []
+            for H, confidence in held:
+                self._forward(H, confidence)
+            self._ready = True
+            if self._finished:
+                self.feed.finish()
+
+    def warp(self, t: int) -> np.ndarray:
+        self.settle()
+        return self.feed.warp(t)
+
+    def cancel(self) -> None:
+        self._cancelled = True
+        self.feed.cancel()
+
+    def _forward(self, H: np.ndarray, confidence: float) -> None:
+        t, self._pairs = self._pairs, self._pairs + 1
+        if self._rolling is not None and confidence > 0:
+            H = self._rolling.pair_motion(t, H)
+        self.feed.add_pair(H, confidence)
