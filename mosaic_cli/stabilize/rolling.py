@@ -3,11 +3,11 @@
 The bands' motion, the readout and each band's correction to its frame's mid-time pose come from
 :mod:`mosaic_cli.estimators.rolling` (shared with stitch and track); here the renderer maps each
 output pixel back through the frame's stabilising warp, then through the correction of the input
-row it lands on.  The path is planned from the same frames: each pair's homography, which the
-estimator fitted to the rows as they were exposed, is told to the path (:class:`MidTimeFeed`) as
-the motion between the two frames' mid-time poses, so that the warp steadies the frame the rows
-are corrected to, not the raw one (whose one-homography fit reads part of the rows' shear as
-rotation and their stretch as zoom: issue 41).
+row it lands on.  The path is planned from the same frames: each pair is told to the path
+(:class:`MidTimeFeed`) as the motion between the two frames' mid-time poses (the bands' measured
+motions moved by their rows' corrections: :meth:`RollingCorrection.pair_motion`), so that the
+warp steadies the frame the rows are corrected to, not the raw one (whose one-homography fit
+reads part of the rows' shear as rotation and their stretch as zoom: issue 41).
 """
 
 from __future__ import annotations
@@ -202,7 +202,7 @@ class RowWarpLater:
 
 class MidTimeFeed:
     """The path's feed (:class:`~.stream.PathFeed`) behind a gate that tells it each pair as the
-    motion between the frames' mid-time poses (:meth:`RollingCorrection.mid_time_pair`) once the
+    motion between the frames' mid-time poses (:meth:`RollingCorrection.pair_motion`) once the
     rows' corrections are known, and as estimated where there are none (`auto` read a global
     shutter: bit-identical to ``off``).  The tracking pass's side (:meth:`add_pair`,
     :meth:`finish`, :meth:`fail`) never waits: pairs are held until the corrections are planned,
