@@ -187,3 +187,25 @@ def test_stitch_fill_holes_says_how_many_pixels_it_filled(flights, tmp_path, cap
 
     last = err.strip().splitlines()[-1]  # the console writes to stderr (stdout stays for data)
     assert re.fullmatch(r"--fill-holes: \d+ pixels of interior holes filled", last), last
+
+
+def test_only_an_overlay_the_ground_shows_through_is_grown():
+    """The growth's gate on the samples' gray range: a watermark's attenuated ground grows; an
+    opaque logo, or a static block that varies as much as the ground around it (ffmpeg's
+    testsrc2, whose stitch fell apart when its blocks were grown), does not."""
+    import cv2
+
+    from mosaic_cli.overlay.detect import OverlayOptions, _translucent
+
+    inside = np.zeros((100, 100), bool)
+    inside[30:70, 30:70] = True
+    dist = cv2.distanceTransform(np.where(inside, 0, 255).astype(np.uint8), cv2.DIST_L2, 5)
+    ground = ~inside
+    o = OverlayOptions()
+
+    def gray_range(overlay: float, around: float) -> np.ndarray:
+        return np.where(inside, overlay, around).astype(np.float32)
+
+    assert _translucent(gray_range(40, 86), inside, dist, ground, o)  # a watermark at 0.5 opacity
+    assert not _translucent(gray_range(8, 86), inside, dist, ground, o)  # opaque: codec noise only
+    assert not _translucent(gray_range(140, 125), inside, dist, ground, o)  # no attenuation: not an overlay seen through
