@@ -189,13 +189,13 @@ def test_stitch_fill_holes_says_how_many_pixels_it_filled(flights, tmp_path, cap
     assert re.fullmatch(r"--fill-holes: \d+ pixels of interior holes filled", last), last
 
 
-def test_only_an_overlay_the_ground_shows_through_is_grown():
-    """The growth's gate on the samples' gray range: a watermark's attenuated ground grows; an
-    opaque logo, or a static block that varies as much as the ground around it (ffmpeg's
-    testsrc2, whose stitch fell apart when its blocks were grown), does not."""
+def test_only_an_overlay_that_hides_the_ground_is_grown():
+    """The growth's gate on the samples' gray range: a watermark (the ground attenuated under
+    it) and an opaque overlay (codec noise) are grown; a static block that varies as much as the
+    ground around it (ffmpeg's testsrc2, whose stitch fell apart when its blocks were grown) is not."""
     import cv2
 
-    from mosaic_cli.overlay.detect import OverlayOptions, _translucent
+    from mosaic_cli.overlay.detect import OverlayOptions, _hides_ground
 
     inside = np.zeros((100, 100), bool)
     inside[30:70, 30:70] = True
@@ -206,6 +206,6 @@ def test_only_an_overlay_the_ground_shows_through_is_grown():
     def gray_range(overlay: float, around: float) -> np.ndarray:
         return np.where(inside, overlay, around).astype(np.float32)
 
-    assert _translucent(gray_range(40, 86), inside, dist, ground, o)  # a watermark at 0.5 opacity
-    assert not _translucent(gray_range(8, 86), inside, dist, ground, o)  # opaque: codec noise only
-    assert not _translucent(gray_range(140, 125), inside, dist, ground, o)  # no attenuation: not an overlay seen through
+    assert _hides_ground(gray_range(40, 86), inside, dist, ground, o)  # a watermark at 0.5 opacity
+    assert _hides_ground(gray_range(8, 86), inside, dist, ground, o)  # opaque: codec noise only
+    assert not _hides_ground(gray_range(140, 125), inside, dist, ground, o)  # varies as the ground does

@@ -93,14 +93,13 @@ class OverlayOptions:
     max_halo_px: int = 16
     halo_level: float = 0.15  # the halo: detail raised by at least this share of the ground's own ...
     min_edge_area: int = 64  # full-resolution px: smaller masked specks are not grown (no ring to measure)
-    # Only a translucent overlay is grown (_translucent): the ground shows through it, so its
-    # pixels' gray range over the samples has a median of at least this many levels (an opaque
-    # logo or timestamp: codec noise, a few levels) ...  Grown regardless, the static blocks of
-    # ffmpeg's testsrc2 masked 35% of the frame instead of 20%, and its stitch fell apart.
-    translucent_range: float = 12.0
-    translucent_share: float = 0.8  # ... and at most this share of the ground's own range around it: attenuated
-    # ... and only one of at most this share of the frame: a logo, a watermark, an OSD box; a
-    # larger static block is no burned-in overlay.
+    # Only an overlay that hides the ground under it is grown (_hides_ground): its pixels' gray
+    # range over the samples is at most this share of the ground's around it (opaque: codec
+    # noise; translucent: the ground attenuated).  Grown regardless, the static blocks of ffmpeg's
+    # testsrc2, which vary as much as the ground, went from 20% to 35% of the frame masked, and
+    # its stitch fell apart.
+    hidden_share: float = 0.8
+    # ... and only one of at most this share of the frame: a logo, a watermark, an OSD box.
     max_edge_share: float = 0.1
     edge_level: float = 0.75  # gray levels: the overlay's mean contrast that still counts as its edge ...
     edge_sigmas: float = 4.0  # ... and standard errors of that mean (the ground's own noise, over the ring)
@@ -450,8 +449,8 @@ def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, detail: np.ndarray | No
     that still show the overlay (then one more: the last ring seen is partly beyond).  The
     field is the mean beyond ``max_edge_px``, filled in smoothly (normalised convolution).
     Ground alone grows nothing: it has no overlay to be signed by.  ``gray_range`` (the samples'
-    per-pixel max - min, any size): where given, an overlay whose pixels' median range is under
-    ``translucent_range`` (opaque: no ground shows through it) is not grown."""
+    per-pixel max - min, any size): where given, only an overlay that hides the ground under it
+    (:func:`_hides_ground`) is grown; and only one of at most ``max_edge_share`` of the frame."""
     H, W = full.shape
     if (mean.shape[1], mean.shape[0]) != (W, H):
         mean = cv2.resize(mean, (W, H), interpolation=cv2.INTER_LINEAR)
@@ -486,8 +485,8 @@ def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, detail: np.ndarray | No
         core = cv2.erode(inside.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * e + 1, 2 * e + 1))) > 0
         if not core.any():
             core = inside
-        if gray_range is not None and not _translucent(gray_range[y0:y1, x0:x1], core, dist, ground[y0:y1, x0:x1], o):
-            continue  # opaque (nothing of the ground shows through it), or no overlay at all
+        if gray_range is not None and not _hides_ground(gray_range[y0:y1, x0:x1], core, dist, ground[y0:y1, x0:x1], o):
+            continue  # it varies as the ground does: no overlay over it
         _, nearest = cv2.distanceTransformWithLabels(np.where(core, 0, 255).astype(np.uint8), cv2.DIST_L2, 5,
                                                      labelType=cv2.DIST_LABEL_PIXEL)
         field_ring = (dist > R) & (dist <= 2 * R + 8)
@@ -526,18 +525,16 @@ def _grow_soft_edges(full: np.ndarray, mean: np.ndarray, detail: np.ndarray | No
     return out
 
 
-def _translucent(gray_range: np.ndarray, core: np.ndarray, dist: np.ndarray, ground: np.ndarray, o: OverlayOptions) -> bool:
-    """Whether the ground shows through an overlay, attenuated: the samples' gray range
-    (per-pixel max - min, a crop) in its ``core`` has a median of at least ``translucent_range``
-    and at most ``translucent_share`` of the ground's 8-24 px around it.  Measured at 320x180
-    and 1280x720: a watermark at 0.5 opacity 40 against 86 levels, an OSD box at 0.6 36 against
-    103; ffmpeg's testsrc2, whose static blocks the detector also masks, 140 against 125, and
-    its opaque text 8."""
-    inside = float(np.median(gray_range[core]))
+def _hides_ground(gray_range: np.ndarray, core: np.ndarray, dist: np.ndarray, ground: np.ndarray, o: OverlayOptions) -> bool:
+    """Whether an overlay hides the ground under it: the samples' gray range (per-pixel
+    max - min, a crop) in its ``core`` has a median of at most ``hidden_share`` of the ground's,
+    8-24 px around it.  Measured at 320x180 and 1280x720: a watermark at 0.5 opacity 40 against
+    86 levels, an OSD box at 0.6 36 against 103, an opaque one codec noise (8); ffmpeg's
+    testsrc2, whose static blocks the detector also masks, 140 against 125."""
     ring = (dist > 8) & (dist <= 24) & ground
-    if inside < o.translucent_range or np.count_nonzero(ring) < 16:
+    if np.count_nonzero(ring) < 16:
         return False
-    return inside <= o.translucent_share * float(np.median(gray_range[ring]))
+    return float(np.median(gray_range[core])) <= o.hidden_share * float(np.median(gray_range[ring]))
 
 
 HALO_FIELD = (8, 32)  # the ground's own detail is measured this far beyond max_halo_px (px, after the noise rings)
