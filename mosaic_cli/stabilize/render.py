@@ -26,6 +26,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import resize_matrix
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, VideoWriter, open_video
+from mosaic_cli.video.decode import ReadAhead
 
 BORDERS = {"black": cv2.BORDER_CONSTANT, "replicate": cv2.BORDER_REPLICATE, "reflect": cv2.BORDER_REFLECT}
 COMPARE_PANEL_WIDTH = 960  # wider inputs are shown at half size in --compare videos
@@ -185,12 +186,16 @@ class Renderer:
             # The frames of the first pass, upright, each once; yuv420p planes when they can stay so.
             with open_video(video, yuv420p=yuv, info=info) as decoded, progress_task("stabilize: render", frames, disable=not show_progress) as advance:
                 def outputs() -> Iterator[tuple[np.ndarray, ...]]:
-                    for t, frame in enumerate(_background(decoded)):
-                        W = warp_of(t)
-                        result = per_row(frame, t, W) if per_row is not None else None
-                        if result is None:
-                            result = warp(frame, W, size, self.border)
-                        yield (result, join(frame, result)) if compare is not None else (result,)
+                    ahead = ReadAhead(iter(decoded), 4)  # decoded on a thread of its own, 4 frames ahead of the warps
+                    try:
+                        for t, frame in enumerate(ahead):
+                            W = warp_of(t)
+                            result = per_row(frame, t, W) if per_row is not None else None
+                            if result is None:
+                                result = warp(frame, W, size, self.border)
+                            yield (result, join(frame, result)) if compare is not None else (result,)
+                    finally:
+                        ahead.stop()
 
                 written = _drain(outputs(), [w.write for w in writers], advance)
             for writer in writers:
@@ -203,41 +208,6 @@ class Renderer:
 
 
 _DONE = object()
-
-
-def _background(items: Iterable, depth: int = 4) -> Iterator:
-    """Iterate ``items`` in a worker thread, ``depth`` items ahead of the consumer."""
-    q: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-
-    def produce() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        q.put(item, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            q.put(_DONE)
-        except BaseException as exc:  # handed to the consumer, which re-raises it
-            q.put(exc)
-
-    worker = threading.Thread(target=produce, daemon=True)
-    worker.start()
-    try:
-        while True:
-            item = q.get()
-            if item is _DONE:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        worker.join(timeout=5)
 
 
 def _drain(results: Iterable[tuple[np.ndarray, ...]], sinks: list[Callable[[np.ndarray], None]],
