@@ -166,8 +166,7 @@ class LiveSchedule:
         self.stale = 0
         self.lookahead_min = path.horizon.lookahead
         self.solve_seconds = Recent()
-        self.recent_late: deque[bool] = deque(maxlen=RECENT)  # whether each of the last frames rendered was settled at its deadline
-        self.lateness: list[bool] = []  # the same, for every frame rendered
+        self.lateness: list[bool] = []  # whether each frame rendered was settled at its deadline
         self.simplified_at: int | None = None  # the frame from which a gated model (tilt) was planned as a similarity
         self.track_lag = Recent()  # taken -> motion known
         self.render_seconds = Recent()  # taken by the renderer -> handed to the encoder
@@ -300,11 +299,9 @@ class LiveSchedule:
         planned as a similarity from then on, its programs a third the size
         (:attr:`OnlineL1Path.similar_only`)."""
         self.lateness.append(late)
-        if self.rendered <= KEEP_UP_AFTER:  # the start's lateness (the network's load) is not the correction's
-            return
-        self.recent_late.append(late)
-        if (self.simplified_at is None and self.path.model.gated
-                and len(self.recent_late) == RECENT and sum(self.recent_late) > LATE_SHARE * RECENT):
+        # (the start's lateness, the network's load, is not the correction's)
+        if (self.simplified_at is None and self.path.model.gated and len(self.lateness) >= KEEP_UP_AFTER + RECENT
+                and sum(self.lateness[-RECENT:]) > LATE_SHARE * RECENT):
             self.path.similar_only = True
             self.simplified_at = self.rendered
 
