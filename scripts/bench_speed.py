@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import resource
 import shlex
 import statistics
@@ -38,6 +37,7 @@ import time
 from pathlib import Path
 
 import imageio_ffmpeg
+from stage_times import stage_seconds  # scripts/, beside this one
 
 FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -134,15 +134,6 @@ def warp_cpu_ms(clip: Path, frames: int = 20) -> float:
     return statistics.median(spent)
 
 
-STAGE = re.compile(r"(overlays|track|path|render|scan|register|compose|write) ([0-9.]+) s")
-
-
-def stages(stderr: str) -> dict[str, float]:
-    """The stage seconds of a mosaic command's final line."""
-    lines = [line for line in stderr.strip().splitlines() if STAGE.search(line)]
-    return {name: float(value) for name, value in STAGE.findall(lines[-1])} if lines else {}
-
-
 def startup(work: Path, clip: Path, repeats: int = 5) -> float:
     one = work / "one_frame.mp4"
     subprocess.run([FFMPEG, "-v", "error", "-y", "-i", str(clip), "-frames:v", "1", str(one)], check=True)
@@ -178,7 +169,7 @@ def main() -> None:
                 wall, err = run(table[name], work, name)
                 times[name].append(wall)
                 if name.startswith("mosaic"):
-                    stage_times[name].append(stages(err))
+                    stage_times[name].append(stage_seconds(err))
             print(f"{clip.name}: round {k + 1} of {args.rounds} done, load {os.getloadavg()[0]:.2f}", file=sys.stderr)
         median = {name: statistics.median(v) for name, v in times.items()}
         cpu = {name: statistics.median(CPU[name]) for name in order}

@@ -42,7 +42,6 @@ import concurrent.futures
 import csv
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -55,6 +54,9 @@ import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+from stage_times import stage_seconds  # noqa: E402  (scripts/, beside this one)
+
 STILLS = ROOT / ".gpu" / "stills"
 TRAIN_PROFILES = ("paper", "fast", "hard", "survey", "extreme")
 
@@ -370,15 +372,6 @@ def probes() -> dict:
 def footage(tiny: bool, key: str) -> Path | None:
     found = sorted(FOOTAGE.glob(f"{key}_*")) if FOOTAGE.is_dir() and not tiny else []
     return found[0] if found else None
-
-
-STAGE = re.compile(r"(overlays|track|path|render|scan|register|compose|write) ([0-9.]+) s")
-
-
-def stage_seconds(stderr: str) -> dict[str, float]:
-    """The stage seconds of a mosaic command's final line (as scripts/bench_speed.py reads them)."""
-    lines = [line for line in stderr.strip().splitlines() if STAGE.search(line)]
-    return {name: float(value) for name, value in STAGE.findall(lines[-1])} if lines else {}
 
 
 def agreement(folder: Path, size: str, pair: tuple[str, str] = ("cuda", "cpu")) -> dict:
