@@ -79,10 +79,12 @@ def test_vibration_oscillates_at_its_frequency():
     assert 1.0 < np.abs(shake).max() < 2.5  # 4 px at 1280 wide: 2 px at 640, plus the rotation's bit
 
 
-def _dot_map():
+def _dot_map(size: int = 1024, count: int = 500, lo: float = 100, hi: float = 924):
+    """A dark ``size``-square map of ``count`` bright round dots (anti-aliased, blurred), their
+    centres uniform in [lo, hi]; the map and the centres (count, 2)."""
     rng = np.random.default_rng(0)
-    m = np.full((1024, 1024, 3), 20, np.uint8)
-    pts = rng.uniform(100, 924, size=(500, 2))
+    m = np.full((size, size, 3), 20, np.uint8)
+    pts = rng.uniform(lo, hi, size=(count, 2))
     for x, y in pts:
         cv2.circle(m, (int(round(x * 16)), int(round(y * 16))), 3 * 16, (255, 255, 255), -1, cv2.LINE_AA, shift=4)
     return cv2.GaussianBlur(m, (0, 0), 2.0), pts

@@ -10,6 +10,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from test_rolling_shutter_simulate import _dot_map
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import project
@@ -116,19 +117,10 @@ def test_broadband_flights_are_reproducible(tmp_path):
     np.testing.assert_allclose(gt.row_bands, a.row_bands, rtol=0, atol=1e-12)
 
 
-def _dot_map():
-    rng = np.random.default_rng(0)
-    m = np.full((2048, 2048, 3), 20, np.uint8)
-    pts = rng.uniform(150, 1900, size=(1500, 2))
-    for x, y in pts:
-        cv2.circle(m, (int(round(x * 16)), int(round(y * 16))), 3 * 16, (255, 255, 255), -1, cv2.LINE_AA, shift=4)
-    return cv2.GaussianBlur(m, (0, 0), 2.0), pts
-
-
 def test_dots_land_where_their_rows_say_under_noise_vibration():
     """Bright dots on a dark map: their centroids in a rolling-shutter frame shaken by noise follow
     the truth's row homographies (median 0.3 px), not the frame's single mid-time pose."""
-    m, pts = _dot_map()
+    m, pts = _dot_map(2048, 1500, 150, 1900)
     plan = _plan(0.9, "noise:10-25,10,1.0", frames=4, seed=1)
     errors, single = [], []
     for t, frame in enumerate(render_frames(m, plan)):
