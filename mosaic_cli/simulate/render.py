@@ -2,8 +2,9 @@
 
 Each frame is a ``cv2.warpPerspective`` of a map pyramid level (levels every half octave,
 made with area averaging).  The level is picked per frame from the largest local
-down-sampling factor over the frame, and the two levels around it are blended (trilinear
-filtering), so down-sampling never aliases and zooming in or out never pops.
+down-sampling factor over the frame (through a lens, per pixel: :func:`render_lens`), and the
+two levels around it are blended (trilinear filtering), so down-sampling never aliases and
+zooming in or out never pops.
 """
 
 from __future__ import annotations
@@ -116,25 +117,30 @@ def render_rolling(pyramid: MapPyramid, band_map_to_frame: np.ndarray, size: tup
 class LensGrid:
     """A lens's view of the pinhole frame, for :func:`render_lens`: for each pixel of the
     distorted frame, the pinhole pixel (camera ``lens.K``) it shows (``x``, ``y``: (h, w)), and
-    the lens's largest local stretch (pinhole pixels per frame pixel), which the pyramid level
-    allows for so that the squeezed edges of a wide lens do not alias."""
+    the lens's local stretch there (``stretch``, (h, w): pinhole pixels per frame pixel, the
+    longer of the steps one frame pixel across and one down makes), from which each pixel's
+    pyramid level is chosen so that the squeezed edges of a wide lens do not alias while its
+    centre keeps the pinhole's sharpness."""
 
     def __init__(self, lens: Lens):
         self.x, self.y = distorted_grid(lens)
-        # per frame-pixel step along x and along y, the length of the pinhole step it makes
-        self.stretch = float(max(np.max(np.hypot(np.gradient(self.x, axis=axis), np.gradient(self.y, axis=axis))) for axis in (0, 1)))
+        steps = [np.hypot(np.gradient(self.x, axis=axis), np.gradient(self.y, axis=axis)) for axis in (0, 1)]
+        self.stretch = np.maximum(*steps).astype(np.float32)
 
 
 def render_lens(pyramid: MapPyramid, map_to_frame: np.ndarray, grid: LensGrid) -> np.ndarray:
     """One anti-aliased RGB frame seen through a lens: each pixel shows the map where the
     pinhole frame of ``map_to_frame`` has the pixel ``grid`` gives it, by one ``cv2.remap`` per
-    pyramid level (one resampling of the map, as :func:`render_view`)."""
+    pyramid level the frame needs (one resampling of the map, as :func:`render_view`).
+
+    The level is chosen per pixel (trilinear filtering, as a GPU's mip-mapping): a fisheye
+    squeezes the pinhole frame 3-4x at its corners and not at all at its centre, and one level
+    for the whole frame, the corners', would blur the centre as no real lens does."""
     h, w = grid.x.shape
     F = np.linalg.inv(map_to_frame)  # pinhole frame -> map
-    scale = max_scale(F, (w, h)) * max(grid.stretch, 1.0)
-    lod = 2.0 * np.log2(scale) if scale > 1.0 else 0.0
-    k0 = int(np.floor(lod))
-    frac = lod - k0
+    scale = max_scale(F, (w, h)) * np.maximum(grid.stretch, 1.0)
+    lod = np.where(scale > 1.0, 2.0 * np.log2(np.maximum(scale, 1.0)), 0.0).astype(np.float32)  # half octaves, per pixel
+    first, last = int(np.floor(lod.min())), int(np.floor(lod.max())) + 1
 
     def remap(k: int) -> np.ndarray:
         img, S = pyramid.level(k)
@@ -144,10 +150,14 @@ def render_lens(pyramid: MapPyramid, map_to_frame: np.ndarray, grid: LensGrid) -
         v = (G[1, 0] * grid.x + G[1, 1] * grid.y + G[1, 2]) / z
         return cv2.remap(img, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT101)
 
-    a = remap(k0)
-    if frac < 1e-3:
-        return a
-    return cv2.addWeighted(a, 1.0 - frac, remap(k0 + 1), frac, 0.0)
+    if last - first == 1 and float(lod.max() - first) < 1e-3:  # one level serves every pixel
+        return remap(first)
+    out = np.zeros((h, w, 3), np.float32)
+    for k in range(first, last + 1):
+        weight = np.clip(1.0 - np.abs(lod - k), 0.0, 1.0)  # the two levels around each pixel's, linearly
+        if weight.max() > 0:
+            out += remap(k).astype(np.float32) * weight[..., None]
+    return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
 def apply_effects(frame: np.ndarray, effects: dict[str, np.ndarray], t: int, seed: int) -> np.ndarray:
