@@ -6,10 +6,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
+from mosaic_cli.device import check_device, resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import normalize, project, rect_corners, resize_matrix
 from mosaic_cli.mask import work_mask
@@ -47,6 +49,11 @@ class ComposeOptions:
     # --fill-holes: interior transparent holes (ground under a masked overlay that no keyframe
     # saw) up to this share of the covered area are inpainted; 0 leaves them transparent.
     fill_holes: float = 0.0
+    # The torch device ("cuda", "cuda:1", "cpu") that warps the keyframes onto the canvas and
+    # blends them (multi-band: stitch/device_blend.py, OpenCV's blender step by step); seams and
+    # exposure stay on the CPU.  None: OpenCV on the CPU.  stitch sets it from --device when
+    # that is a GPU; "cpu" runs the torch path on the CPU (tests).
+    torch_device: str | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -60,6 +67,8 @@ class ComposeOptions:
             raise BadInput(f"--fill-holes: the largest hole to fill must be a share of the panorama in 0..1, got {self.fill_holes}")
         if self.exposure not in EXPOSURES:
             raise BadInput(f"--exposure must be one of {', '.join(EXPOSURES)}, got {self.exposure!r}")
+        if self.torch_device is not None:
+            check_device(self.torch_device)
 
 
 RowMap = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -114,29 +123,45 @@ def warp_into(image: np.ndarray, H: np.ndarray, roi: Roi, use: np.ndarray | None
     pixels ``use`` excludes (burned-in overlays) are not covered.  Shrinks the image first when
     the warp shrinks it, so that bilinear sampling does not alias.  ``rows`` (see
     :class:`PlacedImage`): each canvas pixel is sampled through ``H``, then through ``rows``."""
+    image, S, coverage = _sampled(image, H, use)
+    ones = np.full(image.shape[:2], 255, np.uint8) if coverage is None else coverage
+    if rows is None:
+        T = _shift(roi) @ H @ np.linalg.inv(S)
+        warped = cv2.warpPerspective(image, T, (roi.w, roi.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mask = cv2.warpPerspective(ones, T, (roi.w, roi.h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        return warped, mask
+    u, v = _row_maps(H, S, roi, rows)
+    warped = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    mask = cv2.remap(ones, u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return warped, mask
+
+
+def _sampled(image: np.ndarray, H: np.ndarray, use: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The pixels a warp by ``H`` samples: the image shrunk first (``INTER_AREA``) when the warp
+    shrinks it, so that bilinear sampling does not alias; ``S`` the image -> those pixels; their
+    coverage (uint8, 255 = use; None: all)."""
     S = np.eye(3)
     scale = _local_scale(H, image.shape[1], image.shape[0])
     if scale < 0.8:
         size = (max(2, round(image.shape[1] * scale)), max(2, round(image.shape[0] * scale)))
         S = resize_matrix((image.shape[1], image.shape[0]), size)
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    shift = np.array([[1, 0, -roi.x], [0, 1, -roi.y], [0, 0, 1.0]])
-    T = shift @ H @ np.linalg.inv(S)
-    ones = np.full(image.shape[:2], 255, np.uint8) if use is None else work_mask(use, (image.shape[1], image.shape[0]))
-    if rows is None:
-        warped = cv2.warpPerspective(image, T, (roi.w, roi.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        mask = cv2.warpPerspective(ones, T, (roi.w, roi.h), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
-        return warped, mask
-    # canvas -> the image's mid-time pose (its pixels before any shrinking) -> its rows -> the shrunk pixels
+    return image, S, work_mask(use, (image.shape[1], image.shape[0]))
+
+
+def _shift(roi: Roi) -> np.ndarray:
+    return np.array([[1, 0, -roi.x], [0, 1, -roi.y], [0, 0, 1.0]])
+
+
+def _row_maps(H: np.ndarray, S: np.ndarray, roi: Roi, rows: RowMap) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels (float32 (h, w) x and y, as ``cv2.remap`` takes) of the shrunk image (``S``)
+    that each pixel of ``roi`` samples: canvas -> the image's mid-time pose (its pixels before
+    any shrinking, ``H``) -> its rows (``rows``) -> the shrunk pixels."""
     gx, gy = np.meshgrid(np.arange(roi.w, dtype=np.float64), np.arange(roi.h, dtype=np.float64))
-    Hi = np.linalg.inv(shift @ H)
+    Hi = np.linalg.inv(_shift(roi) @ H)
     z = Hi[2, 0] * gx + Hi[2, 1] * gy + Hi[2, 2]
     x, y = rows((Hi[0, 0] * gx + Hi[0, 1] * gy + Hi[0, 2]) / z, (Hi[1, 0] * gx + Hi[1, 1] * gy + Hi[1, 2]) / z)
-    u = (S[0, 0] * x + S[0, 2]).astype(np.float32)
-    v = (S[1, 1] * y + S[1, 2]).astype(np.float32)
-    warped = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    mask = cv2.remap(ones, u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return warped, mask
+    return (S[0, 0] * x + S[0, 2]).astype(np.float32), (S[1, 1] * y + S[1, 2]).astype(np.float32)
 
 
 def _local_scale(H: np.ndarray, w: int, h: int) -> float:
@@ -172,6 +197,7 @@ def compose(
     compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
     advance(0, status="blending")
     blend = _blend_plan(options, float(np.sqrt(np.median([r.w * r.h for r in rois]))) if rois else 1.0)
+    device = None if options.torch_device is None else resolve_device(options.torch_device)
     rgba = np.zeros((H, W, 4), np.uint8)
     # Strips start on the pyramid's grid, so that each strip decimates like the whole canvas.
     # At least twice the margin tall, or the margins would cost more than the strips.
@@ -181,20 +207,28 @@ def compose(
     # full, so the memory stays bounded however the flight lies on the canvas.
     gains = compensator.getMatGains()
     finished: set[int] = set()
-    loaded: dict[int, np.ndarray] = {}  # the pixels of the images the current strip reaches
+    # The pixels of the images the current strip reaches: arrays, or (torch_device) each image
+    # on the device as it is sampled, uploaded once for all its strips, with its shrink ``S``.
+    loaded: dict[int, Any] = {}
     for y0 in range(0, H, strip):
         y1 = min(H, y0 + strip)
         top, bottom = max(0, y0 - blend.margin), min(H, y1 + blend.margin)
-        blender = blend.make((0, top, W, bottom - top))
+        blender = blend.make((0, top, W, bottom - top), device)
         fed = False
         for k, roi in enumerate(rois):
             if k in finished or roi.y >= bottom or roi.y + roi.h <= top:
                 continue
             rows = (max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y)
-            if k not in loaded:
-                loaded[k] = load_pixels(placed[k].image)  # type: ignore[arg-type]  # dropped only once finished
-            image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gains[k] if gains else None, seam_masks[k],
-                                      placed[k].use, placed[k].rows)
+            gain = gains[k] if gains else None
+            if device is not None:
+                if k not in loaded:
+                    loaded[k] = _upload(placed[k], roi, gain, seam_masks[k], device)
+                source, S = loaded[k]
+                image, mask = _device_part(source, S, placed[k], roi, rows)
+            else:
+                if k not in loaded:
+                    loaded[k] = load_pixels(placed[k].image)  # type: ignore[arg-type]  # dropped only once finished
+                image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gain, seam_masks[k], placed[k].use, placed[k].rows)
             blender.feed(image, mask, (roi.x, roi.y + rows[0]))
             fed = True
         if fed:
@@ -233,8 +267,30 @@ def _strip_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, rows: tuple
         full = cv2.resize(gain.astype(np.float32), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR)
         warped = np.multiply(warped, full[r0:r1, :, None], dtype=np.float32)
     image = np.clip(np.rint(warped), 0, 255).astype(np.int16)
-    seam = cv2.resize(cv2.dilate(seam_mask, None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)[r0:r1]
+    seam = _seam_for(seam_mask, roi)[r0:r1]
     return image, cv2.bitwise_and(seam, mask)
+
+
+def _seam_for(seam_mask: np.ndarray, roi: Roi) -> np.ndarray:
+    """An image's blend mask at its box's full size, from its seam mask on the small copies."""
+    return cv2.resize(cv2.dilate(seam_mask, None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
+
+
+def _upload(p: PlacedImage, roi: Roi, gain: np.ndarray | None, seam_mask: np.ndarray, device):
+    """An image put on the torch ``device`` for :func:`_device_part`: what a warp samples of it
+    (:func:`_sampled`), its coverage, blend mask and gain, and its shrink ``S``."""
+    from mosaic_cli.stitch.device_blend import DeviceSource
+
+    image, S, coverage = _sampled(load_pixels(p.image), p.to_canvas, p.use)  # type: ignore[arg-type]
+    return DeviceSource(image, coverage, _seam_for(seam_mask, roi), gain, device), S
+
+
+def _device_part(source, S: np.ndarray, p: PlacedImage, roi: Roi, rows: tuple[int, int]):
+    """:func:`_strip_part` on the device: (3, h, w) float image and (h, w) uint8 mask tensors."""
+    part = Roi(roi.x, roi.y + rows[0], roi.w, rows[1] - rows[0])
+    if p.rows is None:
+        return source.part(rows, T=_shift(part) @ p.to_canvas @ np.linalg.inv(S))
+    return source.part(rows, maps=_row_maps(p.to_canvas, S, part, p.rows))
 
 
 def _seam_scale(areas: list[int], canvas_area: int, options: ComposeOptions) -> float:
@@ -281,7 +337,17 @@ class _BlendPlan:
     margin: int  # rows a strip borrows from its neighbours
     unit: int = 1  # strips start at multiples of this
 
-    def make(self, roi: tuple[int, int, int, int]):
+    def make(self, roi: tuple[int, int, int, int], device=None):
+        """The blender of a strip ``roi``: OpenCV's, or with a torch ``device`` the multi-band
+        blender of device_blend.py (the others OpenCV's, fed from the device)."""
+        if device is not None:
+            from mosaic_cli.stitch import device_blend
+
+            if self.kind == "multiband":
+                blender = device_blend.MultiBandBlender(self.bands, device)
+                blender.prepare(roi)
+                return blender
+            return device_blend.Cv2Blender(self.make(roi))
         if self.kind == "multiband":
             blender = cv2.detail.MultiBandBlender(0, self.bands)
         elif self.kind == "feather":

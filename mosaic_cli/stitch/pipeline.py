@@ -14,7 +14,8 @@
 2. register  relocalise segments on each other, close loops, refine all placements jointly
              (drift control); segments that join nothing become panoramas of their own
 3. canvas    pick the reference keyframe, size the canvas (``max_size``), refuse degenerate chains
-4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending
+4. compose   warp each keyframe in its bounding box, exposure, seams, multi-band blending (the
+             warps and the blend on the GPU when --device is one: stitch/device_blend.py)
 5. write     the image (PNG/JPEG/TIFF) and the transforms JSON, atomically; a flight in
              several parts: the largest (most frames or photos) takes the name given, the
              others are numbered in decreasing size: pano.png, pano-2.png, ...
@@ -38,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mosaic_cli.device import check_device, resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, plan_estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
@@ -268,8 +270,8 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         drawn = [k.composited for k in keyframes]
         canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
         frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, options.compose, show_progress, scan.use,
-                            rolling)
+        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, _compose_options(options), show_progress,
+                            scan.use, rolling)
         filled = fill_holes(panorama, options.compose.fill_holes)
         seconds["compose"] += time.perf_counter() - clock
 
@@ -490,6 +492,16 @@ def _add_report(total: RegistrationReport, report: RegistrationReport) -> None:
     total.links += report.links
     if total.links:
         total.residual_after = float(np.median([l.residual for l in total.links]))
+
+
+def _compose_options(options: StitchOptions) -> ComposeOptions:
+    """compose's options, its warps and blend on the GPU that ``--device`` names (or ``auto``
+    finds); on a CPU, OpenCV's (torch's CPU blend is several times slower), unless they name a
+    torch device themselves."""
+    if options.compose.torch_device is not None or check_device(options.device) == "cpu":
+        return options.compose
+    device = resolve_device(options.device)
+    return dataclasses.replace(options.compose, torch_device=str(device)) if device.type == "cuda" else options.compose
 
 
 def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool,

@@ -1,0 +1,352 @@
+"""The canvas warps and the multi-band blend of stitch's compose (:mod:`mosaic_cli.stitch.compose`)
+in torch, on any device: the GPU under ``stitch --device cuda``, torch's CPU in tests.
+
+:class:`MultiBandBlender` is ``cv2.detail.MultiBandBlender`` (float weights, OpenCV's CPU code
+path) step by step: the same padded canvas and source rectangles, the same borders (the image
+mirrored with ``BORDER_REFLECT``, the weights bordered with zeros, ``pyrDown``/``pyrUp`` with
+``BORDER_REFLECT_101``), the same integer rounding of the int16 pyramids and the same truncations
+where OpenCV casts to ``short``.  The int16 pyramids are held as integer-valued float32: every
+sum the 5-tap kernels make stays below 2^24, so float32 holds it exactly and the pyramids agree
+with OpenCV's to the bit; only the float weights' sums may differ in their last bits.
+
+The warps sample as ``cv2.warpPerspective``/``cv2.remap`` with ``INTER_LINEAR`` and
+``BORDER_REPLICATE`` (the image) and ``INTER_NEAREST`` with a zero border (its coverage mask).
+
+Not imported by ``mosaic_cli.stitch``: compose imports it when a torch device is asked for
+(``ComposeOptions.torch_device``), so that the OpenCV path never loads torch for it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+WEIGHT_EPS = 1e-5  # OpenCV's blenders.cpp: a pixel no weight reached stays uncovered
+# OpenCV's float constants, as float32 rounds them (a Python float scalar is applied to a float32
+# tensor in float32): the mask's 1/255 and the weight's epsilon.
+_INV_255 = float(np.float32(1.0 / 255.0))
+_WEIGHT_EPS32 = float(np.float32(WEIGHT_EPS))
+
+
+# --- borders and pyramids ---------------------------------------------------------------------
+
+
+def _border_index(n: int, before: int, after: int, mode: str, device: torch.device) -> Tensor:
+    """Indices (before + n + after,) into a length-``n`` axis that pad it as OpenCV's
+    ``borderInterpolate`` does: ``reflect`` (BORDER_REFLECT, ``fedcba|abcdef``), ``reflect101``
+    (BORDER_REFLECT_101, ``gfedcb|abcdefgh``) or ``replicate``; any pad, any ``n`` >= 1."""
+    i = torch.arange(-before, n + after, device=device)
+    if n == 1 or mode == "replicate":
+        return i.clamp(0, n - 1)
+    if mode == "reflect":
+        period = 2 * n
+        i = i.remainder(period)
+        return torch.where(i >= n, period - 1 - i, i)
+    if mode == "reflect101":
+        period = 2 * n - 2
+        i = i.remainder(period)
+        return torch.where(i >= n, period - i, i)
+    raise ValueError(f"unknown border {mode!r}")
+
+
+def _pad(x: Tensor, top: int, bottom: int, left: int, right: int, mode: str) -> Tensor:
+    """``x`` (..., H, W) padded as ``cv2.copyMakeBorder`` with ``mode`` (see :func:`_border_index`),
+    or with zeros (``constant``)."""
+    if mode == "constant":
+        return torch.nn.functional.pad(x, (left, right, top, bottom))
+    h, w = x.shape[-2:]
+    rows = _border_index(h, top, bottom, mode, x.device)
+    cols = _border_index(w, left, right, mode, x.device)
+    return x.index_select(-2, rows).index_select(-1, cols)
+
+
+def pyr_down(x: Tensor, integer: bool = True) -> Tensor:
+    """``cv2.pyrDown``: ``x`` (..., H, W) float -> (..., (H + 1) // 2, (W + 1) // 2), the 5-tap
+    binomial with BORDER_REFLECT_101, rows first.  ``integer``: ``x`` holds integers (an int16
+    image) and the result is rounded as OpenCV's fixed point does, floor((s + 128) / 256);
+    else (float weights) s / 256."""
+    h, w = x.shape[-2:]
+    oh, ow = (h + 1) // 2, (w + 1) // 2
+    # Output k takes the inputs 2k - 2 .. 2k + 2: two samples of border before, enough after.
+    p = _pad(x, 2, 2 * oh + 2 - h, 2, 2 * ow + 2 - w, "reflect101")
+    c = [p[..., k:k + 2 * ow - 1:2] for k in range(5)]
+    p = c[0] + c[4] + (c[1] + c[3]) * 4 + c[2] * 6
+    r = [p[..., k:k + 2 * oh - 1:2, :] for k in range(5)]
+    s = r[0] + r[4] + (r[1] + r[3]) * 4 + r[2] * 6
+    return torch.floor((s + 128) / 256) if integer else s * (1.0 / 256)
+
+
+def pyr_up(x: Tensor, integer: bool = True) -> Tensor:
+    """``cv2.pyrUp`` to twice the size: ``x`` (..., H, W) float -> (..., 2H, 2W).  OpenCV pads
+    the zero-interleaved image with BORDER_REFLECT_101, which makes the first output of an axis
+    s[1] + 6 s[0] + s[1] and its last two s[n-2] + 7 s[n-1] and 8 s[n-1].  ``integer``: rounded
+    as OpenCV's fixed point does, floor((s + 32) / 64); else s / 64."""
+    h, w = x.shape[-2:]
+    # Along x: one sample before the axis (reflected: s[1]) and one after (replicated: s[n-1]).
+    p = torch.cat([x[..., min(1, w - 1):min(1, w - 1) + 1], x, x[..., w - 1:]], dim=-1)
+    even, odd = p[..., :w] + p[..., 1:w + 1] * 6 + p[..., 2:], (p[..., 1:w + 1] + p[..., 2:]) * 4
+    x = torch.stack([even, odd], dim=-1).reshape(*x.shape[:-1], 2 * w)
+    p = torch.cat([x[..., min(1, h - 1):min(1, h - 1) + 1, :], x, x[..., h - 1:, :]], dim=-2)
+    even, odd = p[..., :h, :] + p[..., 1:h + 1, :] * 6 + p[..., 2:, :], (p[..., 1:h + 1, :] + p[..., 2:, :]) * 4
+    s = torch.stack([even, odd], dim=-2).reshape(*x.shape[:-2], 2 * h, 2 * w)
+    return torch.floor((s + 32) / 64) if integer else s * (1.0 / 64)
+
+
+def laplacian_pyramid(image: Tensor, levels: int) -> list[Tensor]:
+    """OpenCV's ``createLaplacePyr`` of an int16 image held as integer-valued float: ``image``
+    (..., H, W), H and W divisible by 2**levels -> ``levels`` + 1 tensors, each level minus the
+    next one brought up (:func:`pyr_up`), the last the coarsest Gaussian level."""
+    gauss = [image]
+    for _ in range(levels):
+        gauss.append(pyr_down(gauss[-1]))
+    return [g - pyr_up(n) for g, n in zip(gauss[:-1], gauss[1:])] + [gauss[-1]]
+
+
+def collapse(pyramid: list[Tensor]) -> Tensor:
+    """OpenCV's ``restoreImageFromLaplacePyr``: the finest level of ``pyramid`` (integer-valued,
+    each level (..., 2H, 2W) of the next) with every coarser level brought up and added, as
+    int16 saturates."""
+    out = pyramid[-1]
+    for level in reversed(pyramid[:-1]):
+        out = (pyr_up(out) + level).clamp(-32768, 32767)
+    return out
+
+
+@dataclass
+class _Feed:
+    """Where one fed image lands: its padded source rectangle in the blender's canvas (x0, y0,
+    x1, y1, level-0 px, on the pyramid's grid) and the border it gets (top, bottom, left, right)."""
+
+    box: tuple[int, int, int, int]
+    border: tuple[int, int, int, int]
+
+
+class MultiBandBlender:
+    """``cv2.detail.MultiBandBlender(0, num_bands)`` (float weights) in torch on ``device``:
+    :meth:`prepare` a canvas rectangle, :meth:`feed` images with their masks, :meth:`blend`.
+
+    ``feed`` takes what ``cv2.detail`` takes (an int16 (h, w, 3) array and a uint8 (h, w) mask)
+    or tensors already on the device: an integer-valued float (3, h, w) image and a (h, w) mask
+    (0..255), so that the warps need not come back to the host.  ``blend`` returns numpy arrays
+    as OpenCV does: the (H, W, 3) int16 image (zero where uncovered) and the (H, W) uint8 mask.
+    """
+
+    def __init__(self, num_bands: int, device: torch.device | str = "cpu"):
+        self.requested_bands = num_bands
+        self.device = torch.device(device)
+
+    def prepare(self, roi: tuple[int, int, int, int]) -> None:
+        x, y, w, h = (int(v) for v in roi)
+        self.final = (w, h)
+        # As OpenCV: no more bands than the canvas' longest side allows, and the canvas grown to
+        # a multiple of 2**bands so that every level is exactly half the one below.
+        self.bands = min(self.requested_bands, int(np.ceil(np.log(max(w, h)) / np.log(2.0))))
+        unit = 1 << self.bands
+        w, h = w + (unit - w % unit) % unit, h + (unit - h % unit) % unit
+        self.roi = (x, y, w, h)
+        self.images: list[Tensor] = []
+        self.weights: list[Tensor] = []
+        for _ in range(self.bands + 1):
+            self.images.append(torch.zeros(3, h, w, device=self.device))
+            self.weights.append(torch.zeros(h, w, device=self.device))
+            h, w = (h + 1) // 2, (w + 1) // 2
+
+    def _place(self, tl: tuple[int, int], size: tuple[int, int]) -> _Feed:
+        """OpenCV's feed(): the source rectangle grown by 3 * 2**bands on each side, clipped to
+        the canvas, its corner moved down onto the grid and its size up to the grid."""
+        X, Y, W, H = self.roi
+        unit = 1 << self.bands
+        gap = 3 * unit
+        x0, y0 = max(X, tl[0] - gap), max(Y, tl[1] - gap)
+        x1, y1 = min(X + W, tl[0] + size[0] + gap), min(Y + H, tl[1] + size[1] + gap)
+        x0, y0 = X + ((x0 - X) >> self.bands << self.bands), Y + ((y0 - Y) >> self.bands << self.bands)
+        width, height = x1 - x0, y1 - y0
+        x1 = x0 + width + (unit - width % unit) % unit
+        y1 = y0 + height + (unit - height % unit) % unit
+        dx, dy = max(x1 - (X + W), 0), max(y1 - (Y + H), 0)
+        x0, x1, y0, y1 = x0 - dx, x1 - dx, y0 - dy, y1 - dy
+        border = (tl[1] - y0, y1 - tl[1] - size[1], tl[0] - x0, x1 - tl[0] - size[0])
+        return _Feed((x0 - X, y0 - Y, x1 - X, y1 - Y), border)
+
+    def feed(self, image: np.ndarray | Tensor, mask: np.ndarray | Tensor, tl: tuple[int, int]) -> None:
+        """Add ``image`` ((h, w, 3) int16 array, or (3, h, w) integer-valued float tensor) and its
+        blend ``mask`` ((h, w), 0..255) with its top-left corner at canvas pixel ``tl``."""
+        img = _as_image(image, self.device)
+        weight = _as_mask(mask, self.device) * _INV_255
+        place = self._place((int(tl[0]), int(tl[1])), (img.shape[-1], img.shape[-2]))
+        top, bottom, left, right = place.border
+        bands = laplacian_pyramid(_pad(img, top, bottom, left, right, "reflect"), self.bands)
+        weight = _pad(weight, top, bottom, left, right, "constant")
+        x0, y0, x1, y1 = place.box
+        for level, band in enumerate(bands):
+            # OpenCV adds static_cast<short>(value * weight): truncated toward zero.
+            self.images[level][:, y0:y1, x0:x1] += torch.trunc(band * weight)
+            self.weights[level][y0:y1, x0:x1] += weight
+            if level < self.bands:
+                weight = pyr_down(weight, integer=False)
+            x0, y0, x1, y1 = x0 // 2, y0 // 2, x1 // 2, y1 // 2
+
+    def blend(self, dst: object = None, dst_mask: object = None) -> tuple[np.ndarray, np.ndarray]:
+        """The blended canvas: (H, W, 3) int16 (zero where uncovered) and its (H, W) uint8 mask
+        (255 where any weight reached).  ``dst``/``dst_mask``: ignored (cv2's signature)."""
+        image, covered = self.blend_tensors()
+        return image.permute(1, 2, 0).to(torch.int16).cpu().numpy(), covered.to(torch.uint8).mul_(255).cpu().numpy()
+
+    def blend_tensors(self) -> tuple[Tensor, Tensor]:
+        """:meth:`blend` on the device: the (3, H, W) integer-valued float image and the (H, W)
+        bool coverage.  The blender is spent afterwards."""
+        levels = [torch.trunc(image / (weight + _WEIGHT_EPS32)) for image, weight in zip(self.images, self.weights)]
+        w, h = self.final
+        image = collapse(levels)[:, :h, :w]
+        covered = self.weights[0][:h, :w] > WEIGHT_EPS
+        self.images, self.weights = [], []
+        return image * covered, covered
+
+
+def _as_image(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
+    if isinstance(image, Tensor):
+        return image.to(device=device, dtype=torch.float32)
+    return torch.from_numpy(np.ascontiguousarray(image)).to(device).permute(2, 0, 1).float()
+
+
+def _as_mask(mask: np.ndarray | Tensor, device: torch.device) -> Tensor:
+    if isinstance(mask, Tensor):
+        return mask.to(device=device, dtype=torch.float32)
+    return torch.from_numpy(np.ascontiguousarray(mask)).to(device).float()
+
+
+# --- the canvas warps -------------------------------------------------------------------------
+
+
+def perspective_coordinates(T: np.ndarray, size: tuple[int, int], device: torch.device) -> tuple[Tensor, Tensor]:
+    """Where ``cv2.warpPerspective(src, T, size)`` samples each output pixel: (H, W) source x and
+    y (float64, pixel centres at integers) for ``size`` = (W, H) and ``T`` (3, 3) source ->
+    output; computed in float64 as OpenCV does (canvas coordinates run to tens of thousands)."""
+    Ti = torch.as_tensor(np.linalg.inv(T), dtype=torch.float64, device=device)
+    w, h = size
+    gx = torch.arange(w, dtype=torch.float64, device=device)[None, :]
+    gy = torch.arange(h, dtype=torch.float64, device=device)[:, None]
+    z = Ti[2, 0] * gx + Ti[2, 1] * gy + Ti[2, 2]
+    z = torch.where(z == 0, torch.ones_like(z), z)  # OpenCV samples (0, 0) there; any finite point will do
+    return (Ti[0, 0] * gx + Ti[0, 1] * gy + Ti[0, 2]) / z, (Ti[1, 0] * gx + Ti[1, 1] * gy + Ti[1, 2]) / z
+
+
+def sample_linear(image: Tensor, x: Tensor, y: Tensor) -> Tensor:
+    """``cv2.remap(..., INTER_LINEAR, BORDER_REPLICATE)``: ``image`` (C, h, w) float sampled at
+    ``x``, ``y`` (H, W) -> (C, H, W) float32, not rounded.  OpenCV 5 interpolates uint8 in float,
+    its coordinates not quantised to 1/32 px (checked against cv2 5.0), as this does; replicating
+    the border is clamping each tap."""
+    C, h, w = image.shape
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = (x - x0).float(), (y - y0).float()
+    flat = image.reshape(C, h * w)
+
+    def tap(yy: Tensor, xx: Tensor) -> Tensor:
+        index = yy.clamp(0, h - 1).long() * w + xx.clamp(0, w - 1).long()
+        return flat[:, index.reshape(-1)].reshape(C, *index.shape)
+
+    top = tap(y0, x0) * (1 - fx) + tap(y0, x0 + 1) * fx
+    bottom = tap(y0 + 1, x0) * (1 - fx) + tap(y0 + 1, x0 + 1) * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def sample_nearest(mask: Tensor | None, size: tuple[int, int], x: Tensor, y: Tensor) -> Tensor:
+    """``cv2.remap(..., INTER_NEAREST, BORDER_CONSTANT, 0)`` of a uint8 ``mask`` (h, w) (None:
+    255 everywhere; ``size`` = (w, h)) at ``x``, ``y`` (H, W) -> (H, W) uint8: the nearest pixel,
+    halves rounded to even as OpenCV's cvRound, 0 outside."""
+    w, h = size
+    xi, yi = torch.round(x), torch.round(y)
+    inside = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
+    if mask is None:
+        return inside.to(torch.uint8) * 255
+    index = yi.clamp(0, h - 1).long() * w + xi.clamp(0, w - 1).long()
+    return torch.where(inside, mask.reshape(-1)[index], torch.zeros((), dtype=mask.dtype, device=mask.device))
+
+
+def resize_rows(small: Tensor, size: tuple[int, int], rows: tuple[int, int]) -> Tensor:
+    """Rows ``rows`` = (r0, r1) of ``cv2.resize(small, size, interpolation=INTER_LINEAR)`` for a
+    float ``small`` (h, w) and ``size`` = (W, H) -> (r1 - r0, W): half-pixel centres, the
+    source index clamped at the edges, as OpenCV's float path (within float rounding)."""
+    h, w = small.shape
+    W, H = size
+
+    def axis(n_in: int, n_out: int, start: int, stop: int) -> tuple[Tensor, Tensor, Tensor]:
+        f = (torch.arange(start, stop, dtype=torch.float64, device=small.device) + 0.5) * (n_in / n_out) - 0.5
+        i0 = torch.floor(f)
+        a = (f - i0).float()
+        below = i0 < 0
+        a = torch.where(below, torch.zeros_like(a), a)
+        i0 = torch.where(below, torch.zeros_like(i0), i0)
+        above = i0 >= n_in - 1
+        a = torch.where(above, torch.zeros_like(a), a)
+        i0 = i0.clamp(max=n_in - 1).long()
+        return i0, (i0 + 1).clamp(max=n_in - 1), a
+
+    y0, y1, ay = axis(h, H, *rows)
+    x0, x1, ax = axis(w, W, 0, W)
+    across = small[:, x0] * (1 - ax) + small[:, x1] * ax  # (h, W)
+    return across[y0] * (1 - ay[:, None]) + across[y1] * ay[:, None]
+
+
+class DeviceSource:
+    """One keyframe held on the device for compose's strips: its pixels as compose samples them
+    (``image`` (h, w, 3) uint8, already shrunk where the warp shrinks it), their ``coverage``
+    ((h, w) uint8, 255 = use; None: all), its ``seam`` mask at its canvas box's full size
+    ((H, W) uint8) and its exposure ``gain`` (None, a scalar or a block map over the box).
+    Uploaded once, however many strips it spans."""
+
+    def __init__(self, image: np.ndarray, coverage: np.ndarray | None, seam: np.ndarray, gain: np.ndarray | None,
+                 device: torch.device | str):
+        self.device = torch.device(device)
+        self.size = (image.shape[1], image.shape[0])
+        self.image = torch.from_numpy(np.ascontiguousarray(image)).to(self.device).permute(2, 0, 1).float().contiguous()
+        self.coverage = None if coverage is None else torch.from_numpy(np.ascontiguousarray(coverage)).to(self.device)
+        self.seam = torch.from_numpy(np.ascontiguousarray(seam)).to(self.device)
+        self.gain: float | Tensor | None = None
+        if gain is not None and gain.size == 1:
+            self.gain = float(gain.ravel()[0])
+        elif gain is not None:
+            self.gain = torch.as_tensor(np.asarray(gain, np.float32), device=self.device)
+
+    def part(self, rows: tuple[int, int], T: np.ndarray | None = None,
+             maps: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Tensor, Tensor]:
+        """Rows ``rows`` = (r0, r1) of its canvas box, as compose's ``_strip_part`` makes them:
+        the (3, r1 - r0, W) image (integer-valued float, 0..255), warped, rounded as a uint8
+        warp is, times the exposure gain and rounded again, and its (r1 - r0, W) blend mask
+        (uint8: the seam mask where the warp covers).  The warp is ``T`` (3, 3: pixels ->
+        the part's pixels) or, for a rolling shutter, the sampling maps (two (r1 - r0, W) arrays
+        of pixel coordinates, as ``cv2.remap`` takes)."""
+        r0, r1 = rows
+        W = self.seam.shape[1]
+        if maps is not None:
+            x = torch.from_numpy(np.ascontiguousarray(maps[0])).to(self.device)
+            y = torch.from_numpy(np.ascontiguousarray(maps[1])).to(self.device)
+        elif T is not None:
+            x, y = perspective_coordinates(T, (W, r1 - r0), self.device)
+        else:
+            raise ValueError("part() needs a homography or sampling maps")
+        warped = torch.round(sample_linear(self.image, x, y))  # what a uint8 warp holds
+        covered = sample_nearest(self.coverage, self.size, x, y)
+        if isinstance(self.gain, float):
+            warped = torch.round(warped * float(np.float32(self.gain))).clamp_(0, 255)
+        elif self.gain is not None:
+            full = resize_rows(self.gain, (W, self.seam.shape[0]), rows)
+            warped = torch.round(warped * full).clamp_(0, 255)
+        return warped, torch.bitwise_and(self.seam[r0:r1], covered)
+
+
+class Cv2Blender:
+    """A ``cv2.detail`` blender (feather, none) fed with :class:`DeviceSource` parts: each part
+    comes back to the host as the int16 (h, w, 3) image and uint8 mask OpenCV takes."""
+
+    def __init__(self, blender):
+        self.blender = blender
+
+    def feed(self, image: Tensor, mask: Tensor, tl: tuple[int, int]) -> None:
+        self.blender.feed(image.permute(1, 2, 0).to(torch.int16).cpu().numpy(), mask.cpu().numpy(), tl)
+
+    def blend(self, dst: object = None, dst_mask: object = None) -> tuple[np.ndarray, np.ndarray]:
+        return self.blender.blend(dst, dst_mask)
