@@ -2,8 +2,9 @@
 39 item 4) against OpenCV's, on torch's CPU device:
 
 - ``pyrDown``/``pyrUp`` of int16 images to the bit, of float weights within float rounding;
-- the blender against ``cv2.detail.MultiBandBlender`` on the same textured images and masks
-  (hard and soft edges, band counts 1-7, canvas rectangles at the origin and offset);
+- the blenders against ``cv2.detail.MultiBandBlender``, ``FeatherBlender`` and ``Blender`` on
+  the same textured images and masks (hard and soft edges, band counts 1-7, sharpnesses, canvas
+  rectangles at the origin and offset), and the feather's L1 distance transform;
 - compose's device warp of a strip against ``warp_into``/``_strip_part`` (shrunk sources, a
   use mask, a rolling shutter's row maps, exposure gains);
 - compose and a whole ``stitch`` of a simulated flight with ``ComposeOptions(torch_device="cpu")``
@@ -37,7 +38,7 @@ from mosaic_cli.stitch.compose import (
     bounding_roi,
     compose,
 )
-from mosaic_cli.stitch.device_blend import MultiBandBlender, pyr_down, pyr_up
+from mosaic_cli.stitch.device_blend import FeatherBlender, MultiBandBlender, PlainBlender, distance_l1, pyr_down, pyr_up
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -108,6 +109,34 @@ def test_multiband_blender_matches_opencv(ground, bands, roi, count):
     assert diff.mean() < 0.01 and np.percentile(diff, 99) <= 1 and diff.max() <= 2
 
 
+def test_l1_distance_is_opencv_s():
+    rng = np.random.default_rng(4)
+    mask = np.where(rng.random((60, 80)) < 0.01, 0, 255).astype(np.uint8)
+    mask[40:, :3] = 0
+    expected = cv2.distanceTransform(mask, cv2.DIST_L1, 3)
+    assert expected.max() > 5
+    assert np.array_equal(distance_l1(torch.from_numpy(mask)).numpy(), expected)
+    assert torch.isinf(distance_l1(torch.full((5, 7), 255, dtype=torch.uint8))).all()  # no zero: as far as can be
+
+
+@pytest.mark.parametrize("sharpness", [0.02, 0.1, 0.5])
+@pytest.mark.parametrize("roi,count", [((0, 0, 400, 300), 2), ((-40, 55, 350, 371), 4)])
+def test_feather_and_plain_blenders_match_opencv(ground, sharpness, roi, count):
+    blenders = [(cv2.detail.FeatherBlender(sharpness), FeatherBlender(sharpness)),
+                (cv2.detail.Blender_createDefault(cv2.detail.Blender_NO), PlainBlender())]
+    for expected_blender, blender in blenders:
+        expected_blender.prepare(roi)
+        blender.prepare(roi)
+        for image, mask, tl in _inputs(ground, roi, count, seed=count):
+            expected_blender.feed(image, mask, tl)
+            blender.feed(image, mask, tl)
+        expected, expected_mask = expected_blender.blend(None, None)
+        result, result_mask = blender.blend()
+        assert result.dtype == np.int16 and result.shape == expected.shape
+        assert np.array_equal(result_mask, expected_mask)  # the plain blender's soft mask values too
+        assert np.abs(result.astype(int) - expected.astype(int)).max() <= 1
+
+
 # --- compose's warps and compose itself ---------------------------------------------------------
 
 
@@ -157,7 +186,7 @@ def _tiles(ground: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return tiles
 
 
-@pytest.mark.parametrize("blend", ["multiband", "feather"])
+@pytest.mark.parametrize("blend", ["multiband", "feather", "none"])
 @pytest.mark.parametrize("strip", [100.0, 0.05])  # one strip; strips of ~70 rows
 def test_compose_on_torch_matches_opencv(ground, blend, strip):
     canvas = (700, 620)
@@ -211,12 +240,14 @@ def test_device_option_puts_compose_on_the_gpu_only(monkeypatch):
 @cuda
 def test_compose_on_the_gpu_is_the_cpu_torch_path(ground):
     canvas = (700, 620)
-    results = {}
-    for device in ("cpu", "cuda"):
-        placed = [PlacedImage(image.copy(), H) for image, H in _tiles(ground)]
-        results[device] = compose(placed, canvas, ComposeOptions(strip_megapix=0.05, torch_device=device)).astype(int)
-    assert np.array_equal(results["cuda"][..., 3], results["cpu"][..., 3])
-    assert np.abs(results["cuda"] - results["cpu"]).max() <= 1
+    for blend in ("multiband", "feather"):
+        results = {}
+        for device in ("cpu", "cuda"):
+            placed = [PlacedImage(image.copy(), H) for image, H in _tiles(ground)]
+            options = ComposeOptions(blend=blend, strip_megapix=0.05, torch_device=device)
+            results[device] = compose(placed, canvas, options).astype(int)
+        assert np.array_equal(results["cuda"][..., 3], results["cpu"][..., 3])
+        assert np.abs(results["cuda"] - results["cpu"]).max() <= 1
     roi = (13, 27, 431, 290)
     blenders = {device: MultiBandBlender(5, device) for device in ("cpu", "cuda")}
     for blender in blenders.values():

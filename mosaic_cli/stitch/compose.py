@@ -50,7 +50,7 @@ class ComposeOptions:
     # saw) up to this share of the covered area are inpainted; 0 leaves them transparent.
     fill_holes: float = 0.0
     # The torch device ("cuda", "cuda:1", "cpu") that warps the keyframes onto the canvas and
-    # blends them (multi-band: stitch/device_blend.py, OpenCV's blender step by step); seams and
+    # blends them (stitch/device_blend.py: OpenCV's blenders step by step); seams and
     # exposure stay on the CPU.  None: OpenCV on the CPU.  stitch sets it from --device when
     # that is a GPU; "cpu" runs the torch path on the CPU (tests).
     torch_device: str | None = None
@@ -338,16 +338,20 @@ class _BlendPlan:
     unit: int = 1  # strips start at multiples of this
 
     def make(self, roi: tuple[int, int, int, int], device=None):
-        """The blender of a strip ``roi``: OpenCV's, or with a torch ``device`` the multi-band
-        blender of device_blend.py (the others OpenCV's, fed from the device)."""
+        """The blender of a strip ``roi``: OpenCV's, or with a torch ``device`` its counterpart in
+        device_blend.py."""
         if device is not None:
             from mosaic_cli.stitch import device_blend
 
+            on_device: device_blend.MultiBandBlender | device_blend.FeatherBlender | device_blend.PlainBlender
             if self.kind == "multiband":
-                blender = device_blend.MultiBandBlender(self.bands, device)
-                blender.prepare(roi)
-                return blender
-            return device_blend.Cv2Blender(self.make(roi))
+                on_device = device_blend.MultiBandBlender(self.bands, device)
+            elif self.kind == "feather":
+                on_device = device_blend.FeatherBlender(1.0 / self.width, device)
+            else:
+                on_device = device_blend.PlainBlender(device)
+            on_device.prepare(roi)
+            return on_device
         if self.kind == "multiband":
             blender = cv2.detail.MultiBandBlender(0, self.bands)
         elif self.kind == "feather":

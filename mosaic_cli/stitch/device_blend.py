@@ -9,6 +9,9 @@ where OpenCV casts to ``short``.  The int16 pyramids are held as integer-valued 
 sum the 5-tap kernels make stays below 2^24, so float32 holds it exactly and the pyramids agree
 with OpenCV's to the bit; only the float weights' sums may differ in their last bits.
 
+:class:`FeatherBlender` and :class:`PlainBlender` are ``cv2.detail.FeatherBlender`` and
+``cv2.detail.Blender`` (``--blend feather`` and ``none``) likewise, to the bit.
+
 The warps sample as ``cv2.warpPerspective``/``cv2.remap`` with ``INTER_LINEAR`` and
 ``BORDER_REPLICATE`` (the image) and ``INTER_NEAREST`` with a zero border (its coverage mask).
 
@@ -192,8 +195,7 @@ class MultiBandBlender:
     def blend(self, dst: object = None, dst_mask: object = None) -> tuple[np.ndarray, np.ndarray]:
         """The blended canvas: (H, W, 3) int16 (zero where uncovered) and its (H, W) uint8 mask
         (255 where any weight reached).  ``dst``/``dst_mask``: ignored (cv2's signature)."""
-        image, covered = self.blend_tensors()
-        return image.permute(1, 2, 0).to(torch.int16).cpu().numpy(), covered.to(torch.uint8).mul_(255).cpu().numpy()
+        return _to_host(*self.blend_tensors())
 
     def blend_tensors(self) -> tuple[Tensor, Tensor]:
         """:meth:`blend` on the device: the (3, H, W) integer-valued float image and the (H, W)
@@ -204,6 +206,89 @@ class MultiBandBlender:
         covered = self.weights[0][:h, :w] > WEIGHT_EPS
         self.images, self.weights = [], []
         return image * covered, covered
+
+
+def distance_l1(mask: Tensor) -> Tensor:
+    """``cv2.distanceTransform(mask, DIST_L1, 3)``: each pixel's city-block distance (float32) to
+    the nearest zero of ``mask`` (..., H, W), inf where it has none (OpenCV: FLT_MAX); the
+    outside of the image is not zero.  Exact: the L1 distance is separable, and along one axis
+    min_j(|i - j| + g_j) is the smaller of two running minima, of g_j - j and of g_j + j."""
+    g = torch.where(mask == 0, 0.0, torch.inf).to(torch.float32)
+
+    def along(g: Tensor, dim: int) -> Tensor:
+        n = g.shape[dim]
+        shape = [1] * g.dim()
+        shape[dim] = n
+        i = torch.arange(n, dtype=g.dtype, device=g.device).reshape(shape)
+        before = torch.cummin(g - i, dim=dim).values + i
+        after = torch.cummin((g + i).flip(dim), dim=dim).values.flip(dim) - i
+        return torch.minimum(before, after)
+
+    return along(along(g, -1), -2)
+
+
+class FeatherBlender:
+    """``cv2.detail.FeatherBlender(sharpness)`` in torch on ``device``: each image weighted by its
+    mask's L1 distance to the mask's edge times ``sharpness``, at most 1; the same API as
+    :class:`MultiBandBlender`."""
+
+    def __init__(self, sharpness: float, device: torch.device | str = "cpu"):
+        self.sharpness = float(np.float32(sharpness))
+        self.device = torch.device(device)
+
+    def prepare(self, roi: tuple[int, int, int, int]) -> None:
+        x, y, w, h = (int(v) for v in roi)
+        self.roi = (x, y, w, h)
+        self.image = torch.zeros(3, h, w, device=self.device)
+        self.weight = torch.zeros(h, w, device=self.device)
+
+    def feed(self, image: np.ndarray | Tensor, mask: np.ndarray | Tensor, tl: tuple[int, int]) -> None:
+        """As :meth:`MultiBandBlender.feed`."""
+        img = _as_image(image, self.device)
+        weight = (distance_l1(_as_mask(mask, self.device)) * self.sharpness).clamp_(max=1.0)
+        x0, y0 = int(tl[0]) - self.roi[0], int(tl[1]) - self.roi[1]
+        h, w = weight.shape
+        self.image[:, y0:y0 + h, x0:x0 + w] += torch.trunc(img * weight)  # static_cast<short>, as OpenCV
+        self.weight[y0:y0 + h, x0:x0 + w] += weight
+
+    def blend(self, dst: object = None, dst_mask: object = None) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`MultiBandBlender.blend`."""
+        covered = self.weight > WEIGHT_EPS
+        image = torch.trunc(self.image / (self.weight + _WEIGHT_EPS32)) * covered
+        return _to_host(image, covered)
+
+
+class PlainBlender:
+    """``cv2.detail.Blender`` (``--blend none``) in torch: each pixel takes the last image fed
+    there with a non-zero mask, and its mask is every mask's there OR-ed bit by bit (soft masks
+    give soft alphas, as OpenCV's); the same API as :class:`MultiBandBlender`."""
+
+    def __init__(self, device: torch.device | str = "cpu"):
+        self.device = torch.device(device)
+
+    def prepare(self, roi: tuple[int, int, int, int]) -> None:
+        x, y, w, h = (int(v) for v in roi)
+        self.roi = (x, y, w, h)
+        self.image = torch.zeros(3, h, w, device=self.device)
+        self.mask = torch.zeros(h, w, dtype=torch.uint8, device=self.device)
+
+    def feed(self, image: np.ndarray | Tensor, mask: np.ndarray | Tensor, tl: tuple[int, int]) -> None:
+        """As :meth:`MultiBandBlender.feed`."""
+        img, bits = _as_image(image, self.device), _as_mask(mask, self.device).to(torch.uint8)
+        x0, y0 = int(tl[0]) - self.roi[0], int(tl[1]) - self.roi[1]
+        h, w = bits.shape
+        region = self.image[:, y0:y0 + h, x0:x0 + w]
+        region.copy_(torch.where(bits > 0, img, region))
+        self.mask[y0:y0 + h, x0:x0 + w] |= bits
+
+    def blend(self, dst: object = None, dst_mask: object = None) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`MultiBandBlender.blend`."""
+        return self.image.mul(self.mask > 0).permute(1, 2, 0).to(torch.int16).cpu().numpy(), self.mask.cpu().numpy()
+
+
+def _to_host(image: Tensor, covered: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """A blender's result as OpenCV returns it: (H, W, 3) int16 and (H, W) uint8 0/255."""
+    return image.permute(1, 2, 0).to(torch.int16).cpu().numpy(), covered.to(torch.uint8).mul_(255).cpu().numpy()
 
 
 def _as_image(image: np.ndarray | Tensor, device: torch.device) -> Tensor:
@@ -235,10 +320,10 @@ def perspective_coordinates(T: np.ndarray, size: tuple[int, int], device: torch.
 
 
 def sample_linear(image: Tensor, x: Tensor, y: Tensor) -> Tensor:
-    """``cv2.remap(..., INTER_LINEAR, BORDER_REPLICATE)``: ``image`` (C, h, w) float sampled at
-    ``x``, ``y`` (H, W) -> (C, H, W) float32, not rounded.  OpenCV 5 interpolates uint8 in float,
-    its coordinates not quantised to 1/32 px (checked against cv2 5.0), as this does; replicating
-    the border is clamping each tap."""
+    """``cv2.remap(..., INTER_LINEAR, BORDER_REPLICATE)``: ``image`` (C, h, w) uint8 or float
+    sampled at ``x``, ``y`` (H, W) -> (C, H, W) float32, not rounded.  OpenCV 5 interpolates uint8
+    in float, its coordinates not quantised to 1/32 px (checked against cv2 5.0), as this does;
+    replicating the border is clamping each tap."""
     C, h, w = image.shape
     x0, y0 = torch.floor(x), torch.floor(y)
     fx, fy = (x - x0).float(), (y - y0).float()
@@ -246,7 +331,7 @@ def sample_linear(image: Tensor, x: Tensor, y: Tensor) -> Tensor:
 
     def tap(yy: Tensor, xx: Tensor) -> Tensor:
         index = yy.clamp(0, h - 1).long() * w + xx.clamp(0, w - 1).long()
-        return flat[:, index.reshape(-1)].reshape(C, *index.shape)
+        return flat[:, index.reshape(-1)].reshape(C, *index.shape).float()
 
     top = tap(y0, x0) * (1 - fx) + tap(y0, x0 + 1) * fx
     bottom = tap(y0 + 1, x0) * (1 - fx) + tap(y0 + 1, x0 + 1) * fx
@@ -302,7 +387,8 @@ class DeviceSource:
                  device: torch.device | str):
         self.device = torch.device(device)
         self.size = (image.shape[1], image.shape[0])
-        self.image = torch.from_numpy(np.ascontiguousarray(image)).to(self.device).permute(2, 0, 1).float().contiguous()
+        # held as uint8 (a quarter of float's memory: a strip may reach many keyframes)
+        self.image = torch.from_numpy(np.ascontiguousarray(image)).to(self.device).permute(2, 0, 1).contiguous()
         self.coverage = None if coverage is None else torch.from_numpy(np.ascontiguousarray(coverage)).to(self.device)
         self.seam = torch.from_numpy(np.ascontiguousarray(seam)).to(self.device)
         self.gain: float | Tensor | None = None
@@ -336,17 +422,3 @@ class DeviceSource:
             full = resize_rows(self.gain, (W, self.seam.shape[0]), rows)
             warped = torch.round(warped * full).clamp_(0, 255)
         return warped, torch.bitwise_and(self.seam[r0:r1], covered)
-
-
-class Cv2Blender:
-    """A ``cv2.detail`` blender (feather, none) fed with :class:`DeviceSource` parts: each part
-    comes back to the host as the int16 (h, w, 3) image and uint8 mask OpenCV takes."""
-
-    def __init__(self, blender):
-        self.blender = blender
-
-    def feed(self, image: Tensor, mask: Tensor, tl: tuple[int, int]) -> None:
-        self.blender.feed(image.permute(1, 2, 0).to(torch.int16).cpu().numpy(), mask.cpu().numpy(), tl)
-
-    def blend(self, dst: object = None, dst_mask: object = None) -> tuple[np.ndarray, np.ndarray]:
-        return self.blender.blend(dst, dst_mask)
