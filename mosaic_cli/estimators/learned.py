@@ -30,6 +30,9 @@
     A chunk's frames are described and its pairs polished, checked and tried by the fallback on a
     pool of threads (``--threads``, default one a core; OpenCV lets go of the GIL); the carry, the
     gate and the prior then follow pair by pair, in order: the same estimates on any number.
+    On a GPU (or with ``polish-with=torch``) the chunk's cheap LK polish, its refit and the
+    correlation check first run batched on the device (:mod:`.batched`, OpenCV's arithmetic);
+    only the pairs it does not settle go to the pool, checked as above.
 
 Beside it: its options (:mod:`.learned_config`), the correlation checks (:mod:`.correlation`),
 where the shipped weights are (:mod:`.weights`) and the polish (:mod:`.refine`).
@@ -49,7 +52,7 @@ import torch
 
 from mosaic_cli.device import pair_threads, resolve_device, use_cpu_threads
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import LEARNED
+from mosaic_cli.estimators import LEARNED, batched
 from mosaic_cli.estimators.base import Estimator, PairEstimate
 from mosaic_cli.estimators.correlation import band_agreement, detail_level, detail_zncc, fine_detail
 from mosaic_cli.estimators.learned_config import PATCH_LAYOUTS, PRECISIONS, LearnedConfig
@@ -161,6 +164,9 @@ class LearnedEstimator(Estimator):
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
         self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
+        # The chunk's LK polish and check batched on the device (polish-with; see _finish_batched).
+        on = self.config.polish_with
+        self._batched = self.config.refine == "lk" and (on == "torch" or (on == "auto" and self.device.type == "cuda"))
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
         self._state: tuple[torch.Tensor, ...] | None = None  # the sequence head's state between chunks
@@ -195,6 +201,7 @@ class LearnedEstimator(Estimator):
         self._carried_run = 0  # pairs carried in a row
         self.path_counts = dict.fromkeys(PATHS, 0)
         self._zncc_use: np.ndarray | None = None  # the usable-pixel image (work size) of _valid_pixels, made at the first pair
+        self._batch_masks_t: tuple | None = None  # _batch_masks' tensors, made at the first batched chunk
         self._workers = self.threads if self.threads is not None else pair_threads()
         if self._workers < 1:
             raise ValueError(f"threads must be at least 1, got {self._workers}")
@@ -250,12 +257,79 @@ class LearnedEstimator(Estimator):
             return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
         seeds, offsets_ok, agreement = self._seeds(frames)
         described()
+        if self._batched:
+            return self._finish_batched(pairs, seeds, offsets_ok, agreement, pool)
         if pool is None:  # one thread: each pair finished in turn
             return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
         self._valid_pixels()  # made once, before the threads read it
         checks = pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), range(len(pairs)))
         # map yields in the pairs' order: each decided once those before it are
         return [self._decide(prev, cur, seeds[k], agreement[k], check) for k, ((prev, cur), check) in enumerate(zip(pairs, checks))]
+
+    def _finish_batched(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
+                        agreement: np.ndarray, pool: ThreadPoolExecutor | None) -> list[PairEstimate]:
+        """The chunk's pairs with the polish and check batched on the device (:meth:`_batch_checks`);
+        the pairs it does not settle are checked by :meth:`_check` as without it, on the pool."""
+        settled = self._batch_checks(pairs, seeds, offsets_ok)
+        todo = [k for k, check in enumerate(settled) if check is None]
+        if pool is None:
+            checked = {k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])) for k in todo}
+        else:
+            self._valid_pixels()  # made once, before the threads read it
+            checked = dict(zip(todo, pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), todo)))
+        checks = [check if check is not None else checked[k] for k, check in enumerate(settled)]
+        return [self._decide(prev, cur, seeds[k], agreement[k], checks[k]) for k, (prev, cur) in enumerate(pairs)]
+
+    def _batch_checks(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray,
+                      offsets_ok: np.ndarray) -> list[PairCheck | None]:
+        """The checks of the pairs the batched polish settles (:mod:`.batched`): the cheap LK polish
+        of every plausible pair of textured frames, its refit and the correlation of the detail it
+        registers, in one batch on the device and one copy back; a pair settles when the refit
+        holds (enough inliers, close to the seed, plausible: :func:`.batched.settled`) and
+        its detail correlates, as :meth:`_check` settles it without the wide polish or the
+        fallback.  None for the others."""
+        c = self.config
+        checks: list[PairCheck | None] = [None] * len(pairs)
+        todo = [k for k, (prev, cur) in enumerate(pairs) if prev.textured and cur.textured and bool(offsets_ok[k])
+                and is_valid(seeds[k], self.work_size, max_area_ratio=c.max_area_ratio)]
+        if not todo:
+            return checks
+        dev = self.device
+        firsts, seconds = [pairs[k][0] for k in todo], [pairs[k][1] for k in todo]
+        tracked = [f.points for f in firsts]  # a textured frame has its corners (refine=lk)
+        counts = [0 if p is None else len(p) for p in tracked]
+        points = np.zeros((len(todo), max(counts), 2), np.float32)
+        for i, p in enumerate(tracked):
+            points[i, : counts[i]] = p
+
+        def stack(images: list) -> torch.Tensor:
+            return torch.from_numpy(np.stack(images)).to(dev, non_blocking=True)
+
+        allowed, usable, mask = self._batch_masks()
+        result = batched.polish(stack([f.aligned for f in firsts]), stack([f.aligned for f in seconds]),
+                                torch.from_numpy(seeds[todo]).to(dev), torch.from_numpy(points).to(dev),
+                                torch.as_tensor(counts, device=dev), c.polish, allowed)
+        zncc = batched.detail_zncc(batched.fine_detail(stack([f.gray for f in firsts])), batched.fine_detail(stack([f.gray for f in seconds])),
+                                   result.H, self._positions_t, self.patch, usable, mask)
+        back = torch.cat([result.H.flatten(1), result.found[:, None].double(), result.inliers[:, None].double(), zncc[:, None]], 1).cpu().numpy()
+        for i, k in enumerate(todo):
+            H, found, inliers, score = back[i, :9].reshape(3, 3), back[i, 9] > 0, back[i, 10], float(back[i, 11])
+            if not found or (c.min_zncc is not None and score < c.min_zncc):
+                continue
+            checks[k] = PairCheck(True, Polish(H, True, float(inliers) / counts[i]), score, True, None)
+        return checks
+
+    def _batch_masks(self) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor | None]:
+        """On the device, once a video: the pixels a cheap polish's track may touch (the mask eroded
+        by its window's half; None: all), the usable pixels of the correlation check, the mask."""
+        if self._batch_masks_t is None:
+            use = torch.from_numpy(self._valid_pixels()).to(self.device)
+            if self.work_mask is None:
+                self._batch_masks_t = (None, use, None)
+            else:
+                eroded = erode_mask(self.work_mask, self.config.polish.window // 2 + 1)
+                self._batch_masks_t = (torch.from_numpy(eroded).to(self.device), use, torch.from_numpy(self.work_mask).to(self.device))
+        return self._batch_masks_t
 
     def _seeds(self, frames: list[WorkFrame]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each pair's starting estimate (n, 3, 3), whether the network's offsets were finite, and

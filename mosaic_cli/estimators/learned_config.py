@@ -20,6 +20,7 @@ Seed = Literal["network", "identity", "velocity"]
 Prior = Literal["velocity", "none"]
 Fallback = Literal["orb", "none"]
 Carry = Literal["network", "velocity", "none"]
+PolishWith = Literal["auto", "opencv", "torch"]
 PATCH_LAYOUTS: tuple[PatchLayout, ...] = get_args(PatchLayout)
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
 
@@ -48,6 +49,13 @@ class LearnedConfig:
     polish: PolishConfig = field(default_factory=lambda: PolishConfig(window=11, levels=1, max_shift=3.0))
     polish_wide: PolishConfig | None = field(
         default_factory=lambda: PolishConfig(window=31, levels=4, max_shift=20.0, threshold=1.5))
+    # Where a chunk's pairs are polished and checked: "opencv" one pair at a time on the pool of
+    # threads; "torch" the whole chunk at once on the estimator's device (the LK polish, its
+    # refit and the correlation check: mosaic_cli.estimators.batched), the pairs it does not
+    # settle (no refit, too few inliers, a divergence, detail that does not correlate) then
+    # finished by OpenCV as with "opencv"; "auto": torch on a GPU, OpenCV on a CPU.  Only the
+    # LK polish (refine=lk) is batched, and not with seed=velocity (each pair seeds the next).
+    polish_with: PolishWith = option("auto")
     retry: Retry = option("wide")  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
