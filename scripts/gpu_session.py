@@ -188,9 +188,14 @@ def make_data(s: Session) -> str:
     return f"{len(done)} flights, {frames} frames rendered on {workers} processes"
 
 
+# The files whose CUDA-marked tests compare the device's work with the CPU's: the estimator and
+# training (test_cuda), the render's warps (test_device_warp), stitch's warps and blend (test_stitch_device).
+CUDA_TESTS = ("tests/test_cuda.py", "tests/test_device_warp.py", "tests/test_stitch_device.py")
+
+
 def cuda_tests(s: Session) -> str:
     xml = s.out / "tests.xml"
-    proc = s.run(sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", "tests/test_cuda.py",
+    proc = s.run(sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-p", "no:cacheprovider", *CUDA_TESTS,
                  f"--junitxml={xml}", timeout=max(60.0, 0.25 * s.left()), check=False)
     last = (proc.stdout.strip().splitlines() or ["no output"])[-1]
     if proc.returncode not in (0, 5):
@@ -552,9 +557,9 @@ def main(argv: list[str] | None = None) -> int:
     s.stage("env", lambda: environment(s))
     if args.stages in ("throughput", "all"):  # first: its figures are the ones only this machine gives
         s.stage("throughput", lambda: throughput(s))
+    s.stage("tests", lambda: cuda_tests(s))  # the device's work against the CPU's, whichever stages run
     if args.stages in ("training", "all"):
         s.stage("data", lambda: make_data(s))
-        s.stage("tests", lambda: cuda_tests(s))
         s.stage("bench", lambda: bench(s))
         rates = s.stage("speed", lambda: speed(s))
         s.stage("train", lambda: train(s, rates if isinstance(rates, dict) else None))

@@ -123,7 +123,10 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
                            "--out", str(out), "--work", str(tmp_path / "work"), "--minutes", "4"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert sorted(p.name for p in out.iterdir()) == ["gpu_throughput.json", "logs.tar.gz", "session.log"]
+    assert sorted(p.name for p in out.iterdir()) == ["gpu_throughput.json", "logs.tar.gz", "session.log", "tests.xml"]
+    cases = ET.parse(out / "tests.xml").getroot().findall(".//testcase")  # the device's warps and blend against the CPU's
+    assert {c.get("classname").rsplit(".", 1)[-1] for c in cases} >= {"test_device_warp", "test_stitch_device"}
+    assert all(c.find("skipped") is not None for c in cases)
     with tarfile.open(out / "logs.tar.gz") as tar:  # each thread's time in the default track and stabilize, at both sizes
         profiles = {m.name: tar.extractfile(m).read().decode() for m in tar.getmembers() if m.name.startswith("profile_")}
     assert sorted(profiles) == [f"profile_{c}_{s}_cpu.txt" for c in ("stabilize", "track") for s in ("160x96", "320x192")]
