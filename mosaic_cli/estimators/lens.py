@@ -3,7 +3,7 @@
 ``auto`` fits a radial lens to the video itself.  A homography maps one pinhole view of flat
 ground onto another exactly; through a lens it cannot, and the misfit grows toward the corners
 and with the motion between the two frames.  So: frames sampled across the video (decoded small,
-once), sub-pixel matches between samples 1, 2, 4 and 8 apart (pairs that moved by 3-60% of the
+once), sub-pixel matches between samples 1, 2, 4 and 8 apart (pairs that moved by 1-60% of the
 width, at most :data:`MAX_PAIRS`), and the lens whose undistortion lets each pair's homography fit
 its matches best (:func:`_residual`: the mean error, measured back in the distorted frame).  The
 search: one coefficient of the division model (:func:`~mosaic_cli.geometry.lens.division_lens`,
@@ -44,6 +44,10 @@ LAMBDA_RANGE = (-0.7, 0.3)  # the search: a strong fisheye (corners 3.3x further
 LAMBDA2_RANGE = (-0.4, 0.4)  # the second coefficient's (the corners' bend)
 K_RANGE, K2_RANGE = (-0.6, 0.6), (-0.4, 0.4)  # OpenCV's k1, k2 (unit: the half diagonal)
 MAX_PAIRS, MAX_MATCHES = 40, 300  # the fit's sample
+# A pair's median shift at least this share of the width.  A hovering, shaky camera moves a few
+# pixels between samples; at 3% a shaky fisheye flight of 90 frames gave no pair at all (and was
+# left distorted), at 1% 36 pairs and the lens (docs/guide/stabilize.md).
+MIN_SHIFT = 0.01
 
 
 @dataclass
@@ -197,7 +201,7 @@ def _thinned(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarra
 
 
 def _matched_pairs(frames: list[np.ndarray], width: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """ORB matches (a (M, 2), b (M, 2)) between samples ``GAPS`` apart that moved 3-60% of the
+    """ORB matches (a (M, 2), b (M, 2)) between samples ``GAPS`` apart that moved 1-60% of the
     width, gross outliers dropped by a loose homography (a lens's misfit is well under its
     threshold, a wrong match is not).  The candidates are tried in an order spread over the
     video and the gaps, until :data:`MAX_PAIRS` pairs are found (matching is most of ``auto``'s
@@ -227,7 +231,7 @@ def _matched_pairs(frames: list[np.ndarray], width: int) -> list[tuple[np.ndarra
             continue
         keep = inl.ravel().astype(bool)
         shift = float(np.median(np.linalg.norm(a[keep] - b[keep], axis=1)))
-        if not 0.03 * width <= shift <= 0.6 * width:
+        if not MIN_SHIFT * width <= shift <= 0.6 * width:
             continue
         # ORB's keypoints sit on its pyramid's coarse grid: the lens's misfit (a fraction of
         # a pixel away from the corners) needs sub-pixel matches, which LK gives, started
