@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from conftest import textured_image
-from mosaic_cli.geometry.warp import remap, warp_perspective, warp_yuv420
+from mosaic_cli.geometry.warp import border_index, perspective_maps, remap, remap_nearest, warp_perspective, warp_yuv420
 from mosaic_cli.stabilize.device_render import DeviceWarper
 from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, warp_frame, warp_yuv
 from mosaic_cli.stabilize.rolling import RollingCorrection
@@ -145,13 +145,19 @@ def test_warp_perspective_batch_and_channels():
         assert np.all(got[b].permute(1, 2, 0).numpy()[outside] == np.array(value, np.uint8))
 
 
+def _wobble_maps() -> tuple[np.ndarray, np.ndarray]:
+    """Smooth float32 maps with a row-by-row wobble (as the rolling shutter's), partly off the image."""
+    xs, ys = np.meshgrid(np.arange(DST[0], dtype=np.float32), np.arange(DST[1], dtype=np.float32))
+    map_x = (1.08 * xs - 0.06 * ys - 7.3 + 2.5 * np.sin(ys / 9.0)).astype(np.float32)
+    map_y = (0.95 * ys + 0.04 * xs - 3.9 + 0.8 * np.cos(ys / 7.0)).astype(np.float32)
+    return map_x, map_y
+
+
 @exact_opencv
 @pytest.mark.parametrize("border", list(CV_BORDERS))
 def test_remap_matches_opencv(border):
     """Smooth maps with a row-by-row wobble (as the rolling shutter's), partly off the image."""
-    xs, ys = np.meshgrid(np.arange(DST[0], dtype=np.float32), np.arange(DST[1], dtype=np.float32))
-    map_x = (1.08 * xs - 0.06 * ys - 7.3 + 2.5 * np.sin(ys / 9.0)).astype(np.float32)
-    map_y = (0.95 * ys + 0.04 * xs - 3.9 + 0.8 * np.cos(ys / 7.0)).astype(np.float32)
+    map_x, map_y = _wobble_maps()
     for image in (*IMAGES.values(), IMAGES["noise"].astype(np.float32)):
         want = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=CV_BORDERS[border], borderValue=VALUE)
         got = remap(torch.from_numpy(image)[None, None], torch.from_numpy(map_x)[None], torch.from_numpy(map_y)[None], border, VALUE)[0, 0].numpy()  # type: ignore[arg-type]
@@ -162,6 +168,63 @@ def test_remap_matches_opencv(border):
     assert outside.any()
     if border == "constant":
         assert np.all(got[outside] == VALUE)
+
+
+@pytest.mark.parametrize("border", list(CV_BORDERS))
+def test_remap_nearest_is_opencv_s(border):
+    """remap_nearest against cv2.remap(INTER_NEAREST), to the pixel: the wobbling maps, maps on
+    exact half pixels (OpenCV rounds them half to even) and far off the image; three channels
+    with a value each, one pair of maps for two images."""
+    xs, ys = np.meshgrid(np.arange(DST[0], dtype=np.float32), np.arange(DST[1], dtype=np.float32))
+    halves = (xs * 1.5 - 20.5, ys / 2 - 3)  # x.5 and y.5 throughout, some of them off the image
+    far = (xs * 40 - 3000, ys * 30 - 1900)
+    rgb = textured_image(*SRC, seed=5)
+    images = np.stack([rgb, np.roll(rgb, 17, axis=1)])
+    value = (10.0, 200.0, 77.0)
+    for map_x, map_y in (_wobble_maps(), halves, far):
+        assert ((map_x < -0.5) | (map_x > SRC[0] - 0.5)).any()
+        got = remap_nearest(torch.from_numpy(images).permute(0, 3, 1, 2), torch.from_numpy(map_x)[None], torch.from_numpy(map_y)[None], border, value)
+        assert got.dtype == torch.uint8 and got.shape == (2, 3, DST[1], DST[0])
+        for b in range(2):
+            want = cv2.remap(images[b], map_x, map_y, cv2.INTER_NEAREST, borderMode=CV_BORDERS[border], borderValue=value)
+            assert np.array_equal(got[b].permute(1, 2, 0).numpy(), want)
+    # float images and a single value; non-finite coordinates read as outside
+    image = IMAGES["noise"].astype(np.float32)
+    map_x, map_y = _wobble_maps()
+    map_x[0, :3] = (np.nan, np.inf, -np.inf)
+    got = remap_nearest(torch.from_numpy(image)[None, None], torch.from_numpy(map_x)[None], torch.from_numpy(map_y)[None], border, VALUE)[0, 0].numpy()
+    want = cv2.remap(image, map_x, map_y, cv2.INTER_NEAREST, borderMode=CV_BORDERS[border], borderValue=VALUE)
+    assert np.array_equal(got[1:], want[1:]) and np.array_equal(got[0, 3:], want[0, 3:])
+    if border == "constant":
+        assert np.all(got[0, :3] == VALUE)
+
+
+@pytest.mark.parametrize("name", list(WARPS))
+def test_remap_nearest_of_perspective_maps_is_warp_perspective_nearest(name):
+    """remap_nearest at perspective_maps' float64 coordinates against
+    cv2.warpPerspective(INTER_NEAREST): the same pixels, the border's value outside."""
+    M = WARPS[name]
+    x, y = perspective_maps(torch.from_numpy(M)[None], DST, torch.float64)
+    assert x.dtype == torch.float64 and x.shape == (1, DST[1], DST[0])
+    for image in IMAGES.values():
+        want = cv2.warpPerspective(image, M, DST, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=VALUE)
+        got = remap_nearest(torch.from_numpy(image)[None, None], x, y, "constant", VALUE)[0, 0].numpy()
+        assert np.array_equal(got, want)
+    # the float64 maps are the float32 ones, made exact
+    x32, y32 = perspective_maps(torch.from_numpy(M)[None], DST)
+    assert x32.dtype == torch.float32 and (x - x32).abs().max() < 1e-4 and (y - y32).abs().max() < 1e-4
+
+
+def test_border_index_is_opencv_s():
+    """border_index against cv2.copyMakeBorder of a row of indices, any pad, n from 1."""
+    modes = {"replicate": cv2.BORDER_REPLICATE, "reflect": cv2.BORDER_REFLECT, "reflect101": cv2.BORDER_REFLECT_101}
+    for n in (1, 2, 3, 7):
+        row = np.arange(n, dtype=np.int32)[None]
+        for mode, cv_mode in modes.items():
+            pad = 3 * n + 2
+            want = cv2.copyMakeBorder(row, 0, 0, pad, pad, cv_mode)[0]
+            got = border_index(torch.arange(-pad, n + pad), n, mode)  # type: ignore[arg-type]
+            assert np.array_equal(got.numpy(), want), (n, mode)
 
 
 def test_shapes_are_checked():

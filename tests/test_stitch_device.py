@@ -72,6 +72,17 @@ def _inputs(ground: np.ndarray, roi: tuple[int, int, int, int], count: int, seed
     return out
 
 
+def _blends(blenders: list, roi: tuple[int, int, int, int], inputs: list) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each of ``blenders`` prepared on ``roi``, fed the same ``inputs`` (:func:`_inputs`) in the
+    same order, and blended: its (image, mask)."""
+    for blender in blenders:
+        blender.prepare(roi)
+    for image, mask, tl in inputs:
+        for blender in blenders:
+            blender.feed(image, mask, tl)
+    return [blender.blend(None, None) for blender in blenders]
+
+
 # --- pyramids and the blender against OpenCV --------------------------------------------------
 
 
@@ -93,15 +104,8 @@ def test_pyramid_steps_are_opencv_s(size):
 @pytest.mark.parametrize("bands", [1, 3, 5, 7])
 @pytest.mark.parametrize("roi,count", [((0, 0, 400, 300), 2), ((13, 27, 431, 290), 3), ((-40, 55, 350, 371), 4)])
 def test_multiband_blender_matches_opencv(ground, bands, roi, count):
-    expected_blender = cv2.detail.MultiBandBlender(0, bands)
-    blender = MultiBandBlender(bands)
-    expected_blender.prepare(roi)
-    blender.prepare(roi)
-    for image, mask, tl in _inputs(ground, roi, count, seed=bands + count):
-        expected_blender.feed(image, mask, tl)
-        blender.feed(image, mask, tl)
-    expected, expected_mask = expected_blender.blend(None, None)
-    result, result_mask = blender.blend()
+    blenders = [cv2.detail.MultiBandBlender(0, bands), MultiBandBlender(bands)]
+    (expected, expected_mask), (result, result_mask) = _blends(blenders, roi, _inputs(ground, roi, count, seed=bands + count))
     assert result.dtype == np.int16 and result.shape == expected.shape == (roi[3], roi[2], 3)
     assert np.array_equal(result_mask, expected_mask)
     assert 0 < (expected_mask > 0).mean() < 1
@@ -124,14 +128,8 @@ def test_l1_distance_is_opencv_s():
 def test_feather_and_plain_blenders_match_opencv(ground, sharpness, roi, count):
     blenders = [(cv2.detail.FeatherBlender(sharpness), FeatherBlender(sharpness)),
                 (cv2.detail.Blender_createDefault(cv2.detail.Blender_NO), PlainBlender())]
-    for expected_blender, blender in blenders:
-        expected_blender.prepare(roi)
-        blender.prepare(roi)
-        for image, mask, tl in _inputs(ground, roi, count, seed=count):
-            expected_blender.feed(image, mask, tl)
-            blender.feed(image, mask, tl)
-        expected, expected_mask = expected_blender.blend(None, None)
-        result, result_mask = blender.blend()
+    for pair in blenders:
+        (expected, expected_mask), (result, result_mask) = _blends(list(pair), roi, _inputs(ground, roi, count, seed=count))
         assert result.dtype == np.int16 and result.shape == expected.shape
         assert np.array_equal(result_mask, expected_mask)  # the plain blender's soft mask values too
         assert np.abs(result.astype(int) - expected.astype(int)).max() <= 1
@@ -249,10 +247,5 @@ def test_compose_on_the_gpu_is_the_cpu_torch_path(ground):
         assert np.array_equal(results["cuda"][..., 3], results["cpu"][..., 3])
         assert np.abs(results["cuda"] - results["cpu"]).max() <= 1
     roi = (13, 27, 431, 290)
-    blenders = {device: MultiBandBlender(5, device) for device in ("cpu", "cuda")}
-    for blender in blenders.values():
-        blender.prepare(roi)
-        for image, mask, tl in _inputs(ground, roi, 3, seed=9):
-            blender.feed(image, mask, tl)
-    (a, a_mask), (b, b_mask) = (blenders[d].blend() for d in ("cpu", "cuda"))
+    (a, a_mask), (b, b_mask) = _blends([MultiBandBlender(5, device) for device in ("cpu", "cuda")], roi, _inputs(ground, roi, 3, seed=9))
     assert np.array_equal(a_mask, b_mask) and np.abs(a.astype(int) - b.astype(int)).max() <= 1

@@ -15,6 +15,7 @@ Conventions (those of :mod:`mosaic_cli.geometry`):
 Sampling is bilinear at the exact float coordinate and uint8 results are rounded half to even,
 as OpenCV's warps and remap do since their SIMD rewrite (4.11; earlier ones rounded the
 coordinate to 1/32 px, a difference of several levels on pixel-scale texture).
+:func:`remap_nearest` is ``INTER_NEAREST``: the pixel at the coordinate rounded half to even.
 
 Not imported by ``mosaic_cli.geometry`` (it needs torch): ``from mosaic_cli.geometry import warp``.
 """
@@ -52,6 +53,31 @@ def _check_border(border: str) -> None:
         raise ValueError(f"border must be one of {', '.join(BORDERS)}, got {border!r}")
 
 
+def _check_maps(map_x: Tensor, map_y: Tensor, batch: int) -> None:
+    if map_x.dim() != 3 or map_x.shape != map_y.shape:
+        raise ValueError(f"map_x and map_y must have the same shape (B, H_out, W_out), got {tuple(map_x.shape)} and {tuple(map_y.shape)}")
+    if map_x.shape[0] not in (1, batch):
+        raise ValueError(f"the maps' batch ({map_x.shape[0]}) must be 1 or the images' ({batch})")
+
+
+def border_index(index: Tensor, n: int, border: Literal["replicate", "reflect", "reflect101"]) -> Tensor:
+    """OpenCV's ``borderInterpolate`` of each of ``index`` (any shape, integer) on an axis of ``n``
+    >= 1 pixels: ``replicate`` (aaa|abc|ccc), ``reflect`` (BORDER_REFLECT, cba|abc|cba) or
+    ``reflect101`` (BORDER_REFLECT_101, cb|abc|ba, what ``pyrDown``/``pyrUp`` pad with); any
+    distance outside.  Returns indices in 0..n-1, the same shape."""
+    if n == 1 or border == "replicate":
+        return index.clamp(0, n - 1)
+    if border == "reflect":
+        period = 2 * n
+        index = index.remainder(period)
+        return torch.where(index >= n, period - 1 - index, index)
+    if border == "reflect101":
+        period = 2 * n - 2
+        index = index.remainder(period)
+        return torch.where(index >= n, period - index, index)
+    raise ValueError(f"unknown border {border!r}")
+
+
 def _values(value: float | Sequence[float] | Tensor, channels: int, dtype: torch.dtype, device: torch.device) -> Tensor | float:
     """The border value: a number, or (1, C, 1, 1) one per channel.  Numbers are filled in on the
     device, never copied from pageable host memory (a copy that would make a CUDA stream wait)."""
@@ -82,11 +108,8 @@ def remap(images: Tensor, map_x: Tensor, map_y: Tensor, border: Border = "consta
     even and saturated).  Non-finite coordinates read as far outside the image."""
     _check_images(images)
     _check_border(border)
-    if map_x.dim() != 3 or map_x.shape != map_y.shape:
-        raise ValueError(f"map_x and map_y must have the same shape (B, H_out, W_out), got {tuple(map_x.shape)} and {tuple(map_y.shape)}")
+    _check_maps(map_x, map_y, images.shape[0])
     B, C, h, w = images.shape
-    if map_x.shape[0] not in (1, B):
-        raise ValueError(f"the maps' batch ({map_x.shape[0]}) must be 1 or the images' ({B})")
     work = images.dtype if images.dtype in (torch.float32, torch.float64) else torch.float32
     src = images.to(work)
     if border == "constant":
@@ -103,6 +126,41 @@ def remap(images: Tensor, map_x: Tensor, map_y: Tensor, border: Border = "consta
     return out.to(images.dtype)
 
 
+def remap_nearest(images: Tensor, map_x: Tensor, map_y: Tensor, border: Border = "constant",
+                  value: float | Sequence[float] | Tensor = 0.0) -> Tensor:
+    """``cv2.remap(..., INTER_NEAREST)`` with float maps: output pixel (i, j) of image b is the
+    pixel of ``images`` nearest (``map_x[b, i, j]``, ``map_y[b, i, j]``), the coordinate rounded
+    half to even as OpenCV's ``cvRound``, in the maps' own dtype (float64 maps stay exact); a
+    pixel outside the image reads the border (``value`` for ``"constant"``).
+
+    images (B, C, h, w) of any dtype (an expanded, zero-stride tensor is read as it is: a
+    constant image costs no memory); map_x, map_y (B, H_out, W_out) float (a batch of 1
+    broadcasts).  Returns (B, C, H_out, W_out) in ``images``' dtype, a uint8 ``value`` rounded
+    and saturated.  Non-finite coordinates read as outside the image."""
+    if images.dim() != 4:
+        raise ValueError(f"images must have shape (B, C, h, w), got {tuple(images.shape)}")
+    _check_border(border)
+    _check_maps(map_x, map_y, images.shape[0])
+    B, C, h, w = images.shape
+    # One pixel outside is as outside as any for the constant and replicate borders; bounding
+    # the coordinate keeps it an integer.  Reflection folds any finite one.
+    far = 1e6 if border == "reflect" else 1.0
+    xi, yi = (torch.round(torch.nan_to_num(c, nan=-far, posinf=n - 1 + far, neginf=-far).clamp(-far, n - 1 + far)).long()
+              for c, n in ((map_x, w), (map_y, h)))
+    fold: Literal["replicate", "reflect"] = "reflect" if border == "reflect" else "replicate"
+    batch = torch.arange(B, device=images.device).view(B, 1, 1)
+    out = images[batch, :, border_index(yi, h, fold), border_index(xi, w, fold)].permute(0, 3, 1, 2)  # gathered as (B, H_out, W_out, C)
+    if border != "constant":
+        return out
+    inside = ((xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)).unsqueeze(1)
+    fill = _values(value, C, torch.float64, images.device)
+    if not isinstance(fill, Tensor):
+        fill = torch.full((1, 1, 1, 1), fill, dtype=torch.float64, device=images.device)  # filled on the device
+    if images.dtype == torch.uint8:
+        fill = fill.round().clamp(0, 255)
+    return torch.where(inside, out, fill.to(images.dtype))
+
+
 def _normalized(coord: Tensor, size: int, border: str) -> Tensor:
     """Pixel coordinates along an axis of ``size`` pixels as grid_sample's (align_corners=False)."""
     # A coordinate far outside reads as well as one just outside (all four taps out) for the
@@ -113,18 +171,20 @@ def _normalized(coord: Tensor, size: int, border: str) -> Tensor:
     return coord * (2.0 / size) + (1.0 / size - 1.0)
 
 
-def perspective_maps(H: Tensor, dsize: tuple[int, int]) -> tuple[Tensor, Tensor]:
+def perspective_maps(H: Tensor, dsize: tuple[int, int], dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
     """Where each output pixel samples its source: ``H^-1`` of the output pixel centres.
 
     H (B, 3, 3) source -> destination; dsize (W_out, H_out).  Returns map_x, map_y
-    (B, H_out, W_out) float32.  The inverse is taken in float64 (as OpenCV does), without the
-    error check that would make a GPU wait; a singular ``H`` gives non-finite maps."""
+    (B, H_out, W_out) in ``dtype``: float64 keeps them exact where the outputs run to tens of
+    thousands of pixels (a stitch's canvas: float32 maps are off there by a few thousandths of a
+    pixel).  The inverse is taken in float64 (as OpenCV does), without the error check that
+    would make a GPU wait; a singular ``H`` gives non-finite maps."""
     if H.dim() != 3 or tuple(H.shape[-2:]) != (3, 3):
         raise ValueError(f"H must have shape (B, 3, 3), got {tuple(H.shape)}")
-    Hi = torch.linalg.inv_ex(H.to(torch.float64)).inverse.to(torch.float32)
+    Hi = torch.linalg.inv_ex(H.to(torch.float64)).inverse.to(dtype)
     W_out, H_out = dsize
-    xs = torch.arange(W_out, dtype=torch.float32, device=H.device).view(1, 1, W_out)
-    ys = torch.arange(H_out, dtype=torch.float32, device=H.device).view(1, H_out, 1)
+    xs = torch.arange(W_out, dtype=dtype, device=H.device).view(1, 1, W_out)
+    ys = torch.arange(H_out, dtype=dtype, device=H.device).view(1, H_out, 1)
     m = Hi.reshape(-1, 9, 1, 1)
     z = m[:, 6] * xs + m[:, 7] * ys + m[:, 8]
     return (m[:, 0] * xs + m[:, 1] * ys + m[:, 2]) / z, (m[:, 3] * xs + m[:, 4] * ys + m[:, 5]) / z
@@ -208,9 +268,11 @@ __all__ = [
     "BORDERS",
     "Border",
     "YUV_BLACK",
+    "border_index",
     "chroma_matrices",
     "perspective_maps",
     "remap",
+    "remap_nearest",
     "remap_yuv420",
     "warp_perspective",
     "warp_yuv420",

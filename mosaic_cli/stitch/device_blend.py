@@ -12,8 +12,9 @@ with OpenCV's to the bit; only the float weights' sums may differ in their last 
 :class:`FeatherBlender` and :class:`PlainBlender` are ``cv2.detail.FeatherBlender`` and
 ``cv2.detail.Blender`` (``--blend feather`` and ``none``) likewise, to the bit.
 
-The warps sample as ``cv2.warpPerspective``/``cv2.remap`` with ``INTER_LINEAR`` and
-``BORDER_REPLICATE`` (the image) and ``INTER_NEAREST`` with a zero border (its coverage mask).
+:class:`DeviceSource` warps a keyframe into a canvas strip with :mod:`mosaic_cli.geometry.warp`,
+as compose's ``warp_into`` does with OpenCV: ``INTER_LINEAR`` and ``BORDER_REPLICATE`` (the
+image), ``INTER_NEAREST`` with a zero border (its coverage mask).
 
 Not imported by ``mosaic_cli.stitch``: compose imports it when a torch device is asked for
 (``ComposeOptions.torch_device``), so that the OpenCV path never loads torch for it.
@@ -22,10 +23,14 @@ Not imported by ``mosaic_cli.stitch``: compose imports it when a torch device is
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from mosaic_cli.geometry.homography import resize_matrix
+from mosaic_cli.geometry.warp import border_index, perspective_maps, remap, remap_nearest, warp_perspective
 
 WEIGHT_EPS = 1e-5  # OpenCV's blenders.cpp: a pixel no weight reached stays uncovered
 # OpenCV's float constants, as float32 rounds them (a Python float scalar is applied to a float32
@@ -37,32 +42,15 @@ _WEIGHT_EPS32 = float(np.float32(WEIGHT_EPS))
 # --- borders and pyramids ---------------------------------------------------------------------
 
 
-def _border_index(n: int, before: int, after: int, mode: str, device: torch.device) -> Tensor:
-    """Indices (before + n + after,) into a length-``n`` axis that pad it as OpenCV's
-    ``borderInterpolate`` does: ``reflect`` (BORDER_REFLECT, ``fedcba|abcdef``), ``reflect101``
-    (BORDER_REFLECT_101, ``gfedcb|abcdefgh``) or ``replicate``; any pad, any ``n`` >= 1."""
-    i = torch.arange(-before, n + after, device=device)
-    if n == 1 or mode == "replicate":
-        return i.clamp(0, n - 1)
-    if mode == "reflect":
-        period = 2 * n
-        i = i.remainder(period)
-        return torch.where(i >= n, period - 1 - i, i)
-    if mode == "reflect101":
-        period = 2 * n - 2
-        i = i.remainder(period)
-        return torch.where(i >= n, period - i, i)
-    raise ValueError(f"unknown border {mode!r}")
-
-
-def _pad(x: Tensor, top: int, bottom: int, left: int, right: int, mode: str) -> Tensor:
-    """``x`` (..., H, W) padded as ``cv2.copyMakeBorder`` with ``mode`` (see :func:`_border_index`),
-    or with zeros (``constant``)."""
+def _pad(x: Tensor, top: int, bottom: int, left: int, right: int,
+         mode: Literal["constant", "replicate", "reflect", "reflect101"]) -> Tensor:
+    """``x`` (..., H, W) padded as ``cv2.copyMakeBorder`` with ``mode`` (see
+    :func:`~mosaic_cli.geometry.warp.border_index`), or with zeros (``constant``)."""
     if mode == "constant":
         return torch.nn.functional.pad(x, (left, right, top, bottom))
     h, w = x.shape[-2:]
-    rows = _border_index(h, top, bottom, mode, x.device)
-    cols = _border_index(w, left, right, mode, x.device)
+    rows = border_index(torch.arange(-top, h + bottom, device=x.device), h, mode)
+    cols = border_index(torch.arange(-left, w + right, device=x.device), w, mode)
     return x.index_select(-2, rows).index_select(-1, cols)
 
 
@@ -306,76 +294,6 @@ def _as_mask(mask: np.ndarray | Tensor, device: torch.device) -> Tensor:
 # --- the canvas warps -------------------------------------------------------------------------
 
 
-def perspective_coordinates(T: np.ndarray, size: tuple[int, int], device: torch.device) -> tuple[Tensor, Tensor]:
-    """Where ``cv2.warpPerspective(src, T, size)`` samples each output pixel: (H, W) source x and
-    y (float64, pixel centres at integers) for ``size`` = (W, H) and ``T`` (3, 3) source ->
-    output; computed in float64 as OpenCV does (canvas coordinates run to tens of thousands)."""
-    Ti = torch.as_tensor(np.linalg.inv(T), dtype=torch.float64, device=device)
-    w, h = size
-    gx = torch.arange(w, dtype=torch.float64, device=device)[None, :]
-    gy = torch.arange(h, dtype=torch.float64, device=device)[:, None]
-    z = Ti[2, 0] * gx + Ti[2, 1] * gy + Ti[2, 2]
-    z = torch.where(z == 0, torch.ones_like(z), z)  # OpenCV samples (0, 0) there; any finite point will do
-    return (Ti[0, 0] * gx + Ti[0, 1] * gy + Ti[0, 2]) / z, (Ti[1, 0] * gx + Ti[1, 1] * gy + Ti[1, 2]) / z
-
-
-def sample_linear(image: Tensor, x: Tensor, y: Tensor) -> Tensor:
-    """``cv2.remap(..., INTER_LINEAR, BORDER_REPLICATE)``: ``image`` (C, h, w) uint8 or float
-    sampled at ``x``, ``y`` (H, W) -> (C, H, W) float32, not rounded.  OpenCV 5 interpolates uint8
-    in float, its coordinates not quantised to 1/32 px (checked against cv2 5.0), as this does;
-    replicating the border is clamping each tap."""
-    C, h, w = image.shape
-    x0, y0 = torch.floor(x), torch.floor(y)
-    fx, fy = (x - x0).float(), (y - y0).float()
-    flat = image.reshape(C, h * w)
-
-    def tap(yy: Tensor, xx: Tensor) -> Tensor:
-        index = yy.clamp(0, h - 1).long() * w + xx.clamp(0, w - 1).long()
-        return flat[:, index.reshape(-1)].reshape(C, *index.shape).float()
-
-    top = tap(y0, x0) * (1 - fx) + tap(y0, x0 + 1) * fx
-    bottom = tap(y0 + 1, x0) * (1 - fx) + tap(y0 + 1, x0 + 1) * fx
-    return top * (1 - fy) + bottom * fy
-
-
-def sample_nearest(mask: Tensor | None, size: tuple[int, int], x: Tensor, y: Tensor) -> Tensor:
-    """``cv2.remap(..., INTER_NEAREST, BORDER_CONSTANT, 0)`` of a uint8 ``mask`` (h, w) (None:
-    255 everywhere; ``size`` = (w, h)) at ``x``, ``y`` (H, W) -> (H, W) uint8: the nearest pixel,
-    halves rounded to even as OpenCV's cvRound, 0 outside."""
-    w, h = size
-    xi, yi = torch.round(x), torch.round(y)
-    inside = (xi >= 0) & (xi <= w - 1) & (yi >= 0) & (yi <= h - 1)
-    if mask is None:
-        return inside.to(torch.uint8) * 255
-    index = yi.clamp(0, h - 1).long() * w + xi.clamp(0, w - 1).long()
-    return torch.where(inside, mask.reshape(-1)[index], torch.zeros((), dtype=mask.dtype, device=mask.device))
-
-
-def resize_rows(small: Tensor, size: tuple[int, int], rows: tuple[int, int]) -> Tensor:
-    """Rows ``rows`` = (r0, r1) of ``cv2.resize(small, size, interpolation=INTER_LINEAR)`` for a
-    float ``small`` (h, w) and ``size`` = (W, H) -> (r1 - r0, W): half-pixel centres, the
-    source index clamped at the edges, as OpenCV's float path (within float rounding)."""
-    h, w = small.shape
-    W, H = size
-
-    def axis(n_in: int, n_out: int, start: int, stop: int) -> tuple[Tensor, Tensor, Tensor]:
-        f = (torch.arange(start, stop, dtype=torch.float64, device=small.device) + 0.5) * (n_in / n_out) - 0.5
-        i0 = torch.floor(f)
-        a = (f - i0).float()
-        below = i0 < 0
-        a = torch.where(below, torch.zeros_like(a), a)
-        i0 = torch.where(below, torch.zeros_like(i0), i0)
-        above = i0 >= n_in - 1
-        a = torch.where(above, torch.zeros_like(a), a)
-        i0 = i0.clamp(max=n_in - 1).long()
-        return i0, (i0 + 1).clamp(max=n_in - 1), a
-
-    y0, y1, ay = axis(h, H, *rows)
-    x0, x1, ax = axis(w, W, 0, W)
-    across = small[:, x0] * (1 - ax) + small[:, x1] * ax  # (h, W)
-    return across[y0] * (1 - ay[:, None]) + across[y1] * ay[:, None]
-
-
 class DeviceSource:
     """One keyframe held on the device for compose's strips: its pixels as compose samples them
     (``image`` (h, w, 3) uint8, already shrunk where the warp shrinks it), their ``coverage``
@@ -386,10 +304,11 @@ class DeviceSource:
     def __init__(self, image: np.ndarray, coverage: np.ndarray | None, seam: np.ndarray, gain: np.ndarray | None,
                  device: torch.device | str):
         self.device = torch.device(device)
-        self.size = (image.shape[1], image.shape[0])
         # held as uint8 (a quarter of float's memory: a strip may reach many keyframes)
         self.image = torch.from_numpy(np.ascontiguousarray(image)).to(self.device).permute(2, 0, 1).contiguous()
-        self.coverage = None if coverage is None else torch.from_numpy(np.ascontiguousarray(coverage)).to(self.device)
+        # (1, 1, h, w) for remap_nearest; all covered: 255 expanded, a view that takes no memory
+        self.coverage = (torch.full((1, 1, 1, 1), 255, dtype=torch.uint8, device=self.device).expand(1, 1, *image.shape[:2])
+                         if coverage is None else torch.from_numpy(np.ascontiguousarray(coverage)).to(self.device)[None, None])
         self.seam = torch.from_numpy(np.ascontiguousarray(seam)).to(self.device)
         self.gain: float | Tensor | None = None
         if gain is not None and gain.size == 1:
@@ -408,17 +327,26 @@ class DeviceSource:
         r0, r1 = rows
         W = self.seam.shape[1]
         if maps is not None:
-            x = torch.from_numpy(np.ascontiguousarray(maps[0])).to(self.device)
-            y = torch.from_numpy(np.ascontiguousarray(maps[1])).to(self.device)
+            x, y = (torch.from_numpy(np.ascontiguousarray(m)).to(self.device)[None] for m in maps)
         elif T is not None:
-            x, y = perspective_coordinates(T, (W, r1 - r0), self.device)
+            # float64 maps: a canvas is tens of thousands of pixels wide, where float32 maps
+            # would move the mask's nearest samples (OpenCV's differ from both on a few pixels)
+            x, y = perspective_maps(self._matrix(T), (W, r1 - r0), torch.float64)
         else:
             raise ValueError("part() needs a homography or sampling maps")
-        warped = torch.round(sample_linear(self.image, x, y))  # what a uint8 warp holds
-        covered = sample_nearest(self.coverage, self.size, x, y)
+        warped = remap(self.image[None], x, y, "replicate")[0].float()  # a uint8 warp, as OpenCV's
+        covered = remap_nearest(self.coverage, x, y)[0, 0]
         if isinstance(self.gain, float):
             warped = torch.round(warped * float(np.float32(self.gain))).clamp_(0, 255)
         elif self.gain is not None:
-            full = resize_rows(self.gain, (W, self.seam.shape[0]), rows)
+            # the rows of cv2.resize(gain, (W, H), INTER_LINEAR): bilinear at the resized pixel
+            # centres, the edges replicated
+            box = (W, self.seam.shape[0])
+            to_rows = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]]) @ resize_matrix((self.gain.shape[1], self.gain.shape[0]), box)
+            full = warp_perspective(self.gain[None, None], self._matrix(to_rows), (W, r1 - r0), "replicate")[0]
             warped = torch.round(warped * full).clamp_(0, 255)
         return warped, torch.bitwise_and(self.seam[r0:r1], covered)
+
+    def _matrix(self, M: np.ndarray) -> Tensor:
+        """A (3, 3) matrix as warp.py takes it: (1, 3, 3) float64 on the device."""
+        return torch.as_tensor(np.asarray(M, np.float64), device=self.device)[None]
