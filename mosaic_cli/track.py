@@ -21,6 +21,7 @@ from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_threads, 
 from mosaic_cli.overlay import FrameMask, Gate, MaskOptions, PendingMask, speculate
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
+from mosaic_cli.video.info import VideoStream
 from mosaic_cli.video.policy import Shortfall
 
 TRACK_FORMAT_VERSION = 1
@@ -108,6 +109,7 @@ def track_video(
     rolling_shutter: str | float = "off",
     probe: RollingProbe | None = None,
     mask: PendingMask | None = None,
+    source: Callable[[Gate], VideoStream] | None = None,
 ) -> TrackResult:
     """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
     ``info``: the video's probe, when the caller has it; ``on_pair(H, confidence)`` is told of
@@ -122,11 +124,16 @@ def track_video(
     frame if an overlay was found (:mod:`mosaic_cli.overlay.speculate`); ``meta`` then says so
     (``overlay_restart``) and what the wait cost (``overlay_wait_seconds``: the pass's end
     waiting for the detection; ``overlay_lost_seconds``: the discarded attempt), which
-    ``meta["seconds"]`` leaves out.  None: the estimator's own mask, as set."""
+    ``meta["seconds"]`` leaves out.  None: the estimator's own mask, as set.
+
+    ``source(gate)``: each attempt's frames (a stream as ``open_video(path, width, gray=True)``
+    gives them) instead of a decode of ``path`` of the attempt's own: stabilize's one decode
+    (:mod:`mosaic_cli.stabilize.shared_decode`), which looks at the attempt's ``gate`` while it
+    waits for a frame."""
     mode = parse_rolling_shutter(rolling_shutter)
     pending = mask if mask is not None else PendingMask.settled(FrameMask(estimator.mask))
     with contextlib.ExitStack() as bar:
-        tracking = _TrackPass(path, estimator, max_frames, show_progress, info, on_pair, mode, probe, bar)
+        tracking = _TrackPass(path, estimator, max_frames, show_progress, info, on_pair, mode, probe, bar, source)
         tracked, speculation = speculate(pending, tracking.attempt)
     info, probe = tracked.info, tracking.probe
     n = len(tracked.pairwise) + 1
@@ -170,9 +177,10 @@ class _TrackPass:
 
     def __init__(self, path: str | Path, estimator: Estimator, max_frames: int | None, show_progress: bool,
                  info: VideoInfo | None, on_pair: Callable[[np.ndarray, float], None] | None, mode: str | float,
-                 probe: RollingProbe | None, bar: contextlib.ExitStack):
+                 probe: RollingProbe | None, bar: contextlib.ExitStack, source: Callable[[Gate], VideoStream] | None = None):
         self.path, self.estimator, self.max_frames, self.show_progress = path, estimator, max_frames, show_progress
         self.info, self.on_pair, self.mode, self.probe, self.bar = info, on_pair, mode, probe, bar
+        self.source = source
         self._advance: Callable[..., None] | None = None
 
     def attempt(self, use: np.ndarray | None, gate: Gate) -> _Tracked:
@@ -181,7 +189,9 @@ class _TrackPass:
         pairwise: list[np.ndarray] = []
         confidence: list[float] = []
         paths: list[str | None] = []
-        with open_video(self.path, width=self.estimator.input_width, gray=True, info=self.info) as stream:
+        opened = (self.source(gate) if self.source is not None else
+                  open_video(self.path, width=self.estimator.input_width, gray=True, info=self.info))
+        with opened as stream:
             info = self.info = stream.info
             if self.mode == "auto" and self.probe is None:
                 self.probe = RollingProbe(info)

@@ -422,7 +422,7 @@ def encoders(started: list[list[str]]) -> list[list[str]]:
 @pytest.mark.parametrize("command, decodes, encodes", [
     ("track", 2, 0),  # overlays sampled, then every frame
     ("stitch", 2, 0),  # overlays sampled, then the scan
-    ("stabilize", 3, 1),  # overlays sampled, the track pass, the render pass; one encoder
+    ("stabilize", 2, 1),  # overlays sampled, then every frame for the tracking and the render; one encoder
 ])
 def test_each_command_probes_its_input_once(tmp_path, capsys, flight_clip, media_starts, command, decodes, encodes):
     """No second probe, no ffmpeg run only to read metadata: two libav opens of the input (the

@@ -1,19 +1,24 @@
 """``stabilize``: track the camera, plan a smooth view of it, render that view.
 
-Two passes over the input, at the same time, and nothing in memory that grows with its length
-but the per-frame matrices (72 bytes a frame):
+One decode of the input, shared by the tracking and the render (shared_decode.py: each frame
+reduced to gray for the tracking, whole for the render, through a ring that covers the camera
+path's window), and nothing in memory that grows with its length but the per-frame matrices
+(72 bytes a frame):
 
-1. track: the estimator's pairwise homographies, frames decoded small and gray (a thread);
+1. track: the estimator's pairwise homographies, each frame reduced to gray at the estimator's
+   width (a thread);
 2. plan: the camera motion in the chosen model, smoothed (L1-optimal path or Gaussian) with
    the crop window kept inside every frame; the per-frame warps input -> output.  The L1 path
    is solved a window at a time as the pairs come in (stream.py);
-3. render: decode again at full resolution, warp, encode with the input's audio, each frame
-   as soon as its window is solved: on two cores the tracking runs beside the encoder instead
-   of before it.
+3. render: warp each frame at full resolution, encode with the input's audio, each frame as
+   soon as its window is solved: on two cores the tracking runs beside the encoder instead of
+   before it.  Where the ring is too small for what the path needs (--smoothing gaussian, long
+   runs of failed pairs) the render reads the rest from a second decode of its own.
 
 Burned-in overlays are looked for beside the tracking, which starts once the estimator is
 built: its pairs reach the plan (and so the render) only once the mask is settled, and it
-starts again from the first frame if an overlay was found (mosaic_cli/overlay/speculate.py).
+starts again from the first frame if an overlay was found (mosaic_cli/overlay/speculate.py),
+reading the ring again: no frame leaves it before the mask is settled.
 """
 
 from __future__ import annotations
@@ -32,16 +37,19 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_work_width, plan_estimator
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_timeout
 from mosaic_cli.overlay import MaskOptions, PendingMask, check_mask_file, frame_mask_pending
+from mosaic_cli.overlay.speculate import Gate
 from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MotionModel, motion_model
-from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border
+from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border, render_yuv
 from mosaic_cli.stabilize.rolling import MidTimeFeed, RollingCorrection, RollingProbe, RowWarpLater, parse_rolling_shutter
+from mosaic_cli.stabilize.shared_decode import SharedDecode, frame_bytes, ring_frames
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
 from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.info import VideoStream
 from mosaic_cli.video.writer import OUTPUT_SUFFIXES, check_encoder, rewrite_container
 
 # The estimator's default working width.  Stabilising shows every tracking error as shake:
@@ -164,20 +172,30 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         pending, estimator = frame_mask_pending(plan.build, video, options.mask, info, show_progress)
         with pending:
             built = time.perf_counter() - clock
-            tracking = TrackingPass(video, estimator, info, gate, show_progress, probe, pending)
+            # One decode for both: the tracking reads each frame reduced, the render whole, through a
+            # ring that covers the path's window (shared_decode.py).
+            yuv = render_yuv(info, compare is not None)
+            ring = ring_frames(plan.smoother, estimator, frame_bytes(info, yuv), rolling=per_row is not None)
+            shared = SharedDecode(video, info, yuv, estimator.input_width, ring, feed.starved)
+            tracking = TrackingPass(video, estimator, info, gate, show_progress, probe, pending, source=shared.tracking)
             render_clock = time.perf_counter()
+            shared.start()
             tracking.start()
             try:
                 written = plan.renderer.render(video, out, gate.warp, info, compare=compare, show_progress=show_progress,
-                                               frames=info.frame_count, per_row=per_row)
+                                               frames=info.frame_count, per_row=per_row, decoded=shared.render_frames())
                 if isinstance(gate, MidTimeFeed):
                     gate.settle()  # (settled already unless no frame was rendered)
             except BaseException:
                 gate.cancel()
                 pending.cancel()  # a tracking pass still holding its pairs back ends at its next frame
+                shared.stop()  # (a tracking pass waiting for a frame ends too)
                 tracking.join()
                 raise
-            track = tracking.outcome()
+            try:
+                track = tracking.outcome()
+            finally:
+                shared.stop()  # (ended already: the render's last warps came with the tracking's end)
     # The overlays' share: the build (the detection beside it), the tracking's end waiting for
     # the detection, and a tracking pass discarded for an overlay found (left out of "track").
     lost = track.meta["overlay_wait_seconds"] + track.meta["overlay_lost_seconds"]
@@ -209,11 +227,13 @@ class TrackingPass(threading.Thread):
     :meth:`outcome` waits for it and gives its result or raises its error."""
 
     def __init__(self, video: str | Path, estimator: Estimator, info: VideoInfo, feed: PathFeed | MidTimeFeed, show_progress: bool,
-                 probe: RollingProbe | None = None, mask: PendingMask | None = None):
+                 probe: RollingProbe | None = None, mask: PendingMask | None = None,
+                 source: Callable[[Gate], VideoStream] | None = None):
         super().__init__(name="mosaic-track", daemon=True)
         self.video, self.estimator, self.info, self.feed, self.show_progress = video, estimator, info, feed, show_progress
         self.probe = probe  # --rolling-shutter auto: fed the first frames (estimators/rolling.py)
         self.mask = mask
+        self.source = source  # each attempt's frames (the shared decode's); None: a decode of its own
         self.result: TrackResult | None = None
         self.error: BaseException | None = None
         self.seconds = 0.0
@@ -222,7 +242,7 @@ class TrackingPass(threading.Thread):
         clock = time.perf_counter()
         try:
             self.result = track_video(self.video, self.estimator, show_progress=self.show_progress, info=self.info,
-                                      on_pair=self.feed.add_pair, probe=self.probe, mask=self.mask)
+                                      on_pair=self.feed.add_pair, probe=self.probe, mask=self.mask, source=self.source)
             self.feed.finish()
         except BaseException as exc:  # the render learns of it from the feed; the caller from outcome()
             self.error = exc

@@ -1,8 +1,10 @@
-"""Second pass: decode the input again at full resolution, warp every frame, encode.
+"""The render: warp every frame of the input at full resolution, encode.
 
-Decoding (the reader's ffmpeg pipe), warping (OpenCV) and encoding (an x264 pipe) all release the GIL, so
-each runs in its own thread with small bounded queues between them: on two cores the three
-overlap instead of taking turns, and at most a handful of frames are in memory.
+The frames come from ``stabilize``'s one decode, shared with the tracking
+(:mod:`.shared_decode`), or from a decode of the render's own (:meth:`Renderer.render` without
+``decoded``).  Decoding (the reader's ffmpeg pipe), warping (OpenCV) and encoding (an x264 pipe)
+all release the GIL, so each runs in its own thread with small bounded queues between them: on
+two cores the three overlap instead of taking turns.
 
 Video files of even size stay in yuv420p from decoder to encoder (the planes are warped
 separately, chroma at half resolution): no RGB conversion either way and half the pixels to
@@ -11,10 +13,11 @@ warp, 27 instead of 37 ms of CPU a 1280x720 frame.  Image folders and odd sizes 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import queue
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -125,7 +128,9 @@ def _warp_plane(plane: np.ndarray, warp: np.ndarray, size: tuple[int, int], bord
     return cv2.warpPerspective(plane, warp, size, flags=cv2.INTER_LINEAR, borderMode=mode, borderValue=black)
 
 
-def _yuv_possible(info: VideoInfo, compare: bool) -> bool:
+def render_yuv(info: VideoInfo, compare: bool) -> bool:
+    """Whether the render reads, warps and encodes yuv420p planes (video files of even size, the
+    --compare video's too), rather than RGB frames: how its frames are decoded."""
     w, h = info.source_size
     sizes = [info.source_size] + ([compare_size(info.source_size)] if compare else [])
     halves = [(w // 2, h // 2)] if compare and w > COMPARE_PANEL_WIDTH else []
@@ -159,7 +164,8 @@ class Renderer:
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray | Callable[[int], np.ndarray], info: VideoInfo,
                compare: str | Path | None = None, show_progress: bool = True,
                metadata: dict[str, str] | None = None, frames: int | None = None,
-               per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray | None] | None = None) -> int:
+               per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray | None] | None = None,
+               decoded: Iterable[np.ndarray] | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         ``warps``: (N, 3, 3), or a function giving frame t's warp (which may wait until it is
@@ -172,7 +178,7 @@ class Renderer:
             warps = lambda t: known[min(t, len(known) - 1)]  # noqa: E731
         warp_of = warps
         size = info.source_size
-        yuv = _yuv_possible(info, compare is not None)
+        yuv = render_yuv(info, compare is not None)
         pix_fmt = "yuv420p" if yuv else "rgb24"
         warp = warp_yuv if yuv else warp_frame
         join = (lambda a, b: side_by_side_yuv(a, b, size)) if yuv else side_by_side
@@ -183,21 +189,27 @@ class Renderer:
         if compare is not None:
             writers.append(VideoWriter(compare, compare_size(size), info.fps, **common))
         try:
-            # The frames of the first pass, upright, each once; yuv420p planes when they can stay so.
-            with open_video(video, yuv420p=yuv, info=info) as decoded, progress_task("stabilize: render", frames, disable=not show_progress) as advance:
-                def outputs() -> Iterator[tuple[np.ndarray, ...]]:
-                    ahead = ReadAhead(iter(decoded), 4)  # decoded on a thread of its own, 4 frames ahead of the warps
-                    try:
-                        for t, frame in enumerate(ahead):
-                            W = warp_of(t)
-                            result = per_row(frame, t, W) if per_row is not None else None
-                            if result is None:
-                                result = warp(frame, W, size, self.border)
-                            yield (result, join(frame, result)) if compare is not None else (result,)
-                    finally:
-                        ahead.stop()
+            with contextlib.ExitStack() as inputs:
+                if decoded is None:  # the frames upright, each once; yuv420p planes when they can stay so
+                    stream = inputs.enter_context(open_video(video, yuv420p=yuv, info=info))
+                    ahead = ReadAhead(iter(stream), 4)  # decoded on a thread of its own, 4 frames ahead of the warps
+                    inputs.callback(ahead.stop)
+                    decoded = ahead
+                elif hasattr(decoded, "close"):  # a generator: its decoders closed with the render
+                    inputs.callback(decoded.close)
+                advance = inputs.enter_context(progress_task("stabilize: render", frames, disable=not show_progress))
 
-                written = _drain(outputs(), [w.write for w in writers], advance)
+                def outputs(source: Iterable[np.ndarray]) -> Generator[tuple[np.ndarray, ...]]:
+                    for t, frame in enumerate(source):
+                        W = warp_of(t)
+                        result = per_row(frame, t, W) if per_row is not None else None
+                        if result is None:
+                            result = warp(frame, W, size, self.border)
+                        yield (result, join(frame, result)) if compare is not None else (result,)
+
+                results = outputs(decoded)
+                inputs.callback(results.close)
+                written = _drain(results, [w.write for w in writers], advance)
             for writer in writers:
                 writer.close()
         except BaseException:

@@ -78,6 +78,7 @@ class PathFeed:
         self._done = False
         self._error: BaseException | None = None
         self._cancelled = False
+        self._waiting: int | None = None  # the frame whose warp the render waits for
         self._smooth_seconds = 0.0  # a smoother with no windows: its one solve at the end
 
     # -- the tracking side -------------------------------------------------------------------
@@ -127,11 +128,22 @@ class PathFeed:
     def warp(self, t: int) -> np.ndarray:
         """Frame ``t``'s warp, input pixels -> output pixels, once it is settled."""
         with self._changed:
-            while len(self._warps) <= t and not self._done:
-                self._changed.wait(WAIT_SLICE)
+            self._waiting = t
+            try:
+                while len(self._warps) <= t and not self._done:
+                    self._changed.wait(WAIT_SLICE)
+            finally:
+                self._waiting = None
             if self._error is not None:
                 raise self._error
             return self._warps[min(t, len(self._warps) - 1)]
+
+    def starved(self) -> bool:
+        """Whether the render waits for a warp the pairs told so far do not settle: then only
+        more frames tracked can settle it (stabilize's shared decode looks for a ring too small
+        with this: stabilize/shared_decode.py)."""
+        with self._changed:
+            return self._waiting is not None and len(self._warps) <= self._waiting and not self._done
 
     def cancel(self) -> None:
         self._cancelled = True
