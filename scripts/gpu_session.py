@@ -455,6 +455,11 @@ def throughput(s: Session) -> str:
             runs.append(("track", device, None, mosaic("track", str(clip), "-o", str(folder / f"trackO_{size}_{device}.json"), "--device", device,
                                                         "--no-overlay-detect"), {"options": "--no-overlay-detect"}))
         runs.append(("track", "cpu", 1, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_cpu1.json"), "--device", "cpu", "--threads", "1"), {}))
+        # On the session's device: what larger chunks give, and the polish one pair at a time
+        # with OpenCV instead of batched in torch (the default on a GPU).
+        for k, choice in enumerate(("lstm:chunk=64", "lstm:polish-with=opencv")):
+            runs.append(("track", p.device, None, mosaic("track", str(clip), "-o", str(folder / f"trackE{k}_{size}_{p.device}.json"), "--device", p.device,
+                                                         "-e", choice), {"options": f"-e {choice}"}))
         for device in devices:
             runs.append(("stabilize", device, None, mosaic("stabilize", str(clip), str(folder / f"stable_{size}_{device}.mp4"), "--device", device,
                                                           "--preset", X264["preset"], "--crf", X264["crf"]), {}))

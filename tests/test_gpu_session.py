@@ -120,7 +120,7 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     env.pop("MOSAIC_VIDEO_BACKEND", None)
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "scripts/gpu_session.py", "--tiny", "--device", "cpu", "--stages", "throughput",
-                           "--out", str(out), "--work", str(tmp_path / "work"), "--minutes", "4"],
+                           "--out", str(out), "--work", str(tmp_path / "work"), "--minutes", "6"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert sorted(p.name for p in out.iterdir()) == ["gpu_throughput.json", "logs.tar.gz", "session.log", "tests.xml"]
@@ -138,6 +138,7 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     for size in ("160x96", "320x192"):
         first = [(r["command"], r["threads"], r.get("options")) for r in report["runs"] if r["size"] == size and r.get("round") == 1 and r["wall_s"] > 0]
         assert sorted(first, key=str) == sorted([("transcode", None, None), ("track", None, None), ("track", None, "--no-overlay-detect"), ("track", 1, None),
+                                                 ("track", None, "-e lstm:chunk=64"), ("track", None, "-e lstm:polish-with=opencv"),
                                                  ("stabilize", None, None), ("stitch", None, None)], key=str), size
         assert all(r["stages"] for r in report["runs"] if r["command"] in ("track", "stabilize", "stitch") and r["wall_s"])
         agreed = report["agreement"][size]
