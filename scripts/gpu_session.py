@@ -189,8 +189,8 @@ def make_data(s: Session) -> str:
 
 
 # The files whose CUDA-marked tests compare the device's work with the CPU's: the estimator and
-# training (test_cuda), the render's warps (test_device_warp), stitch's warps and blend (test_stitch_device).
-CUDA_TESTS = ("tests/test_cuda.py", "tests/test_device_warp.py", "tests/test_stitch_device.py")
+# training (test_cuda), the render's warps (test_device_warp, test_stabilize_device_render), stitch's warps and blend (test_stitch_device).
+CUDA_TESTS = ("tests/test_cuda.py", "tests/test_device_warp.py", "tests/test_stabilize_device_render.py", "tests/test_stitch_device.py")
 
 
 def cuda_tests(s: Session) -> str:

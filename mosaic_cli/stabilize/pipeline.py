@@ -302,13 +302,19 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
         model=motion_model(options.model),
         smoother=make_smoother(options.smoothing, options.radius),
         crop=crop,
-        renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset),
+        renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset, device=_render_device(options.device)),
     )
     info = probe(video)
     check_mask_file(options.mask, info)
     plan.build = plan_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
                                 default_width=WORK_WIDTH)
     return info, plan
+
+
+def _render_device(device: str) -> str | None:
+    """The render's ``device`` (see :class:`Renderer`): None for ``--device cpu``, else the name,
+    resolved when the render starts (so that checking the request imports no torch)."""
+    return None if check_device(device) == "cpu" else device
 
 
 def write_warps(path: str | Path, warps: np.ndarray, size: tuple[int, int], input_meta: dict | None = None) -> None:

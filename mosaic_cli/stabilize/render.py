@@ -16,8 +16,9 @@ from __future__ import annotations
 import contextlib
 import functools
 import queue
+import sys
 import threading
-from collections.abc import Callable, Generator, Iterable
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mosaic_cli.device import resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import resize_matrix
 from mosaic_cli.progress import progress_task
@@ -160,6 +162,23 @@ class Renderer:
     border: str = "black"
     crf: int = 18
     preset: str = "veryfast"  # x264 'medium' halves throughput on two cores for a few % of bitrate
+    # --device: the GPU that warps the frames (stabilize/device_render.py) where it names or finds
+    # one ("auto", "cuda", "cuda:N"; "cpu" here is torch's CPU, for tests); None: OpenCV's warps on
+    # the CPU, an order of magnitude faster there than torch's.
+    device: str | None = None
+
+    def warp_device(self) -> str | None:
+        """The torch device the frames are warped on, or None for OpenCV's (see ``device``).
+        ``auto`` asks torch only where an NVIDIA driver is loaded or torch already is (an ORB
+        render on a machine without a GPU never imports it)."""
+        if self.device is None:
+            return None
+        if self.device != "auto":
+            return str(resolve_device(self.device))
+        if "torch" not in sys.modules and not Path("/proc/driver/nvidia/version").exists():
+            return None
+        found = resolve_device("auto")
+        return str(found) if found.type == "cuda" else None
 
     def render(self, video: str | Path, out: str | Path, warps: np.ndarray | Callable[[int], np.ndarray], info: VideoInfo,
                compare: str | Path | None = None, show_progress: bool = True,
@@ -207,7 +226,25 @@ class Renderer:
                             result = warp(frame, W, size, self.border)
                         yield (result, join(frame, result)) if compare is not None else (result,)
 
-                results = outputs(decoded)
+                def on_device(source: Iterable[np.ndarray]) -> Generator[tuple[np.ndarray, ...]]:
+                    """The same frames warped on ``self.device``, two in flight (DeviceWarper.stream)."""
+                    from mosaic_cli.stabilize.device_render import DeviceWarper
+
+                    assert device is not None
+                    warper = DeviceWarper(device, size, self.border)
+
+                    def asked() -> Iterator[tuple]:
+                        for t, frame in enumerate(source):
+                            W = warp_of(t)
+                            rows = per_row.correction() if per_row is not None else None  # type: ignore[attr-defined]
+                            yield (frame, W) if rows is None else (frame, W, rows, t)
+
+                    for frame, result in warper.stream(asked()):
+                        yield (result, join(frame, result)) if compare is not None else (result,)
+
+                # (a per_row that cannot say its correction, only warp, warps on the CPU)
+                device = self.warp_device() if per_row is None or hasattr(per_row, "correction") else None
+                results = on_device(decoded) if device is not None else outputs(decoded)
                 inputs.callback(results.close)
                 written = _drain(results, [w.write for w in writers], advance)
             for writer in writers:

@@ -199,6 +199,12 @@ class RowWarpLater:
         self.plan()
         return None if self._warp is None else self._warp(frame, t, warp)
 
+    def correction(self) -> RollingCorrection | None:
+        """The correction the frames are rendered with, row by row (a device's render warps with
+        it); None for a global shutter (the usual warp)."""
+        self.plan()
+        return self.rolling if self._warp is not None else None
+
 
 class MidTimeFeed:
     """The path's feed (:class:`~.stream.PathFeed`) behind a gate that tells it each pair as the
