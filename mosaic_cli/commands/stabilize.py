@@ -63,6 +63,10 @@ def stabilize(
     rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction. [default: auto; off for --latency and live input or output]", rich_help_panel=SMOOTHING, show_default=False)] = None,
     quiet: Quiet = False,
     lens: LensOption = None,
+    keep_lens: Annotated[bool, typer.Option("--keep-lens", help="With a lens applied (--lens FILE, or auto that finds one): "
+                                            "write the lens's look (the warps composed with the lens, one resampling a frame), "
+                                            "not the undistorted view; the tracking still works on undistorted frames. "
+                                            "Warped by OpenCV on the CPU.", rich_help_panel=INPUT_OUTPUT)] = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "
                                               f"{install_hint('plot')}).", rich_help_panel=INPUT_OUTPUT)] = None,
@@ -102,8 +106,11 @@ def stabilize(
                 soft_wrap=True,
             )
         return
-    # The output is the undistorted (pinhole) view: the path and warps are planned on it.
+    # The output is the undistorted (pinhole) view: the path and warps are planned on it
+    # (--keep-lens: the render composes them with the lens).
     with reading_policy(strict), undistorting(lens, video) as lens_choice:
+        if keep_lens and lens_choice.lens is not None:
+            options = dataclasses.replace(options, keep_lens=lens_choice.lens)
         result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
     if plot is not None:
         _plot(plot, result)
@@ -121,7 +128,13 @@ def stabilize(
             said = f"readout {rs.readout:.2f} ({'estimated' if rs.estimated else 'given'})"
             console.print(f"rolling shutter: {said}, " + ("each row corrected" if rs.applied else "a global shutter: left alone"))
         if lens_choice.source != "none":
-            console.print(lens_choice.describe())
+            said = lens_choice.describe()
+            if keep_lens:
+                said += ("; --keep-lens: the output keeps the lens's look" if lens_choice.lens is not None
+                         else "; --keep-lens: no lens applied, the output as without it")
+            console.print(said)
+        elif keep_lens:
+            console.print("--keep-lens: no lens applied (--lens none), the output as without it")
 
 
 def _plot(path: Path, result) -> None:

@@ -255,6 +255,85 @@ def remap_frame(frame: np.ndarray, lens: Lens) -> np.ndarray:
     return cv2.remap(frame, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
+# ``stabilize --keep-lens``: the render's warps composed with the lens.  Where the undistorted
+# output of the table's footprint has no image (past a polynomial's range, a division model's
+# NaN), the table reads this: far off any frame, so that the sample is the border's.
+OFF_FRAME = -1.0e5
+TABLE_POINTS = 500_000  # the distortion table's entries at most (its step grows past that: ~0.5 s to build)
+
+
+def distortion_table(lens: Lens, size: tuple[int, int]) -> tuple[np.ndarray, tuple[float, float], float]:
+    """:func:`distort_points` of ``lens.at(size)`` (camera :func:`undistorted_camera`, as the
+    frames were undistorted) tabulated over the undistorted coordinates of the frame's whole
+    footprint, distorted corners included (which the undistorted frame crops): (table (Hb, Wb, 2)
+    float32, origin (x0, y0), step), entry (i, j) the distorted pixel of the undistorted point
+    (x0 + j step, y0 + i step).  A point past the footprint's largest radius reads
+    :data:`OFF_FRAME` (a polynomial lens folds back there).  Read it with :func:`distort_by_table`:
+    a bilinear look-up in place of the lens's own (iterative, for a division model) distortion,
+    exact to well under 0.01 px (the distortion is smooth on the table's step).  Cached per lens
+    and size: read-only."""
+    return _table(lens, (int(size[0]), int(size[1])))
+
+
+@functools.lru_cache(maxsize=4)
+def _table(lens: Lens, size: tuple[int, int]) -> tuple[np.ndarray, tuple[float, float], float]:
+    at = lens.at(size)
+    P = _new_camera(at)
+    w, h = size
+    # the footprint: the distorted frame's outer pixel edges and a grid inside, undistorted (a
+    # polynomial lens pushed past its turn puts the corners' undistorted points inside others)
+    xs, ys = np.linspace(-0.5, w - 0.5, 257), np.linspace(-0.5, h - 0.5, 145)
+    edge = np.concatenate([np.stack([xs, np.full_like(xs, y)], 1) for y in (-0.5, h - 0.5)]
+                          + [np.stack([np.full_like(ys, x), ys], 1) for x in (-0.5, w - 0.5)]
+                          + [np.stack([g.ravel() for g in np.meshgrid(xs[::8], ys[::8])], 1)])
+    outline = undistort_points(at, edge, P)
+    outline = outline[np.all(np.isfinite(outline), axis=1)]
+    lo, hi = outline.min(0), outline.max(0)
+    # (no further than a few frames out: a fisheye near 180 degrees runs off to infinity)
+    centre = P[:2, 2]
+    reach = 4.0 * np.array([w, h], dtype=np.float64)
+    lo, hi = np.maximum(lo, centre - reach), np.minimum(hi, centre + reach)
+    area = float(np.prod(hi - lo + 1.0))
+    step = max(1.0, float(np.ceil(np.sqrt(area / TABLE_POINTS))))
+    lo, hi = np.floor(lo) - 2 * step, np.ceil(hi) + 2 * step
+    gx = np.arange(lo[0], hi[0] + step, step)
+    gy = np.arange(lo[1], hi[1] + step, step)
+    X, Y = np.meshgrid(gx, gy)
+    pts = np.stack([X.ravel(), Y.ravel()], 1)
+    with np.errstate(invalid="ignore"):
+        out = distort_points(at, pts, P)
+    # past the outline's largest normalised radius (a small margin kept): no image
+    def radius(p: np.ndarray) -> np.ndarray:
+        return np.hypot((p[:, 0] - P[0, 2]) / P[0, 0], (p[:, 1] - P[1, 2]) / P[1, 1])
+
+    far = radius(pts) > 1.01 * float(radius(outline).max()) + 2.0 * step / min(P[0, 0], P[1, 1])
+    bad = far | ~np.all(np.isfinite(out), axis=1)
+    out[bad] = OFF_FRAME
+    table = np.ascontiguousarray(out.reshape(len(gy), len(gx), 2), dtype=np.float32)
+    table.setflags(write=False)
+    return table, (float(lo[0]), float(lo[1])), step
+
+
+def distort_by_table(table: np.ndarray, origin: tuple[float, float], step: float,
+                     x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distorted pixels (x', y') (same shape, float32) of undistorted points (x, y) read off
+    :func:`distortion_table`'s ``table`` (bilinear, in floating point: ``cv2.remap`` would round
+    the weights to 1/32 of the step); off the table: :data:`OFF_FRAME`."""
+    hb, wb = table.shape[:2]
+    fx = (np.asarray(x, dtype=np.float32) - np.float32(origin[0])) / np.float32(step)
+    fy = (np.asarray(y, dtype=np.float32) - np.float32(origin[1])) / np.float32(step)
+    inside = (fx >= 0) & (fy >= 0) & (fx <= wb - 1) & (fy <= hb - 1)
+    j = np.clip(np.floor(fx), 0, wb - 2).astype(np.intp)
+    i = np.clip(np.floor(fy), 0, hb - 2).astype(np.intp)
+    ax, ay = (fx - j).astype(np.float32)[..., None], (fy - i).astype(np.float32)[..., None]
+    top = table[i, j] * (1 - ax) + table[i, j + 1] * ax
+    bottom = table[i + 1, j] * (1 - ax) + table[i + 1, j + 1] * ax
+    out = top * (1 - ay) + bottom * ay
+    out[~inside] = OFF_FRAME
+    # (a bilinear mix of an entry with no image is far off the frame too)
+    return np.ascontiguousarray(out[..., 0], dtype=np.float32), np.ascontiguousarray(out[..., 1], dtype=np.float32)
+
+
 def frame_to_undistorted(lens: Lens, size: tuple[int, int]) -> np.ndarray:
     """The matrix (3x3) from the pinhole frame of camera ``lens.at(size).K`` to the undistorted
     frame's pixels (camera ``undistorted_camera``): how a homography between pinhole frames at

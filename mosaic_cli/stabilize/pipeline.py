@@ -23,6 +23,7 @@ reading the ring again: no frame leaves it before the mask is settled.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from collections.abc import Callable
@@ -35,6 +36,7 @@ from mosaic_cli.atomic import check_writable, write_json
 from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, check_work_width, plan_estimator
+from mosaic_cli.geometry.lens import Lens, remap_frame
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_timeout
 from mosaic_cli.overlay import MaskOptions, PendingMask, check_mask_file, frame_mask_pending
 from mosaic_cli.overlay.speculate import Gate
@@ -42,7 +44,7 @@ from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
 from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
 from mosaic_cli.stabilize.path import MotionModel, motion_model
-from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, Renderer, parse_border, render_yuv
+from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, KeptLens, Renderer, parse_border, render_yuv
 from mosaic_cli.stabilize.rolling import MidTimeFeed, RollingCorrection, RollingProbe, RowWarpLater, parse_rolling_shutter
 from mosaic_cli.stabilize.shared_decode import SharedDecode, frame_bytes, ring_frames
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_smoother
@@ -84,6 +86,10 @@ class StabilizeOptions:
     latency: float | None = None
     timeout: float = DEFAULT_TIMEOUT  # a live input ends when it sends nothing for this long
     rolling_shutter: str | float = "off"  # auto, off or a readout in [0, 1] (stabilize/rolling.py)
+    # --keep-lens with a lens applied (--lens FILE, or auto that found one): that lens.  The
+    # tracking and the path still see the undistorted frames; the render reads the frames as the
+    # lens saw them and writes its look (render.KeptLens).  None: the undistorted view.
+    keep_lens: Lens | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -176,14 +182,17 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
             # ring that covers the path's window (shared_decode.py).
             yuv = render_yuv(info, compare is not None)
             ring = ring_frames(plan.smoother, estimator, frame_bytes(info, yuv), rolling=per_row is not None)
-            shared = SharedDecode(video, info, yuv, estimator.input_width, ring, feed.starved)
+            lens = options.keep_lens
+            undistort = None if lens is None else functools.partial(remap_frame, lens=lens)
+            shared = SharedDecode(video, info, yuv, estimator.input_width, ring, feed.starved, undistort=undistort)
+            warp_rows = per_row if lens is None else KeptLens(lens, info.source_size, BORDERS[plan.renderer.border], YUV_BLACK, per_row)
             tracking = TrackingPass(video, estimator, info, gate, show_progress, probe, pending, source=shared.tracking)
             render_clock = time.perf_counter()
             shared.start()
             tracking.start()
             try:
                 written = plan.renderer.render(video, out, gate.warp, info, compare=compare, show_progress=show_progress,
-                                               frames=info.frame_count, per_row=per_row, decoded=shared.render_frames())
+                                               frames=info.frame_count, per_row=warp_rows, decoded=shared.render_frames())
                 if isinstance(gate, MidTimeFeed):
                     gate.settle()  # (settled already unless no frame was rendered)
             except BaseException:

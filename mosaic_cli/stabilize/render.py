@@ -29,6 +29,8 @@ import numpy as np
 from mosaic_cli.device import resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import resize_matrix
+from mosaic_cli.geometry.lens import Lens, distort_by_table, distortion_table, undistort_points, undistorted_camera
+from mosaic_cli.geometry.rolling_shutter import undo_row_correction
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, VideoWriter, open_video
 from mosaic_cli.video.decode import ReadAhead
@@ -254,6 +256,65 @@ class Renderer:
                 writer.abort()
             raise
         return written
+
+
+class KeptLens:
+    """``stabilize --keep-lens``: the render's ``per_row`` that writes each frame with the lens's
+    look, from the frames as the lens saw them, in one resampling: each output pixel (the lens's
+    pixels) -> the undistorted frame's pixel it shows (``lens``'s undistortion, the frames' own,
+    fixed, computed once) -> back through the frame's stabilising warp (and, with ``rows``, the
+    rolling shutter's row correction of the input row it lands on) -> the undistorted input's
+    pixel -> the lens's pixel of it (:func:`~mosaic_cli.geometry.lens.distortion_table`) -> one
+    ``cv2.remap`` of the frame.  Maps as the rolling shutter's row warper builds them: computed on
+    the chroma grid and resized to the luma grid (the composed map is smooth), chroma at half
+    size.  RGB (h, w, 3) or yuv420p (h * 3 // 2, w) frames of ``size``; ``border``: an OpenCV
+    border mode, ``black`` the planes' fill.  ``rows``: a ``RowWarpLater`` (its ``correction()``,
+    None for a global shutter).  OpenCV's warps only: a device render warps without the lens."""
+
+    def __init__(self, lens: Lens, size: tuple[int, int], border: int, black: tuple[int, int, int], rows=None):
+        w, h = self.size = (int(size[0]), int(size[1]))
+        self.border, self.black, self.rows = border, black, rows
+        at = lens.at(self.size)
+        cw, ch = w // 2, h // 2
+        # the chroma grid's pixel centres in luma pixels (as RollingCorrection.warper)
+        gx, gy = np.meshgrid(np.arange(cw, dtype=np.float64) * 2 + 0.5, np.arange(ch, dtype=np.float64) * 2 + 0.5)
+        u = undistort_points(at, np.stack([gx.ravel(), gy.ravel()], 1), undistorted_camera(at))
+        self.ux, self.uy = u[:, 0].reshape(ch, cw), u[:, 1].reshape(ch, cw)
+        self.table = distortion_table(lens, self.size)
+        self._rows = np.arange(h, dtype=np.float64)
+
+    def maps(self, t: int, warp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Frame t's (map_x, map_y) on the luma grid and on the chroma grid (its own pixels),
+        float32: where each output pixel samples the frame as the lens saw it."""
+        w, h = self.size
+        Wi = np.linalg.inv(np.asarray(warp, dtype=np.float64))
+        z = Wi[2, 0] * self.ux + Wi[2, 1] * self.uy + Wi[2, 2]
+        x = (Wi[0, 0] * self.ux + Wi[0, 1] * self.uy + Wi[0, 2]) / z
+        y = (Wi[1, 0] * self.ux + Wi[1, 1] * self.uy + Wi[1, 2]) / z
+        rolling = self.rows.correction() if self.rows is not None else None
+        if rolling is not None:
+            x, y = undo_row_correction(rolling.row_channels(t, self._rows).astype(np.float32), self.size, x, y)
+        cu, cv_ = distort_by_table(*self.table, x, y)
+        full_u = cv2.resize(cu, (w, h), interpolation=cv2.INTER_LINEAR)
+        full_v = cv2.resize(cv_, (w, h), interpolation=cv2.INTER_LINEAR)
+        return full_u, full_v, (cu + 0.5) / 2 - 0.5, (cv_ + 0.5) / 2 - 0.5
+
+    def __call__(self, frame: np.ndarray, t: int, warp: np.ndarray) -> np.ndarray:
+        w, h = self.size
+        u, v, cu, cv_ = self.maps(t, warp)
+        if frame.ndim == 3:
+            return cv2.remap(frame, u, v, cv2.INTER_LINEAR, borderMode=self.border, borderValue=(0, 0, 0))
+        out = np.empty_like(frame)
+        flat_in, flat_out = frame.reshape(-1), out.reshape(-1)
+        flat_out[:w * h] = cv2.remap(flat_in[:w * h].reshape(h, w), u, v, cv2.INTER_LINEAR, borderMode=self.border,
+                                     borderValue=self.black[0]).reshape(-1)
+        cw, ch = w // 2, h // 2
+        q = cw * ch
+        for i, start in enumerate((w * h, w * h + q)):
+            plane = flat_in[start:start + q].reshape(ch, cw)
+            flat_out[start:start + q] = cv2.remap(plane, cu, cv_, cv2.INTER_LINEAR, borderMode=self.border,
+                                                  borderValue=self.black[1 + i]).reshape(-1)
+        return out
 
 
 _DONE = object()

@@ -110,8 +110,13 @@ class SharedDecode:
     ``peak``: the most frames the ring held at once; ``second_decode_from``: the frame from which
     the render read a decode of its own (None: it read every frame from the ring)."""
 
-    def __init__(self, video: str | Path, info: VideoInfo, yuv: bool, width: int, capacity: int, starved: Callable[[], bool]):
+    def __init__(self, video: str | Path, info: VideoInfo, yuv: bool, width: int, capacity: int, starved: Callable[[], bool],
+                 undistort: Callable[[np.ndarray], np.ndarray] | None = None):
         self.video, self.info, self.yuv, self.width, self.capacity = video, info, yuv, width, int(capacity)
+        # stabilize --keep-lens: the frames decoded as the lens sees them (the render's), and the
+        # tracking's luma plane (or RGB frame) undistorted at full size before it is reduced, as
+        # the decode's own --lens filter would have (the same reduced frames, bit for bit)
+        self.undistort = undistort
         self._starved = starved
         self.tracking_size = scaled_size(info.source_size, width)
         self._frames: dict[int, np.ndarray] = {}  # by index: those the render or the tracking has still to read
@@ -149,7 +154,7 @@ class SharedDecode:
 
     def _run(self) -> None:
         try:
-            with open_video(self.video, yuv420p=self.yuv, info=self.info) as stream:
+            with open_video(self.video, yuv420p=self.yuv, info=self.info, raw=self.undistort is not None) as stream:
                 for frame in stream:
                     if not self._put(frame):
                         return
@@ -252,13 +257,23 @@ class SharedDecode:
                     if not gate.settled:
                         gate.poll()  # the detection may have ended: the held pairs go on (or MaskChanged)
                     continue
-                yield tracking_gray(frame, self.info.source_size, self.tracking_size, self.yuv)
+                yield tracking_gray(self._seen(frame), self.info.source_size, self.tracking_size, self.yuv)
                 with self._changed:  # (asked for the next: every pair of the frames before is told)
                     k = self._tracked = k + 1
                     self._drop(k - 1)
         finally:
             with self._changed:
                 self._settled = False
+
+    def _seen(self, frame: np.ndarray) -> np.ndarray:
+        """The frame as the tracking reads it: through ``undistort`` where it is set (a yuv420p
+        frame's luma plane alone: all that :func:`tracking_gray` reads)."""
+        if self.undistort is None:
+            return frame
+        if self.yuv:
+            w, h = self.info.source_size
+            return self.undistort(frame.reshape(-1)[:w * h].reshape(h, w))
+        return self.undistort(np.asarray(frame))
 
     def _tracking_starved(self) -> bool:
         """Whether the tracking, its mask settled, has told every pair it can from the frames
@@ -291,7 +306,7 @@ class SharedDecode:
             with self._changed:
                 t = self._rendered = t + 1
                 self._drop(t - 1)
-        with open_video(self.video, yuv420p=self.yuv, info=self.info, start=t) as stream:
+        with open_video(self.video, yuv420p=self.yuv, info=self.info, start=t, raw=self.undistort is not None) as stream:
             yield from stream
 
 

@@ -596,12 +596,15 @@ def seen_through(path: str | Path, image_filter: Callable[[np.ndarray], np.ndarr
         _SEEN_THROUGH.pop(key, None)
 
 
-def _filtered(path: str | Path, frames: Iterator, size: tuple[int, int], yuv420p: bool) -> Iterator:
-    """``frames`` through the filter set for ``path`` (:func:`seen_through`), if any."""
-    image_filter = _SEEN_THROUGH.get(str(Path(path).resolve())) if _SEEN_THROUGH else None
-    if image_filter is None:
-        return frames
+def image_filter_for(path: str | Path) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The filter :func:`seen_through` set for ``path`` (a file, or a live source's name as
+    given), None where there is none."""
+    return _SEEN_THROUGH.get(str(Path(path).resolve())) if _SEEN_THROUGH else None
 
+
+def filter_frame(frame, size: tuple[int, int], yuv420p: bool, image_filter: Callable[[np.ndarray], np.ndarray]):
+    """One decoded frame of ``size`` through ``image_filter``: an RGB or gray image whole, a
+    yuv420p frame (or a :class:`YuvFrame`) plane by plane."""
     def planes(flat: np.ndarray) -> np.ndarray:
         w, h = size
         cw, ch = (w + 1) // 2, (h + 1) // 2
@@ -613,14 +616,19 @@ def _filtered(path: str | Path, frames: Iterator, size: tuple[int, int], yuv420p
             out[at:at + cw * ch] = image_filter(flat[at:at + cw * ch].reshape(ch, cw)).reshape(-1)
         return out
 
-    def through(frame):
-        if isinstance(frame, YuvFrame):
-            return YuvFrame(planes(frame._flat), frame.size)
-        if yuv420p:
-            return planes(frame).reshape(frame.shape)
-        return image_filter(np.asarray(frame))
+    if isinstance(frame, YuvFrame):
+        return YuvFrame(planes(frame._flat), frame.size)
+    if yuv420p:
+        return planes(frame).reshape(frame.shape)
+    return image_filter(np.asarray(frame))
 
-    return (through(frame) for frame in frames)
+
+def _filtered(path: str | Path, frames: Iterator, size: tuple[int, int], yuv420p: bool) -> Iterator:
+    """``frames`` through the filter set for ``path`` (:func:`seen_through`), if any."""
+    image_filter = image_filter_for(path)
+    if image_filter is None:
+        return frames
+    return (filter_frame(frame, size, yuv420p, image_filter) for frame in frames)
 
 
 def open_video(
@@ -633,6 +641,7 @@ def open_video(
     yuv420p: bool = False,
     info: VideoInfo | None = None,
     lazy_rgb: bool = False,
+    raw: bool = False,
 ) -> VideoStream:
     """Open ``path`` (a video file or a folder of numbered images) as a stream of frames.
 
@@ -641,7 +650,9 @@ def open_video(
     decodes them, (h * 3 // 2, w), with no conversion; ``fps`` overrides the frame rate of an
     image folder; ``start`` skips frames.  ``info``: the file's :func:`probe`, when the caller
     has it (else it is probed here).  ``lazy_rgb``: full-size RGB frames that are converted here
-    come as :class:`YuvFrame`, converted only when their pixels are asked for.
+    come as :class:`YuvFrame`, converted only when their pixels are asked for.  ``raw``: the
+    frames as decoded, not through the filter :func:`seen_through` set for ``path``
+    (``stabilize --keep-lens`` renders the lens's own frames).
     """
     p = Path(path)
     if p.is_dir():
@@ -650,7 +661,8 @@ def open_video(
         stream = open_folder(p, width, fps, gray)
         if start:
             stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
-        stream._frames = _filtered(p, stream._frames, stream.info.size, False)
+        if not raw:
+            stream._frames = _filtered(p, stream._frames, stream.info.size, False)
         return stream
     if info is None:
         info = probe(p)
@@ -662,7 +674,7 @@ def open_video(
     decoder = Decoder(info, pixels, size, start=int(start) if start else None, lazy_rgb=lazy_rgb)
 
     def frames() -> Iterator[np.ndarray]:
-        yield from _filtered(p, iter(decoder), size, yuv420p)
+        yield from (iter(decoder) if raw else _filtered(p, iter(decoder), size, yuv420p))
         stream.decode_error = decoder.error
 
     stream = VideoStream(info, frames(), decoder.close)
