@@ -74,7 +74,8 @@ def stabilize(
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
-    from mosaic_cli.estimators.lens import parse_lens_option, undistorting
+    from mosaic_cli.estimators.lens import undistorting
+    from mosaic_cli.live.source import is_live_source
     from mosaic_cli.live.stabilize import is_live_request, stabilize_live
     from mosaic_cli.plots import check_plot_request
     from mosaic_cli.stabilize import StabilizeOptions
@@ -89,15 +90,17 @@ def stabilize(
         rolling_shutter="auto" if rolling_shutter is None else rolling_shutter,
     )
     if is_live_request(video, out, options):
-        if parse_lens_option(lens) != "none":
-            raise BadInput("--lens undistorts a whole video's frames: not with --latency or a live input or output")
+        if keep_lens:
+            raise BadInput("--keep-lens renders through the whole video's path: not with --latency or a live input or output")
         if rolling_shutter is not None and parse_rolling_shutter(rolling_shutter) != "off":
             raise BadInput("--rolling-shutter needs the whole video: not with --latency or a live input or output")
         options = dataclasses.replace(options, rolling_shutter="off")
         if plot is not None:
             raise BadInput("--plot needs the whole camera path: not with --latency or a live input or output")
-        live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
-                              compare=str(compare) if compare else None, show_progress=not quiet)
+        # --lens: a live input's frames undistorted as they arrive (live/source.py); auto only on a file
+        with undistorting(lens, video, live=is_live_source(video)) as lens_choice:
+            live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
+                                  compare=str(compare) if compare else None, show_progress=not quiet)
         if not quiet:
             console.print(
                 f"{live.frames_in} frames in, {live.frames_out} out -> {'standard output' if out == '-' else out}: "
@@ -105,6 +108,8 @@ def stabilize(
                 f"(horizon {live.horizon.frames} frames); {live.frames_out / max(live.seconds, 1e-9):.1f} fr/s",
                 soft_wrap=True,
             )
+            if lens_choice.source != "none":
+                console.print(lens_choice.describe())
         return
     # The output is the undistorted (pinhole) view: the path and warps are planned on it
     # (--keep-lens: the render composes them with the lens).

@@ -78,7 +78,7 @@ def stitch(
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
-    from mosaic_cli.estimators.lens import parse_lens_option, undistorting
+    from mosaic_cli.estimators.lens import undistorting
     from mosaic_cli.live.source import is_live_source
     from mosaic_cli.stabilize.rolling import parse_rolling_shutter
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
@@ -106,13 +106,13 @@ def stitch(
         raise BadInput("--rolling-shutter needs the whole video: not with --live or a live input")
     if rolling_shutter is None and not live and not Path(video).is_dir():  # the default: a video file's rows are checked
         options = dataclasses.replace(options, rolling_shutter="auto")
-    if live and parse_lens_option(lens) != "none":
-        raise BadInput("--lens undistorts a whole video's or folder's frames: not with --live or a live input")
     lens_choice = None
     # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
     if live:
-        result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
-                             show_progress=not quiet)
+        # --lens: a live input's frames undistorted as they arrive (live/source.py); auto only on a file
+        with undistorting(lens, video, live=is_live_source(video)) as lens_choice:
+            result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
+                                 show_progress=not quiet)
     else:
         with reading_policy(strict), undistorting(lens, video) as lens_choice:  # the panorama: a pinhole view of the ground
             result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet)

@@ -87,8 +87,8 @@ def track(
     elif out != "-":
         check_writable(out)
     live = is_live_source(video)
-    if parse_lens_option(lens) != "none" and (live or is_jsonl(out)):
-        raise BadInput("--lens undistorts a video file's frames: not with JSON Lines or a live input")
+    if live and parse_lens_option(lens) == "auto":
+        raise BadInput("--lens auto reads frames spread over a whole video file: with a live input, pass a lens FILE (or none)")
     info = None if live else probe(video)  # the input's one probe, passed down
     check_mask_file(options.mask, info)
     build = plan_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
@@ -99,20 +99,23 @@ def track(
     if live or is_jsonl(out):
         tracker: Estimator | concurrent.futures.Future
         width = None
-        if live:  # a live input's mask is made when its first frame gives the size (live_mask)
-            # A network loads beside the stream's opening (its width read from its weights' header):
-            # the socket listens at once.
-            width = trained_width(estimator, str(weights) if weights else None)
-            tracker = built_beside(build) if width is not None else build()
-        else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
-            masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
-            est.set_mask(masked.use)
-            tracker = est
-        overlay_seconds = time.perf_counter() - clock
-        result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
-                              mask=options.mask if live else None, info=info, width=width)
-        if masked is not None:
-            result.meta["mask"] = masked.to_json()
+        # --lens: a live input's frames undistorted as they arrive (live/source.py), a file's as decoded
+        with undistorting(lens, video, info, live=live) as lens_choice:
+            if live:  # a live input's mask is made when its first frame gives the size (live_mask)
+                # A network loads beside the stream's opening (its width read from its weights' header):
+                # the socket listens at once.
+                width = trained_width(estimator, str(weights) if weights else None)
+                tracker = built_beside(build) if width is not None else build()
+            else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
+                masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
+                est.set_mask(masked.use)
+                tracker = est
+            overlay_seconds = time.perf_counter() - clock
+            result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
+                                  mask=options.mask if live else None, info=info, width=width)
+            if masked is not None:
+                result.meta["mask"] = masked.to_json()
+            result.meta["lens"] = lens_choice.to_meta()
         if not is_jsonl(out):
             save_track(result, out)
     else:

@@ -308,16 +308,25 @@ def _covers(lens: Lens) -> bool:
 
 
 @contextlib.contextmanager
-def undistorting(value: str | None, video: str | Path, info: VideoInfo | None = None) -> Iterator[LensChoice]:
+def undistorting(value: str | None, video: str | Path, info: VideoInfo | None = None, live: bool = False) -> Iterator[LensChoice]:
     """``--lens value`` resolved for ``video`` (probed here if ``info`` is None and a lens is
     asked for), and while inside, every read of ``video`` undistorted by it, once, where the
     frames are decoded (:func:`mosaic_cli.video.decode.seen_through`): the estimator, the
-    stitcher and the renderer all see the pinhole view."""
-    if parse_lens_option(value) != "none" and info is None:
-        from mosaic_cli.video import probe
+    stitcher and the renderer all see the pinhole view.  ``live``: ``video`` is a live source
+    (a stream, standard input), read once and never probed: a lens FILE undistorts each frame as
+    it arrives (its size checked against the stream's once it is known: LiveStream), ``auto``
+    is refused (it reads samples spread over a whole file)."""
+    if live:
+        spec = parse_lens_option(value)
+        if spec == "auto":
+            raise BadInput("--lens auto reads frames spread over a whole video file: with a live input, pass a lens FILE (or none)")
+        choice = LensChoice(None, "none") if spec == "none" else LensChoice(read_lens(spec), "file")
+    else:
+        if parse_lens_option(value) != "none" and info is None:
+            from mosaic_cli.video import probe
 
-        info = probe(video)
-    choice = resolve_lens(value, video, info)
+            info = probe(video)
+        choice = resolve_lens(value, video, info)
     image_filter = None if choice.lens is None else functools.partial(remap_frame, lens=choice.lens)
     with seen_through(video, image_filter):
         yield choice

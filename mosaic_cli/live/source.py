@@ -33,7 +33,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import DEFAULT_TIMEOUT
 from mosaic_cli.progress import note
-from mosaic_cli.video.decode import CONVERTED_HERE, TO_BT601, rgb_from_yuv420p, yuv420p_bytes
+from mosaic_cli.video.decode import CONVERTED_HERE, TO_BT601, filter_frame, image_filter_for, rgb_from_yuv420p, yuv420p_bytes
 from mosaic_cli.video.reader import VideoInfo, ffmpeg_exe, read_into, scaled_size
 
 STDIN = "-"
@@ -149,6 +149,9 @@ class LiveStream:
         # stitch then sees the frames an offline one does.  Only a probed file of another layout
         # (4:4:4) keeps ffmpeg's conversion, as offline.
         self._rgb_here = pixels == "rgb" and (info is None or info.pixel_format in CONVERTED_HERE)
+        # --lens FILE: each frame undistorted at its full size as it arrives, on the reader thread
+        # (the filter the command set for this source: video.decode.seen_through)
+        self._filter = image_filter_for(source)
         self._proc = self._start()
         try:
             self.info = self._wait_for_header(width)
@@ -259,6 +262,15 @@ class LiveStream:
         self._queue = queue.Queue(maxsize=max(QUEUE_MIN_FRAMES, QUEUE_BYTES // frame_bytes))
         self._source_size = source_size
         piped = yuv420p_bytes(source_size) if self._rgb_here else frame_bytes
+        # yuv420p (RGB converted here included) is filtered plane by plane before any conversion,
+        # as a file's frames are (video.decode.filter_frame): the pixels an offline run sees
+        self._filter_planes = self.pixels == "yuv420p" or self._rgb_here
+        if self._filter is not None:  # the lens against the stream's size, once (its maps made here)
+            try:
+                filter_frame(np.zeros(piped if self._filter_planes else self._frame_shape, np.uint8), source_size,
+                             self._filter_planes, self._filter)
+            except ValueError as exc:
+                raise BadInput(f"--lens: {exc}") from None
         threading.Thread(target=self._read_frames, args=(piped,), daemon=True).start()
         return VideoInfo(source_name(self.source), size, source_size, fps, None, 0.0, 0, audio)
 
@@ -270,7 +282,11 @@ class LiveStream:
                 if read_into(pipe, memoryview(buffer)) < frame_bytes:
                     break  # the end (a partial last frame is not a frame)
                 flat = np.frombuffer(buffer, np.uint8)
+                if self._filter is not None and self._filter_planes:
+                    flat = filter_frame(flat, self._source_size, True, self._filter)
                 frame = rgb_from_yuv420p(flat, self._source_size) if self._rgb_here else flat.reshape(self._frame_shape)
+                if self._filter is not None and not self._filter_planes:
+                    frame = filter_frame(frame, self._source_size, False, self._filter)
                 arrival = Arrival(frame, time.monotonic())
                 self._queue.put(arrival)
         except (OSError, ValueError):
