@@ -19,7 +19,6 @@ search is not run).
 from __future__ import annotations
 
 import contextlib
-import functools
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -29,7 +28,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.geometry.lens import Lens, corner_displacement, distort_points, division_lens, radial_lens, remap_frame, undistort_points
+from mosaic_cli.geometry.lens import Lens, Undistortion, corner_displacement, distort_points, division_lens, radial_lens, undistort_points
 from mosaic_cli.geometry.lens_files import read_lens
 from mosaic_cli.video import VideoInfo
 from mosaic_cli.video.decode import frames_at, seen_through
@@ -327,6 +326,6 @@ def undistorting(value: str | None, video: str | Path, info: VideoInfo | None = 
 
             info = probe(video)
         choice = resolve_lens(value, video, info)
-    image_filter = None if choice.lens is None else functools.partial(remap_frame, lens=choice.lens)
+    image_filter = None if choice.lens is None else Undistortion(choice.lens)
     with seen_through(video, image_filter):
         yield choice

@@ -334,6 +334,33 @@ def distort_by_table(table: np.ndarray, origin: tuple[float, float], step: float
     return np.ascontiguousarray(out[..., 0], dtype=np.float32), np.ascontiguousarray(out[..., 1], dtype=np.float32)
 
 
+def undistort_mask(use: np.ndarray, lens: Lens) -> np.ndarray:
+    """A use mask (h, w) uint8 (255 = use) drawn in the distorted frame's pixels, in the
+    undistorted frame's (the maps :func:`remap_frame` undistorts its frames with), still 0/255:
+    a pixel is usable only where every distorted pixel its bilinear sample reads is, so that no
+    masked pixel's edge slips out by a rounding (nearest would move an edge by up to half a
+    pixel either way)."""
+    h, w = use.shape[:2]
+    mx, my = undistort_maps(lens, (w, h))
+    touched = cv2.remap(use, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.where(touched >= 255, 255, 0).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class Undistortion:
+    """What ``--lens`` sets on an input's frames (``video.decode.seen_through``): each image
+    undistorted by ``lens`` (:func:`remap_frame`), and a ``--mask`` drawn in the distorted frame's
+    pixels carried into the undistorted frame's (:meth:`mask`)."""
+
+    lens: Lens
+
+    def __call__(self, frame: np.ndarray) -> np.ndarray:
+        return remap_frame(frame, self.lens)
+
+    def mask(self, use: np.ndarray) -> np.ndarray:
+        return undistort_mask(use, self.lens)
+
+
 def frame_to_undistorted(lens: Lens, size: tuple[int, int]) -> np.ndarray:
     """The matrix (3x3) from the pinhole frame of camera ``lens.at(size).K`` to the undistorted
     frame's pixels (camera ``undistorted_camera``): how a homography between pinhole frames at

@@ -371,7 +371,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
-            masked = live_mask(options.mask, size, show_progress)
+            masked = live_mask(options.mask, size, show_progress, source=source)
         tracker: Estimator | Bridged
         if loading is not None and not loading.done() and (width := trained_width(options.estimator, options.weights)) is not None:
             # The network still loads: ORB tracks the frames that come meanwhile, at its width.

@@ -20,11 +20,13 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.geometry.lens import Undistortion
 from mosaic_cli.mask import load_mask
 from mosaic_cli.overlay.detect import Detection, OverlayOptions, detect_overlays
 from mosaic_cli.overlay.samples import VideoSamples, sample_width
 from mosaic_cli.progress import note
 from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.decode import image_filter_for
 
 T = TypeVar("T")
 
@@ -117,7 +119,7 @@ def frame_mask(video: str | Path, options: MaskOptions | None = None, info: Vide
     options = options or MaskOptions()
     clock = time.perf_counter()
     info = info or probe(video)
-    return _detected(video, options, info, _file_mask(options, info.source_size), show_progress, clock)
+    return _detected(video, options, info, _file_mask(options, info.source_size, video), show_progress, clock)
 
 
 def _detected(video: str | Path, options: MaskOptions, info: VideoInfo, use: np.ndarray | None, show_progress: bool,
@@ -172,24 +174,32 @@ class _Stoppable:
                 close()  # a generator's decoder (an ffmpeg process) ends now
 
 
-def live_mask(options: MaskOptions | None, full_size: tuple[int, int], show_progress: bool = True) -> FrameMask:
-    """The use mask of a live input: the ``--mask`` file's only.  Detection samples frames
-    spread over the whole clip before the first is estimated, which a stream does not have;
-    when it was asked for (the default), one line says it is skipped."""
+def live_mask(options: MaskOptions | None, full_size: tuple[int, int], show_progress: bool = True,
+              source: str | Path | None = None) -> FrameMask:
+    """The use mask of a live input: the ``--mask`` file's only (in the undistorted frame's
+    pixels where ``--lens`` undistorts ``source``'s frames).  Detection samples frames spread
+    over the whole clip before the first is estimated, which a stream does not have; when it was
+    asked for (the default), one line says it is skipped."""
     options = options or MaskOptions()
     clock = time.perf_counter()
     if options.detect and show_progress:
         note(LIVE_DETECTION_SKIPPED + ("; --mask applies" if options.file is not None else "; use --mask to exclude overlays"))
-    return FrameMask(_file_mask(options, full_size), None, options.file is not None, time.perf_counter() - clock)
+    return FrameMask(_file_mask(options, full_size, source), None, options.file is not None, time.perf_counter() - clock)
 
 
-def _file_mask(options: MaskOptions, full_size: tuple[int, int]) -> np.ndarray | None:
-    """The ``--mask`` file's use mask at ``full_size``, its black areas grown by the margin."""
+def _file_mask(options: MaskOptions, full_size: tuple[int, int], video: str | Path | None = None) -> np.ndarray | None:
+    """The ``--mask`` file's use mask at ``full_size``, its black areas grown by the margin; where
+    ``--lens`` undistorts ``video``'s frames, carried from the distorted frame's pixels, which it
+    is drawn in, into the undistorted frame's (the margin grown first: H.264's smear is the
+    distorted frame's)."""
     use = load_mask(options.file, full_size) if options.file is not None else None
     if use is not None and options.file_margin > 0:
         r = options.file_margin
         use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
                         borderType=cv2.BORDER_CONSTANT, borderValue=255)
+    seen = image_filter_for(video) if use is not None and video is not None else None
+    if isinstance(seen, Undistortion):
+        use = seen.mask(use)
     return use
 
 
@@ -267,7 +277,7 @@ def frame_mask_pending(build: Callable[[], T], video: str | Path, options: MaskO
     options = options or MaskOptions()
     clock = time.perf_counter()
     info = info or probe(video)
-    known = _file_mask(options, info.source_size)
+    known = _file_mask(options, info.source_size, video)
     if not options.detect:
         pending = PendingMask.settled(FrameMask(known, None, options.file is not None, time.perf_counter() - clock))
     else:

@@ -321,7 +321,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
             decode_size = scaled_size(info.source_size, width)
             stream.info = replace(info, size=decode_size)
             if masked is None:  # a live input: only --mask, sized by the stream's first frame
-                masked = live_mask(options.mask, info.source_size, show_progress)
+                masked = live_mask(options.mask, info.source_size, show_progress, source=str(source))
             estimator.set_mask(masked.use)
             scanner = FlightScanner(info.source_size, decode_size, info.fps, 0, options.keyframes, options.features,
                                     max_size, spill if options.spill else None, masked.use)
