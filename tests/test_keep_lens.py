@@ -39,17 +39,20 @@ def gray_frames(path):
 
 def test_distortion_table_reads_the_lens_own_distortion(wide_shaky):
     """The table's bilinear look-up against ``distort_points`` (cv2.projectPoints) over the
-    whole footprint, the corners the undistorted frame crops included."""
-    lens = read_lens(wide_shaky.with_suffix(".gt.json"))
-    for size in (SIZE, (1280, 720)):
+    whole footprint, the corners the undistorted frame crops included, and a 120-degree fisheye."""
+    from mosaic_cli.geometry.lens import fisheye_lens
+
+    wide = read_lens(wide_shaky.with_suffix(".gt.json"))
+    for lens, size in ((wide, SIZE), (wide, (1280, 720)), (fisheye_lens((1280, 720), 1280 / (2 * np.radians(60))), (1280, 720))):
         at = lens.at(size)
         P = undistorted_camera(at)
         pts = np.random.default_rng(0).uniform([-0.5, -0.5], [size[0] - 0.5, size[1] - 0.5], (5000, 2))
         pts[:4] = [[-0.5, -0.5], [size[0] - 0.5, -0.5], [-0.5, size[1] - 0.5], [size[0] - 0.5, size[1] - 0.5]]
         u = undistort_points(at, pts, P)
         x, y = distort_by_table(*distortion_table(lens, size), u[:, 0], u[:, 1])
-        assert np.abs(np.stack([x, y], 1) - distort_points(at, u, P)).max() < 0.01
-        assert np.abs(np.stack([x, y], 1) - pts).max() < 0.01
+        # (cv2.remap rounds the look-up to 1/32 of the table's step: distort_by_table's doc)
+        assert np.abs(np.stack([x, y], 1) - distort_points(at, u, P)).max() < 0.05
+        assert np.abs(np.stack([x, y], 1) - pts).max() < 0.05
         # far outside the footprint: off the frame, never folded back into it
         far_x, far_y = distort_by_table(*distortion_table(lens, size), np.array([-5.0 * size[0]]), np.array([0.5 * size[1]]))
         assert far_x[0] < -size[0]
