@@ -57,7 +57,8 @@ Threads = Annotated[int | None, typer.Option(
 # -- the input ------------------------------------------------------------------------------------
 
 Mask = Annotated[Path | None, typer.Option(
-    "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses.", rich_help_panel=OVERLAYS)]
+    "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses; "
+                   "drawn on the frames as recorded (with --lens, undistorted with them).", rich_help_panel=OVERLAYS)]
 
 
 def overlay_detect_option(kept_out_of: str):
@@ -71,8 +72,9 @@ def overlay_detect_option(kept_out_of: str):
 LensOption = Annotated[str | None, typer.Option(
     "--lens",
     help="The camera's lens, undistorted once as frames are decoded, so that every stage works on a pinhole view: none (default), "
-         "auto (one coefficient estimated from the video, applied only where it clearly fits better) or a FILE: mosaic's lens JSON, "
-         "a Gyroflow lens profile or an OpenSfM/ODM cameras.json (docs/guide/stitch.md, Lenses).", rich_help_panel=INPUT_OUTPUT)]
+         "auto (a radial lens estimated from the video's own frames, applied only where it clearly fits better; a video file only) "
+         "or a FILE, also for a live input: mosaic's lens JSON, a Gyroflow lens profile or an OpenSfM/ODM cameras.json "
+         "(docs/guide/stitch.md, Lenses).", rich_help_panel=INPUT_OUTPUT)]
 MaxFrames = Annotated[int | None, typer.Option("--max-frames", help="Stop after this many frames.", rich_help_panel=INPUT_OUTPUT)]
 Strict = Annotated[bool, typer.Option(
     "--strict",
