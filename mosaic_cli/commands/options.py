@@ -58,7 +58,7 @@ Threads = Annotated[int | None, typer.Option(
 
 Mask = Annotated[Path | None, typer.Option(
     "--mask", help="Image (the video's size or aspect): white = use, black = ignore, e.g. burned-in overlays the detector misses; "
-                   "drawn on the frames as recorded (with --lens, undistorted with them).", rich_help_panel=OVERLAYS)]
+                   "drawn on the frames as recorded (undistorted with them where a lens is applied).", rich_help_panel=OVERLAYS)]
 
 
 def overlay_detect_option(kept_out_of: str):
