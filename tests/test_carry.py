@@ -330,3 +330,134 @@ def test_a_head_saved_on_its_base_loads_whole_and_never_on_another_base(tmp_path
     (tmp_path / "cnn.safetensors").unlink()
     with pytest.raises(BadInput, match="not beside it"):
         load_weights(tmp_path / "carry.safetensors")
+
+
+# ----------------------------------------------------------------------------- the confirmed motion fed back (carry-state)
+
+
+def test_the_head_continues_from_the_motion_it_is_told_was_confirmed():
+    """``confirm`` at pair t: the next pairs are what the head makes of a state whose previous
+    output is ``confirmed[t]`` (run from that state by hand), and pair t's own output is untouched."""
+    torch.manual_seed(1)
+    head = HomographyNet(NetConfig(head="carry")).carry.eval()
+    with torch.no_grad():
+        head.gate[2].bias.fill_(0.0)  # a head that leans on what it carries, so that it shows
+        head.motion.weight.normal_(0.0, 0.05)
+    T = 6
+    features, cnn = torch.randn(2, T, head.code.in_features).abs(), torch.randn(2, T, 8) * 4.0
+    confirmed = torch.randn(2, T, 8) * 4.0
+    confirm = torch.zeros(2, T, dtype=torch.bool)
+    confirm[0, 2] = True  # the first sequence's third pair was confirmed; the second, none
+    with torch.no_grad():
+        fed, state, _ = head(features, cnn, confirmed=confirmed, confirm=confirm)
+        own, _, _ = head(features, cnn)
+        _, (h, c, _), _ = head(features[:, :3], cnn[:, :3])
+        by_hand, _, _ = head(features[:1, 3:], cnn[:1, 3:], (h[:, :1], c[:, :1], confirmed[None, :1, 2]))
+    torch.testing.assert_close(fed[:, :3], own[:, :3], rtol=0, atol=0)
+    torch.testing.assert_close(fed[0, 3:], by_hand[0], rtol=1e-6, atol=1e-5)
+    torch.testing.assert_close(fed[1], own[1], rtol=0, atol=0)
+    assert float((fed[0, 3] - own[0, 3]).abs().max()) > 0.5  # the fed motion mattered
+    assert torch.equal(state[2][0, 0], fed[0, -1])  # a last pair not confirmed: its own output carried on
+
+
+def test_teacher_forcing_feeds_the_teacher_after_the_pairs_the_frames_would_confirm():
+    T = 8
+    events = torch.zeros(3, T, dtype=torch.long)
+    events[:, 2] = EVENTS.index("blur")
+    events[:, 4] = DROP
+    events[:, 6] = DUPLICATE
+    known = torch.ones(3, T, dtype=torch.bool)
+    known[:, 1] = False
+    batch = {"teacher": torch.randn(3, T, 4, 2), "known": known, "events": events, "draw": torch.tensor([0.1, 0.6, 0.9])}
+    forced = CarryObjective(forcing=0.5).forced(batch)
+    expected = torch.tensor([True, False, False, True, True, True, True, True])  # not unknown, not spoilt
+    assert torch.equal(forced["confirm"][0], expected)
+    assert not forced["confirm"][1:].any()  # the windows not drawn (draw >= 0.5): their own output
+    assert torch.equal(forced["confirmed"], batch["teacher"].flatten(-2))
+    assert CarryObjective().forced(batch) == {}
+    with pytest.raises(ValueError):
+        CarryObjective(forcing=1.5)
+
+
+def test_blown_glare_blows_out_a_share_of_the_glare_frames_and_leaves_every_other_draw_as_it_was():
+    from mosaic_cli.train.bursts import GLARE, LEVELS
+
+    segments, cumulative = [(0, 0, 300)], np.cumsum([300 - WINDOW - 1])
+    glare = []
+    for i in range(400):
+        plain = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True)
+        blown = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True,
+                            blown_glare=0.5)
+        for name in ("rows", "burst", "angle", "events"):  # the same windows, events and frames
+            assert np.array_equal(getattr(plain, name), getattr(blown, name)), name
+        other = plain.burst != GLARE
+        assert np.array_equal(plain.level[other], blown.level[other])
+        glare.extend(blown.level[plain.burst == GLARE].tolist())
+        assert all(LEVELS[GLARE][0] <= v <= LEVELS[GLARE][1] for v in plain.level[plain.burst == GLARE])
+    glare_levels = np.array(glare)
+    assert len(glare_levels) > 100
+    assert 0.35 < float((glare_levels == 0).mean()) < 0.65  # about half blown out
+    assert glare_levels.max() <= LEVELS[GLARE][1] and glare_levels[glare_levels > 0].min() >= LEVELS[GLARE][0]
+
+
+def _carry_estimator(net: HomographyNet, meta: dict, **options) -> LearnedEstimator:
+    config = LearnedConfig(fallback="none", carry="network", **options)
+    return LearnedEstimator(net, {**meta, "variant": "carry"}, device="cpu", config=config)
+
+
+def _track(est: LearnedEstimator, flight: Flight) -> list:
+    est.reset(flight.frame_size)
+    return [e for f in flight.frames for e in est.feed(f)] + list(est.finish())
+
+
+def test_carry_state_confirmed_puts_the_polished_motion_into_the_heads_state():
+    """A head whose own answer is 2 working px off in x and y (its regressor's bias moved): the
+    polish confirms the true motion, and with carry-state=confirmed the state's previous output
+    is that motion's offsets at the patch (its corners moved by OpenCV), where with the default
+    it stays the head's own answer."""
+    cnn, meta = load_weights(CNN)
+    net = carry_from(cnn)
+    with torch.no_grad():
+        net.regressor.bias.add_(2.0)
+    flight = Flight(n_frames=18, frame_size=(640, 360), map_size=(2400, 1400), seed=4, step=6.0)
+    scale = np.diag([0.5, 0.5, 1.0])  # 640 -> the 320 px working frame
+    truth = scale @ flight.pairwise[-1] @ np.linalg.inv(scale)
+    for polish_with in ("opencv", "torch"):  # one pair at a time, and the chunk's polish batched
+        fed = _carry_estimator(net, meta, carry_state="confirmed", chunk=8, polish_with=polish_with)
+        estimates = _track(fed, flight)
+        assert estimates[-1].path == "learned" and fed.path_counts["learned"] == len(flight.frames) - 1
+        x, y = (float(v) - 0.5 for v in fed.positions[0])  # the patch's outer corners, pixel centres on integers
+        P = fed.patch
+        corners = np.array([[x, y], [x + P, y], [x + P, y + P], [x, y + P]], np.float64)
+        moved = cv2.perspectiveTransform(corners[None], fed._motion)[0]
+        state = fed._state[2][0, 0].reshape(4, 2).double().numpy()
+        np.testing.assert_allclose(state, moved - corners, atol=1e-3)  # exactly the confirmed motion
+        true_offsets = cv2.perspectiveTransform(corners[None], truth)[0] - corners
+        assert np.abs(state - true_offsets).max() < 0.5  # ...which the polish placed on the truth
+
+    own = _carry_estimator(net, meta, chunk=8)
+    _track(own, flight)
+    own_state = own._state[2][0, 0].reshape(4, 2).double().numpy()
+    assert np.abs(own_state - true_offsets).max() > 1.5  # the head's own answer, 2 px off
+
+
+def test_carry_state_confirmed_is_the_same_on_any_number_of_threads_and_changes_no_other_head():
+    cnn, meta = load_weights(CNN)
+    net = carry_from(cnn)
+    with torch.no_grad():
+        net.carry.gate[2].bias.fill_(0.0)  # leaning on its memory: the fed state changes the seeds
+    flight = Flight(n_frames=18, frame_size=(640, 360), map_size=(2400, 1400), seed=5, step=8.0)
+    runs = []
+    for threads in (1, 2):
+        est = _carry_estimator(net, meta, carry_state="confirmed", chunk=8)
+        est.threads = threads
+        runs.append(np.stack([e.H for e in _track(est, flight)]))
+    np.testing.assert_array_equal(runs[0], runs[1])
+    for weights in (CNN, "models/lstm.safetensors"):  # no carry head: the option changes nothing
+        model, model_meta = load_weights(weights)
+        outputs = []
+        for state in ("own", "confirmed"):
+            est = LearnedEstimator(model, model_meta, device="cpu", config=LearnedConfig(carry_state=state))
+            est.threads = 1
+            outputs.append(np.stack([e.H for e in _track(est, flight)]))
+        np.testing.assert_array_equal(outputs[0], outputs[1])

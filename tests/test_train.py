@@ -640,7 +640,7 @@ def test_the_carry_head_trains_on_cached_features_of_a_frozen_base_and_resumes_e
     def carry(name: str, **options):
         cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / name), variant="carry", init=str(base_weights), steps=12,
                           batch_size=4, feature_windows=8, work_size=WORK, patch=PATCH, num_workers=0, threads=1,
-                          flip=True, **options).resolved()
+                          flip=True, carry_forcing=0.5, carry_blown_glare=0.5, **options).resolved()
         assert cfg.bursts == 0.75 and cfg.lr == 3e-3  # the carry head's own defaults
         return cfg
 

@@ -23,6 +23,9 @@
              black, featureless) -> the motion carried across the frames, with a low confidence
              (``carry``: the network's estimate, which for the LSTM reads its carried state, or
              the last confirmed motion)
+          -> with a carry head and ``carry-state=confirmed``: each confirmed motion fed back as the
+             head's previous output, the head stepped pair by pair as the pairs are decided (the
+             chunk's batched step a speculation; a pair whose seed it moved is checked again)
           -> invalid, a frame without texture, or detail that does not correlate once registered
              (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
@@ -71,7 +74,7 @@ from mosaic_cli.geometry import corner_error, frame_corners, is_valid
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
 from mosaic_cli.model.network import SEQUENCE_HEADS, HomographyNet
-from mosaic_cli.model.patches import offsets_to_homography
+from mosaic_cli.model.patches import homography_to_offsets, offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 
 PATHS = ("learned", "fallback", "carried", "failed")  # which path produced a pair, counted in ``path_counts``
@@ -164,6 +167,10 @@ class LearnedEstimator(Estimator):
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
         self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
+        # carry-state=confirmed: the carry head's previous output is the confirmed motion (_fed_seed).
+        self._feeding = (self.config.carry_state == "confirmed" and getattr(model, "carry", None) is not None
+                         and self.config.seed == "network" and not self._prior_warp)
+        self._chunk_inputs: torch.Tensor | None = None  # the chunk's head inputs (M, n, F), kept while feeding
         # The chunk's LK polish and check batched on the device (polish-with; see _finish_batched).
         on = self.config.polish_with
         self._batched = self.config.refine == "lk" and (on == "torch" or (on == "auto" and self.device.type == "cuda"))
@@ -194,6 +201,7 @@ class LearnedEstimator(Estimator):
         self._corner_mask = None if self.work_mask is None else erode_mask(self.work_mask, self.config.polish.window // 2 + 1)
         self._pending = []
         self._state = None
+        self._chunk_inputs = None
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
         self._detail_levels = []  # band-passed detail of the recent unspoilt frames (see _describe)
@@ -260,11 +268,59 @@ class LearnedEstimator(Estimator):
         if self._batched:
             return self._finish_batched(pairs, seeds, offsets_ok, agreement, pool)
         if pool is None:  # one thread: each pair finished in turn
-            return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
+            out = []
+            for k, (prev, cur) in enumerate(pairs):
+                seed, ok, agree = self._fed_seed(k, seeds[k])[:3] if self._feeding else (seeds[k], offsets_ok[k], agreement[k])
+                out.append(self._finish_pair(prev, cur, seed, ok, agree))
+            return out
         self._valid_pixels()  # made once, before the threads read it
         checks = pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), range(len(pairs)))
         # map yields in the pairs' order: each decided once those before it are
-        return [self._decide(prev, cur, seeds[k], agreement[k], check) for k, ((prev, cur), check) in enumerate(zip(pairs, checks))]
+        return self._decide_all(pairs, seeds, offsets_ok, agreement, checks)
+
+    def _decide_all(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
+                    agreement: np.ndarray, checks) -> list[PairEstimate]:
+        """The chunk's pairs decided in order from their checks (an iterable in the pairs' order);
+        while feeding the confirmed motion to a carry head, each pair's seed is the head's step
+        from the state the pairs before it left (:meth:`_fed_seed`), and a pair whose seed that
+        moved is checked again with it, here."""
+        out = []
+        for k, ((prev, cur), check) in enumerate(zip(pairs, checks)):
+            seed, agree = seeds[k], agreement[k]
+            if self._feeding:
+                seed, ok, agree, moved = self._fed_seed(k, seeds[k])
+                if moved or ok != bool(offsets_ok[k]):
+                    check = self._check(prev, cur, seed, ok)
+            out.append(self._decide(prev, cur, seed, agree, check))
+        return out
+
+    @torch.inference_mode()
+    def _fed_seed(self, k: int, speculated: np.ndarray) -> tuple[np.ndarray, bool, float, bool]:
+        """The carry head's step for the chunk's pair ``k`` from its state now (the confirmed
+        motions of the pairs before fed in: :meth:`_confirm_state`): the pair's seed (3, 3),
+        whether its offsets were finite, its patches' agreement, and whether the seed lies more
+        than FED_RECHECK_PX (mean corner distance, working px) from the ``speculated`` one the
+        chunk's batched step gave it.  The head is one LSTM cell on M patches: cheap beside a
+        pair's polish."""
+        assert self._chunk_inputs is not None
+        offsets, self._state = self._step_from(self._chunk_inputs[:, k : k + 1], self._state, self._pairs_done)
+        self._pairs_done += 1
+        H_patches, ok = self._homographies(offsets)
+        H, agree = self._consensus(H_patches)
+        moved = float(corner_error(H[0], speculated, self.work_size)) > FED_RECHECK_PX
+        return H[0], bool(ok[0]), float(agree[0]), moved
+
+    @torch.inference_mode()
+    def _confirm_state(self, H_work: np.ndarray) -> None:
+        """Feed a confirmed motion (working px, frame t -> t+1) to the carry head: its state's
+        previous output becomes the offsets ``H_work`` gives each patch's corners (the
+        convention of :func:`offsets_to_homography`, inverted)."""
+        if self._state is None:
+            return
+        h, c, _ = self._state
+        H = torch.as_tensor(H_work, dtype=torch.float64, device=self.device).expand(len(self.positions), 3, 3)
+        offsets = homography_to_offsets(H, self._positions_t.double(), self.patch).flatten(-2)  # (M, 8)
+        self._state = (h, c, offsets.to(h.dtype)[None])
 
     def _finish_batched(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
                         agreement: np.ndarray, pool: ThreadPoolExecutor | None) -> list[PairEstimate]:
@@ -278,7 +334,7 @@ class LearnedEstimator(Estimator):
             self._valid_pixels()  # made once, before the threads read it
             checked = dict(zip(todo, pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), todo)))
         checks = [check if check is not None else checked[k] for k, check in enumerate(settled)]
-        return [self._decide(prev, cur, seeds[k], agreement[k], checks[k]) for k, (prev, cur) in enumerate(pairs)]
+        return self._decide_all(pairs, seeds, offsets_ok, agreement, checks)
 
     def _batch_checks(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray,
                       offsets_ok: np.ndarray) -> list[PairCheck | None]:
@@ -468,6 +524,8 @@ class LearnedEstimator(Estimator):
         if confidence > 0:
             self._confirmed_once = self._confirmed_once or path != "carried"
             self._motion = H_work
+            if self._feeding and path != "carried":
+                self._confirm_state(H_work)
         estimate = self._to_full(H_work, confidence)
         return replace(estimate, path=path if estimate.confidence > 0 or path == "failed" else "failed")
 
@@ -553,7 +611,16 @@ class LearnedEstimator(Estimator):
         if getattr(self.model, "carry", None) is not None:  # a carry head may also read the pairs' image cues
             feats = self.model.head_inputs(pairs, feats)
         feats = feats.unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
-        offsets = self._step(feats)  # (M, n, 4, 2)
+        if self._feeding:  # stepped again pair by pair as the pairs are decided (_fed_seed)
+            self._chunk_inputs = feats
+            offsets, _ = self._step_from(feats, self._state, self._pairs_done)  # a speculation: the state stays
+        else:
+            offsets = self._step(feats)  # (M, n, 4, 2)
+        return self._homographies(offsets)
+
+    def _homographies(self, offsets: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:
+        """Offsets (M, n, 4, 2) -> working-frame homographies (n, M, 3, 3) and whether each pair's
+        offsets were finite (n,)."""
         ok = torch.isfinite(offsets).flatten(2).all(-1).all(0).cpu().numpy()
         offsets = torch.nan_to_num(offsets.double(), nan=0.0, posinf=0.0, neginf=0.0)
         H = offsets_to_homography(offsets, self._positions_t[:, None, :], self.patch)  # (M, n, 3, 3)
@@ -561,21 +628,27 @@ class LearnedEstimator(Estimator):
 
     def _step(self, feats: torch.Tensor) -> torch.Tensor:
         """Regress the chunk's offsets, carrying (and if asked, periodically resetting) the LSTM state."""
+        offsets, self._state = self._step_from(feats, self._state, self._pairs_done)
+        self._pairs_done += feats.shape[1]
+        return offsets
+
+    def _step_from(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None,
+                   done: int) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
+        """The offsets of the pairs ``feats`` (M, n, F) from ``state`` after ``done`` pairs of the
+        video, and the state after them: restarted where ``reset-every`` asks."""
         every = self.config.reset_every if self.model.head in SEQUENCE_HEADS else None
         if not every:
-            offsets, self._state = self.model.step(feats, self._state)
-            self._pairs_done += feats.shape[1]
-            return offsets
+            return self.model.step(feats, state)
         parts, start = [], 0
         while start < feats.shape[1]:
-            if self._pairs_done % every == 0:
-                self._state = None
-            size = min(every - self._pairs_done % every, feats.shape[1] - start)
-            offsets, self._state = self.model.step(feats[:, start : start + size], self._state)
+            if done % every == 0:
+                state = None
+            size = min(every - done % every, feats.shape[1] - start)
+            offsets, state = self.model.step(feats[:, start : start + size], state)
             parts.append(offsets)
             start += size
-            self._pairs_done += size
-        return torch.cat(parts, dim=1)
+            done += size
+        return torch.cat(parts, dim=1), state
 
     def _consensus(self, H_patches: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """One homography per pair from M patch estimates: the DLT of the per-corner median of
@@ -624,6 +697,10 @@ class LearnedEstimator(Estimator):
 
 
 SPOILT_HISTORY = 15  # frames the detail reference is the median of
+# carry-state=confirmed: a pair whose seed the head's step from the fed state moved more than
+# this (mean corner distance, working px) from the chunk's speculative one is checked again; the
+# cheap polish settles from a seed a fraction of a pixel off where it settles from the other.
+FED_RECHECK_PX = 0.25
 SPOILT_HISTORY_MIN = 2  # frames needed before any is called spoilt
 
 

@@ -20,6 +20,7 @@ Seed = Literal["network", "identity", "velocity"]
 Prior = Literal["velocity", "none"]
 Fallback = Literal["orb", "none"]
 Carry = Literal["network", "velocity", "none"]
+CarryState = Literal["own", "confirmed"]
 PolishWith = Literal["auto", "opencv", "torch"]
 PATCH_LAYOUTS: tuple[PatchLayout, ...] = get_args(PatchLayout)
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
@@ -95,6 +96,12 @@ class LearnedConfig:
     # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
     # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
     carry_limit: int = option(8)
+    # What the carry head (a sequence head trained with ``mosaic train --variant carry``) carries
+    # to the next pair as its previous output: "own" (its own output, unchecked) or "confirmed"
+    # (after each pair the frames confirm, the learned path's or the fallback's motion, as the
+    # velocity rule carries it).  Other heads have no such state: the option changes nothing
+    # for them.  Needs prior=none (a prior re-expresses the head's offsets chunk by chunk).
+    carry_state: CarryState = option("own", only=("lstm",))
     # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
     # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.  Off
     # by default (0): on the development flights a gate of 0.1 took the failed burst pairs from
@@ -117,6 +124,8 @@ class LearnedConfig:
             raise BadInput(f"carry-gate must be in [0, 1), got {self.carry_gate}")
         if self.carry_gate_px <= 0:
             raise BadInput(f"carry-gate-px must be positive, got {self.carry_gate_px}")
+        if self.carry_state == "confirmed" and self.prior != "none":
+            raise BadInput("carry-state=confirmed needs prior=none")
         if self.carry_limit < 1:
             raise BadInput(f"carry-limit must be at least 1 pair, got {self.carry_limit}")
         if not 0 < self.carry_confidence < 1:

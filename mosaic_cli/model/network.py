@@ -209,10 +209,15 @@ class CarryHead(nn.Module):
         nn.init.zeros_(self.gate[2].weight)
         nn.init.constant_(self.gate[2].bias, GATE_START)
 
-    def forward(self, features: Tensor, cnn: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState, Tensor]:
+    def forward(self, features: Tensor, cnn: Tensor, state: LSTMState | None = None, confirmed: Tensor | None = None,
+                confirm: Tensor | None = None) -> tuple[Tensor, LSTMState, Tensor]:
         """features (B, T, F) (with cues, (B, T, F + cues): :func:`patch_cues` appended), the
         CNN's offsets (B, T, 8) -> offsets (B, T, 8), the state after the last pair, and the gate
-        w (B, T): the weight each pair gave the carried motion."""
+        w (B, T): the weight each pair gave the carried motion.  ``confirmed`` (B, T, 8) and
+        ``confirm`` (B, T) bool: after each pair t where ``confirm`` holds, the previous output
+        the next pair reads (y_t) is ``confirmed[:, t]`` instead of the head's own: the motion the
+        frames confirmed (the teacher's in training, the polished or fallback estimate at
+        inference), so that a burst starts from a checked motion rather than an unchecked one."""
         B, T = cnn.shape[:2]
         if state is None:
             zeros = cnn.new_zeros(B, self.hidden)
@@ -232,6 +237,8 @@ class CarryHead(nn.Module):
             w = torch.sigmoid(self.gate(torch.cat([h, x, disagreement], dim=1)))
             previous = cnn[:, t] + w * (carried - cnn[:, t])
             outputs.append(previous)
+            if confirm is not None and confirmed is not None:
+                previous = torch.where(confirm[:, t, None], confirmed[:, t], previous)
             weights.append(w[:, 0])
         return torch.stack(outputs, 1), (h[None], c[None], previous[None]), torch.stack(weights, 1)
 

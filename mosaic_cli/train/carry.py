@@ -12,7 +12,8 @@ them at over a thousand windows a second on one CPU thread.
                         where only the sequence can place the pairs: 1-3 frames spoilt (glare,
                         blur, dark, flat: :mod:`.bursts`), a dropped frame (the pair spans two
                         intervals), a duplicated one (no motion); time-reversed and mirrored as
-                        the other variants' windows; one patch position per window
+                        the other variants' windows; one patch position per window (with
+                        ``blown_glare``, a share of the glare frames blown out entirely)
     3. feature cache    the features of every pair the network reads (spoilt frames included),
                         and the teacher's offsets of the same pair at the same patch, composed
                         over a drop, inverted when reversed, mirrored when flipped (exact), the
@@ -20,7 +21,10 @@ them at over a thousand windows a second on one CPU thread.
     4. objective        Huber distance (working px, per corner) between the head's offsets and
                         the teacher's on the event pairs it knows (where the photometric loss
                         has no basin to pull from, the teacher still says where the pair lies),
-                        and the BASE's own answer on the clean pairs (leaving it must cost)
+                        and the BASE's own answer on the clean pairs (leaving it must cost);
+                        with ``forcing``, the teacher's motion fed back as the head's previous
+                        output after the pairs the frames would confirm (as the estimator's
+                        carry-state=confirmed feeds it the confirmed motion)
 
 No label is read: the teacher is the product's own estimate from the clean frames, which the head
 never sees on a spoilt pair.  Each window starts from no state, as a video does; the state is then
@@ -47,7 +51,7 @@ from mosaic_cli.model.checkpoint import file_sha256
 from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.model.patches import crop, homography_to_offsets
 from mosaic_cli.progress import progress_task
-from mosaic_cli.train.bursts import LEVELS, spoil
+from mosaic_cli.train.bursts import GLARE, LEVELS, spoil
 from mosaic_cli.train.data import CachedClip
 
 WINDOW = 32  # frames a training window spans (31 pairs)
@@ -140,9 +144,13 @@ class Window:
 
 
 def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], cumulative: np.ndarray,
-                frame_size: tuple[int, int], patch: int, bursts: float, flip: bool, window: int = WINDOW) -> Window:
+                frame_size: tuple[int, int], patch: int, bursts: float, flip: bool, window: int = WINDOW,
+                blown_glare: float = 0.0) -> Window:
     """A window drawn from ``rng`` alone.  ``segments`` are (clip, first row, length) with room for
-    ``window + 2`` rows (two drops), ``cumulative`` their running count of starts."""
+    ``window + 2`` rows (two drops), ``cumulative`` their running count of starts.  ``blown_glare``:
+    the share of glare frames blown out entirely (level 0, no residue of the ground), as the
+    encoded flights' glare frames are (H.264 keeps nothing of the simulator's faint residue);
+    the same draws as without it, so that 0 draws the windows it always did."""
     T = window - 1
     steps = np.ones(T, np.int64)
     burst = np.zeros(window, np.int64)
@@ -161,7 +169,7 @@ def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], 
             length = int(rng.integers(1, 4))
             for f in range(t, min(t + length, window - 1)):  # never the window's last frame
                 burst[f] = kind
-                level[f] = rng.uniform(*LEVELS[kind])
+                level[f] = _level(rng, kind, blown_glare)
                 angle[f] = rng.uniform(0.0, 180.0)
                 events[f - 1] = events[f - 1] or kind  # the pairs on both sides of a spoilt frame
                 events[f] = events[f] or kind
@@ -177,6 +185,15 @@ def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], 
     left_right, upside_down = (rng.random(2) < 0.5) if flip else (False, False)
     return Window(clip, rows.copy(), burst.copy(), level.copy(), angle.copy(), events.copy(),
                   bool(left_right), bool(upside_down), position)
+
+
+def _level(rng: np.random.Generator, kind: int, blown_glare: float) -> float:
+    """A spoilt frame's level: the simulator's range; glare blown out (0) in a share ``blown_glare``."""
+    if kind != GLARE or blown_glare <= 0.0:
+        return float(rng.uniform(*LEVELS[kind]))
+    low, high = LEVELS[kind]
+    u = float(rng.random())  # one draw, as uniform's
+    return 0.0 if u < blown_glare else low + (high - low) * (u - blown_glare) / (1.0 - blown_glare)
 
 
 def teacher_offsets(window: Window, H: np.ndarray, ok: np.ndarray, frame_size: tuple[int, int], patch: int) -> tuple[np.ndarray, np.ndarray]:
@@ -225,7 +242,7 @@ class FeatureCache:
 
 def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip], teachers, count: int, patch: int,
                         seed: int, bursts: float, flip: bool, folder: Path, identity: dict,
-                        show_progress: bool) -> FeatureCache:
+                        show_progress: bool, blown_glare: float = 0.0) -> FeatureCache:
     """Draw ``count`` windows and cache what the head trains on (in ``folder``, reused by a run
     with the same ``identity``: the weights, clips, seed and options).  ``features`` turns patch
     pairs (N, 2, P, P) in [-1, 1] into (N, F): the network's own, or the estimator's int8 one."""
@@ -255,7 +272,7 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
             read, positions = [], []
             for i in batch:
                 rng = np.random.default_rng([seed, i, 38])
-                win = draw_window(rng, segments, cumulative, (w, h), patch, bursts, flip)
+                win = draw_window(rng, segments, cumulative, (w, h), patch, bursts, flip, blown_glare=blown_glare)
                 H, ok = teachers[win.clip]
                 offsets, known[i] = teacher_offsets(win, H, ok, (w, h), patch)
                 teacher[i] = offsets.reshape(T, 8)
@@ -301,8 +318,9 @@ class FeatureWindows:
         g = torch.Generator()
         g.manual_seed((self.seed * 1_000_003 + step) * 4099 + rank * 131 + world)
         index = torch.randint(len(self.cache), (int(batch_size),), generator=g).to(self.device)
+        draw = torch.rand(int(batch_size), generator=g).to(self.device)  # after the index: the same windows as before it
         return {"features": self.features[index].float(), "teacher": self.teacher[index].unflatten(-1, (4, 2)),
-                "known": self.known[index], "events": self.events[index]}
+                "known": self.known[index], "events": self.events[index], "draw": draw}
 
 
 # ----------------------------------------------------------------------------- 4. objective
@@ -324,12 +342,17 @@ class CarryObjective:
     positions = 1
     check_positions = False
 
+    def __init__(self, forcing: float = 0.0):
+        if not 0.0 <= forcing <= 1.0:
+            raise ValueError(f"forcing must be a share of the windows in [0, 1], got {forcing}")
+        self.forcing = float(forcing)
+
     def __call__(self, model, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         net = getattr(model, "module", model)
         features = batch["features"]
         with torch.no_grad():
             cnn = net.regressor(features[..., : net.config.embed])  # frozen: the BASE's offsets of each pair
-        offsets, _, gate = net.carry(features, cnn)
+        offsets, _, gate = net.carry(features, cnn, **self.forced(batch))
         known = batch["known"].float()
         event = (batch["events"] > 0).float()
         # Clean pairs: the BASE's own answer (leaving it must cost: the head is to add memory where
@@ -352,6 +375,20 @@ class CarryObjective:
             "gate_clean": mean(gate.detach(), 1 - event),
             "gate_event": mean(gate.detach(), event),
         }
+
+
+    def forced(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Teacher forcing (``forcing``: the share of windows it applies to, drawn per window):
+        after each pair the frames would confirm, a clean pair or a dropped or duplicated frame
+        that the teacher knows, the head reads the teacher's motion as its previous output, as the
+        estimator feeds it the confirmed motion (``-e lstm:carry-state=confirmed``); after a
+        spoilt pair, its own.  Nothing where no window is drawn."""
+        if self.forcing <= 0.0:
+            return {}
+        events = batch["events"]
+        placed = (events == 0) | (events == DROP) | (events == DUPLICATE)
+        confirm = batch["known"] & placed & (batch["draw"] < self.forcing)[:, None]
+        return {"confirmed": batch["teacher"].flatten(-2), "confirm": confirm}
 
 
 # ----------------------------------------------------------------------------- helpers

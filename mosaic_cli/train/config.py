@@ -34,7 +34,8 @@ DEFAULT_LR = 1e-3
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
-                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows")
+                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows",
+                "carry_forcing", "carry_blown_glare")
 
 
 def paper_steps(variant: str) -> int:
@@ -72,6 +73,8 @@ class TrainConfig:
     flip: bool = False  # mirror windows left-right and/or upside down (off: runs saved before it resume unchanged)
     bursts: float | None = None  # share of the windows with a burst of spoilt frames the network reads (train.bursts); None: 0, carry CARRY's
     feature_windows: int = 4096  # carry: training windows in the feature cache (train.carry)
+    carry_forcing: float = 0.0  # carry: share of the windows with the teacher's motion fed back as the previous output (train.carry)
+    carry_blown_glare: float = 0.0  # carry: share of the glare frames blown out entirely, no residue (train.carry.draw_window)
     data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
     num_workers: int = 1
     max_minutes: float | None = None  # stop (checkpoint and final weights) after this long, whatever --steps says
@@ -114,6 +117,8 @@ class TrainConfig:
             (self.max_minutes is None or self.max_minutes > 0, f"--max-minutes must be positive, got {self.max_minutes}"),
             (self.bursts is None or 0 <= self.bursts <= 1, f"--bursts must be a share of the windows in [0, 1], got {self.bursts}"),
             (self.feature_windows >= 1, f"--feature-windows must be at least 1, got {self.feature_windows}"),
+            (0 <= self.carry_forcing <= 1, f"--carry-forcing must be a share of the windows in [0, 1], got {self.carry_forcing}"),
+            (0 <= self.carry_blown_glare < 1, f"--carry-blown-glare must be a share in [0, 1), got {self.carry_blown_glare}"),
         ]
         for ok, message in checks:
             if not ok:

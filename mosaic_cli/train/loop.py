@@ -133,7 +133,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
         raise BadInput("--variant carry trains a head on a trained BASE: pass --init CNN_WEIGHTS (models/cnn.safetensors)")
     if carry and dist.active:
         raise BadInput("--variant carry trains in one process (its features are cached): pass --device cpu or one GPU")
-    objective = CarryObjective() if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
+    objective = CarryObjective(cfg.carry_forcing) if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
     flights = find_val_flights(cfg.val) if cfg.val else []
     init_net = load_init(cfg) if (cfg.init and not resume) else None
     prepare_run_dir(run)
@@ -286,9 +286,10 @@ def carry_batches(cfg: TrainConfig, net: HomographyNet, cached, run: RunDir, dis
         features = net.eval().features
     identity = {"init": file_sha256(cfg.init), "clips": [c.clip for c in cached], "frames": [c.frames for c in cached],
                 "seed": cfg.seed, "bursts": cfg.bursts, "flip": cfg.flip, "patch": cfg.patch, "precision": precision,
-                "cues": net.config.carry_cues}
+                # (without blown glare, the key a cache had before the option existed)
+                "cues": net.config.carry_cues, **({"blown_glare": cfg.carry_blown_glare} if cfg.carry_blown_glare else {})}
     cache = build_feature_cache(net, features, cached, teachers, cfg.feature_windows, cfg.patch, cfg.seed, float(cfg.bursts or 0.0),
-                                cfg.flip, folder, identity, show_progress)
+                                cfg.flip, folder, identity, show_progress, blown_glare=cfg.carry_blown_glare)
     windows = FeatureWindows(cache, cfg.seed, dist.device)
     return (windows.batch(step, cfg.batch_size) for step in range(start, cfg.steps))
 
