@@ -200,7 +200,9 @@ class _TrackPass:
             advance = self._progress(info)
             start = time.perf_counter()
             frames = gate.frames(itertools.islice(stream, self.max_frames))
-            for estimate in estimate_stream(self.estimator, frames if self.probe is None else self.probe.tap(frames), info.source_size):
+            # (a file's pass: the estimates may come a batch late, the next batch's network beside this one's checks)
+            for estimate in estimate_stream(self.estimator, frames if self.probe is None else self.probe.tap(frames), info.source_size,
+                                            lookahead=True):
                 pairwise.append(estimate.H)
                 confidence.append(estimate.confidence)
                 paths.append(estimate.path)

@@ -364,6 +364,17 @@ def build_probe(s: Session, device: str) -> dict:
         return {"error": str(exc)[:300]}
 
 
+def threads_probe(s: Session, clip: Path, threads: str) -> str:
+    """The estimation alone on the CPU with a pool of 1..N threads, with and without a file's
+    lookahead (scripts/bench_threads.py): what every core gives once the decode is left out."""
+    try:
+        proc = s.run(sys.executable, str(Path(__file__).resolve().parent / "bench_threads.py"), str(clip), "--threads", threads,
+                     "--rounds", "2", timeout=240, check=False)
+        return (proc.stdout.strip() or proc.stderr.strip()[-300:])[-2000:]
+    except subprocess.TimeoutExpired as exc:
+        return f"timed out: {exc}"[:300]
+
+
 def probes() -> dict:
     found = {}
     for name, cmd in (("lscpu", ["lscpu"]), ("nvidia-smi", ["nvidia-smi", "--query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm", "--format=csv"])):
@@ -446,6 +457,7 @@ def throughput(s: Session) -> str:
             report["nvdec"] = nvdec_probe(clip)
             for device in devices:
                 report.setdefault("build", {})[device] = build_probe(s, device)
+            report["threads"] = threads_probe(s, clip, f"1,4,{os.cpu_count() or 1}")
             save()
         runs: list[tuple] = [  # (command, device, threads, its arguments, the row's other fields)
             ("transcode", "cpu", None, (sys.executable, str(Path(__file__).resolve()), "--transcode", str(clip), str(folder / f"transcode_{size}.mp4")), {})]

@@ -133,6 +133,7 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     assert all("exit status 0" in text and "threads" in text for text in profiles.values())
     report = json.loads((out / "gpu_throughput.json").read_text())
     assert report["commit"] == "abc123" and "cores" in report["machine"]
+    assert "every run gave the one-thread estimates to the bit: True" in report["threads"]  # scripts/bench_threads.py
     assert all(set(r) >= {"command", "device", "size", "threads", "frames", "wall_s"} for r in report["runs"])
     assert {r["command"] for r in report["runs"] if r["wall_s"] is None} == {"vidstab"}  # with its reason
     for size in ("160x96", "320x192"):

@@ -144,6 +144,27 @@ def test_threads_give_the_one_thread_estimates_to_the_bit(mixed, one_thread, thr
     assert_identical(estimates(est, mixed), ref)  # a second video on the same pool: the same
 
 
+@pytest.mark.parametrize("config", [{"prior": "none"}, {"prior": "none", "chunk": 1}, {"prior": "none", "carry": "network"}, {}],
+                         ids=["no-prior", "chunk1", "carry-network", "velocity-prior"])
+def test_a_files_lookahead_gives_the_same_estimates_a_chunk_late(mixed, config):
+    """``lookahead`` (a file's pass, estimate_stream's): the next chunk's network runs while the
+    pool checks the chunk before, whose pairs come back a chunk late: the same estimates, to the
+    bit, as one thread.  With the motion prior the network reads the decisions: no lookahead."""
+    ref = estimates(phase_estimator(1, **config), mixed)
+    est = phase_estimator(2, **config)
+    got = list(estimate_stream(est, mixed, FULL, lookahead=True))
+    assert_identical({"H": np.array([e.H for e in got]), "confidence": np.array([e.confidence for e in got]),
+                      "paths": [e.path for e in got], "path_counts": dict(est.path_counts)}, ref)
+    assert est.lookahead is False and est._ahead is None  # as it was, nothing left behind
+    chunk = est.config.chunk
+    est.reset(FULL)
+    est.lookahead = True
+    told = [len(est.feed(f)) for f in mixed[: 2 * chunk + 1]]
+    ahead = config.get("prior") == "none"
+    assert told[chunk] == (0 if ahead else chunk)  # the first chunk: told at the second, when ahead
+    assert told[2 * chunk] == chunk
+
+
 def test_pairs_checked_out_of_order_are_decided_in_order(mixed, one_thread):
     """The first pair of every chunk is checked last (its thread is held back): the decisions,
     which carry the motion, the carried run and the counts from pair to pair, still come in the

@@ -20,6 +20,7 @@ import pytest
 from test_stabilize import FPS, SIZE, pairwise_of, shaky_path
 
 from conftest import ffmpeg, render, run_cli, textured_image, write_clip
+from mosaic_cli.device import pair_threads
 from mosaic_cli.estimators import estimate_stream, make_estimator
 from mosaic_cli.geometry.homography import corner_error
 from mosaic_cli.overlay import MaskOptions, frame_mask
@@ -270,11 +271,12 @@ def test_a_run_of_failed_pairs_longer_than_the_ring_does_not_stall(long_clip, tm
 
 @pytest.mark.parametrize("estimator", ["lstm"])
 def test_a_learned_estimators_chunk_is_room_in_the_ring(long_clip, tmp_path, small_window, rings, estimator):
-    """The network tells its pairs a chunk (16) at a time: the ring has room for the window and
-    the chunk less one, and the render never falls short."""
+    """The network tells its pairs a chunk (16) at a time, and a chunk late (the tracking looks
+    ahead on its pool of threads): the ring has room for the window and two chunks less one, and
+    the render never falls short."""
     stabilize(long_clip, tmp_path / "net.mp4", StabilizeOptions(estimator=estimator, rolling_shutter="off"), show_progress=False)
     ring = rings[0]
-    assert ring.capacity == WINDOW + 15
+    assert ring.capacity == WINDOW + (31 if pair_threads() > 1 else 15)
     assert ring.second_decode_from is None and ring.peak <= ring.capacity
 
 

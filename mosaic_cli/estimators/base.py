@@ -65,6 +65,16 @@ class Estimator(ABC):
 
     name: str = "estimator"
     timings: StageTimer | None = None  # set by a benchmark: see the module doc
+    # May ``feed`` hand a batch of estimates back a batch late, so that the next batch's work
+    # overlaps this one's (the learned estimator's network beside its pool)?  Only a pass that
+    # needs no estimate as soon as it can be made sets it (a video file's: estimate_stream's
+    # ``lookahead``); a live one never does.
+    lookahead: bool = False
+
+    def frames_held(self, lookahead: bool = False) -> int:
+        """The frames ``feed`` may hold before it tells their pairs (with ``lookahead`` set, or
+        not): none for an estimator that tells each pair as its second frame comes."""
+        return 0
 
     def __init__(self, work_width: int = 320):
         if work_width < 32:
@@ -152,12 +162,18 @@ class Estimator(ABC):
         """Homography prev -> cur at working resolution and its confidence (None on failure)."""
 
 
-def estimate_stream(estimator: Estimator, frames: Iterable[np.ndarray], full_size: tuple[int, int]) -> Iterator[PairEstimate]:
-    """Run ``estimator`` over ``frames`` and yield pairwise estimates in order, streaming."""
+def estimate_stream(estimator: Estimator, frames: Iterable[np.ndarray], full_size: tuple[int, int],
+                    lookahead: bool = False) -> Iterator[PairEstimate]:
+    """Run ``estimator`` over ``frames`` and yield pairwise estimates in order, streaming.
+    ``lookahead``: the estimates may come a batch late (:attr:`Estimator.lookahead`), the same ones."""
     estimator.reset(full_size)
-    for frame in frames:
-        yield from estimator.feed(frame)
-    yield from estimator.finish()
+    kept, estimator.lookahead = estimator.lookahead, lookahead
+    try:
+        for frame in frames:
+            yield from estimator.feed(frame)
+        yield from estimator.finish()
+    finally:
+        estimator.lookahead = kept
 
 
 class IdentityEstimator(Estimator):

@@ -176,6 +176,7 @@ class LearnedEstimator(Estimator):
         self._batched = self.config.refine == "lk" and (on == "torch" or (on == "auto" and self.device.type == "cuda"))
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
+        self._ahead: tuple | None = None  # see _run_ahead
         self._state: tuple[torch.Tensor, ...] | None = None  # the sequence head's state between chunks
         self._pairs_done = 0
         self._motion = np.eye(3)
@@ -200,6 +201,7 @@ class LearnedEstimator(Estimator):
         # Overlays (set_mask): no polish corner whose LK window would reach them.
         self._corner_mask = None if self.work_mask is None else erode_mask(self.work_mask, self.config.polish.window // 2 + 1)
         self._pending = []
+        self._ahead = None  # the chunk checked on the pool while the next one's network runs (lookahead)
         self._state = None
         self._chunk_inputs = None
         self._pairs_done = 0
@@ -252,12 +254,16 @@ class LearnedEstimator(Estimator):
         return []
 
     def finish(self) -> list[PairEstimate]:
-        return self._run_chunk() if len(self._pending) >= 2 else []
+        out = self._run_chunk() if len(self._pending) >= 2 else []
+        return out + self._decide_ahead() if self._ahead is not None else out
 
     def _run_chunk(self) -> list[PairEstimate]:
         frames = self._pending
         self._pending = [frames[-1]]  # the last frame starts the next chunk's first pair
         pool = self._pair_pool()
+        if pool is not None and self._looks_ahead(pool):
+            return self._run_ahead(frames, pool)
+        assert self._ahead is None, "a chunk looked ahead and the next did not"  # (the settings are a video's)
         described = self._describe_all(frames, pool)  # on the pool: while the network runs
         pairs = list(zip(frames[:-1], frames[1:]))
         if self.config.seed == "velocity":  # each pair starts from the one before: no batch, in turn
@@ -277,6 +283,46 @@ class LearnedEstimator(Estimator):
         checks = pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), range(len(pairs)))
         # map yields in the pairs' order: each decided once those before it are
         return self._decide_all(pairs, seeds, offsets_ok, agreement, checks)
+
+    def frames_held(self, lookahead: bool = False) -> int:
+        """A chunk less one (its pairs are told once the chunk is full), and with ``lookahead``
+        and a pool a chunk more (told when the next one is full: :meth:`_run_ahead`)."""
+        workers = self.threads if self.threads is not None else pair_threads()
+        ahead = lookahead and workers > 1 and self._can_look_ahead()
+        return self.config.chunk - 1 + (self.config.chunk if ahead else 0)
+
+    def _can_look_ahead(self) -> bool:
+        """Whether a chunk's network reads nothing the decisions of the chunk before leave (no
+        motion prior, no velocity seed, no confirmed motion fed to a carry head), and its checks
+        run on the pool (the batched polish waits on the device's one copy back anyway)."""
+        return self.config.seed == "network" and not self._prior_warp and not self._feeding and not self._batched
+
+    def _looks_ahead(self, pool: ThreadPoolExecutor | None) -> bool:
+        """Whether this chunk's network runs while the chunk before is checked (``lookahead``)."""
+        return self.lookahead and pool is not None and self._can_look_ahead()
+
+    def _run_ahead(self, frames: list[WorkFrame], pool: ThreadPoolExecutor) -> list[PairEstimate]:
+        """:meth:`_run_chunk` a chunk late: this chunk's network runs on this thread while the
+        pool checks the chunk before, whose pairs are then decided and returned; this chunk's
+        checks start on the pool (decided at the next chunk, or at :meth:`finish`).  The same
+        estimates, in the same order, as without the lookahead."""
+        described = self._describe_all(frames, pool)
+        pairs = list(zip(frames[:-1], frames[1:]))
+        seeds, offsets_ok, agreement = self._seeds(frames)
+        described()
+        out = self._decide_ahead()
+        self._valid_pixels()  # made once, before the threads read it
+        futures = [pool.submit(self._check, prev, cur, seeds[k], bool(offsets_ok[k])) for k, (prev, cur) in enumerate(pairs)]
+        self._ahead = (pairs, seeds, offsets_ok, agreement, futures)
+        return out
+
+    def _decide_ahead(self) -> list[PairEstimate]:
+        """The pairs of the chunk whose checks run ahead, decided in order (none: [])."""
+        if self._ahead is None:
+            return []
+        pairs, seeds, offsets_ok, agreement, futures = self._ahead
+        self._ahead = None
+        return self._decide_all(pairs, seeds, offsets_ok, agreement, (f.result() for f in futures))
 
     def _decide_all(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
                     agreement: np.ndarray, checks) -> list[PairEstimate]:

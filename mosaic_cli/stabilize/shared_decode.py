@@ -23,7 +23,8 @@ the tracking has told it the pairs up to the end of the L1 window that settles t
 frames after the one before and settles up to ``overlap`` frames before its end, so from the
 frame the render waits for to the last frame the path needs for it there are at most W frames
 (W - CARRIED after the first window).  Besides, an estimator may hold frames back before it
-tells their pairs (a learned one runs ``chunk`` pairs at a time: up to chunk - 1 frames), a
+tells their pairs (a learned one runs ``chunk`` pairs at a time and tells them a chunk late:
+up to 2 chunk - 1 frames), a
 failed pair waits for the next success (:class:`~.stream.FailedPairFill`), and with
 ``--rolling-shutter auto`` the render's first frame waits for the probe's first
 ``AUTO_PROBE_FRAMES`` frames.  :func:`ring_frames` adds these up (``FAILED_RUN`` failed pairs in
@@ -73,13 +74,12 @@ READ_AHEAD = 4  # frames decoded for the tracking alone, ahead of it, once the r
 def ring_frames(smoother: L1Smoother | GaussianSmoother, estimator: Estimator, frame_bytes: int, rolling: bool = False) -> int:
     """The frames the ring holds at most (see the module docstring): 0 for a smoother with no
     windows; else the L1 window, the frames ``estimator`` may hold back (a learned one's chunk
-    less one), ``FAILED_RUN``, and with ``rolling`` (the rolling-shutter probe) at least
+    and the chunk it tells late, less one), ``FAILED_RUN``, and with ``rolling`` (the rolling-shutter probe) at least
     ``AUTO_PROBE_FRAMES``; no more than ``RING_BYTES`` hold (the second decode takes over where
     the path needs more)."""
     if not isinstance(smoother, L1Smoother):
         return 0
-    config = getattr(estimator, "config", None)  # a learned estimator's: pairs a chunk at a time
-    held = max(0, int(getattr(config, "chunk", 1)) - 1)
+    held = estimator.frames_held(lookahead=True)  # (the tracking is a file's pass: track_video's lookahead)
     frames = min(smoother.window + held + FAILED_RUN, max(1, RING_BYTES // max(1, frame_bytes)))
     if rolling:  # the render's first frame waits for the probe's frames (and their first pair)
         frames = max(frames, AUTO_PROBE_FRAMES, held + 2)
