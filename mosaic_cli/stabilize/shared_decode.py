@@ -28,12 +28,12 @@ up to 2 chunk - 1 frames), a
 failed pair waits for the next success (:class:`~.stream.FailedPairFill`), and with
 ``--rolling-shutter auto`` the render's first frame waits for the probe's first
 ``AUTO_PROBE_FRAMES`` frames.  :func:`ring_frames` adds these up (``FAILED_RUN`` failed pairs in
-a row), and caps the ring at ``RING_BYTES``.
+a row); a ring over ``RING_BYTES`` is not kept (two decodes from the start).
 
 **Never a deadlock.**  The decode waits for room in the ring (memory bounded), the tracking for
 the decode, the render for the tracking.  A ring too small for what the path needs (a run of
 failed pairs longer than ``FAILED_RUN``, ``--smoothing gaussian``, whose views all settle at the
-end, a ring cut by ``RING_BYTES``) would close that circle: the render waits for a warp
+end) would close that circle: the render waits for a warp
 (:meth:`~.stream.PathFeed.starved`) and the tracking, its mask settled, for a frame the decode
 has no room for.  Then the decode stops keeping frames for the render from that frame on, and
 goes on for the tracking alone (``READ_AHEAD`` frames ahead of it at most); the render reads the
@@ -67,7 +67,12 @@ from mosaic_cli.video.decode import YuvFrame, gray_at, yuv420p_bytes
 from mosaic_cli.video.info import VideoStream, scaled_size
 
 FAILED_RUN = 15  # failed pairs in a row the ring has room for (half a second at 30 fps)
-RING_BYTES = 2 << 30  # the ring's frames together, at most (a 3840x2160 yuv420p frame: 12.4 MB)
+# The ring's frames together, at most; a path that needs more decodes twice from the start (the
+# render its own decode), as before the ring.  One decode paid at 1280x720 (a 166-frame ring of
+# 230 MB: `stabilize` 19.0 s against 20.3 s, 1200 frames) and lost at 3840x2160 (2.1 GB: 40.3-45.1 s
+# against 36.7-37.0 s decoding twice, 300 frames; docs/measurements/speed.md); 1920x1080 (516 MB) is
+# under the bound, unmeasured.
+RING_BYTES = 512 << 20
 READ_AHEAD = 4  # frames decoded for the tracking alone, ahead of it, once the render reads a decode of its own
 
 
@@ -75,15 +80,15 @@ def ring_frames(smoother: L1Smoother | GaussianSmoother, estimator: Estimator, f
     """The frames the ring holds at most (see the module docstring): 0 for a smoother with no
     windows; else the L1 window, the frames ``estimator`` may hold back (a learned one's chunk
     and the chunk it tells late, less one), ``FAILED_RUN``, and with ``rolling`` (the rolling-shutter probe) at least
-    ``AUTO_PROBE_FRAMES``; no more than ``RING_BYTES`` hold (the second decode takes over where
-    the path needs more)."""
+    ``AUTO_PROBE_FRAMES``; 0 (no ring: the render decodes on its own from the first frame) where
+    they would take more than ``RING_BYTES``."""
     if not isinstance(smoother, L1Smoother):
         return 0
     held = estimator.frames_held(lookahead=True)  # (the tracking is a file's pass: track_video's lookahead)
-    frames = min(smoother.window + held + FAILED_RUN, max(1, RING_BYTES // max(1, frame_bytes)))
+    frames = smoother.window + held + FAILED_RUN
     if rolling:  # the render's first frame waits for the probe's frames (and their first pair)
         frames = max(frames, AUTO_PROBE_FRAMES, held + 2)
-    return frames
+    return frames if frames * frame_bytes <= RING_BYTES else 0
 
 
 def frame_bytes(info: VideoInfo, yuv: bool) -> int:
