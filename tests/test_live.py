@@ -616,3 +616,26 @@ def test_a_path_planned_as_a_similarity_lets_the_settled_tilt_fade_out_smoothly(
     steps = np.abs(np.diff(params[carried - 1:, tilt], axis=0)).max(axis=0)
     assert np.all(steps <= 1.01 * np.abs(window.fixed[-1, tilt]) * np.pi / (2 * path.rejoin))  # a cosine's steepest step
     assert np.all(params[carried + path.rejoin:, tilt] == 0)
+
+
+def test_the_network_loads_with_the_interpreter_handed_on_often_and_leaves_it_as_it_was():
+    """While a live command's network loads beside its stream, the interpreter's lock is handed on
+    every LOADING_SWITCH_INTERVAL (torch's import held it up to the default 5 ms each time a live
+    thread asked: frames left at their deadline in cold runs, docs/measurements/live.md); the
+    collector waits; both as they were once it is built, also when the build fails."""
+    import gc
+    import sys
+
+    from mosaic_cli.live import loading
+
+    before = sys.getswitchinterval()
+    seen = loading.built_beside(lambda: (sys.getswitchinterval(), gc.isenabled())).result(timeout=10)
+    assert seen == (pytest.approx(min(before, loading.LOADING_SWITCH_INTERVAL)), False)
+    assert sys.getswitchinterval() == pytest.approx(before) and gc.isenabled()
+
+    def fails():
+        raise ValueError("no such weights")
+
+    with pytest.raises(ValueError, match="no such weights"):
+        loading.built_beside(fails).result(timeout=10)
+    assert sys.getswitchinterval() == pytest.approx(before) and gc.isenabled()
