@@ -36,7 +36,7 @@ def values_to_try(opt: Option) -> list:
 def test_the_learned_options_are_the_config_fields_but_its_internal_knobs():
     fields = {f.name for f in dataclasses.fields(LearnedConfig)}
     assert set(OPTIONS["lstm"]) == fields - INTERNAL | {"weights"}
-    assert set(OPTIONS["cnn"]) == set(OPTIONS["lstm"]) - {"reset_every"}  # a CNN has no state to reset
+    assert set(OPTIONS["cnn"]) == set(OPTIONS["lstm"]) - {"reset_every", "carry_state"}  # a CNN has no state to reset or feed
     assert set(OPTIONS["orb"]) == set(OPTIONS["orb-ransac"]) == {"refine"}
 
 
