@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 from test_stabilize import FPS, SIZE, pairwise_of, shaky_path
+from test_stabilize_stream import shaky_clip_with_sound
 
 from conftest import ffmpeg, render, run_cli, textured_image, write_clip
 from mosaic_cli.device import pair_threads
@@ -41,15 +42,7 @@ WINDOW, OVERLAP = 16, 4  # a small L1 window: the ring at its minimum is 16 fram
 
 @pytest.fixture(scope="module")
 def shaky_clip(tmp_path_factory) -> Path:
-    """60 frames of a shaky pan (320x180, 30 fps) over a procedural texture, with sound."""
-    folder = tmp_path_factory.mktemp("one_decode")
-    shaken, _ = shaky_path(60, seed=11)
-    texture = textured_image(700, 500, seed=11)
-    silent = write_clip(folder / "silent.mp4", [render(texture, np.linalg.inv(M), SIZE) for M in shaken], fps=FPS)
-    clip = folder / "shaky.mp4"
-    ffmpeg("-i", str(silent), "-f", "lavfi", "-i", "sine=frequency=440:duration=2", "-c:v", "copy", "-c:a", "aac",
-           "-shortest", str(clip))
-    return clip
+    return shaky_clip_with_sound(tmp_path_factory.mktemp("one_decode"), seed=11)
 
 
 @pytest.fixture(scope="module")

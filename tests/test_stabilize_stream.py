@@ -8,6 +8,7 @@ a whole track made after the fact, and the shortfall of a file cut short."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import av
 import numpy as np
@@ -25,17 +26,20 @@ from mosaic_cli.stabilize.stream import FailedPairFill, PathFeed
 from mosaic_cli.track import track_video
 
 
-@pytest.fixture(scope="module")
-def shaky_clip(tmp_path_factory):
+def shaky_clip_with_sound(folder: Path, seed: int) -> Path:
     """60 frames of a shaky pan (320x180, 30 fps) over a procedural texture, with sound."""
-    folder = tmp_path_factory.mktemp("shaky")
-    shaken, _ = shaky_path(60, seed=8)
-    texture = textured_image(700, 500, seed=8)
+    shaken, _ = shaky_path(60, seed=seed)
+    texture = textured_image(700, 500, seed=seed)
     silent = write_clip(folder / "silent.mp4", [render(texture, np.linalg.inv(M), SIZE) for M in shaken], fps=FPS)
     clip = folder / "shaky.mp4"
     ffmpeg("-i", str(silent), "-f", "lavfi", "-i", "sine=frequency=440:duration=2", "-c:v", "copy", "-c:a", "aac",
            "-shortest", str(clip))
     return clip
+
+
+@pytest.fixture(scope="module")
+def shaky_clip(tmp_path_factory):
+    return shaky_clip_with_sound(tmp_path_factory.mktemp("shaky"), seed=8)
 
 
 def _fill_streamed(pairwise: np.ndarray, confidence: np.ndarray) -> np.ndarray:

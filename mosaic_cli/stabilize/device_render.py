@@ -25,14 +25,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mosaic_cli.geometry.warp import Border, remap, warp_perspective, warp_yuv420, yuv420_planes
+from mosaic_cli.geometry.warp import YUV_BLACK, Border, remap, warp_perspective, warp_yuv420, yuv420_planes
 
 if TYPE_CHECKING:
     from mosaic_cli.stabilize.rolling import RollingCorrection
 
 # The render's --border names (render.BORDERS) as geometry.warp's; "reflect" is BORDER_REFLECT in both.
 BORDER_NAMES: dict[str, Border] = {"black": "constant", "replicate": "replicate", "reflect": "reflect"}
-YUV_BLACK = (16, 128, 128)  # render.YUV_BLACK (not imported: the renderer imports this module)
 RGB_BLACK = (0, 0, 0)
 
 
