@@ -54,6 +54,7 @@ import threading
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -73,6 +74,7 @@ FAILED_RUN = 15  # failed pairs in a row the ring has room for (half a second at
 # against 36.7-37.0 s decoding twice, 300 frames; docs/measurements/speed.md); 1920x1080 (516 MB) is
 # under the bound, unmeasured.
 RING_BYTES = 512 << 20
+_ENDED = object()  # (SharedDecode._ready: the decode ended before the frame asked for)
 READ_AHEAD = 4  # frames decoded for the tracking alone, ahead of it, once the render reads a decode of its own
 
 
@@ -245,19 +247,13 @@ class SharedDecode:
         k = 0
         try:
             while True:
-                frame = None
                 with self._changed:
                     self._settled = gate.settled
-                    if k < self._decoded:
-                        frame = self._frames[k]
-                    elif self._ended:
-                        if self._error is not None:
-                            raise self._error
-                        return
-                    elif self._stopped:
-                        raise Cancelled
-                    else:
+                    frame = self._ready(k)
+                    if frame is None:
                         self._changed.wait(WAIT_SLICE)
+                if frame is _ENDED:
+                    return
                 if frame is None:
                     if not gate.settled:
                         gate.poll()  # the detection may have ended: the held pairs go on (or MaskChanged)
@@ -280,6 +276,19 @@ class SharedDecode:
             return self.undistort(frame.reshape(-1)[:w * h].reshape(h, w))
         return self.undistort(np.asarray(frame))
 
+    def _ready(self, k: int) -> Any:
+        """Frame ``k`` if it is decoded; ``_ENDED`` if the decode ended before it (its error
+        raised); None while it is to come (called with the lock held)."""
+        if k < self._decoded:
+            return self._frames[k]
+        if self._ended:
+            if self._error is not None:
+                raise self._error
+            return _ENDED
+        if self._stopped:
+            raise Cancelled
+        return None
+
     def _tracking_starved(self) -> bool:
         """Whether the tracking, its mask settled, has told every pair it can from the frames
         decoded and asks for the next (called with the lock held)."""
@@ -292,19 +301,15 @@ class SharedDecode:
         from a decode of the render's own, started at the first frame the ring did not keep."""
         t = 0
         while True:
-            frame: np.ndarray | None = None
+            frame: Any = None
             with self._changed:
                 while self._spill is None or t < self._spill:
-                    if t < self._decoded:
-                        frame = self._frames[t]
+                    frame = self._ready(t)
+                    if frame is not None:
                         break
-                    if self._ended:
-                        if self._error is not None:
-                            raise self._error
-                        return
-                    if self._stopped:
-                        raise Cancelled
                     self._changed.wait(WAIT_SLICE)
+            if frame is _ENDED:
+                return
             if frame is None:
                 break
             yield frame
