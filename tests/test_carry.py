@@ -30,10 +30,13 @@ def flight_patches(n: int = 24, size=(320, 180), step: float = 5.0, patch: int =
     return torch.stack([crops[:-1], crops[1:]], dim=1)[None]
 
 
-def carry_from(cnn: HomographyNet) -> HomographyNet:
+LSTM = "models/lstm.safetensors"  # LSTM-REG-T, the default: a carry head may read its answer instead
+
+
+def carry_from(base: HomographyNet) -> HomographyNet:
     torch.manual_seed(0)
-    net = HomographyNet(NetConfig(preset=cnn.config.preset, head="carry", patch=cnn.config.patch))
-    net.start_as_carry(cnn)
+    net = HomographyNet(NetConfig(preset=base.config.preset, head="carry", patch=base.config.patch, carry_base=base.head))
+    net.start_as_carry(base)
     return net.eval()
 
 
@@ -54,6 +57,49 @@ def test_the_carry_head_starts_as_the_cnn_it_reads():
     jumps = (base[:, 1:] - base[:, :-1]).abs().max()
     assert float((carried - base).abs().max()) <= 1.05 * leak * float(jumps) + 1e-5
     assert float(base.abs().mean()) > 1.0  # a flight that moves: the comparison is not of zeros
+
+
+def test_a_carry_head_on_lstm_reg_t_starts_as_lstm_reg_t_and_carries_both_states_in_one():
+    """Over the default's BASE (LSTM-REG-T: the CNN's features, then its LSTM and Linear) the head
+    starts as that network, its LSTM's state carried in the same tuple as the head's: the
+    sequence read in two parts from the carried state is the sequence read at once, and a
+    carry head on the CNN cannot start from LSTM-REG-T."""
+    lstm, _ = load_weights(LSTM)
+    net = carry_from(lstm)
+    pairs = flight_patches()
+    with torch.no_grad():
+        base, _ = lstm(pairs)
+        carried, state = net(pairs)
+        first, middle = net(pairs[:, :9])
+        rest, _ = net(pairs[:, 9:], middle)
+    h, c, previous = state
+    assert h.shape[-1] == net.config.carry_hidden + net.config.hidden == c.shape[-1] and previous.shape[-1] == 8
+    torch.testing.assert_close(carried[:, 0], base[:, 0], rtol=0, atol=1e-6)  # the first pair: LSTM-REG-T exactly
+    leak = 1.0 / (1.0 + np.exp(-GATE_START))
+    jumps = (base[:, 1:] - base[:, :-1]).abs().max()
+    assert float((carried - base).abs().max()) <= 1.05 * leak * float(jumps) + 1e-5
+    torch.testing.assert_close(torch.cat([first, rest], 1), carried, rtol=0, atol=1e-5)
+    frozen = {id(p) for p in net.feature_parameters()}
+    assert all(id(p) in frozen for p in net.lstm.parameters()) and not any(id(p) in frozen for p in net.carry.parameters())
+    cnn_based = HomographyNet(NetConfig(head="carry"))
+    with pytest.raises(ValueError, match="carry head on a cnn head"):
+        cnn_based.start_as_carry(lstm)
+
+
+def test_a_gate_without_memory_weighs_the_pair_alone():
+    """With carry_gate_memory off, how far the head trusts its carried motion is a function of the
+    current pair (its features, cues, the BASE's answer and the previous output) and not of the
+    cell's state: a state that once decided "the BASE is wrong" cannot hold the gate shut on later
+    textured pairs.  With it on (the shipped head), the state moves the gate."""
+    torch.manual_seed(1)
+    for memory in (False, True):
+        net = HomographyNet(NetConfig(head="carry", carry_gate_memory=memory)).eval()
+        with torch.no_grad():
+            net.carry.gate[2].weight.normal_()
+            features, cnn = torch.randn(3, 1, net.config.embed).abs(), torch.randn(3, 1, 8)
+            previous = torch.randn(1, 3, 8)
+            gates = [net.carry(features, cnn, (torch.randn(1, 3, 128), torch.randn(1, 3, 128), previous))[2] for _ in range(2)]
+        assert torch.equal(gates[0], gates[1]) != memory
 
 
 def test_the_carry_heads_memory_starts_open_for_a_window():
@@ -212,6 +258,21 @@ def test_the_objective_pulls_event_pairs_to_the_teacher_and_clean_pairs_to_the_b
     batch["known"][:, 4] = False  # an event pair the teacher does not know adds nothing
     terms = CarryObjective()(net, batch)
     assert float(terms["total"]) == pytest.approx((3.0 * np.sqrt(2) - 0.5) / 5, rel=1e-2)
+    # With teacher_beyond, a clean pair whose BASE answer lies further than that from the teacher
+    # (here 3 sqrt 2 = 4.24 working px) is pulled to the teacher too; nearer, the BASE's answer stays.
+    assert float(CarryObjective(teacher_beyond=5.0)(net, batch)["total"]) == pytest.approx(float(terms["total"]), rel=1e-6)
+    assert float(CarryObjective(teacher_beyond=4.0)(net, batch)["total"]) == pytest.approx(3.0 * np.sqrt(2) - 0.5, rel=2e-2)
+    with pytest.raises(ValueError):
+        CarryObjective(teacher_beyond=0.0)
+    # With gate_weight, the gate is also told which answer to take: here the BASE is 4.24 px off
+    # the teacher everywhere, so on the event pair the teacher knows (pair 3) the carried motion;
+    # clean pairs where the BASE is that wrong are left to the blend's loss.
+    with torch.no_grad():
+        _, _, gate = net.carry(features, net.regressor(features))
+    bce = -torch.log(gate[:, 3]).mean()
+    assert float(bce) > 4.0  # the gate starts shut: sigmoid(GATE_START)
+    supervised = CarryObjective(gate_weight=0.1)(net, batch)
+    assert float(supervised["total"]) == pytest.approx(float(terms["total"]) + 0.1 * float(bce), rel=1e-4)
 
 
 # ----------------------------------------------------------------------------- the estimator
@@ -398,6 +459,73 @@ def test_blown_glare_blows_out_a_share_of_the_glare_frames_and_leaves_every_othe
     assert len(glare_levels) > 100
     assert 0.35 < float((glare_levels == 0).mean()) < 0.65  # about half blown out
     assert glare_levels.max() <= LEVELS[GLARE][1] and glare_levels[glare_levels > 0].min() >= LEVELS[GLARE][0]
+
+
+def test_turning_windows_retrace_their_steps_and_the_teacher_reverses_with_them():
+    """A share of the windows turn back at a frame in their second half: the rows after it retrace
+    the ones before, the pair after the turn is the inverse of the one before it (the motion flips
+    from one pair to the next), and nothing else of the window changes."""
+    segments, cumulative = [(0, 0, 300)], np.cumsum([300 - WINDOW - 1])
+    rng = np.random.default_rng(5)
+    H = np.repeat(np.eye(3)[None], 299, axis=0)
+    H[:, 0, 2], H[:, 1, 2] = rng.uniform(-4, 4, 299), rng.uniform(-4, 4, 299)
+    ok = np.ones(299, bool)
+    turned = 0
+    for i in range(200):
+        plain = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True)
+        turn = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True, turns=0.5)
+        for name in ("burst", "level", "angle", "events"):
+            assert np.array_equal(getattr(plain, name), getattr(turn, name)), name
+        assert (turn.position, turn.left_right, turn.upside_down) == (plain.position, plain.left_right, plain.upside_down)
+        changed = np.flatnonzero(plain.rows != turn.rows)
+        if not len(changed):
+            continue
+        turned += 1
+        k = int(changed[0]) - 1  # the frame it turns at
+        assert k >= (WINDOW - 1) // 2 and plain.rows.min() <= turn.rows.min() and turn.rows.max() <= plain.rows.max()
+        np.testing.assert_array_equal(turn.rows[k + 1:], 2 * plain.rows[k] - plain.rows[k + 1:])
+        if turn.rows[k - 1] != turn.rows[k] and turn.rows[k + 1] == turn.rows[k - 1]:  # no drop or duplicate there
+            offsets, known = teacher_offsets(turn, H, ok, (320, 180), 128)
+            H_before = offsets_to_H(offsets[k - 1], turn.position)
+            H_after = offsets_to_H(offsets[k], turn.position)
+            np.testing.assert_allclose(H_after @ H_before, np.eye(3), atol=1e-6)
+    assert 70 < turned < 130  # about half
+
+
+def offsets_to_H(offsets: np.ndarray, position: tuple[int, int]) -> np.ndarray:
+    from mosaic_cli.model.patches import offsets_to_homography
+
+    H = offsets_to_homography(torch.from_numpy(offsets).double()[None], torch.tensor(position, dtype=torch.float64)[None], 128)[0]
+    return H.numpy()
+
+
+def test_blown_glare_by_burst_blows_out_whole_bursts():
+    """Per burst, a burst of glare is white throughout or not at all (never a white frame beside a
+    faint one, which no encoded flight shows), about half the bursts, with every other draw as it was."""
+    from mosaic_cli.train.bursts import GLARE, LEVELS
+
+    segments, cumulative = [(0, 0, 300)], np.cumsum([300 - WINDOW - 1])
+    whole, mixed, multi = 0, 0, 0
+    for i in range(600):
+        plain = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True)
+        blown = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True,
+                            blown_glare=0.5, blown_by_burst=True)
+        for name in ("rows", "burst", "angle", "events"):
+            assert np.array_equal(getattr(plain, name), getattr(blown, name)), name
+        other = plain.burst != GLARE
+        assert np.array_equal(plain.level[other], blown.level[other])
+        # runs of consecutive glare frames (two bursts of glare never touch in these windows' draws
+        # often enough to matter; where they do, the run is counted as mixed only if it is)
+        glare = np.flatnonzero(plain.burst == GLARE)
+        for run in np.split(glare, np.flatnonzero(np.diff(glare) > 1) + 1) if len(glare) else []:
+            levels = blown.level[run]
+            if len(run) > 1:
+                multi += 1
+                mixed += int((levels == 0).any() and (levels > 0).any())
+            whole += int((levels == 0).all())
+            assert all(v == 0 or LEVELS[GLARE][0] <= v <= LEVELS[GLARE][1] for v in levels)
+    assert multi > 50 and mixed <= 0.05 * multi  # (two adjoining bursts may differ)
+    assert whole > 50
 
 
 def _carry_estimator(net: HomographyNet, meta: dict, **options) -> LearnedEstimator:

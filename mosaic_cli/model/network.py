@@ -6,8 +6,10 @@
       -> embed               [dropout] Linear -> ReLU                       features (B, T, F)
       -> head "cnn"          dropout -> Linear(F, 8)                        (BASE, REG-*)
          head "lstm"         LSTM(F, hidden) -> dropout -> Linear(hidden, 8) (LSTM, LSTM-REG-ALL)
-         head "carry"        the CNN's Linear(F, 8), then a gated LSTM cell    (CARRY: the sequence
-                             that blends a carried motion with it (CarryHead)  model that remembers)
+         head "carry"        the BASE's head (the CNN's Linear(F, 8), or     (CARRY: the sequence
+                             LSTM-REG-T's LSTM and Linear: carry_base), then  model that remembers)
+                             a gated LSTM cell that blends a carried motion
+                             with its answer (CarryHead)
       -> offsets (B, T, 4, 2)
 
 The 8 outputs are the displacements, in working-frame pixels, of the patch's four outer corners
@@ -52,6 +54,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     "compact": dict(backbone=((32, 2), 32, 32, "M", 64, 64, "M", 64, 64, "M"), embed=512, hidden=512, dropout=0.3),
 }
 
+CARRY_BASES = ("cnn", "lstm")  # the heads a carry head may read the BASE's answer from (NetConfig.carry_base)
+
 LSTMState = tuple[Tensor, ...]  # (h, c) of the "lstm" head, (h, c, previous offsets) of the "carry" head
 
 
@@ -72,6 +76,8 @@ class NetConfig:
     carry_window: int = 32  # carry head: the training window (frames); its forget gates start at timescales up to it
     carry_cues: int = 0  # carry head: per-pair image cues it also reads (patch_cues: 0 or CUES)
     carry_correction: float | None = None  # carry head: the most its cell may move the carried motion (working px); None: unbounded
+    carry_gate_memory: bool = True  # carry head: its gate reads the cell's state too (False: the current pair's evidence alone)
+    carry_base: str = "cnn"  # carry head: the head whose answer it blends ("cnn": the BASE's Linear; "lstm": LSTM-REG-T's LSTM and Linear)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -87,6 +93,8 @@ class NetConfig:
         train/config.py), so a bad value here is a bad file or a bug: ValueError."""
         if self.head not in HEADS:
             raise ValueError(f"unknown head {self.head!r}: choose one of {', '.join(HEADS)}")
+        if self.carry_base not in CARRY_BASES:
+            raise ValueError(f"unknown carry base {self.carry_base!r}: choose one of {', '.join(CARRY_BASES)}")
         if self.patch % self.downsampling:
             raise ValueError(f"patch {self.patch} is not a multiple of the backbone's stride {self.downsampling}")
 
@@ -173,7 +181,8 @@ class CarryHead(nn.Module):
         h_t, c_t = LSTMCell(x_t, (h_{t-1}, c_{t-1}))         the memory
         m_t = y_{t-1} + S * motion(h_t)                       the carried motion, corrected
                                                               (or by at most C px: C tanh(motion(h_t)))
-        w_t = sigmoid(gate([h_t, x_t, |o_t - y_{t-1}| / S]))  how far to trust it
+        w_t = sigmoid(gate([h_t, x_t, |o_t - y_{t-1}| / S]))  how far to trust it (without h_t where
+                                                              gate_memory is off: the pair's evidence alone)
         y_t = o_t + w_t (m_t - o_t)
 
     ``motion`` starts at zero and the gate at GATE_START, so the head starts as the CNN (exactly
@@ -183,13 +192,15 @@ class CarryHead(nn.Module):
     a training window of W frames from the first step.  The state is (h, c, y_{t-1}); none
     starts a sequence."""
 
-    def __init__(self, features: int, code: int, hidden: int, window: int, cues: int = 0, correction: float | None = None):
+    def __init__(self, features: int, code: int, hidden: int, window: int, cues: int = 0, correction: float | None = None,
+                 gate_memory: bool = True):
         super().__init__()
         self.hidden, self.features, self.cues, self.correction = hidden, features, cues, correction
+        self.gate_memory = gate_memory
         self.code = nn.Linear(features, code)
         self.cell = nn.LSTMCell(code + cues + 16, hidden)
         self.motion = nn.Linear(hidden, 8)
-        self.gate = nn.Sequential(nn.Linear(hidden + code + cues + 24, GATE_HIDDEN), nn.ReLU(), nn.Linear(GATE_HIDDEN, 1))
+        self.gate = nn.Sequential(nn.Linear(hidden * gate_memory + code + cues + 24, GATE_HIDDEN), nn.ReLU(), nn.Linear(GATE_HIDDEN, 1))
         self.window = window
 
     @torch.no_grad()
@@ -234,7 +245,7 @@ class CarryHead(nn.Module):
             step = OFFSET_SCALE * self.motion(h) if self.correction is None else self.correction * torch.tanh(self.motion(h))
             carried = previous + step
             disagreement = (cnn[:, t] - previous).abs() / OFFSET_SCALE
-            w = torch.sigmoid(self.gate(torch.cat([h, x, disagreement], dim=1)))
+            w = torch.sigmoid(self.gate(torch.cat([h, x, disagreement] if self.gate_memory else [x, disagreement], dim=1)))
             previous = cnn[:, t] + w * (carried - cnn[:, t])
             outputs.append(previous)
             if confirm is not None and confirmed is not None:
@@ -251,7 +262,7 @@ class HomographyNet(nn.Module):
         self.config = config = config or NetConfig()
         self.backbone = make_backbone(config.backbone)
         self.embed = nn.Linear(config.flat_features, config.embed)
-        if config.head == "lstm":
+        if config.head == "lstm" or (config.head == "carry" and config.carry_base == "lstm"):
             self.lstm = nn.LSTM(config.embed, config.hidden, num_layers=1, batch_first=True)
             regressor_in = config.hidden
         else:
@@ -260,7 +271,7 @@ class HomographyNet(nn.Module):
         self.dropout = nn.Dropout(config.dropout)
         self.regressor = nn.Linear(regressor_in, 8)  # the carry head: the CNN's, which it reads
         self.carry = (CarryHead(config.embed, config.carry_code, config.carry_hidden, config.carry_window, config.carry_cues,
-                                config.carry_correction) if config.head == "carry" else None)
+                                config.carry_correction, config.carry_gate_memory) if config.head == "carry" else None)
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -291,9 +302,9 @@ class HomographyNet(nn.Module):
     def step(self, features: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState | None]:
         """(B, T, F) features of T consecutive pairs -> offsets (B, T, 4, 2) and the new LSTM
         state (h, c), each (1, B, hidden); ``state=None`` starts from zeros.  The carry head's
-        state is (h, c, y) (:class:`CarryHead`); the CNN head has no state and returns None."""
+        state is (h, c, y) (:meth:`carry_step`); the CNN head has no state and returns None."""
         if self.carry is not None:
-            offsets, state, _ = self.carry(features, self.regressor(features[..., : self.config.embed]), state)
+            offsets, state, _ = self.carry_step(features, state)
             return offsets.unflatten(-1, (4, 2)), state
         if self.lstm is not None:
             features, state = self.lstm(features, state)
@@ -301,6 +312,33 @@ class HomographyNet(nn.Module):
             state = None
         offsets = self.regressor(self.dropout(features))
         return offsets.unflatten(-1, (4, 2)), state
+
+    def base_offsets(self, features: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState | None]:
+        """The BASE's answer that a carry head reads: (B, T, F) features -> offsets (B, T, 8) and
+        the BASE's own state after them (h, c of LSTM-REG-T's LSTM; None for the CNN's Linear)."""
+        if self.lstm is None:
+            return self.regressor(features), None
+        out, state = self.lstm(features, state)
+        return self.regressor(out), state
+
+    def carry_step(self, features: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState, Tensor]:
+        """The carry head's step: (B, T, F [+ cues]) -> offsets (B, T, 8), the state, the gate (B, T).
+
+        The state is (h, c, previous output), as :class:`CarryHead`'s; over an LSTM base, h and c
+        are the head's cell's followed by the base LSTM's (one tuple, so that a restart, or the
+        estimator feeding the previous output, treats both alike)."""
+        assert self.carry is not None
+        carry_state, base_state = state, None
+        if state is not None and self.lstm is not None:
+            k = self.config.carry_hidden
+            h, c, previous = state
+            carry_state, base_state = (h[..., :k], c[..., :k], previous), (h[..., k:].contiguous(), c[..., k:].contiguous())
+        base, base_state = self.base_offsets(features[..., : self.config.embed], base_state)
+        offsets, carry_state, gate = self.carry(features, base, carry_state)
+        if base_state is not None:
+            h, c, previous = carry_state
+            carry_state = (torch.cat([h, base_state[0]], -1), torch.cat([c, base_state[1]], -1), previous)
+        return offsets, carry_state, gate
 
     def head_inputs(self, patches: Tensor, features: Tensor) -> Tensor:
         """What :meth:`step` reads of the pairs (N, 2, P, P) whose features (N, F) these are: the
@@ -318,18 +356,22 @@ class HomographyNet(nn.Module):
 
     def feature_parameters(self) -> list[nn.Parameter]:
         """Backbone and first Linear: the part an LSTM variant takes (frozen) from a trained CNN;
-        for the carry head also the CNN's regressor, which it reads."""
+        for the carry head also its BASE's head (the regressor, and LSTM-REG-T's LSTM), which it reads."""
         frozen = list(self.backbone.parameters()) + list(self.embed.parameters())
-        return frozen + (list(self.regressor.parameters()) if self.carry is not None else [])
+        if self.carry is None:
+            return frozen
+        return frozen + list(self.regressor.parameters()) + (list(self.lstm.parameters()) if self.lstm is not None else [])
 
     @torch.no_grad()
-    def start_as_carry(self, cnn: HomographyNet) -> None:
-        """A carry head on ``cnn``: its features and regressor copied (the head then starts as
-        the CNN: :class:`CarryHead`)."""
-        if self.carry is None or cnn.config.head != "cnn":
-            raise ValueError("start_as_carry makes a carry head from a CNN head")
-        self.load_features_from(cnn)
-        self.regressor.load_state_dict(cnn.regressor.state_dict())
+    def start_as_carry(self, base: HomographyNet) -> None:
+        """A carry head on ``base`` (a CNN, or LSTM-REG-T where ``carry_base`` is "lstm"): its
+        features and head copied (the carry head then starts as the base: :class:`CarryHead`)."""
+        if self.carry is None or base.config.head != self.config.carry_base:
+            raise ValueError(f"start_as_carry makes a carry head on a {self.config.carry_base} head, not {base.config.head}")
+        self.load_features_from(base)
+        self.regressor.load_state_dict(base.regressor.state_dict())
+        if self.lstm is not None:
+            self.lstm.load_state_dict(base.lstm.state_dict())
 
     def load_features_from(self, other: HomographyNet) -> None:
         """Copy backbone and first Linear from another net of the same preset (e.g. BASE -> LSTM)."""
@@ -386,7 +428,7 @@ def macs_per_pair(config: NetConfig) -> int:
         macs += size * size * out * channels * 9
         channels = out
     macs += config.flat_features * config.embed
-    if config.head == "lstm":
+    if config.head == "lstm" or (config.head == "carry" and config.carry_base == "lstm"):
         macs += 4 * config.hidden * (config.embed + config.hidden)
         macs += config.hidden * 8
     else:
@@ -394,7 +436,7 @@ def macs_per_pair(config: NetConfig) -> int:
     if config.head == "carry":
         code, hidden, cues = config.carry_code, config.carry_hidden, config.carry_cues
         macs += config.embed * code + 4 * hidden * (code + cues + 16 + hidden) + hidden * 8
-        macs += (hidden + code + cues + 24) * GATE_HIDDEN + GATE_HIDDEN
+        macs += (hidden * config.carry_gate_memory + code + cues + 24) * GATE_HIDDEN + GATE_HIDDEN
     return macs
 
 

@@ -5,7 +5,7 @@ The backbone, first Linear and regressor are the frozen BASE of ``--init``, so a
 costs the backbone once, ever: its features are computed once into a cache and the head trains on
 them at over a thousand windows a second on one CPU thread.
 
-    1. teacher tracks   the product's own estimator (the --init CNN, its Lucas-Kanade polish and
+    1. teacher tracks   the product's own estimator (the --init BASE, its Lucas-Kanade polish and
                         ORB fallback) run once over every clean clip of the frame cache: a
                         homography per consecutive pair, kept where it confirmed the pair
     2. windows          W frames of one clip, with (in a share ``bursts`` of them) 1-2 events
@@ -51,7 +51,7 @@ from mosaic_cli.model.checkpoint import file_sha256
 from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.model.patches import crop, homography_to_offsets
 from mosaic_cli.progress import progress_task
-from mosaic_cli.train.bursts import GLARE, LEVELS, spoil
+from mosaic_cli.train.bursts import GLARE, LEVELS, NOISE, spoil
 from mosaic_cli.train.data import CachedClip
 
 WINDOW = 32  # frames a training window spans (31 pairs)
@@ -59,6 +59,7 @@ EVENTS = ("clean", "glare", "blur", "dark", "flat", "drop", "duplicate")  # a pa
 DROP, DUPLICATE = EVENTS.index("drop"), EVENTS.index("duplicate")
 WARM_UP = 3  # pairs before a window's first event: there is a motion to carry
 HUBER_PX = 1.0  # the loss is quadratic within this corner distance, linear beyond (teacher outliers)
+GATE_TARGET_PX = 2.0  # gate supervision: a BASE answer this far from the teacher (mean corner, working px) is one to distrust
 CACHE_FORMAT = 1
 FEATURE_BATCH = 1024  # pairs through the backbone at once while the cache is built
 
@@ -78,7 +79,7 @@ def teacher_track(clip: CachedClip, weights: str) -> tuple[np.ndarray, np.ndarra
     H = np.repeat(np.eye(3)[None], max(n - 1, 0), axis=0)
     ok = np.zeros(max(n - 1, 0), bool)
     for first, length in clip.segments:
-        estimator = make_learned_estimator("cnn", weights=weights, device="cpu")
+        estimator = make_learned_estimator("", weights=weights, device="cpu")  # the checkpoint's own head
         estimates = estimate_stream(estimator, (np.asarray(f) for f in frames[first:first + length]), (w, h))
         for k, e in enumerate(estimates):
             if e.confidence > 0 and e.path in ("learned", "fallback"):
@@ -145,12 +146,17 @@ class Window:
 
 def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], cumulative: np.ndarray,
                 frame_size: tuple[int, int], patch: int, bursts: float, flip: bool, window: int = WINDOW,
-                blown_glare: float = 0.0) -> Window:
+                blown_glare: float = 0.0, blown_by_burst: bool = False, turns: float = 0.0) -> Window:
     """A window drawn from ``rng`` alone.  ``segments`` are (clip, first row, length) with room for
     ``window + 2`` rows (two drops), ``cumulative`` their running count of starts.  ``blown_glare``:
     the share of glare frames blown out entirely (level 0, no residue of the ground), as the
     encoded flights' glare frames are (H.264 keeps nothing of the simulator's faint residue);
-    the same draws as without it, so that 0 draws the windows it always did."""
+    the same draws as without it, so that 0 draws the windows it always did.  ``blown_by_burst``:
+    the first frame's draw decides for its whole burst (an encoded flight's burst of glare is
+    white throughout: pairs of two white frames, never of a white and a faint one).  ``turns``: the
+    share of windows that turn back on themselves at a pair in their second half (the camera
+    reverses, as at the end of a survey line: the motion flips from one pair to the next), drawn
+    after everything else so that the other windows are the ones drawn without it."""
     T = window - 1
     steps = np.ones(T, np.int64)
     burst = np.zeros(window, np.int64)
@@ -167,9 +173,11 @@ def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], 
                 events[t] = kind
                 continue
             length = int(rng.integers(1, 4))
+            blown: bool | None = None
             for f in range(t, min(t + length, window - 1)):  # never the window's last frame
                 burst[f] = kind
-                level[f] = _level(rng, kind, blown_glare)
+                level[f], was_blown = _level(rng, kind, blown_glare, blown)
+                blown = was_blown if blown_by_burst else None
                 angle[f] = rng.uniform(0.0, 180.0)
                 events[f - 1] = events[f - 1] or kind  # the pairs on both sides of a spoilt frame
                 events[f] = events[f] or kind
@@ -183,17 +191,36 @@ def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], 
     w, h = frame_size
     position = (int(rng.integers(0, w - patch + 1)), int(rng.integers(0, h - patch + 1)))
     left_right, upside_down = (rng.random(2) < 0.5) if flip else (False, False)
+    if turns > 0.0 and rng.random() < turns:
+        rows = _turned(rows, int(rng.integers((T + 5) // 2, T - 1)))
     return Window(clip, rows.copy(), burst.copy(), level.copy(), angle.copy(), events.copy(),
                   bool(left_right), bool(upside_down), position)
 
 
-def _level(rng: np.random.Generator, kind: int, blown_glare: float) -> float:
-    """A spoilt frame's level: the simulator's range; glare blown out (0) in a share ``blown_glare``."""
+def _turned(rows: np.ndarray, k: int) -> np.ndarray:
+    """``rows`` turning back at frame k: after it the window retraces its steps, so pair k moves
+    the way pair k-1 did, reversed.  A turn past the middle stays within the rows the window
+    spans (the rows its segment has room for); the window is left as it was if it would not."""
+    turned = rows.copy()
+    turned[k + 1:] = 2 * rows[k] - rows[k + 1:]
+    if turned.min() < rows.min() or turned.max() > rows.max():
+        return rows
+    return turned
+
+
+def _level(rng: np.random.Generator, kind: int, blown_glare: float, blown: bool | None = None) -> tuple[float, bool]:
+    """A spoilt frame's level, the simulator's range, and whether it was blown out (level 0): glare
+    is, in a share ``blown_glare`` of the draws; where ``blown`` says, as its burst's first frame
+    was (the level in the range then drawn plainly).  One draw of ``rng`` in every case."""
     if kind != GLARE or blown_glare <= 0.0:
-        return float(rng.uniform(*LEVELS[kind]))
+        return float(rng.uniform(*LEVELS[kind])), False
     low, high = LEVELS[kind]
     u = float(rng.random())  # one draw, as uniform's
-    return 0.0 if u < blown_glare else low + (high - low) * (u - blown_glare) / (1.0 - blown_glare)
+    if blown is not None:
+        return (0.0, True) if blown else (low + (high - low) * u, False)
+    if u < blown_glare:
+        return 0.0, True
+    return low + (high - low) * (u - blown_glare) / (1.0 - blown_glare), False
 
 
 def teacher_offsets(window: Window, H: np.ndarray, ok: np.ndarray, frame_size: tuple[int, int], patch: int) -> tuple[np.ndarray, np.ndarray]:
@@ -242,7 +269,8 @@ class FeatureCache:
 
 def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip], teachers, count: int, patch: int,
                         seed: int, bursts: float, flip: bool, folder: Path, identity: dict,
-                        show_progress: bool, blown_glare: float = 0.0) -> FeatureCache:
+                        show_progress: bool, blown_glare: float = 0.0, blown_by_burst: bool = False,
+                        turns: float = 0.0, noise: float = NOISE) -> FeatureCache:
     """Draw ``count`` windows and cache what the head trains on (in ``folder``, reused by a run
     with the same ``identity``: the weights, clips, seed and options).  ``features`` turns patch
     pairs (N, 2, P, P) in [-1, 1] into (N, F): the network's own, or the estimator's int8 one."""
@@ -272,7 +300,8 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
             read, positions = [], []
             for i in batch:
                 rng = np.random.default_rng([seed, i, 38])
-                win = draw_window(rng, segments, cumulative, (w, h), patch, bursts, flip, blown_glare=blown_glare)
+                win = draw_window(rng, segments, cumulative, (w, h), patch, bursts, flip, blown_glare=blown_glare,
+                                  blown_by_burst=blown_by_burst, turns=turns)
                 H, ok = teachers[win.clip]
                 offsets, known[i] = teacher_offsets(win, H, ok, (w, h), patch)
                 teacher[i] = offsets.reshape(T, 8)
@@ -281,7 +310,7 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
                 frames = frames[:, ::-1 if win.upside_down else 1, ::-1 if win.left_right else 1]
                 clean = torch.from_numpy(np.ascontiguousarray(frames))[None, :, None].float() / 127.5 - 1.0
                 spoilt = spoil(clean, *(torch.from_numpy(v)[None] for v in (win.burst, win.level, win.angle)),
-                               generator=torch.Generator().manual_seed(seed * 7919 + i))
+                               generator=torch.Generator().manual_seed(seed * 7919 + i), noise=noise)
                 read.append(spoilt[0])
                 positions.append(win.position)
             frames = torch.stack(read)  # (b, W, 1, h, w)
@@ -304,23 +333,34 @@ def build_feature_cache(net: HomographyNet, features, clips: Sequence[CachedClip
 
 class FeatureWindows:
     """Batches of cached windows for step s, drawn from ``(seed, step)`` alone (so that a resumed
-    run draws what an uninterrupted one did), on ``device``, as :class:`CarryObjective` reads them."""
+    run draws what an uninterrupted one did), on ``device``, as :class:`CarryObjective` reads them.
+    With ``base`` (the net's frozen :meth:`~mosaic_cli.model.network.HomographyNet.base_offsets`),
+    each window's BASE answer is computed once here, not at every step: over LSTM-REG-T's LSTM it
+    costs more than the head's own step."""
 
-    def __init__(self, cache: FeatureCache, seed: int, device: torch.device):
+    def __init__(self, cache: FeatureCache, seed: int, device: torch.device, base=None, embed: int | None = None):
         self.cache, self.seed, self.device = cache, int(seed), torch.device(device)
         # The cache is a few hundred MB: held in memory (as float16) for random access.
         self.features = torch.from_numpy(np.array(cache.features)).to(self.device)
         self.teacher = torch.from_numpy(np.array(cache.teacher)).to(self.device)
         self.known = torch.from_numpy(np.array(cache.known)).to(self.device)
         self.events = torch.from_numpy(np.array(cache.events)).long().to(self.device)
+        self.base = None
+        if base is not None:
+            with torch.no_grad():  # each window from no state, as the objective would run it
+                self.base = torch.cat([base(self.features[i : i + FEATURE_BATCH, :, :embed].float())[0]
+                                       for i in range(0, len(self.features), FEATURE_BATCH)])
 
     def batch(self, step: int, batch_size: int, rank: int = 0, world: int = 1) -> dict[str, Tensor]:
         g = torch.Generator()
         g.manual_seed((self.seed * 1_000_003 + step) * 4099 + rank * 131 + world)
         index = torch.randint(len(self.cache), (int(batch_size),), generator=g).to(self.device)
         draw = torch.rand(int(batch_size), generator=g).to(self.device)  # after the index: the same windows as before it
-        return {"features": self.features[index].float(), "teacher": self.teacher[index].unflatten(-1, (4, 2)),
-                "known": self.known[index], "events": self.events[index], "draw": draw}
+        batch = {"features": self.features[index].float(), "teacher": self.teacher[index].unflatten(-1, (4, 2)),
+                 "known": self.known[index], "events": self.events[index], "draw": draw}
+        if self.base is not None:
+            batch["base"] = self.base[index]
+        return batch
 
 
 # ----------------------------------------------------------------------------- 4. objective
@@ -342,24 +382,37 @@ class CarryObjective:
     positions = 1
     check_positions = False
 
-    def __init__(self, forcing: float = 0.0):
+    def __init__(self, forcing: float = 0.0, teacher_beyond: float | None = None, gate_weight: float = 0.0):
         if not 0.0 <= forcing <= 1.0:
             raise ValueError(f"forcing must be a share of the windows in [0, 1], got {forcing}")
+        if teacher_beyond is not None and not teacher_beyond > 0.0:
+            raise ValueError(f"teacher_beyond must be a positive distance (working px), got {teacher_beyond}")
+        if not gate_weight >= 0.0:
+            raise ValueError(f"gate_weight must be 0 or more, got {gate_weight}")
         self.forcing = float(forcing)
+        self.teacher_beyond = teacher_beyond
+        self.gate_weight = float(gate_weight)
 
     def __call__(self, model, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         net = getattr(model, "module", model)
         features = batch["features"]
-        with torch.no_grad():
-            cnn = net.regressor(features[..., : net.config.embed])  # frozen: the BASE's offsets of each pair
+        cnn = batch.get("base")  # frozen: the BASE's offsets of each pair, computed once (FeatureWindows)
+        if cnn is None:
+            with torch.no_grad():
+                cnn, _ = net.base_offsets(features[..., : net.config.embed])
         offsets, _, gate = net.carry(features, cnn, **self.forced(batch))
         known = batch["known"].float()
         event = (batch["events"] > 0).float()
         # Clean pairs: the BASE's own answer (leaving it must cost: the head is to add memory where
         # the frames show nothing, not to second-guess the BASE where they do); event pairs: the
-        # teacher's, where it confirmed the pair.
-        target = torch.where((batch["known"] & (batch["events"] > 0))[..., None, None], batch["teacher"],
-                             cnn.unflatten(-1, (4, 2)))
+        # teacher's, where it confirmed the pair.  With ``teacher_beyond``, also the clean pairs
+        # whose BASE answer lies that far from the teacher's (mean corner distance, working px): a
+        # motion too fast for the BASE, where the carried one is the better guess.
+        teach = batch["known"] & (batch["events"] > 0)
+        if self.teacher_beyond is not None:
+            far = (cnn.unflatten(-1, (4, 2)) - batch["teacher"]).norm(dim=-1).mean(-1) > self.teacher_beyond
+            teach = teach | (batch["known"] & far)
+        target = torch.where(teach[..., None, None], batch["teacher"], cnn.unflatten(-1, (4, 2)))
         scored = known * event + (1 - event)
         error = (offsets.unflatten(-1, (4, 2)) - target).norm(dim=-1)  # (B, T, 4) working px
         huber = torch.where(error < HUBER_PX, 0.5 * error**2 / HUBER_PX, error - 0.5 * HUBER_PX).mean(-1)
@@ -368,8 +421,21 @@ class CarryObjective:
         def mean(values: Tensor, weights: Tensor) -> Tensor:
             return (values * weights).sum() / weights.sum().clamp(min=1.0)
 
+        total = mean(huber, scored)
+        if self.gate_weight > 0.0:
+            # The gate told directly which answer to take: the carried motion where the BASE's lies
+            # GATE_TARGET_PX or more from the teacher on an event pair, the BASE's where it is
+            # right (an event pair it reads, as a drop; every clean pair it gets right).  The blend's
+            # own loss pulls the gate only as far as the two answers differ, and weakly on the
+            # first pair into a burst, where a gate left half open lets the BASE's garbage into the
+            # carried motion for the rest of the burst.
+            base_off = (cnn.unflatten(-1, (4, 2)) - batch["teacher"]).norm(dim=-1).mean(-1)
+            wrong = base_off >= GATE_TARGET_PX
+            supervised = batch["known"] & ((batch["events"] > 0) | ~wrong)
+            bce = torch.nn.functional.binary_cross_entropy(gate.clamp(1e-6, 1 - 1e-6), wrong.float(), reduction="none")
+            total = total + self.gate_weight * mean(bce, supervised.float())
         return {
-            "total": mean(huber, scored),
+            "total": total,
             "clean_px": mean(corner, known * (1 - event)),
             "event_px": mean(corner, known * event),
             "gate_clean": mean(gate.detach(), 1 - event),

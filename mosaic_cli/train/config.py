@@ -31,11 +31,13 @@ PAPER_REG_BATCH = 32
 # events (bursts, drops, duplicates) in most windows.
 CARRY = {"steps": 8000, "batch_size": 64, "lr": 3e-3, "bursts": 0.75}
 DEFAULT_LR = 1e-3
+BLOWN_BY = ("frame", "burst")  # --carry-blown-by: what one draw of blown glare blows out
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
                 "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows",
-                "carry_forcing", "carry_blown_glare")
+                "carry_forcing", "carry_blown_glare", "carry_blown_by", "carry_teacher_beyond", "carry_turns",
+                "carry_gate_memory", "carry_gate_weight", "carry_noise")
 
 
 def paper_steps(variant: str) -> int:
@@ -75,6 +77,12 @@ class TrainConfig:
     feature_windows: int = 4096  # carry: training windows in the feature cache (train.carry)
     carry_forcing: float = 0.0  # carry: share of the windows with the teacher's motion fed back as the previous output (train.carry)
     carry_blown_glare: float = 0.0  # carry: share of the glare frames blown out entirely, no residue (train.carry.draw_window)
+    carry_blown_by: str = "frame"  # carry: blown glare drawn per glare frame, or per burst (all its frames alike)
+    carry_turns: float = 0.0  # carry: share of the windows that turn back on themselves (train.carry.draw_window)
+    carry_gate_memory: bool = True  # carry: the head's gate reads its cell's state (False: the pair's evidence alone)
+    carry_noise: float | None = None  # carry: the sensor floor on a spoilt frame, gray levels at the working size (None: train.bursts.NOISE)
+    carry_gate_weight: float = 0.0  # carry: weight of the gate's own loss (which answer to take: train.carry.CarryObjective)
+    carry_teacher_beyond: float | None = None  # carry: the teacher also on clean pairs whose BASE answer is this far off (working px)
     data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
     num_workers: int = 1
     max_minutes: float | None = None  # stop (checkpoint and final weights) after this long, whatever --steps says
@@ -119,6 +127,12 @@ class TrainConfig:
             (self.feature_windows >= 1, f"--feature-windows must be at least 1, got {self.feature_windows}"),
             (0 <= self.carry_forcing <= 1, f"--carry-forcing must be a share of the windows in [0, 1], got {self.carry_forcing}"),
             (0 <= self.carry_blown_glare < 1, f"--carry-blown-glare must be a share in [0, 1), got {self.carry_blown_glare}"),
+            (self.carry_teacher_beyond is None or self.carry_teacher_beyond > 0,
+             f"--carry-teacher-beyond must be a positive distance in working px, got {self.carry_teacher_beyond}"),
+            (self.carry_noise is None or self.carry_noise >= 0, f"--carry-noise must be 0 or more gray levels, got {self.carry_noise}"),
+            (self.carry_gate_weight >= 0, f"--carry-gate-weight must be 0 or more, got {self.carry_gate_weight}"),
+            (0 <= self.carry_turns <= 1, f"--carry-turns must be a share of the windows in [0, 1], got {self.carry_turns}"),
+            (self.carry_blown_by in BLOWN_BY, f"--carry-blown-by must be one of {', '.join(BLOWN_BY)}, got {self.carry_blown_by!r}"),
         ]
         for ok, message in checks:
             if not ok:

@@ -130,10 +130,10 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     clips = discover_clips(cfg.clips)
     carry = cfg.variant == "carry"
     if carry and not cfg.init:
-        raise BadInput("--variant carry trains a head on a trained BASE: pass --init CNN_WEIGHTS (models/cnn.safetensors)")
+        raise BadInput("--variant carry trains a head on a trained BASE: pass --init BASE_WEIGHTS (models/cnn.safetensors, or LSTM-REG-T's models/lstm.safetensors)")
     if carry and dist.active:
         raise BadInput("--variant carry trains in one process (its features are cached): pass --device cpu or one GPU")
-    objective = CarryObjective(cfg.carry_forcing) if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
+    objective = CarryObjective(cfg.carry_forcing, cfg.carry_teacher_beyond, cfg.carry_gate_weight) if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
     flights = find_val_flights(cfg.val) if cfg.val else []
     init_net = load_init(cfg) if (cfg.init and not resume) else None
     prepare_run_dir(run)
@@ -158,7 +158,9 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     else:
         # A new carry head reads the pairs' image cues too, and its cell may move the carried motion
         # by at most CARRY_CORRECTION_PX (unbounded, it pushed the carried motion off on held-out ground).
-        extra = dict(carry_cues=CUES, carry_correction=CARRY_CORRECTION_PX) if carry else {}
+        # Its BASE is the --init's head: the CNN's Linear, or LSTM-REG-T's LSTM and Linear.
+        extra = dict(carry_cues=CUES, carry_correction=CARRY_CORRECTION_PX, carry_base=carry_base_of(init_net),
+                     carry_gate_memory=cfg.carry_gate_memory) if carry else {}
         net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch, **extra)).to(dist.device)
         if init_net is not None:
             initialise_from(net, init_net, dataset if cfg.lstm_start == "cnn" else None, cfg.seed)
@@ -287,10 +289,15 @@ def carry_batches(cfg: TrainConfig, net: HomographyNet, cached, run: RunDir, dis
     identity = {"init": file_sha256(cfg.init), "clips": [c.clip for c in cached], "frames": [c.frames for c in cached],
                 "seed": cfg.seed, "bursts": cfg.bursts, "flip": cfg.flip, "patch": cfg.patch, "precision": precision,
                 # (without blown glare, the key a cache had before the option existed)
-                "cues": net.config.carry_cues, **({"blown_glare": cfg.carry_blown_glare} if cfg.carry_blown_glare else {})}
+                "cues": net.config.carry_cues, **({"blown_glare": cfg.carry_blown_glare} if cfg.carry_blown_glare else {}),
+                **({"blown_by": cfg.carry_blown_by} if cfg.carry_blown_glare and cfg.carry_blown_by != "frame" else {}),
+                **({"turns": cfg.carry_turns} if cfg.carry_turns else {}),
+                **({"noise": cfg.carry_noise} if cfg.carry_noise is not None else {})}
     cache = build_feature_cache(net, features, cached, teachers, cfg.feature_windows, cfg.patch, cfg.seed, float(cfg.bursts or 0.0),
-                                cfg.flip, folder, identity, show_progress, blown_glare=cfg.carry_blown_glare)
-    windows = FeatureWindows(cache, cfg.seed, dist.device)
+                                cfg.flip, folder, identity, show_progress, blown_glare=cfg.carry_blown_glare,
+                                blown_by_burst=cfg.carry_blown_by == "burst", turns=cfg.carry_turns,
+                                **({"noise": cfg.carry_noise / 127.5} if cfg.carry_noise is not None else {}))
+    windows = FeatureWindows(cache, cfg.seed, dist.device, base=net.base_offsets, embed=net.config.embed)
     return (windows.batch(step, cfg.batch_size) for step in range(start, cfg.steps))
 
 
@@ -361,6 +368,13 @@ def load_init(cfg: TrainConfig) -> HomographyNet:
             f"this run is {cfg.preset} on {cfg.patch}px (pass --preset {net.config.preset})"
         )
     return net
+
+
+def carry_base_of(init: HomographyNet | None) -> str:
+    """The head a carry head trained from ``init`` reads its BASE's answer from (NetConfig.carry_base)."""
+    if init is None or init.head == "cnn":
+        return "cnn"
+    return init.config.carry_base if init.head == "carry" else "lstm"
 
 
 def initialise_from(net: HomographyNet, source: HomographyNet, start_as_cnn: WindowDataset | None = None,
