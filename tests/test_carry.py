@@ -569,6 +569,37 @@ def test_carry_state_confirmed_puts_the_polished_motion_into_the_heads_state():
     assert np.abs(own_state - true_offsets).max() > 1.5  # the head's own answer, 2 px off
 
 
+def test_carry_blend_spoilt_takes_the_carried_motion_whole_on_pairs_with_a_spoilt_frame():
+    """carry-blend=spoilt: on a pair the estimator finds a spoilt frame in, the head's gate is 1.
+    A fresh head (its correction still zero) then carries the confirmed motion exactly, as the
+    velocity rule does, where its own gate (still shut) hands over the BASE's answer on the black
+    frames.  Asked without carry-state=confirmed, it is one clear error."""
+    from mosaic_cli.errors import BadInput
+
+    cnn, meta = load_weights(CNN)
+    net = carry_from(cnn)
+    flight = Flight(n_frames=18, frame_size=(640, 360), map_size=(2400, 1400), seed=4, step=6.0)
+    flight.frames[10] = np.zeros_like(flight.frames[10])  # pairs 9 and 10 touch a black frame
+    rule = _track(LearnedEstimator(cnn, meta, device="cpu", config=LearnedConfig(fallback="none", carry="velocity")), flight)
+    for threads in (1, 2):  # one thread decides each pair in turn; more check the pairs on a pool
+        whole_est = _carry_estimator(net, meta, carry_state="confirmed", carry_blend="spoilt", chunk=8)
+        gated_est = _carry_estimator(net, meta, carry_state="confirmed", chunk=8)
+        whole_est.threads = gated_est.threads = threads
+        whole, gated = _track(whole_est, flight), _track(gated_est, flight)
+        assert [e.path for e in whole[9:11]] == ["carried"] * 2 == [e.path for e in rule[9:11]]
+        for k in (9, 10):
+            np.testing.assert_allclose(whole[k].H, rule[k].H, atol=1e-3)
+            assert float(np.abs(gated[k].H - rule[k].H).max()) > 0.5
+    with pytest.raises(BadInput, match="carry-state=confirmed"):
+        LearnedConfig(carry="network", carry_blend="spoilt")
+    with torch.no_grad():
+        features, cnn_offsets = torch.randn(2, 3, net.config.embed).abs(), torch.randn(2, 3, 8)
+        trust = torch.tensor([[False, True, True], [False, False, False]])
+        out, _, gate = net.carry(features, cnn_offsets, trust=trust)
+    assert torch.equal(gate[trust], torch.ones(2))
+    torch.testing.assert_close(out[0, 2], out[0, 0])  # the carried motion (no correction yet) is the first answer
+
+
 def test_carry_state_confirmed_is_the_same_on_any_number_of_threads_and_changes_no_other_head():
     cnn, meta = load_weights(CNN)
     net = carry_from(cnn)

@@ -36,7 +36,7 @@ def values_to_try(opt: Option) -> list:
 def test_the_learned_options_are_the_config_fields_but_its_internal_knobs():
     fields = {f.name for f in dataclasses.fields(LearnedConfig)}
     assert set(OPTIONS["lstm"]) == fields - INTERNAL | {"weights"}
-    assert set(OPTIONS["cnn"]) == set(OPTIONS["lstm"]) - {"reset_every", "carry_state"}  # a CNN has no state to reset or feed
+    assert set(OPTIONS["cnn"]) == set(OPTIONS["lstm"]) - {"reset_every", "carry_state", "carry_blend"}  # a CNN has no state to reset or feed
     assert set(OPTIONS["orb"]) == set(OPTIONS["orb-ransac"]) == {"refine"}
 
 
@@ -59,7 +59,8 @@ def test_every_option_field_is_accepted_with_every_value_it_takes(name):
             base, given = parse_spec(f"{name}:{opt.key.upper()}={written(value).upper()}")  # any case
             typed = typed_options(base, given)
             assert typed == {field: value}, (field, value)
-            assert getattr(LearnedConfig(**typed), field) == value
+            needs = {("carry_blend", "spoilt"): {"carry_state": "confirmed"}}.get((field, value), {})  # checked together
+            assert getattr(LearnedConfig(**typed, **needs), field) == value
 
 
 def test_a_flag_gives_its_value_already_typed():

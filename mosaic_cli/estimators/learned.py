@@ -276,7 +276,8 @@ class LearnedEstimator(Estimator):
         if pool is None:  # one thread: each pair finished in turn
             out = []
             for k, (prev, cur) in enumerate(pairs):
-                seed, ok, agree = self._fed_seed(k, seeds[k])[:3] if self._feeding else (seeds[k], offsets_ok[k], agreement[k])
+                seed, ok, agree = (self._fed_seed(k, seeds[k], self._trusts(prev, cur))[:3] if self._feeding
+                                   else (seeds[k], offsets_ok[k], agreement[k]))
                 out.append(self._finish_pair(prev, cur, seed, ok, agree))
             return out
         self._valid_pixels()  # made once, before the threads read it
@@ -334,22 +335,30 @@ class LearnedEstimator(Estimator):
         for k, ((prev, cur), check) in enumerate(zip(pairs, checks)):
             seed, agree = seeds[k], agreement[k]
             if self._feeding:
-                seed, ok, agree, moved = self._fed_seed(k, seeds[k])
+                seed, ok, agree, moved = self._fed_seed(k, seeds[k], self._trusts(prev, cur))
                 if moved or ok != bool(offsets_ok[k]):
                     check = self._check(prev, cur, seed, ok)
             out.append(self._decide(prev, cur, seed, agree, check))
         return out
 
+    def _trusts(self, prev: WorkFrame, cur: WorkFrame) -> bool:
+        """Whether the carry head takes its carried motion whole on this pair (carry-blend=spoilt:
+        a frame of it is spoilt; the frames are told in order before their pairs are decided)."""
+        return self.config.carry_blend == "spoilt" and bool(prev.spoilt or cur.spoilt)
+
     @torch.inference_mode()
-    def _fed_seed(self, k: int, speculated: np.ndarray) -> tuple[np.ndarray, bool, float, bool]:
+    def _fed_seed(self, k: int, speculated: np.ndarray, trust: bool = False) -> tuple[np.ndarray, bool, float, bool]:
         """The carry head's step for the chunk's pair ``k`` from its state now (the confirmed
         motions of the pairs before fed in: :meth:`_confirm_state`): the pair's seed (3, 3),
         whether its offsets were finite, its patches' agreement, and whether the seed lies more
         than FED_RECHECK_PX (mean corner distance, working px) from the ``speculated`` one the
-        chunk's batched step gave it.  The head is one LSTM cell on M patches: cheap beside a
-        pair's polish."""
+        chunk's batched step gave it.  With ``trust`` (carry-blend=spoilt, a pair with a spoilt
+        frame) the head takes its carried motion whole.  The head is one LSTM cell on M patches:
+        cheap beside a pair's polish."""
         assert self._chunk_inputs is not None
-        offsets, self._state = self._step_from(self._chunk_inputs[:, k : k + 1], self._state, self._pairs_done)
+        inputs = self._chunk_inputs[:, k : k + 1]
+        trusted = torch.full(inputs.shape[:2], True, device=inputs.device) if trust else None
+        offsets, self._state = self._step_from(inputs, self._state, self._pairs_done, trusted)
         self._pairs_done += 1
         H_patches, ok = self._homographies(offsets)
         H, agree = self._consensus(H_patches)
@@ -678,19 +687,22 @@ class LearnedEstimator(Estimator):
         self._pairs_done += feats.shape[1]
         return offsets
 
-    def _step_from(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None,
-                   done: int) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
+    def _step_from(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None, done: int,
+                   trust: torch.Tensor | None = None) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
         """The offsets of the pairs ``feats`` (M, n, F) from ``state`` after ``done`` pairs of the
-        video, and the state after them: restarted where ``reset-every`` asks."""
+        video, and the state after them: restarted where ``reset-every`` asks.  ``trust`` (M, n):
+        a carry head's pairs that take its carried motion whole (:class:`CarryHead`)."""
         every = self.config.reset_every if self.model.head in SEQUENCE_HEADS else None
         if not every:
-            return self.model.step(feats, state)
+            return self.model.step(feats, state) if trust is None else self.model.step(feats, state, trust)
         parts, start = [], 0
         while start < feats.shape[1]:
             if done % every == 0:
                 state = None
             size = min(every - done % every, feats.shape[1] - start)
-            offsets, state = self.model.step(feats[:, start : start + size], state)
+            part = feats[:, start : start + size]
+            offsets, state = (self.model.step(part, state) if trust is None
+                              else self.model.step(part, state, trust[:, start : start + size]))
             parts.append(offsets)
             start += size
             done += size

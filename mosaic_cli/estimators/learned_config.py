@@ -21,6 +21,7 @@ Prior = Literal["velocity", "none"]
 Fallback = Literal["orb", "none"]
 Carry = Literal["network", "velocity", "none"]
 CarryState = Literal["own", "confirmed"]
+CarryBlend = Literal["gate", "spoilt"]
 PolishWith = Literal["auto", "opencv", "torch"]
 PATCH_LAYOUTS: tuple[PatchLayout, ...] = get_args(PatchLayout)
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
@@ -102,6 +103,11 @@ class LearnedConfig:
     # velocity rule carries it).  Other heads have no such state: the option changes nothing
     # for them.  Needs prior=none (a prior re-expresses the head's offsets chunk by chunk).
     carry_state: CarryState = option("own", only=("lstm",))
+    # With carry-state=confirmed, how the head's answer on a pair is made: its own gate's blend of
+    # the carried motion and the BASE's answer ("gate"), or, on a pair with a frame the estimator
+    # finds spoilt, the carried motion whole ("spoilt": the learned memory carries, the frame's
+    # detail decides when).
+    carry_blend: CarryBlend = option("gate", only=("lstm",))
     # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
     # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.  Off
     # by default (0): on the development flights a gate of 0.1 took the failed burst pairs from
@@ -124,6 +130,8 @@ class LearnedConfig:
             raise BadInput(f"carry-gate must be in [0, 1), got {self.carry_gate}")
         if self.carry_gate_px <= 0:
             raise BadInput(f"carry-gate-px must be positive, got {self.carry_gate_px}")
+        if self.carry_blend == "spoilt" and self.carry_state != "confirmed":
+            raise BadInput("carry-blend=spoilt needs carry-state=confirmed")
         if self.carry_state == "confirmed" and self.prior != "none":
             raise BadInput("carry-state=confirmed needs prior=none")
         if self.carry_limit < 1:

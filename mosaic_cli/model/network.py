@@ -221,14 +221,16 @@ class CarryHead(nn.Module):
         nn.init.constant_(self.gate[2].bias, GATE_START)
 
     def forward(self, features: Tensor, cnn: Tensor, state: LSTMState | None = None, confirmed: Tensor | None = None,
-                confirm: Tensor | None = None) -> tuple[Tensor, LSTMState, Tensor]:
+                confirm: Tensor | None = None, trust: Tensor | None = None) -> tuple[Tensor, LSTMState, Tensor]:
         """features (B, T, F) (with cues, (B, T, F + cues): :func:`patch_cues` appended), the
         CNN's offsets (B, T, 8) -> offsets (B, T, 8), the state after the last pair, and the gate
         w (B, T): the weight each pair gave the carried motion.  ``confirmed`` (B, T, 8) and
         ``confirm`` (B, T) bool: after each pair t where ``confirm`` holds, the previous output
         the next pair reads (y_t) is ``confirmed[:, t]`` instead of the head's own: the motion the
         frames confirmed (the teacher's in training, the polished or fallback estimate at
-        inference), so that a burst starts from a checked motion rather than an unchecked one."""
+        inference), so that a burst starts from a checked motion rather than an unchecked one.
+        ``trust`` (B, T) bool: the pairs whose gate is 1 whatever it reads (the carried motion
+        taken whole: the estimator's ``carry-blend=spoilt``, on pairs it found a spoilt frame in)."""
         B, T = cnn.shape[:2]
         if state is None:
             zeros = cnn.new_zeros(B, self.hidden)
@@ -246,6 +248,8 @@ class CarryHead(nn.Module):
             carried = previous + step
             disagreement = (cnn[:, t] - previous).abs() / OFFSET_SCALE
             w = torch.sigmoid(self.gate(torch.cat([h, x, disagreement] if self.gate_memory else [x, disagreement], dim=1)))
+            if trust is not None:
+                w = torch.where(trust[:, t, None], torch.ones_like(w), w)
             previous = cnn[:, t] + w * (carried - cnn[:, t])
             outputs.append(previous)
             if confirm is not None and confirmed is not None:
@@ -299,12 +303,13 @@ class HomographyNet(nn.Module):
             x = self.dropout(x)
         return torch.relu(self.embed(x))
 
-    def step(self, features: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState | None]:
+    def step(self, features: Tensor, state: LSTMState | None = None, trust: Tensor | None = None) -> tuple[Tensor, LSTMState | None]:
         """(B, T, F) features of T consecutive pairs -> offsets (B, T, 4, 2) and the new LSTM
         state (h, c), each (1, B, hidden); ``state=None`` starts from zeros.  The carry head's
-        state is (h, c, y) (:meth:`carry_step`); the CNN head has no state and returns None."""
+        state is (h, c, y) (:meth:`carry_step`; ``trust``: its pairs that take the carried motion
+        whole, :class:`CarryHead`); the CNN head has no state and returns None."""
         if self.carry is not None:
-            offsets, state, _ = self.carry_step(features, state)
+            offsets, state, _ = self.carry_step(features, state, trust)
             return offsets.unflatten(-1, (4, 2)), state
         if self.lstm is not None:
             features, state = self.lstm(features, state)
@@ -321,7 +326,8 @@ class HomographyNet(nn.Module):
         out, state = self.lstm(features, state)
         return self.regressor(out), state
 
-    def carry_step(self, features: Tensor, state: LSTMState | None = None) -> tuple[Tensor, LSTMState, Tensor]:
+    def carry_step(self, features: Tensor, state: LSTMState | None = None,
+                   trust: Tensor | None = None) -> tuple[Tensor, LSTMState, Tensor]:
         """The carry head's step: (B, T, F [+ cues]) -> offsets (B, T, 8), the state, the gate (B, T).
 
         The state is (h, c, previous output), as :class:`CarryHead`'s; over an LSTM base, h and c
@@ -334,7 +340,7 @@ class HomographyNet(nn.Module):
             h, c, previous = state
             carry_state, base_state = (h[..., :k], c[..., :k], previous), (h[..., k:].contiguous(), c[..., k:].contiguous())
         base, base_state = self.base_offsets(features[..., : self.config.embed], base_state)
-        offsets, carry_state, gate = self.carry(features, base, carry_state)
+        offsets, carry_state, gate = self.carry(features, base, carry_state, trust=trust)
         if base_state is not None:
             h, c, previous = carry_state
             carry_state = (torch.cat([h, base_state[0]], -1), torch.cat([c, base_state[1]], -1), previous)
