@@ -149,11 +149,11 @@ def draw_window(rng: np.random.Generator, segments: list[tuple[int, int, int]], 
                 blown_glare: float = 0.0, blown_by_burst: bool = False, turns: float = 0.0) -> Window:
     """A window drawn from ``rng`` alone.  ``segments`` are (clip, first row, length) with room for
     ``window + 2`` rows (two drops), ``cumulative`` their running count of starts.  ``blown_glare``:
-    the share of glare frames blown out entirely (level 0, no residue of the ground), as the
-    encoded flights' glare frames are (H.264 keeps nothing of the simulator's faint residue);
-    the same draws as without it, so that 0 draws the windows it always did.  ``blown_by_burst``:
-    the first frame's draw decides for its whole burst (an encoded flight's burst of glare is
-    white throughout: pairs of two white frames, never of a white and a faint one).  ``turns``: the
+    the share of glare frames blown out entirely (level 0, no residue of the ground), as some of
+    the encoded flights' glare frames are (clipped white; most keep a faint residue:
+    scripts/spoilt_cues.py); the same draws as without it, so that 0 draws the windows it always
+    did.  ``blown_by_burst``: the first frame's draw decides for its whole burst (a burst clipped
+    white is white throughout: pairs of two white frames, never of a white and a faint one).  ``turns``: the
     share of windows that turn back on themselves at a pair in their second half (the camera
     reverses, as at the end of a survey line: the motion flips from one pair to the next), drawn
     after everything else so that the other windows are the ones drawn without it."""
@@ -426,9 +426,8 @@ class CarryObjective:
             # The gate told directly which answer to take: the carried motion where the BASE's lies
             # GATE_TARGET_PX or more from the teacher on an event pair, the BASE's where it is
             # right (an event pair it reads, as a drop; every clean pair it gets right).  The blend's
-            # own loss pulls the gate only as far as the two answers differ, and weakly on the
-            # first pair into a burst, where a gate left half open lets the BASE's garbage into the
-            # carried motion for the rest of the burst.
+            # own loss pulls the gate only as far as the two answers differ (models/README.md, run
+            # 14: it did not make the gate sharper on the flights).
             base_off = (cnn.unflatten(-1, (4, 2)) - batch["teacher"]).norm(dim=-1).mean(-1)
             wrong = base_off >= GATE_TARGET_PX
             supervised = batch["known"] & ((batch["events"] > 0) | ~wrong)
