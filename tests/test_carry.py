@@ -273,6 +273,13 @@ def test_the_objective_pulls_event_pairs_to_the_teacher_and_clean_pairs_to_the_b
     assert float(bce) > 4.0  # the gate starts shut: sigmoid(GATE_START)
     supervised = CarryObjective(gate_weight=0.1)(net, batch)
     assert float(supervised["total"]) == pytest.approx(float(terms["total"]) + 0.1 * float(bce), rel=1e-4)
+    # blend="spoilt": the pairs with a spoilt frame take the carried motion whole, as the
+    # estimator's carry-blend=spoilt has them; the gate's own answer counts on the others only.
+    spoilt = CarryObjective(blend="spoilt")(net, batch)
+    assert float(spoilt["gate_event"]) == 1.0 and float(terms["gate_event"]) < 0.05
+    assert float(spoilt["gate_clean"]) == pytest.approx(float(terms["gate_clean"]), rel=1e-6)
+    with pytest.raises(ValueError):
+        CarryObjective(blend="always")
 
 
 # ----------------------------------------------------------------------------- the estimator

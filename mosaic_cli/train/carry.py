@@ -382,7 +382,8 @@ class CarryObjective:
     positions = 1
     check_positions = False
 
-    def __init__(self, forcing: float = 0.0, teacher_beyond: float | None = None, gate_weight: float = 0.0):
+    def __init__(self, forcing: float = 0.0, teacher_beyond: float | None = None, gate_weight: float = 0.0,
+                 blend: str = "gate"):
         if not 0.0 <= forcing <= 1.0:
             raise ValueError(f"forcing must be a share of the windows in [0, 1], got {forcing}")
         if teacher_beyond is not None and not teacher_beyond > 0.0:
@@ -392,6 +393,9 @@ class CarryObjective:
         self.forcing = float(forcing)
         self.teacher_beyond = teacher_beyond
         self.gate_weight = float(gate_weight)
+        if blend not in ("gate", "spoilt"):
+            raise ValueError(f"blend must be gate or spoilt, got {blend!r}")
+        self.blend = blend
 
     def __call__(self, model, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         net = getattr(model, "module", model)
@@ -400,7 +404,10 @@ class CarryObjective:
         if cnn is None:
             with torch.no_grad():
                 cnn, _ = net.base_offsets(features[..., : net.config.embed])
-        offsets, _, gate = net.carry(features, cnn, **self.forced(batch))
+        # blend "spoilt": the pairs with a spoilt frame take the carried motion whole, as the
+        # estimator's carry-blend=spoilt has them (its cell's correction is then all that is learnt there)
+        trust = ((batch["events"] > 0) & (batch["events"] < DROP)) if self.blend == "spoilt" else None
+        offsets, _, gate = net.carry(features, cnn, **self.forced(batch), trust=trust)
         known = batch["known"].float()
         event = (batch["events"] > 0).float()
         # Clean pairs: the BASE's own answer (leaving it must cost: the head is to add memory where

@@ -37,7 +37,7 @@ BLOWN_BY = ("frame", "burst")  # --carry-blown-by: what one draw of blown glare 
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
                 "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows",
                 "carry_forcing", "carry_blown_glare", "carry_blown_by", "carry_teacher_beyond", "carry_turns",
-                "carry_gate_memory", "carry_gate_weight", "carry_noise")
+                "carry_gate_memory", "carry_gate_weight", "carry_noise", "carry_blend")
 
 
 def paper_steps(variant: str) -> int:
@@ -81,6 +81,7 @@ class TrainConfig:
     carry_turns: float = 0.0  # carry: share of the windows that turn back on themselves (train.carry.draw_window)
     carry_gate_memory: bool = True  # carry: the head's gate reads its cell's state (False: the pair's evidence alone)
     carry_noise: float | None = None  # carry: the sensor floor on a spoilt frame, gray levels at the working size (None: train.bursts.NOISE)
+    carry_blend: str = "gate"  # carry: "spoilt": the spoilt pairs take the carried motion whole in training, as carry-blend=spoilt
     carry_gate_weight: float = 0.0  # carry: weight of the gate's own loss (which answer to take: train.carry.CarryObjective)
     carry_teacher_beyond: float | None = None  # carry: the teacher also on clean pairs whose BASE answer is this far off (working px)
     data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
@@ -132,6 +133,7 @@ class TrainConfig:
             (self.carry_noise is None or self.carry_noise >= 0, f"--carry-noise must be 0 or more gray levels, got {self.carry_noise}"),
             (self.carry_gate_weight >= 0, f"--carry-gate-weight must be 0 or more, got {self.carry_gate_weight}"),
             (0 <= self.carry_turns <= 1, f"--carry-turns must be a share of the windows in [0, 1], got {self.carry_turns}"),
+            (self.carry_blend in ("gate", "spoilt"), f"--carry-blend must be gate or spoilt, got {self.carry_blend!r}"),
             (self.carry_blown_by in BLOWN_BY, f"--carry-blown-by must be one of {', '.join(BLOWN_BY)}, got {self.carry_blown_by!r}"),
         ]
         for ok, message in checks:
