@@ -477,7 +477,7 @@ def test_turning_windows_retrace_their_steps_and_the_teacher_reverses_with_them(
     H = np.repeat(np.eye(3)[None], 299, axis=0)
     H[:, 0, 2], H[:, 1, 2] = rng.uniform(-4, 4, 299), rng.uniform(-4, 4, 299)
     ok = np.ones(299, bool)
-    turned = 0
+    turned = inverted = 0
     for i in range(200):
         plain = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True)
         turn = draw_window(np.random.default_rng([0, i, 38]), segments, cumulative, (320, 180), 128, 1.0, True, turns=0.5)
@@ -496,7 +496,8 @@ def test_turning_windows_retrace_their_steps_and_the_teacher_reverses_with_them(
             H_before = offsets_to_H(offsets[k - 1], turn.position)
             H_after = offsets_to_H(offsets[k], turn.position)
             np.testing.assert_allclose(H_after @ H_before, np.eye(3), atol=1e-6)
-    assert 70 < turned < 130  # about half
+            inverted += 1
+    assert 70 < turned < 130 and inverted > 30  # about half turn; most at a plain pair
 
 
 def offsets_to_H(offsets: np.ndarray, position: tuple[int, int]) -> np.ndarray:
