@@ -43,20 +43,25 @@ def carry_from(base: HomographyNet) -> HomographyNet:
 # ----------------------------------------------------------------------------- the head
 
 
-def test_the_carry_head_starts_as_the_cnn_it_reads():
-    cnn, _ = load_weights(CNN)
-    net = carry_from(cnn)
-    pairs = flight_patches()
+def assert_starts_as(base_net: HomographyNet, net: HomographyNet, pairs: torch.Tensor) -> tuple:
+    """``net`` (a fresh carry head on ``base_net``) answers as ``base_net`` over ``pairs``: exactly on
+    the first pair, then but for sigmoid(GATE_START) of the carried motion's distance to it.
+    Returns the base's offsets, the head's and the head's state."""
     with torch.no_grad():
-        base, _ = cnn(pairs)
+        base, _ = base_net(pairs)
         carried, state = net(pairs)
-    assert len(state) == 3 and "carry" in SEQUENCE_HEADS
-    torch.testing.assert_close(carried[:, 0], base[:, 0], rtol=0, atol=1e-6)  # the first pair: the CNN exactly
-    # Later pairs: the CNN but for sigmoid(GATE_START) of the carried motion's distance to it.
+    torch.testing.assert_close(carried[:, 0], base[:, 0], rtol=0, atol=1e-6)
     leak = 1.0 / (1.0 + np.exp(-GATE_START))
     jumps = (base[:, 1:] - base[:, :-1]).abs().max()
     assert float((carried - base).abs().max()) <= 1.05 * leak * float(jumps) + 1e-5
     assert float(base.abs().mean()) > 1.0  # a flight that moves: the comparison is not of zeros
+    return base, carried, state
+
+
+def test_the_carry_head_starts_as_the_cnn_it_reads():
+    cnn, _ = load_weights(CNN)
+    _, _, state = assert_starts_as(cnn, carry_from(cnn), flight_patches())
+    assert len(state) == 3 and "carry" in SEQUENCE_HEADS
 
 
 def test_a_carry_head_on_lstm_reg_t_starts_as_lstm_reg_t_and_carries_both_states_in_one():
@@ -67,17 +72,12 @@ def test_a_carry_head_on_lstm_reg_t_starts_as_lstm_reg_t_and_carries_both_states
     lstm, _ = load_weights(LSTM)
     net = carry_from(lstm)
     pairs = flight_patches()
+    _, carried, state = assert_starts_as(lstm, net, pairs)
     with torch.no_grad():
-        base, _ = lstm(pairs)
-        carried, state = net(pairs)
         first, middle = net(pairs[:, :9])
         rest, _ = net(pairs[:, 9:], middle)
     h, c, previous = state
     assert h.shape[-1] == net.config.carry_hidden + net.config.hidden == c.shape[-1] and previous.shape[-1] == 8
-    torch.testing.assert_close(carried[:, 0], base[:, 0], rtol=0, atol=1e-6)  # the first pair: LSTM-REG-T exactly
-    leak = 1.0 / (1.0 + np.exp(-GATE_START))
-    jumps = (base[:, 1:] - base[:, :-1]).abs().max()
-    assert float((carried - base).abs().max()) <= 1.05 * leak * float(jumps) + 1e-5
     torch.testing.assert_close(torch.cat([first, rest], 1), carried, rtol=0, atol=1e-5)
     frozen = {id(p) for p in net.feature_parameters()}
     assert all(id(p) in frozen for p in net.lstm.parameters()) and not any(id(p) in frozen for p in net.carry.parameters())
