@@ -52,6 +52,7 @@ from mosaic_cli.model.network import HomographyNet
 from mosaic_cli.model.patches import crop, homography_to_offsets
 from mosaic_cli.progress import progress_task
 from mosaic_cli.train.bursts import GLARE, LEVELS, NOISE, spoil
+from mosaic_cli.train.config import CARRY_BLENDS
 from mosaic_cli.train.data import CachedClip
 
 WINDOW = 32  # frames a training window spans (31 pairs)
@@ -393,8 +394,8 @@ class CarryObjective:
         self.forcing = float(forcing)
         self.teacher_beyond = teacher_beyond
         self.gate_weight = float(gate_weight)
-        if blend not in ("gate", "spoilt"):
-            raise ValueError(f"blend must be gate or spoilt, got {blend!r}")
+        if blend not in CARRY_BLENDS:
+            raise ValueError(f"blend must be one of {', '.join(CARRY_BLENDS)}, got {blend!r}")
         self.blend = blend
 
     def __call__(self, model, batch: dict[str, Tensor]) -> dict[str, Tensor]:

@@ -32,6 +32,7 @@ PAPER_REG_BATCH = 32
 CARRY = {"steps": 8000, "batch_size": 64, "lr": 3e-3, "bursts": 0.75}
 DEFAULT_LR = 1e-3
 BLOWN_BY = ("frame", "burst")  # --carry-blown-by: what one draw of blown glare blows out
+CARRY_BLENDS = ("gate", "spoilt")  # --carry-blend: the estimator's carry-blend, in training (train.carry.CarryObjective)
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
@@ -133,7 +134,7 @@ class TrainConfig:
             (self.carry_noise is None or self.carry_noise >= 0, f"--carry-noise must be 0 or more gray levels, got {self.carry_noise}"),
             (self.carry_gate_weight >= 0, f"--carry-gate-weight must be 0 or more, got {self.carry_gate_weight}"),
             (0 <= self.carry_turns <= 1, f"--carry-turns must be a share of the windows in [0, 1], got {self.carry_turns}"),
-            (self.carry_blend in ("gate", "spoilt"), f"--carry-blend must be gate or spoilt, got {self.carry_blend!r}"),
+            (self.carry_blend in CARRY_BLENDS, f"--carry-blend must be one of {', '.join(CARRY_BLENDS)}, got {self.carry_blend!r}"),
             (self.carry_blown_by in BLOWN_BY, f"--carry-blown-by must be one of {', '.join(BLOWN_BY)}, got {self.carry_blown_by!r}"),
         ]
         for ok, message in checks:
