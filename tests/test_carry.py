@@ -12,7 +12,7 @@ import torch
 from conftest import Flight
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator
 from mosaic_cli.model import HomographyNet, NetConfig, load_weights
-from mosaic_cli.model.network import GATE_START, SEQUENCE_HEADS
+from mosaic_cli.model.network import GATE_START, OFFSET_SCALE, SEQUENCE_HEADS
 from mosaic_cli.model.patches import patch_corners
 from mosaic_cli.train.carry import DROP, DUPLICATE, EVENTS, WARM_UP, WINDOW, CarryObjective, Window, draw_window, teacher_offsets
 
@@ -280,6 +280,22 @@ def test_the_objective_pulls_event_pairs_to_the_teacher_and_clean_pairs_to_the_b
     assert float(spoilt["gate_clean"]) == pytest.approx(float(terms["gate_clean"]), rel=1e-6)
     with pytest.raises(ValueError):
         CarryObjective(blend="always")
+    # correction_weight: an L1 price on the cell's correction where blend="spoilt" takes the carried
+    # motion whole (pairs 3 and 4 of each window), and nowhere else.  A cell whose motion layer
+    # answers a constant step c on x and y costs weight * c sqrt 2 (working px) more, exactly.
+    free = CarryObjective(blend="spoilt")
+    with torch.no_grad():
+        net.carry.motion.bias.fill_(0.05)
+    c = 0.05 * OFFSET_SCALE if net.carry.correction is None else net.carry.correction * float(np.tanh(0.05))
+    priced = CarryObjective(blend="spoilt", correction_weight=0.5)
+    assert float(priced(net, batch)["total"]) == pytest.approx(float(free(net, batch)["total"]) + 0.5 * c * np.sqrt(2), rel=1e-4)
+    forced = CarryObjective(blend="spoilt", correction_weight=0.5, forcing=1.0)  # fed the teacher: the same step
+    batch["draw"] = torch.zeros(4)
+    assert float(forced(net, batch)["total"]) == pytest.approx(
+        float(CarryObjective(blend="spoilt", forcing=1.0)(net, batch)["total"]) + 0.5 * c * np.sqrt(2), rel=1e-4)
+    for bad in (dict(correction_weight=-0.1, blend="spoilt"), dict(correction_weight=0.5)):  # priced only where taken whole
+        with pytest.raises(ValueError):
+            CarryObjective(**bad)
 
 
 # ----------------------------------------------------------------------------- the estimator

@@ -670,17 +670,18 @@ def test_the_carry_head_trains_on_cached_features_of_a_frozen_base_and_resumes_e
 
 
 @pytest.mark.slow
-def test_a_carry_head_trains_on_lstm_reg_t_with_the_options_of_runs_9_to_17(tmp_path, pan_clips):
+def test_a_carry_head_trains_on_lstm_reg_t_with_the_options_of_runs_9_to_18(tmp_path, pan_clips):
     """The carry head on LSTM-REG-T (an LSTM --init): its BASE's LSTM and Linear are frozen with the
     features, the head's gate may read the pair alone, and the cache options (blown glare by burst,
-    turns, the spoilt frames' noise) and the gate's own loss train; bad values are one line."""
+    turns, the spoilt frames' noise), the gate's own loss and the correction's price train; bad
+    values are one line."""
     common = dict(clips=str(pan_clips), batch_size=2, work_size=WORK, patch=PATCH, num_workers=0, threads=1)
     base = train(TrainConfig(out=str(tmp_path / "base"), steps=2, **common).resolved(), show_progress=False).weights
     lstm = train(TrainConfig(out=str(tmp_path / "lstm"), variant="lstm", init=str(base), steps=2, **common).resolved(),
                  show_progress=False).weights
     options = dict(variant="carry", init=str(lstm), steps=6, feature_windows=8, flip=True, carry_blown_glare=0.25,
                    carry_blown_by="burst", carry_turns=0.3, carry_gate_memory=False, carry_noise=1.0, carry_gate_weight=0.1,
-                   carry_blend="spoilt", carry_forcing=1.0)
+                   carry_blend="spoilt", carry_forcing=1.0, carry_correction_weight=0.5)
     summary = train(TrainConfig(out=str(tmp_path / "carry"), **{**common, "batch_size": 4}, **options).resolved(), show_progress=False)
     model, meta = load_weights(summary.weights)
     assert model.head == "carry" and model.config.carry_base == "lstm" and not model.config.carry_gate_memory
@@ -692,6 +693,8 @@ def test_a_carry_head_trains_on_lstm_reg_t_with_the_options_of_runs_9_to_17(tmp_
     assert meta["int8"] == load_weights(lstm)[1]["int8"]
     for bad, match in ((dict(carry_blown_by="frames"), "--carry-blown-by"), (dict(carry_turns=1.5), "--carry-turns"),
                        (dict(carry_noise=-1.0), "--carry-noise"), (dict(carry_gate_weight=-0.1), "--carry-gate-weight"),
-                       (dict(carry_teacher_beyond=0.0), "--carry-teacher-beyond"), (dict(carry_blend="always"), "--carry-blend")):
+                       (dict(carry_teacher_beyond=0.0), "--carry-teacher-beyond"), (dict(carry_blend="always"), "--carry-blend"),
+                       (dict(carry_correction_weight=-1.0), "--carry-correction-weight"),
+                       (dict(carry_blend="gate"), "--carry-correction-weight")):
         with pytest.raises(BadInput, match=match):
             TrainConfig(out=str(tmp_path / "bad"), **common, **{**options, **bad}).resolved()

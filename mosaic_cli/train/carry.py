@@ -384,7 +384,7 @@ class CarryObjective:
     check_positions = False
 
     def __init__(self, forcing: float = 0.0, teacher_beyond: float | None = None, gate_weight: float = 0.0,
-                 blend: str = "gate"):
+                 blend: str = "gate", correction_weight: float = 0.0):
         if not 0.0 <= forcing <= 1.0:
             raise ValueError(f"forcing must be a share of the windows in [0, 1], got {forcing}")
         if teacher_beyond is not None and not teacher_beyond > 0.0:
@@ -397,6 +397,11 @@ class CarryObjective:
         if blend not in CARRY_BLENDS:
             raise ValueError(f"blend must be one of {', '.join(CARRY_BLENDS)}, got {blend!r}")
         self.blend = blend
+        if not correction_weight >= 0.0:
+            raise ValueError(f"correction_weight must be 0 or more, got {correction_weight}")
+        if correction_weight > 0.0 and blend != "spoilt":
+            raise ValueError("correction_weight weighs the correction on the pairs that take the carried motion whole: blend='spoilt'")
+        self.correction_weight = float(correction_weight)
 
     def __call__(self, model, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         net = getattr(model, "module", model)
@@ -408,7 +413,8 @@ class CarryObjective:
         # blend "spoilt": the pairs with a spoilt frame take the carried motion whole, as the
         # estimator's carry-blend=spoilt has them (its cell's correction is then all that is learnt there)
         trust = ((batch["events"] > 0) & (batch["events"] < DROP)) if self.blend == "spoilt" else None
-        offsets, _, gate = net.carry(features, cnn, **self.forced(batch), trust=trust)
+        forced = self.forced(batch)
+        offsets, _, gate = net.carry(features, cnn, **forced, trust=trust)
         known = batch["known"].float()
         event = (batch["events"] > 0).float()
         # Clean pairs: the BASE's own answer (leaving it must cost: the head is to add memory where
@@ -441,6 +447,12 @@ class CarryObjective:
             supervised = batch["known"] & ((batch["events"] > 0) | ~wrong)
             bce = torch.nn.functional.binary_cross_entropy(gate.clamp(1e-6, 1 - 1e-6), wrong.float(), reduction="none")
             total = total + self.gate_weight * mean(bce, supervised.float())
+        if self.correction_weight > 0.0 and trust is not None:
+            # An L1 price on the cell's correction of the carried motion, where the pair takes it
+            # whole: the correction moves only where the teacher pulls harder than the price, so that
+            # it stays at zero where the rule (the motion carried as it is) is already right.
+            correction = (offsets - self.previous_outputs(offsets, cnn, forced)).unflatten(-1, (4, 2)).norm(dim=-1).mean(-1)
+            total = total + self.correction_weight * mean(correction, trust.float())
         return {
             "total": total,
             "clean_px": mean(corner, known * (1 - event)),
@@ -449,6 +461,17 @@ class CarryObjective:
             "gate_event": mean(gate.detach(), event),
         }
 
+
+    @staticmethod
+    def previous_outputs(offsets: Tensor, cnn: Tensor, forced: dict[str, Tensor]) -> Tensor:
+        """The previous output each pair of a window read (B, T, 8), as :class:`CarryHead` feeds
+        it: the BASE's answer before the first pair, then the head's output or, after a confirmed
+        pair, the confirmed motion.  Not detached: on a trusted pair ``offsets - previous`` is the
+        cell's correction itself, with its gradient alone."""
+        previous = offsets[:, :-1]
+        if forced:
+            previous = torch.where(forced["confirm"][:, :-1, None], forced["confirmed"][:, :-1], previous)
+        return torch.cat([cnn[:, :1], previous], dim=1)
 
     def forced(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Teacher forcing (``forcing``: the share of windows it applies to, drawn per window):

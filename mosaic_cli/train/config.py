@@ -38,7 +38,7 @@ CARRY_BLENDS = ("gate", "spoilt")  # --carry-blend: the estimator's carry-blend,
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
                 "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows",
                 "carry_forcing", "carry_blown_glare", "carry_blown_by", "carry_teacher_beyond", "carry_turns",
-                "carry_gate_memory", "carry_gate_weight", "carry_noise", "carry_blend")
+                "carry_gate_memory", "carry_gate_weight", "carry_noise", "carry_blend", "carry_correction_weight")
 
 
 def paper_steps(variant: str) -> int:
@@ -84,6 +84,7 @@ class TrainConfig:
     carry_noise: float | None = None  # carry: the sensor floor on a spoilt frame, gray levels at the working size (None: train.bursts.NOISE)
     carry_blend: str = "gate"  # carry: "spoilt": the spoilt pairs take the carried motion whole in training, as carry-blend=spoilt
     carry_gate_weight: float = 0.0  # carry: weight of the gate's own loss (which answer to take: train.carry.CarryObjective)
+    carry_correction_weight: float = 0.0  # carry: an L1 price on the cell's correction where --carry-blend spoilt takes the carried motion whole
     carry_teacher_beyond: float | None = None  # carry: the teacher also on clean pairs whose BASE answer is this far off (working px)
     data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
     num_workers: int = 1
@@ -134,6 +135,9 @@ class TrainConfig:
             (self.carry_noise is None or self.carry_noise >= 0, f"--carry-noise must be 0 or more gray levels, got {self.carry_noise}"),
             (self.carry_gate_weight >= 0, f"--carry-gate-weight must be 0 or more, got {self.carry_gate_weight}"),
             (0 <= self.carry_turns <= 1, f"--carry-turns must be a share of the windows in [0, 1], got {self.carry_turns}"),
+            (self.carry_correction_weight >= 0, f"--carry-correction-weight must be 0 or more, got {self.carry_correction_weight}"),
+            (self.carry_correction_weight == 0 or self.carry_blend == "spoilt",
+             "--carry-correction-weight prices the correction on the pairs that take the carried motion whole: pass --carry-blend spoilt"),
             (self.carry_blend in CARRY_BLENDS, f"--carry-blend must be one of {', '.join(CARRY_BLENDS)}, got {self.carry_blend!r}"),
             (self.carry_blown_by in BLOWN_BY, f"--carry-blown-by must be one of {', '.join(BLOWN_BY)}, got {self.carry_blown_by!r}"),
         ]

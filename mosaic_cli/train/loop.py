@@ -133,7 +133,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
         raise BadInput("--variant carry trains a head on a trained BASE: pass --init BASE_WEIGHTS (models/cnn.safetensors, or LSTM-REG-T's models/lstm.safetensors)")
     if carry and dist.active:
         raise BadInput("--variant carry trains in one process (its features are cached): pass --device cpu or one GPU")
-    objective = CarryObjective(cfg.carry_forcing, cfg.carry_teacher_beyond, cfg.carry_gate_weight, cfg.carry_blend) if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
+    objective = CarryObjective(cfg.carry_forcing, cfg.carry_teacher_beyond, cfg.carry_gate_weight, cfg.carry_blend, cfg.carry_correction_weight) if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
     flights = find_val_flights(cfg.val) if cfg.val else []
     init_net = load_init(cfg) if (cfg.init and not resume) else None
     prepare_run_dir(run)
