@@ -4,6 +4,8 @@ duplicates, reversed and mirrored windows; and the estimator that runs it."""
 
 from __future__ import annotations
 
+import threading
+
 import cv2
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ import torch
 
 from conftest import Flight
 from mosaic_cli.estimators.learned import LearnedConfig, LearnedEstimator
+from mosaic_cli.geometry import corner_error
 from mosaic_cli.model import HomographyNet, NetConfig, load_weights
 from mosaic_cli.model.network import GATE_START, OFFSET_SCALE, SEQUENCE_HEADS
 from mosaic_cli.model.patches import patch_corners
@@ -622,6 +625,51 @@ def test_carry_blend_spoilt_takes_the_carried_motion_whole_on_pairs_with_a_spoil
         out, _, gate = net.carry(features, cnn_offsets, trust=trust)
     assert torch.equal(gate[trust], torch.ones(2))
     torch.testing.assert_close(out[0, 2], out[0, 0])  # the carried motion (no correction yet) is the first answer
+
+
+def test_carry_blend_spoilt_checks_a_spoilt_pair_from_what_the_base_reads_of_it():
+    """carry-blend=spoilt: the frames of a pair with a spoilt frame are checked (polished,
+    correlated) from the BASE's reading of them, as the rule's pipeline checks them, and not from
+    the carried motion the head takes whole there (polished from it, a spoilt frame's residue
+    pulled the polish onto false matches: models/README.md, run 18).  Here the BASE reads every
+    pair 2 working px off; the polish confirms the true motion on the clean pairs, so the carried
+    motion and the BASE's reading differ, and the head's spoilt pairs are checked from the very
+    seeds the rule's pipeline over the same BASE checks them from."""
+    cnn, meta = load_weights(CNN)
+    with torch.no_grad():
+        cnn.regressor.bias.add_(2.0)
+    net = carry_from(cnn)
+    flight = Flight(n_frames=18, frame_size=(640, 360), map_size=(2400, 1400), seed=4, step=6.0)
+    flight.frames[10] = np.zeros_like(flight.frames[10])  # pairs 9 and 10 touch a black frame
+
+    def spoilt_seeds(est: LearnedEstimator) -> tuple[list, list]:
+        seen = []
+        check = est._check
+
+        def spy(prev, cur, seed, offsets_ok):
+            if (prev.spoilt or cur.spoilt) and threading.current_thread() is threading.main_thread():
+                seen.append(np.array(seed))  # (the pool's threads check the batched seeds first)
+            return check(prev, cur, seed, offsets_ok)
+
+        est._check = spy  # type: ignore[method-assign]
+        return seen, _track(est, flight)
+
+    rule_seeds, rule = spoilt_seeds(LearnedEstimator(cnn, meta, device="cpu", config=LearnedConfig(fallback="none", carry="velocity"),
+                                                     threads=1))
+    assert len(rule_seeds) == 2
+    for threads in (1, 2):
+        est = _carry_estimator(net, meta, carry_state="confirmed", carry_blend="spoilt", chunk=8)
+        est.threads = threads
+        checked, whole = spoilt_seeds(est)
+        assert len(checked) == 2
+        for seed, expected in zip(checked, rule_seeds):
+            np.testing.assert_allclose(seed, expected, atol=1e-4)
+        scale = np.diag([0.5, 0.5, 1.0])  # 640 -> the 320 px working frame
+        for k, seed in zip((9, 10), checked):
+            assert whole[k].path == "carried" == rule[k].path
+            np.testing.assert_allclose(whole[k].H, rule[k].H, atol=1e-3)  # the confirmed motion, carried...
+            carried = scale @ whole[k].H @ np.linalg.inv(scale)
+            assert float(corner_error(carried, seed, (320, 180))) > 1.0  # ...not the reading it was checked from
 
 
 def test_carry_state_confirmed_is_the_same_on_any_number_of_threads_and_changes_no_other_head():

@@ -171,6 +171,9 @@ class LearnedEstimator(Estimator):
         self._feeding = (self.config.carry_state == "confirmed" and getattr(model, "carry", None) is not None
                          and self.config.seed == "network" and not self._prior_warp)
         self._chunk_inputs: torch.Tensor | None = None  # the chunk's head inputs (M, n, F), kept while feeding
+        # carry-blend=spoilt: what the BASE reads of each pair of the chunk (seeds, finite, agreement),
+        # from which a pair that takes the carried motion whole is checked (_fed_check)
+        self._chunk_reads: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # The chunk's LK polish and check batched on the device (polish-with; see _finish_batched).
         on = self.config.polish_with
         self._batched = self.config.refine == "lk" and (on == "torch" or (on == "auto" and self.device.type == "cuda"))
@@ -276,9 +279,11 @@ class LearnedEstimator(Estimator):
         if pool is None:  # one thread: each pair finished in turn
             out = []
             for k, (prev, cur) in enumerate(pairs):
-                seed, ok, agree = (self._fed_seed(k, seeds[k], self._trusts(prev, cur))[:3] if self._feeding
-                                   else (seeds[k], offsets_ok[k], agreement[k]))
-                out.append(self._finish_pair(prev, cur, seed, ok, agree))
+                if self._feeding:
+                    seed, agree, check = self._fed_check(k, prev, cur, seeds, offsets_ok, agreement, None)
+                    out.append(self._decide(prev, cur, seed, agree, check))
+                else:
+                    out.append(self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]))
             return out
         self._valid_pixels()  # made once, before the threads read it
         checks = pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), range(len(pairs)))
@@ -335,11 +340,30 @@ class LearnedEstimator(Estimator):
         for k, ((prev, cur), check) in enumerate(zip(pairs, checks)):
             seed, agree = seeds[k], agreement[k]
             if self._feeding:
-                seed, ok, agree, moved = self._fed_seed(k, seeds[k], self._trusts(prev, cur))
-                if moved or ok != bool(offsets_ok[k]):
-                    check = self._check(prev, cur, seed, ok)
+                seed, agree, check = self._fed_check(k, prev, cur, seeds, offsets_ok, agreement, check)
             out.append(self._decide(prev, cur, seed, agree, check))
         return out
+
+    def _fed_check(self, k: int, prev: WorkFrame, cur: WorkFrame, seeds: np.ndarray, offsets_ok: np.ndarray,
+                   agreement: np.ndarray, check: PairCheck | None) -> tuple[np.ndarray, float, PairCheck]:
+        """The carry head's fed seed for the chunk's pair ``k`` (:meth:`_fed_seed`), its agreement,
+        and the check its decision reads: ``check`` (made from the chunk's batched seed; None: none
+        yet) where that seed still stands, else one made here.  On a pair that takes the carried
+        motion whole (carry-blend=spoilt) the frames are checked from what the BASE reads of them,
+        as the rule's pipeline checks them, and the carried motion stands where they confirm
+        nothing: polished from the carried motion itself, a blurred or glared frame's residue
+        pulled the polish onto a false match that passed the correlation check, where from the
+        BASE's reading it did not (models/README.md, "The carry head", run 18)."""
+        trust = self._trusts(prev, cur)
+        seed, ok, agree, moved = self._fed_seed(k, seeds[k], trust)
+        if trust and self._chunk_reads is not None:
+            read, read_ok, read_agreement = self._chunk_reads
+            checked = self._check(prev, cur, read[k], bool(read_ok[k]))
+            plausible = ok and bool(is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio))
+            return seed, float(read_agreement[k]), replace(checked, plausible=plausible)
+        if check is None or moved or ok != bool(offsets_ok[k]):
+            check = self._check(prev, cur, seed, ok)
+        return seed, agree, check
 
     def _trusts(self, prev: WorkFrame, cur: WorkFrame) -> bool:
         """Whether the carry head takes its carried motion whole on this pair (carry-blend=spoilt:
@@ -669,6 +693,12 @@ class LearnedEstimator(Estimator):
         if self._feeding:  # stepped again pair by pair as the pairs are decided (_fed_seed)
             self._chunk_inputs = feats
             offsets, _ = self._step_from(feats, self._state, self._pairs_done)  # a speculation: the state stays
+            if self.config.carry_blend == "spoilt":
+                # the BASE's own answers (its state is the same whatever the head is fed)
+                base, _ = self.model.base_offsets(feats[..., : self.model.config.embed], self.model.split_carry_state(self._state)[1])
+                H_read, read_ok = self._homographies(base.unflatten(-1, (4, 2)))
+                read, read_agreement = self._consensus(H_read)
+                self._chunk_reads = (read, read_ok, read_agreement)
         else:
             offsets = self._step(feats)  # (M, n, 4, 2)
         return self._homographies(offsets)

@@ -334,17 +334,22 @@ class HomographyNet(nn.Module):
         are the head's cell's followed by the base LSTM's (one tuple, so that a restart, or the
         estimator feeding the previous output, treats both alike)."""
         assert self.carry is not None
-        carry_state, base_state = state, None
-        if state is not None and self.lstm is not None:
-            k = self.config.carry_hidden
-            h, c, previous = state
-            carry_state, base_state = (h[..., :k], c[..., :k], previous), (h[..., k:].contiguous(), c[..., k:].contiguous())
+        carry_state, base_state = self.split_carry_state(state)
         base, base_state = self.base_offsets(features[..., : self.config.embed], base_state)
         offsets, carry_state, gate = self.carry(features, base, carry_state, trust=trust)
         if base_state is not None:
             h, c, previous = carry_state
             carry_state = (torch.cat([h, base_state[0]], -1), torch.cat([c, base_state[1]], -1), previous)
         return offsets, carry_state, gate
+
+    def split_carry_state(self, state: LSTMState | None) -> tuple[LSTMState | None, LSTMState | None]:
+        """A carry head's state (:meth:`carry_step`) -> the head's own (h, c, previous output) and
+        its BASE's (h, c of LSTM-REG-T's LSTM; None over the CNN's Linear, or with no state)."""
+        if state is None or self.lstm is None:
+            return state, None
+        k = self.config.carry_hidden
+        h, c, previous = state
+        return (h[..., :k], c[..., :k], previous), (h[..., k:].contiguous(), c[..., k:].contiguous())
 
     def head_inputs(self, patches: Tensor, features: Tensor) -> Tensor:
         """What :meth:`step` reads of the pairs (N, 2, P, P) whose features (N, F) these are: the
