@@ -692,3 +692,36 @@ def test_carry_state_confirmed_is_the_same_on_any_number_of_threads_and_changes_
             est.threads = 1
             outputs.append(np.stack([e.H for e in _track(est, flight)]))
         np.testing.assert_array_equal(outputs[0], outputs[1])
+
+
+# ----------------------------------------------------------------------------- scripts/carry_ceiling.py
+
+
+def test_carry_ceiling_scores_the_rules_from_the_true_past_motions(tmp_path):
+    """scripts/carry_ceiling.py on a flight whose truth is known: a steady 4 px/frame translation
+    that speeds up by 6 px a frame from pair 9, with frame 10 spoilt (pairs 9 and 10 touch it) and
+    a dropped frame at 15 (placed by the frames: not scored).  From the true motions before pair
+    9 (4 px each) the last one misses pair 9 (10 px) by 6 px and pair 10 (16 px) by 12; constant
+    acceleration, from two steady motions, misses by as much; the mean of any k of them too."""
+    import importlib.util
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "carry_ceiling.py"
+    spec = importlib.util.spec_from_file_location("carry_ceiling", path)
+    assert spec is not None and spec.loader is not None
+    ceiling = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ceiling)
+    steps = [4.0] * 9 + [10.0, 16.0] + [4.0] * 9
+    pairwise = [[[1, 0, dx], [0, 1, 0], [0, 0, 1]] for dx in steps]
+    truth = {"size": [1280, 720], "pairwise": pairwise, "bursts": [{"frame": 10, "kind": "glare"}, {"frame": 15, "kind": "drop"}]}
+    (tmp_path / "f.gt.json").write_text(json.dumps(truth))
+    rows = ceiling.flight_rows(tmp_path / "f.gt.json")
+    assert [r["pair"] for r in rows] == [9, 10]
+    for row, miss in zip(rows, (6.0, 12.0)):
+        for name in ("last", "mean 2", "mean 3", "mean 5", "accel"):
+            assert row["errors"][name] == pytest.approx(miss)
+    out = subprocess.run([sys.executable, str(path), str(tmp_path)], capture_output=True, text=True, check=True).stdout
+    assert "2 spoilt pairs" in out and "last    (true past motions):    1 of 2 failed" in out

@@ -1,0 +1,96 @@
+#!/usr/bin/env python3
+"""How well any carry from the past motions could place a flight's spoilt pairs: the ceiling of a
+carried motion, from the flights' ground truth alone.
+
+    python scripts/carry_ceiling.py FLIGHTS_DIR [--report R.json --label ESTIMATOR]
+
+For every pair that touches a spoilt frame (glare, blur, dark, flat; drops and duplicates are
+placed by the frames themselves), the motion is guessed from the TRUE motions of the clean pairs
+before it, as if every one of them had been confirmed exactly:
+
+- ``last``: the last clean pair's motion (the velocity rule, ``carry=velocity``, with a perfect seed);
+- ``mean k``: the mean of the last k clean pairs' motions (a smoothed velocity);
+- ``accel``: the last motion plus its change since the one before (constant acceleration).
+
+Each guess is scored as ``mosaic bench`` scores an estimate: the mean corner error at 1280x720
+(the flights' size), failed over 10 px.  With ``--report``, the estimator ``--label`` of that
+``mosaic bench --flights FLIGHTS_DIR --json R.json`` run is scored on the same pairs, with how many
+of its failures the perfect-seed rule also fails (the pairs no carry from the past could place).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+FAILURE_PX = 10.0
+PLACED_BY_FRAMES = ("drop", "duplicate")
+HISTORY = 8
+
+
+def corner_error(a: np.ndarray, b: np.ndarray, size: tuple[int, int]) -> float:
+    w, h = size
+    corners = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float).T
+    pa, pb = a @ corners, b @ corners
+    return float(np.linalg.norm(pa[:2] / pa[2] - pb[:2] / pb[2], axis=0).mean())
+
+
+def guesses(history: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """The true motions of the clean pairs before a spoilt one, newest first -> each rule's guess."""
+    out = {"last": history[0]}
+    for k in (2, 3, 5):
+        if len(history) >= k:
+            mean = np.mean(history[:k], axis=0)
+            out[f"mean {k}"] = mean / mean[2, 2]
+    if len(history) >= 2:
+        out["accel"] = 2 * history[0] - history[1]
+    return out
+
+
+def flight_rows(truth_path: Path) -> list[dict]:
+    truth = json.loads(truth_path.read_text())
+    motions = np.array(truth["pairwise"], float)
+    size = tuple(truth["size"])
+    events = {e["frame"]: e["kind"] for e in truth["bursts"]}
+    spoilt = {f for f, kind in events.items() if kind not in PLACED_BY_FRAMES}
+    rows = []
+    for i in range(len(motions)):
+        if i not in spoilt and i + 1 not in spoilt:
+            continue
+        history = [motions[j] for j in range(i - 1, -1, -1) if j not in events and j + 1 not in events][:HISTORY]
+        if not history:
+            continue
+        errors = {name: corner_error(guess, motions[i], size) for name, guess in guesses(history).items()}
+        rows.append({"flight": truth_path.name.removesuffix(".gt.json"), "pair": i, "errors": errors})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("flights", type=Path)
+    ap.add_argument("--report", type=Path, help="a mosaic bench --flights FLIGHTS --json report")
+    ap.add_argument("--label", help="the estimator of --report to score on the same pairs")
+    args = ap.parse_args()
+    rows = [row for path in sorted(args.flights.glob("*.gt.json")) for row in flight_rows(path)]
+    if not rows:
+        raise SystemExit(f"no spoilt pair with a clean pair before it in {args.flights}")
+    print(f"{len(rows)} spoilt pairs (a clean pair before them) in {args.flights}")
+    for name in ("last", "mean 2", "mean 3", "mean 5", "accel"):
+        scored = [r["errors"][name] for r in rows if name in r["errors"]]
+        failed = sum(e > FAILURE_PX for e in scored)
+        print(f"  {name:7s} (true past motions): {failed:4d} of {len(scored)} failed, median {np.median(scored):.2f} px")
+    if args.report:
+        per_pair = json.loads(args.report.read_text())["estimators"][args.label]["per_pair"]
+        estimated = np.array([np.inf if (v := per_pair[r["flight"]]["corner_errors"][r["pair"]]) is None else v for r in rows])
+        rule = np.array([r["errors"]["last"] for r in rows])
+        fails, rule_fails = estimated > FAILURE_PX, rule > FAILURE_PX
+        print(f"  {args.label}: {int(fails.sum())} of {len(rows)} failed; {int((fails & rule_fails).sum())} of them the "
+              f"perfect-seed rule fails too, {int((fails & ~rule_fails).sum())} it places; "
+              f"it places {int((~fails & rule_fails).sum())} the perfect-seed rule fails")
+
+
+if __name__ == "__main__":
+    main()
