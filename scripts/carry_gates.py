@@ -6,7 +6,7 @@
 Prints, for each pair in [FIRST, LAST), the gate (the weight of the carried motion), how far the
 head's answer lies from its BASE's (mean corner distance, working px) and the x offset of the
 BASE's and the head's top-left corner.  The state is carried from the flight's first pair.
-models/README.md, "The carry head", runs 9-17.
+models/README.md, "The carry head", runs 9-19.
 """
 
 from __future__ import annotations
