@@ -725,3 +725,17 @@ def test_carry_ceiling_scores_the_rules_from_the_true_past_motions(tmp_path):
             assert row["errors"][name] == pytest.approx(miss)
     out = subprocess.run([sys.executable, str(path), str(tmp_path)], capture_output=True, text=True, check=True).stdout
     assert "2 spoilt pairs" in out and "last    (true past motions):    1 of 2 failed" in out
+    # With a track: the rules from the motions it confirmed (its pair 8, placed 1 px off, and pair
+    # 7 unconfirmed: skipped), and its own estimates (pair 9 exact, pair 10 carried at 5 px a frame).
+    estimated = [row[:] for row in pairwise]
+    estimated[8] = [[1, 0, 5.0], [0, 1, 0], [0, 0, 1]]
+    estimated[10] = [[1, 0, 5.0], [0, 1, 0], [0, 0, 1]]
+    paths = ["learned"] * 20
+    paths[7], paths[10] = "failed", "carried"
+    tracks = tmp_path / "tracks"
+    tracks.mkdir()
+    (tracks / "f.json").write_text(json.dumps({"pairwise": estimated, "path": paths}))
+    rows = ceiling.flight_rows(tmp_path / "f.gt.json", tracks / "f.json")
+    assert [r["tracked"]["last"] for r in rows] == [pytest.approx(5.0), pytest.approx(11.0)]
+    assert [r["tracked"]["accel"] for r in rows] == [pytest.approx(4.0), pytest.approx(10.0)]  # 2 x 5 - 4 (pair 6)
+    assert [r["track"] for r in rows] == [pytest.approx(0.0), pytest.approx(11.0)]
