@@ -31,21 +31,17 @@ from pathlib import Path
 
 import numpy as np
 
+from mosaic_cli.geometry import corner_error
+
 FAILURE_PX = 10.0
 PLACED_BY_FRAMES = ("drop", "duplicate")
 HISTORY = 8
 CONFIRMED = ("learned", "fallback")  # the paths of a track whose motion the frames confirmed
 
 
-def corner_error(a: np.ndarray, b: np.ndarray, size: tuple[int, int]) -> float:
-    w, h = size
-    corners = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float).T
-    pa, pb = a @ corners, b @ corners
-    return float(np.linalg.norm(pa[:2] / pa[2] - pb[:2] / pb[2], axis=0).mean())
-
-
 def guesses(history: list[np.ndarray]) -> dict[str, np.ndarray]:
-    """The true motions of the clean pairs before a spoilt one, newest first -> each rule's guess."""
+    """The motions (true or confirmed) of the clean pairs before a spoilt one, newest first -> each
+    rule's guess."""
     out = {"last": history[0]}
     for k in (2, 3, 5):
         if len(history) >= k:
@@ -75,13 +71,13 @@ def flight_rows(truth_path: Path, track_path: Path | None = None) -> list[dict]:
         if not history:
             continue
         row = {"flight": truth_path.name.removesuffix(".gt.json"), "pair": i,
-               "errors": {name: corner_error(guess, motions[i], size) for name, guess in guesses(history).items()}}
+               "errors": {name: float(corner_error(guess, motions[i], size)) for name, guess in guesses(history).items()}}
         if track is not None:
             estimated = np.array(track["pairwise"], float)
             confirmed = [estimated[j] for j in clean if track["path"][j] in CONFIRMED][:HISTORY]
-            row["tracked"] = ({name: corner_error(guess, motions[i], size) for name, guess in guesses(confirmed).items()}
+            row["tracked"] = ({name: float(corner_error(guess, motions[i], size)) for name, guess in guesses(confirmed).items()}
                               if confirmed else None)
-            row["track"] = corner_error(estimated[i], motions[i], size)
+            row["track"] = float(corner_error(estimated[i], motions[i], size))
         rows.append(row)
     return rows
 
