@@ -172,7 +172,7 @@ class LearnedEstimator(Estimator):
                          and self.config.seed == "network" and not self._prior_warp)
         self._chunk_inputs: torch.Tensor | None = None  # the chunk's head inputs (M, n, F), kept while feeding
         # carry-blend=spoilt: what the BASE reads of each pair of the chunk (seeds, finite, agreement),
-        # from which a pair that takes the carried motion whole is checked (_fed_check)
+        # from which a pair that takes the carried motion whole is checked (_read_trusted)
         self._chunk_reads: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # The chunk's LK polish and check batched on the device (polish-with; see _finish_batched).
         on = self.config.polish_with
@@ -274,6 +274,7 @@ class LearnedEstimator(Estimator):
             return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
         seeds, offsets_ok, agreement = self._seeds(frames)
         described()
+        self._read_trusted(pairs, seeds, offsets_ok, agreement)
         if self._batched:
             return self._finish_batched(pairs, seeds, offsets_ok, agreement, pool)
         if pool is None:  # one thread: each pair finished in turn
@@ -344,23 +345,35 @@ class LearnedEstimator(Estimator):
             out.append(self._decide(prev, cur, seed, agree, check))
         return out
 
+    def _read_trusted(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
+                      agreement: np.ndarray) -> None:
+        """carry-blend=spoilt: the chunk's seeds (in place) of the pairs that take the carried
+        motion whole become what the BASE reads of them (:meth:`_predict`), so that their frames
+        are checked from it, as the rule's pipeline checks them, and the carried motion stands
+        where they confirm nothing.  Polished from the carried motion itself, a blurred or glared
+        frame's residue pulled the polish onto a false match that passed the correlation check,
+        where from the BASE's reading it did not (models/README.md, "The carry head", run 18).
+        The frames must have been told spoilt or not (``described``)."""
+        if self._chunk_reads is None:
+            return
+        read, read_ok, read_agreement = self._chunk_reads
+        for k, (prev, cur) in enumerate(pairs):
+            if self._trusts(prev, cur):
+                seeds[k], offsets_ok[k], agreement[k] = read[k], read_ok[k], read_agreement[k]
+
     def _fed_check(self, k: int, prev: WorkFrame, cur: WorkFrame, seeds: np.ndarray, offsets_ok: np.ndarray,
                    agreement: np.ndarray, check: PairCheck | None) -> tuple[np.ndarray, float, PairCheck]:
         """The carry head's fed seed for the chunk's pair ``k`` (:meth:`_fed_seed`), its agreement,
-        and the check its decision reads: ``check`` (made from the chunk's batched seed; None: none
-        yet) where that seed still stands, else one made here.  On a pair that takes the carried
-        motion whole (carry-blend=spoilt) the frames are checked from what the BASE reads of them,
-        as the rule's pipeline checks them, and the carried motion stands where they confirm
-        nothing: polished from the carried motion itself, a blurred or glared frame's residue
-        pulled the polish onto a false match that passed the correlation check, where from the
-        BASE's reading it did not (models/README.md, "The carry head", run 18)."""
+        and the check its decision reads: ``check`` (made from the chunk's seed; None: none yet)
+        where that seed still stands, else one made here.  On a pair that takes the carried motion
+        whole the chunk's seed is the BASE's reading (:meth:`_read_trusted`), and its check and
+        agreement stand: the carried motion is what the pair takes where they confirm nothing."""
         trust = self._trusts(prev, cur)
         seed, ok, agree, moved = self._fed_seed(k, seeds[k], trust)
-        if trust and self._chunk_reads is not None:
-            read, read_ok, read_agreement = self._chunk_reads
-            checked = self._check(prev, cur, read[k], bool(read_ok[k]))
+        if trust:
+            checked = check if check is not None else self._check(prev, cur, seeds[k], bool(offsets_ok[k]))
             plausible = ok and bool(is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio))
-            return seed, float(read_agreement[k]), replace(checked, plausible=plausible)
+            return seed, float(agreement[k]), replace(checked, plausible=plausible)
         if check is None or moved or ok != bool(offsets_ok[k]):
             check = self._check(prev, cur, seed, ok)
         return seed, agree, check
