@@ -737,19 +737,23 @@ class LearnedEstimator(Estimator):
         a carry head's pairs that take its carried motion whole (:class:`CarryHead`)."""
         every = self.config.reset_every if self.model.head in SEQUENCE_HEADS else None
         if not every:
-            return self.model.step(feats, state) if trust is None else self.model.step(feats, state, trust)
+            return self._model_step(feats, state, trust)
         parts, start = [], 0
         while start < feats.shape[1]:
             if done % every == 0:
                 state = None
             size = min(every - done % every, feats.shape[1] - start)
-            part = feats[:, start : start + size]
-            offsets, state = (self.model.step(part, state) if trust is None
-                              else self.model.step(part, state, trust[:, start : start + size]))
+            part = slice(start, start + size)
+            offsets, state = self._model_step(feats[:, part], state, None if trust is None else trust[:, part])
             parts.append(offsets)
             start += size
             done += size
         return torch.cat(parts, dim=1), state
+
+    def _model_step(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None,
+                    trust: torch.Tensor | None) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
+        """The network's step, told ``trust`` only where there is some (only a carry head takes it)."""
+        return self.model.step(feats, state) if trust is None else self.model.step(feats, state, trust)
 
     def _consensus(self, H_patches: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """One homography per pair from M patch estimates: the DLT of the per-corner median of
