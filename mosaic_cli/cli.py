@@ -148,14 +148,30 @@ def entry() -> None:
     if isinstance(code, str):  # SystemExit("message"): Python prints it and exits 1
         print(code, file=sys.stderr)
         code = 1
-    for thread in threading.enumerate():
-        if thread is not threading.current_thread() and not thread.daemon:
-            thread.join()
+    try:
+        _wait_for_threads()
+    except KeyboardInterrupt:  # a second Ctrl-C while a writer finishes: the one line, not a traceback
+        sys.stderr.write("mosaic: error: interrupted\n")
+        code = EXIT_INTERRUPTED
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):  # a closed pipe: nothing left to say
             stream.flush()
     os._exit(code or 0)
+
+
+def _wait_for_threads() -> None:
+    """Wait for the threads still running, as the interpreter does at its exit: idle thread-pool
+    workers (a library's, or an estimator's that nobody closed) are told to end first, since
+    they wait for work that will never come; then every other thread that is not a daemon."""
+    from concurrent.futures import thread as pool_threads
+
+    wake_idle_workers = getattr(pool_threads, "_python_exit", None)  # CPython's own exit hook for them
+    if wake_idle_workers is not None:
+        wake_idle_workers()
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join()
 
 
 def main(argv: list[str] | None = None) -> None:

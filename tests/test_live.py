@@ -639,3 +639,63 @@ def test_the_network_loads_with_the_interpreter_handed_on_often_and_leaves_it_as
     with pytest.raises(ValueError, match="no such weights"):
         loading.built_beside(fails).result(timeout=10)
     assert sys.getswitchinterval() == pytest.approx(before) and gc.isenabled()
+
+
+# Every live command ends when its stream ends, with the default (learned) estimator, whose
+# pool of threads once kept a live track or stitch alive after its output was written.
+END_GRACE = 2.0  # seconds from the end of the stream (or the output written, the later) to the exit
+HANG_LIMIT = 60.0  # seconds after the stream's end at which a run that has not exited counts as hung
+UDP_TIMEOUT = 1.0  # a UDP stream has no end but silence: --timeout says when
+
+
+def _serve(video: Path, transport: str, port: int) -> subprocess.Popen:
+    """ffmpeg sending the flight in real time over ``transport`` (stdin: to its standard output)."""
+    target = {"stdin": "pipe:1", "tcp-listen": f"tcp://127.0.0.1:{port}", "tcp-connect": f"tcp://127.0.0.1:{port}?listen=1",
+              "udp": f"udp://127.0.0.1:{port}?pkt_size=1316"}[transport]
+    return subprocess.Popen([FFMPEG, "-v", "error", "-re", "-i", str(video), "-c", "copy", "-f", "mpegts", target],
+                            stdout=subprocess.PIPE if transport == "stdin" else subprocess.DEVNULL)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("transport", ["stdin", "tcp-listen", "tcp-connect", "udp"])
+@pytest.mark.parametrize("command", ["track", "stitch", "stabilize"])
+def test_a_live_command_exits_once_its_stream_has_ended_and_its_output_is_written(tmp_path, flight, command, transport):
+    video, _ = flight
+    port = free_port(socket.SOCK_DGRAM if transport == "udp" else socket.SOCK_STREAM)
+    source = {"stdin": "-", "tcp-listen": f"tcp://127.0.0.1:{port}?listen=1", "tcp-connect": f"tcp://127.0.0.1:{port}",
+              "udp": f"udp://127.0.0.1:{port}"}[transport]
+    out = tmp_path / {"track": "t.json", "stitch": "pano.png", "stabilize": "steady.mp4"}[command]
+    args = [command, source, *([out] if command == "stabilize" else ["-o", out]), "-q", "--timeout",
+            str(UDP_TIMEOUT if transport == "udp" else 30)]
+    sender = None
+    if transport == "stdin":
+        sender = _serve(video, transport, port)
+        proc = mosaic(*args, stdin=sender.stdout)
+        sender.stdout.close()  # mosaic holds the pipe's only reading end
+    elif transport == "tcp-connect":
+        sender = _serve(video, transport, port)
+        wait_until_bound(port, udp=False)
+        proc = mosaic(*args)
+    else:
+        proc = mosaic(*args)
+        wait_until_bound(port, udp=transport == "udp")
+        sender = _serve(video, transport, port)
+    try:
+        assert sender.wait(timeout=RUN_LIMIT) == 0
+        stream_ended = time.time()
+        deadline = time.monotonic() + HANG_LIMIT
+        while proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        exited = time.time()
+        assert proc.poll() is not None, f"{command} over {transport} still runs {HANG_LIMIT} s after its stream ended"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        _, err = proc.communicate(timeout=RUN_LIMIT)
+    assert proc.returncode == 0, err.decode()
+    assert out.exists()
+    written = out.stat().st_mtime
+    silence = UDP_TIMEOUT if transport == "udp" else 0.0
+    assert exited - max(stream_ended + silence, written) < END_GRACE, (
+        f"{command} over {transport} exited {exited - stream_ended:.1f} s after its stream ended, "
+        f"{exited - written:.1f} s after writing {out.name}")

@@ -148,6 +148,16 @@ class Estimator(ABC):
     def finish(self) -> list[PairEstimate]:
         return []
 
+    def close(self) -> None:
+        """Let go of what the estimator holds beyond a video (a pool's threads): nothing here.
+        The command that built an estimator closes it when its run ends, however it ends."""
+
+    def __enter__(self) -> Estimator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def _to_full(self, H_work: np.ndarray | None, confidence: float) -> PairEstimate:
         if H_work is None or not np.all(np.isfinite(H_work)):
             return PairEstimate.failed()

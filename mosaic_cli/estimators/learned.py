@@ -496,6 +496,13 @@ class LearnedEstimator(Estimator):
             return prior[None] @ residual, offsets_ok, agreement
         return self._network(firsts, seconds)
 
+    def close(self) -> None:
+        """Stop the pool's threads: idle workers would otherwise outlive the run (a live run's
+        estimator, built beside the stream with the garbage collector frozen, is never collected)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool, self._pool_size = None, 0
+
     def _pair_pool(self) -> ThreadPoolExecutor | None:
         """The pool of this video's threads; None for one thread."""
         if self._workers <= 1:

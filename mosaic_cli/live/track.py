@@ -75,7 +75,8 @@ def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.F
     (overlay detection is skipped: see :func:`mosaic_cli.overlay.live_mask`); a file's mask
     is set on the estimator beforehand; ``info``: a file's probe, when the caller has it.
     ``estimator`` may still be loading (a future of it, :func:`~mosaic_cli.live.loading.built_beside`:
-    a live input's stream then opens first, its frames decoded ``width`` wide, and waits for it)."""
+    a live input's stream then opens first, its frames decoded ``width`` wide, and waits for it).
+    The estimator is closed when the stream ends (:meth:`~mosaic_cli.estimators.Estimator.close`)."""
     loading = estimator if isinstance(estimator, concurrent.futures.Future) else None
     live = is_live_source(source)
     pairwise: list[np.ndarray] = []
@@ -97,7 +98,7 @@ def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.F
                 raise
     assert isinstance(estimator, Estimator)
     lines = is_jsonl(out)
-    with stream, (_line_sink(out, keep_on_failure=live) if lines else contextlib.nullcontext()) as sink:
+    with estimator, stream, (_line_sink(out, keep_on_failure=live) if lines else contextlib.nullcontext()) as sink:
         info = stream.info
         masked = None
         if mask is not None:

@@ -296,6 +296,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
         info = info if info is not None else probe(source)
     check_mask_file(options.mask, None if live else info)
     loading = None
+    owned = estimator is None  # built here, so closed here
     if estimator is None and live:  # the socket listens at once, the network loading beside it
         loading = built_beside(lambda: make_stitch_estimator(options))
     elif estimator is None:
@@ -351,6 +352,8 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
                     drawer.wait()  # its file written or removed, not left half-way
                 raise
             drawer.finish(scan.keyframes)  # the last ground too, before the long final stages
+            if owned:
+                estimator.close()  # its pool's threads: nothing is estimated after the scan
         seconds["scan"] = time.perf_counter() - clock
         seconds["overlays"] = masked.seconds
         if not scan.keyframes:
