@@ -151,6 +151,7 @@ class Estimator(ABC):
     def close(self) -> None:
         """Let go of what the estimator holds beyond a video (a pool's threads): nothing here.
         The command that built an estimator closes it when its run ends, however it ends."""
+        return None
 
     def __enter__(self) -> Estimator:
         return self
