@@ -293,25 +293,72 @@ def test_orb_and_the_lk_polish_keep_off_masked_pixels():
     assert mask_px[:, :160].max() == 0 and mask_px[:, 160:].min() == 255
 
 
+@dataclasses.dataclass
+class LosslessFlights:
+    plain: Path
+    burned: Path  # the same frames, the overlays burned in: every pixel outside them identical to plain's
+
+
+@pytest.fixture(scope="module")
+def lossless(tmp_path_factory) -> LosslessFlights:
+    """The ``flights`` pair encoded losslessly (x264 crf 0: the luma the estimators read is the
+    same in both, bit for bit, outside the overlays).  At crf 16 the two are two encodes, the overlays changing x264's
+    choices all over the frame (the burned flight's ground is ~7% further from the render):
+    per-pair corner errors are then ~10x the lossless ones and differ between the flights by up
+    to 5 px a pair, either way, so a 90th percentile of 59 pairs compares two codec draws."""
+    folder = tmp_path_factory.mktemp("overlay_lossless")
+    ground = procedural_map((1024, 1024), seed=3)
+    plan = plan_flight((1024, 1024), "fast", frames=FRAMES, size=SIZE, seed=3)
+    write_flight(folder / "plain.mp4", ground, plan, crf=0, preset="veryfast", show_progress=False)
+    write_flight(folder / "burned.mp4", ground, plan, crf=0, preset="veryfast", show_progress=False,
+                 overlays=OverlaySpec.parse("all"))
+    return LosslessFlights(folder / "plain.mp4", folder / "burned.mp4")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("estimator", ["orb", "lstm"])
-def test_estimates_with_overlays_are_as_good_as_without(flights, tmp_path, capsys, estimator):
+def test_estimates_with_overlays_are_as_good_as_without(lossless, tmp_path, capsys, estimator):
     """Against the exact pairwise homographies: the burned-in flight, its overlays found and
-    masked, is tracked as well as the clean flight; with detection off the overlays hurt."""
-    gt = load_ground_truth(flights.plain.with_name("plain.gt.json"))
+    masked, is tracked as well as the clean flight with the same pixels masked (the fair
+    reference: masking ~22% of the frame, the letterbox's rows among them, costs accuracy by
+    itself); with detection off the overlays hurt.  Measured (orb, lstm): pair by pair the two
+    agree to 0.02 px on all but 3 and 5 of 59 pairs, the worst 0.03 and 0.10 px worse (0.06 and
+    0.27 px better); medians 0.058/0.056 and 0.103/0.100 px, 90th percentiles 0.084/0.088 and
+    0.179/0.183.  A missed logo or timestamp puts orb's 90th percentile at 5-8 px; lstm tracked
+    unmasked has a pair off by 17 px."""
+    from mosaic_cli.estimators import plan_estimator
+    from mosaic_cli.track import track_video
+
+    gt = load_ground_truth(lossless.plain.with_name("plain.gt.json"))
     errors = {}
-    for name, video, extra in [("plain", flights.plain, []), ("masked", flights.burned, []),
-                               ("unmasked", flights.burned, ["--no-overlay-detect"])]:
+    for name, video, extra in [("plain", lossless.plain, []), ("masked", lossless.burned, []),
+                               ("unmasked", lossless.burned, ["--no-overlay-detect"])]:
         out = tmp_path / f"{name}.json"
         code, err = run(capsys, "track", video, "-o", out, "-e", estimator, "-q", *extra)
         assert code == 0, err
-        track = load_track(out)
-        errors[name] = corner_errors(track.pairwise, gt.pairwise, gt.size)
+        errors[name] = np.asarray(corner_errors(load_track(out).pairwise, gt.pairwise, gt.size))
         if name == "masked":
             assert json.loads(out.read_text())["meta"]["mask"]["excluded"] > 0.15
-    median = {k: float(np.median(v)) for k, v in errors.items()}
-    assert median["masked"] <= 1.25 * median["plain"] + 0.05, median
-    assert np.percentile(errors["masked"], 90) <= 1.25 * np.percentile(errors["plain"], 90) + 0.1, median
+    # The reference: the clean flight tracked with the mask the detector finds in the burned one
+    # (exactly that mask: a --mask file would be grown by its 2-px margin).
+    use = frame_mask(lossless.burned).use
+    drawn = cv2.imread(str(overlay_mask_path(lossless.burned)), cv2.IMREAD_GRAYSCALE) == 0
+    assert use is not None and np.count_nonzero(drawn & (use > 0)) == 0
+    reference = plan_estimator(estimator)()
+    reference.set_mask(use)
+    same_mask = track_video(lossless.plain, reference, show_progress=False)
+    errors["reference"] = np.asarray(corner_errors(same_mask.pairwise, gt.pairwise, gt.size))
+
+    masked, ref = errors["masked"], errors["reference"]
+    median = {k: round(float(np.median(v)), 4) for k, v in errors.items()}
+    p90 = {k: round(float(np.percentile(v, 90)), 4) for k, v in errors.items()}
+    assert median["masked"] <= median["reference"] + 0.01, median
+    assert p90["masked"] <= 1.1 * p90["reference"], p90
+    worse = masked - ref
+    assert worse.max() <= 0.25, (int(worse.argmax()), float(worse.max()), p90)
+    assert np.count_nonzero(np.abs(worse) > 0.05) <= 0.1 * len(worse), np.round(worse, 3)
+    # Against the clean flight unmasked: the mask's own cost stays small.
+    assert median["masked"] <= 1.25 * median["plain"] + 0.02, median
     if estimator == "orb":  # the logo and the letterbox pull ORB's fits toward zero motion
         assert median["unmasked"] > 3 * median["masked"], median
 
