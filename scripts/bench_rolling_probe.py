@@ -47,7 +47,7 @@ def separation(clips: list[Path], width: int = PROBE_WIDTH) -> None:
                 rolling_probe.push(frame)
                 cpu += time.process_time() - clock
         rolling_probe.finish()
-        motion, weights = rolling_probe.measured()
+        motion, weights = rolling_probe.measured().arrays()
         clock = time.process_time()
         readout, costs = estimate_readout(motion, info.source_size[1], weights, PROBE_READOUTS)
         fit = time.process_time() - clock

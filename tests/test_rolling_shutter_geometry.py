@@ -11,6 +11,7 @@ from mosaic_cli.geometry.rolling_shutter import (
     band_corrections,
     band_motion,
     estimate_readout,
+    fit_bands,
     row_frame_to_ref,
     similarity_matrix,
 )
@@ -75,3 +76,48 @@ def test_global_shutter_reads_as_no_readout():
     estimated, _ = estimate_readout(motion, SIZE[1])
     assert estimated <= 0.05
     assert np.array_equal(band_corrections(motion, 0.0, SIZE[1]), np.zeros((60, 16, 4)))
+
+
+def _rolling_pair(rows: np.ndarray, xs: np.ndarray, channels_at) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks at (xs, rows) moved each by the similarity of its own row (channels_at(row) -> (4,))."""
+    src = np.stack([xs, rows], 1)
+    dst = np.array([project(similarity_matrix(channels_at(y), SIZE), p[None])[0] for p, y in zip(src, rows)])
+    return src, dst
+
+
+def test_bands_without_tracks_are_bridged_from_the_nearest_fitted_ones_instead_of_raising():
+    """A textureless lower half (water, a uniform field): only the upper rows have tracks."""
+    rng = np.random.default_rng(3)
+    rows, xs = rng.uniform(0, 0.4 * SIZE[1], 600), rng.uniform(0, SIZE[0], 600)
+
+    def motion_of(y):  # a shift that changes with the row, as under a rolling shutter
+        return np.array([2.0 + 0.01 * y, -1.0, 0.0, 0.0])
+
+    src, dst = _rolling_pair(rows, xs, motion_of)
+    got, bridged = fit_bands(src, dst, SIZE, 16)
+    centres = band_centres(SIZE[1], 16)
+    far = centres > 0.4 * SIZE[1] + 2 * SIZE[1] / 16  # bands more than two band heights below the last track
+    assert bridged[far].all() and not bridged[centres < 0.3 * SIZE[1]].any()
+    assert np.isfinite(got).all()
+    last = np.flatnonzero(~bridged).max()  # held flat below the last fitted band
+    below = np.arange(16) > last
+    assert bridged[below].all() and np.array_equal(got[below], np.broadcast_to(got[last], (int(below.sum()), 4)))
+    # The fitted bands read their rows' motion (the Gaussian row weights blur it by a little).
+    fitted = ~bridged & (centres < 0.3 * SIZE[1])
+    assert np.abs(got[fitted, 0] - (2.0 + 0.01 * centres[fitted])).max() < 0.05
+
+
+@pytest.mark.parametrize("case", ["one spot", "no tracks", "nan tracks"])
+def test_degenerate_tracks_never_raise_and_fall_back_to_the_frame_s_motion(case):
+    """Every track on one spot (a single corner tracked many times), none at all, or
+    non-numbers from a tracker: no band can tell its rotation from its shift."""
+    truth = np.array([1.5, -0.5, 0.0, 0.0])
+    n = 0 if case == "no tracks" else 200
+    src = np.tile([[320.0, 100.0]], (n, 1))
+    dst = src + truth[:2]
+    if case == "nan tracks":
+        src[::2] = np.nan
+    got, bridged = fit_bands(src, dst, SIZE, 16)
+    assert bridged.all() and np.isfinite(got).all()
+    if n:  # the whole frame's least-squares fit: the shift it saw, no rotation or scale invented
+        np.testing.assert_allclose(project(similarity_matrix(got[0], SIZE), src[1:2]), dst[1:2], atol=1e-6)

@@ -89,5 +89,5 @@ def test_auto_probe_rides_on_the_tracking_pass(flight, tmp_path, monkeypatch):
         for _ in zip(range(5), tap):
             pass
         tap.close()  # the stream's end (or its failure) finishes the probe
-    motion, weights = probe.measured(timeout=5.0)
+    motion, weights = probe.measured(timeout=5.0).arrays()
     assert motion.shape == (4, rolling.BANDS, 4) and weights.sum() == 4

@@ -18,7 +18,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Generator, Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -26,7 +26,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import resize_matrix
-from mosaic_cli.geometry.rolling_shutter import band_corrections, band_motion, estimate_readout
+from mosaic_cli.geometry.rolling_shutter import band_corrections, estimate_readout, fit_bands
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
 from mosaic_cli.video.decode import gray_at
@@ -104,29 +104,50 @@ def tracked_corners(video: str | Path, width: int = TRACK_WIDTH, info: VideoInfo
             prev = frame
 
 
+@dataclass
+class BandMotions:
+    """Pairs' band motions as they are measured: each pair's (K, 4) motion (full-resolution
+    pixels) and weight (1, or 0 where too few corners were tracked), and how many band fits were
+    bridged (:func:`~mosaic_cli.geometry.rolling_shutter.fit_bands`)."""
+
+    bands: int
+    motion: list[np.ndarray] = field(default_factory=list)
+    weights: list[float] = field(default_factory=list)
+    bridged: int = 0
+
+    def add(self, src: np.ndarray, dst: np.ndarray, full: tuple[int, int]) -> None:
+        """Pair src -> dst (P, 2) full-resolution tracks."""
+        if len(src) >= MIN_TRACKS:
+            motion, bridged = fit_bands(src, dst, full, self.bands)
+            self.motion.append(motion)
+            self.weights.append(1.0)
+            self.bridged += int(bridged.sum())
+        else:
+            self.motion.append(np.zeros((self.bands, 4)))
+            self.weights.append(0.0)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P, K, 4) the motions and (P,) the weights."""
+        return np.array(self.motion).reshape(-1, self.bands, 4), np.array(self.weights)
+
+
 def measure_band_motion(video: str | Path, info: VideoInfo, bands: int = BANDS, width: int = TRACK_WIDTH,
                         show_progress: bool = True, max_frames: int | None = None,
-                        label: str = "rolling shutter") -> tuple[np.ndarray, np.ndarray]:
-    """(N-1, K, 4) each row band's motion frame t -> t+1 in full-resolution pixels, and (N-1,)
-    each pair's weight (1, or 0 where too few corners were tracked); of the first ``max_frames`` frames only, if given."""
+                        label: str = "rolling shutter") -> BandMotions:
+    """Each row band's motion frame t -> t+1 in full-resolution pixels (:class:`BandMotions`), of
+    the first ``max_frames`` frames only, if given."""
     full = info.source_size
-    motions: list[np.ndarray] = []
-    weights: list[float] = []
+    measured = BandMotions(bands)
     with progress_task(label, info.frame_count, disable=not show_progress) as advance:
         advance(1)  # the first frame makes no pair
         pairs = tracked_corners(video, min(width, full[0]), info)
         for src, dst in pairs:
-            if len(src) >= MIN_TRACKS:
-                motions.append(band_motion(src, dst, full, bands))
-                weights.append(1.0)
-            else:
-                motions.append(np.zeros((bands, 4)))
-                weights.append(0.0)
+            measured.add(src, dst, full)
             advance(1)
-            if max_frames is not None and len(motions) + 1 >= max_frames:
+            if max_frames is not None and len(measured.motion) + 1 >= max_frames:
                 pairs.close()  # the decoder stops here
                 break
-    return np.array(motions).reshape(-1, bands, 4), np.array(weights)
+    return measured
 
 
 class RollingProbe:
@@ -138,8 +159,7 @@ class RollingProbe:
 
     def __init__(self, info: VideoInfo, frames: int = AUTO_PROBE_FRAMES, bands: int = BANDS):
         self.full, self.frames, self.bands = info.source_size, frames, bands
-        self._motion: list[np.ndarray] = []
-        self._weights: list[float] = []
+        self._measured = BandMotions(bands)
         self._prev: np.ndarray | None = None
         self._seen = 0
         self._done = threading.Event()
@@ -159,14 +179,9 @@ class RollingProbe:
         self.width = frame.shape[1]
         if self._prev is not None:
             src, dst = track_corners(self._prev, frame, PROBE_CORNERS)
-            if len(src) >= MIN_TRACKS:
-                up = resize_matrix((frame.shape[1], frame.shape[0]), self.full)
-                scale, shift = np.diag(up)[:2], up[:2, 2]
-                self._motion.append(band_motion(src * scale + shift, dst * scale + shift, self.full, self.bands))
-                self._weights.append(1.0)
-            else:
-                self._motion.append(np.zeros((self.bands, 4)))
-                self._weights.append(0.0)
+            up = resize_matrix((frame.shape[1], frame.shape[0]), self.full)
+            scale, shift = np.diag(up)[:2], up[:2, 2]
+            self._measured.add(src * scale + shift, dst * scale + shift, self.full)
         self._prev = frame
         self._seen += 1
         self.seconds += time.perf_counter() - clock
@@ -184,7 +199,7 @@ class RollingProbe:
         (an overlay found after tracking had started, :mod:`mosaic_cli.overlay.speculate`).  Only
         before anyone has read :meth:`measured`: the pass that feeds it holds back what would
         let a reader in (stabilize's render waits for the pass's pairs)."""
-        self._motion, self._weights = [], []
+        self._measured = BandMotions(self.bands)
         self._prev = None
         self._seen = 0
         self._done.clear()
@@ -200,11 +215,10 @@ class RollingProbe:
         finally:
             self.finish()
 
-    def measured(self, timeout: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(P, K, 4) the probed pairs' band motions (full-resolution pixels) and (P,) their
-        weights, once the probe has its frames or the stream ended."""
+    def measured(self, timeout: float | None = None) -> BandMotions:
+        """The probed pairs' band motions, once the probe has its frames or the stream ended."""
         self._done.wait(timeout)
-        return np.array(self._motion).reshape(-1, self.bands, 4), np.array(self._weights)
+        return self._measured
 
 
 @dataclass
@@ -219,6 +233,7 @@ class BandPlan:
     weights: np.ndarray
     estimated: bool  # auto, not given
     applied: bool = True  # False: `auto` read a global shutter (corrections all 0; motion: the probe's pairs only)
+    bridged: int = 0  # band fits bridged over (too few tracks in the band: fit_bands)
 
 
 def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True, label: str = "rolling shutter",
@@ -232,21 +247,24 @@ def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progr
     h = info.source_size[1]
     if mode == "auto":
         if probe is not None:
-            motion, weights = probe.measured()
+            probed = probe.measured()
         else:
             probe_frames = AUTO_PROBE_FRAMES if max_frames is None else min(AUTO_PROBE_FRAMES, max_frames)
-            motion, weights = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label)
+            probed = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label)
+        motion, weights = probed.arrays()
         if len(motion) < 2 or weights.sum() < 2:
             return None
         readout, _ = estimate_readout(motion, h, weights, PROBE_READOUTS)
         if readout < GLOBAL_READOUT:
             frames = max_frames or info.frame_count or len(motion) + 1
             return BandPlan(readout, np.zeros((frames, motion.shape[1], 4)), motion, weights, True, applied=False)
-    motion, weights = measure_band_motion(video, info, show_progress=show_progress, max_frames=max_frames, label=label)
+    measured = measure_band_motion(video, info, show_progress=show_progress, max_frames=max_frames, label=label)
+    motion, weights = measured.arrays()
     if len(motion) < 2 or weights.sum() < 2:
         return None
     if mode == "auto":
         readout, _ = estimate_readout(motion, h, weights)  # from the whole video, now it is measured
     else:
         readout = float(mode)
-    return BandPlan(readout, band_corrections(motion, readout, h, weights), motion, weights, mode == "auto")
+    return BandPlan(readout, band_corrections(motion, readout, h, weights), motion, weights, mode == "auto",
+                    bridged=measured.bridged)

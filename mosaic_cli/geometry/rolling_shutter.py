@@ -96,28 +96,65 @@ def _similarity_rows(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return np.concatenate([np.stack([one, zero, -y, x], 1), np.stack([zero, one, x, y], 1)])
 
 
+# A band fits its own motion only where enough tracks lie near it, spread over enough of its
+# width to tell rotation and scale from the shifts: a textureless band (sky, water, a blown
+# sky, a uniform field) or a frame whose tracks bunch in a few rows leaves a band's normal
+# matrix singular.  Such a band is bridged: its channels are interpolated over the rows between
+# the nearest fitted bands (the whole frame's fit where no band could be fitted).
+MIN_BAND_SUPPORT = 6.0  # effective tracks (the sum of a band's Gaussian row weights) a band's own fit needs
+MAX_BAND_CONDITION = 1e8  # condition number of a band's normal matrix, its channels scaled alike, beyond which it is degenerate
+
+
 def band_motion(src: np.ndarray, dst: np.ndarray, size: tuple[int, int], bands: int,
                 sigma: float = BAND_SIGMA, pull: float = BAND_PULL) -> np.ndarray:
     """(K, 4) each row band's motion channels between two frames, from tracked points src ->
-    dst (P, 2) (inliers): a weighted least-squares similarity per band, the points weighted by a
-    Gaussian of their row's distance to the band centre (``sigma`` band heights), each band
-    pulled toward the whole frame's fit (a mixture of similarities regularised toward the global one)."""
+    dst (P, 2) (inliers): :func:`fit_bands`'s motions, bridged bands included."""
+    return fit_bands(src, dst, size, bands, sigma, pull)[0]
+
+
+def fit_bands(src: np.ndarray, dst: np.ndarray, size: tuple[int, int], bands: int,
+              sigma: float = BAND_SIGMA, pull: float = BAND_PULL) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 4) each row band's motion channels between two frames from tracked points src ->
+    dst (P, 2) (inliers), and (K,) which bands were bridged.
+
+    A fitted band's motion is a weighted least-squares similarity, the points weighted by a
+    Gaussian of their row's distance to the band centre (``sigma`` band heights), pulled toward
+    the whole frame's fit by ``pull`` (a mixture of similarities regularised toward the global
+    one).  A band with too little support (:data:`MIN_BAND_SUPPORT`) or a degenerate spread
+    (:data:`MAX_BAND_CONDITION`) is bridged: linearly interpolated over the band centres between
+    the fitted bands (held flat beyond the outermost), or the whole frame's fit if none was fitted."""
     w, h = size
     centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    src, dst = np.asarray(src, dtype=np.float64), np.asarray(dst, dtype=np.float64)
+    src, dst = np.asarray(src, dtype=np.float64).reshape(-1, 2), np.asarray(dst, dtype=np.float64).reshape(-1, 2)
+    tracked = np.isfinite(src).all(1) & np.isfinite(dst).all(1)
+    src, dst = src[tracked], dst[tracked]
     A = _similarity_rows(src, centre)
     r = np.concatenate([dst[:, 0] - src[:, 0], dst[:, 1] - src[:, 1]])
     # rotation and scale move the frame's edge by (w / 2) px per unit: weigh them alike in the pull
     D = np.diag([1.0, 1.0, (w / 2.0) ** 2, (w / 2.0) ** 2])
-    everyone = np.linalg.lstsq(A, r, rcond=None)[0]
-    out = np.empty((bands, 4))
-    for k, yk in enumerate(band_centres(h, bands)):
+    alike = np.diag([1.0, 1.0, 2.0 / w, 2.0 / w])  # the channels at the same scale, for the condition number
+    everyone = np.linalg.lstsq(A, r, rcond=None)[0] if len(src) else np.zeros(4)
+    centres = band_centres(h, bands)
+    out = np.zeros((bands, 4))
+    fitted = np.zeros(bands, dtype=bool)
+    for k, yk in enumerate(centres):
         wt = np.exp(-0.5 * ((src[:, 1] - yk) / (sigma * h / bands)) ** 2)
+        support = float(wt.sum())
+        if support < MIN_BAND_SUPPORT:
+            continue
         wt2 = np.concatenate([wt, wt])
-        lam = pull * max(float(wt.sum()), 1e-9)
+        lam = pull * support
         N = A.T @ (wt2[:, None] * A) + lam * D
+        if not np.isfinite(N).all() or not np.linalg.cond(alike @ N @ alike) <= MAX_BAND_CONDITION:
+            continue
         out[k] = np.linalg.solve(N, A.T @ (wt2 * r) + lam * D @ everyone)
-    return out
+        fitted[k] = np.isfinite(out[k]).all()
+    if not fitted.any():
+        out[:] = everyone
+    elif not fitted.all():
+        for c in range(4):
+            out[~fitted, c] = np.interp(centres[~fitted], centres[fitted], out[fitted, c])
+    return out, ~fitted
 
 
 def similarity_matrix(channels: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -38,10 +38,16 @@ def warp_jacobian(warps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return (W[..., :2, :2] - mapped[..., :, None] * W[..., 2, None, :2]) / denom[..., None, None]
 
 
-def cropping_ratio(warps: np.ndarray, size: tuple[int, int]) -> float:
-    """Liu et al.'s cropping ratio: the mean over frames of 1 / scale of the warp input -> output."""
+def frame_cropping(warps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(N,) each frame's cropping: 1 / the scale of its warp input -> output (N, 3, 3) at the
+    frame centre (the share of the input's width still shown; 1 = no zoom)."""
     J = warp_jacobian(warps, size)
-    return float(np.mean(1.0 / np.sqrt(np.abs(np.linalg.det(J)))))
+    return 1.0 / np.sqrt(np.abs(np.linalg.det(J)))
+
+
+def cropping_ratio(warps: np.ndarray, size: tuple[int, int]) -> float:
+    """Liu et al.'s cropping ratio: the mean over frames of :func:`frame_cropping`."""
+    return float(np.mean(frame_cropping(warps, size)))
 
 
 def distortion(warps: np.ndarray, size: tuple[int, int]) -> float:

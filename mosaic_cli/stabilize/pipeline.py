@@ -42,7 +42,7 @@ from mosaic_cli.overlay import MaskOptions, PendingMask, check_mask_file, frame_
 from mosaic_cli.overlay.speculate import Gate
 from mosaic_cli.progress import progress_group
 from mosaic_cli.stabilize.crop import border_fraction, parse_crop
-from mosaic_cli.stabilize.metrics import cropping_ratio, distortion
+from mosaic_cli.stabilize.metrics import cropping_ratio, distortion, frame_cropping
 from mosaic_cli.stabilize.path import MotionModel, motion_model
 from mosaic_cli.stabilize.render import BORDERS, YUV_BLACK, KeptLens, Renderer, parse_border, render_yuv
 from mosaic_cli.stabilize.rolling import MidTimeFeed, RollingCorrection, RollingProbe, RowWarpLater, parse_rolling_shutter
@@ -139,6 +139,14 @@ class StabilizeResult:
     @property
     def cropping(self) -> float:
         return cropping_ratio(self.warps, self.size)
+
+    @property
+    def tightest_crop(self) -> tuple[float, int]:
+        """The smallest frame cropping (the most zoomed-in output frame) and that frame's index:
+        a mean near 1 hides a turn zoomed to 0.9."""
+        per_frame = frame_cropping(self.warps, self.size)
+        worst = int(np.argmin(per_frame))
+        return float(per_frame[worst]), worst
 
     @property
     def distortion(self) -> float:

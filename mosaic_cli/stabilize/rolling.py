@@ -38,7 +38,7 @@ from mosaic_cli.stabilize.stream import WAIT_SLICE, Cancelled, PathFeed
 from mosaic_cli.video import VideoInfo
 
 __all__ = ["AUTO_PROBE_FRAMES", "BANDS", "GLOBAL_READOUT", "TRACK_WIDTH", "RollingCorrection", "MidTimeFeed", "RollingProbe", "RowWarpLater",
-           "measure_band_motion", "parse_rolling_shutter", "plan_rolling", "track_corners"]
+           "measure_band_motion", "parse_rolling_shutter", "bridged_bands", "plan_rolling", "track_corners"]
 
 
 PAIR_GRID = 9  # points a side of the grid a pair's homography is refitted on (:meth:`RollingCorrection.mid_time_pair`)
@@ -57,6 +57,7 @@ class RollingCorrection:
     # pairs' weights: the path's motion under a rolling shutter (:meth:`pair_motion`).
     motion: np.ndarray | None = None
     weights: np.ndarray | None = None
+    bridged: int = 0  # band fits bridged over (too few tracks in the band)
 
     def row_channels(self, t: int, rows: np.ndarray) -> np.ndarray:
         """(R, 4) the correction of frame t at each of ``rows`` (bands blended as the truth's rule)."""
@@ -155,6 +156,11 @@ class RollingCorrection:
         return warp_frame
 
 
+def bridged_bands(count: int) -> str:
+    """The summary's note of the band fits bridged over (nothing when none was)."""
+    return f" ({count} band fits bridged over: too few tracks in the band)" if count else ""
+
+
 def plan_rolling(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True,
                  label: str = "stabilize: rolling shutter", probe: RollingProbe | None = None) -> RollingCorrection | None:
     """The corrections ``mode`` asks for (None: off, or too few frames to tell); under
@@ -164,7 +170,7 @@ def plan_rolling(video: str | Path, info: VideoInfo, mode: str | float, show_pro
     if plan is None:
         return None
     return RollingCorrection(plan.readout, plan.corrections, info.source_size, plan.estimated, plan.applied,
-                             plan.motion, plan.weights)
+                             plan.motion, plan.weights, plan.bridged)
 
 
 class RowWarpLater:
