@@ -3,7 +3,10 @@ README.md, docs/ or models/README.md leads nowhere (files and, for Markdown file
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -152,6 +155,30 @@ def test_every_extra_has_one_install_hint_everywhere():
     group = typer.main.get_command(app)
     for name in ("track", "stabilize"):
         (plot,) = [p for p in group.commands[name].params if p.name == "plot"]
-        assert install_hint("plot") in plot.help
+        assert install_hint("plot") in rendered_help(name)
     # the finder sees another form, should one come back
     assert EXTRA_INSTALL.search("needs `pip install -e '.[plot]'` (matplotlib)").group(0) == "pip install -e '.[plot]'"
+
+
+def rendered_help(command: str) -> str:
+    """``mosaic COMMAND --help`` as a user's terminal shows it (wide enough not to wrap), one
+    space for every run of spaces and box borders."""
+    proc = subprocess.run([sys.executable, "-m", "mosaic_cli", command, "--help"], capture_output=True, text=True,
+                          env={**os.environ, "COLUMNS": "1000", "NO_COLOR": "1"}, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return re.sub(r"[\s│╭╮╰╯─]+", " ", proc.stdout)
+
+
+@pytest.mark.parametrize("command", ["track", "stitch", "stabilize", "simulate", "train", "bench", "eval"])
+def test_the_help_shows_every_bracket_its_source_wrote(command):
+    """typer renders help as rich markup, where ``[plot]`` is a style tag and vanishes: every
+    word of an option's help that holds a bracket is shown with it."""
+    import typer.main
+
+    from mosaic_cli.cli import app
+
+    shown = rendered_help(command)
+    for param in typer.main.get_command(app).commands[command].params:
+        text = (param.help or "").replace("\\[", "[")  # escaped with rich.markup.escape: shown as written
+        for bracket in re.findall(r"\[[^\]]*\]", text):
+            assert " ".join(bracket.split()) in shown, f"mosaic {command} {param.opts[0]}: {bracket!r} is not in the rendered help"

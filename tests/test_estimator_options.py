@@ -45,7 +45,7 @@ def test_the_table_reads_types_choices_and_defaults_off_the_annotations():
     assert lstm["patches"] == Option("patches", int, (1, 5, 9), 1)
     assert lstm["refine"] == Option("refine", str, ("lk", "ecc", None), "lk")
     assert lstm["reset_every"] == Option("reset-every", int, None, None)
-    assert lstm["carry_gate_px"] == Option("carry-gate-px", float, None, 2.5)
+    assert lstm["carry_gate_px"] == Option("carry-gate-px", float, None, 2.5, ablation=True)
     assert lstm["weights"] == Option("weights", Path)
     assert options_of(OrbConfig)["refine"] == lstm["refine"]
 
@@ -110,7 +110,7 @@ def test_an_option_it_does_not_take_is_refused_listing_those_it_does():
         make_estimator("identity:refine=lk")
 
 
-def test_help_lists_every_option_with_its_choices(monkeypatch):
+def test_help_lists_every_user_option_with_its_choices_and_no_ablation_setting(monkeypatch):
     from typer.testing import CliRunner
 
     from mosaic_cli.cli import app
@@ -118,7 +118,11 @@ def test_help_lists_every_option_with_its_choices(monkeypatch):
     text = options_help()
     for name in ("lstm", "orb"):
         for opt in OPTIONS[name].values():
-            assert opt.usage() in text
+            assert (opt.usage() in text) != opt.ablation, opt.key
+    # What a user sets, and not the experiments' knobs (accepted, documented for developers).
+    user = {key for key, opt in OPTIONS["lstm"].items() if not opt.ablation}
+    assert user == {"patches", "chunk", "reset_every", "precision", "refine", "weights"}
+    assert "carry" not in text and "spoilt" not in text and "seed=" not in text
     assert "reset-every=N (lstm only)" in text and "refine=lk|ecc|none (lk)" in text
     monkeypatch.setenv("COLUMNS", "2000")  # one line per option: nothing wrapped
     for command in ("track", "stitch", "stabilize"):

@@ -39,3 +39,32 @@ def test_the_wheel_holds_the_weights_the_model_card_and_every_package(tmp_path):
     modules = {p.relative_to(ROOT).as_posix() for p in (ROOT / "mosaic_cli").rglob("*.py") if "__pycache__" not in p.parts}
     assert {f"{p}/__init__.py" for p in packages} <= names
     assert modules <= names, sorted(modules - names)  # a new subpackage must join pyproject.toml's list
+
+
+def test_the_lock_pins_every_dependency_within_its_declared_range():
+    """constraints.txt (what the README's commands and CI install) pins one exact version of
+    every package pyproject.toml asks for, its extras included, and each pin is inside the range
+    pyproject.toml declares; every range has an upper bound (no untested major release)."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    pins = {}
+    for line in (root / "constraints.txt").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line:
+            name, _, version = line.partition("==")
+            assert version, f"constraints.txt: {line!r} is not an exact pin"
+            pins[canonicalize_name(name)] = version
+    wanted = [Requirement(r) for r in project["dependencies"]]
+    wanted += [Requirement(r) for extra in project["optional-dependencies"].values() for r in extra]
+    for req in wanted:
+        name = canonicalize_name(req.name)
+        if name == "mosaic-cli":
+            continue
+        assert name in pins, f"{req.name} is not pinned in constraints.txt"
+        assert req.specifier.contains(pins[name], prereleases=True), f"{req.name}=={pins[name]} is outside {req.specifier}"
+        assert any(spec.operator in ("<", "==", "<=", "~=") for spec in req.specifier), f"{req} has no upper bound"

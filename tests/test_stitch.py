@@ -176,9 +176,16 @@ def test_alpha_is_zero_exactly_outside_the_covered_ground(survey):
 def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     flight, _, _, full = survey
     pano, transforms = tmp_path / "small.jpg", tmp_path / "small.json"
-    stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
-           transforms=transforms, show_progress=False)
+    result = stitch(flight.path, pano, fast_orb(), StitchOptions(canvas=dataclasses.replace(StitchOptions().canvas, max_size=200)),
+                    transforms=transforms, show_progress=False)
     canvas, indices, H = load_transforms(transforms)
+    # The shrink is said, naming both sizes: the full-size stitch's canvas and this one's.
+    from mosaic_cli.commands.stitch import _notices
+
+    native = result.panoramas[0].shrunk_from
+    assert native is not None and np.abs(np.subtract(native, full.canvas_size)).max() <= 1  # (the bounds' rounding)
+    said = f"{pano}: scaled down from {native[0]}x{native[1]} to {canvas[0]}x{canvas[1]} by --max-size 200"
+    assert [line for line in _notices(flight.path, result, 200) if "scaled down" in line] == [f"{said} (--max-size 0 keeps every pixel)"]
     image = read_rgba(pano)
     assert max(canvas) <= 200 and image.shape[:2] == (canvas[1], canvas[0]) and image.ndim == 3
     assert max(canvas) >= 195

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape  # typer renders help as rich markup: '[plot]' would vanish
 
 from mosaic_cli.commands.options import (
     ESTIMATOR,
@@ -60,7 +61,7 @@ def stabilize(
     strict: Strict = False,
     latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
-    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction. [default: auto; off for --latency and live input or output]", rich_help_panel=SMOOTHING, show_default=False)] = None,
+    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.", rich_help_panel=SMOOTHING, show_default="auto; off for --latency and live input or output")] = None,
     quiet: Quiet = False,
     lens: LensOption = None,
     keep_lens: Annotated[bool, typer.Option("--keep-lens", help="With a lens applied (--lens FILE, or auto that finds one): "
@@ -69,7 +70,7 @@ def stabilize(
                                             "Warped by OpenCV on the CPU.", rich_help_panel=INPUT_OUTPUT)] = False,
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw the camera path before and after (x, y, rotation, scale) "
                                               "and the crop window over time to this PNG (needs matplotlib: "
-                                              f"{install_hint('plot')}).", rich_help_panel=INPUT_OUTPUT)] = None,
+                                              f"{escape(install_hint('plot'))}).", rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
@@ -80,7 +81,7 @@ def stabilize(
     from mosaic_cli.plots import check_plot_request
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize import stabilize as run
-    from mosaic_cli.stabilize.rolling import parse_rolling_shutter
+    from mosaic_cli.stabilize.rolling import bridged_bands, parse_rolling_shutter
 
     check_plot_request(plot)  # before any long work
     options = StabilizeOptions(
@@ -121,17 +122,20 @@ def stabilize(
         _plot(plot, result)
     if not quiet:
         s = result.seconds
+        tightest, at = result.tightest_crop
         console.print(
             f"{result.frames} frames -> {out}: {result.frames / max(s['total'], 1e-9):.1f} fr/s "
             f"(overlays {s['overlays']:.1f} s; track {s['track']:.1f} s, path {s['plan']:.1f} s of it, "
             f"beside the render {s['render']:.1f} s" + (f", rolling shutter {s['rolling']:.1f} s of those" if result.rolling is not None else "")
             + "); "
-            f"cropping {result.cropping:.3f}, distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
+            f"cropping {result.cropping:.3f} mean, {tightest:.3f} at its tightest (frame {at}, {at / max(result.fps, 1e-9):.1f} s), "
+            f"distortion {result.distortion:.3f}, border {100 * result.border:.2f}%"
         )
         if result.rolling is not None:
             rs = result.rolling
             said = f"readout {rs.readout:.2f} ({'estimated' if rs.estimated else 'given'})"
-            console.print(f"rolling shutter: {said}, " + ("each row corrected" if rs.applied else "a global shutter: left alone"))
+            console.print(f"rolling shutter: {said}, " + ("each row corrected" if rs.applied else "a global shutter: left alone")
+                          + bridged_bands(rs.bridged))
         if lens_choice.source != "none":
             said = lens_choice.describe()
             if keep_lens:

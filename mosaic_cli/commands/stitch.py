@@ -59,7 +59,7 @@ def stitch(
     blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.", rich_help_panel=OUTPUT_QUALITY)] = "multiband",
     seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.", rich_help_panel=OUTPUT_QUALITY)] = "dp",
     exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.", rich_help_panel=OUTPUT_QUALITY)] = "gain-blocks",
-    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Draw a rolling-shutter camera's frames row band by row band, each where it belongs (not smeared or doubled): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). [default: auto for a video file; off for photo folders and live input]", rich_help_panel=OUTPUT_QUALITY, show_default=False)] = None,
+    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Draw a rolling-shutter camera's frames row band by row band, each where it belongs (not smeared or doubled): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1).", rich_help_panel=OUTPUT_QUALITY, show_default="auto for a video file; off for photo folders and live input")] = None,
     fill_holes: Annotated[bool, typer.Option("--fill-holes", help="Fill small interior transparent holes (ground under a masked overlay that no frame saw) from their surroundings, for a closed picture; holes at the panorama's border stay transparent.", rich_help_panel=OUTPUT_QUALITY)] = False,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
@@ -80,7 +80,7 @@ def stitch(
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
     from mosaic_cli.estimators.lens import undistorting
     from mosaic_cli.live.source import is_live_source
-    from mosaic_cli.stabilize.rolling import parse_rolling_shutter
+    from mosaic_cli.stabilize.rolling import bridged_bands, parse_rolling_shutter
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
     from mosaic_cli.stitch.live import PreviewOptions, stitch_live
@@ -135,19 +135,20 @@ def stitch(
         if result.rolling is not None:
             rs = result.rolling
             said = f"readout {rs.readout:.2f}" + (" (estimated)" if rs.estimated else "")
-            console.print(f"rolling shutter: {said}, " + ("each row band drawn where it belongs" if rs.applied else "a global shutter: left alone"))
+            console.print(f"rolling shutter: {said}, " + ("each row band drawn where it belongs" if rs.applied else "a global shutter: left alone")
+                          + bridged_bands(rs.bridged))
         if lens_choice is not None and lens_choice.source != "none":
             console.print(lens_choice.describe())
         if fill_holes:  # the last line: what the panorama holds that no frame showed
             console.print(f"--fill-holes: {sum(p.filled for p in result.panoramas)} pixels of interior holes filled")
     # Said even with -q: nothing leaves the panorama silently.
-    for line in _notices(video, result):
+    for line in _notices(video, result, max_size):
         print(f"mosaic: warning: {line}", file=sys.stderr)
 
 
-def _notices(video: Path, result) -> list[str]:
-    """A line for a flight in several panoramas (which file holds what), and for frames or
-    photos placed nowhere."""
+def _notices(video: Path, result, max_size: int) -> list[str]:
+    """A line for a flight in several panoramas (which file holds what), for a panorama that
+    ``--max-size`` scaled down, and for frames or photos placed nowhere."""
     lines = []
     names = _photo_names(video) if result.photos else None
     several = len(result.panoramas) > 1
@@ -160,6 +161,10 @@ def _notices(video: Path, result) -> list[str]:
     for p in result.panoramas:
         if p.georef is not None:
             lines += [f"{p.path}: {w}" if several else w for w in p.georef.warnings]
+    for p in result.panoramas:
+        if p.shrunk_from is not None:
+            (w, h), (W, H) = p.canvas_size, p.shrunk_from
+            lines.append(f"{p.path}: scaled down from {W}x{H} to {w}x{h} by --max-size {max_size} (--max-size 0 keeps every pixel)")
     if result.dropped:
         if names is not None:
             for index, why in result.dropped:

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape  # typer renders help as rich markup: '[plot]' would vanish
 
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.commands.options import (
@@ -64,7 +65,7 @@ def track(
     lens: LensOption = None,
     rolling_shutter: Annotated[str, typer.Option("--rolling-shutter", help="Also each row band's motion and correction (a rolling shutter's wobble) in the track file's \"rolling_shutter\" block: auto (readout estimated; a global shutter reads 0, no motion written), off, or the readout as a fraction of the frame interval (0..1). .json output only.", rich_help_panel=INPUT_OUTPUT)] = "off",
     plot: Annotated[Path | None, typer.Option("--plot", help="Also draw each pair's confidence over time, failed pairs marked, to "
-                                              f"this PNG (needs matplotlib: {install_hint('plot')}).",
+                                              f"this PNG (needs matplotlib: {escape(install_hint('plot'))}).",
                                               rich_help_panel=INPUT_OUTPUT)] = None,
 ) -> None:
     """Estimate the homography between every pair of consecutive frames.

@@ -51,7 +51,7 @@ def options_help() -> str:
 def _options_of_all(family: tuple[str, ...]) -> str:
     """The options of estimators that take (nearly) the same, each once, with those only some take marked."""
     described = []
-    for key in dict.fromkeys(key for estimator in family for key in OPTIONS[estimator]):
+    for key in dict.fromkeys(key for estimator in family for key in OPTIONS[estimator] if not OPTIONS[estimator][key].ablation):
         takers = [estimator for estimator in family if key in OPTIONS[estimator]]
         usage = OPTIONS[takers[0]][key].usage()
         described.append(usage if len(takers) == len(family) else f"{usage} ({' and '.join(takers)} only)")

@@ -57,8 +57,8 @@ class LearnedConfig:
     # settle (no refit, too few inliers, a divergence, detail that does not correlate) then
     # finished by OpenCV as with "opencv"; "auto": torch on a GPU, OpenCV on a CPU.  Only the
     # LK polish (refine=lk) is batched, and not with seed=velocity (each pair seeds the next).
-    polish_with: PolishWith = option("auto")
-    retry: Retry = option("wide")  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
+    polish_with: PolishWith = option("auto", ablation=True)
+    retry: Retry = option("wide", ablation=True)  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
     # the finest detail of an encoded video moves with the codec's quantised motion vectors, and
     # exposure drifts from frame to frame; both bias LK tracks in ways that add up along a chain.
@@ -76,15 +76,15 @@ class LearnedConfig:
     min_zncc: float | None = 0.1  # None: never
     # What seeds the polish: "network" (the product), or for the ablations the identity or the
     # previous pair's motion (constant velocity), with everything else unchanged.
-    seed: Seed = option("network")
+    seed: Seed = option("network", ablation=True)
     # A motion prior: "velocity" pre-aligns frame t+1 by the last confirmed motion (as the chunk
     # starts) before the network reads it, so that the network regresses only what changed;
     # "none" reads the raw pair, as the paper does.  A network trained on fast flights needs no
     # prior, and a prior a chunk old misleads it (models/README.md): "none" by default.
-    prior: Prior = option("none")
+    prior: Prior = option("none", ablation=True)
     # When the learned path cannot confirm a pair (the polish fails or its detail does not
     # correlate), the classical estimator (ORB + its own polish) tries that pair: "orb" or "none".
-    fallback: Fallback = option("orb")
+    fallback: Fallback = option("orb", ablation=True)
     # A pair that no path confirms, one of whose frames is spoilt (glare, a gust's blur, near
     # black, featureless: its band-passed detail below ``spoilt_ratio`` of the flight's recent
     # frames), is placed by the motion carried across the frames rather than reported failed:
@@ -92,29 +92,29 @@ class LearnedConfig:
     # from the frames before makes of it), "velocity" (the last confirmed motion), "none"
     # (failed).  Its confidence is ``carry_confidence``: placed, but confirmed by nothing.  A cut
     # to unrelated ground keeps its detail, so it stays a failure.
-    carry: Carry = option("velocity")
+    carry: Carry = option("velocity", ablation=True)
     carry_confidence: float = 0.05
     # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
     # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
-    carry_limit: int = option(8)
+    carry_limit: int = option(8, ablation=True)
     # What the carry head (a sequence head trained with ``mosaic train --variant carry``) carries
     # to the next pair as its previous output: "own" (its own output, unchecked) or "confirmed"
     # (after each pair the frames confirm, the learned path's or the fallback's motion, as the
     # velocity rule carries it).  Other heads have no such state: the option changes nothing
     # for them.  Needs prior=none (a prior re-expresses the head's offsets chunk by chunk).
-    carry_state: CarryState = option("own", only=("lstm",))
+    carry_state: CarryState = option("own", only=("lstm",), ablation=True)
     # With carry-state=confirmed, how the head's answer on a pair is made: its own gate's blend of
     # the carried motion and the BASE's answer ("gate"), or, on a pair with a frame the estimator
     # finds spoilt, the carried motion whole ("spoilt": the learned memory carries, the frame's
     # detail decides when).
-    carry_blend: CarryBlend = option("gate", only=("lstm",))
+    carry_blend: CarryBlend = option("gate", only=("lstm",), ablation=True)
     # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
     # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.  Off
     # by default (0): on the development flights a gate of 0.1 took the failed burst pairs from
     # 5.9% to 5.2% but the extreme flights' failures from 25.2% to 25.6% (models/README.md).
-    carry_gate: float = option(0.0)
-    carry_gate_px: float = option(2.5)
-    spoilt_ratio: float = option(0.8)
+    carry_gate: float = option(0.0, ablation=True)
+    carry_gate_px: float = option(2.5, ablation=True)
+    spoilt_ratio: float = option(0.8, ablation=True)
 
     def __post_init__(self) -> None:
         self.validate()

@@ -21,15 +21,20 @@ from mosaic_cli.errors import BadInput
 # The key of a field's metadata that makes it an option; its value: the estimators of the config
 # that take it (None: all of them).
 _OPTION = "mosaic_option"
+# The key that marks an option as an ablation's: accepted, but not listed in ``--help``
+# (docs/developer/estimator-options.md lists them for developers).
+_ABLATION = "mosaic_ablation"
 
 # How the value of an option of each kind is written in the help.
 _PLACEHOLDERS: dict[type, str] = {int: "N", float: "X", str: "TEXT", Path: "FILE"}
 
 
-def option(default: Any, *, only: tuple[str, ...] | None = None) -> Any:
+def option(default: Any, *, only: tuple[str, ...] | None = None, ablation: bool = False) -> Any:
     """A config field that is an option (``default``: its value when not given); ``only``: the
-    estimators of the config that take it, when not all do (``reset-every``: the LSTM's)."""
-    return dataclasses.field(default=default, metadata={_OPTION: only})
+    estimators of the config that take it, when not all do (``reset-every``: the LSTM's);
+    ``ablation``: a setting for experiments (the paper's table, the model card's runs), which a
+    user has no reason to change: accepted, not listed in the help."""
+    return dataclasses.field(default=default, metadata={_OPTION: only, _ABLATION: ablation})
 
 
 @dataclass(frozen=True)
@@ -41,6 +46,7 @@ class Option:
     kind: type
     choices: tuple | None = None
     default: Any = None
+    ablation: bool = False  # an experiment's setting: not listed in the help
 
     def read(self, estimator: str, value: Any) -> Any:
         """The value of ``NAME:KEY=VALUE`` (text) or of a flag (already typed); ``BadInput`` for
@@ -87,7 +93,7 @@ def options_of(config: type, estimator: str | None = None) -> dict[str, Option]:
         if estimator is not None and only is not None and estimator not in only:
             continue
         kind, choices = _kind_and_choices(hints[f.name])
-        found[f.name] = Option(f.name.replace("_", "-"), kind, choices, f.default)
+        found[f.name] = Option(f.name.replace("_", "-"), kind, choices, f.default, bool(f.metadata.get(_ABLATION, False)))
     return found
 
 

@@ -35,6 +35,7 @@ class Canvas:
     size: tuple[int, int]  # (W, H)
     to_canvas: np.ndarray  # reference frame source pixels -> panorama pixels
     scale: float  # panorama pixels per reference-frame pixel
+    native_size: tuple[int, int] | None = None  # (W, H) at one panorama pixel per reference-frame pixel (scale 1)
 
     def frame_to_canvas(self, placement: np.ndarray) -> np.ndarray:
         return normalize(self.to_canvas @ placement)
@@ -96,4 +97,5 @@ def plan_canvas(
     height = max(1, int(np.ceil(extent[1] * scale - 1e-6)))
     # Outer frame edges sit at pixel -0.5; the canvas' first pixel centre at its edge + 0.5.
     to_canvas = np.array([[scale, 0, -scale * lo[0] - 0.5], [0, scale, -scale * lo[1] - 0.5], [0, 0, 1.0]])
-    return Canvas((width, height), to_canvas, scale)
+    native = (max(1, int(np.ceil(extent[0] - 1e-6))), max(1, int(np.ceil(extent[1] - 1e-6))))
+    return Canvas((width, height), to_canvas, scale, native)

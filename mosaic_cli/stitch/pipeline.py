@@ -121,6 +121,7 @@ class Panorama:
     # centre rows (the band's correction, then the keyframe's transform), in the order of transforms.
     bands: list[np.ndarray] | None = None
     filled: int = 0  # --fill-holes: pixels of interior holes inpainted
+    shrunk_from: tuple[int, int] | None = None  # the (W, H) --max-size scaled it down from, if it did
 
     @property
     def size(self) -> int:
@@ -297,7 +298,9 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
         if rolling is not None:
             centres = band_centres(scan.source_size[1], rolling.corrections.shape[1])
             bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
-        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands, filled))
+        shrunk_from = canvas.native_size if canvas.scale < 1.0 else None
+        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands, filled,
+                                  shrunk_from))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
