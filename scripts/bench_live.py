@@ -24,9 +24,10 @@ machine; say how loaded it was beside it.
     python scripts/bench_live.py stalls     [--estimator lstm] [--frames 600] [--clips 2] [--recover 0.15]
         the live schedule on a test clock over an offline track, with solves that stall now and
         then: residual jitter against the offline L1 path, frames settled at their deadline
-    python scripts/bench_live.py listen     [--clips 5]
+    python scripts/bench_live.py listen     [--clips 5] [--cold]
         seconds from starting `mosaic track|stabilize|stitch tcp://...?listen=1` to its socket
-        listening (a sender that connects sooner is refused), median and max of --clips starts
+        listening (a sender that connects sooner is refused), median and max of --clips starts;
+        --cold empties the page cache before each start (root), as after a boot
     python scripts/bench_live.py memory     [--frames 54000]
         resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
         sent as fast as mosaic takes it), sampled every second
@@ -323,6 +324,8 @@ def bench_listen(args) -> list[dict]:
             url = f"tcp://127.0.0.1:{port}?listen=1"
             out = {"track": ["-o", str(WORKDIR / "listen.json")], "stabilize": [str(WORKDIR / "listen.mp4")],
                    "stitch": ["-o", str(WORKDIR / "listen.png")]}[command]
+            if args.cold:
+                drop_file_cache()
             start = time.monotonic()
             proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", command, url, *out, "-q"], stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)
@@ -337,12 +340,22 @@ def bench_listen(args) -> list[dict]:
                     proc.kill()
                     proc.wait()
         row = {"command": command, "median_s": float(np.median(waits)), "max_s": float(np.max(waits)), "starts": len(waits),
-               "load": load_note()}
+               "cold": args.cold, "load": load_note()}
         rows.append(row)
-        print(f"mosaic {command} listens {row['median_s']:.2f} s after it starts (median of {len(waits)}, max {row['max_s']:.2f} s); "
-              f"{row['load']}", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py listen --clips {args.clips}")
+        print(f"mosaic {command} listens {row['median_s']:.2f} s after it starts{' cold' if args.cold else ''} "
+              f"(median of {len(waits)}, max {row['max_s']:.2f} s); {row['load']}", flush=True)
+    print(f"  reproduce: python scripts/bench_live.py listen --clips {args.clips}{' --cold' if args.cold else ''}")
     return rows
+
+
+def drop_file_cache() -> None:
+    """Empty the kernel's page cache (root only), so that the next start reads Python, torch and
+    ffmpeg from the disk as the first run after a boot does."""
+    os.sync()
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("3\n")
+    except OSError as exc:
+        raise SystemExit(f"--cold needs to drop the page cache (root): {exc}") from None
 
 
 def receive(args) -> None:
@@ -590,6 +603,7 @@ def main() -> None:
     parser.add_argument("--profile", default="shaky", help="stabilize: the simulated flight (shaky, shaky-tilt)")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--clips", type=int, default=2)
+    parser.add_argument("--cold", action="store_true", help="listen: empty the page cache before each start (root)")
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
     args = parser.parse_args()
     if args.what == "receive":  # the stabilize benchmark's receiver, in a process of its own

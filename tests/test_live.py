@@ -475,6 +475,10 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
     assert connected.is_set()
     assert result.frames_in == result.frames_out == FRAMES and count_frames(out) == FRAMES
     assert any("tracked by ORB while the network loaded" in n for n in result.notes), result.notes
+    # Which estimator made how many pairs: ORB the first (here, with the load held back over a
+    # 2 s clip, maybe all), the network any after; every pair counted once.
+    assert result.pairs_by["orb"] >= 1 and set(result.pairs_by) <= {"orb", "lstm-reg-t"}, result.pairs_by
+    assert sum(result.pairs_by.values()) == FRAMES - 1, result.pairs_by
 
 
 def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(shaky_flight):
@@ -699,3 +703,36 @@ def test_a_live_command_exits_once_its_stream_has_ended_and_its_output_is_writte
     assert exited - max(stream_ended + silence, written) < END_GRACE, (
         f"{command} over {transport} exited {exited - stream_ended:.1f} s after its stream ended, "
         f"{exited - written:.1f} s after writing {out.name}")
+
+
+@pytest.mark.slow
+def test_a_missed_latency_is_one_warning_that_says_by_how_much(tmp_path, flight, monkeypatch, capsys):
+    """A render slower than the stream (fault injected: 0.1 s a frame at 30 fps): the frames
+    still all come out, and one ``mosaic: warning:`` line gives the 95th percentile the run
+    reached against the bound (the latency plus a frame interval)."""
+    import mosaic_cli.live.stabilize as live_stabilize
+    from mosaic_cli.stabilize import StabilizeOptions
+
+    warp = live_stabilize.warp_yuv
+
+    def slow(*args, **kwargs):
+        time.sleep(0.1)
+        return warp(*args, **kwargs)
+
+    monkeypatch.setattr(live_stabilize, "warp_yuv", slow)
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
+                              daemon=True)
+    sender.start()
+    result = live_stabilize.stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(tmp_path / "o.mp4"),
+                                           StabilizeOptions(estimator="orb", latency=1.0), show_progress=False)
+    sender.join(RUN_LIMIT)
+    assert result.frames_out == FRAMES
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mosaic: warning: --latency")]
+    bound = 1.0 + 1.0 / result.fps
+    late = int(np.count_nonzero(result.latencies > bound))
+    assert result.latency(95) > bound and warnings == [
+        f"mosaic: warning: --latency 1 s missed: p95 {result.latency(95):.2f} s, {late} of {FRAMES} frames later than "
+        f"{bound:.2f} s (the latest {result.latency(100):.2f} s); this machine could not keep up with "
+        f"{SIZE[0]}x{SIZE[1]} at {result.fps:g} fps: a longer --latency, or a smaller input, would"]

@@ -106,7 +106,8 @@ def stabilize(
             console.print(
                 f"{live.frames_in} frames in, {live.frames_out} out -> {'standard output' if out == '-' else out}: "
                 f"latency p50 {live.latency(50):.2f} s, p95 {live.latency(95):.2f} s, max {live.latency(100):.2f} s "
-                f"(horizon {live.horizon.frames} frames); {live.frames_out / max(live.seconds, 1e-9):.1f} fr/s",
+                f"(horizon {live.horizon.frames} frames); {live.frames_out / max(live.seconds, 1e-9):.1f} fr/s; "
+                f"pairs by {', '.join(f'{name} {n}' for name, n in live.pairs_by.items()) or 'none'}",
                 soft_wrap=True,
             )
             if lens_choice.source != "none":

@@ -106,7 +106,7 @@ def track(
                 # A network loads beside the stream's opening (its width read from its weights' header):
                 # the socket listens at once.
                 width = trained_width(estimator, str(weights) if weights else None)
-                tracker = built_beside(build) if width is not None else build()
+                tracker = built_beside(build, after_start=True) if width is not None else build()
             else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
                 masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
                 est.set_mask(masked.use)

@@ -21,8 +21,13 @@ T = TypeVar("T")
 LOADING_SWITCH_INTERVAL = 0.0005
 
 
-def built_beside(build: Callable[[], T]) -> concurrent.futures.Future:
+def built_beside(build: Callable[[], T], after_start: bool = False) -> concurrent.futures.Future:
     """``build()`` on a thread of its own: its result (or its error) when the future is asked.
+
+    ``after_start``: the build waits for :func:`begin` (which :func:`waited_for` also calls on
+    its way out, so that nothing waits for a build that never began).  A live command begins it
+    once its decoder has started: on a cold machine, torch's import reads a gigabyte of
+    libraries, and beside it the decoder took seconds to listen (``bench_live.py listen --cold``).
 
     The cyclic garbage collector waits meanwhile, and what the build made is then frozen out of
     its later passes: torch's import makes hundreds of thousands of objects, and collecting
@@ -31,8 +36,13 @@ def built_beside(build: Callable[[], T]) -> concurrent.futures.Future:
     hands its lock on every :data:`LOADING_SWITCH_INTERVAL`: at Python's 5 ms, 3 of 4 cold runs
     left 5-11 of their first frames at their deadline, at 0.5 ms none of 8."""
     future: concurrent.futures.Future = concurrent.futures.Future()
+    go = threading.Event()
+    future.begin = go.set  # type: ignore[attr-defined]
+    if not after_start:
+        go.set()
 
     def run() -> None:
+        go.wait()
         collecting = gc.isenabled()
         gc.disable()
         interval = sys.getswitchinterval()
@@ -65,7 +75,14 @@ def waited_for(future: concurrent.futures.Future | None) -> Iterator[None]:
         yield
     finally:
         if future is not None:
+            begin(future)
             concurrent.futures.wait([future])
+
+
+def begin(future: concurrent.futures.Future | None) -> None:
+    """Let a build made with ``after_start`` begin (nothing for one that began or for None)."""
+    if future is not None and hasattr(future, "begin"):
+        future.begin()
 
 
 def trained_width(name: str | None, weights: str | None) -> int | None:
@@ -86,4 +103,4 @@ def trained_width(name: str | None, weights: str | None) -> int | None:
         return None
 
 
-__all__ = ["built_beside", "trained_width", "waited_for"]
+__all__ = ["begin", "built_beside", "trained_width", "waited_for"]

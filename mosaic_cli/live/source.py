@@ -24,7 +24,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -124,7 +124,7 @@ class LiveStream:
 
     def __init__(self, source: str, pixels: str = "gray", width: int | None = None,
                  timeout: float = DEFAULT_TIMEOUT, stop: StopRequest | None = None, quiet: bool = False,
-                 live: bool = True, info: VideoInfo | None = None):
+                 live: bool = True, info: VideoInfo | None = None, on_started: Callable[[], None] | None = None):
         if pixels not in ("gray", "rgb", "yuv420p"):
             raise ValueError(f"pixels must be gray, rgb or yuv420p, got {pixels}")
         self.source = source
@@ -152,7 +152,11 @@ class LiveStream:
         # --lens FILE: each frame undistorted at its full size as it arrives, on the reader thread
         # (the filter the command set for this source: video.decode.seen_through)
         self._filter = image_filter_for(source)
-        self._proc = self._start()
+        try:
+            self._proc = self._start()
+        finally:
+            if on_started is not None:  # the decoder is up (listening, for a server URL): what waited for it may go
+                on_started()
         try:
             self.info = self._wait_for_header(width)
         except BaseException:

@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, warn
 from mosaic_cli.estimators import Estimator, make_estimator
-from mosaic_cli.live.loading import built_beside, trained_width, waited_for
+from mosaic_cli.live.loading import begin, built_beside, trained_width, waited_for
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import (
@@ -99,6 +99,7 @@ class LiveStabilizeResult:
     rejoined: int = 0  # plans joined to frames settled at their deadline while they were solved
     simplified_at: int | None = None  # the frame from which `tilt` was planned as a similarity (it could not keep up)
     lateness: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per frame rendered: settled at its deadline
+    pairs_by: dict[str, int] = field(default_factory=dict)  # frame pairs each estimator made ("orb" while the network loaded)
 
     def latency(self, q: float) -> float:
         return float(np.percentile(self.latencies, q)) if len(self.latencies) else 0.0
@@ -359,7 +360,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     # sender may connect) at once; the frames that come meanwhile queue, and their deadlines
     # start as they are taken.
     estimator = _estimator(options) if _learned(options) and not live else None
-    loading = built_beside(lambda: _estimator(options)) if _learned(options) and live else None
+    loading = built_beside(lambda: _estimator(options), after_start=True) if _learned(options) and live else None
     masked = None
     horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
@@ -367,7 +368,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
     with waited_for(loading), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live,
-                                         info=file_info) as stream:
+                                         info=file_info, on_started=lambda: begin(loading)) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
@@ -450,8 +451,14 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     warps_array = np.array(schedule.warps).reshape(-1, 3, 3)
     if warps_out is not None:
         write_warps(warps_out, warps_array, size)
-    if isinstance(tracker, Bridged) and tracker.bridged:
-        notes.append(f"the first {tracker.bridged} frames were tracked by ORB while the network loaded")
+    pairs = max(0, frames_in - 1)
+    if isinstance(tracker, Bridged):
+        pairs_by = {"orb": tracker.orb_pairs, tracker.name: pairs - tracker.orb_pairs}
+    else:
+        pairs_by = {tracker.name: pairs}
+    pairs_by = {name: n for name, n in pairs_by.items() if n}
+    if isinstance(tracker, Bridged) and tracker.orb_pairs:
+        notes.append(f"{tracker.orb_pairs} of {pairs} frame pairs were tracked by ORB while the network loaded")
         if show_progress:
             note(notes[-1])
     if schedule.simplified_at is not None:
@@ -464,11 +471,17 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
                      f"({schedule.path.held} of them past its end, moving with the camera): tracking or solving ran late")
         if show_progress:
             note(notes[-1])
+    bound = latency + 1.0 / fps  # a frame's own interval on top: it is whole only once its last packet came
+    if live and latencies and (p95 := float(np.percentile(latencies, 95))) > bound:
+        late_frames = int(np.count_nonzero(np.array(latencies) > bound))
+        warn(f"--latency {latency:g} s missed: p95 {p95:.2f} s, {late_frames} of {len(latencies)} frames later than "
+             f"{bound:.2f} s (the latest {max(latencies):.2f} s); this machine could not keep up with "
+             f"{size[0]}x{size[1]} at {fps:g} fps: a longer --latency, or a smaller input, would")
     return LiveStabilizeResult(frames_in, len(latencies), size, fps, horizon, np.array(latencies),
                                stream.ended_by if live else None, warps_array, time.monotonic() - start, notes,
                                schedule.late, schedule.path.held, schedule.solves, schedule.stale,
                                schedule.lookahead_min, timeline, schedule.path.rejoined, schedule.simplified_at,
-                               np.array(schedule.lateness, bool))
+                               np.array(schedule.lateness, bool), pairs_by)
 
 
 _END = object()
@@ -566,6 +579,8 @@ class Bridged:
         self.orb.reset(size)
         self.current: Estimator = self.orb
         self.bridged = 0  # frames ORB took
+        self.orb_pairs = 0  # pairs ORB estimated
+        self.name = "network"  # the network's name, once it has loaded
         self._last: np.ndarray | None = None
 
     def feed(self, gray: np.ndarray) -> list:
@@ -574,17 +589,25 @@ class Bridged:
             network = self.loading.result()  # (its error, if loading failed: the track stage's)
             network.set_mask(self.use)
             network.reset(self.size)
+            self.name = network.name
             handed = self.orb.finish()
+            self.orb_pairs += len(handed)
             if self._last is not None:
                 handed += network.feed(self._last)  # its first frame: no pair yet
             self.current = network
         if self.current is self.orb:
             self.bridged += 1
         self._last = gray
-        return handed + self.current.feed(gray)
+        made = self.current.feed(gray)
+        if self.current is self.orb:
+            self.orb_pairs += len(made)
+        return handed + made
 
     def finish(self) -> list:
-        return self.current.finish()
+        made = self.current.finish()
+        if self.current is self.orb:
+            self.orb_pairs += len(made)
+        return made
 
 
 def _delay(estimator: Estimator | None) -> int:

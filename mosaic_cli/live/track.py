@@ -24,7 +24,7 @@ import numpy as np
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, estimate_stream
-from mosaic_cli.live.loading import waited_for
+from mosaic_cli.live.loading import begin, waited_for
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
 from mosaic_cli.overlay import MaskOptions, live_mask
@@ -87,7 +87,7 @@ def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.F
     with waited_for(loading):
         if live:
             stream = LiveStream(str(source), "gray", width=width if loading is not None else estimator.input_width, timeout=timeout,
-                                quiet=not show_progress)
+                                quiet=not show_progress, on_started=lambda: begin(loading))
         else:
             stream = open_video(source, width=estimator.input_width, gray=True, info=info)
         if loading is not None:

@@ -36,7 +36,7 @@ from mosaic_cli.atomic import atomic_path, check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
-from mosaic_cli.live.loading import built_beside, waited_for
+from mosaic_cli.live.loading import begin, built_beside, waited_for
 from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import LiveStream, is_live_source
 from mosaic_cli.live.timeline import Timeline
@@ -298,7 +298,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
     loading = None
     owned = estimator is None  # built here, so closed here
     if estimator is None and live:  # the socket listens at once, the network loading beside it
-        loading = built_beside(lambda: make_stitch_estimator(options))
+        loading = built_beside(lambda: make_stitch_estimator(options), after_start=True)
     elif estimator is None:
         estimator = make_stitch_estimator(options)
     masked = None
@@ -310,7 +310,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
         with waited_for(loading), LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live,
-                                             info=info) as stream:
+                                             info=info, on_started=lambda: begin(loading)) as stream:
             info = stream.info
             if estimator is None:
                 assert loading is not None
