@@ -736,3 +736,32 @@ def test_a_missed_latency_is_one_warning_that_says_by_how_much(tmp_path, flight,
         f"mosaic: warning: --latency 1 s missed: p95 {result.latency(95):.2f} s, {late} of {FRAMES} frames later than "
         f"{bound:.2f} s (the latest {result.latency(100):.2f} s); this machine could not keep up with "
         f"{SIZE[0]}x{SIZE[1]} at {result.fps:g} fps: a longer --latency, or a smaller input, would"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command,signals", [("track", (signal.SIGINT, signal.SIGINT)), ("stitch", (signal.SIGINT, signal.SIGINT)),
+                                             ("stabilize", (signal.SIGINT, signal.SIGINT)), ("stitch", (signal.SIGTERM, signal.SIGTERM))])
+def test_a_second_signal_abandons_a_live_run_in_one_line_and_leaves_nothing(tmp_path, flight, command, signals):
+    """The first Ctrl-C (or SIGTERM) ends a live stream as its end would (docs/guide/live.md); a
+    second one abandons the run: one line, 130 (143 for SIGTERM), no traceback, no output."""
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    out = tmp_path / {"track": "t.json", "stitch": "pano.png", "stabilize": "steady.mp4"}[command]
+    source = f"tcp://127.0.0.1:{port}?listen=1"
+    proc = mosaic(command, source, *([out] if command == "stabilize" else ["-o", out]), "-q")
+    wait_until_bound(port, udp=False)
+    sender = subprocess.Popen([FFMPEG, "-v", "quiet", "-re", "-stream_loop", "-1", "-i", str(video), "-c", "copy", "-f", "mpegts",
+                               f"tcp://127.0.0.1:{port}"])
+    try:
+        time.sleep(2.0)  # frames are coming in
+        proc.send_signal(signals[0])
+        time.sleep(0.05)
+        proc.send_signal(signals[1])
+        rc, _, err = finish(proc)
+    finally:
+        sender.kill()
+        sender.wait(timeout=RUN_LIMIT)
+    name = "interrupted" if signals[1] == signal.SIGINT else "terminated"
+    assert rc == (130 if signals[1] == signal.SIGINT else 143), err
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == f"mosaic: error: {name}", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "the abandoned run left files behind"
