@@ -60,12 +60,12 @@ FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
 WORKDIR = ROOT / ".dev" / "bench_live"
 
 
-def flight(profile: str, frames: int, size: str = "1280x720", seed: int = 0) -> Path:
-    path = WORKDIR / f"{profile}_{size}_{frames}_s{seed}.mp4"
+def flight(profile: str, frames: int, size: str = "1280x720", seed: int = 0, fps: float = 30.0) -> Path:
+    path = WORKDIR / (f"{profile}_{size}_{frames}_s{seed}" + (f"_{fps:g}fps" if fps != 30.0 else "") + ".mp4")
     if not path.exists():
         WORKDIR.mkdir(parents=True, exist_ok=True)
         subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(path), "-p", profile, "-n", str(frames),
-                        "--size", size, "--preset", "veryfast", "--seed", str(seed), "-q"], check=True)
+                        "--size", size, "--fps", f"{fps:g}", "--preset", "veryfast", "--seed", str(seed), "-q"], check=True)
     return path
 
 
@@ -229,7 +229,7 @@ def bench_stabilize(args) -> list[dict]:
     rows = []
     models = args.model.split(",") if args.model else [StabilizeOptions().model]
     for seed, model in ((seed, model) for seed in range(args.clips) for model in models):
-        video = flight(args.profile, args.frames, seed=seed)
+        video = flight(args.profile, args.frames, size=args.size, seed=seed, fps=args.fps)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
         options = StabilizeOptions(estimator=args.estimator, latency=args.latency, model=model)  # the offline run ignores the latency
         port, out_port = free_port(), free_port()
@@ -280,7 +280,8 @@ def bench_stabilize(args) -> list[dict]:
     print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
           f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
           + (f" --hog {args.hog}" if args.hog else "") + (f" --model {args.model}" if args.model else "")
-          + (f" --profile {args.profile}" if args.profile != "shaky" else ""))
+          + (f" --profile {args.profile}" if args.profile != "shaky" else "")
+          + (f" --size {args.size}" if args.size != "1280x720" else "") + (f" --fps {args.fps:g}" if args.fps != 30.0 else ""))
     return rows
 
 
@@ -596,7 +597,8 @@ def main() -> None:
     parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--ts", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--times", type=Path, help=argparse.SUPPRESS)
-    parser.add_argument("--size", default="1280x720", help="horizon: the flight's size")
+    parser.add_argument("--size", default="1280x720", help="horizon, stabilize: the flight's size")
+    parser.add_argument("--fps", type=float, default=30.0, help="stabilize: the flight's frame rate")
     parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
     parser.add_argument("--model", default=None, help="stabilize: correction models, comma-separated (default: the command's)")

@@ -58,7 +58,7 @@ from mosaic_cli.overlay import check_mask_file, frame_mask, live_mask
 from mosaic_cli.stabilize.crop import output_warps, parse_crop
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path, Window
 from mosaic_cli.stabilize.path import motion_model
-from mosaic_cli.stabilize.pipeline import WORK_WIDTH, StabilizeOptions, write_warps
+from mosaic_cli.stabilize.pipeline import PRESET, WORK_WIDTH, StabilizeOptions, write_warps
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
 from mosaic_cli.video import VideoInfo, VideoWriter, probe
 from mosaic_cli.video.reader import scaled_size
@@ -394,8 +394,14 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         schedule = LiveSchedule(OnlineL1Path(model, size, crop, horizon), size, fps, latency, live,
                                 capacity=QUEUE_BYTES // frame_bytes)
         timeline = schedule.timeline
-        writer = (StreamWriter(out, size, fps, options.crf, options.preset) if is_stream_output(out)
-                  else VideoWriter(out, size, fps, crf=options.crf, preset=options.preset, pix_fmt_in="yuv420p"))
+        preset = options.preset or live_preset(size, fps)
+        if options.preset is None and preset != PRESET:
+            notes.append(f"{size[0]}x{size[1]} at {fps:g} fps is encoded with x264's {preset} preset, which keeps up "
+                         f"live on this machine where {PRESET} does not (--preset to choose)")
+            if show_progress:
+                note(notes[-1])
+        writer = (StreamWriter(out, size, fps, options.crf, preset) if is_stream_output(out)
+                  else VideoWriter(out, size, fps, crf=options.crf, preset=preset, pix_fmt_in="yuv420p"))
         # Gray images the tracker has yet to take: a short queue, so that frames are taken (and
         # their deadlines start) at the tracker's pace.  A stream faster than real time (a file
         # piped in) is then held back, as by a slow consumer, rather than leaving unsteadied.
@@ -608,6 +614,18 @@ class Bridged:
         if self.current is self.orb:
             self.orb_pairs += len(made)
         return made
+
+
+# The pixel rate (px/s) up to which a live run encodes with the offline preset: x264's veryfast
+# costs 23 ms of CPU a 1280x720 frame and 48 ms a 1920x1080 one on this 2-core machine, ultrafast
+# 8 and 18 ms, beside 6 and 12 ms of decoding (docs/measurements/live.md): at 1080p and 25 fps
+# veryfast alone takes more than half of both cores.
+LIVE_VERYFAST_PIXEL_RATE = 1280 * 720 * 30
+
+
+def live_preset(size: tuple[int, int], fps: float) -> str:
+    """x264's preset for a live run of frames of ``size`` at ``fps`` when --preset was not given."""
+    return PRESET if size[0] * size[1] * fps <= LIVE_VERYFAST_PIXEL_RATE else "ultrafast"
 
 
 def _delay(estimator: Estimator | None) -> int:

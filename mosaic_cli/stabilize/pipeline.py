@@ -58,6 +58,7 @@ from mosaic_cli.video.writer import OUTPUT_SUFFIXES, check_encoder, rewrite_cont
 # on shaky 1280x720 flights ORB at 640 px leaves 0.03-0.09 of the shake where 320 px leaves
 # 0.03-0.15 (occasional bad fits at 320 px), for about 5 ms more per frame (docs/measurements/stabilize.md).
 WORK_WIDTH = 640
+PRESET = "veryfast"  # x264's preset unless --preset says otherwise
 
 
 @dataclass
@@ -77,7 +78,7 @@ class StabilizeOptions:
     # the zoom limit cannot cover from turning dark).
     border: str | None = None
     crf: int = 18
-    preset: str = "veryfast"
+    preset: str | None = None  # x264's; None: PRESET, or for a live run the one its pixel rate allows (live.stabilize.live_preset)
     # Burned-in overlays and --mask: kept out of the motion estimate only (the output is the
     # whole frame, overlays included, as the input has them).
     mask: MaskOptions = field(default_factory=MaskOptions)
@@ -107,7 +108,7 @@ class StabilizeOptions:
         parse_crop(self.crop)
         if self.border is not None:
             parse_border(self.border)
-        check_encoder(self.crf, self.preset)
+        check_encoder(self.crf, self.preset or PRESET)
         if self.latency is not None and not self.latency > 0:
             raise BadInput(f"--latency must be positive, got {self.latency}")
         check_timeout(self.timeout)
@@ -319,7 +320,7 @@ def check_request(video, out, options: StabilizeOptions, warps_out=None, compare
         model=motion_model(options.model),
         smoother=make_smoother(options.smoothing, options.radius),
         crop=crop,
-        renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset, device=_render_device(options.device)),
+        renderer=Renderer(border=parse_border(border), crf=options.crf, preset=options.preset or PRESET, device=_render_device(options.device)),
     )
     info = probe(video)
     check_mask_file(options.mask, info)
