@@ -160,7 +160,8 @@ def _new_camera(lens: Lens) -> np.ndarray:
 def undistort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
     """Distorted pixels (N, 2) -> their pinhole pixels (N, 2) under the camera ``P`` (default
     :func:`undistorted_camera`; ``lens.K``: the same scale at the centre)."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
+    # (contiguous: cv2.fisheye.undistortPoints reads a strided view, e.g. every k-th match, as garbage)
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 1, 2))
     if len(pts) == 0:
         return np.zeros((0, 2))
     P = undistorted_camera(lens) if P is None else np.asarray(P, dtype=np.float64)
@@ -176,7 +177,7 @@ def undistort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None
 def distort_points(lens: Lens, points: np.ndarray, P: np.ndarray | None = None) -> np.ndarray:
     """Pinhole pixels (N, 2) under the camera ``P`` (default :func:`undistorted_camera`) -> where
     the lens images them (N, 2)."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 2))
     if len(pts) == 0:
         return np.zeros((0, 2))
     P = undistorted_camera(lens) if P is None else np.asarray(P, dtype=np.float64)
