@@ -13,9 +13,8 @@ Stages, each timed into session.log, a summary table printed last (``--stages``:
 3. tests      pytest -m cuda: the CUDA path against the CPU's, AMP steps, one-process nccl DDP
 4. bench      mosaic bench --device cuda: lstm, cnn and orb-paper, per-frame latency per stage
 5. speed      BASE samples/s and LSTM windows/s with the batches cut on the GPU (--data device)
-6. train      the BASE from the shipped cnn, then the sequence model (--variant carry: the carry
-              head on that BASE, its teacher tracks on the machine's cores, its feature cache
-              on the GPU), each for the time left, validated on the burst flights (the network alone)
+6. train      the BASE from the shipped cnn, then LSTM-REG-T with bursts from the shipped lstm,
+              each for the time left, validated on the burst flights (the network alone)
 7. throughput a 720p and a 4K clip rendered there over two real stills (x264 through PyAV: that
               machine has no ffmpeg binary, so mosaic reads and writes video with its PyAV
               backend), the probes (lscpu, nvidia-smi, NVDEC), then, side by side, the wall times
@@ -25,9 +24,9 @@ Stages, each timed into session.log, a summary table printed last (``--stages``:
               time is left, the default track and stabilize under scripts/profile_command.py
               (every thread's time) into logs.tar.gz
 
-Back under $OUT (at most 8 files of 16 MB): gpu_throughput.json (throughput), cnn.safetensors, lstm.safetensors (the carry head on
-that cnn: ship the two together), bench.json, tests.xml, logs.tar.gz (every run's log.csv / val.csv,
-the speed probes, env.json), session.log.  A file over 15 MiB comes back in parts, NAME.part1,
+Back under $OUT (at most 8 files of 16 MB): gpu_throughput.json (throughput), cnn.safetensors, lstm.safetensors,
+bench.json, tests.xml, logs.tar.gz (every run's log.csv / val.csv, the speed probes, env.json),
+session.log.  A file over 15 MiB (lstm's weights are 17.4 MB) comes back in parts, NAME.part1,
 NAME.part2: `cat NAME.part* > NAME`.
 Score the weights on the CPU afterwards: mosaic bench --flights ... -e lstm:weights=$OUT/lstm.safetensors.
 
@@ -73,8 +72,6 @@ class Plan:
     val_size: tuple[int, int] = (640, 360)
     base_batch: int = 256
     lstm_batch: int = 64
-    carry_batch: int = 256
-    feature_windows: int = 16384
     probe_minutes: float = 0.35
     work: list[str] = field(default_factory=list)  # --work-size / --patch for tiny runs
 
@@ -82,7 +79,7 @@ class Plan:
     def make(cls, device: str, minutes: float, tiny: bool) -> Plan:
         if tiny:
             return cls(device, minutes, True, frames=36, size=(128, 96), val_size=(128, 96), base_batch=4, lstm_batch=2,
-                       carry_batch=4, feature_windows=8, probe_minutes=0.05, work=["--work-size", "64x48", "--patch", "32", "--threads", "1"])
+                       probe_minutes=0.05, work=["--work-size", "64x48", "--patch", "32", "--threads", "1"])
         return cls(device, minutes, False)
 
 
@@ -248,29 +245,23 @@ def speed(s: Session) -> dict:
 def train(s: Session, rates: dict | None) -> str:
     p = s.plan
     budget = max(0.2, s.left() / 60 - 0.75)  # minutes for both runs; the rest for packing up
-    base_min = 0.05 if p.tiny else 0.4 * budget
+    base_min, lstm_min = (0.05, 0.05) if p.tiny else (0.4 * budget, 0.6 * budget)
     rates = rates or {"base": 100.0, "lstm-reg-t": 10.0}
     results = []
-    base_run, carry_run = s.work / "base", s.work / "carry"
+    base_run, lstm_run = s.work / "base", s.work / "lstm"
     # Steps sized to the measured rate, so that the paper's learning-rate decays fall inside the time.
     base_steps = max(2, int(rates["base"] * 60 * base_min / p.base_batch * 0.9))
     s.run(*train_args(s, "base", "models/cnn.safetensors", base_run, p.base_batch, base_steps, base_min, ("--lr", "3e-4")),
           timeout=120 + 60 * base_min * 1.5)
     deliver(base_run / "weights.safetensors", s.out / "cnn.safetensors")
     results.append(f"base {base_steps} steps x {p.base_batch} at {rate_of(base_run):.0f} samples/s")
-    # The carry head on the BASE just trained (a head is tied to the features it reads): its teacher
-    # tracks and feature cache first (minutes on 16 cores and a GPU), then its steps for the time left.
-    carry_min = max(0.05, s.left() / 60 - 0.75)
-    val = ("--val", str(s.work / "val"), "--val-every", "100000")
-    s.run(*mosaic("train", str(s.work / "clips"), "--variant", "carry", "--init", str(base_run / "weights.safetensors"),
-                  "--device", p.device, "--batch-size", str(p.carry_batch), "--feature-windows", str(p.feature_windows),
-                  "--max-minutes", f"{carry_min:.3f}", "--flip", "--num-workers", "8" if not p.tiny else "0",
-                  "--checkpoint-every", "100000", "-o", str(carry_run), "-q", *p.work, *val),
-          timeout=240 + 60 * carry_min * 1.5)
-    deliver(carry_run / "weights.safetensors", s.out / "lstm.safetensors")
-    results.append(f"carry {len(list(csv.DictReader(open(carry_run / 'log.csv'))))} steps x {p.carry_batch} "
-                   f"at {rate_of(carry_run):.0f} windows/s")
-    for run in (base_run, carry_run):
+    lstm_steps = max(2, int(rates["lstm-reg-t"] * 60 * lstm_min / p.lstm_batch * 0.9))
+    val = ("--val", str(s.work / "val"), "--val-every", str(max(1, lstm_steps // 2)))
+    s.run(*train_args(s, "lstm-reg-t", "models/lstm.safetensors", lstm_run, p.lstm_batch, lstm_steps, lstm_min,
+                      ("--lr", "1e-4", "--bursts", "0.5", *val)), timeout=180 + 60 * lstm_min * 1.5)
+    deliver(lstm_run / "weights.safetensors", s.out / "lstm.safetensors")
+    results.append(f"lstm-reg-t {lstm_steps} steps x {p.lstm_batch} at {rate_of(lstm_run):.0f} windows/s")
+    for run in (base_run, lstm_run):
         s.logs += [f for f in (run / "log.csv", run / "val.csv") if f.is_file()]
     return "; ".join(results)
 

@@ -5,8 +5,8 @@
 #   device run:  MOSAIC_COMMIT=<sha> bash scripts/gpu_session.sh [MINUTES] [STAGES]
 #     STAGES training (default):  carry [".gpu/wheels", ".gpu/wheels-rs", ".gpu/stills"]
 #     STAGES throughput:          carry [".gpu/wheels", ".gpu/av", ".gpu/footage"], with models/cnn.safetensors
-#                                 and models/carry.safetensors moved out of the tree for the call (PyAV's
-#                                 36 MB wheel and the tree must fit the call's 64 MiB; those runs read lstm alone)
+#                                 moved out of the tree for the call (PyAV's 36 MB wheel and the tree must
+#                                 fit the call's 64 MiB; those runs read lstm alone)
 #   timeout_s about 60 * MINUTES + 90
 #
 # The device machine has torch with CUDA, OpenCV, numpy, scipy, typer, rich, safetensors and

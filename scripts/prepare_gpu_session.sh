@@ -69,9 +69,9 @@ for key, name, longest in (("720p", "aerial_stills/odm_orthomosaic_previews/auke
 PY
 du -sh .gpu .gpu/*
 # What each call sends, against the 64 MiB a device call takes: the tree (tracked and untracked,
-# not ignored) and what it carries; the throughput call without the two models it moves out.
+# not ignored) and what it carries; the throughput call without the model it moves out.
 tree=$( (git ls-files -z; git ls-files -z --others --exclude-standard) | xargs -0 -r du -cb 2>/dev/null | awk '$2 == "total" {s += $1} END {print s}')
-models=$(du -cb models/cnn.safetensors models/carry.safetensors | tail -1 | cut -f1)
+models=$(du -cb models/cnn.safetensors | tail -1 | cut -f1)
 limit=$((64 * 1024 * 1024))
 for call in "training .gpu/wheels .gpu/wheels-rs .gpu/stills" "throughput .gpu/wheels .gpu/av .gpu/footage"; do
   set -- $call

@@ -36,7 +36,7 @@ def values_to_try(opt: Option) -> list:
 def test_the_learned_options_are_the_config_fields_but_its_internal_knobs():
     fields = {f.name for f in dataclasses.fields(LearnedConfig)}
     assert set(OPTIONS["lstm"]) == fields - INTERNAL | {"weights"}
-    assert set(OPTIONS["cnn"]) == set(OPTIONS["lstm"]) - {"reset_every", "carry_state", "carry_blend"}  # a CNN has no state to reset or feed
+    assert set(OPTIONS["cnn"]) == set(OPTIONS["lstm"]) - {"reset_every"}  # a CNN has no state to reset
     assert set(OPTIONS["orb"]) == set(OPTIONS["orb-ransac"]) == {"refine"}
 
 
@@ -45,7 +45,7 @@ def test_the_table_reads_types_choices_and_defaults_off_the_annotations():
     assert lstm["patches"] == Option("patches", int, (1, 5, 9), 1)
     assert lstm["refine"] == Option("refine", str, ("lk", "ecc", None), "lk")
     assert lstm["reset_every"] == Option("reset-every", int, None, None)
-    assert lstm["carry_gate_px"] == Option("carry-gate-px", float, None, 2.5, ablation=True)
+    assert lstm["spoilt_ratio"] == Option("spoilt-ratio", float, None, 0.8, ablation=True)
     assert lstm["weights"] == Option("weights", Path)
     assert options_of(OrbConfig)["refine"] == lstm["refine"]
 
@@ -59,8 +59,7 @@ def test_every_option_field_is_accepted_with_every_value_it_takes(name):
             base, given = parse_spec(f"{name}:{opt.key.upper()}={written(value).upper()}")  # any case
             typed = typed_options(base, given)
             assert typed == {field: value}, (field, value)
-            needs = {("carry_blend", "spoilt"): {"carry_state": "confirmed"}}.get((field, value), {})  # checked together
-            assert getattr(LearnedConfig(**typed, **needs), field) == value
+            assert getattr(LearnedConfig(**typed), field) == value
 
 
 def test_a_flag_gives_its_value_already_typed():
@@ -88,7 +87,7 @@ def test_the_choices_are_written_as_before():
 
 @pytest.mark.parametrize("spec, line", [
     ("lstm:chunk=many", "estimator 'lstm': chunk must be a whole number, got 'many'"),
-    ("cnn:carry-gate=high", "estimator 'cnn': carry-gate must be a number, got 'high'"),
+    ("cnn:spoilt-ratio=high", "estimator 'cnn': spoilt-ratio must be a number, got 'high'"),
     ("orb:refine=2", "refine must be one of lk, ecc or none, got '2'"),
 ])
 def test_a_wrong_type_is_one_line(capsys, tiny_clip, tmp_path, spec, line):

@@ -17,7 +17,6 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 MISSING_ON_THE_DEVICE = ("av", "imageio_ffmpeg", "rasterio", "pyproj", "rio_cogeo", "gpxpy", "klvdata")
@@ -44,8 +43,7 @@ def test_the_device_session_runs_every_stage_and_returns_its_files(tmp_path):
 
     cnn, cnn_meta = load_weights(out / "cnn.safetensors", device="cpu")  # safetensors: no pickle
     lstm, lstm_meta = load_weights(out / "lstm.safetensors", device="cpu")
-    assert cnn.head == "cnn" and lstm.head == "carry" and lstm_meta["variant"] == "carry"
-    torch.testing.assert_close(lstm.regressor.weight, cnn.regressor.weight)  # the carry head reads that very BASE
+    assert cnn.head == "cnn" and lstm.head == "lstm" and lstm_meta["variant"] == "lstm-reg-t"
 
     report = json.loads((out / "bench.json").read_text())
     assert set(report["estimators"]) == {"lstm", "cnn", "orb-paper"}
@@ -54,11 +52,11 @@ def test_the_device_session_runs_every_stage_and_returns_its_files(tmp_path):
 
     with tarfile.open(out / "logs.tar.gz") as tar:
         logs = {m.name: tar.extractfile(m).read().decode() for m in tar.getmembers()}
-    assert {"env.json", "base-log.csv", "carry-log.csv", "carry-val.csv", "probe-base-log.csv", "probe-lstm-reg-t-log.csv"} <= set(logs)
-    for name in ("base-log.csv", "carry-log.csv"):
+    assert {"env.json", "base-log.csv", "lstm-log.csv", "lstm-val.csv", "probe-base-log.csv", "probe-lstm-reg-t-log.csv"} <= set(logs)
+    for name in ("base-log.csv", "lstm-log.csv"):
         rows = list(csv.DictReader(io.StringIO(logs[name])))
         assert rows and all(float(r["samples_per_s"]) >= 0 for r in rows) and float(rows[-1]["samples_per_s"]) > 0
-    val = list(csv.DictReader(io.StringIO(logs["carry-val.csv"])))
+    val = list(csv.DictReader(io.StringIO(logs["lstm-val.csv"])))
     assert val and math.isfinite(float(val[-1]["mace"]))
 
     suite = ET.parse(out / "tests.xml").getroot()

@@ -55,7 +55,6 @@ class PhaseNet(nn.Module):
         super().__init__()
         self.config = SimpleNamespace(patch=128, head="cnn")
         self.head = "cnn"
-        self.carry = None  # no sequence head: HomographyNet's attribute, which the estimator asks
         self.bias = bias  # optional per-call offset added to the k-th patch: a deliberately wrong one
         self.dummy = nn.Parameter(torch.zeros(1))
 

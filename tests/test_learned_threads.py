@@ -1,6 +1,6 @@
 """The learned estimator's pool of threads (``--threads``): each pair's own work (the polish and its
 wide retry, the correlation check, the fallback's registration) runs on the pool, what follows
-from the pairs before (the carried motion, the gate, the prior, the counts) after it, in order;
+from the pairs before (the carried motion, the prior, the counts) after it, in order;
 the estimates with 2 and 4 threads are those of one thread to the bit, on flights where every
 path runs, and ``mosaic track --threads N`` sizes the pool."""
 
@@ -45,8 +45,8 @@ def pan(texture: np.ndarray, n: int, step: tuple[int, int], x0: int, y0: int) ->
 def mixed_flight() -> list[np.ndarray]:
     """A fast pan (18 working px a frame: the fallback's until the motion prior knows it), four
     black frames (carried, then failed past the carry limit), the pan again, a cut to other
-    ground moving another way, and there two blurred frames and a glare (spoilt frames the gate
-    weighs, carried or not)."""
+    ground moving another way, and there two blurred frames and a glare (spoilt frames, carried
+    or not)."""
     a = pan(textured_image(1400, 700, seed=5), 14, (36, -8), 20 + 13 * 36, 150)
     b = pan(textured_image(1400, 700, seed=8), 12, (12, 4), 400, 100)
     b[3], b[4] = (cv2.GaussianBlur(f, (0, 0), 8) for f in b[3:5])
@@ -56,24 +56,24 @@ def mixed_flight() -> list[np.ndarray]:
 
 class Watched:
     """Counts, from any thread, what an estimator did: wide polishes, fallback registrations,
-    pairs the gate weighed (touching a spoilt frame)."""
+    pairs decided that touch a spoilt frame."""
 
     def __init__(self, est: LearnedEstimator):
-        self.wide, self.fallback, self.gated_spoilt = 0, 0, 0
+        self.wide, self.fallback, self.decided_spoilt = 0, 0, 0
         self._lock = threading.Lock()
-        polish_once, gated = est._polish_once, est._gated
+        polish_once, decide = est._polish_once, est._decide
 
         def polish_counted(prev, cur, H, config):
             if config is est.config.polish_wide:
                 self._count("wide")
             return polish_once(prev, cur, H, config)
 
-        def gated_counted(prev, cur, *args):
+        def decided_counted(prev, cur, *args):
             if prev.spoilt or cur.spoilt:
-                self._count("gated_spoilt")
-            return gated(prev, cur, *args)
+                self._count("decided_spoilt")
+            return decide(prev, cur, *args)
 
-        est._polish_once, est._gated = polish_counted, gated_counted  # type: ignore[method-assign]
+        est._polish_once, est._decide = polish_counted, decided_counted  # type: ignore[method-assign]
         if est._fallback is not None:
             register = est._fallback.register
 
@@ -103,8 +103,8 @@ def assert_identical(got: dict, want: dict) -> None:
 
 def phase_estimator(threads: int, **config) -> LearnedEstimator:
     """A short-sighted phase-correlation "net" (3 working px of reach) with the motion prior, the
-    polish and the fallback, carrying at most two pairs in a row, the gate on."""
-    cfg = {"refine": "lk", "fallback": "orb", "prior": "velocity", "chunk": 4, "carry_limit": 2, "carry_gate": 0.9, **config}
+    polish and the fallback, carrying at most two pairs in a row."""
+    cfg = {"refine": "lk", "fallback": "orb", "prior": "velocity", "chunk": 4, "carry_limit": 2, **config}
     return LearnedEstimator(PhaseNet(short_sighted), {"variant": "phase", "work_size": WORK}, "cpu", LearnedConfig(**cfg), threads=threads)
 
 
@@ -121,13 +121,13 @@ def one_thread(mixed):
 
 
 def test_the_mixed_flight_runs_every_path(one_thread):
-    """The reference run itself: each path made pairs, the wide polish and the fallback ran, the
-    gate weighed spoilt pairs, and the carry limit stopped a run of carried pairs (so the counts
-    depend on the order the pairs are decided in)."""
+    """The reference run itself: each path made pairs, the wide polish and the fallback ran, pairs
+    touching spoilt frames were decided, and the carry limit stopped a run of carried pairs (so
+    the counts depend on the order the pairs are decided in)."""
     ref, watched = one_thread
     counts = ref["path_counts"]
     assert all(counts[p] > 0 for p in ("learned", "fallback", "carried", "failed")), counts
-    assert watched.wide > 0 and watched.fallback > counts["fallback"] and watched.gated_spoilt > 0
+    assert watched.wide > 0 and watched.fallback > counts["fallback"] and watched.decided_spoilt > 0
     paths = "".join(p[0] for p in ref["paths"])
     assert "ccf" in paths, paths  # two carried, then the limit: failed
 
@@ -263,7 +263,7 @@ def test_the_shipped_lstm_on_simulated_flights_is_the_same_on_any_number_of_thre
     counts = ref["path_counts"]
     assert counts["carried"] > 0 and counts["learned"] > 100, counts  # the bursts
     assert ref["paths"][49] == "failed"  # the cut
-    assert watched.wide > 10 and watched.fallback > 0 and watched.gated_spoilt > 0
+    assert watched.wide > 10 and watched.fallback > 0 and watched.decided_spoilt > 0
     for threads in (2, 4):
         assert_identical(estimates(shipped_lstm(threads), simulated, (640, 360)), ref)
 

@@ -28,7 +28,7 @@ from mosaic_cli.train.losses import (
     spatial_consistency,
     temporal_smoothness,
 )
-from mosaic_cli.train.objective import PHOTOMETRIC_VARIANTS, LossWeights, Objective
+from mosaic_cli.train.objective import LossWeights, Objective
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -256,13 +256,7 @@ def test_scale_term_halves_child_offsets(panning_frames):
     assert float(good["scale"]) < 1.0 and float(bad["scale"]) == pytest.approx(4 * (abs(STEP[0]) + abs(STEP[1])), rel=0.1)
 
 
-def test_the_photometric_objective_takes_every_variant_but_carry():
-    assert set(PHOTOMETRIC_VARIANTS) == set(VARIANTS) - {"carry"}
-    with pytest.raises(ValueError, match="cached features"):
-        Objective("carry")
-
-
-@pytest.mark.parametrize("variant", PHOTOMETRIC_VARIANTS)
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_every_variant_trains(variant, panning_frames):
     objective = Objective(variant, window=3 if variant not in ("base", "reg-p", "reg-s") else None)
     assert objective.head == ("lstm" if variant.startswith("lstm") else "cnn")

@@ -126,13 +126,13 @@ def test_eval_every_sets_the_landmark_spacing(flight, tmp_path):
 
 @pytest.mark.slow
 def test_learned_estimator_options_of_every_type_are_read_or_refused_in_one_line():
-    """Numbers with a fraction (carry-gate, spoilt-ratio) are read as numbers, like the whole ones."""
+    """Numbers with a fraction (spoilt-ratio) are read as numbers, like the whole ones."""
     from mosaic_cli.errors import BadInput
     from mosaic_cli.estimators import make_estimator
 
-    est = make_estimator("lstm:carry-gate=0.1:spoilt-ratio=0.75:carry-limit=4:carry=none", device="cpu")
-    assert (est.config.carry_gate, est.config.spoilt_ratio, est.config.carry_limit, est.config.carry) == (0.1, 0.75, 4, "none")
-    with pytest.raises(BadInput, match="carry-gate must be a number"):
-        make_estimator("lstm:carry-gate=high", device="cpu")
+    est = make_estimator("lstm:spoilt-ratio=0.75:carry-limit=4:carry=none", device="cpu")
+    assert (est.config.spoilt_ratio, est.config.carry_limit, est.config.carry) == (0.75, 4, "none")
+    with pytest.raises(BadInput, match="spoilt-ratio must be a number"):
+        make_estimator("lstm:spoilt-ratio=high", device="cpu")
     with pytest.raises(BadInput, match="spoilt-ratio must be in"):
         make_estimator("lstm:spoilt-ratio=1.5", device="cpu")

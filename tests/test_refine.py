@@ -317,24 +317,3 @@ def test_the_carried_motion_stops_after_its_limit_and_never_starts_before_a_conf
     estimator = LearnedEstimator(net, {"variant": "base", "work_size": WORK}, "cpu", config)
     H, conf = run(estimator, [black] * 3 + good[:2])
     assert np.all(conf[:3] == 0) and estimator.path_counts["carried"] == 0
-
-
-def test_the_carry_gate_replaces_a_weak_estimate_far_from_the_carried_motion_only_when_asked(ground):
-    """A softened frame in a steady pan (spoilt by a strict ``spoilt-ratio``) that the polish still
-    registers: off by default, the estimate stands; with a carry gate that every estimate fails
-    (any confidence, any distance), the pairs around it take the carried motion instead."""
-    torch.manual_seed(0)
-    net = HomographyNet(NetConfig(head="cnn"))
-    good = flight(ground, true_motion(4), n=6)
-    frames = good[:3] + [cv2.GaussianBlur(good[3], (0, 0), 1.5)] + good[4:]
-    runs = {}
-    for gate in (0.0, 0.99):
-        config = LearnedConfig(refine="lk", chunk=8, carry_gate=gate, carry_gate_px=1e-6, spoilt_ratio=0.95)
-        estimator = LearnedEstimator(net, {"variant": "base", "work_size": WORK}, "cpu", config)
-        runs[gate] = (run(estimator, frames), dict(estimator.path_counts))
-    (H0, conf0), paths0 = runs[0.0]
-    (H1, conf1), paths1 = runs[0.99]
-    assert paths0["carried"] == 0  # the blurred frame still registers: nothing is carried without the gate
-    assert paths1["carried"] >= 1 and set(np.flatnonzero(conf1 == LearnedConfig().carry_confidence)) <= {2, 3}
-    for k in np.flatnonzero(conf1 == LearnedConfig().carry_confidence):
-        np.testing.assert_allclose(H1[k], H1[1], atol=1e-9)  # the motion carried from the pair before

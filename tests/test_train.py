@@ -36,7 +36,7 @@ from mosaic_cli.train.data import (
     share_budget,
     to_model_input,
 )
-from mosaic_cli.train.loop import CALIBRATION_PAIRS, plan_run, train
+from mosaic_cli.train.loop import CALIBRATION_PAIRS, train
 from mosaic_cli.train.objective import Objective
 from mosaic_cli.train.schedule import StepSchedule
 
@@ -628,73 +628,3 @@ def test_trains_on_a_flight_rendered_from_real_aerial_imagery(tmp_path, shared_d
     rows = read_log(tmp_path / "run")
     assert [int(r["step"]) for r in rows] == [1, 2, 3] and all(np.isfinite(float(r["total"])) for r in rows)
     assert load_weights(summary.weights)[1]["work_size"] == (64, 36)
-
-
-@pytest.mark.slow
-def test_the_carry_head_trains_on_cached_features_of_a_frozen_base_and_resumes_exactly(tmp_path, pan_clips):
-    base_cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / "base"), steps=2, batch_size=2, work_size=WORK,
-                           patch=PATCH, num_workers=0, threads=1).resolved()
-    base_weights = train(base_cfg, show_progress=False).weights
-    base = tensors(base_weights)
-
-    def carry(name: str, **options):
-        cfg = TrainConfig(clips=str(pan_clips), out=str(tmp_path / name), variant="carry", init=str(base_weights), steps=12,
-                          batch_size=4, feature_windows=8, work_size=WORK, patch=PATCH, num_workers=0, threads=1,
-                          flip=True, carry_forcing=0.5, carry_blown_glare=0.5, **options).resolved()
-        assert cfg.bursts == 0.75 and cfg.lr == 3e-3  # the carry head's own defaults
-        return cfg
-
-    whole = train(carry("a"), show_progress=False)
-    first = train(carry("b", max_minutes=1e-9), show_progress=False)  # out of time after its first step
-    assert first.steps == 1
-    resumed = train(plan_run(str(pan_clips), str(tmp_path / "b"), {"max_minutes": 1e6}, resume=True), resume=True,
-                    show_progress=False)
-    assert resumed.start_step == 1 and resumed.steps == 12
-    a, b = tensors(whole.weights), tensors(tmp_path / "b" / "weights.safetensors")
-    for name in a:
-        torch.testing.assert_close(b[name], a[name], rtol=1e-5, atol=1e-6)
-    # The BASE it reads stays as it was (features, first Linear, regressor); the head learned.
-    for name in base:
-        torch.testing.assert_close(a[name], base[name], rtol=0, atol=0)
-    torch.manual_seed(0)
-    untrained = HomographyNet(NetConfig(preset="compact", head="carry", patch=PATCH))
-    untrained.start_as_carry(load_weights(base_weights)[0])
-    assert any(not torch.equal(a[k], v) for k, v in untrained.state_dict().items() if k.startswith("carry."))
-    rows = read_log(tmp_path / "a")
-    assert len(rows) == 12 and all(np.isfinite(float(r["total"])) for r in rows)
-    assert {"clean_px", "event_px", "gate_clean", "gate_event"} <= set(rows[0])
-    model, meta = load_weights(whole.weights)
-    assert model.head == "carry" and meta["variant"] == "carry"
-    assert meta["int8"] == load_weights(base_weights)[1]["int8"]  # it reads the BASE's features: the BASE's int8 ranges
-    assert list((tmp_path / "a" / "features").glob("features-*.npy")) and list((tmp_path / "a" / "features").glob("*.npz"))
-
-
-@pytest.mark.slow
-def test_a_carry_head_trains_on_lstm_reg_t_with_the_options_of_runs_9_to_18(tmp_path, pan_clips):
-    """The carry head on LSTM-REG-T (an LSTM --init): its BASE's LSTM and Linear are frozen with the
-    features, the head's gate may read the pair alone, and the cache options (blown glare by burst,
-    turns, the spoilt frames' noise), the gate's own loss and the correction's price train; bad
-    values are one line."""
-    common = dict(clips=str(pan_clips), batch_size=2, work_size=WORK, patch=PATCH, num_workers=0, threads=1)
-    base = train(TrainConfig(out=str(tmp_path / "base"), steps=2, **common).resolved(), show_progress=False).weights
-    lstm = train(TrainConfig(out=str(tmp_path / "lstm"), variant="lstm", init=str(base), steps=2, **common).resolved(),
-                 show_progress=False).weights
-    options = dict(variant="carry", init=str(lstm), steps=6, feature_windows=8, flip=True, carry_blown_glare=0.25,
-                   carry_blown_by="burst", carry_turns=0.3, carry_gate_memory=False, carry_noise=1.0, carry_gate_weight=0.1,
-                   carry_blend="spoilt", carry_forcing=1.0, carry_correction_weight=0.5)
-    summary = train(TrainConfig(out=str(tmp_path / "carry"), **{**common, "batch_size": 4}, **options).resolved(), show_progress=False)
-    model, meta = load_weights(summary.weights)
-    assert model.head == "carry" and model.config.carry_base == "lstm" and not model.config.carry_gate_memory
-    assert model.carry.gate[0].in_features == model.config.carry_code + model.config.carry_cues + 24  # no cell state
-    before = tensors(lstm)
-    after = tensors(summary.weights)
-    for name in before:  # features, LSTM-REG-T's LSTM and Linear: as they were
-        torch.testing.assert_close(after[name], before[name], rtol=0, atol=0)
-    assert meta["int8"] == load_weights(lstm)[1]["int8"]
-    for bad, match in ((dict(carry_blown_by="frames"), "--carry-blown-by"), (dict(carry_turns=1.5), "--carry-turns"),
-                       (dict(carry_noise=-1.0), "--carry-noise"), (dict(carry_gate_weight=-0.1), "--carry-gate-weight"),
-                       (dict(carry_teacher_beyond=0.0), "--carry-teacher-beyond"), (dict(carry_blend="always"), "--carry-blend"),
-                       (dict(carry_correction_weight=-1.0), "--carry-correction-weight"),
-                       (dict(carry_blend="gate"), "--carry-correction-weight")):
-        with pytest.raises(BadInput, match=match):
-            TrainConfig(out=str(tmp_path / "bad"), **common, **{**options, **bad}).resolved()

@@ -23,16 +23,13 @@
              black, featureless) -> the motion carried across the frames, with a low confidence
              (``carry``: the network's estimate, which for the LSTM reads its carried state, or
              the last confirmed motion)
-          -> with a carry head and ``carry-state=confirmed``: each confirmed motion fed back as the
-             head's previous output, the head stepped pair by pair as the pairs are decided (the
-             chunk's batched step a speculation; a pair whose seed it moved is checked again)
           -> invalid, a frame without texture, or detail that does not correlate once registered
              (unrelated ground), with no fallback estimate -> identity with confidence 0; else
              re-expressed at full resolution exactly
     ``path_counts`` says which path made each pair: learned, fallback, carried or failed.
     A chunk's frames are described and its pairs polished, checked and tried by the fallback on a
-    pool of threads (``--threads``, default one a core; OpenCV lets go of the GIL); the carry, the
-    gate and the prior then follow pair by pair, in order: the same estimates on any number.
+    pool of threads (``--threads``, default one a core; OpenCV lets go of the GIL); the carry and
+    the prior then follow pair by pair, in order: the same estimates on any number.
     On a GPU (or with ``polish-with=torch``) the chunk's cheap LK polish, its refit and the
     correlation check first run batched on the device (:mod:`.batched`, OpenCV's arithmetic);
     only the pairs it does not settle go to the pool, checked as above.
@@ -70,11 +67,11 @@ from mosaic_cli.estimators.refine import (
     track_points,
 )
 from mosaic_cli.estimators.weights import default_weights
-from mosaic_cli.geometry import corner_error, frame_corners, is_valid
+from mosaic_cli.geometry import frame_corners, is_valid
 from mosaic_cli.geometry.tensor import four_point_to_homography, project
 from mosaic_cli.model.checkpoint import load_weights
-from mosaic_cli.model.network import SEQUENCE_HEADS, HomographyNet
-from mosaic_cli.model.patches import homography_to_offsets, offsets_to_homography
+from mosaic_cli.model.network import HomographyNet
+from mosaic_cli.model.patches import offsets_to_homography
 from mosaic_cli.model.quantize import quantized_features, quantized_head
 
 PATHS = ("learned", "fallback", "carried", "failed")  # which path produced a pair, counted in ``path_counts``
@@ -135,8 +132,8 @@ class LearnedEstimator(Estimator):
     :func:`mosaic_cli.device.pair_threads`), read at each ``reset``.  What a pair's own frames
     say of it (describing the frames, the polish and its wide retry, the correlation check, the
     fallback's registration: :meth:`_check`) runs on a pool of that many threads, OpenCV's calls
-    letting go of the GIL; what follows from the pairs before it (the carried motion, the gate,
-    the prior, the counts: :meth:`_decide`) runs after, pair by pair, in order.  Every result is
+    letting go of the GIL; what follows from the pairs before it (the carried motion, the prior,
+    the counts: :meth:`_decide`) runs after, pair by pair, in order.  Every result is
     the same, to the bit, whatever the number; with one, each pair is finished in turn on the
     calling thread, with no pool."""
 
@@ -167,20 +164,13 @@ class LearnedEstimator(Estimator):
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
         self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
-        # carry-state=confirmed: the carry head's previous output is the confirmed motion (_fed_seed).
-        self._feeding = (self.config.carry_state == "confirmed" and getattr(model, "carry", None) is not None
-                         and self.config.seed == "network" and not self._prior_warp)
-        self._chunk_inputs: torch.Tensor | None = None  # the chunk's head inputs (M, n, F), kept while feeding
-        # carry-blend=spoilt: what the BASE reads of each pair of the chunk (seeds, finite, agreement),
-        # from which a pair that takes the carried motion whole is checked (_read_trusted)
-        self._chunk_reads: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         # The chunk's LK polish and check batched on the device (polish-with; see _finish_batched).
         on = self.config.polish_with
         self._batched = self.config.refine == "lk" and (on == "torch" or (on == "auto" and self.device.type == "cuda"))
         self._fallback = OrbEstimator(self.work_width) if self.config.fallback == "orb" else None
         self._pending: list[WorkFrame] = []
         self._ahead: tuple | None = None  # see _run_ahead
-        self._state: tuple[torch.Tensor, ...] | None = None  # the sequence head's state between chunks
+        self._state: tuple[torch.Tensor, ...] | None = None  # the LSTM's (h, c) between chunks
         self._pairs_done = 0
         self._motion = np.eye(3)
         self._detail_levels: list[float] = []
@@ -206,7 +196,6 @@ class LearnedEstimator(Estimator):
         self._pending = []
         self._ahead = None  # the chunk checked on the pool while the next one's network runs (lookahead)
         self._state = None
-        self._chunk_inputs = None
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
         self._detail_levels = []  # band-passed detail of the recent unspoilt frames (see _describe)
@@ -227,7 +216,7 @@ class LearnedEstimator(Estimator):
         its first real chunk does not pay for CUDA's kernels and cuDNN's plans (1.2-1.3 s on an
         H200: docs/measurements/gpu.md) or a CPU's first int8 calls.  Called by the build, which
         the commands run beside other work (the overlay detection, a live stream's opening).
-        Leaves nothing behind: the sequence head's state and the pair count are as they were."""
+        Leaves nothing behind: the LSTM's state and the pair count are as they were."""
         w, h = self.work_size_trained
         if min(w, h) < self.patch:
             return
@@ -274,18 +263,10 @@ class LearnedEstimator(Estimator):
             return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
         seeds, offsets_ok, agreement = self._seeds(frames)
         described()
-        self._read_trusted(pairs, seeds, offsets_ok, agreement)
         if self._batched:
             return self._finish_batched(pairs, seeds, offsets_ok, agreement, pool)
         if pool is None:  # one thread: each pair finished in turn
-            out = []
-            for k, (prev, cur) in enumerate(pairs):
-                if self._feeding:
-                    seed, agree, check = self._fed_check(k, prev, cur, seeds, offsets_ok, agreement, None)
-                    out.append(self._decide(prev, cur, seed, agree, check))
-                else:
-                    out.append(self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]))
-            return out
+            return [self._finish_pair(prev, cur, seeds[k], offsets_ok[k], agreement[k]) for k, (prev, cur) in enumerate(pairs)]
         self._valid_pixels()  # made once, before the threads read it
         checks = pool.map(lambda k: self._check(pairs[k][0], pairs[k][1], seeds[k], bool(offsets_ok[k])), range(len(pairs)))
         # map yields in the pairs' order: each decided once those before it are
@@ -300,9 +281,9 @@ class LearnedEstimator(Estimator):
 
     def _can_look_ahead(self) -> bool:
         """Whether a chunk's network reads nothing the decisions of the chunk before leave (no
-        motion prior, no velocity seed, no confirmed motion fed to a carry head), and its checks
-        run on the pool (the batched polish waits on the device's one copy back anyway)."""
-        return self.config.seed == "network" and not self._prior_warp and not self._feeding and not self._batched
+        motion prior, no velocity seed), and its checks run on the pool (the batched polish waits
+        on the device's one copy back anyway)."""
+        return self.config.seed == "network" and not self._prior_warp and not self._batched
 
     def _looks_ahead(self, pool: ThreadPoolExecutor | None) -> bool:
         """Whether this chunk's network runs while the chunk before is checked (``lookahead``)."""
@@ -333,86 +314,8 @@ class LearnedEstimator(Estimator):
 
     def _decide_all(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
                     agreement: np.ndarray, checks) -> list[PairEstimate]:
-        """The chunk's pairs decided in order from their checks (an iterable in the pairs' order);
-        while feeding the confirmed motion to a carry head, each pair's seed is the head's step
-        from the state the pairs before it left (:meth:`_fed_seed`), and a pair whose seed that
-        moved is checked again with it, here."""
-        out = []
-        for k, ((prev, cur), check) in enumerate(zip(pairs, checks)):
-            seed, agree = seeds[k], agreement[k]
-            if self._feeding:
-                seed, agree, check = self._fed_check(k, prev, cur, seeds, offsets_ok, agreement, check)
-            out.append(self._decide(prev, cur, seed, agree, check))
-        return out
-
-    def _read_trusted(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
-                      agreement: np.ndarray) -> None:
-        """carry-blend=spoilt: the chunk's seeds (in place) of the pairs that take the carried
-        motion whole become what the BASE reads of them (:meth:`_predict`), so that their frames
-        are checked from it, as the rule's pipeline checks them, and the carried motion stands
-        where they confirm nothing.  Polished from the carried motion itself, a blurred or glared
-        frame's residue pulled the polish onto a false match that passed the correlation check,
-        where from the BASE's reading it did not (models/README.md, "The carry head", run 18).
-        The frames must have been told spoilt or not (``described``)."""
-        if self._chunk_reads is None:
-            return
-        read, read_ok, read_agreement = self._chunk_reads
-        for k, (prev, cur) in enumerate(pairs):
-            if self._trusts(prev, cur):
-                seeds[k], offsets_ok[k], agreement[k] = read[k], read_ok[k], read_agreement[k]
-
-    def _fed_check(self, k: int, prev: WorkFrame, cur: WorkFrame, seeds: np.ndarray, offsets_ok: np.ndarray,
-                   agreement: np.ndarray, check: PairCheck | None) -> tuple[np.ndarray, float, PairCheck]:
-        """The carry head's fed seed for the chunk's pair ``k`` (:meth:`_fed_seed`), its agreement,
-        and the check its decision reads: ``check`` (made from the chunk's seed; None: none yet)
-        where that seed still stands, else one made here.  On a pair that takes the carried motion
-        whole the chunk's seed is the BASE's reading (:meth:`_read_trusted`), and its check and
-        agreement stand: the carried motion is what the pair takes where they confirm nothing."""
-        trust = self._trusts(prev, cur)
-        seed, ok, agree, moved = self._fed_seed(k, seeds[k], trust)
-        if trust:
-            checked = check if check is not None else self._check(prev, cur, seeds[k], bool(offsets_ok[k]))
-            plausible = ok and bool(is_valid(seed, self.work_size, max_area_ratio=self.config.max_area_ratio))
-            return seed, float(agreement[k]), replace(checked, plausible=plausible)
-        if check is None or moved or ok != bool(offsets_ok[k]):
-            check = self._check(prev, cur, seed, ok)
-        return seed, agree, check
-
-    def _trusts(self, prev: WorkFrame, cur: WorkFrame) -> bool:
-        """Whether the carry head takes its carried motion whole on this pair (carry-blend=spoilt:
-        a frame of it is spoilt; the frames are told in order before their pairs are decided)."""
-        return self.config.carry_blend == "spoilt" and bool(prev.spoilt or cur.spoilt)
-
-    @torch.inference_mode()
-    def _fed_seed(self, k: int, speculated: np.ndarray, trust: bool = False) -> tuple[np.ndarray, bool, float, bool]:
-        """The carry head's step for the chunk's pair ``k`` from its state now (the confirmed
-        motions of the pairs before fed in: :meth:`_confirm_state`): the pair's seed (3, 3),
-        whether its offsets were finite, its patches' agreement, and whether the seed lies more
-        than FED_RECHECK_PX (mean corner distance, working px) from the ``speculated`` one the
-        chunk's batched step gave it.  With ``trust`` (carry-blend=spoilt, a pair with a spoilt
-        frame) the head takes its carried motion whole.  The head is one LSTM cell on M patches:
-        cheap beside a pair's polish."""
-        assert self._chunk_inputs is not None
-        inputs = self._chunk_inputs[:, k : k + 1]
-        trusted = torch.full(inputs.shape[:2], True, device=inputs.device) if trust else None
-        offsets, self._state = self._step_from(inputs, self._state, self._pairs_done, trusted)
-        self._pairs_done += 1
-        H_patches, ok = self._homographies(offsets)
-        H, agree = self._consensus(H_patches)
-        moved = float(corner_error(H[0], speculated, self.work_size)) > FED_RECHECK_PX
-        return H[0], bool(ok[0]), float(agree[0]), moved
-
-    @torch.inference_mode()
-    def _confirm_state(self, H_work: np.ndarray) -> None:
-        """Feed a confirmed motion (working px, frame t -> t+1) to the carry head: its state's
-        previous output becomes the offsets ``H_work`` gives each patch's corners (the
-        convention of :func:`offsets_to_homography`, inverted)."""
-        if self._state is None:
-            return
-        h, c, _ = self._state
-        H = torch.as_tensor(H_work, dtype=torch.float64, device=self.device).expand(len(self.positions), 3, 3)
-        offsets = homography_to_offsets(H, self._positions_t.double(), self.patch).flatten(-2)  # (M, 8)
-        self._state = (h, c, offsets.to(h.dtype)[None])
+        """The chunk's pairs decided in order from their checks (an iterable in the pairs' order)."""
+        return [self._decide(prev, cur, seeds[k], agreement[k], check) for k, ((prev, cur), check) in enumerate(zip(pairs, checks))]
 
     def _finish_batched(self, pairs: list[tuple[WorkFrame, WorkFrame]], seeds: np.ndarray, offsets_ok: np.ndarray,
                         agreement: np.ndarray, pool: ThreadPoolExecutor | None) -> list[PairEstimate]:
@@ -570,16 +473,16 @@ class LearnedEstimator(Estimator):
 
     def _decide(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, agreement: float, check: PairCheck) -> PairEstimate:
         """The pair's estimate from its check and what the pairs before it left (the carried
-        motion, the gate): pairs are decided one at a time, in order."""
+        motion): pairs are decided one at a time, in order."""
         if check.fallback is not None:
-            return self._gated(prev, cur, seed, check.plausible, *check.fallback, "fallback")
+            return self._result(*check.fallback, "fallback")
         polished = check.polished
         if polished is None or not check.related:
             if self._can_carry() and (prev.spoilt or cur.spoilt):
                 return self._carried(seed, check.plausible)
             return self._result(None, 0.0, "failed")
         confidence = max(0.0, check.zncc) * float(agreement) * self._polish_weight(polished)
-        return self._gated(prev, cur, seed, check.plausible, polished.H, confidence, "learned")
+        return self._result(polished.H, confidence, "learned")
 
     def _orb_features(self, frame: WorkFrame) -> tuple:
         """The frame's ORB features for the fallback, described once (the first pair to ask)."""
@@ -589,23 +492,9 @@ class LearnedEstimator(Estimator):
                 frame.features = self._fallback._describe(frame.gray)
             return frame.features
 
-    def _gated(self, prev: WorkFrame, cur: WorkFrame, seed: np.ndarray, plausible: bool, H: np.ndarray, confidence: float,
-               path: str) -> PairEstimate:
-        """An estimate that touches a spoilt frame, weakly confirmed and far from the motion carried
-        over, is a registration the spoilt detail fooled (a heavy blur's streaks lock onto the
-        wrong place): the carried motion takes its place.  Every other estimate stands."""
-        c = self.config
-        if (prev.spoilt or cur.spoilt) and confidence < c.carry_gate and self._can_carry():
-            carried = self._carry_estimate(seed, plausible)
-            if float(corner_error(H, carried, self.work_size)) > c.carry_gate_px:
-                return self._carried(seed, plausible)
-        return self._result(H, confidence, path)
-
-    def _carry_estimate(self, seed: np.ndarray, plausible: bool) -> np.ndarray:
-        return seed if self.config.carry == "network" and plausible else self._motion
-
     def _carried(self, seed: np.ndarray, plausible: bool) -> PairEstimate:
-        return self._result(self._carry_estimate(seed, plausible), self.config.carry_confidence, "carried")
+        carried = seed if self.config.carry == "network" and plausible else self._motion
+        return self._result(carried, self.config.carry_confidence, "carried")
 
     def _can_carry(self) -> bool:
         """Whether a pair no path confirms may take the carried motion (see LearnedConfig.carry)."""
@@ -623,8 +512,6 @@ class LearnedEstimator(Estimator):
         if confidence > 0:
             self._confirmed_once = self._confirmed_once or path != "carried"
             self._motion = H_work
-            if self._feeding and path != "carried":
-                self._confirm_state(H_work)
         estimate = self._to_full(H_work, confidence)
         return replace(estimate, path=path if estimate.confidence > 0 or path == "failed" else "failed")
 
@@ -706,21 +593,8 @@ class LearnedEstimator(Estimator):
         pairs = torch.stack([crops[:n], crops[n:]], dim=2).flatten(0, 1)  # (n*M, 2, P, P) in [-1, 1]
         if self.device.type == "cpu" and self.precision == "fp32":
             pairs = pairs.contiguous(memory_format=torch.channels_last)
-        feats = self._features(pairs)
-        if getattr(self.model, "carry", None) is not None:  # a carry head may also read the pairs' image cues
-            feats = self.model.head_inputs(pairs, feats)
-        feats = feats.unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
-        if self._feeding:  # stepped again pair by pair as the pairs are decided (_fed_seed)
-            self._chunk_inputs = feats
-            offsets, _ = self._step_from(feats, self._state, self._pairs_done)  # a speculation: the state stays
-            if self.config.carry_blend == "spoilt":
-                # the BASE's own answers (its state is the same whatever the head is fed)
-                base, _ = self.model.base_offsets(feats[..., : self.model.config.embed], self.model.split_carry_state(self._state)[1])
-                H_read, read_ok = self._homographies(base.unflatten(-1, (4, 2)))
-                read, read_agreement = self._consensus(H_read)
-                self._chunk_reads = (read, read_ok, read_agreement)
-        else:
-            offsets = self._step(feats)  # (M, n, 4, 2)
+        feats = self._features(pairs).unflatten(0, (n, M)).transpose(0, 1)  # (M, n, F)
+        offsets = self._step(feats)  # (M, n, 4, 2)
         return self._homographies(offsets)
 
     def _homographies(self, offsets: torch.Tensor) -> tuple[torch.Tensor, np.ndarray]:
@@ -737,30 +611,24 @@ class LearnedEstimator(Estimator):
         self._pairs_done += feats.shape[1]
         return offsets
 
-    def _step_from(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None, done: int,
-                   trust: torch.Tensor | None = None) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
+    def _step_from(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None,
+                   done: int) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
         """The offsets of the pairs ``feats`` (M, n, F) from ``state`` after ``done`` pairs of the
-        video, and the state after them: restarted where ``reset-every`` asks.  ``trust`` (M, n):
-        a carry head's pairs that take its carried motion whole (:class:`CarryHead`)."""
-        every = self.config.reset_every if self.model.head in SEQUENCE_HEADS else None
+        video, and the state after them: restarted where ``reset-every`` asks."""
+        every = self.config.reset_every if self.model.head == "lstm" else None
         if not every:
-            return self._model_step(feats, state, trust)
+            return self.model.step(feats, state)
         parts, start = [], 0
         while start < feats.shape[1]:
             if done % every == 0:
                 state = None
             size = min(every - done % every, feats.shape[1] - start)
             part = slice(start, start + size)
-            offsets, state = self._model_step(feats[:, part], state, None if trust is None else trust[:, part])
+            offsets, state = self.model.step(feats[:, part], state)
             parts.append(offsets)
             start += size
             done += size
         return torch.cat(parts, dim=1), state
-
-    def _model_step(self, feats: torch.Tensor, state: tuple[torch.Tensor, ...] | None,
-                    trust: torch.Tensor | None) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
-        """The network's step, told ``trust`` only where there is some (only a carry head takes it)."""
-        return self.model.step(feats, state) if trust is None else self.model.step(feats, state, trust)
 
     def _consensus(self, H_patches: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """One homography per pair from M patch estimates: the DLT of the per-corner median of
@@ -809,10 +677,6 @@ class LearnedEstimator(Estimator):
 
 
 SPOILT_HISTORY = 15  # frames the detail reference is the median of
-# carry-state=confirmed: a pair whose seed the head's step from the fed state moved more than
-# this (mean corner distance, working px) from the chunk's speculative one is checked again; the
-# cheap polish settles from a seed a fraction of a pixel off where it settles from the other.
-FED_RECHECK_PX = 0.25
 SPOILT_HISTORY_MIN = 2  # frames needed before any is called spoilt
 
 
@@ -828,7 +692,7 @@ def make_learned_estimator(
         weights = default_weights(name)
     on = resolve_device(device)  # bad --device fails before loading anything
     model, meta = load_weights(weights, device="cpu")
-    if name in LEARNED and name != model.config.head and not (name == "lstm" and model.config.head in SEQUENCE_HEADS):
+    if name in LEARNED and name != model.config.head:
         raise BadInput(f"--estimator {name}, but {weights} holds a {model.config.head} network ({meta['variant']})")
     if on.type == "cpu":  # a command's estimator: --threads, or one (training sets its own)
         use_cpu_threads()

@@ -20,8 +20,6 @@ Seed = Literal["network", "identity", "velocity"]
 Prior = Literal["velocity", "none"]
 Fallback = Literal["orb", "none"]
 Carry = Literal["network", "velocity", "none"]
-CarryState = Literal["own", "confirmed"]
-CarryBlend = Literal["gate", "spoilt"]
 PolishWith = Literal["auto", "opencv", "torch"]
 PATCH_LAYOUTS: tuple[PatchLayout, ...] = get_args(PatchLayout)
 PRECISIONS: tuple[Precision, ...] = get_args(Precision)
@@ -97,23 +95,6 @@ class LearnedConfig:
     # ...for at most this many pairs in a row, and only once a pair was confirmed: a video that
     # goes dark for seconds, or starts dark, has no motion that can honestly be carried so far.
     carry_limit: int = option(8, ablation=True)
-    # What the carry head (a sequence head trained with ``mosaic train --variant carry``) carries
-    # to the next pair as its previous output: "own" (its own output, unchecked) or "confirmed"
-    # (after each pair the frames confirm, the learned path's or the fallback's motion, as the
-    # velocity rule carries it).  Other heads have no such state: the option changes nothing
-    # for them.  Needs prior=none (a prior re-expresses the head's offsets chunk by chunk).
-    carry_state: CarryState = option("own", only=("lstm",), ablation=True)
-    # With carry-state=confirmed, how the head's answer on a pair is made: its own gate's blend of
-    # the carried motion and the BASE's answer ("gate"), or, on a pair with a frame the estimator
-    # finds spoilt, the carried motion whole ("spoilt": the learned memory carries, the frame's
-    # detail decides when).
-    carry_blend: CarryBlend = option("gate", only=("lstm",), ablation=True)
-    # An estimate touching a spoilt frame with a confidence under ``carry_gate`` whose corners lie
-    # over ``carry_gate_px`` working px (mean) from the carried motion's is replaced by it.  Off
-    # by default (0): on the development flights a gate of 0.1 took the failed burst pairs from
-    # 5.9% to 5.2% but the extreme flights' failures from 25.2% to 25.6% (models/README.md).
-    carry_gate: float = option(0.0, ablation=True)
-    carry_gate_px: float = option(2.5, ablation=True)
     spoilt_ratio: float = option(0.8, ablation=True)
 
     def __post_init__(self) -> None:
@@ -126,14 +107,6 @@ class LearnedConfig:
         check_choices(self)  # patches, refine, precision, retry, seed, prior, fallback, carry
         if self.reset_every is not None and self.reset_every < 1:
             raise BadInput(f"reset-every must be at least 1 frame pair, got {self.reset_every}")
-        if not 0 <= self.carry_gate < 1:
-            raise BadInput(f"carry-gate must be in [0, 1), got {self.carry_gate}")
-        if self.carry_gate_px <= 0:
-            raise BadInput(f"carry-gate-px must be positive, got {self.carry_gate_px}")
-        if self.carry_blend == "spoilt" and self.carry_state != "confirmed":
-            raise BadInput("carry-blend=spoilt needs carry-state=confirmed")
-        if self.carry_state == "confirmed" and self.prior != "none":
-            raise BadInput("carry-state=confirmed needs prior=none")
         if self.carry_limit < 1:
             raise BadInput(f"carry-limit must be at least 1 pair, got {self.carry_limit}")
         if not 0 < self.carry_confidence < 1:

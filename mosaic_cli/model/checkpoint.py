@@ -10,14 +10,10 @@ Metadata keys (all strings, as safetensors wants):
     direction  "t_to_t+1": offsets move patch corners from frame t to frame t+1
     extra      JSON of whatever the trainer adds (step, data, losses, ...)
     int8       optional: JSON of the activation ranges for int8 CPU inference (see quantize.py)
-    base       optional: a head saved on its BASE (:func:`save_on_base`): the BASE's file name,
-               beside this one, whose tensors fill in the ones this file leaves out
-    base_sha256  that BASE file's SHA-256: a head is never loaded on another BASE
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 
@@ -56,39 +52,9 @@ def save_weights(
         save_file(tensors, str(tmp), metadata=metadata)
 
 
-def save_on_base(path: str | Path, model: HomographyNet, base: str | Path, variant: str, extra: dict | None = None,
-                 work_size: tuple[int, int] = DEFAULT_WORK_SIZE, int8: dict | None = None) -> None:
-    """Write ``model`` as :func:`save_weights` does, but without the tensors it shares with the
-    BASE file ``base`` (which must sit beside ``path``): a carry head ships as its 0.6 MB head, not
-    as a second copy of the 9 MB BASE it reads.  Loading fills them in from ``base``, after
-    checking that it is the very file the head was saved on."""
-    base = Path(base)
-    if base.resolve().parent != Path(path).resolve().parent:
-        raise ValueError(f"{base} must sit beside {path}")
-    shared = _tensors(base)
-    own = model.state_dict()
-    for key, tensor in shared.items():
-        if key in own and not torch.equal(own[key].detach().cpu().float(), tensor.float()):
-            raise ValueError(f"{key} differs from {base}'s: the model was not made on that BASE")
-    kept = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in own.items() if k not in shared}
-    metadata = _metadata(model.config, variant, extra, work_size, int8)
-    metadata.update({"base": base.name, "base_sha256": file_sha256(base)})
-    with atomic_path(path) as tmp:
-        save_file(kept, str(tmp), metadata=metadata)
-
-
 def _tensors(path: str | Path) -> dict[str, torch.Tensor]:
     with safe_open(str(path), framework="pt") as fh:
         return {k: fh.get_tensor(k) for k in fh.keys()}
-
-
-def file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a file (hex), read a MiB at a time."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _metadata(config: NetConfig, variant: str, extra: dict | None, work_size: tuple[int, int], int8: dict | None) -> dict:
@@ -128,8 +94,6 @@ def read_metadata(path: str | Path) -> dict:
             "direction": raw.get("direction", "t_to_t+1"),
             "extra": json.loads(raw.get("extra", "{}")),
             "int8": json.loads(raw["int8"]) if "int8" in raw else None,
-            "base": raw.get("base"),
-            "base_sha256": raw.get("base_sha256"),
         }
     except (KeyError, ValueError, TypeError) as exc:
         raise BadInput(f"{p}: damaged mosaic checkpoint metadata ({exc})") from None
@@ -148,10 +112,7 @@ def load_weights(path: str | Path, device: str | torch.device = "cpu") -> tuple[
         raise BadInput(f"{path}: unusable network config in checkpoint ({exc})") from None
     model = HomographyNet(config)
     try:
-        state = _tensors(path)
-        if meta["base"]:
-            state = {**_base_tensors(Path(path), meta), **state}
-        model.load_state_dict(state, strict=True)
+        model.load_state_dict(_tensors(path), strict=True)
     except (SafetensorError, RuntimeError, OSError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else exc.__class__.__name__
         raise BadInput(f"{path}: weights do not match their config ({first})") from None
@@ -159,14 +120,4 @@ def load_weights(path: str | Path, device: str | torch.device = "cpu") -> tuple[
     return model.to(device).eval(), meta
 
 
-def _base_tensors(path: Path, meta: dict) -> dict[str, torch.Tensor]:
-    """The tensors a head saved on its BASE (:func:`save_on_base`) takes from that BASE."""
-    base = path.parent / meta["base"]
-    if not base.is_file():
-        raise BadInput(f"{path} is a head saved on {meta['base']}, which is not beside it")
-    if file_sha256(base) != meta["base_sha256"]:
-        raise BadInput(f"{path} was saved on another {meta['base']} than the one beside it")
-    return _tensors(base)
-
-
-__all__ = ["FORMAT", "FORMAT_VERSION", "DEFAULT_WORK_SIZE", "save_weights", "save_on_base", "file_sha256", "read_metadata", "load_weights"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "DEFAULT_WORK_SIZE", "save_weights", "read_metadata", "load_weights"]

@@ -159,8 +159,8 @@ def _on_cpu(model: HomographyNet) -> HomographyNet:
 def with_head_error(model: HomographyNet, ranges: dict) -> dict:
     """``ranges`` with the int8 LSTM's :func:`head_error` on this platform's engine added (key
     ``head_error``: {engine: px}), so that loading need not probe it (a quarter of a second of
-    the start-up); unchanged for a net without an LSTM, or with a carry head (whose LSTM stays fp32)."""
-    if model.lstm is None or model.carry is not None or engine() is None:
+    the start-up); unchanged for a net without an LSTM."""
+    if model.lstm is None or engine() is None:
         return ranges
     torch.backends.quantized.engine = engine()
     model = _on_cpu(model)
@@ -210,9 +210,8 @@ def quantized_head(model: HomographyNet, ranges: dict | None = None, tolerance: 
     engine, or where the int8 head's offsets stray more than ``tolerance`` working px from
     fp32's on a probe (:func:`head_error`).  The probe's error as measured when ``ranges`` were
     (:func:`with_head_error`, for this engine) is used instead where it is clearly on one side of
-    the tolerance; near it, or missing, the probe runs here.  A carry head's base LSTM stays in
-    fp32: the head's gate reads the base's answer, and its training saw the fp32 one."""
-    if model.lstm is None or model.carry is not None or engine() is None:
+    the tolerance; near it, or missing, the probe runs here."""
+    if model.lstm is None or engine() is None:
         return None
     torch.backends.quantized.engine = engine()
     stored = (ranges or {}).get("head_error", {}).get(engine())

@@ -70,12 +70,10 @@ def draw_bursts(generator: torch.Generator, batch: int, window: int, probability
     return {"burst": code, "burst_level": level, "burst_angle": angle}
 
 
-def spoil(frames: Tensor, code: Tensor, level: Tensor, angle: Tensor, generator: torch.Generator | None = None,
-          noise: float = NOISE) -> Tensor:
+def spoil(frames: Tensor, code: Tensor, level: Tensor, angle: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """``frames`` (B, K, 1, h, w) in [-1, 1] with the frames whose ``code`` (B, K) is non-zero
     spoilt as :func:`draw_burst` drew them (``level``, ``angle`` (B, K)); a new tensor, the
-    clean frames unchanged.  Blur lengths are in 1280-wide px, scaled to the frames' width; ``noise``
-    is the sensor floor's sigma on a spoilt frame ([-1, 1] units)."""
+    clean frames unchanged.  Blur lengths are in 1280-wide px, scaled to the frames' width."""
     out = frames.clone()
     hit = code > 0
     if not bool(hit.any()):
@@ -93,8 +91,8 @@ def spoil(frames: Tensor, code: Tensor, level: Tensor, angle: Tensor, generator:
     for b, k in (code == BLUR).nonzero().tolist():  # a few frames a batch: one kernel each
         length = max(3, int(round(float(level[b, k]) * w / 1280.0)) | 1)
         out[b, k] = motion_blur(frames[b, k][None], length, float(angle[b, k]), 0.0, border_type="reflect")[0]
-    floor = torch.randn(out[hit].shape, generator=generator, device=frames.device, dtype=frames.dtype) * noise
-    out[hit] = (out[hit] + floor).clamp(-1.0, 1.0)
+    noise = torch.randn(out[hit].shape, generator=generator, device=frames.device, dtype=frames.dtype) * NOISE
+    out[hit] = (out[hit] + noise).clamp(-1.0, 1.0)
     return out
 
 

@@ -26,27 +26,18 @@ PAPER_STEPS = {"base": 300_000}
 PAPER_FINETUNE_STEPS = 90_000
 PAPER_BATCH = {"base": 64, "lstm": 8, "lstm-reg-t": 8, "lstm-reg-all": 8}
 PAPER_REG_BATCH = 32
-# The carry head (not in the paper) trains on cached features: many cheap steps of large batches,
-# at a learning rate of its own (its gate must move by several units: models/README.md), and with
-# events (bursts, drops, duplicates) in most windows.
-CARRY = {"steps": 8000, "batch_size": 64, "lr": 3e-3, "bursts": 0.75}
-DEFAULT_LR = 1e-3
-BLOWN_BY = ("frame", "burst")  # --carry-blown-by: what one draw of blown glare blows out
-CARRY_BLENDS = ("gate", "spoilt")  # --carry-blend: the estimator's carry-blend, in training (train.carry.CarryObjective)
 
 # Options that define what a run learns: a resumed run must keep them.
 RUN_DEFINING = ("variant", "preset", "init", "freeze", "batch_size", "lr", "lr_decay", "lr_milestones", "seed",
-                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data", "feature_windows",
-                "carry_forcing", "carry_blown_glare", "carry_blown_by", "carry_teacher_beyond", "carry_turns",
-                "carry_gate_memory", "carry_gate_weight", "carry_noise", "carry_blend", "carry_correction_weight")
+                "work_size", "patch", "flip", "photometric", "lstm_start", "bursts", "data")
 
 
 def paper_steps(variant: str) -> int:
-    return CARRY["steps"] if variant == "carry" else PAPER_STEPS.get(variant, PAPER_FINETUNE_STEPS)
+    return PAPER_STEPS.get(variant, PAPER_FINETUNE_STEPS)
 
 
 def paper_batch_size(variant: str) -> int:
-    return CARRY["batch_size"] if variant == "carry" else PAPER_BATCH.get(variant, PAPER_REG_BATCH)
+    return PAPER_BATCH.get(variant, PAPER_REG_BATCH)
 
 
 @dataclass
@@ -59,7 +50,7 @@ class TrainConfig:
     freeze: bool = True  # LSTM from a CNN checkpoint: keep the copied backbone + first Linear fixed
     steps: int | None = None  # None: the paper's count for the variant
     batch_size: int | None = None  # windows per step per process; None: the paper's for the variant
-    lr: float | None = None  # None: DEFAULT_LR, or the carry head's own (CARRY)
+    lr: float = 1e-3
     lr_decay: float = 0.1
     lr_milestones: tuple[float, ...] = (1 / 3, 2 / 3)  # fractions of ``steps`` where lr *= lr_decay
     device: str = "auto"
@@ -74,18 +65,7 @@ class TrainConfig:
     lstm_start: str = "random"  # an LSTM from a CNN --init: "random" head (the paper) or "cnn" (starts as the CNN's head)
     photometric: str = "gray"  # what the photometric terms compare: "gray" (the paper) or "band" (band-passed)
     flip: bool = False  # mirror windows left-right and/or upside down (off: runs saved before it resume unchanged)
-    bursts: float | None = None  # share of the windows with a burst of spoilt frames the network reads (train.bursts); None: 0, carry CARRY's
-    feature_windows: int = 4096  # carry: training windows in the feature cache (train.carry)
-    carry_forcing: float = 0.0  # carry: share of the windows with the teacher's motion fed back as the previous output (train.carry)
-    carry_blown_glare: float = 0.0  # carry: share of the glare frames blown out entirely, no residue (train.carry.draw_window)
-    carry_blown_by: str = "frame"  # carry: blown glare drawn per glare frame, or per burst (all its frames alike)
-    carry_turns: float = 0.0  # carry: share of the windows that turn back on themselves (train.carry.draw_window)
-    carry_gate_memory: bool = True  # carry: the head's gate reads its cell's state (False: the pair's evidence alone)
-    carry_noise: float | None = None  # carry: the sensor floor on a spoilt frame, gray levels at the working size (None: train.bursts.NOISE)
-    carry_blend: str = "gate"  # carry: "spoilt": the spoilt pairs take the carried motion whole in training, as carry-blend=spoilt
-    carry_gate_weight: float = 0.0  # carry: weight of the gate's own loss (which answer to take: train.carry.CarryObjective)
-    carry_correction_weight: float = 0.0  # carry: an L1 price on the cell's correction where --carry-blend spoilt takes the carried motion whole
-    carry_teacher_beyond: float | None = None  # carry: the teacher also on clean pairs whose BASE answer is this far off (working px)
+    bursts: float = 0.0  # share of the windows with a burst of spoilt frames the network reads (train.bursts)
     data: str = "stream"  # "device": the frame cache held on the training device, batches cut there (train.data.DeviceWindows)
     num_workers: int = 1
     max_minutes: float | None = None  # stop (checkpoint and final weights) after this long, whatever --steps says
@@ -113,7 +93,7 @@ class TrainConfig:
         checks = [
             (self.steps is None or self.steps >= 1, f"--steps must be at least 1, got {self.steps}"),
             (self.batch_size is None or self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
-            (self.lr is None or self.lr > 0, f"--lr must be positive, got {self.lr}"),
+            (self.lr > 0, f"--lr must be positive, got {self.lr}"),
             (0 < self.lr_decay <= 1, f"the learning-rate decay must be in (0, 1], got {self.lr_decay}"),
             (all(0 < m < 1 for m in self.lr_milestones), "learning-rate milestones must be fractions in (0, 1)"),
             (self.seed >= 0, f"--seed must be 0 or more, got {self.seed}"),
@@ -126,20 +106,7 @@ class TrainConfig:
             (self.checkpoint_minutes > 0, f"--checkpoint-minutes must be positive, got {self.checkpoint_minutes}"),
             (self.cache_gb > 0, f"--cache-gb must be positive, got {self.cache_gb}"),
             (self.max_minutes is None or self.max_minutes > 0, f"--max-minutes must be positive, got {self.max_minutes}"),
-            (self.bursts is None or 0 <= self.bursts <= 1, f"--bursts must be a share of the windows in [0, 1], got {self.bursts}"),
-            (self.feature_windows >= 1, f"--feature-windows must be at least 1, got {self.feature_windows}"),
-            (0 <= self.carry_forcing <= 1, f"--carry-forcing must be a share of the windows in [0, 1], got {self.carry_forcing}"),
-            (0 <= self.carry_blown_glare < 1, f"--carry-blown-glare must be a share in [0, 1), got {self.carry_blown_glare}"),
-            (self.carry_teacher_beyond is None or self.carry_teacher_beyond > 0,
-             f"--carry-teacher-beyond must be a positive distance in working px, got {self.carry_teacher_beyond}"),
-            (self.carry_noise is None or self.carry_noise >= 0, f"--carry-noise must be 0 or more gray levels, got {self.carry_noise}"),
-            (self.carry_gate_weight >= 0, f"--carry-gate-weight must be 0 or more, got {self.carry_gate_weight}"),
-            (0 <= self.carry_turns <= 1, f"--carry-turns must be a share of the windows in [0, 1], got {self.carry_turns}"),
-            (self.carry_correction_weight >= 0, f"--carry-correction-weight must be 0 or more, got {self.carry_correction_weight}"),
-            (self.carry_correction_weight == 0 or self.carry_blend == "spoilt",
-             "--carry-correction-weight prices the correction on the pairs that take the carried motion whole: pass --carry-blend spoilt"),
-            (self.carry_blend in CARRY_BLENDS, f"--carry-blend must be one of {', '.join(CARRY_BLENDS)}, got {self.carry_blend!r}"),
-            (self.carry_blown_by in BLOWN_BY, f"--carry-blown-by must be one of {', '.join(BLOWN_BY)}, got {self.carry_blown_by!r}"),
+            (0 <= self.bursts <= 1, f"--bursts must be a share of the windows in [0, 1], got {self.bursts}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -148,13 +115,10 @@ class TrainConfig:
 
     def resolved(self) -> TrainConfig:
         """A copy with the paper's defaults filled in for the variant."""
-        carry = self.variant == "carry"
         return replace(
             self,
             steps=paper_steps(self.variant) if self.steps is None else int(self.steps),
             batch_size=paper_batch_size(self.variant) if self.batch_size is None else int(self.batch_size),
-            lr=(CARRY["lr"] if carry else DEFAULT_LR) if self.lr is None else float(self.lr),
-            bursts=(CARRY["bursts"] if carry else 0.0) if self.bursts is None else float(self.bursts),
             work_size=tuple(int(v) for v in self.work_size),
             lr_milestones=tuple(float(m) for m in self.lr_milestones),
         )

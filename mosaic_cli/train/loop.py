@@ -33,10 +33,9 @@ from torch import nn
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, Interrupted, MosaicError, ProcessingError
 from mosaic_cli.model import quantize
-from mosaic_cli.model.checkpoint import file_sha256, load_weights
-from mosaic_cli.model.network import CUES, HomographyNet, NetConfig
+from mosaic_cli.model.checkpoint import load_weights
+from mosaic_cli.model.network import HomographyNet, NetConfig
 from mosaic_cli.progress import console, progress_task
-from mosaic_cli.train.carry import CarryObjective, FeatureWindows, build_feature_cache, teacher_tracks
 from mosaic_cli.train.config import RUN_DEFINING, TrainConfig
 from mosaic_cli.train.data import (
     DeviceWindows,
@@ -66,7 +65,6 @@ CALIBRATION_PAIRS = 512  # training patch pairs that set the int8 activation ran
 # then amplify a smaller hidden state as much, and the optimiser's first steps on the LSTM's
 # weights move it that much more: 2x starts within about a working px of the CNN.
 LSTM_START_MARGIN = 2.0
-CARRY_CORRECTION_PX = 1.0  # the carry head's bound on its correction of the carried motion (working px)
 MAX_SKIPPED_STEPS = 50  # consecutive non-finite losses before the run is declared diverged
 
 
@@ -128,12 +126,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     if start >= cfg.steps:
         raise BadInput(f"{run.root} has already run {start} steps; pass a larger --steps to continue it")
     clips = discover_clips(cfg.clips)
-    carry = cfg.variant == "carry"
-    if carry and not cfg.init:
-        raise BadInput("--variant carry trains a head on a trained BASE: pass --init BASE_WEIGHTS (models/cnn.safetensors, or LSTM-REG-T's models/lstm.safetensors)")
-    if carry and dist.active:
-        raise BadInput("--variant carry trains in one process (its features are cached): pass --device cpu or one GPU")
-    objective = CarryObjective(cfg.carry_forcing, cfg.carry_teacher_beyond, cfg.carry_gate_weight, cfg.carry_blend, cfg.carry_correction_weight) if carry else Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
+    objective = Objective(cfg.variant, patch=cfg.patch, photometric_space=cfg.photometric)
     flights = find_val_flights(cfg.val) if cfg.val else []
     init_net = load_init(cfg) if (cfg.init and not resume) else None
     prepare_run_dir(run)
@@ -156,12 +149,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     if resume:
         net, optimizer_tensors = load_checkpoint(run, state, dist.device)
     else:
-        # A new carry head reads the pairs' image cues too, and its cell may move the carried motion
-        # by at most CARRY_CORRECTION_PX (unbounded, it pushed the carried motion off on held-out ground).
-        # Its BASE is the --init's head: the CNN's Linear, or LSTM-REG-T's LSTM and Linear.
-        extra = dict(carry_cues=CUES, carry_correction=CARRY_CORRECTION_PX, carry_base=carry_base_of(init_net),
-                     carry_gate_memory=cfg.carry_gate_memory) if carry else {}
-        net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch, **extra)).to(dist.device)
+        net = HomographyNet(NetConfig(preset=cfg.preset, head=objective.head, patch=cfg.patch)).to(dist.device)
         if init_net is not None:
             initialise_from(net, init_net, dataset if cfg.lstm_start == "cnn" else None, cfg.seed)
     trainable = set_trainable(net, cfg)
@@ -170,14 +158,10 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
     if resume:
         restore_optimizer(optimizer, optimizer_tensors, state["optimizer"])
     schedule = StepSchedule(cfg.lr, cfg.steps, cfg.lr_milestones, cfg.lr_decay)
-    # The carry head is small and reads cached features: no mixed precision, one process.
-    model, precision = (net, torch.float32) if carry else wrap_for_device(net, dist, cfg.amp)
+    model, precision = wrap_for_device(net, dist, cfg.amp)
     scaler = torch.amp.GradScaler("cuda", enabled=precision == torch.float16)
 
-    if carry:
-        batches = carry_batches(cfg, net, cached, run, dist, start, show_progress)
-    else:
-        batches = step_batches(cfg, dataset, cached, objective, dist, start)
+    batches = step_batches(cfg, dataset, cached, objective, dist, start)
     log = CsvLog(run.log if dist.is_main else None, keep_until=start if resume else None)
     val_log = CsvLog(run.val_log if dist.is_main and flights else None, keep_until=start if resume else None)
     if show_progress:
@@ -246,8 +230,7 @@ def _train(cfg: TrainConfig, resume: bool, dist: Distributed, show_progress: boo
                 break
 
     if dist.is_main:
-        int8 = init_ranges(cfg) if carry else calibrate_int8(net, dataset, cfg.seed)
-        save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size, int8=int8)
+        save_final_weights(run, net, cfg.variant, cfg.steps, cfg.work_size, int8=calibrate_int8(net, dataset, cfg.seed))
     dist.barrier()
     return TrainSummary(run.root, start, cfg.steps, rate.mean(), terms, val_mace,
                         run.weights if dist.is_main else None)
@@ -270,44 +253,6 @@ def step_batches(cfg: TrainConfig, dataset: WindowDataset, cached, objective: Ob
     return (to_model_input(batch, dist.device) for batch in loader)
 
 
-def carry_batches(cfg: TrainConfig, net: HomographyNet, cached, run: RunDir, dist: Distributed, start: int,
-                  show_progress: bool):
-    """The carry head's batches (:mod:`.carry`): the teacher tracks of the clips, the feature
-    cache of the training windows (both made once and kept in RUN_DIR/features), then windows
-    drawn from it step by step.  The features are the ones the estimator reads on this device:
-    int8 on a CPU with an int8 engine and the --init's ranges, else fp32."""
-    from mosaic_cli.model.quantize import quantized_features
-
-    folder = run.root / "features"
-    teachers = teacher_tracks(cached, cfg.init, folder, show_progress, workers=cfg.num_workers)
-    features = None
-    if dist.device.type == "cpu":
-        features = quantized_features(net, init_ranges(cfg))
-    precision = "int8" if features is not None else "fp32"
-    if features is None:
-        features = net.eval().features
-    identity = {"init": file_sha256(cfg.init), "clips": [c.clip for c in cached], "frames": [c.frames for c in cached],
-                "seed": cfg.seed, "bursts": cfg.bursts, "flip": cfg.flip, "patch": cfg.patch, "precision": precision,
-                # (without blown glare, the key a cache had before the option existed)
-                "cues": net.config.carry_cues, **({"blown_glare": cfg.carry_blown_glare} if cfg.carry_blown_glare else {}),
-                **({"blown_by": cfg.carry_blown_by} if cfg.carry_blown_glare and cfg.carry_blown_by != "frame" else {}),
-                **({"turns": cfg.carry_turns} if cfg.carry_turns else {}),
-                **({"noise": cfg.carry_noise} if cfg.carry_noise is not None else {})}
-    cache = build_feature_cache(net, features, cached, teachers, cfg.feature_windows, cfg.patch, cfg.seed, float(cfg.bursts or 0.0),
-                                cfg.flip, folder, identity, show_progress, blown_glare=cfg.carry_blown_glare,
-                                blown_by_burst=cfg.carry_blown_by == "burst", turns=cfg.carry_turns,
-                                **({"noise": cfg.carry_noise / 127.5} if cfg.carry_noise is not None else {}))
-    windows = FeatureWindows(cache, cfg.seed, dist.device, base=net.base_offsets, embed=net.config.embed)
-    return (windows.batch(step, cfg.batch_size) for step in range(start, cfg.steps))
-
-
-def init_ranges(cfg: TrainConfig) -> dict | None:
-    """The --init checkpoint's int8 ranges: the carry head reads its features unchanged."""
-    from mosaic_cli.model.checkpoint import read_metadata
-
-    return read_metadata(cfg.init)["int8"] if cfg.init else None
-
-
 def calibrate_int8(net: HomographyNet, dataset: WindowDataset, seed: int) -> dict | None:
     """Activation ranges for int8 CPU inference, measured on training patch pairs and shipped in
     the final weights (None where this PyTorch has no int8 engine)."""
@@ -316,7 +261,7 @@ def calibrate_int8(net: HomographyNet, dataset: WindowDataset, seed: int) -> dic
     return quantize.calibrate(net, sample_pairs(dataset, CALIBRATION_PAIRS, seed=seed))
 
 
-def compute_gradients(model: nn.Module, objective: Objective | CarryObjective, optimizer: torch.optim.Optimizer,
+def compute_gradients(model: nn.Module, objective: Objective, optimizer: torch.optim.Optimizer,
                       scaler: torch.amp.GradScaler, batch: dict) -> dict:
     """Every loss term of one batch, with the gradient of the total in the parameters (averaged
     over the processes by DDP during backward)."""
@@ -370,13 +315,6 @@ def load_init(cfg: TrainConfig) -> HomographyNet:
     return net
 
 
-def carry_base_of(init: HomographyNet | None) -> str:
-    """The head a carry head trained from ``init`` reads its BASE's answer from (NetConfig.carry_base)."""
-    if init is None or init.head == "cnn":
-        return "cnn"
-    return init.config.carry_base if init.head == "carry" else "lstm"
-
-
 def initialise_from(net: HomographyNet, source: HomographyNet, start_as_cnn: WindowDataset | None = None,
                     seed: int = 0) -> None:
     """Fine-tuning: everything from a net with the same head; backbone + first Linear otherwise
@@ -385,8 +323,6 @@ def initialise_from(net: HomographyNet, source: HomographyNet, start_as_cnn: Win
     LSTM_START_MARGIN times the largest feature over pairs of that dataset."""
     if source.head == net.head:
         net.load_state_dict(source.state_dict())
-    elif net.head == "carry":
-        net.start_as_carry(source)
     elif start_as_cnn is not None and net.head == "lstm":
         with torch.no_grad():
             largest = float(source.eval().features(sample_pairs(start_as_cnn, CALIBRATION_PAIRS, seed=seed)).max())
@@ -399,7 +335,7 @@ def set_trainable(net: HomographyNet, cfg: TrainConfig) -> list[nn.Parameter]:
     """The paper trains the LSTM variants with the backbone and first Linear of a trained
     BASE held fixed; ``--no-freeze`` (or no --init) trains everything."""
     frozen = set()
-    if (cfg.init and cfg.freeze and net.head == "lstm") or net.head == "carry":  # carry: its features are cached
+    if cfg.init and cfg.freeze and net.head == "lstm":
         frozen = {id(p) for p in net.feature_parameters()}
     for p in net.parameters():
         p.requires_grad_(id(p) not in frozen)
