@@ -231,7 +231,7 @@ def bench_stabilize(args) -> list[dict]:
     for seed, model in ((seed, model) for seed in range(args.clips) for model in models):
         video = flight(args.profile, args.frames, size=args.size, seed=seed, fps=args.fps)
         gt = load_ground_truth(video.with_suffix(".gt.json"))
-        options = StabilizeOptions(estimator=args.estimator, latency=args.latency, model=model)  # the offline run ignores the latency
+        options = StabilizeOptions(estimator=args.estimator, latency=args.latency, model=model, preset=args.preset)  # the offline run ignores the latency
         port, out_port = free_port(), free_port()
         url = f"tcp://127.0.0.1:{port}?listen=1"
         received, left = WORKDIR / "received.ts", WORKDIR / "received_times.npy"
@@ -281,7 +281,7 @@ def bench_stabilize(args) -> list[dict]:
           f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
           + (f" --hog {args.hog}" if args.hog else "") + (f" --model {args.model}" if args.model else "")
           + (f" --profile {args.profile}" if args.profile != "shaky" else "")
-          + (f" --size {args.size}" if args.size != "1280x720" else "") + (f" --fps {args.fps:g}" if args.fps != 30.0 else ""))
+          + (f" --size {args.size}" if args.size != "1280x720" else "") + (f" --preset {args.preset}" if args.preset else "") + (f" --fps {args.fps:g}" if args.fps != 30.0 else ""))
     return rows
 
 
@@ -599,6 +599,7 @@ def main() -> None:
     parser.add_argument("--times", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--size", default="1280x720", help="horizon, stabilize: the flight's size")
     parser.add_argument("--fps", type=float, default=30.0, help="stabilize: the flight's frame rate")
+    parser.add_argument("--preset", default=None, help="stabilize: x264's preset (default: the command's)")
     parser.add_argument("--seed", type=int, default=0, help="horizon: the flight's seed")
     parser.add_argument("--estimator", default="lstm")
     parser.add_argument("--model", default=None, help="stabilize: correction models, comma-separated (default: the command's)")

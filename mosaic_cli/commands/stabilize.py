@@ -47,7 +47,7 @@ def stabilize(
                                                "(default), replicate or reflect.", rich_help_panel=SMOOTHING)] = None,
     crf: Annotated[int, typer.Option("--crf", help="x264 quality, 0 (lossless) .. 51.", rich_help_panel=OUTPUT_QUALITY)] = 18,
     preset: Annotated[str | None, typer.Option("--preset", help="x264 preset (ultrafast .. veryslow).", rich_help_panel=OUTPUT_QUALITY,
-                                               show_default="veryfast; live, above 1280x720 at 30 fps: ultrafast")] = None,
+                                               show_default="veryfast; live, above 854x480 at 30 fps: ultrafast")] = None,
     warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
     compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.", rich_help_panel=INPUT_OUTPUT)] = None,
     estimator: EstimatorName = None,

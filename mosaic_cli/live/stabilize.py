@@ -618,9 +618,10 @@ class Bridged:
 
 # The pixel rate (px/s) up to which a live run encodes with the offline preset: x264's veryfast
 # costs 23 ms of CPU a 1280x720 frame and 48 ms a 1920x1080 one on this 2-core machine, ultrafast
-# 8 and 18 ms, beside 6 and 12 ms of decoding (docs/measurements/live.md): at 1080p and 25 fps
-# veryfast alone takes more than half of both cores.
-LIVE_VERYFAST_PIXEL_RATE = 1280 * 720 * 30
+# 8 and 18 ms, beside 6 and 12 ms of decoding.  A cold 720p30 run (the network loading beside the
+# first seconds of the stream) reached p95 2.07 s with veryfast, 1.17-1.18 s with ultrafast
+# (docs/measurements/live.md).
+LIVE_VERYFAST_PIXEL_RATE = 854 * 480 * 30
 
 
 def live_preset(size: tuple[int, int], fps: float) -> str:
