@@ -32,7 +32,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from mosaic_cli.geo.fit import OUTLIER, SimilarityPrior, axis_sigma, fix_weights, huber_weights, normaliser, robust_scatter, robust_weights
 from mosaic_cli.geometry import normalize, project
@@ -113,6 +112,7 @@ def level_mosaic(attitude: AttitudeViews, rounds: int = 10) -> Levelling:
     ground's up to a similarity by all keyframes' gimbals at once (robustly: Huber per
     keyframe), not by one keyframe's.  Only the tilt and shear are chosen (4 parameters); the
     similarity left is the GPS's to fix."""
+    from scipy.optimize import least_squares
     corners = project(attitude.views, attitude.corners)  # (M, 4, 2)
     to_unit = normaliser(corners.reshape(-1, 2))
     unit = project(to_unit, corners.reshape(-1, 2))
@@ -155,6 +155,7 @@ def adjust_to_ground(
     rounds: int = 10,
 ) -> GroundFit:
     """The homography mosaic -> ground that the fixes, the attitudes and the prior agree on best (module doc)."""
+    from scipy.optimize import least_squares
     nadirs = np.asarray(nadirs, np.float64)
     fixes = np.asarray(fixes, np.float64)
     times = np.asarray(times, np.float64)

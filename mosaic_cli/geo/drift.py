@@ -37,9 +37,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
-from scipy.spatial import cKDTree
 
 from mosaic_cli.geo.fit import SCATTER
 
@@ -101,6 +98,8 @@ class _Rows:
         return terms
 
     def solve(self) -> np.ndarray:
+        import scipy.sparse
+        import scipy.sparse.linalg
         unknowns = (3 if self.with_scale else 2) * self.n
         A = scipy.sparse.csr_matrix((self.vals, (self.rows, self.cols)), shape=(len(self.rhs), unknowns))
         # normal equations, solved directly (an iterative solver stalls on the stiff bending terms)
@@ -119,6 +118,7 @@ def drift_correction(
     height_scales: np.ndarray | None = None,  # (N,) log(height's metres per pixel / the mosaic's) (NaN: none)
 ) -> DriftCorrection:
     """Per-keyframe ground shifts, and with ``height_scales`` scales (module doc)."""
+    from scipy.spatial import cKDTree
     o = options or DriftOptions()
     n = len(positions)
     has = np.isfinite(fixes).all(1) & (weights > 0)

@@ -20,7 +20,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import convolve1d
 
 from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.stabilize.path import gaussian_weights, neighbour_mean
@@ -96,6 +95,7 @@ def ground_truth_jitter(map_to_frame: np.ndarray, smooth_map_to_frame: np.ndarra
     The output frame's outline is followed in the coordinates of the jitter-free camera
     (map -> smooth frame), where the intended flight no longer moves it; what the high-pass
     leaves of that outline's motion is shake the stabiliser did not remove (or added)."""
+    from scipy.ndimage import convolve1d
     M = normalize(map_to_frame)
     G = normalize(smooth_map_to_frame)
     W = np.broadcast_to(np.eye(3), M.shape) if warps is None else normalize(warps)

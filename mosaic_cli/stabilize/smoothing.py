@@ -20,10 +20,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import linprog
+
+if TYPE_CHECKING:  # scipy is imported where it is used: a live stabilize listens sooner (bench_live.py listen --cold)
+    import scipy.sparse as sp
 
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.geometry import four_point_to_homography
@@ -156,6 +158,7 @@ class L1Planner:
 
 def _difference(n: int, order: int) -> sp.csr_matrix:
     """The (n - order, n) forward-difference operator of the given order."""
+    import scipy.sparse as sp
     D = sp.identity(n, format="csr")
     for _ in range(order):
         m = D.shape[0]
@@ -199,6 +202,7 @@ class _Program:
         self.rows["eq"].append((terms, np.asarray(rhs, dtype=np.float64)))
 
     def _matrix(self, kind: str):
+        import scipy.sparse as sp
         if not self.rows[kind]:
             return None, None
         mats = []
@@ -211,6 +215,7 @@ class _Program:
         return sp.vstack(mats, format="csr"), np.concatenate([rhs for _, rhs in self.rows[kind]])
 
     def solve(self, method: str = "highs-ipm") -> np.ndarray:
+        from scipy.optimize import linprog
         A_ub, b_ub = self._matrix("ub")
         A_eq, b_eq = self._matrix("eq")
         problem = dict(c=np.concatenate(self.costs), A_ub=A_ub, b_ub=b_ub, A_eq=A_eq, b_eq=b_eq, bounds=self.bounds)
@@ -226,6 +231,7 @@ class _Program:
 def solve_window(motion: np.ndarray, model: MotionModel, fixed: np.ndarray | None, size: tuple[int, int],
                   crop: float | None, opts: L1Smoother) -> np.ndarray:
     """One linear program over L = len(motion) + 1 frames; returns (L, K) parameters of B_t."""
+    import scipy.sparse as sp
     L, K = len(motion) + 1, model.n_params
     if L == 1:
         return model.identity[None].copy() if fixed is None else fixed[:1].copy()
@@ -289,6 +295,7 @@ def _derivatives(motion: np.ndarray, model: MotionModel, weights) -> list[tuple[
 
     R_j = F_{j+1} M(p_{j+1}) - M(p_j) over the compared entries is linear in p:
     A_j p_{j+1} - P p_j + r0_j.  D^2 and D^3 are its first and second differences."""
+    import scipy.sparse as sp
     L, K = len(motion) + 1, model.n_params
     rows_e = np.array([r for r, _ in model.entries])
     cols_e = np.array([c for _, c in model.entries])

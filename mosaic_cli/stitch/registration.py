@@ -17,11 +17,12 @@ from collections.abc import Callable
 from collections.abc import Set as AbstractSet
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.linalg
-from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:  # scipy is imported where it is used: a live stitch listens sooner (bench_live.py listen --cold)
+    import scipy.sparse
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.geometry import frame_corners, normalize, project
@@ -183,6 +184,7 @@ def loop_candidates(
     """Non-neighbouring keyframe pairs predicted to overlap and not ``tried`` yet, most
     overlap first (the most reliable registrations), spread over the keyframes, within what
     is left of ``max_loop_pairs``."""
+    from scipy.spatial import cKDTree
     budget = options.max_loop_pairs - len(tried)
     if budget <= 0 or len(placements) < options.min_loop_gap + 1:
         return []
@@ -349,6 +351,7 @@ class _Problem:
         return 0.5 * float(self.loss(residuals**2, scale)[0].sum())
 
     def jacobian(self, x: np.ndarray) -> scipy.sparse.csr_matrix:
+        import scipy.sparse
         u, B = self._transfer(x)
         w = u[:, 2]
         xy = u[:, :2] / w[:, None]
@@ -419,6 +422,8 @@ def _solve(problem: _Problem, x0: np.ndarray, options: RegistrationOptions) -> n
     keyframes growing a few hundredths of a percent each, seen by the links as hundredths of a
     pixel): an inexact inner solver (LSMR in scipy's trust region) leaves them where the
     starting placements had them, and stops at its evaluation budget."""
+    import scipy.sparse
+    import scipy.sparse.linalg
     x = np.array(x0, dtype=np.float64)
     f = problem.residuals(x)
     cost = problem.cost(f, options.loss_scale)
