@@ -423,17 +423,18 @@ def test_track_cli_flags_reach_the_estimator(tmp_path, panning, capsys):
         frames = list(stream)
     config = LearnedConfig(patches=5, refine=None, chunk=3)
     direct, _ = run(make_learned_estimator("cnn", weights=path, device="cpu", config=config), frames, FULL)
-    assert track("--weights", str(path), "--device", "cpu", "--patches", "5", "--refine", "none", "--chunk", "3") in (0, None)
-    np.testing.assert_allclose(np.array(json.loads(out.read_text())["pairwise"]), direct, rtol=1e-6, atol=1e-6)
-    # the same through an estimator name with options
+    # through an estimator name with options
     assert track("-e", "cnn:patches=5:refine=none:chunk=3", "--weights", str(path), "--device", "cpu") in (0, None)
     np.testing.assert_allclose(np.array(json.loads(out.read_text())["pairwise"]), direct, rtol=1e-6, atol=1e-6)
     out.unlink()
     for args, message in (
-        (["-e", "orb", "--patches", "5"], "has no option 'patches'"),
-        (["--weights", str(path), "--reset-every", "0"], "reset-every must be at least 1"),
-        (["--weights", str(path), "--patches", "4"], "patches must be one of 1, 5, 9"),
-        (["--weights", str(path), "--refine", "sift"], "refine must be one of lk, ecc or none"),
+        (["-e", "orb:patches=5"], "has no option 'patches'"),
+        (["-e", "lstm:reset-every=0", "--weights", str(path)], "reset-every must be at least 1"),
+        (["-e", "cnn:patches=4", "--weights", str(path)], "patches must be one of 1, 5, 9"),
+        (["-e", "cnn:refine=sift", "--weights", str(path)], "refine must be one of lk, ecc or none"),
+        # track's old flags: refused in one line that says how they are written now
+        (["-e", "cnn", "--patches", "5"], "--patches is an estimator setting now: -e cnn:patches=5"),
+        (["--chunk", "3"], "--chunk is an estimator setting now: -e lstm:chunk=3"),
         (["-e", "cnn:patches", "--weights", str(path)], "NAME:OPTION=VALUE"),
         (["--weights", str(path), "--threads", "0"], "--threads must be at least 1"),
     ):

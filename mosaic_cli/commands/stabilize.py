@@ -62,7 +62,7 @@ def stabilize(
     strict: Strict = False,
     latency: Annotated[float | None, typer.Option("--latency", help="One pass, each frame out at most this many seconds after it came in (a lookahead-bounded L1 path). Default for a live input or output: 1.", rich_help_panel=LIVE)] = None,
     timeout: Timeout = DEFAULT_TIMEOUT,
-    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.", rich_help_panel=SMOOTHING, show_default="auto; off for --latency and live input or output")] = None,
+    rolling_shutter: Annotated[str | None, typer.Option("--rolling-shutter", help="Take out a rolling shutter's wobble (jello): auto (readout estimated from the video; global-shutter footage is left alone), off, or the sensor readout as a fraction of the frame interval (0..1). Each output row is warped by its own correction.", rich_help_panel=SMOOTHING, show_default="auto; off when live or with a latency")] = None,
     quiet: Quiet = False,
     lens: LensOption = None,
     keep_lens: Annotated[bool, typer.Option("--keep-lens", help="With a lens applied (--lens FILE, or auto that finds one): "

@@ -12,7 +12,6 @@ from rich.markup import escape  # typer renders help as rich markup: '[plot]' wo
 
 from mosaic_cli.atomic import check_writable
 from mosaic_cli.commands.options import (
-    ESTIMATOR,
     INPUT_OUTPUT,
     Device,
     EstimatorName,
@@ -30,7 +29,7 @@ from mosaic_cli.commands.options import (
     use_threads,
 )
 from mosaic_cli.errors import BadInput, install_hint, warn
-from mosaic_cli.estimators import Estimator, plan_estimator
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR, Estimator, plan_estimator
 from mosaic_cli.live.loading import built_beside, trained_width
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
@@ -41,6 +40,19 @@ from mosaic_cli.video import probe
 from mosaic_cli.video.reader import reading_policy
 
 OverlayDetect = overlay_detect_option("estimation")
+# Once track's own flags, now the estimator's settings (-e lstm:patches=5) on every command alike.
+MovedPatches = Annotated[int | None, typer.Option("--patches", hidden=True)]
+MovedResetEvery = Annotated[int | None, typer.Option("--reset-every", hidden=True)]
+MovedRefine = Annotated[str | None, typer.Option("--refine", hidden=True)]
+MovedChunk = Annotated[int | None, typer.Option("--chunk", hidden=True)]
+
+
+def refuse_moved_settings(estimator: str | None, given: dict) -> None:
+    """One line for a flag that became an estimator setting, naming how it is written now."""
+    for key, value in given.items():
+        if value is not None:
+            name = (estimator or DEFAULT_ESTIMATOR).split(":")[0]
+            raise BadInput(f"--{key} is an estimator setting now: -e {name}:{key}={value}")
 Quiet = quiet_option("No progress bar.")
 
 
@@ -51,10 +63,10 @@ def track(
     work_width: WorkWidth = None,
     weights: Weights = None,
     device: Device = "auto",
-    patches: Annotated[int | None, typer.Option("--patches", help="Learned: patches per frame pair, 1 (centre, the paper), 5 or 9, with a robust consensus.", rich_help_panel=ESTIMATOR)] = None,
-    reset_every: Annotated[int | None, typer.Option("--reset-every", help="LSTM: restart its state every K frame pairs (default: carried through the video).", rich_help_panel=ESTIMATOR)] = None,
-    refine: Annotated[str | None, typer.Option("--refine", help="Polish of each estimate: lk (default), ecc or none (learned and orb).", rich_help_panel=ESTIMATOR)] = None,
-    chunk: Annotated[int | None, typer.Option("--chunk", help="Learned: frame pairs per network batch (default 16; larger on a GPU).", rich_help_panel=ESTIMATOR)] = None,
+    patches: MovedPatches = None,
+    reset_every: MovedResetEvery = None,
+    refine: MovedRefine = None,
+    chunk: MovedChunk = None,
     threads: Threads = None,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
@@ -77,6 +89,7 @@ def track(
     from mosaic_cli.plots import check_plot_request
 
     check_plot_request(plot)  # before any long work
+    refuse_moved_settings(estimator, {"patches": patches, "reset-every": reset_every, "refine": refine, "chunk": chunk})
     options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect),
                            rolling_shutter=rolling_shutter)
     if parse_rolling_shutter(rolling_shutter) != "off" and (is_live_source(video) or is_jsonl(out) or not out.lower().endswith(".json")):
@@ -92,8 +105,7 @@ def track(
         raise BadInput("--lens auto reads frames spread over a whole video file: with a live input, pass a lens FILE (or none)")
     info = None if live else probe(video)  # the input's one probe, passed down
     check_mask_file(options.mask, info)
-    build = plan_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device,
-                           patches=patches, reset_every=reset_every, refine=refine, chunk=chunk)
+    build = plan_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
     use_threads(options.threads)
     masked = None
     clock = time.perf_counter()
