@@ -134,7 +134,7 @@ def test_an_overlay_found_restarts_the_track_with_the_mask(clips, held_detection
     assert_same_track(result, expected)
     fresh = RollingProbe(info)
     track_video(clips["burned"], make_estimator("orb"), show_progress=False, probe=fresh)
-    for a, b in zip(fed.measured(0), fresh.measured(0)):
+    for a, b in zip(fed.measured(0).arrays(), fresh.measured(0).arrays()):
         assert np.array_equal(a, b)
     # The check can fail: the pairs estimated before the overlays were known are not these.
     unmasked = track_video(clips["burned"], make_estimator(estimator, device="cpu"), show_progress=False, max_frames=HELD)
@@ -203,7 +203,7 @@ def test_stitch_panorama_is_that_of_the_mask_given_first(clips, held_detection, 
     assert seq.overlay_restart is False
     assert [i for i, _ in spec.transforms] == [i for i, _ in seq.transforms]
     assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(spec.transforms, seq.transforms))
-    for a, b in zip(probes[0].measured(0), probes[1].measured(0)):
+    for a, b in zip(probes[0].measured(0).arrays(), probes[1].measured(0).arrays()):
         assert np.array_equal(a, b)
     a = cv2.imread(str(tmp_path / "spec.png"), cv2.IMREAD_UNCHANGED)
     b = cv2.imread(str(tmp_path / "seq.png"), cv2.IMREAD_UNCHANGED)
