@@ -94,7 +94,9 @@ def test_failure_is_identity_with_zero_confidence(name, pair):
         assert np.array_equal(e.H, np.eye(3)) and e.confidence == 0.0, name
 
 
-def test_unrelated_frames_never_give_nan():
+def test_unrelated_frames_are_failed_pairs_not_invented_motions():
+    """Noise and unrelated textures in turn: no homography relates any pair, so every pair is
+    reported failed (identity, confidence 0), as stitch and stabilize expect a failure to read."""
     rng = np.random.default_rng(0)
     est = OrbEstimator(320)
     est.reset((320, 180))
@@ -104,8 +106,7 @@ def test_unrelated_frames_never_give_nan():
         out += est.feed(frame)
     assert len(out) == 7
     for e in out:
-        assert np.all(np.isfinite(e.H)) and 0.0 <= e.confidence <= 1.0
-        assert e.confidence < 0.3 or not np.allclose(e.H, np.eye(3))
+        assert np.array_equal(e.H, np.eye(3)) and e.confidence == 0.0
 
 
 def test_one_frame_video_gives_no_pairs():
