@@ -396,8 +396,8 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         timeline = schedule.timeline
         preset = options.preset or live_preset(size, fps)
         if options.preset is None and preset != PRESET:
-            notes.append(f"{size[0]}x{size[1]} at {fps:g} fps is encoded with x264's {preset} preset, which keeps up "
-                         f"live on this machine where {PRESET} does not (--preset to choose)")
+            notes.append(f"{size[0]}x{size[1]} at {fps:g} fps is encoded with x264's {preset} preset, a third of "
+                         f"{PRESET}'s CPU, to keep the deadlines (--preset to choose)")
             if show_progress:
                 note(notes[-1])
         writer = (StreamWriter(out, size, fps, options.crf, preset) if is_stream_output(out)
