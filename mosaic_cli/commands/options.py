@@ -39,11 +39,12 @@ MACHINE = "Machine"
 
 EstimatorName = Annotated[str | None, typer.Option(
     "--estimator", "-e",
-    help=f"orb, orb-ransac, orb-paper, identity, lstm or cnn (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} "
-         f"(with --weights: the network they hold). {options_help()}", rich_help_panel=ESTIMATOR)]
+    help=f"lstm, cnn, orb or orb-ransac (options may follow: cnn:patches=5). Default: {DEFAULT_ESTIMATOR} "
+         f"(with --weights: the network they hold). {options_help()} The paper's baselines, orb-paper and identity, "
+         "are for mosaic bench and eval.", rich_help_panel=ESTIMATOR)]
 WorkWidth = Annotated[int | None, typer.Option(
     "--work-width",
-    help=f"Width the classical estimators (orb, orb-ransac, orb-paper, identity) work at, pixels (default {DEFAULT_WORK_WIDTH}; "
+    help=f"Width the classical estimators (orb, orb-ransac) work at, pixels (default {DEFAULT_WORK_WIDTH}; "
          "never wider than the video). The learned ones (lstm, cnn) work at the width their weights were trained at: "
          "another value is refused.", rich_help_panel=ESTIMATOR)]
 Weights = Annotated[Path | None, typer.Option("--weights", help="A trained checkpoint (.safetensors) to run.", rich_help_panel=ESTIMATOR)]

@@ -51,7 +51,7 @@ def stabilize(
     warps: Annotated[Path | None, typer.Option("--warps", help="Write the per-frame warps (input -> output pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
     compare: Annotated[Path | None, typer.Option("--compare", help="Also write input and output side by side to this video.", rich_help_panel=INPUT_OUTPUT)] = None,
     estimator: EstimatorName = None,
-    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators (orb, orb-ransac, orb-paper, identity) "
+    work_width: Annotated[int | None, typer.Option("--work-width", help="Width the classical estimators (orb, orb-ransac) "
                                                   "work at, pixels (default 640, never wider than the video: more than track and stitch's 320 "
                                                   "because every tracking error shows as shake in a stabilised video). The learned ones (lstm, "
                                                   "cnn) work at the width their weights were trained at: another value is refused.", rich_help_panel=ESTIMATOR)] = None,
