@@ -585,7 +585,6 @@ class Bridged:
         self.orb.reset(size)
         self.current: Estimator = self.orb
         self.bridged = 0  # frames ORB took
-        self.orb_pairs = 0  # pairs ORB estimated
         self.name = "network"  # the network's name, once it has loaded
         self._last: np.ndarray | None = None
 
@@ -597,23 +596,22 @@ class Bridged:
             network.reset(self.size)
             self.name = network.name
             handed = self.orb.finish()
-            self.orb_pairs += len(handed)
             if self._last is not None:
                 handed += network.feed(self._last)  # its first frame: no pair yet
             self.current = network
         if self.current is self.orb:
             self.bridged += 1
         self._last = gray
-        made = self.current.feed(gray)
-        if self.current is self.orb:
-            self.orb_pairs += len(made)
-        return handed + made
+        return handed + self.current.feed(gray)
 
     def finish(self) -> list:
-        made = self.current.finish()
-        if self.current is self.orb:
-            self.orb_pairs += len(made)
-        return made
+        return self.current.finish()
+
+    @property
+    def orb_pairs(self) -> int:
+        """The pairs ORB estimated: those between the frames it took (it holds none back; the
+        pair from its last frame to the network's first is the network's)."""
+        return max(0, self.bridged - 1)
 
 
 # The pixel rate (px/s) up to which a live run encodes with the offline preset: x264's veryfast
