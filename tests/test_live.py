@@ -79,6 +79,19 @@ def finish(proc: subprocess.Popen) -> tuple[int, str, str]:
     return proc.returncode, out.decode(), err.decode()
 
 
+def stabilize_served(video: Path, out: Path, options):
+    """``stabilize_live`` listening on loopback TCP, ``video`` sent to it in real time."""
+    from mosaic_cli.live.stabilize import stabilize_live
+
+    port = free_port(socket.SOCK_STREAM)
+    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
+                              daemon=True)
+    sender.start()
+    result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(out), options, show_progress=False)
+    sender.join(RUN_LIMIT)
+    return result
+
+
 def offline_track(tmp_path: Path, video: Path) -> np.ndarray:
     out = tmp_path / "offline.json"
     subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(out), "-e", "orb", "-q"],
@@ -255,7 +268,6 @@ def test_stabilize_stdin_to_stdout_is_an_mpeg_ts_stream(tmp_path, flight):
 def test_a_solver_slower_than_the_latency_holds_no_frame_back_and_drops_none(tmp_path, flight, monkeypatch):
     """Every solve of the path takes longer than the whole budget (fault injected): the frames
     leave at their deadline on the path planned so far, every one of them."""
-    from mosaic_cli.live.stabilize import stabilize_live
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize.online import OnlineL1Path
 
@@ -267,14 +279,8 @@ def test_a_solver_slower_than_the_latency_holds_no_frame_back_and_drops_none(tmp
 
     monkeypatch.setattr(OnlineL1Path, "solve", slow)
     video, _ = flight
-    port = free_port(socket.SOCK_STREAM)
-    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
-                              daemon=True)
-    sender.start()
     out = tmp_path / "steady.mp4"
-    result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(out), StabilizeOptions(estimator="orb", latency=1.0),
-                            show_progress=False)
-    sender.join(RUN_LIMIT)
+    result = stabilize_served(video, out, StabilizeOptions(estimator="orb", latency=1.0))
     assert result.frames_in == result.frames_out == len(result.warps) == FRAMES
     assert count_frames(out) == FRAMES
     assert result.late >= 1 and result.notes and "left at their deadline" in result.notes[-1]
@@ -560,7 +566,7 @@ def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_a
     """Every `tilt` solve takes longer than the whole budget (fault injected), its similarity
     part does not: past the start, the run switches once the frames keep leaving at their
     deadline, says so in one line, and the frames after the switch leave on a planned path again."""
-    from mosaic_cli.live.stabilize import KEEP_UP_AFTER, RECENT, stabilize_live
+    from mosaic_cli.live.stabilize import KEEP_UP_AFTER, RECENT
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize.online import OnlineL1Path
 
@@ -575,12 +581,7 @@ def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_a
         return solve(self, window)
 
     monkeypatch.setattr(OnlineL1Path, "solve", slow_tilt)
-    port = free_port(socket.SOCK_STREAM)
-    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")), daemon=True)
-    sender.start()
-    result = stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(tmp_path / "steady.mp4"),
-                            StabilizeOptions(estimator="orb", latency=1.0, model="tilt"), show_progress=False)
-    sender.join(RUN_LIMIT)
+    result = stabilize_served(video, tmp_path / "steady.mp4", StabilizeOptions(estimator="orb", latency=1.0, model="tilt"))
     assert result.frames_in == result.frames_out == 300
     assert result.simplified_at is not None and KEEP_UP_AFTER + RECENT <= result.simplified_at < 300
     assert any("could not keep up live" in n for n in result.notes)
@@ -721,13 +722,7 @@ def test_a_missed_latency_is_one_warning_that_says_by_how_much(tmp_path, flight,
 
     monkeypatch.setattr(live_stabilize, "warp_yuv", slow)
     video, _ = flight
-    port = free_port(socket.SOCK_STREAM)
-    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
-                              daemon=True)
-    sender.start()
-    result = live_stabilize.stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(tmp_path / "o.mp4"),
-                                           StabilizeOptions(estimator="orb", latency=1.0), show_progress=False)
-    sender.join(RUN_LIMIT)
+    result = stabilize_served(video, tmp_path / "o.mp4", StabilizeOptions(estimator="orb", latency=1.0))
     assert result.frames_out == FRAMES
     warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("mosaic: warning: --latency")]
     bound = 1.0 + 1.0 / result.fps
