@@ -188,3 +188,17 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip("../shared/data is not present")
     return SHARED_DATA
+
+
+def overlay_flight_pair(folder: Path, frames: int, size: tuple[int, int], crf: int):
+    """A fast simulated flight written twice into ``folder``: ``plain.mp4``, and ``burned.mp4``
+    with a logo, a timestamp and letterbox bars burned in (the same frames otherwise).  Returns
+    the two paths and the flight's plan."""
+    from mosaic_cli.simulate import OverlaySpec, plan_flight, procedural_map, write_flight
+
+    ground = procedural_map((1024, 1024), seed=3)
+    plan = plan_flight((1024, 1024), "fast", frames=frames, size=size, seed=3)
+    write_flight(folder / "plain.mp4", ground, plan, crf=crf, preset="veryfast", show_progress=False)
+    write_flight(folder / "burned.mp4", ground, plan, crf=crf, preset="veryfast", show_progress=False,
+                 overlays=OverlaySpec.parse("all"))
+    return folder / "plain.mp4", folder / "burned.mp4", plan

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import overlay_flight_pair
 from mosaic_cli.cli import main
 from mosaic_cli.estimators import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, points_to_track, track_points
@@ -35,18 +36,13 @@ class Flights:
 
 @pytest.fixture(scope="module")
 def flights(tmp_path_factory) -> Flights:
-    folder = tmp_path_factory.mktemp("overlay")
-    ground = procedural_map((1024, 1024), seed=3)
-    plan = plan_flight((1024, 1024), "fast", frames=FRAMES, size=SIZE, seed=3)
-    write_flight(folder / "plain.mp4", ground, plan, crf=16, preset="veryfast", show_progress=False)
-    spec = OverlaySpec.parse("all")
-    write_flight(folder / "burned.mp4", ground, plan, crf=16, preset="veryfast", show_progress=False, overlays=spec)
-    burner = OverlayBurner(spec, SIZE, plan.fps)  # the same drawing again, for its boxes
+    plain, burned, plan = overlay_flight_pair(tmp_path_factory.mktemp("overlay"), FRAMES, SIZE, crf=16)
+    burner = OverlayBurner(OverlaySpec.parse("all"), SIZE, plan.fps)  # the same drawing again, for its boxes
     for t in range(FRAMES):
         burner.draw(np.zeros((SIZE[1], SIZE[0], 3), np.uint8), t)
-    written = cv2.imread(str(overlay_mask_path(folder / "burned.mp4")), cv2.IMREAD_GRAYSCALE)
+    written = cv2.imread(str(overlay_mask_path(burned)), cv2.IMREAD_GRAYSCALE)
     assert np.array_equal(written == 0, burner.drawn)
-    return Flights(folder / "plain.mp4", folder / "burned.mp4", burner.regions(), burner.drawn)
+    return Flights(plain, burned, burner.regions(), burner.drawn)
 
 
 def run(capsys, *args) -> tuple[int, str]:
@@ -306,13 +302,8 @@ def lossless(tmp_path_factory) -> LosslessFlights:
     choices all over the frame (the burned flight's ground is ~7% further from the render):
     per-pair corner errors are then ~10x the lossless ones and differ between the flights by up
     to 5 px a pair, either way, so a 90th percentile of 59 pairs compares two codec draws."""
-    folder = tmp_path_factory.mktemp("overlay_lossless")
-    ground = procedural_map((1024, 1024), seed=3)
-    plan = plan_flight((1024, 1024), "fast", frames=FRAMES, size=SIZE, seed=3)
-    write_flight(folder / "plain.mp4", ground, plan, crf=0, preset="veryfast", show_progress=False)
-    write_flight(folder / "burned.mp4", ground, plan, crf=0, preset="veryfast", show_progress=False,
-                 overlays=OverlaySpec.parse("all"))
-    return LosslessFlights(folder / "plain.mp4", folder / "burned.mp4")
+    plain, burned, _ = overlay_flight_pair(tmp_path_factory.mktemp("overlay_lossless"), FRAMES, SIZE, crf=0)
+    return LosslessFlights(plain, burned)
 
 
 @pytest.mark.slow

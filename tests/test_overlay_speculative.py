@@ -17,13 +17,12 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, run_cli
+from conftest import assert_one_line_error, overlay_flight_pair, run_cli
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.overlay import MaskOptions, frame_mask, frame_mask_pending
 from mosaic_cli.overlay import merge as overlay_merge
 from mosaic_cli.overlay.speculate import Gate
-from mosaic_cli.simulate import OverlaySpec, plan_flight, procedural_map, write_flight
 from mosaic_cli.stabilize import StabilizeOptions, stabilize
 from mosaic_cli.stitch import StitchOptions, stitch
 from mosaic_cli.track import track_video
@@ -36,13 +35,8 @@ HELD = 8  # pairs the tracking has estimated (and held back) when the detection 
 @pytest.fixture(scope="module")
 def clips(tmp_path_factory) -> dict[str, Path]:
     """A fast flight, plain and with a logo, a timestamp and letterbox bars burned in."""
-    folder = tmp_path_factory.mktemp("speculative")
-    ground = procedural_map((1024, 1024), seed=3)
-    plan = plan_flight((1024, 1024), "fast", frames=FRAMES, size=SIZE, seed=3)
-    write_flight(folder / "plain.mp4", ground, plan, crf=16, preset="veryfast", show_progress=False)
-    write_flight(folder / "burned.mp4", ground, plan, crf=16, preset="veryfast", show_progress=False,
-                 overlays=OverlaySpec.parse("all"))
-    return {"plain": folder / "plain.mp4", "burned": folder / "burned.mp4"}
+    plain, burned, _ = overlay_flight_pair(tmp_path_factory.mktemp("speculative"), FRAMES, SIZE, crf=16)
+    return {"plain": plain, "burned": burned}
 
 
 @pytest.fixture
