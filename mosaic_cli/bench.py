@@ -498,7 +498,7 @@ def run_flights(options: BenchOptions, show_progress: bool = True) -> dict:
         entry["profiles"] = {p: pool([r for r in runs if r.profile == p]) for p in profiles}
         entry["per_flight"] = {r.flight: r.metrics for r in runs}
         # Every pair's corner error (and whether it touches a burst), so that two estimators can be
-        # compared pair by pair (scripts/paired_failures.py).
+        # compared pair by pair (``python -m benchmarks estimators paired-failures``).
         entry["per_pair"] = {r.flight: {"corner_errors": [round(float(e), 3) if np.isfinite(e) else None for e in r.corner_errors],
                                         **({"touches_burst": r.touches_burst.astype(int).tolist()} if r.touches_burst is not None else {})}
                              for r in runs}

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The one call a session with a lent GPU makes (see scripts/gpu_session.py for what it does):
+# The one call a session with a lent GPU makes (see benchmarks/gpu.py, `python -m benchmarks gpu`, for what it does):
 #
 #   bash scripts/prepare_gpu_session.sh        # here, first: wheels, stills and footage into .gpu/
 #   device run:  MOSAIC_COMMIT=<sha> bash scripts/gpu_session.sh [MINUTES] [STAGES]
@@ -42,4 +42,4 @@ PY
 fi
 export PYTHONPATH="/tmp/site:$PWD" PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
-python3 scripts/gpu_session.py --out "${OUT:-gpu-out}" --minutes "${1:-7}" --stages "${2:-training}"
+python3 -m benchmarks gpu --out "${OUT:-gpu-out}" --minutes "${1:-7}" --stages "${2:-training}"

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Prepare what a device call of scripts/gpu_session.sh carries, in .gpu/ (ignored by git):
-#   wheels/     what the device machine lacks (kornia; yappi, for scripts/profile_command.py) or holds in
+#   wheels/     what the device machine lacks (kornia; yappi, for `python -m benchmarks profile`) or holds in
 #               other versions (typer, click)
 #   wheels-rs/  kornia_rs (training calls only: 5 MB)
 #   av/         PyAV (throughput calls only: 36 MB; its libavcodec has libx264 and h264_cuvid)
 #   stills/     a few of ../shared/data's stills reduced to 1600 px, for training (about 6 MB); the
 #               last in name order (zz_*) is kept out of training: the validation flights fly over it
-#   footage/    the two stills scripts/bench_speed.py flies over, for the 720p and 4K clips
+#   footage/    the two stills `python -m benchmarks speed` flies over, for the 720p and 4K clips
 # (the data does not travel otherwise).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)

@@ -240,18 +240,13 @@ def test_flights_estimator_options_and_errors(tmp_path, flights_dir, capsys):
 
 
 def load_script():
-    import importlib.util
-    from pathlib import Path
+    from benchmarks import baseline_orb
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "baseline_orb.py"
-    spec = importlib.util.spec_from_file_location("baseline_orb", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return baseline_orb
 
 
 def test_orb_paper_matches_the_baseline_script(flights_dir):
-    """The `orb-paper` estimator against scripts/baseline_orb.py (independent of mosaic_cli) on
+    """The `orb-paper` estimator against benchmarks/baseline_orb.py (independent of mosaic_cli) on
     the same clip, decoded by OpenCV for both: the same working-resolution homographies and
     confidences (at full resolution they differ by the script's diag(s, s, 1) scaling, which
     ignores pixel centres)."""
@@ -290,7 +285,7 @@ def test_orb_paper_matches_the_baseline_script(flights_dir):
     assert np.median(errors) < 0.35 * np.median(identity)  # (a reversed direction would double it)
 
 
-# --- scripts/speed_floors.py ---------------------------------------------------------------
+# --- python -m benchmarks speed floors -----------------------------------------------------
 
 
 @pytest.mark.slow
@@ -304,10 +299,10 @@ def test_speed_floors_script_runs_and_adds_up_its_pieces(tmp_path, flights_dir):
     from pathlib import Path
 
     clip = flights_dir / "a_paper.mp4"
-    script = Path(__file__).resolve().parents[1] / "scripts" / "speed_floors.py"
     out = tmp_path / "floors.json"
-    done = subprocess.run([sys.executable, str(script), "--clip", str(clip), "--rounds", "1", "--no-vidstab",
-                           "--work", str(tmp_path / "work"), "--json", str(out)], capture_output=True, text=True, timeout=300)
+    done = subprocess.run([sys.executable, "-m", "benchmarks", "speed", "floors", "--clip", str(clip), "--rounds", "1", "--no-vidstab",
+                           "--work", str(tmp_path / "work"), "--json", str(out)], capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parents[1])
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(out.read_text())["clips"][clip.name]
     cap = cv2.VideoCapture(str(clip))

@@ -1,22 +1,18 @@
-"""scripts/compare_outputs.py: the comparison of two runs' JSON outputs (no commands run)."""
+"""``python -m benchmarks compare`` (benchmarks/compare_outputs.py): the comparison of two runs' JSON outputs (no commands run)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "compare_outputs.py"
-
 
 def load_script():
-    spec = importlib.util.spec_from_file_location("compare_outputs", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from benchmarks import compare_outputs
+
+    return compare_outputs
 
 
 def write_run(folder: Path, pairwise, frames, warps, canvas=(400, 300)) -> Path:

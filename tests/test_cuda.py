@@ -1,4 +1,4 @@
-"""The CUDA path, run where a GPU is (scripts/gpu_session.py runs ``pytest -m cuda`` on the lent
+"""The CUDA path, run where a GPU is (``python -m benchmarks gpu`` runs ``pytest -m cuda`` on the lent
 machine); every test here skips cleanly without one, as in CI.
 
 - ``lstm`` and ``cnn`` on cuda agree with the fp32 CPU path on a flight over real imagery (a

@@ -1,4 +1,4 @@
-"""scripts/gpu_session.py, the one call a session with a lent GPU makes, rehearsed on a CPU with
+"""``python -m benchmarks gpu`` (benchmarks/gpu.py, which scripts/gpu_session.sh runs), the one call a session with a lent GPU makes, rehearsed on a CPU with
 tiny data (``--tiny --device cpu``) and without the packages the device machine lacks (PyAV,
 imageio-ffmpeg and the map libraries are made unimportable), so that it cannot rot between the
 sessions that get a GPU: every stage runs and everything it promises comes back."""
@@ -30,7 +30,7 @@ def test_the_device_session_runs_every_stage_and_returns_its_files(tmp_path):
         f"import sys\nfor name in {MISSING_ON_THE_DEVICE!r}:\n    sys.modules[name] = None\n")
     env = {**os.environ, "PYTHONPATH": f"{blocker}{os.pathsep}{ROOT}", "OMP_NUM_THREADS": "1"}
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "scripts/gpu_session.py", "--tiny", "--device", "cpu", "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "gpu", "--tiny", "--device", "cpu", "--out", str(out),
                            "--work", str(tmp_path / "work"), "--minutes", "3"], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -64,13 +64,9 @@ def test_the_device_session_runs_every_stage_and_returns_its_files(tmp_path):
     assert cases and all(c.find("skipped") is not None for c in cases)  # no GPU here: every CUDA test skips cleanly
 
 
-def test_a_file_over_the_device_limit_comes_back_in_parts_that_cat_joins(tmp_path, monkeypatch):
-    import importlib.util
+def test_a_file_over_the_device_limit_comes_back_in_parts_that_cat_joins(tmp_path):
+    from benchmarks import gpu as gpu_session
 
-    spec = importlib.util.spec_from_file_location("gpu_session", ROOT / "scripts" / "gpu_session.py")
-    gpu_session = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "gpu_session", gpu_session)  # its dataclasses look their module up
-    spec.loader.exec_module(gpu_session)
     source = tmp_path / "weights.bin"
     source.write_bytes(os.urandom(2500))
     (tmp_path / "out").mkdir()
@@ -117,7 +113,7 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     env = {**os.environ, "PYTHONPATH": f"{blocker}{os.pathsep}{ROOT}", "OMP_NUM_THREADS": "1", "MOSAIC_COMMIT": "abc123"}
     env.pop("MOSAIC_VIDEO_BACKEND", None)
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "scripts/gpu_session.py", "--tiny", "--device", "cpu", "--stages", "throughput",
+    proc = subprocess.run([sys.executable, "-m", "benchmarks", "gpu", "--tiny", "--device", "cpu", "--stages", "throughput",
                            "--out", str(out), "--work", str(tmp_path / "work"), "--minutes", "6"],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -131,7 +127,7 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     assert all("exit status 0" in text and "threads" in text for text in profiles.values())
     report = json.loads((out / "gpu_throughput.json").read_text())
     assert report["commit"] == "abc123" and "cores" in report["machine"]
-    assert "every run gave the one-thread estimates to the bit: True" in report["threads"]  # scripts/bench_threads.py
+    assert "every run gave the one-thread estimates to the bit: True" in report["threads"]  # python -m benchmarks estimators threads
     assert all(set(r) >= {"command", "device", "size", "threads", "frames", "wall_s"} for r in report["runs"])
     assert {r["command"] for r in report["runs"] if r["wall_s"] is None} == {"vidstab"}  # with its reason
     for size in ("160x96", "320x192"):
@@ -152,14 +148,10 @@ def test_the_timed_transcode_writes_every_frame_of_a_300_frame_clip(tmp_path, mo
     """The throughput stage's plain transcode (PyAV, in-process) of a clip as that stage makes it:
     every frame comes out.  (The device run of 2026-11-28 lost both transcodes to a muxer error
     260 frames in: the frames went to x264 without their timestamps.)"""
-    import importlib.util
-
     import av
 
-    spec = importlib.util.spec_from_file_location("gpu_session", ROOT / "scripts" / "gpu_session.py")
-    gpu_session = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "gpu_session", gpu_session)
-    spec.loader.exec_module(gpu_session)
+    from benchmarks import gpu as gpu_session
+
     source, target = tmp_path / "clip.mp4", tmp_path / "out.mp4"
     monkeypatch.setenv("MOSAIC_VIDEO_BACKEND", "pyav")  # the clip written as on the device machine
     subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-p", "shaky", "-n", "300", "--size", "160x96", "--seed", "3",

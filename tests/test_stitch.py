@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks import common
 from conftest import run_cli, textured_image
 from mosaic_cli.errors import ProcessingError
 from mosaic_cli.estimators import Estimator
@@ -24,7 +25,7 @@ from mosaic_cli.stitch.features import PairMatch
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
 from mosaic_cli.stitch.registration import Link, RegistrationReport, chain_sequence, link_from_match, refine_placements
 from mosaic_cli.stitch.spill import SpilledImage
-from mosaic_cli.video import VideoWriter, open_video
+from mosaic_cli.video import VideoWriter
 
 SIZE = (256, 144)
 MAP_SIZE = (1024, 1024)
@@ -62,40 +63,14 @@ def load_transforms(path: Path) -> tuple[tuple[int, int], list[int], list[np.nda
     return tuple(data["canvas_size"]), [f["index"] for f in data["frames"]], [np.array(f["H"]) for f in data["frames"]]
 
 
-def placement_errors(indices, frame_to_pano, map_to_frame, gap: int) -> list[float]:
-    """Corner error of frame i placed relative to frame j (i -> j through the panorama) for
-    used frames at least ``gap`` frames apart, against the exact homography."""
-    errors = []
-    for a, i in enumerate(indices):
-        for b, j in enumerate(indices):
-            if j - i >= gap:
-                estimate = np.linalg.inv(frame_to_pano[b]) @ frame_to_pano[a]
-                truth = map_to_frame[j] @ np.linalg.inv(map_to_frame[i])
-                errors.append(float(corner_error(estimate, truth, SIZE)))
-    return errors
+def placement_errors(indices, frame_to_pano, map_to_frame, gap: int) -> np.ndarray:
+    """:func:`benchmarks.common.placement_errors` at this file's frame size."""
+    return common.placement_errors(indices, frame_to_pano, map_to_frame, SIZE, gap)
 
 
 def plain_chain(video: Path, indices: list[int]) -> list[np.ndarray]:
-    """The baseline: full-resolution ORB + RANSAC between consecutive used frames, chained
-    (frame -> first used frame), no joint refinement."""
-    wanted = set(indices)
-    gray = {}
-    with open_video(video, gray=True) as stream:
-        for k, frame in enumerate(stream):
-            if k in wanted:
-                gray[k] = frame
-    orb = cv2.ORB_create(2000, fastThreshold=10, edgeThreshold=15, patchSize=15)
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    placements = [np.eye(3)]
-    for a, b in zip(indices[:-1], indices[1:]):
-        ka, da = orb.detectAndCompute(gray[a], None)
-        kb, db = orb.detectAndCompute(gray[b], None)
-        good = [m[0] for m in matcher.knnMatch(da, db, k=2) if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
-        src = np.float32([ka[m.queryIdx].pt for m in good])
-        dst = np.float32([kb[m.trainIdx].pt for m in good])
-        H_ab, _ = cv2.findHomography(src, dst, cv2.RANSAC, 2.0)
-        placements.append(normalize(placements[-1] @ np.linalg.inv(H_ab)))
-    return placements
+    """:func:`benchmarks.common.plain_chain` with ORB's patch and RANSAC's threshold for these small frames."""
+    return common.plain_chain(video, indices, features=2000, patch=15, ransac_px=2.0)
 
 
 def read_rgba(path: Path) -> np.ndarray:

@@ -217,7 +217,7 @@ ODM = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "aerial_s
 def test_real_photo_folders_use_every_photo_or_name_it(tmp_path, capsys, name):
     """The real ODM photos, downscaled to 800 px to stay fast: every photo is in a panorama or
     named; consecutive photos of a panorama are placed where a direct registration of the two
-    puts them (as scripts/bench_stitch.py photos measures at full resolution)."""
+    puts them (as ``python -m benchmarks stitch photos`` measures at full resolution)."""
     import cv2
 
     folder = tmp_path / name

@@ -25,7 +25,7 @@ from torch.utils.data import default_collate
 
 from conftest import textured_image, write_clip
 from mosaic_cli.errors import BadInput
-from mosaic_cli.model import HomographyNet, NetConfig, load_weights, quantize
+from mosaic_cli.model import HomographyNet, NetConfig, load_weights, quantize, read_metadata, save_weights
 from mosaic_cli.train.config import TrainConfig
 from mosaic_cli.train.data import (
     StepBatches,
@@ -259,6 +259,23 @@ def test_an_unreadable_clip_is_skipped_and_no_usable_clip_is_a_clear_error(tmp_p
     assert err.strip().splitlines()[-1].startswith("mosaic: error: no usable clips")
     assert "Traceback" not in err
     assert not (tmp_path / "run2").exists()
+
+
+@pytest.mark.skipif(quantize.engine() is None, reason="this PyTorch build has no int8 engine")
+def test_calibrate_adds_int8_ranges_to_existing_weights_and_leaves_the_weights_as_they_were(tmp_path, pan_clips, capsys):
+    weights = tmp_path / "w.safetensors"
+    save_weights(weights, HomographyNet(NetConfig(head="cnn", patch=PATCH)).eval(), variant="base", work_size=WORK)
+    before = tensors(weights)
+    code, err = cli_in_process(capsys, "train", "--head-only", "--calibrate", str(weights), "-q")
+    assert code == 2 and "has no int8 ranges" in err and err.count("\n") == 1
+    code, err = cli_in_process(capsys, "train", str(pan_clips), "--calibrate", str(weights), "-q")
+    assert code == 0, err
+    ranges = read_metadata(weights)["int8"]
+    assert ranges["pairs"] == CALIBRATION_PAIRS and ranges["activations"]
+    assert all(lo < hi for lo, hi in ranges["activations"].values())
+    after = tensors(weights)
+    assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
+    assert [p.name for p in tmp_path.iterdir()] == ["w.safetensors"]  # written in place (atomically: no part file left)
 
 
 def test_bad_options_fail_before_any_work(tmp_path, pan_clips, capsys):

@@ -1,4 +1,5 @@
-"""``mosaic train CLIPS_DIR --out RUN_DIR``: learn the homography network from raw clips.
+"""``mosaic train CLIPS_DIR --out RUN_DIR``: learn the homography network from raw clips
+(``--calibrate WEIGHTS``: add int8 ranges to existing weights instead, :mod:`mosaic_cli.train.calibrate`).
 
 The procedure is :func:`mosaic_cli.train.loop.train`; this module only turns options into a
 :class:`~mosaic_cli.train.config.TrainConfig`.  Options left out take the paper's value for the
@@ -27,7 +28,7 @@ Quiet = quiet_option("No progress bar.")
 
 
 def train(
-    clips: Annotated[Path, typer.Argument(help="Folder of training clips (video files and/or folders of frames), or one clip.")],
+    clips: Annotated[Path | None, typer.Argument(help="Folder of training clips (video files and/or folders of frames), or one clip.")] = None,
     out: Annotated[Path | None, typer.Option("-o", "--out", help="Run folder: checkpoints, state, log.csv, weights.safetensors, frame cache (default: runs/VARIANT).", rich_help_panel=INPUT_OUTPUT)] = None,
     variant: Annotated[str | None, typer.Option("--variant", help="base, reg-p, reg-s, reg-t, reg-all, lstm, lstm-reg-t or lstm-reg-all (default: base).", rich_help_panel=MODEL)] = None,
     preset: Annotated[str | None, typer.Option("--preset", help="Network size: compact (CPU) or paper (Table 1) (default: compact).", rich_help_panel=MODEL)] = None,
@@ -55,13 +56,31 @@ def train(
     threads: Annotated[int | None, typer.Option("--threads", help="Torch CPU threads per process (default: all cores; 1 under torchrun).", rich_help_panel=MACHINE)] = None,
     cache_gb: Annotated[float | None, typer.Option("--cache-gb", help="Disk budget of the decoded-frame cache in RUN_DIR/cache (default: 8).", rich_help_panel=MACHINE)] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue the run in --out from its last checkpoint.", rich_help_panel=CHECKPOINTS)] = False,
+    calibrate: Annotated[Path | None, typer.Option("--calibrate", help="Instead of training: add int8 activation ranges, measured on CLIPS, to these existing weights (a checkpoint's, or weights trained before train wrote them); the weights are unchanged.", rich_help_panel=CHECKPOINTS)] = None,
+    head_only: Annotated[bool, typer.Option("--head-only", help="With --calibrate: only measure the int8 LSTM's error on this machine and store it with the ranges the weights have (no CLIPS).", rich_help_panel=CHECKPOINTS)] = False,
     quiet: Quiet = False,
 ) -> None:
     """Train the homography network unsupervised on raw clips (photometric loss + the paper's priors).
 
     Ctrl-C (or SIGTERM) writes a checkpoint and stops; --resume continues at the same step.
     Under torchrun --nproc_per_node=N it trains as DistributedDataParallel.
+    --calibrate WEIGHTS adds int8 ranges to existing weights instead of training.
     """
+    from mosaic_cli.errors import BadInput
+
+    if head_only and calibrate is None:
+        raise BadInput("--head-only goes with --calibrate WEIGHTS")
+    if calibrate is not None:
+        from mosaic_cli.train.calibrate import calibrate_weights
+
+        ranges = calibrate_weights(calibrate, clips, seed=seed or 0, head_only=head_only)
+        if not quiet:
+            error = ", ".join(f"{engine} {px:.3f} px" for engine, px in ranges.get("head_error", {}).items()) or "none (no LSTM)"
+            what = "" if head_only else f"int8 ranges of {len(ranges['activations'])} activations from {ranges['pairs']} pairs of {clips}; "
+            console.print(f"{calibrate}: {what}int8 LSTM error {error}")
+        return
+    if clips is None:
+        raise BadInput("give CLIPS: the folder of training clips (or one clip)")
     from mosaic_cli.inputs import parse_size
     from mosaic_cli.train.loop import plan_run
     from mosaic_cli.train.loop import train as run_training

@@ -160,7 +160,7 @@ class LearnedEstimator(Estimator):
                     self.model = quantized_head(self.model, meta.get("int8")) or self.model
         if self.config.precision == "int8" and self.precision != "int8":
             raise BadInput("int8 needs a CPU with an int8 engine and weights with calibrated ranges "
-                           "(mosaic train writes them; scripts/calibrate_int8.py adds them)")
+                           "(mosaic train writes them; mosaic train CLIPS --calibrate WEIGHTS adds them to existing weights)")
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
         self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"

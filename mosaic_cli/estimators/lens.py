@@ -17,7 +17,7 @@ pixels through that lens (patches that look alike out to the corners, where LK b
 frames was biased by the lens's stretch: a true fisheye's own residual read 0.42 px there, and the
 division fit beside it 12 px off at the corners of 1280x720), and the three families fitted again
 to those matches (corner errors of 0.05 px for k1 -0.30 and 0.24 px for a 120-degree fisheye at
-1280x720; scripts/bench_lens.py).  The lens is applied only where
+1280x720; ``python -m benchmarks lens``).  The lens is applied only where
 the residual improves on no lens by :data:`MIN_GAIN` or more and the lens moves the corners by more
 than :data:`MIN_CORNER_PX`; otherwise the video is taken as a pinhole's (and the two-coefficient
 search is not run).

@@ -3,7 +3,7 @@ features, WTA_K=2) on the whole gray working frame (320x180 for 1280x720 video),
 Hamming matching with cross-check, ``findHomography`` RANSAC at 5 working px (20 px at
 1280x720), identity on failure; confidence = RANSAC inlier fraction.
 
-``scripts/baseline_orb.py`` is the same method written independently of mosaic_cli (OpenCV
+``benchmarks/baseline_orb.py`` (``python -m benchmarks estimators orb-baseline``) is the same method written independently of mosaic_cli (OpenCV
 decodes the video); ``tests/test_bench.py`` checks that both give the same homographies.  The
 only difference is the resolution change: mosaic's exact pixel-centre one
 (:func:`mosaic_cli.geometry.to_resolution`) instead of the script's diag(s, s, 1) scaling.

@@ -1,6 +1,6 @@
 """A live command's network loaded beside the opening of its stream: the socket listens at once
 (a sender that connects within a second is not refused), and the frames that come meanwhile
-queue.  ``scripts/bench_live.py listen`` times it."""
+queue.  ``python -m benchmarks live listen`` times it."""
 
 from __future__ import annotations
 
@@ -27,12 +27,12 @@ def built_beside(build: Callable[[], T], after_start: bool = False) -> concurren
     ``after_start``: the build waits for :func:`begin` (which :func:`waited_for` also calls on
     its way out, so that nothing waits for a build that never began).  A live command begins it
     once its decoder has started: on a cold machine, torch's import reads a gigabyte of
-    libraries, and beside it the decoder took seconds to listen (``bench_live.py listen --cold``).
+    libraries, and beside it the decoder took seconds to listen (``python -m benchmarks live listen --cold``).
 
     The cyclic garbage collector waits meanwhile, and what the build made is then frozen out of
     its later passes: torch's import makes hundreds of thousands of objects, and collecting
     while it ran stopped every thread of a live run for up to 0.1 s, a few hundred times, as
-    the first frames came in (``bench_live.py stabilize``, cold runs).  Meanwhile the interpreter
+    the first frames came in (``python -m benchmarks live stabilize``, cold runs).  Meanwhile the interpreter
     hands its lock on every :data:`LOADING_SWITCH_INTERVAL`: at Python's 5 ms, 3 of 4 cold runs
     left 5-11 of their first frames at their deadline, at 0.5 ms none of 8."""
     future: concurrent.futures.Future = concurrent.futures.Future()

@@ -23,7 +23,7 @@ queue): a stream faster than real time, such as a file piped in, is held back as
 than sent on unsteadied.  A file read in one pass has no deadlines.
 
 Latency is measured per frame from its arrival off the decoder to its hand-over to the encoder;
-:attr:`LiveStabilizeResult.timeline` has every stage's time stamps (scripts/bench_live.py).
+:attr:`LiveStabilizeResult.timeline` has every stage's time stamps (``python -m benchmarks live``).
 """
 
 from __future__ import annotations

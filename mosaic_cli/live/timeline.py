@@ -1,5 +1,5 @@
 """Where a live frame's time goes: one time stamp per frame and stage, and the CPU time of each
-stage's work, so that a latency figure can be taken apart (scripts/bench_live.py prints it).
+stage's work, so that a latency figure can be taken apart (``python -m benchmarks live`` prints it).
 
 Each stage sees the frames in order, so a stage's stamps are a plain growing array (8 bytes a
 frame): frame ``k``'s stamp is the ``k``-th.

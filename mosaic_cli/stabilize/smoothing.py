@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:  # scipy is imported where it is used: a live stabilize listens sooner (bench_live.py listen --cold)
+if TYPE_CHECKING:  # scipy is imported where it is used: a live stabilize listens sooner (python -m benchmarks live listen --cold)
     import scipy.sparse as sp
 
 from mosaic_cli.errors import BadInput, ProcessingError

@@ -330,7 +330,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
                             if options.registration.enabled else None)
             drawer = LivePreview(preview, info.source_size, registration)
             # When each frame came off the decoder and when the scan was done with it: how far
-            # the scan falls behind the stream (scripts/bench_live.py).
+            # the scan falls behind the stream (python -m benchmarks live).
             timeline = Timeline(("arrived", "scanned"))
 
             def frames() -> Iterator[np.ndarray]:

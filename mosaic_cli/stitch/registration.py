@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:  # scipy is imported where it is used: a live stitch listens sooner (bench_live.py listen --cold)
+if TYPE_CHECKING:  # scipy is imported where it is used: a live stitch listens sooner (python -m benchmarks live listen --cold)
     import scipy.sparse
 
 from mosaic_cli.errors import BadInput

@@ -1,11 +1,11 @@
 """Georeferencing accuracy of ``mosaic stitch --telemetry`` on simulated flights with exact truth.
 
-    python scripts/bench_georef.py mapping   # long mapping flights (5 cm GSD, 3 m RMS GPS, 2% dropouts)
-    python scripts/bench_georef.py short     # the simulator's own short profiles (what the GPS allows)
-    python scripts/bench_georef.py all
-    python scripts/bench_georef.py refit     # the current georeferencing re-applied to the last
+    python -m benchmarks georef mapping   # long mapping flights (5 cm GSD, 3 m RMS GPS, 2% dropouts)
+    python -m benchmarks georef short     # the simulator's own short profiles (what the GPS allows)
+    python -m benchmarks georef all
+    python -m benchmarks georef refit     # the current georeferencing re-applied to the last
                                              # mapping stitch's registered placements (no re-stitch)
-    python scripts/bench_georef.py gps-limit # the scale and heading the GPS alone allows on that flight
+    python -m benchmarks georef gps-limit # the scale and heading the GPS alone allows on that flight
 
 A mapping flight: a procedural map of 8192x1536 px at 5 cm per pixel (410 x 77 m), a 640x360
 camera (focal length = frame width, so 32 m above the ground for 5 cm per frame pixel) flying
@@ -19,7 +19,6 @@ its CRS and bounds read back with rasterio.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -30,12 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import ROOT, make_parser
 from mosaic_cli.geo.score import score_files
 from mosaic_cli.simulate import FlightPlan, load_ground_truth, procedural_map, write_flight
 from mosaic_cli.simulate.telemetry import GpsErrors, MapGeo, write_telemetry
 from mosaic_cli.simulate.trajectory import camera_homography, smooth_signal
 
-ROOT = Path(__file__).resolve().parents[1]
+SUITE = "georef"
 DEFAULT_WORKDIR = ROOT / ".dev" / "bench_georef"
 ORIGIN = (47.3977, 8.5456)
 GSD = 0.05
@@ -95,8 +95,8 @@ def run_stitch(video: Path, telemetry: Path, extra: list[str] = ()) -> dict:
     tif = video.with_suffix(".map.tif")
     transforms = video.with_suffix(".map.json")
     footprints = video.with_suffix(".footprints.geojson")
-    # the stitch runs through this script so that the registered placements are kept for refit
-    cmd = [sys.executable, str(Path(__file__).resolve()), "record-stitch", str(video.with_suffix(".placements.npz")),
+    # the stitch runs through this suite so that the registered placements are kept for refit
+    cmd = [sys.executable, "-m", "benchmarks", "georef", "record-stitch", str(video.with_suffix(".placements.npz")),
            "stitch", str(video), "--telemetry", str(telemetry), "-o", str(tif),
            "--transforms", str(transforms), "--footprints", str(footprints), "-q", *extra]
     clock = time.perf_counter()
@@ -132,7 +132,7 @@ def bench_mapping(args) -> None:
         rows.append((f"mapping seed {seed}{label}", run_stitch(video, video.with_suffix(".SRT"), extra)))
         report(rows[-1:], "(progress)")
     first = f" --first-seed {args.first_seed}" if args.first_seed else ""
-    report(rows, f"python scripts/bench_georef.py mapping --seeds {args.seeds}{first}{' --level-ground' if args.level_ground else ''}")
+    report(rows, f"python -m benchmarks georef mapping --seeds {args.seeds}{first}{' --level-ground' if args.level_ground else ''}")
 
 
 def bench_short(args) -> None:
@@ -152,7 +152,7 @@ def bench_short(args) -> None:
             subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), *options, "--telemetry", "srt",
                             "--preset", "veryfast", "-q"], check=True)
         rows.append((name, run_stitch(video, video.with_suffix(".SRT"))))
-    report(rows, "python scripts/bench_georef.py short")
+    report(rows, "python -m benchmarks georef short")
 
 
 def bench_refit(args) -> None:
@@ -304,7 +304,7 @@ def bench_gps_limit(args) -> None:
         heading.append(math.degrees(np.angle(ratio)))
     signed = np.array(scale)
     scale, heading = np.abs(scale), np.abs(heading)
-    print(f"\n$ python scripts/bench_georef.py gps-limit --draws {args.draws}")
+    print(f"\n$ python -m benchmarks georef gps-limit --draws {args.draws}")
     print(f"GPS scale error over the mapping flight ({len(keyframes)} keyframe fixes, {args.draws} draws): RMS "
           f"{np.sqrt(np.mean(scale**2)):.2f}%, 95th percentile {np.percentile(scale, 95):.2f}%, beyond 0.5%: {np.mean(scale > 0.5):.1%} of flights")
     print(f"GPS heading error: RMS {np.sqrt(np.mean(heading**2)):.2f} deg, 95th percentile {np.percentile(heading, 95):.2f} deg, "
@@ -350,11 +350,12 @@ def record_stitch(record: Path, argv: list[str]) -> None:
     cli.main(argv)
 
 
-def main() -> None:
-    if len(sys.argv) > 2 and sys.argv[1] == "record-stitch":
-        record_stitch(Path(sys.argv[2]), sys.argv[3:])
-        return
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int | None:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) > 1 and argv[0] == "record-stitch":  # run_stitch's own process
+        record_stitch(Path(argv[1]), argv[2:])
+        return 0
+    parser = make_parser(SUITE, None, __doc__)
     parser.add_argument("what", choices=["mapping", "short", "all", "refit", "gps-limit"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     parser.add_argument("--seeds", type=int, default=3, help="how many mapping flights (seeds) to run")
@@ -372,7 +373,7 @@ def main() -> None:
     parser.add_argument("--fov-accuracy", type=float, help="refit: relative (GeorefOptions.fov_accuracy)")
     parser.add_argument("--gimbal-noise", type=float, default=0.0, help="refit: degrees of white noise added to the log's pitch and roll")
     parser.add_argument("--gimbal-bias", type=float, default=0.0, help="refit: degrees of bias added to the log's pitch and roll")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     if args.what in ("mapping", "all"):
@@ -383,7 +384,3 @@ def main() -> None:
         bench_refit(args)
     if args.what == "gps-limit":
         bench_gps_limit(args)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """The ``--help`` of mosaic and of every command, as plain text, to diff a refactor against.
 
-    python scripts/help_snapshot.py > /tmp/help_before.txt      # before the change
-    python scripts/help_snapshot.py > /tmp/help_after.txt       # after it
+    python -m benchmarks help-snapshot > /tmp/help_before.txt      # before the change
+    python -m benchmarks help-snapshot > /tmp/help_after.txt       # after it
     diff /tmp/help_before.txt /tmp/help_after.txt               # nothing, if the CLI is unchanged
 
 Each help is rendered in-process at a fixed width, without colour, so that two runs on different
@@ -21,7 +21,10 @@ os.environ["TERM"] = "dumb"
 
 from typer.testing import CliRunner  # noqa: E402
 
+from benchmarks.common import make_parser  # noqa: E402
 from mosaic_cli.cli import COMMANDS, app  # noqa: E402
+
+SUITE = "help-snapshot"
 
 
 def help_text(args: list[str]) -> str:
@@ -32,11 +35,8 @@ def help_text(args: list[str]) -> str:
     return result.output
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int | None:
+    make_parser(SUITE, None, __doc__).parse_args(argv)
     for args in [[], *([name] for name in COMMANDS)]:
         sys.stdout.write(f"===== mosaic {' '.join([*args, '--help'])}\n")
         sys.stdout.write(help_text(args))
-
-
-if __name__ == "__main__":
-    main()

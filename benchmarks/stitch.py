@@ -1,20 +1,4 @@
-"""Benchmarks of ``mosaic stitch`` on simulated flights with exact ground truth.
-
-    python scripts/bench_stitch.py accuracy     # placement accuracy vs plain chaining (720p survey)
-    python scripts/bench_stitch.py throughput   # frames/s with the ORB estimator on 720p input (or --estimator lstm)
-    python scripts/bench_stitch.py memory       # peak RSS of 1080p flights of growing length and area
-    python scripts/bench_stitch.py accuracy-long  # placement accuracy on those (after memory)
-    python scripts/bench_stitch.py figure       # docs/stitch_pano.jpg and docs/stitch_source.jpg
-    python scripts/bench_stitch.py figure-photos  # docs/stitch_photos.jpg, the README's first picture
-    python scripts/bench_stitch.py revisits     # forward-then-backward and looped (cut) 720p flights, exact truth
-    python scripts/bench_stitch.py real-revisits  # the real sparse drone frames, forward then backward
-    python scripts/bench_stitch.py photos       # the real ODM photo folders at full resolution
-    python scripts/bench_stitch.py all
-
-Flights are rendered (and cached) under --workdir by ``mosaic_cli.simulate`` over the real
-NEON orthophoto in ../shared/data when present (a procedural map otherwise).  Every number is
-printed with the command that reproduces it.
-"""
+"""Stitch: placement accuracy, throughput, memory, revisits and photo folders of ``mosaic stitch``; drift control's solver."""
 
 from __future__ import annotations
 
@@ -30,26 +14,28 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
+from benchmarks.common import ORTHOPHOTO, ROOT, SHARED_DATA, make_parser, placement_errors, plain_chain, run_commands
 from mosaic_cli.estimators import DEFAULT_ESTIMATOR, make_estimator
-from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
+from mosaic_cli.geometry import frame_corners, project
 from mosaic_cli.simulate import FlightPlan, load_ground_truth, load_map, plan_flight, procedural_map, write_flight
 from mosaic_cli.simulate.trajectory import camera_homography
-from mosaic_cli.stitch import CanvasOptions, RegistrationOptions, StitchOptions, stitch
-from mosaic_cli.video import open_video
+from mosaic_cli.stitch import CanvasOptions, RegistrationOptions, StitchOptions, registration, stitch
+from mosaic_cli.stitch.registration import RegistrationReport, refine_placements
 
-ROOT = Path(__file__).resolve().parents[1]
-ORTHOPHOTO = ROOT.parent / "shared/data/aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png"
-# The README figure shows its source region, so it flies over a CC0 photo (ODM's Caliterra set;
-# this one is not among the training images).
-FIGURE_MAP = ROOT.parent / "shared/data/aerial_sequences/odm_caliterra/IMG_9355.jpg"
+SUITE = "stitch"
+
+
+# -- python -m benchmarks stitch -------------------------------------------------------------------
+
 DEFAULT_WORKDIR = ROOT / ".dev" / "bench_stitch"
 GAP = 60  # frames: placement accuracy is measured between used frames at least this far apart
 
 
 def here(args: argparse.Namespace, command: str) -> str:
     workdir = "" if args.workdir == DEFAULT_WORKDIR else f" --workdir {args.workdir}"
-    return f"python scripts/bench_stitch.py {command}{workdir}"
+    return f"python -m benchmarks stitch {command}{workdir}"
 
 
 # -- flights -----------------------------------------------------------------------------------
@@ -113,42 +99,6 @@ def long_flight(workdir: Path, frames: int, speed: float) -> Path:
 # -- placement accuracy ------------------------------------------------------------------------
 
 
-def placement_errors(indices, frame_to_pano, map_to_frame, size, gap=GAP) -> np.ndarray:
-    """Corner error of used frame i placed relative to used frame j (through the panorama),
-    for every pair at least ``gap`` frames apart, against the exact homography."""
-    errors = []
-    for a, i in enumerate(indices):
-        for b, j in enumerate(indices):
-            if j - i >= gap:
-                estimate = np.linalg.inv(frame_to_pano[b]) @ frame_to_pano[a]
-                truth = map_to_frame[j] @ np.linalg.inv(map_to_frame[i])
-                errors.append(float(corner_error(estimate, truth, size)))
-    return np.array(errors)
-
-
-def plain_chain(video: Path, indices: list[int]) -> list[np.ndarray]:
-    """Full-resolution ORB + RANSAC between consecutive used frames, chained, no refinement."""
-    wanted, gray = set(indices), {}
-    with open_video(video, gray=True) as stream:
-        for k, frame in enumerate(stream):
-            if k in wanted:
-                gray[k] = frame
-            if k >= indices[-1]:
-                break
-    orb = cv2.ORB_create(4000, fastThreshold=10)
-    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    placements = [np.eye(3)]
-    for a, b in zip(indices[:-1], indices[1:]):
-        ka, da = orb.detectAndCompute(gray[a], None)
-        kb, db = orb.detectAndCompute(gray[b], None)
-        good = [m[0] for m in matcher.knnMatch(da, db, k=2) if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
-        H_ab, _ = cv2.findHomography(
-            np.float32([ka[m.queryIdx].pt for m in good]), np.float32([kb[m.trainIdx].pt for m in good]), cv2.RANSAC, 3.0
-        )
-        placements.append(normalize(placements[-1] @ np.linalg.inv(H_ab)))
-    return placements
-
-
 def accuracy(args) -> dict:
     rows = []
     for seed in args.seeds:
@@ -160,11 +110,11 @@ def accuracy(args) -> dict:
             out = args.workdir / f"{video.stem}_{'dc' if enabled else 'chain'}.png"
             result = stitch(video, out, make_estimator(args.estimator), options, transforms=out.with_suffix(".json"), show_progress=False)
             indices = [i for i, _ in result.transforms]
-            errors = placement_errors(indices, [H for _, H in result.transforms], gt.map_to_frame, gt.size)
+            errors = placement_errors(indices, [H for _, H in result.transforms], gt.map_to_frame, gt.size, GAP)
             row[label] = float(np.median(errors))
             if enabled:
                 row["used frames"], row["pairs"], row["loops"] = len(indices), len(errors), result.registration.loops
-                plain = placement_errors(indices, plain_chain(video, indices), gt.map_to_frame, gt.size)
+                plain = placement_errors(indices, plain_chain(video, indices), gt.map_to_frame, gt.size, GAP)
                 row["plain chaining"] = float(np.median(plain))
         rows.append(row)
         print(
@@ -179,8 +129,8 @@ def accuracy(args) -> dict:
 
 # -- flights that revisit their ground ---------------------------------------------------------
 
-REAL_FRAMES = ROOT.parent / "shared/data/aerial_video/teon2001_blacksea_drone_frames"
-ODM = ROOT.parent / "shared/data/aerial_sequences"
+REAL_FRAMES = SHARED_DATA / "aerial_video" / "teon2001_blacksea_drone_frames"
+ODM = SHARED_DATA / "aerial_sequences"
 
 
 def revisit_flight(workdir: Path, kind: str, frames: int, seed: int) -> tuple[Path, np.ndarray]:
@@ -231,7 +181,7 @@ def revisits(args) -> dict:
                 out = args.workdir / f"{video.stem}_{label}.png"
                 result = stitch(video, out, make_estimator(args.estimator), options, show_progress=False)
                 indices = [i for i, _ in result.transforms]
-                errors = placement_errors(indices, [H for _, H in result.transforms], truth, (1280, 720))
+                errors = placement_errors(indices, [H for _, H in result.transforms], truth, (1280, 720), GAP)
                 offsets = pass_offsets(result.transforms, truth, n, twin, (1280, 720))
                 row[label] = {
                     "panoramas": len(result.panoramas), "canvas": list(result.canvas_size), "keyframes": len(indices),
@@ -540,69 +490,32 @@ def long_accuracy(workdir: Path, frames: int, speed: float) -> dict:
     gt = load_ground_truth(video.with_suffix(".gt.json"))
     data = json.loads((workdir / f"{long_name(frames, speed)}_pano.json").read_text())
     indices = [f["index"] for f in data["frames"]]
-    ours = placement_errors(indices, [np.array(f["H"]) for f in data["frames"]], gt.map_to_frame, gt.size)
-    plain = placement_errors(indices, plain_chain(video, indices), gt.map_to_frame, gt.size)
+    ours = placement_errors(indices, [np.array(f["H"]) for f in data["frames"]], gt.map_to_frame, gt.size, GAP)
+    plain = placement_errors(indices, plain_chain(video, indices), gt.map_to_frame, gt.size, GAP)
     print(f"  {frames} frames: median corner error (1920x1080 px) over {len(ours)} pairs >= {GAP} frames apart: "
           f"drift control {np.median(ours):.2f} px (90th pct {np.percentile(ours, 90):.1f}) | plain chaining "
           f"{np.median(plain):.2f} px (90th pct {np.percentile(plain, 90):.1f})", flush=True)
     return {"frames": frames, "median_error": float(np.median(ours)), "plain_chaining": float(np.median(plain))}
 
 
-# -- README figure -----------------------------------------------------------------------------
+def stitch_command(argv: list[str] | None = None) -> int | None:
+    """Benchmarks of ``mosaic stitch`` on simulated flights with exact ground truth.
 
+        python -m benchmarks stitch accuracy     # placement accuracy vs plain chaining (720p survey)
+        python -m benchmarks stitch throughput   # frames/s with the ORB estimator on 720p input (or --estimator lstm)
+        python -m benchmarks stitch memory       # peak RSS of 1080p flights of growing length and area
+        python -m benchmarks stitch accuracy-long  # placement accuracy on those (after memory)
+        python -m benchmarks stitch revisits     # forward-then-backward and looped (cut) 720p flights, exact truth
+        python -m benchmarks stitch real-revisits  # the real sparse drone frames, forward then backward
+        python -m benchmarks stitch photos       # the real ODM photo folders at full resolution
+        python -m benchmarks stitch all
 
-def figure(args) -> dict:
-    video = survey_flight(args.workdir, args.frames, (1280, 720), args.seeds[0], args.figure_map)
-    gt = load_ground_truth(video.with_suffix(".gt.json"))
-    out = args.workdir / "figure.png"
-    result = stitch(video, out, make_estimator("orb"), transforms=out.with_suffix(".json"), show_progress=False)
-    docs = ROOT / "docs"
-    docs.mkdir(exist_ok=True)
-    pano = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
-    # Transparent areas shown white, as on a page.
-    alpha = pano[..., 3:4].astype(np.float32) / 255.0
-    flat = (pano[..., :3] * alpha + 255 * (1 - alpha)).astype(np.uint8)
-    _save_jpeg(docs / "stitch_pano.jpg", flat, args.figure_width)
-    # The same ground cut from the orthophoto: the map region under the used frames.
-    ground = load_map(args.figure_map if args.figure_map.exists() else None, seed=args.seeds[0])
-    corners = np.concatenate([project(np.linalg.inv(gt.map_to_frame[i]), frame_corners(*gt.size)) for i, _ in result.transforms])
-    (x0, y0), (x1, y1) = np.floor(corners.min(axis=0)).astype(int), np.ceil(corners.max(axis=0)).astype(int)
-    crop = ground[max(0, y0): y1, max(0, x0): x1]
-    _save_jpeg(docs / "stitch_source.jpg", cv2.cvtColor(crop, cv2.COLOR_RGB2BGR), args.figure_width)
-    print(f"figure: docs/stitch_pano.jpg ({result.canvas_size[0]}x{result.canvas_size[1]} panorama of {result.frames} frames, "
-          f"{len(result.transforms)} keyframes), docs/stitch_source.jpg (orthophoto region {x1 - x0}x{y1 - y0}); "
-          f"reproduce: {here(args, 'figure')} --frames {args.frames} --seeds {args.seeds[0]} --figure-map {args.figure_map}")
-    return {"figure": {"canvas": result.canvas_size, "keyframes": len(result.transforms)}}
-
-
-def figure_photos(args) -> dict:
-    """The README's first picture: a real survey, ODM's Caliterra photos (CC0), stitched by the
-    command a user runs, transparent areas shown white."""
-    folder = ROOT.parent / "shared/data/aerial_sequences/odm_caliterra"
-    out = args.workdir / "caliterra.png"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(folder), "-o", str(out), "-q"], check=True)
-    pano = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
-    alpha = pano[..., 3:4].astype(np.float32) / 255.0
-    flat = (pano[..., :3] * alpha + 255 * (1 - alpha)).astype(np.uint8)
-    _save_jpeg(ROOT / "docs" / "stitch_photos.jpg", flat, args.figure_width)
-    print(f"figure: docs/stitch_photos.jpg ({pano.shape[1]}x{pano.shape[0]} panorama of the {len(list(folder.glob('*.jpg')))} "
-          f"photos of {folder.name}); reproduce: {here(args, 'figure-photos')} --figure-width {args.figure_width}")
-    return {"figure-photos": {"canvas": [pano.shape[1], pano.shape[0]]}}
-
-
-def _save_jpeg(path: Path, bgr: np.ndarray, width: int) -> None:
-    if bgr.shape[1] > width:
-        bgr = cv2.resize(bgr, (width, round(bgr.shape[0] * width / bgr.shape[1])), interpolation=cv2.INTER_AREA)
-    for quality in (88, 80, 70, 60):
-        ok, data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
-        if ok and len(data) < 900_000:
-            break
-    path.write_bytes(data.tobytes())
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "accuracy-long", "figure", "figure-photos", "revisits", "real-revisits", "photos", "all"])
+    Flights are rendered (and cached) under --workdir by ``mosaic_cli.simulate`` over the real
+    NEON orthophoto in ../shared/data when present (a procedural map otherwise).  Every number is
+    printed with the command that reproduces it.
+    """
+    parser = make_parser(SUITE, None, stitch_command.__doc__)
+    parser.add_argument("what", choices=["accuracy", "throughput", "memory", "accuracy-long", "revisits", "real-revisits", "photos", "all"])
     parser.add_argument("--workdir", type=Path, default=DEFAULT_WORKDIR)
     parser.add_argument("--frames", type=int, default=900, help="frames of the 720p survey flights")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
@@ -611,17 +524,14 @@ def main() -> None:
     parser.add_argument("--estimator", default="orb", help="the estimator of the accuracy and throughput runs (the throughput goal is stated for orb)")
     parser.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000], help="frames of the 1080p memory flights")
     parser.add_argument("--speed", type=float, default=8.0, help="map pixels per frame of the memory flights")
-    parser.add_argument("--figure-width", type=int, default=1400)
-    parser.add_argument("--figure-map", type=Path, default=FIGURE_MAP, help="the image the README figure's flight flies over")
     parser.add_argument("--folders", nargs="*", default=[], help="photos: only these ODM folders (all by default)")
     parser.add_argument("--max-loop-pairs", type=int, default=RegistrationOptions.max_loop_pairs,
                         help="photos: drift control's loop pairs (0: the refinement of the consecutive registrations alone)")
     parser.add_argument("--json", type=Path, help="also write the numbers here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     results = {"load_average_at_start": os.getloadavg()[0], "cpus": os.cpu_count()}
-    steps = (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("accuracy-long", accuracy_long), ("figure", figure),
-             ("figure-photos", figure_photos), ("revisits", revisits), ("real-revisits", real_revisits), ("photos", photos))
+    steps = (("accuracy", accuracy), ("throughput", throughput), ("memory", memory), ("accuracy-long", accuracy_long), ("revisits", revisits), ("real-revisits", real_revisits), ("photos", photos))
     for what, fn in steps:
         if args.what in (what, "all"):
             results.update(fn(args))
@@ -629,5 +539,184 @@ def main() -> None:
         args.json.write_text(json.dumps(results, indent=1, default=float))
 
 
-if __name__ == "__main__":
-    main()
+# -- python -m benchmarks stitch drift-solver ------------------------------------------------------
+
+SIZE = (640, 360)
+
+
+def scipy_solve(problem, x0: np.ndarray, options: RegistrationOptions, tight: bool = False) -> np.ndarray:
+    """Drift control's solve by ``scipy.optimize.least_squares`` (trf, sparse Jacobian)."""
+    extra = {"tr_options": {"atol": 1e-10, "btol": 1e-10}, "max_nfev": 2000} if tight else {"max_nfev": options.max_steps}
+    result = least_squares(
+        problem.residuals,
+        x0,
+        jac=problem.jacobian,
+        method="trf",
+        loss=lambda z: problem.loss(z, options.loss_scale),
+        x_scale="jac",
+        tr_solver="lsmr",
+        xtol=1e-10,
+        ftol=options.tolerance,
+        **extra,
+    )
+    return result.x
+
+
+SOLVERS = {
+    "lm": registration._solve,
+    "scipy": scipy_solve,
+    "scipy-tight": lambda p, x, o: scipy_solve(p, x, o, tight=True),
+}
+
+
+# -- flights ---------------------------------------------------------------------------------
+
+
+def survey(workdir: Path, frames: int, seed: int) -> tuple[Path, np.ndarray]:
+    path = workdir / f"survey_{SIZE[0]}x{SIZE[1]}_{frames}_s{seed}.mp4"
+    if not path.exists():
+        subprocess.run(
+            [sys.executable, "-m", "mosaic_cli", "simulate", str(ORTHOPHOTO), "-p", "survey", "-n", str(frames),
+             "--size", f"{SIZE[0]}x{SIZE[1]}", "--seed", str(seed), "-o", str(path), "-q"],
+            check=True,
+        )
+    return path, load_ground_truth(path.with_suffix(".gt.json")).map_to_frame
+
+
+def forward_backward(workdir: Path, frames: int, seed: int) -> tuple[Path, np.ndarray]:
+    path = workdir / f"fb_{SIZE[0]}x{SIZE[1]}_{frames}_s{seed}.mp4"
+    if not path.exists():
+        ground = load_map(ORTHOPHOTO, seed=seed)
+        plan = plan_flight((ground.shape[1], ground.shape[0]), "fast", frames, SIZE, seed)
+        plan = dataclasses.replace(
+            plan,
+            map_to_frame=np.concatenate([plan.map_to_frame, plan.map_to_frame[::-1]]),
+            smooth_map_to_frame=np.concatenate([plan.smooth_map_to_frame, plan.smooth_map_to_frame[::-1]]),
+        )
+        write_flight(path, ground, plan, map_name=ORTHOPHOTO.name, preset="veryfast", show_progress=False)
+    return path, load_ground_truth(path.with_suffix(".gt.json")).map_to_frame
+
+
+def mapping(workdir: Path, seed: int) -> tuple[Path, np.ndarray]:
+    """``python -m benchmarks georef``'s mapping flight (2507 frames of 640x360 along four 410 m lines over
+    a procedural map, about 118 keyframes), stitched here without its telemetry."""
+    from benchmarks.georef import mapping_flight
+
+    path = mapping_flight(workdir, seed)
+    return path, load_ground_truth(path.with_suffix(".gt.json")).map_to_frame
+
+
+def keyframe_errors(transforms, truth) -> np.ndarray:
+    """``placement_errors`` of a stitch's ``(index, H)`` keyframes."""
+    return placement_errors([i for i, _ in transforms], [H for _, H in transforms], truth, SIZE, GAP)
+
+
+# -- runs ------------------------------------------------------------------------------------
+
+
+def run(video: Path, truth: np.ndarray, solver, workdir: Path, captured: list | None = None) -> dict:
+    """One stitch with ``solver`` in drift control: seconds in the solver, corner errors."""
+    seconds = [0.0]
+    real_refine = registration.refine_placements
+
+    def timed(problem, x0, options):
+        start = time.perf_counter()
+        x = solver(problem, x0, options)
+        seconds[0] += time.perf_counter() - start
+        return x
+
+    def capture(initial, report, reference, size, options):
+        if captured is not None:
+            captured.append(([P.copy() for P in initial], list(report.links), reference, size, options))
+        return real_refine(initial, report, reference, size, options)
+
+    registration._solve, registration.refine_placements = timed, capture
+    try:
+        result = stitch(video, workdir / f"{video.stem}.png", make_estimator("orb"), StitchOptions(), show_progress=False)
+    finally:
+        registration._solve, registration.refine_placements = SOLVERS["lm"], real_refine
+    errors = keyframe_errors(result.transforms, truth)
+    return {"solve_s": seconds[0], "median": float(np.median(errors)), "max": float(errors.max()),
+            "keyframes": len(result.transforms), "loops": result.registration.loops}
+
+
+def replay(captured: list, solver) -> tuple[float, float]:
+    """The captured refinements solved again with ``solver``: seconds and the final robust cost."""
+    seconds, cost = 0.0, 0.0
+    for initial, links, reference, size, options in captured:
+        report = RegistrationReport(links=[dataclasses.replace(l) for l in links], residual_before=1.0)
+        registration._solve = solver
+        try:
+            start = time.perf_counter()
+            placements = refine_placements(initial, report, reference, size, options)
+            seconds += time.perf_counter() - start
+        finally:
+            registration._solve = SOLVERS["lm"]
+        # The cost of the result on the problem's final links, from the placements themselves.
+        problem = registration._Problem(placements, report.links, reference, size)
+        cost += problem.cost(problem.residuals(np.zeros(problem.n_params)), options.loss_scale)
+    return seconds, cost
+
+
+def drift_solver_command(argv: list[str] | None = None) -> int | None:
+    """Drift control's solver against scipy's: the time of the solve and the placement accuracy.
+
+        python -m benchmarks stitch drift-solver                 # survey and forward+backward flights, 640x360
+        python -m benchmarks stitch drift-solver --seeds 1 2 --survey-frames 900 --revisit-frames 300
+
+    Flights (cached under --workdir): ``mosaic simulate -p survey`` over the NEON orthophoto of
+    ../shared/data/aerial_stills (lawnmower lines that revisit their ground) and a 'fast' flight
+    flown forward then backward (as ``python -m benchmarks stitch revisits``, smaller), all with the
+    simulator's exact homographies.
+
+    Each flight is stitched (``orb``, drift control on) once per solver: ``lm`` is the one in
+    ``mosaic_cli/stitch/registration.py`` (Levenberg-Marquardt, exact sparse steps); ``scipy`` is
+    ``scipy.optimize.least_squares`` (method "trf", the same analytic sparse Jacobian, the same
+    weighted soft-L1 loss, ``x_scale="jac"``, LSMR steps), as drift control used it before commit
+    45b6c42; ``scipy-tight`` is the same with LSMR run to 1e-10 and a budget of 2000 evaluations.
+    Reported per flight and solver: the seconds in the solver (all refinements of the run), the
+    robust cost each solver reaches on the identical problems (the first run's refinements
+    replayed), and the median and largest corner error of keyframes at least 60 frames apart
+    against the exact homographies (as ``python -m benchmarks stitch``).
+    """
+    parser = make_parser(SUITE, 'drift-solver', drift_solver_command.__doc__)
+    parser.add_argument("--seeds", type=int, nargs="*", default=[1, 2], help="survey and forward+backward flights of these seeds")
+    parser.add_argument("--survey-frames", type=int, default=900)
+    parser.add_argument("--revisit-frames", type=int, default=300)
+    parser.add_argument("--mapping", type=int, nargs="*", default=[], help="also python -m benchmarks georef's mapping flights of these seeds")
+    parser.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
+    parser.add_argument("--no-replay", dest="replay", action="store_false", help="skip solving the first run's problems again with each solver")
+    parser.add_argument("--workdir", type=Path, default=ROOT / ".dev" / "bench_drift_solver")
+    parser.add_argument("--json", type=Path, help="write the rows here too")
+    args = parser.parse_args(argv)
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    flights = [f(args.workdir, n, seed) for seed in args.seeds for f, n in ((survey, args.survey_frames), (forward_backward, args.revisit_frames))]
+    flights += [mapping(args.workdir, seed) for seed in args.mapping]
+    for video, truth in flights:
+        captured: list = []
+        for name in args.solvers:
+            row = {"flight": video.name, "solver": name}
+            row.update(run(video, truth, SOLVERS[name], args.workdir, captured if not captured else None))
+            rows.append(row)
+            print(
+                f"{row['flight']:28s} {name:12s} {row['keyframes']:3d} keyframes {row['loops']:3d} loops; solve {row['solve_s']:6.2f} s; "
+                f"corner error >= {GAP} apart median {row['median']:.3f} max {row['max']:.3f} px",
+                flush=True,
+            )
+        for name in args.solvers if args.replay else ():
+            seconds, cost = replay(captured, SOLVERS[name])
+            print(f"{video.name:28s} {name:12s} the same {len(captured)} problems: {seconds:6.2f} s, robust cost {cost:.6g}", flush=True)
+            row = next(r for r in rows if r["flight"] == video.name and r["solver"] == name)
+            row.update({"replay_s": seconds, "replay_cost": cost, "refinements": len(captured)})
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+
+
+COMMANDS = {
+    "drift-solver": drift_solver_command,
+}
+
+
+def main(argv: list[str]) -> int:
+    return run_commands(SUITE, __doc__, COMMANDS, argv, default=stitch_command)

@@ -1,16 +1,15 @@
-#!/usr/bin/env python
 """Benchmark live processing: a simulated flight served in real time over loopback TCP.
 
 The bundled ffmpeg sends the flight as MPEG-TS at its frame rate (``-re``, H.264 as simulated,
 x264 veryfast) to mosaic, which listens on 127.0.0.1.  Every figure is end to end on this
 machine; say how loaded it was beside it.
 
-    python scripts/bench_live.py track      [--estimator lstm] [--frames 600]
+    python -m benchmarks live track      [--estimator lstm] [--frames 600]
         lag of each JSON Lines pair (seen in the file) behind the frame's due arrival time
-    python scripts/bench_live.py stitch     [--estimator lstm] [--frames 900] [--no-preview] [--hog N]
+    python -m benchmarks live stitch     [--estimator lstm] [--frames 900] [--no-preview] [--hog N]
         scan lag of each frame behind the sender, backlog when the stream ends, preview cost,
         placement error of the final panorama
-    python scripts/bench_live.py stabilize  [--estimator lstm] [--frames 600] [--clips 2] [--latency 1] [--hog N]
+    python -m benchmarks live stabilize  [--estimator lstm] [--frames 600] [--clips 2] [--latency 1] [--hog N]
                                             [--model tilt,similarity] [--profile shaky-tilt]
         frames in / out / received, latency p50/p95/max from arrival off the decoder to the
         encoded frame's last UDP datagram received (and to the hand-over to the encoder), the
@@ -18,17 +17,17 @@ machine; say how loaded it was beside it.
         (ground truth from simulate -p shaky), for each correction model (--model, comma-separated;
         default: the command's default), the models in turn on each clip
     --hog N runs N busy processes at the benchmark's priority during the run: a loaded machine
-    python scripts/bench_live.py horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
+    python -m benchmarks live horizon    [--estimator lstm] [--frames 600] [--size 1280x720] [--seed 0]
         the online path over an offline track against the offline L1 path of that track, for
         several horizons and predicted tails (how the defaults were chosen)
-    python scripts/bench_live.py stalls     [--estimator lstm] [--frames 600] [--clips 2] [--recover 0.15]
+    python -m benchmarks live stalls     [--estimator lstm] [--frames 600] [--clips 2] [--recover 0.15]
         the live schedule on a test clock over an offline track, with solves that stall now and
         then: residual jitter against the offline L1 path, frames settled at their deadline
-    python scripts/bench_live.py listen     [--clips 5] [--cold]
+    python -m benchmarks live listen     [--clips 5] [--cold]
         seconds from starting `mosaic track|stabilize|stitch tcp://...?listen=1` to its socket
         listening (a sender that connects sooner is refused), median and max of --clips starts;
         --cold empties the page cache before each start (root), as after a boot
-    python scripts/bench_live.py memory     [--frames 54000]
+    python -m benchmarks live memory     [--frames 54000]
         resident memory of live track and stabilize over a long stream (a 320x180 flight looped,
         sent as fast as mosaic takes it), sampled every second
 """
@@ -45,16 +44,14 @@ import threading
 import time
 from pathlib import Path
 
+import imageio_ffmpeg
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "scripts"))
+from benchmarks.common import ROOT, make_parser, placement_errors
+from mosaic_cli.estimators import make_estimator
+from mosaic_cli.simulate import load_ground_truth
 
-import imageio_ffmpeg  # noqa: E402
-
-from mosaic_cli.estimators import make_estimator  # noqa: E402
-from mosaic_cli.simulate import load_ground_truth  # noqa: E402
+SUITE = "live"
 
 FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
 WORKDIR = ROOT / ".dev" / "bench_live"
@@ -140,15 +137,13 @@ def bench_track(args) -> dict:
     print(f"track ({args.estimator}) 1280x720 30 fps over TCP: {args.frames} frames in, {len(seen)} pairs out; "
           f"lag behind the frame's due arrival {row['lag']} (first tenth {row['lag first 10%']:.2f} s, last tenth "
           f"{row['lag last 10%']:.2f} s); {row['load']}", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py track --estimator {args.estimator} --frames {args.frames}")
+    print(f"  reproduce: python -m benchmarks live track --estimator {args.estimator} --frames {args.frames}")
     return row
 
 
 # -- stitch -------------------------------------------------------------------------------
 
 def bench_stitch(args) -> dict:
-    from bench_stitch import placement_errors
-
     import mosaic_cli.stitch.live as live_stitch
     from mosaic_cli.stitch import StitchOptions
     from mosaic_cli.stitch.live import PreviewOptions, stitch_live
@@ -201,7 +196,7 @@ def bench_stitch(args) -> dict:
     # with no initial burst: frame k leaves at k / fps).
     lag = np.array(scanned) - (sender.started + (np.arange(len(scanned)) + 1) / 30.0)
     indices = [i for i, _ in r.transforms]
-    errors = placement_errors(indices, [H for _, H in r.transforms], gt.map_to_frame, gt.size)
+    errors = placement_errors(indices, [H for _, H in r.transforms], gt.map_to_frame, gt.size, 60)
     row = {"estimator": args.estimator, "frames in": args.frames, "frames scanned": r.frames, "keyframes": len(indices),
            "scan lag": percentiles(lag), "scan lag p95": float(np.percentile(lag, 95)),
            "scan backlog at stream end s": float(lag[-1]), "final stages s": finished - scanned[-1],
@@ -214,7 +209,7 @@ def bench_stitch(args) -> dict:
           f"{row['final stages s']:.1f} s; {r.previews} previews at {row['preview s each']:.3f} s each; "
           f"median placement error {row['median placement error px']:.2f} px over {len(errors)} pairs; load average "
           f"{row['load during']} (start -> end of the run) on {os.cpu_count()} cores", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py stitch --estimator {args.estimator} --frames {args.frames}"
+    print(f"  reproduce: python -m benchmarks live stitch --estimator {args.estimator} --frames {args.frames}"
           + (" --no-preview" if args.no_preview else f" --every {args.every:g}") + (f" --hog {args.hog}" if args.hog else ""))
     return row
 
@@ -235,7 +230,7 @@ def bench_stabilize(args) -> list[dict]:
         port, out_port = free_port(), free_port()
         url = f"tcp://127.0.0.1:{port}?listen=1"
         received, left = WORKDIR / "received.ts", WORKDIR / "received_times.npy"
-        receiver = subprocess.Popen([sys.executable, __file__, "receive", "--port", str(out_port), "--ts", str(received),
+        receiver = subprocess.Popen([sys.executable, "-m", "benchmarks", "live", "receive", "--port", str(out_port), "--ts", str(received),
                                      "--times", str(left)])
         holder: dict = {}
         threading.Thread(target=lambda port=port, holder=holder, video=video, url=url: (wait_listening(port), holder.update(s=Sender(video, url.split("?")[0]))),
@@ -277,7 +272,7 @@ def bench_stabilize(args) -> list[dict]:
               f"{row['load during']} (start -> end of the live run) on {os.cpu_count()} cores", flush=True)
         for line in row["breakdown"] + [f"frames left at their deadline: {row['late frames']}"] + live.notes:
             print("   ", line)
-    print(f"  reproduce: python scripts/bench_live.py stabilize --estimator {args.estimator} --frames {args.frames} "
+    print(f"  reproduce: python -m benchmarks live stabilize --estimator {args.estimator} --frames {args.frames} "
           f"--clips {args.clips}" + (f" --latency {args.latency:g}" if args.latency != 1.0 else "")
           + (f" --hog {args.hog}" if args.hog else "") + (f" --model {args.model}" if args.model else "")
           + (f" --profile {args.profile}" if args.profile != "shaky" else "")
@@ -345,7 +340,7 @@ def bench_listen(args) -> list[dict]:
         rows.append(row)
         print(f"mosaic {command} listens {row['median_s']:.2f} s after it starts{' cold' if args.cold else ''} "
               f"(median of {len(waits)}, max {row['max_s']:.2f} s); {row['load']}", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py listen --clips {args.clips}{' --cold' if args.cold else ''}")
+    print(f"  reproduce: python -m benchmarks live listen --clips {args.clips}{' --cold' if args.cold else ''}")
     return rows
 
 
@@ -446,7 +441,7 @@ def bench_memory(args) -> list[dict]:
         print(f"memory, live {name}, {args.frames} frames of 320x180 (= {args.frames / 30 / 60:.0f} min at 30 fps) in "
               f"{t[-1]:.0f} s: resident {marks['10%']:.0f} MB at 10% of the run, {marks['50%']:.0f} MB at 50%, "
               f"{marks['99%']:.0f} MB at the end, peak {mb.max():.0f} MB; {row['load']}", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py memory --frames {args.frames}")
+    print(f"  reproduce: python -m benchmarks live memory --frames {args.frames}")
     return rows
 
 
@@ -496,7 +491,7 @@ def bench_horizon(args) -> list[dict]:
                      "cpu ms": cpu_ms})
         print(f"{video.name} ({args.estimator}): step {step}, lookahead {lookahead}, predicted {predicted}, {solver}: "
               f"jitter {ratio:.2f}x the offline L1 path's ({offline:.3f} px); {cpu_ms:.1f} ms CPU a frame", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py horizon --estimator {args.estimator} --frames {args.frames} "
+    print(f"  reproduce: python -m benchmarks live horizon --estimator {args.estimator} --frames {args.frames} "
           f"--size {args.size} --seed {args.seed}")
     return rows
 
@@ -580,13 +575,13 @@ def bench_stalls(args) -> list[dict]:
                   f"{jitter / offline:.2f}x the offline L1 path's ({offline:.3f} px); {schedule.late} of {n} frames settled "
                   f"at their deadline ({path.held} past the plan's end); {path.rejoined} plans joined, {schedule.stale} "
                   f"unused", flush=True)
-    print(f"  reproduce: python scripts/bench_live.py stalls --estimator {args.estimator} --frames {args.frames} "
+    print(f"  reproduce: python -m benchmarks live stalls --estimator {args.estimator} --frames {args.frames} "
           f"--clips {args.clips} --recover {args.recover:g}")
     return rows
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int | None:
+    parser = make_parser(SUITE, None, __doc__)
     parser.add_argument("what", choices=["track", "stitch", "stabilize", "listen", "memory", "horizon", "stalls", "receive"])
     parser.add_argument("--recover", type=float, default=0.15, help="stalls: OnlineL1Path.recover")
     parser.add_argument("--latency", type=float, default=1.0, help="stabilize: --latency")
@@ -608,7 +603,7 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=2)
     parser.add_argument("--cold", action="store_true", help="listen: empty the page cache before each start (root)")
     parser.add_argument("--json", type=Path, default=None, help="Also write the rows here.")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.what == "receive":  # the stabilize benchmark's receiver, in a process of its own
         receive(args)
         return
@@ -619,7 +614,3 @@ def main() -> None:
             "horizon": bench_horizon, "stalls": bench_stalls, "listen": bench_listen}[args.what](args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str) + "\n")
-
-
-if __name__ == "__main__":
-    main()

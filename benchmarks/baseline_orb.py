@@ -1,24 +1,26 @@
-#!/usr/bin/env python3
-"""The paper's classical baseline as a plain script, to check ``mosaic track --estimator orb``
+"""The paper's classical baseline written on its own, to check ``mosaic track --estimator orb``
 against: ORB (500 features, WTA_K=2) on the whole grayscale frame resized to the working width
 (320x180 for 1280x720 video), brute-force Hamming matching with cross-check, findHomography
 with RANSAC at 5 px, identity on failure; the small-frame homography is scaled to full
 resolution as the authors' code does, H_full = diag(s, s, 1) H_small diag(1/s, 1/s, 1).
 
-Deliberately independent of mosaic_cli (OpenCV decodes the video), so that agreement means
+Deliberately independent of mosaic_cli (nothing here imports it; OpenCV decodes the video), so that agreement means
 something.  Writes the ``mosaic track`` JSON format, which ``mosaic eval`` reads.
 
-    python scripts/baseline_orb.py flight.mp4 -o baseline.json [--work-width 320]
+    python -m benchmarks estimators orb-baseline flight.mp4 -o baseline.json [--work-width 320]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 
 import cv2
 import numpy as np
+
+from benchmarks.common import make_parser
+
+SUITE = "estimators"
 
 
 def estimate(prev, cur, orb, matcher):
@@ -73,18 +75,15 @@ def track_baseline(video: str, work_width: int = 320, max_frames: int | None = N
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int | None:
+    """The paper's classical baseline, independent of mosaic_cli: a video's track to check ``orb`` against."""
+    parser = make_parser(SUITE, "orb-baseline", __doc__)
     parser.add_argument("video")
     parser.add_argument("-o", "--out", required=True)
     parser.add_argument("--work-width", type=int, default=320)
     parser.add_argument("--max-frames", type=int, default=None)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     out = track_baseline(args.video, args.work_width, args.max_frames)
     with open(args.out, "w") as fh:
         json.dump(out, fh)
     print(f"{out['frames']} frames, {out['meta']['ms_per_frame']:.1f} ms/frame -> {args.out}")
-
-
-if __name__ == "__main__":
-    main()

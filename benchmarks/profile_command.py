@@ -1,9 +1,8 @@
-#!/usr/bin/env python
 """Where a mosaic command's time goes, every thread of it: the command run under yappi (wall
 clock), the functions that spent the most time in themselves, and each thread's total.
 
-    python scripts/profile_command.py --out prof.txt -- stabilize flight.mp4 steady.mp4 --device cuda
-    python scripts/profile_command.py --top 40 -- track flight.mp4 -o flight.json
+    python -m benchmarks profile --out prof.txt -- stabilize flight.mp4 steady.mp4 --device cuda
+    python -m benchmarks profile --top 40 -- track flight.mp4 -o flight.json
 
 cProfile sees the main thread only; mosaic decodes, warps, encodes and finishes pairs on threads
 of their own (docs/architecture.md), so the time of a stage on another thread would be missed.
@@ -16,13 +15,16 @@ from __future__ import annotations
 
 import argparse
 import io
-import sys
 import time
 from pathlib import Path
 
+from benchmarks.common import make_parser
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+SUITE = "profile"
+
+
+def main(argv: list[str] | None = None) -> int | None:
+    ap = make_parser(SUITE, None, __doc__)
     ap.add_argument("--out", type=Path, help="write the report here (default: standard output)")
     ap.add_argument("--top", type=int, default=30, help="functions listed (by time spent in themselves)")
     ap.add_argument("command", nargs=argparse.REMAINDER, help="-- then mosaic's own arguments")
@@ -64,7 +66,3 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(text)
     return int(status) if isinstance(status, int) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

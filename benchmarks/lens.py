@@ -2,7 +2,7 @@
 ``--lens none``, the true lens FILE and ``--lens auto``, each panorama fitted to the ground (the
 source image) with one homography; and auto's coefficients against the truth at the corners.
 
-    python scripts/bench_lens.py --out runs/lens [--frames 120 --size 1280x720 --map boruszyn]
+    python -m benchmarks lens --out runs/lens [--frames 120 --size 1280x720 --map boruszyn]
 
 Per flight and lens option: how far the panorama is from the map after one homography
 (:func:`ground_fit`: sub-pixel matches, their misfit averaged over 64-px cells, the median cell;
@@ -15,7 +15,6 @@ panorama downscaled beside it.
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -25,12 +24,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from benchmarks.common import STILLS, make_parser
 from mosaic_cli.geometry.lens import corner_displacement, corner_error
 from mosaic_cli.geometry.lens_files import read_lens
 from mosaic_cli.simulate import SimulateOptions, load_map, parse_lens, simulate_flight
 from mosaic_cli.video import probe
 
-STILLS = Path(__file__).resolve().parents[2] / "shared" / "data" / "aerial_stills"
+SUITE = "lens"
 HELD_OUT = {"boruszyn": "odm_orthomosaic_previews/boruszyn.png", "yell541": "deepforest_neon_orthophoto/2019_YELL_2_541000_4977000_image_crop.png"}
 # The flights: k1 -0.15 with k2 = k1^2/4 at 900 px (1280 wide); -0.30 at 1050 px (at 900 px
 # that polynomial folds back before the corners: its distorted radius peaks at 0.74 f, the corners
@@ -181,15 +181,15 @@ def bench_stabilize(args, size: tuple[int, int]) -> None:
     (args.out / "stabilize.json").write_text(json.dumps({"map": args.map, "frames": args.frames, "size": [w, h], "results": rows}, indent=1))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int | None:
+    parser = make_parser(SUITE, None, __doc__)
     parser.add_argument("--out", type=Path, default=Path("runs/lens"))
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--size", default="1280x720")
     parser.add_argument("--map", default="boruszyn", choices=sorted(HELD_OUT))
     parser.add_argument("--flights", default=",".join(FLIGHTS))
     parser.add_argument("--stabilize", action="store_true", help="shaky flights stabilised instead (jitter against the truth, straightness)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     w, h = (int(v) for v in args.size.split("x"))
     args.out.mkdir(parents=True, exist_ok=True)
     if args.stabilize:
@@ -235,7 +235,3 @@ def main() -> None:
             results.append(row)
             print(json.dumps(row), flush=True)
     (args.out / "lens.json").write_text(json.dumps({"map": args.map, "frames": args.frames, "size": [w, h], "results": results}, indent=1))
-
-
-if __name__ == "__main__":
-    main()

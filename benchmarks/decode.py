@@ -1,7 +1,7 @@
 """Decoding and probing speed of mosaic's video reader (docs/developer/video.md).
 
-    python scripts/bench_decode.py                     # 1280x720 H.264, 300 frames, 3 rounds
-    python scripts/bench_decode.py --rounds 5 --frames 600
+    python -m benchmarks decode                     # 1280x720 H.264, 300 frames, 3 rounds
+    python -m benchmarks decode --rounds 5 --frames 600
 
 One clip, decoded every way side by side in one run, the ways interleaved round after round
 (the machine is shared: a slow spell hits every way alike), the median of the rounds reported:
@@ -31,12 +31,9 @@ px/s), else over ffmpeg's testsrc2 with film-grain noise.
 
 from __future__ import annotations
 
-import argparse
 import logging
-import resource
 import statistics
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -45,12 +42,12 @@ import cv2
 import imageio_ffmpeg
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from mosaic_cli.video import VideoInfo, open_video, probe  # noqa: E402
-from mosaic_cli.video.reader import scaled_size  # noqa: E402
+from benchmarks.common import ORTHOPHOTO, ROOT, cpu_seconds, make_parser
+from mosaic_cli.video import VideoInfo, open_video, probe
+from mosaic_cli.video.reader import scaled_size
 
-ORTHOPHOTO = ROOT.parent / "shared/data/aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png"
+SUITE = "decode"
+
 FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
 logging.getLogger("imageio_ffmpeg").setLevel(logging.ERROR)  # its note on every downscaled read
 
@@ -140,18 +137,12 @@ def probe_before(path: Path) -> None:
     capture.release()
 
 
-def cpu_seconds() -> float:
-    """User and system CPU of this process and of its children waited for (ffmpeg)."""
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> int | None:
+    parser = make_parser(SUITE, None, __doc__)
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--workdir", type=Path, default=ROOT / ".dev" / "bench_decode")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     args.workdir.mkdir(parents=True, exist_ok=True)
     clip = args.workdir / "clip720.mp4"
     what = make_clip(clip, args.frames)
@@ -185,7 +176,3 @@ def main() -> None:
         print(f"| {mode} | " + " | ".join(f"{statistics.median(rates[(mode, name)]):.1f}" for name in ways) + f" | {paired:.2f} | "
               + " | ".join(f"{statistics.median(cpu[(mode, name)]):.2f}" for name in ways) + " |")
     print(f"\nprobe: before {statistics.median(probes['before']):.0f} ms, after {statistics.median(probes['after']):.0f} ms")
-
-
-if __name__ == "__main__":
-    main()

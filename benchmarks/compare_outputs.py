@@ -1,8 +1,8 @@
 """Are the outputs unchanged?  ``track``, ``stitch`` and ``stabilize`` run on one small simulated
 clip with the working tree's code and with the code of a git revision, their JSON compared.
 
-    python scripts/compare_outputs.py --rev eef602d
-    python scripts/compare_outputs.py --rev eef602d --estimator orb --frames 120 --size 480x270
+    python -m benchmarks compare --rev eef602d
+    python -m benchmarks compare --rev eef602d --estimator orb --frames 120 --size 480x270
 
 The clip (``mosaic simulate -p survey`` over a real aerial still of ../shared/data when there,
 a procedural map otherwise) is made once, by the working tree's simulator.  REV is checked out
@@ -16,7 +16,6 @@ within --atol, 1 otherwise.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -27,8 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-MAP = ROOT.parent / "shared/data/aerial_stills/deepforest_neon_orthophoto/2019_YELL_2_528000_4978000_image_crop2.png"
+from benchmarks.common import ORTHOPHOTO, ROOT, make_parser
+
+SUITE = "compare"
+MAP = ORTHOPHOTO
 
 
 def mosaic(checkout: Path, *args: str | Path) -> float:
@@ -88,8 +89,8 @@ def compare(mine: Path, theirs: Path, commands=COMMANDS) -> list[tuple[str, str,
     return rows
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int | None:
+    parser = make_parser(SUITE, None, __doc__)
     parser.add_argument("--rev", required=True, help="git revision to compare with (e.g. eef602d)")
     parser.add_argument("--frames", type=int, default=90)
     parser.add_argument("--size", default="320x180")
@@ -98,7 +99,7 @@ def main() -> None:
     parser.add_argument("--atol", type=float, default=1e-9, help="largest difference counted as the same")
     parser.add_argument("--commands", nargs="+", choices=COMMANDS, default=list(COMMANDS), help="which outputs to compare")
     parser.add_argument("--keep", type=Path, help="keep the clip and both runs' outputs in this folder")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     estimator = ["-e", args.estimator] if args.estimator else []
     rev = subprocess.run(["git", "rev-parse", "--short", args.rev], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
     with tempfile.TemporaryDirectory(prefix="mosaic-compare-") as tmp:
@@ -127,7 +128,3 @@ def _head() -> str:
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True).stdout
     return head + ("+changes" if dirty.strip() else "")
-
-
-if __name__ == "__main__":
-    main()

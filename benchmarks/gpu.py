@@ -21,7 +21,7 @@ Stages, each timed into session.log, a summary table printed last (``--stages``:
               of track, stabilize and stitch with --device cuda and --device cpu (all cores, and
               track on one thread too) and the plain x264 transcode with the same settings, into
               gpu_throughput.json (issue 39: docs/measurements/gpu_throughput.json); then, while
-              time is left, the default track and stabilize under scripts/profile_command.py
+              time is left, the default track and stabilize under ``python -m benchmarks profile``
               (every thread's time) into logs.tar.gz
 
 Back under $OUT (at most 8 files of 16 MB): gpu_throughput.json (throughput), cnn.safetensors, lstm.safetensors,
@@ -52,9 +52,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-from stage_times import stage_seconds  # noqa: E402  (scripts/, beside this one)
+from benchmarks.common import ROOT, make_parser, stage_seconds
+
+SUITE = "gpu"
 
 STILLS = ROOT / ".gpu" / "stills"
 TRAIN_PROFILES = ("paper", "fast", "hard", "survey", "extreme")
@@ -267,14 +267,14 @@ def train(s: Session, rates: dict | None) -> str:
 
 
 FOOTAGE = ROOT / ".gpu" / "footage"
-# (name, frame size, the still flown over: a prefix of a file in .gpu/footage), as scripts/bench_speed.py
+# (name, frame size, the still flown over: a prefix of a file in .gpu/footage), as ``python -m benchmarks speed``
 CLIPS = (("1280x720", (1280, 720), "720p"), ("3840x2160", (3840, 2160), "4k"))
-X264 = {"preset": "veryfast", "crf": "18"}  # scripts/bench_speed.py's transcode settings, and stabilize's here
+X264 = {"preset": "veryfast", "crf": "18"}  # python -m benchmarks speed's transcode settings, and stabilize's here
 
 
 def transcode(source: str, target: str) -> int:
     """The plain x264 transcode, in-process with PyAV (every frame decoded on frame threads and
-    encoded as scripts/bench_speed.py's ``ffmpeg -c:v libx264 -preset veryfast -crf 18``): the
+    encoded as ``python -m benchmarks speed``'s ``ffmpeg -c:v libx264 -preset veryfast -crf 18``): the
     floor of any stabiliser that re-encodes.  Returns the frames written."""
     import av
 
@@ -357,9 +357,9 @@ def build_probe(s: Session, device: str) -> dict:
 
 def threads_probe(s: Session, clip: Path, threads: str) -> str:
     """The estimation alone on the CPU with a pool of 1..N threads, with and without a file's
-    lookahead (scripts/bench_threads.py): what every core gives once the decode is left out."""
+    lookahead (``python -m benchmarks estimators threads``): what every core gives once the decode is left out."""
     try:
-        proc = s.run(sys.executable, str(Path(__file__).resolve().parent / "bench_threads.py"), str(clip), "--threads", threads,
+        proc = s.run(sys.executable, "-m", "benchmarks", "estimators", "threads", str(clip), "--threads", threads,
                      "--rounds", "2", timeout=240, check=False)
         return (proc.stdout.strip() or proc.stderr.strip()[-300:])[-2000:]
     except subprocess.TimeoutExpired as exc:
@@ -451,7 +451,7 @@ def throughput(s: Session) -> str:
             report["threads"] = threads_probe(s, clip, f"1,4,{os.cpu_count() or 1}")
             save()
         runs: list[tuple] = [  # (command, device, threads, its arguments, the row's other fields)
-            ("transcode", "cpu", None, (sys.executable, str(Path(__file__).resolve()), "--transcode", str(clip), str(folder / f"transcode_{size}.mp4")), {})]
+            ("transcode", "cpu", None, (sys.executable, "-m", "benchmarks", "gpu", "--transcode", str(clip), str(folder / f"transcode_{size}.mp4")), {})]
         for device in devices:
             runs.append(("track", device, None, mosaic("track", str(clip), "-o", str(folder / f"track_{size}_{device}.json"), "--device", device), {}))
         for device in devices:  # what the overlay detection adds (the first session's "overlays" was 3-13 s)
@@ -505,12 +505,12 @@ def throughput(s: Session) -> str:
                 report["runs"].append({"command": "vidstab", "device": "cpu", "size": size, "threads": None, "frames": frames, "wall_s": None,
                                        "note": "not run: the machine has no ffmpeg binary, and PyAV's libavfilter has no vid.stab"})
                 save()
-        if round_ == 1:  # where each thread's time goes (scripts/profile_command.py), before the repeats
+        if round_ == 1:  # where each thread's time goes (python -m benchmarks profile), before the repeats
             for name, args in profiles:
                 if s.left() < 120:
                     break
                 text = s.work / f"profile_{name}.txt"
-                proc = s.run(sys.executable, str(ROOT / "scripts" / "profile_command.py"), "--top", "40", "--out", str(text), "--", *args,
+                proc = s.run(sys.executable, "-m", "benchmarks", "profile", "--top", "40", "--out", str(text), "--", *args,
                              timeout=max(30.0, min(200.0, s.left() - 60)), check=False)
                 if text.is_file():
                     s.logs.append(text)
@@ -544,8 +544,8 @@ def pack(s: Session) -> str:
     return f"{len(s.logs)} logs"
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> int | None:
+    ap = make_parser(SUITE, None, __doc__)
     ap.add_argument("--out", type=Path, default=Path(os.environ.get("OUT", "gpu-out")))
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
     ap.add_argument("--device", default="cuda")
@@ -578,7 +578,3 @@ def main(argv: list[str] | None = None) -> int:
         s.say(f"  {name:<{width}}  {seconds:>7} s  {summary}")
     failed = [r[0] for r in s.rows if r[2].startswith("FAILED")]
     return 1 if failed else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
