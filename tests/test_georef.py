@@ -262,7 +262,8 @@ def test_georef_flags_on_a_video_without_a_track_are_one_clear_line(capsys, tmp_
 
 
 @pytest.mark.slow
-def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
+def test_photo_folder_refuses_a_telemetry_file(capsys, tmp_path, flights):
+    """A photo folder's positions are its EXIF GPS (tests/test_photo_gps.py): a log is refused."""
     import cv2
 
     folder = tmp_path / "photos"
@@ -272,7 +273,7 @@ def test_photo_folder_refuses_telemetry(capsys, tmp_path, flights):
         cv2.imwrite(str(folder / f"p{k}.png"), rng.integers(0, 255, (120, 160, 3), dtype=np.uint8))
     code, err = run_cli(capsys, "stitch", folder, "-o", tmp_path / "m.tif", "--telemetry",
                         flights["exact"].with_suffix(".SRT"), "-q", "--estimator", "orb")
-    assert_one_line_error(code, err, "photo folders")
+    assert_one_line_error(code, err, "a photo folder's positions are its photos' EXIF GPS")
 
 
 @pytest.mark.slow
@@ -373,8 +374,8 @@ def test_georeferencing_warnings_are_said_even_when_quiet():
 
     said = "the height and field of view (60.0 deg) make the map +15.6% the size the GPS track does"
     first = SimpleNamespace(path=Path("map.tif"), georef=SimpleNamespace(warnings=[said]), transforms=[(0, None)], spans=[(0, 89)], size=90, shrunk_from=None)
-    result = SimpleNamespace(panoramas=[first], georef=first.georef, dropped=[], photos=False)
+    result = SimpleNamespace(panoramas=[first], georef=first.georef, dropped=[], photos=False, metadata_notes=[])
     assert _notices(Path("v.mp4"), result, 8000) == [said]
     second = SimpleNamespace(path=Path("map-2.tif"), georef=SimpleNamespace(warnings=[]), transforms=[(90, None)], spans=[(90, 120)], size=31, shrunk_from=None)
-    result = SimpleNamespace(panoramas=[first, second], georef=first.georef, dropped=[], photos=False)
+    result = SimpleNamespace(panoramas=[first, second], georef=first.georef, dropped=[], photos=False, metadata_notes=[])
     assert f"map.tif: {said}" in _notices(Path("v.mp4"), result, 8000)

@@ -42,7 +42,8 @@ Quiet = quiet_option("No progress bars.")
 
 def stitch(
     video: Annotated[str, typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
-    out: Annotated[str, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg; with telemetry a map: .tif (Cloud Optimized GeoTIFF), .kmz (Google Earth), DIR/ (web tiles, {z}/{x}/{y}.png), .pmtiles or .mbtiles.", rich_help_panel=INPUT_OUTPUT)],
+    out: Annotated[str | None, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg; with telemetry a map: .tif (Cloud Optimized GeoTIFF), .kmz (Google Earth), DIR/ (web tiles, {z}/{x}/{y}.png), .pmtiles or .mbtiles.", rich_help_panel=INPUT_OUTPUT, show_default="required")] = None,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Read the input's metadata and print it, stitch nothing: each photo's GPS, height, attitude, field of view and camera (EXIF, DJI XMP); a video's size, rate and telemetry.", rich_help_panel=INPUT_OUTPUT)] = False,
     transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
     start: Annotated[int, typer.Option("--start", help="Skip this many frames first.", rich_help_panel=INPUT_OUTPUT)] = 0,
     max_frames: MaxFrames = None,
@@ -77,6 +78,11 @@ def stitch(
     lens: LensOption = None,
 ) -> None:
     """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
+    if dry_run:
+        _dry_run(video)
+        return
+    if out is None:
+        raise BadInput("-o/--out is required (the panorama or map to write), unless --dry-run")
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
     from mosaic_cli.estimators.lens import undistorting
     from mosaic_cli.live.source import is_live_source
@@ -165,6 +171,7 @@ def _notices(video: Path, result, max_size: int) -> list[str]:
         if p.shrunk_from is not None:
             (w, h), (W, H) = p.canvas_size, p.shrunk_from
             lines.append(f"{p.path}: scaled down from {W}x{H} to {w}x{h} by --max-size {max_size} (--max-size 0 keeps every pixel)")
+    lines += result.metadata_notes
     if result.dropped:
         if names is not None:
             for index, why in result.dropped:
@@ -230,3 +237,31 @@ def _georef_options(telemetry: str | None, hfov: float | None, offset: float, fo
             raise BadInput(f"{wanted[0]} needs telemetry (--telemetry none was given)")
         return None
     return options
+
+
+def _dry_run(video: str) -> None:
+    """``--dry-run``: what the input says of itself, one line per photo (or the video's probe and
+    telemetry), and what a stitch of it can make."""
+    from mosaic_cli.telemetry import find_telemetry
+    from mosaic_cli.telemetry.photos import photo_rate, read_photo_tags
+    from mosaic_cli.video import probe
+    from mosaic_cli.video.folders import folder_images
+
+    info = probe(video)
+    if info.is_image_folder:
+        tags = [read_photo_tags(p) for p in folder_images(Path(video))]
+        for t in tags:
+            print(t.describe())
+        fixed = sum(t.has_fix for t in tags)
+        attitude = sum(t.yaw == t.yaw for t in tags)
+        damaged = sum(bool(t.problems) for t in tags)
+        cameras = sorted({t.camera or "unknown camera" for t in tags})
+        made = "a georeferenced map (-o map.tif, .kmz, tiles)" if fixed else "a plain panorama (no photo has GPS)"
+        print(f"{len(tags)} photos ({', '.join(cameras)}): {fixed} with GPS, {attitude} with a yaw, {damaged} with damaged "
+                      f"metadata, one every {1.0 / photo_rate(tags):.1f} s: {made}")
+        return
+    print(f"{video}: {info.source_size[0]}x{info.source_size[1]}, {info.fps:.2f} fps, "
+                  f"{info.frame_count if info.frame_count is not None else 'unknown'} frames")
+    track = find_telemetry(video, info)
+    print(f"telemetry: {track.source}, {len(track)} samples, {int(track.has_fix.sum())} with a GPS fix" if track is not None
+                  else "telemetry: none inside the video (--telemetry FILE gives one)")

@@ -34,7 +34,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.geo.adjust import AttitudeViews, adjust_to_ground, attitude_sigma, level_mosaic, similarity_ratios
 from mosaic_cli.geo.camera import focal_pixels, nadir_pixel, untilt
 from mosaic_cli.geo.crs import Projection
-from mosaic_cli.geo.drift import DriftOptions, drift_correction
+from mosaic_cli.geo.drift import DriftCorrection, DriftOptions, drift_correction
 from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, axis_sigma, fit_similarity, fix_weights, refine_homography, scale_sigma
 from mosaic_cli.geo.prior import height_scale, sigmas_apart
 from mosaic_cli.geometry import frame_corners, normalize, project
@@ -79,6 +79,11 @@ class GeorefOptions:
     # Student's t, on a short track's few fixes: disagreement_limit) is not used (said)
     max_scale_disagreement: float = 3.5
     drift: DriftOptions = field(default_factory=DriftOptions)  # ... and GPS shifts what is left (drift.py)
+    # Each keyframe bent toward its own fix (drift.py, and the GPS-straightened start of drift
+    # control): a video's chained registrations drift.  A photo folder's photos are registered
+    # to all their neighbours directly, and each photo's fix carries its own noise: bending them
+    # toward it would move the photos apart by the GPS's error (measured: 7 px at 10 cm a pixel).
+    bend_to_gps: bool = True
     # The ground under the whole flight is level with the take-off point (to about the height's
     # noise): each keyframe's height then also says its own scale, which corrects the scale the
     # chained registrations drift in (drift.py).  Off by default: over relief the heights above
@@ -287,8 +292,14 @@ def georeference(
     all_fixes[fixes] = ground * np.array([1.0, -1.0])
     footprint_m = float(np.median([np.sqrt(abs(np.linalg.det(_jacobian(mosaic_to_ground @ H, centre)))) for H in placements])) * max(w, h)
     # sigma is the robust scatter of the fixes' distances: the drift correction wants the per-axis sigma
-    drift = drift_correction(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(axis_sigma(sigma), 0.5), options.drift,
-                             height_scales)
+    if options.bend_to_gps:
+        drift = drift_correction(nadir_ground, all_fixes, used.astype(float), times, footprint_m, max(axis_sigma(sigma), 0.5),
+                                 options.drift, height_scales)
+    else:
+        drift = DriftCorrection(np.zeros((len(placements), 2)), np.ones(len(placements)))
+
+    if track.photos is not None:
+        _name_rejected_fixes(track, frame_indices, fixes, used, nadir_ground, all_fixes, warnings)
 
     # Output pixels: north-up at the keyframes' median ground sample, anchored at the reference's centre.
     gsd = footprint_m / max(w, h)
@@ -392,3 +403,16 @@ def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
     u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den
     v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
     return np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]], [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / den
+
+
+def _name_rejected_fixes(track: Track, frame_indices, fixes: np.ndarray, used: np.ndarray, nadir_ground: np.ndarray,
+                         all_fixes: np.ndarray, warnings: list[str]) -> None:
+    """A photo folder's fixes the fit set aside, by photo, in one warning: each photo is placed
+    by its pixels, and a wrong fix is worth knowing of (a GPS glitch, a photo from another flight)."""
+    assert track.photos is not None
+    rejected = [(track.photos[frame_indices[k]].path.name, float(np.linalg.norm(nadir_ground[k] - all_fixes[k])))
+                for k in np.nonzero(fixes & ~used)[0] if 0 <= frame_indices[k] < len(track.photos)]
+    if rejected:
+        named = ", ".join(f"{name} ({metres:.0f} m)" for name, metres in rejected)
+        warnings.append(f"{len(rejected)} photo GPS fix{'es' if len(rejected) > 1 else ''} far from where the photos' pixels "
+                        f"place {'them' if len(rejected) > 1 else 'it'}, not used: {named}")

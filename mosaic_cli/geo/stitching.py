@@ -33,13 +33,18 @@ def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions 
                 raise BadInput(f"{flag} must differ from the panorama output")
     if options.footprints is not None and options.html is not None and Path(options.footprints).resolve() == Path(options.html).resolve():
         raise BadInput("--html must differ from --footprints")
+    photos = Path(video).is_dir()
+    if photos and options.telemetry is not None:
+        raise BadInput(f"--telemetry {options.telemetry}: a photo folder's positions are its photos' EXIF GPS; "
+                       f"--telemetry none stitches it without them")
     if options.telemetry is not None:
         track = read_telemetry(options.telemetry)
     else:
         track = find_telemetry(video, info)
     wanted = map_output_flag(out) + options.without_telemetry()
     if track is None and wanted:
-        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
+        where = f"no photo in {video} has EXIF GPS" if photos else f"no SRT or KLV track inside {video}"
+        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry ({where})" if not photos else f"{wanted[0]} needs GPS ({where})")
     if track is not None and not track.has_fix.any():
         if options.telemetry is None and not wanted:
             return None  # an embedded track without positions: a plain panorama, as without one

@@ -30,6 +30,10 @@ class FeatureOptions:
     # n_features still keeps only the strongest points on rich ground.
     contrast_threshold: float = 0.01
     ratio: float = 0.8  # Lowe's ratio test
+    # Matching guided by the GPS (match_guided): the ratio among the few points near where the
+    # prior puts a point, and the inliers that suffice once the prior agrees.
+    guided_ratio: float = 0.9
+    guided_min_inliers: int = 12
     reproj_threshold: float = 1.5  # pixels at the feature width
     min_inliers: int = 20
     min_inlier_ratio: float = 0.15
@@ -40,6 +44,8 @@ class FeatureOptions:
     # its far side 8-100 px off on tiles of a real orthophoto whose exact offsets were known
     # (issue 40); such a pair is registered as an affine map where one explains its inliers.
     min_homography_spread: float = 0.25
+    # ... and below this, a pair matched by the GPS's guidance is a similarity (match_guided).
+    min_affine_spread: float = 0.05
 
     def __post_init__(self) -> None:
         self.validate()
@@ -130,6 +136,75 @@ class FeatureMatcher:
             return None
         src = a.points[[m.queryIdx for m in good]]
         dst = b.points[[m.trainIdx for m in good]]
+        return self._fit(src, dst, o.min_inliers, prior, tolerance)
+
+    def match_guided(self, a: Features, b: Features, prior: np.ndarray, radius: float) -> PairMatch | None:
+        """H: a -> b, matched where ``prior`` (a -> b, from the GPS: see stitch/guide.py) says
+        each point of a should be in b: a point's candidates are b's points within ``radius``
+        pixels of it, and its best must beat the second best among them alone, by the looser
+        ``guided_ratio``.  Fewer rivals pass more true matches: a pair whose overlap is a strip
+        of flat ground beside canopy (whose parallax spoils its matches) gets enough to place it.
+        The result must agree with ``prior`` to ``radius`` at the frame corners; fewer inliers
+        (``guided_min_inliers``) suffice, and no share of the matches, the GPS vouching for the rest."""
+        o = self.options
+        if len(a) < o.guided_min_inliers or len(b) < o.guided_min_inliers:
+            return None
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(b.points.astype(np.float64))
+        da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
+        # A point with a single candidate near it is measured against its best rival anywhere:
+        # alone in a small circle, any point would pass.
+        rivals = {(m[0].queryIdx, m[0].trainIdx): m[1].distance for m in self._matcher.knnMatch(da, db, k=2) if len(m) == 2}
+        best = {m[0].queryIdx: m[0].distance for m in self._matcher.knnMatch(da, db, k=1) if m}
+
+        def near(H: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+            src, dst = [], []
+            for i, candidates in enumerate(tree.query_ball_point(project(H, a.points.astype(np.float64)), reach)):
+                if not candidates:
+                    continue
+                d = np.linalg.norm(db[candidates] - da[i], axis=1)
+                chosen = candidates[int(np.argmin(d))]
+                if len(candidates) > 1:
+                    first, second = np.partition(d, 1)[:2]
+                else:
+                    first, second = d[0], rivals.get((i, chosen), best.get(i, np.inf))
+                if first >= o.guided_ratio * second:
+                    continue
+                src.append(i)
+                dst.append(chosen)
+            return a.points[src], b.points[dst]
+
+        src, dst = near(prior, radius)
+        if len(src) < o.guided_min_inliers:
+            return None
+        # Most of these matches are rivals that happened to win (canopy): their share is no test.
+        match = self._fit(src, dst, o.guided_min_inliers, prior, radius, min_ratio=0.0)
+        if match is not None and spread(match.points_a, self.source_size) < o.min_affine_spread:
+            match = self._similarity(match)
+        return match
+
+    def _similarity(self, match: PairMatch) -> PairMatch:
+        """``match`` as a similarity where one explains its inliers: a strip a few per cent of the
+        frame wide fixes no shear, and an affine map fitted to it swung the far corners 2-3 px
+        off (a 12-px strip of a 640-px photo; the similarity: 0.04 px).  Two nadir photos of one
+        survey differ by a similarity, up to their tilt."""
+        S, _ = cv2.estimateAffinePartial2D(match.points_a, match.points_b, method=cv2.LMEDS, refineIters=10)
+        if S is None:
+            return match
+        similarity = np.vstack([S, [0.0, 0.0, 1.0]])
+        near = np.linalg.norm(project(similarity, match.points_a) - match.points_b, axis=1) < self.threshold
+        if near.sum() < 0.9 * match.inliers:
+            return match
+        return PairMatch(similarity, match.points_a[near], match.points_b[near], match.inlier_ratio * near.mean())
+
+    def _fit(self, src: np.ndarray, dst: np.ndarray, min_inliers: int, prior: np.ndarray | None,
+             tolerance: float | None, min_ratio: float | None = None) -> PairMatch | None:
+        """The homography (or affine map) of matches ``src`` -> ``dst`` ((n, 2) source pixels) by
+        MAGSAC, if convincing: enough inliers, and ``min_ratio`` of the matches (None: the
+        options'), a plausible shape, and near ``prior`` when given."""
+        o = self.options
+        min_ratio = o.min_inlier_ratio if min_ratio is None else min_ratio
         H, mask = cv2.findHomography(src, dst, cv2.USAC_MAGSAC, self.threshold, maxIters=5000, confidence=0.999)
         if H is None or mask is None:
             return None
@@ -137,8 +212,8 @@ class FeatureMatcher:
         if spread(src[keep], self.source_size) < o.min_homography_spread:
             H, keep = self._affine(src, dst, H, keep)
         inliers = int(keep.sum())
-        ratio = inliers / len(good)
-        if inliers < o.min_inliers or ratio < o.min_inlier_ratio:
+        ratio = inliers / len(src)
+        if inliers < min_inliers or ratio < min_ratio:
             return None
         if not is_valid(H, self.source_size, max_area_ratio=o.max_area_ratio):
             return None

@@ -41,6 +41,7 @@ from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
 from mosaic_cli.mask import fill_masked
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions, Features, PairMatch, corner_distance
+from mosaic_cli.stitch.guide import GroundGuide
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 from mosaic_cli.video.decode import gray_at
 
@@ -233,8 +234,10 @@ class FlightScanner:
         max_size: int | None,
         spill: str | Path | None = None,
         use: np.ndarray | None = None,
+        guide: GroundGuide | None = None,
     ):
         self.o = options
+        self.guide = guide  # a photo folder's GPS: which keyframes to match a photo with, and how
         self.use = use  # burned-in overlays (255 = ground): no features there, never drawn
         self.size = source_size
         self.fps = fps
@@ -286,18 +289,33 @@ class FlightScanner:
         if len(features) < self.matcher.options.min_inliers:
             self.dropped.append((self.index, f"featureless: {len(features)} SIFT features"))
             return
-        recent = range(len(self.keyframes) - 1, max(-1, len(self.keyframes) - 1 - self.o.relocalise_keyframes), -1)
-        order = ([self.previous] if self.previous is not None else []) + [k for k in recent if k != self.previous]
-        for position in order:
+        for position in self._photo_candidates():
             key = self.keyframes[position]
             match = self.matcher.match(features, key.features)
+            guided = self.guide.predicted(self.index, key.index) if self.guide is not None else None
+            if match is None and guided is not None:
+                match = self.matcher.match_guided(features, key.features, *guided)
             if match is not None:
+                if self.guide is not None:
+                    self.guide.learn(self.index, key.index, match.H)
                 self.segment, self.previous = key.segment, position
                 self._add(self.index, frame, quality, key.placement @ self._affine(match.H), features, (position, match))
                 return
         if self.keyframes:
             self._new_segment()
         self._add(self.index, frame, quality, np.eye(3), features)
+
+    def _photo_candidates(self) -> list[int]:
+        """The keyframes (positions) a new photo is matched against, in order: the previous
+        one, those the GPS says it overlaps (nearest first; survey lines' neighbours among
+        them), then the last few (the GPS may be wrong)."""
+        recent = range(len(self.keyframes) - 1, max(-1, len(self.keyframes) - 1 - self.o.relocalise_keyframes), -1)
+        order = [self.previous] if self.previous is not None else []
+        if self.guide is not None:
+            at = {k.index: p for p, k in enumerate(self.keyframes)}
+            order += [at[i] for i in self.guide.candidates(self.index, list(at)) or []]
+        order += list(recent)
+        return list(dict.fromkeys(order))
 
     def discard(self) -> None:
         """Drop every keyframe and its pixels (their spilled files deleted now): the scan is

@@ -44,7 +44,7 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, plan_estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
 from mosaic_cli.geo.output import transforms_extra
-from mosaic_cli.geo.stitching import check_plain_output, georef_telemetry, gps_straightener, map_homographies, write_outputs
+from mosaic_cli.geo.stitching import georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
 from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
@@ -54,6 +54,7 @@ from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose, fill_holes
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
+from mosaic_cli.stitch.guide import GroundGuide
 from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
 from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
 from mosaic_cli.stitch.registration import (
@@ -64,6 +65,7 @@ from mosaic_cli.stitch.registration import (
 )
 from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
 from mosaic_cli.telemetry import Track
+from mosaic_cli.telemetry.photos import photo_metadata_notes, photo_track_rate
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import refuse_damaged, scaled_size
 
@@ -151,6 +153,9 @@ class StitchResult:
     # An overlay was found after the scan had started without it: the scan started again
     # (mosaic_cli/overlay/speculate.py); the panoramas are those of the final mask either way.
     overlay_restart: bool = False
+    # A photo folder's metadata that could not serve: each photo with damaged or partial EXIF/XMP
+    # and those without GPS among geotagged ones, placed by their pixels (said as warnings).
+    metadata_notes: list[str] = field(default_factory=list)
 
     @property
     def frames_per_second(self) -> float:
@@ -179,13 +184,17 @@ def stitch(
         f = options.features
         photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features))
         options = dataclasses.replace(options, features=photo)
-        if options.georef is not None and (options.georef.telemetry is not None or options.georef.footprints is not None
-                                           or options.georef.html is not None):
-            raise BadInput(f"{video}: --telemetry, --footprints and --html apply to videos, not to photo folders")
-        check_plain_output(out, "photo folders are not georeferenced")
         if parse_rolling_shutter(options.rolling_shutter) != "off":
             raise BadInput(f"{video}: --rolling-shutter applies to videos, not to photo folders")
-        track = None
+        # The photos' EXIF GPS is their telemetry (geo hook: before any work): the folder is
+        # read at the rate the camera took them, so that the track's times are the flight's.
+        track = georef_telemetry(video, out, options.georef, None, info)
+        if track is not None:
+            assert options.georef is not None
+            info = dataclasses.replace(info, fps=photo_track_rate(track))
+            georef = dataclasses.replace(options.georef, align=dataclasses.replace(options.georef.align, per_photo=True),
+                                         bend_to_gps=False)
+            options = dataclasses.replace(options, georef=georef)
     else:
         track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
     given = estimator
@@ -207,8 +216,9 @@ def stitch(
             with pending:
                 built = time.perf_counter() - clock
                 clock = time.perf_counter()
+                guide = GroundGuide(track, info.source_size) if info.is_image_folder and track is not None else None
                 scan, speculation = _scan(video, info, scanner, options, show_progress, spill if options.spill else None,
-                                          pending, probe)
+                                          pending, probe, guide)
                 scanned = time.perf_counter() - clock
         mask = pending.result()
         # The overlays' share: the build (the detection beside it), the scan's end waiting for
@@ -226,6 +236,8 @@ def stitch(
             raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
         result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track, rolling)
         result.overlay_restart = speculation.restarted
+        if track is not None and track.photos is not None:
+            result.metadata_notes = photo_metadata_notes(track.photos)
         return result
 
 
@@ -381,7 +393,7 @@ def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] |
 
 
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
-          mask: PendingMask, probe: RollingProbe | None = None) -> tuple[FlightScan, Speculation]:
+          mask: PendingMask, probe: RollingProbe | None = None, guide: GroundGuide | None = None) -> tuple[FlightScan, Speculation]:
     """The scan (keyframes, their placements and pixels), started with the mask known so far
     and started again, its keyframes and their spilled pixels dropped, if the overlays found
     change it (:func:`~mosaic_cli.overlay.speculate`); its progress is shown once the mask is settled."""
@@ -404,7 +416,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             probe.restart()
         estimator.set_mask(use)
         scanner = FlightScanner(info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features,
-                                max_size, spill, use)
+                                max_size, spill, use, guide)
         try:
             # Only frames whose pixels the scan keeps (the keyframes) are converted to RGB; the
             # others serve only their gray copies.
@@ -469,8 +481,8 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
             placements, report = chained, RegistrationReport()
         else:
             placements = _start(placements, chained, scan.source_size, options.keyframes)
-            if track is not None:  # geo hook: drift control starts from GPS-straightened placements
-                assert options.georef is not None
+            if track is not None and options.georef is not None and options.georef.bend_to_gps:
+                # geo hook: drift control starts from GPS-straightened placements
                 straighten = gps_straightener(track, ref, indices, scan.source_size, scan.fps, options.georef)
                 placements = straighten(placements)
             placements, report = register_keyframes(

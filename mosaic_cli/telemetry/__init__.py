@@ -14,7 +14,7 @@ from mosaic_cli.inputs import VIDEO_SUFFIXES
 from mosaic_cli.telemetry.align import AlignedTelemetry, align_to_frames
 from mosaic_cli.telemetry.track import Track
 
-__all__ = ["Track", "AlignedTelemetry", "align_to_frames", "read_telemetry", "find_telemetry"]
+__all__ = ["Track", "AlignedTelemetry", "align_to_frames", "read_telemetry", "find_telemetry", "read_photo_folder"]
 
 
 def read_telemetry(path: str | Path) -> Track:
@@ -51,9 +51,13 @@ def read_telemetry(path: str | Path) -> Track:
 
 
 def find_telemetry(video: str | Path, info=None) -> Track | None:
-    """The first telemetry stream inside ``video`` that holds any, else None.  ``info``: the
-    video's probe (:func:`mosaic_cli.video.probe`), when the caller has it."""
+    """The first telemetry stream inside ``video`` that holds any, else None; for a folder of
+    photos, their EXIF GPS (None when no photo has any).  ``info``: the video's probe
+    (:func:`mosaic_cli.video.probe`), when the caller has it."""
     from mosaic_cli.telemetry.embedded import find_streams, read_embedded
+
+    if Path(video).is_dir():
+        return read_photo_folder(video)
 
     for stream in find_streams(video, info):
         try:
@@ -61,3 +65,16 @@ def find_telemetry(video: str | Path, info=None) -> Track | None:
         except BadInput:
             continue  # a subtitle track without telemetry (captions): look further
     return None
+
+
+def read_photo_folder(folder: str | Path) -> Track | None:
+    """The EXIF GPS of a folder's photos as a track, None when no photo has a fix: photo i at
+    i / rate seconds, the rate the camera took them at (``photo_rate``; the stitch reads the
+    folder at it), each photo's tags in ``Track.photos``."""
+    from mosaic_cli.telemetry.photos import photo_rate, photo_track, read_photo_tags
+    from mosaic_cli.video.folders import folder_images
+
+    tags = [read_photo_tags(p) for p in folder_images(Path(folder))]
+    if not any(t.has_fix for t in tags):
+        return None
+    return photo_track(tags, photo_rate(tags), str(folder))

@@ -17,6 +17,11 @@ class AlignOptions:
     max_gap: float = 3.0  # seconds: frames in a longer stretch without fixes get none
     outlier_metres: float = 15.0  # a fix this far from its neighbours' median track is an outlier
     outlier_window: float = 2.0  # seconds each side for that median
+    # A photo folder's fixes are each photo's own: a photo without one gets none from its
+    # neighbours (it is placed by its pixels), where a video frame between fixes is interpolated;
+    # and a fix is judged by the images (the fit's inliers), not by its neighbours in time, which
+    # at a survey line's turn are on the next line.
+    per_photo: bool = False
 
     def __post_init__(self) -> None:
         self.validate()
@@ -110,7 +115,7 @@ def align_to_frames(track: Track, frame_times: np.ndarray, options: AlignOptions
     times = track.time[fixed]
     lat, lon = track.lat[fixed], track.lon[fixed]
     outliers = np.zeros(len(times), bool)
-    if len(times) >= 3:
+    if len(times) >= 3 and not options.per_photo:
         xy = local_metres(lat, lon, float(np.median(lat)), float(np.median(lon)))
         outliers = find_outliers(times, xy, options)
     good_t, good_lat, good_lon = times[~outliers], lat[~outliers], lon[~outliers]
@@ -137,6 +142,8 @@ def align_to_frames(track: Track, frame_times: np.ndarray, options: AlignOptions
         inside = (t >= good_t[0] - step / 2) & (t <= good_t[-1] + step / 2)
         bridged = np.where(exact, 0.0, good_t[right] - good_t[left])
         fix = inside & (bridged <= reach)
+        if options.per_photo:
+            fix &= exact
         frame_lat = np.where(fix, np.interp(t, good_t, good_lat), np.nan)
         frame_lon = np.where(fix, np.interp(t, good_t, good_lon), np.nan)
     all_t = track.time

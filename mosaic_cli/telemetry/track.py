@@ -11,8 +11,12 @@ Unknown values are NaN; a sample without a GPS fix has NaN latitude and longitud
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from mosaic_cli.telemetry.photos import PhotoTags
 
 FIELDS = ("lat", "lon", "alt", "height", "yaw", "pitch", "roll", "hfov")
 
@@ -31,6 +35,8 @@ class Track:
     hfov: np.ndarray
     clock_time: bool = False  # times were wall-clock times (GPX, CSV, KLV) made relative to the first sample
     notes: list[str] = field(default_factory=list)
+    # A photo folder's track: each sample's photo (its name, camera and what its metadata lacked).
+    photos: list[PhotoTags] | None = None
 
     def __len__(self) -> int:
         return len(self.time)
@@ -43,7 +49,8 @@ class Track:
         return bool(np.isfinite(getattr(self, name)).any())
 
     def select(self, keep: np.ndarray) -> Track:
-        return Track(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes))
+        photos = None if self.photos is None else [p for p, k in zip(self.photos, keep) if k]
+        return Track(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes), photos)
 
     def shifted(self, seconds: float) -> Track:
         out = self.select(np.ones(len(self), bool))
