@@ -13,6 +13,7 @@ SUITES = {
     "stitch": ("stitch", "stitch's placement accuracy, throughput, memory, revisits and photo folders; `drift-solver`"),
     "stabilize": ("stabilize", "stabilize against vid.stab; `perspective`: the motion models; `frames`: frames in = frames out"),
     "live": ("live", "live track, stitch and stabilize over loopback TCP: lag, latency, jitter, start-up, memory"),
+    "photos": ("photos", "geotagged photo folders into a map as the folder grows: time and pairs per photo, memory, accuracy"),
     "georef": ("georef", "georeferencing accuracy of stitch --telemetry on simulated flights with exact truth"),
     "memory": ("memory", "peak memory of track and stabilize as the clip grows"),
     "estimators": ("estimators", "the network's cost, threads, the ORB baselines, the model card's tables and failure analyses"),

@@ -17,8 +17,8 @@ from benchmarks.common import decoded_count, make_parser, run_commands
 SUITE = "memory"
 
 
-def run_child(cmd: list[str]) -> tuple[float, float]:
-    """(peak RSS in MiB, wall seconds) of one child process."""
+def run_child(cmd: list[str], keep_stderr: bool = False):
+    """(peak RSS in MiB, wall seconds) of one child process, and its stderr with ``keep_stderr``."""
     start = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     assert proc.stderr is not None
@@ -28,6 +28,8 @@ def run_child(cmd: list[str]) -> tuple[float, float]:
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {err.strip()[-2000:]}")
+    if keep_stderr:
+        return usage.ru_maxrss / 1024.0, wall, err
     return usage.ru_maxrss / 1024.0, wall  # ru_maxrss is in KiB on Linux
 
 

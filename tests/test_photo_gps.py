@@ -1,6 +1,6 @@
 """Geotagged photo folders (issue 51): the metadata read back as written, GPS-guided pairing and
 matching, and the map landing where the photos were taken, against the survey's exact truth
-(tests/survey_photos.py) and GDAL's reading of the GeoTIFF."""
+(benchmarks/survey.py) and GDAL's reading of the GeoTIFF."""
 
 from __future__ import annotations
 
@@ -13,17 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-from survey_photos import write_photo, write_survey
 
+from benchmarks.survey import project_point, score_survey, write_photo, write_survey
 from conftest import run_cli
 from mosaic_cli.telemetry.photos import PhotoTags, read_photo_tags
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "aerial_sequences"
-
-
-def _project(H: np.ndarray, x: float, y: float) -> np.ndarray:
-    p = H @ np.array([x, y, 1.0])
-    return p[:2] / p[2]
 
 
 # -- reading -------------------------------------------------------------------------------
@@ -84,34 +79,6 @@ def test_dry_run_prints_what_each_photo_says_and_writes_nothing(tmp_path):
 
 
 # -- a survey on the map ---------------------------------------------------------------------
-def _placement_errors(survey, transforms: dict) -> tuple[list[float], list[float], list[float], list[float], list[float]]:
-    """Per photo: the map's error at its centre (m), its raw fix's error (m), the map's scale over
-    the truth's and its north error (degrees); and for each overlapping pair the largest corner
-    error of their relative placement in the panorama (photo px)."""
-    w, h = survey.size
-    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
-    frames = {f["index"]: f for f in transforms["frames"]}
-    placed, raw, scale, north = [], [], [], []
-    for i, G in enumerate(survey.truth):
-        M = np.array(frames[i]["map_H"])
-        placed.append(float(np.linalg.norm(_project(M, cx, cy) - _project(G, cx, cy))))
-        raw.append(float(np.linalg.norm(survey.fixes[i] - survey.positions[i])))
-        up, true_up = _project(M, cx, cy - 100) - _project(M, cx, cy), _project(G, cx, cy - 100) - _project(G, cx, cy)
-        scale.append(float(np.linalg.norm(up) / np.linalg.norm(true_up)))
-        turn = math.degrees(math.atan2(up[0], up[1]) - math.atan2(true_up[0], true_up[1]))
-        north.append((turn + 180.0) % 360.0 - 180.0)
-    pairs = []
-    corners = [(0, 0), (w - 1, 0), (w - 1, h - 1), (0, h - 1)]
-    for i in frames:
-        for j in frames:
-            truth = np.linalg.inv(survey.truth[j]) @ survey.truth[i]
-            if j <= i or np.linalg.norm(_project(truth, cx, cy) - (cx, cy)) > 0.8 * w:
-                continue  # not overlapping
-            rel = np.linalg.inv(np.array(frames[j]["H"])) @ np.array(frames[i]["H"])
-            pairs.append(max(float(np.linalg.norm(_project(rel, *c) - _project(truth, *c))) for c in corners))
-    return placed, raw, scale, north, pairs
-
-
 @pytest.mark.slow
 def test_a_geotagged_survey_lands_on_the_map_better_than_its_gps(tmp_path, capsys):
     """32 photos in 4 lines, GPS off by 2.5 m (RMS), yaw by 2 degrees, heights drifting: every
@@ -125,7 +92,7 @@ def test_a_geotagged_survey_lands_on_the_map_better_than_its_gps(tmp_path, capsy
     assert code == 0 and err == "", err  # one map, nothing set aside
     transforms = json.loads(js.read_text())
     assert sorted(f["index"] for f in transforms["frames"]) == list(range(32))
-    placed, raw, scale, north, pairs = _placement_errors(survey, transforms)
+    placed, raw, scale, north, pairs = score_survey(survey, transforms)
     assert max(pairs) < 2.0, f"pairs off by up to {max(pairs):.2f} px"
     # 3x better than the GPS's noise (2.5 m RMS; the fixes' median error here below)
     assert 3.0 * np.median(placed) <= 2.5, f"map {np.median(placed):.2f} m vs fixes {np.median(raw):.2f} m"
@@ -135,9 +102,9 @@ def test_a_geotagged_survey_lands_on_the_map_better_than_its_gps(tmp_path, capsy
         assert cog.crs.to_epsg() == survey.epsg and cog.count == 4 and cog.overviews(1)
         to_ground = np.array(cog.transform).reshape(3, 3)
     frame = transforms["frames"][5]
-    pano = _project(np.array(frame["H"]), 100.0, 50.0)
-    on_ground = _project(to_ground, pano[0] + 0.5, pano[1] + 0.5)  # GDAL's pixel corner convention
-    assert np.linalg.norm(on_ground - _project(np.array(frame["map_H"]), 100.0, 50.0)) < 0.5 * transforms["gsd_m"]
+    pano = project_point(np.array(frame["H"]), 100.0, 50.0)
+    on_ground = project_point(to_ground, pano[0] + 0.5, pano[1] + 0.5)  # GDAL's pixel corner convention
+    assert np.linalg.norm(on_ground - project_point(np.array(frame["map_H"]), 100.0, 50.0)) < 0.5 * transforms["gsd_m"]
     assert len(json.loads(feet.read_text())["features"]) >= 32
 
 
@@ -172,7 +139,7 @@ def test_wrong_missing_and_damaged_metadata_are_each_said_once_and_every_photo_i
     transforms = json.loads(js.read_text())
     assert sorted(f["index"] for f in transforms["frames"]) == list(range(15))
     survey.fixes[3] += (200.0, 0.0)
-    placed, raw, _, _, pairs = _placement_errors(survey, transforms)
+    placed, raw, _, _, pairs = score_survey(survey, transforms)
     assert max(pairs) < 2.0
     assert placed[3] < 3.0 and placed[7] < 3.0  # placed by their pixels, near the truth
 
@@ -209,7 +176,7 @@ def test_the_caliterra_folder_lands_where_its_exif_says(tmp_path, capsys):
         photo = sorted(p for p in (SHARED / "odm_caliterra").iterdir())[frame["index"]]
         tags = read_photo_tags(photo)
         fix = np.array(to_utm.transform(tags.lon, tags.lat))
-        misses.append(float(np.linalg.norm(_project(np.array(frame["map_H"]), (tags.width - 1) / 2, (tags.height_px - 1) / 2) - fix)))
+        misses.append(float(np.linalg.norm(project_point(np.array(frame["map_H"]), (tags.width - 1) / 2, (tags.height_px - 1) / 2) - fix)))
     assert np.median(misses) < 5.0, misses
 
 
@@ -260,5 +227,5 @@ def test_a_photo_whose_overlap_is_a_strip_beside_canopy_is_placed_by_its_gps_gui
     assert sorted(frames) == [0, 1]
     placed = np.linalg.inv(frames[0]) @ frames[1]  # photo 2 -> photo 1 pixels
     truth = np.array([[1.0, 0, shift], [0, 1.0, 0], [0, 0, 1.0]])
-    error = max(np.linalg.norm(_project(placed, x, y) - _project(truth, x, y)) for x, y in [(0, 0), (w - 1, 0), (w - 1, h - 1), (0, h - 1)])
+    error = max(np.linalg.norm(project_point(placed, x, y) - project_point(truth, x, y)) for x, y in [(0, 0), (w - 1, 0), (w - 1, h - 1), (0, h - 1)])
     assert error < 2.0, f"{error:.2f} px"

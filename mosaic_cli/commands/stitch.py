@@ -53,7 +53,7 @@ def stitch(
     weights: Weights = None,
     device: Device = "auto",
     drift_control: Annotated[bool, typer.Option("--drift-control/--no-drift-control", help="Register revisited ground and refine all placements jointly.", rich_help_panel=DRIFT_CONTROL)] = True,
-    max_loop_pairs: Annotated[int, typer.Option("--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost).", rich_help_panel=DRIFT_CONTROL)] = 300,
+    max_loop_pairs: Annotated[int | None, typer.Option("--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost).", rich_help_panel=DRIFT_CONTROL, show_default="300; a photo folder: 3 a photo, at least 300")] = None,
     overlap: Annotated[float, typer.Option("--overlap", help="A new keyframe is due when its overlap with the last one drops below this.", rich_help_panel=DRIFT_CONTROL)] = 0.6,
     reference: Annotated[str, typer.Option("--reference", help="Frame the panorama is drawn in: first, middle or a frame number.", rich_help_panel=OUTPUT_QUALITY)] = "middle",
     max_size: Annotated[int, typer.Option("--max-size", help="Longest side of the panorama in pixels (larger canvases are scaled down); 0: no limit.", rich_help_panel=OUTPUT_QUALITY)] = 8000,
@@ -130,6 +130,8 @@ def stitch(
         used = sum(len(p.transforms) for p in result.panoramas)
         stages = ", ".join(f"{name} {seconds:.1f} s" for name, seconds in result.seconds.items())
         console.print(f"{result.frames} frames -> {used} keyframes{loops}, {result.frames_per_second:.1f} fr/s ({stages})")
+        if result.photos and result.frames:
+            console.print(f"{result.pairs_tried} photo pairs matched, {result.pairs_tried / result.frames:.1f} per photo")
         for p in result.panoramas:
             joined = f" ({p.segments} segments joined)" if p.segments > 1 else ""
             console.print(f"  {p.canvas_size[0]}x{p.canvas_size[1]} panorama of {len(p.transforms)} keyframes{joined} -> {p.path}")

@@ -43,8 +43,9 @@ def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions 
         track = find_telemetry(video, info)
     wanted = map_output_flag(out) + options.without_telemetry()
     if track is None and wanted:
-        where = f"no photo in {video} has EXIF GPS" if photos else f"no SRT or KLV track inside {video}"
-        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry ({where})" if not photos else f"{wanted[0]} needs GPS ({where})")
+        if photos:
+            raise BadInput(f"{wanted[0]} needs GPS (no photo in {video} has EXIF GPS)")
+        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
     if track is not None and not track.has_fix.any():
         if options.telemetry is None and not wanted:
             return None  # an embedded track without positions: a plain panorama, as without one

@@ -135,6 +135,7 @@ class FlightScan:
     dropped: list[tuple[int, str]] = field(default_factory=list)
     photos: bool = False
     use: np.ndarray | None = None  # burned-in overlays and --mask (255 = ground): never drawn
+    pairs_tried: int = 0  # photos: the pairs the scan matched (the GPS guide keeps them few per photo)
 
     @property
     def composited(self) -> list[Keyframe]:
@@ -255,6 +256,7 @@ class FlightScanner:
         self.relocalised: list[int] = []
         self.dropped: list[tuple[int, str]] = []
         self.photos = False
+        self.pairs_tried = 0
         self._sharpness: deque[float] = deque(maxlen=options.sharpness_window)
         self._candidate: tuple | None = None  # (sharpness, index, frame, quality, placement)
         self._last: tuple | None = None  # the same, of the last sharp and well exposed frame
@@ -291,6 +293,7 @@ class FlightScanner:
             return
         for position in self._photo_candidates():
             key = self.keyframes[position]
+            self.pairs_tried += 1
             match = self.matcher.match(features, key.features)
             guided = self.guide.predicted(self.index, key.index) if self.guide is not None else None
             if match is None and guided is not None:
@@ -338,6 +341,7 @@ class FlightScanner:
         return FlightScan(
             self.keyframes, self.size, self.fps, self.index - self.first_index + 1, self.first_index,
             self.failed_pairs, self.relocalised, dropped=self.dropped, photos=self.photos, use=self.use,
+            pairs_tried=self.pairs_tried,
         )
 
     # -- placement -------------------------------------------------------------------

@@ -156,6 +156,7 @@ class StitchResult:
     # A photo folder's metadata that could not serve: each photo with damaged or partial EXIF/XMP
     # and those without GPS among geotagged ones, placed by their pixels (said as warnings).
     metadata_notes: list[str] = field(default_factory=list)
+    pairs_tried: int = 0  # photos: pairs matched by the scan and as loop candidates (not counting segment joins)
 
     @property
     def frames_per_second(self) -> float:
@@ -317,6 +318,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
         seconds, panoramas, scan.dropped, scan.photos, mask, first.georef, planned,
+        pairs_tried=scan.pairs_tried + report.loop_candidates,
     )
 
 
@@ -449,6 +451,8 @@ def _register(scan: FlightScan, reference: str | int, options: StitchOptions, sh
         return progress_task(description, total, unit="pairs/s", disable=not show_progress)
 
     matcher = FeatureMatcher(FeatureExtractor(scan.source_size, options.features, scan.use))
+    loops = options.registration.loop_budget(len(keyframes), scan.photos)
+    options = dataclasses.replace(options, registration=dataclasses.replace(options.registration, max_loop_pairs=loops))
     features = [k.features for k in keyframes]
     segments = [k.segment for k in keyframes]
     world = [k.placement for k in keyframes]

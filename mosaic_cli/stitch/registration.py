@@ -29,11 +29,17 @@ from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.stitch.features import FeatureMatcher, Features, PairMatch
 from mosaic_cli.stitch.keyframes import overlap_fraction
 
+DEFAULT_LOOP_PAIRS = 300
+
 
 @dataclass
 class RegistrationOptions:
     enabled: bool = True  # off: keyframes are placed by chaining the neighbours' registrations
-    max_loop_pairs: int = 300  # bounds the cost: at most this many non-consecutive registrations
+    # Bounds the cost: at most this many non-consecutive registrations; None: 300, or for a photo
+    # folder loops_per_photo for each photo, at least 300 (a survey photo overlaps photos of the
+    # lines beside its own: 504 photos within 300 loops placed pairs 45 px apart).
+    max_loop_pairs: int | None = None
+    loops_per_photo: int = 3
     max_loops_per_keyframe: int = 6
     min_loop_overlap: float = 0.25  # predicted overlap (fraction of a frame) worth a try
     min_loop_gap: int = 2  # keyframes between the two of a loop pair, at least
@@ -53,8 +59,14 @@ class RegistrationOptions:
     def __post_init__(self) -> None:
         self.validate()
 
+    def loop_budget(self, keyframes: int, photos: bool) -> int:
+        """The loop registrations allowed for ``keyframes`` keyframes (photos, with ``photos``)."""
+        if self.max_loop_pairs is not None:
+            return self.max_loop_pairs
+        return max(DEFAULT_LOOP_PAIRS, self.loops_per_photo * keyframes) if photos else DEFAULT_LOOP_PAIRS
+
     def validate(self) -> None:
-        if self.max_loop_pairs < 0:
+        if self.max_loop_pairs is not None and self.max_loop_pairs < 0:
             raise BadInput(f"--max-loop-pairs must be 0 or more, got {self.max_loop_pairs}")
 
 
@@ -185,7 +197,7 @@ def loop_candidates(
     overlap first (the most reliable registrations), spread over the keyframes, within what
     is left of ``max_loop_pairs``."""
     from scipy.spatial import cKDTree
-    budget = options.max_loop_pairs - len(tried)
+    budget = options.loop_budget(len(placements), photos=False) - len(tried)
     if budget <= 0 or len(placements) < options.min_loop_gap + 1:
         return []
     corners = [project(P, frame_corners(*size)) for P in placements]

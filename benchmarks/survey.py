@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -89,11 +90,12 @@ def write_photo(path: Path, rgb: np.ndarray, lat: float | None, lon: float | Non
 
 def write_survey(folder: Path, rows: int = 3, per_row: int = 6, size: tuple[int, int] = (800, 600), gsd: float = 0.1,
                  along: float = 26.0, across: float = 40.0, hfov: float = 62.0, gps_noise: float = 2.5, yaw_noise: float = 2.0,
-                 seed: int = 0, map_image: np.ndarray | None = None) -> Survey:
+                 seed: int = 0, map_image: np.ndarray | None = None, map_gsd: float = MAP_GSD) -> Survey:
     """``rows`` lawnmower lines of ``per_row`` photos, ``along`` metres apart on a line and ``across``
     between lines (the drone turns at each end: the yaw flips), written to ``folder``.  The GPS
     fixes carry ``gps_noise`` metres of error (RMS, horizontal), the yaw ``yaw_noise`` degrees, the
-    heights a drift of 0.02 m per photo and 0.2 m of noise."""
+    heights a drift of 0.02 m per photo and 0.2 m of noise.  The map is ``map_gsd`` metres a pixel
+    (``map_image``, else a procedural one)."""
     from pyproj import Transformer
 
     rng = np.random.default_rng(seed)
@@ -107,12 +109,12 @@ def write_survey(folder: Path, rows: int = 3, per_row: int = 6, size: tuple[int,
     extent_e = (per_row - 1) * along + 2 * reach
     extent_n = (rows - 1) * across + 2 * reach
     if map_image is None:
-        map_image = procedural_map((int(extent_e / MAP_GSD) + 8, int(extent_n / MAP_GSD) + 8), seed=seed)
+        map_image = procedural_map((int(extent_e / map_gsd) + 8, int(extent_n / map_gsd) + 8), seed=seed)
     map_h, map_w = map_image.shape[:2]
     # map pixel -> (east, north): the map's top-left corner at the survey's north-west
-    west, north = e0 - map_w * MAP_GSD / 2.0, n0 + map_h * MAP_GSD / 2.0
-    to_map_px = np.linalg.inv(np.array([[MAP_GSD, 0, west], [0, -MAP_GSD, north], [0, 0, 1.0]]))
-    smooth = cv2.GaussianBlur(map_image, (0, 0), 0.5 * gsd / MAP_GSD)  # against aliasing at the photos' coarser scale
+    west, north = e0 - map_w * map_gsd / 2.0, n0 + map_h * map_gsd / 2.0
+    to_map_px = np.linalg.inv(np.array([[map_gsd, 0, west], [0, -map_gsd, north], [0, 0, 1.0]]))
+    smooth = cv2.GaussianBlur(map_image, (0, 0), 0.5 * gsd / map_gsd) if gsd > map_gsd else map_image  # against aliasing at the photos' coarser scale
     truth, fixes, positions, yaws, names = [], [], [], [], []
     k = 0
     for row in range(rows):
@@ -135,3 +137,36 @@ def write_survey(folder: Path, rows: int = 3, per_row: int = 6, size: tuple[int,
             names.append(name)
             k += 1
     return Survey(folder, epsg, size, truth, np.array(fixes), np.array(positions), np.array(yaws), gsd, names)
+
+
+def project_point(H: np.ndarray, x: float, y: float) -> np.ndarray:
+    p = H @ np.array([x, y, 1.0])
+    return p[:2] / p[2]
+
+
+def score_survey(survey: Survey, transforms: dict[str, Any]) -> tuple[list[float], list[float], list[float], list[float], list[float]]:
+    """Per photo: the map's error at its centre (m), its raw fix's error (m), the map's scale over
+    the truth's and its north error (degrees); and for each overlapping pair the largest corner
+    error of their relative placement in the panorama (photo px)."""
+    w, h = survey.size
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    frames = {f["index"]: f for f in transforms["frames"]}
+    placed, raw, scale, north = [], [], [], []
+    for i, G in enumerate(survey.truth):
+        M = np.array(frames[i]["map_H"])
+        placed.append(float(np.linalg.norm(project_point(M, cx, cy) - project_point(G, cx, cy))))
+        raw.append(float(np.linalg.norm(survey.fixes[i] - survey.positions[i])))
+        up, true_up = project_point(M, cx, cy - 100) - project_point(M, cx, cy), project_point(G, cx, cy - 100) - project_point(G, cx, cy)
+        scale.append(float(np.linalg.norm(up) / np.linalg.norm(true_up)))
+        turn = math.degrees(math.atan2(up[0], up[1]) - math.atan2(true_up[0], true_up[1]))
+        north.append((turn + 180.0) % 360.0 - 180.0)
+    pairs = []
+    corners = [(0, 0), (w - 1, 0), (w - 1, h - 1), (0, h - 1)]
+    for i in frames:
+        for j in frames:
+            truth = np.linalg.inv(survey.truth[j]) @ survey.truth[i]
+            if j <= i or np.linalg.norm(project_point(truth, cx, cy) - (cx, cy)) > 0.8 * w:
+                continue  # not overlapping
+            rel = np.linalg.inv(np.array(frames[j]["H"])) @ np.array(frames[i]["H"])
+            pairs.append(max(float(np.linalg.norm(project_point(rel, *c) - project_point(truth, *c))) for c in corners))
+    return placed, raw, scale, north, pairs
