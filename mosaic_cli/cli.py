@@ -134,7 +134,7 @@ def entry() -> None:
     """The console script (and ``python -m mosaic_cli``): :func:`main`, then a quick exit.
 
     Everything is written and closed when :func:`main` returns; tearing down an interpreter
-    that has loaded torch takes another 0.4 s (docs/measurements/speed.md), a third of a short
+    that has loaded torch takes another 0.4 s (CHANGELOG.md, speed, 2026-11-27), a third of a short
     command's start-up.  So the exit handlers run, the streams are flushed and any worker
     thread still running is waited for, then the process ends without the teardown."""
     if sys.getprofile() is not None or sys.gettrace() is not None:

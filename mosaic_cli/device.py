@@ -52,7 +52,7 @@ def resolve_device(device: str | None, gpu: int | None = None) -> torch.device:
 # The network: one unless --threads says otherwise: its batches are small, and its intra-op threads
 # wait on each other whenever another process holds a core (the encoder beside stabilize's
 # tracking pass, anything else on a shared machine).  Under load two threads took twice the CPU
-# of one for the same stitch, and a second longer to start (docs/measurements/speed.md).
+# of one for the same stitch, and a second longer to start (CHANGELOG.md, speed, 2026-11-27).
 # The per-pair work of a learned estimator (polish, correlation check, fallback: OpenCV, which
 # lets go of the GIL) runs on a pool of Python threads, as many as --threads says, else one a core
 # (:func:`pair_threads`); its results do not depend on how many.

@@ -76,7 +76,7 @@ def _backend_config(features: nn.Module):
     """The native int8 backend's patterns that can match in ``features``: those made only of
     the module types, functions and methods its graph calls, and the fused modules they fuse
     into.  The same quantised graph as with all 194 patterns, whose handler classes took 80 ms
-    of the start-up to build (docs/measurements/speed.md)."""
+    of the start-up to build (CHANGELOG.md, speed, 2026-11-27)."""
     import torch.ao.quantization.quantize_fx  # noqa: F401  (backend_config needs its utils loaded)
     from torch.ao.quantization.backend_config import BackendConfig, get_native_backend_config
 
@@ -103,7 +103,7 @@ def _backend_config(features: nn.Module):
 def _no_stack_traces():
     """FX tracing without a Python stack trace recorded on each graph node: symbolising one
     imports torch._dynamo and torch._inductor, 1.5 of the 1.7 s the int8 features took to build
-    at start-up (docs/measurements/speed.md); the traced graph is the same."""
+    at start-up (CHANGELOG.md, speed, 2026-11-27); the traced graph is the same."""
     import torch.fx.config
 
     if not hasattr(torch.fx.config, "do_not_emit_stack_traces"):  # torch 2.11 (the GPU machine's) has no such switch

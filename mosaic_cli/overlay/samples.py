@@ -19,7 +19,7 @@ from mosaic_cli.video.reader import Decoder, folder_images, frame_at, frames_at,
 # lie as close together as the picks (one frame decoded each, no decoder to start), else the
 # cheaper of decoding it once, piping only the picked frames, and one seek per picked frame
 # (a decoder start, worth about this many frames, then the frames from the keyframe before it).
-# docs/measurements/speed.md has the costs.
+# CHANGELOG.md (speed, 2026-11-27) has the costs.
 SEEK_START_FRAMES = 30
 DECODE_ALL_BELOW = 1000  # frames: with no keyframe index, a clip this short is decoded once
 # One pass decodes only the frames others refer to (H.264, HEVC), and each pick becomes the first
