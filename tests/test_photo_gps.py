@@ -15,7 +15,7 @@ import pytest
 from PIL import Image
 
 from benchmarks.survey import project_point, score_survey, write_photo, write_survey
-from conftest import run_cli
+from conftest import assert_one_line_error, run_cli
 from mosaic_cli.telemetry.photos import PhotoTags, read_photo_tags
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "aerial_sequences"
@@ -109,16 +109,17 @@ def test_a_geotagged_survey_lands_on_the_map_better_than_its_gps(tmp_path, capsy
 
 
 @pytest.mark.slow
-def test_wrong_missing_and_damaged_metadata_are_each_said_once_and_every_photo_is_placed(tmp_path, capsys):
+def test_wrong_missing_and_damaged_metadata_and_another_camera_are_each_said_once_and_every_photo_is_placed(tmp_path, capsys):
     survey = write_survey(tmp_path / "photos", rows=3, per_row=5, size=(640, 480), gsd=0.125, along=22.0, across=34.0, seed=5)
     folder = survey.folder
     from pyproj import Transformer
 
     to_wgs = Transformer.from_crs(f"EPSG:{survey.epsg}", "EPSG:4326", always_xy=True)
 
-    def rewrite(k: int, fix_shift: tuple[float, float] | None, gps: bool = True, yaw: str | None = None) -> None:
+    def rewrite(k: int, fix_shift: tuple[float, float] | None, gps: bool = True, yaw: str | None = None, scale: float = 1.0) -> None:
         path = folder / survey.names[k]
-        rgb = np.asarray(Image.open(path).convert("RGB"))
+        image = Image.open(path).convert("RGB")
+        rgb = np.asarray(image.resize((round(image.width * scale), round(image.height * scale)), Image.Resampling.LANCZOS))
         tags = read_photo_tags(path)
         east, north = survey.fixes[k] + (fix_shift or (0.0, 0.0))
         lon, lat = to_wgs.transform(east, north)
@@ -128,14 +129,17 @@ def test_wrong_missing_and_damaged_metadata_are_each_said_once_and_every_photo_i
     rewrite(3, (200.0, 0.0))  # a GPS glitch: 200 m east
     rewrite(7, None, gps=False)  # no fix
     rewrite(11, None, yaw="+9x.1")  # damaged attitude
+    rewrite(13, None, scale=1.25)  # another camera of the same shape (800x600)
     js = tmp_path / "t.json"
     code, err = run_cli(capsys, "stitch", str(folder), "-o", str(tmp_path / "map.tif"), "--transforms", str(js), "-q")
     assert code == 0, err
     warnings = err.strip().splitlines()
-    assert len(warnings) == 3, warnings
+    assert len(warnings) == 4, warnings
     assert any(survey.names[3] in w and "far from where" in w and "(2" in w for w in warnings)  # about 200 m
     assert any(w == f"mosaic: warning: 1 of 15 photos have no GPS, placed by their pixels: {survey.names[7]}" for w in warnings)
     assert any(survey.names[11] in w and "GimbalYawDegree, FlightYawDegree not a number" in w for w in warnings)
+    assert any(w.endswith(f"1 of 15 photos are not 640x480 (another camera): read at that size, placed by their own pixels and GPS: "
+                          f"{survey.names[13]}") for w in warnings)
     transforms = json.loads(js.read_text())
     assert sorted(f["index"] for f in transforms["frames"]) == list(range(15))
     survey.fixes[3] += (200.0, 0.0)
@@ -229,3 +233,14 @@ def test_a_photo_whose_overlap_is_a_strip_beside_canopy_is_placed_by_its_gps_gui
     truth = np.array([[1.0, 0, shift], [0, 1.0, 0], [0, 0, 1.0]])
     error = max(np.linalg.norm(project_point(placed, x, y) - project_point(truth, x, y)) for x, y in [(0, 0), (w - 1, 0), (w - 1, h - 1), (0, h - 1)])
     assert error < 2.0, f"{error:.2f} px"
+
+
+def test_a_photo_of_another_shape_is_refused_in_one_line(tmp_path, capsys):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)).save(folder / "a.png")
+    Image.fromarray(rng.integers(0, 255, (320, 240, 3), dtype=np.uint8)).save(folder / "b.png")  # portrait
+    code, err = run_cli(capsys, "stitch", str(folder), "-o", str(tmp_path / "pano.png"), "-q")
+    assert_one_line_error(code, err, "b.png: size 240x320 is not the shape of the first image's 320x240")
+    assert not (tmp_path / "pano.png").exists()

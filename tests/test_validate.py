@@ -33,6 +33,7 @@ from mosaic_cli.simulate.telemetry import GpsErrors, TelemetryOptions
 from mosaic_cli.stabilize import StabilizeOptions
 from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
 from mosaic_cli.stitch.features import FeatureOptions
+from mosaic_cli.stitch.guide import GuideOptions
 from mosaic_cli.stitch.live import PreviewOptions
 from mosaic_cli.stitch.segments import JoinOptions
 from mosaic_cli.telemetry.align import AlignOptions
@@ -44,6 +45,7 @@ OPTIONS = {
     AlignOptions: {},
     BenchOptions: {},
     CanvasOptions: {},
+    GuideOptions: {},
     ComposeOptions: {},
     CornerConfig: {},
     DriftOptions: {},
@@ -162,6 +164,8 @@ BAD = [
     (OverlayOptions, {"width": 8}, ValueError, "width"),
     (FeatureOptions, {"ratio": 1.5}, ValueError, "ratio"),
     (JoinOptions, {"picks": 0}, ValueError, "picks"),
+    (GuideOptions, {"gps_error": 0.0}, ValueError, "guide options"),
+    (GuideOptions, {"max_tilt": 95.0}, ValueError, "guide options"),
     (DriftOptions, {"correlation": 0.0}, ValueError, "positive"),
     (AlignOptions, {"max_gap": 0.0}, ValueError, "positive"),
     (PaperOrbConfig, {"wta_k": 5}, ValueError, "wta_k"),

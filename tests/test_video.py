@@ -148,11 +148,22 @@ def test_folder_of_numbered_images_in_natural_order(tmp_path):
     assert info.fps == 12.5 and small[0].shape == (24, 32)
 
 
-def test_folder_with_mixed_sizes_is_bad_input(tmp_path):
+def test_folder_with_mixed_shapes_is_bad_input(tmp_path):
     cv2.imwrite(str(tmp_path / "a_1.png"), np.zeros((10, 12, 3), np.uint8))
     cv2.imwrite(str(tmp_path / "a_2.png"), np.zeros((11, 12, 3), np.uint8))
-    with pytest.raises(BadInput, match="differs"):
+    with pytest.raises(BadInput, match="is not the shape of the first image's 12x10"):
         read_all(tmp_path)
+
+
+def test_folder_with_a_larger_image_of_the_same_shape_reads_it_at_the_first_size(tmp_path):
+    """Another camera of the same shape: read at the first image's size (its content resized)."""
+    rng = np.random.default_rng(0)
+    first = rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "a_1.png"), first)
+    cv2.imwrite(str(tmp_path / "a_2.png"), cv2.resize(first, (160, 120), interpolation=cv2.INTER_NEAREST))
+    info, frames = read_all(tmp_path)
+    assert info.source_size == (80, 60) and [f.shape for f in frames] == [(60, 80, 3), (60, 80, 3)]
+    assert np.abs(frames[1].astype(int) - frames[0].astype(int)).mean() < 1.0  # 2x2 blocks averaged back
 
 
 def test_probe_frame_count_and_fps_of_avi_with_copied_h264(tmp_path):

@@ -33,9 +33,14 @@ class GuideOptions:
     # least this fraction of one's radius, once widened by the GPS's error.
     min_overlap: float = 0.05
     max_candidates: int = 6  # the nearest candidates a photo is matched against, at most
+    max_tilt: float = 15.0  # degrees from nadir (the gimbal's pitch) beyond which matching is not guided
 
     def __post_init__(self) -> None:
-        if self.gps_error <= 0 or self.yaw_error < 0 or self.max_candidates < 1:
+        self.validate()
+
+    def validate(self) -> None:
+        """No flag sets these: a bad value is a bug (ValueError), not the user's input."""
+        if self.gps_error <= 0 or self.yaw_error < 0 or self.max_candidates < 1 or not 0 <= self.max_tilt <= 90:
             raise ValueError(f"guide options out of range: {self}")
 
 
@@ -58,6 +63,9 @@ class GroundGuide:
         self.scales = 2.0 * track.height * np.tan(np.radians(hfov) / 2.0) / w
         self.scales[~(self.scales > 0)] = np.nan
         self.yaw = np.radians(track.yaw)
+        # A gimbal tilted from nadir sees a trapezoid ahead of the drone, not the footprint below
+        # it: such a photo is paired by distance but its matching is not guided.
+        self.oblique = np.abs(track.pitch + 90.0) > self.options.max_tilt
         self._learned: list[float] = []  # metres per pixel from registered pairs (no height)
         self._half_diagonal = 0.5 * math.hypot(*source_size)
 
@@ -110,6 +118,8 @@ class GroundGuide:
         None when one is unknown."""
         scale = self.scale(index)
         if not (self.has_fix(index) and math.isfinite(scale) and 0 <= index < self.n and math.isfinite(self.yaw[index])):
+            return None
+        if self.oblique[index]:
             return None
         c, s = math.cos(self.yaw[index]), math.sin(self.yaw[index])
         # image x (right) -> (cos yaw, -sin yaw) east/north; image y (down) -> (-sin yaw, -cos yaw)

@@ -167,6 +167,12 @@ def photo_metadata_notes(tags: list[PhotoTags]) -> list[str]:
     """What a geotagged folder's metadata could not give, one line per damaged photo and one
     for the photos without GPS: they are placed by their pixels alone."""
     lines = [f"photo {t.path.name}: {'; '.join(t.problems)}: placed by its pixels" for t in tags if t.problems]
+    sizes = {(t.width, t.height_px) for t in tags if t.width > 0}
+    if tags and len(sizes) > 1:
+        first = (tags[0].width, tags[0].height_px)
+        other = [t.path.name for t in tags if t.width > 0 and (t.width, t.height_px) != first]
+        lines.append(f"{len(other)} of {len(tags)} photos are not {first[0]}x{first[1]} (another camera): read at that size, "
+                     f"placed by their own pixels and GPS: {', '.join(other[:5])}" + (f" and {len(other) - 5} more" if len(other) > 5 else ""))
     missing = [t.path.name for t in tags if not t.has_fix and not t.problems]
     if missing:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")

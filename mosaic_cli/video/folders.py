@@ -11,10 +11,12 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.info import VideoInfo, VideoStream, scaled_size
+from mosaic_cli.video.info import VideoInfo, scaled_size
+from mosaic_cli.video.stream import VideoStream
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 DEFAULT_FOLDER_FPS = 30.0
+SAME_SHAPE = 0.01  # images whose aspect ratios differ by less than this share a folder's size
 
 
 def _natural_key(path: Path) -> list:
@@ -49,8 +51,13 @@ def open_folder(folder: Path, width: int | None, fps: float | None, gray: bool) 
         for k, path in enumerate(files):
             img = first if k == 0 else read_image_rgb(path)
             if (img.shape[1], img.shape[0]) != source_size:
-                raise BadInput(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from the first image's {source_size[0]}x{source_size[1]}")
-            if size != source_size:
+                # Another camera of the same shape (a folder mixing drones): read at the first's size;
+                # the registration finds each photo's own scale.
+                if abs(img.shape[1] * source_size[1] / (img.shape[0] * source_size[0]) - 1.0) > SAME_SHAPE:
+                    raise BadInput(f"{path}: size {img.shape[1]}x{img.shape[0]} is not the shape of the first image's "
+                                   f"{source_size[0]}x{source_size[1]}: stitch photos of each shape apart")
+                img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+            elif size != source_size:
                 img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
             yield cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if gray else img
 
