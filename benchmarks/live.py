@@ -506,7 +506,7 @@ def bench_stalls(args) -> list[dict]:
     soon as it is settled or due.  No thread and no real time: the same run every time."""
     import random
 
-    from mosaic_cli.live.stabilize import LiveSchedule
+    from mosaic_cli.live.schedule import LiveSchedule
     from mosaic_cli.stabilize.crop import output_warps
     from mosaic_cli.stabilize.metrics import ground_truth_jitter
     from mosaic_cli.stabilize.online import Horizon, OnlineL1Path

@@ -3,7 +3,10 @@ plain lines where stderr is a file or a pipe, where redrawn bars would pile up a
 
 In line mode each stage writes one line when it ends (count, time, rate, last status), and
 a stage that runs longer than :data:`LINE_EVERY_SECONDS` also writes a line that often, so
-that a log of an hour-long run still shows it moving."""
+that a log of an hour-long run still shows it moving.
+
+A stream, whose length nobody knows (a live input), has :func:`stream_progress`: frames so far,
+frames per second, elapsed."""
 
 from __future__ import annotations
 
@@ -147,3 +150,26 @@ def progress_group(disable: bool = False) -> Iterator[None]:
             yield
         finally:
             _shared.remove(progress)
+
+
+@contextlib.contextmanager
+def stream_progress(description: str, disable: bool = False) -> Iterator:
+    """Yields ``advance(n=1, status=None)`` like :func:`progress_task`, for a stream of unknown
+    length; when stderr is not a terminal, it is that task (plain lines: frames so far, rate, elapsed)."""
+    if disable or not console.is_terminal:
+        with progress_task(description, None, disable=disable) as advance:
+            yield advance
+        return
+    progress = Progress(
+        SpinnerColumn(),
+        TextColumn("[bold]{task.description}"),
+        TextColumn("{task.completed:>7.0f} frames"),
+        RateColumn("fr/s"),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[status]}"),
+        console=console,
+        transient=False,
+        disable=disable,
+    )
+    with progress:
+        yield advancer(progress, progress.add_task(description, total=None, status=""))

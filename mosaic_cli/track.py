@@ -1,4 +1,7 @@
-"""Track: decode a video as a stream and estimate every pairwise homography (frame t -> t+1)."""
+"""Track: decode a video as a stream and estimate every pairwise homography (frame t -> t+1).
+
+``mosaic track``'s pipeline, which picks between this pass, a live input's and JSON Lines
+(``live/track.py``), is :func:`mosaic_cli.track_pipeline.track`."""
 
 from __future__ import annotations
 
@@ -21,8 +24,9 @@ from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_threads, 
 from mosaic_cli.overlay import FrameMask, Gate, MaskOptions, PendingMask, speculate
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
-from mosaic_cli.video.info import VideoStream
+from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.policy import Shortfall
+from mosaic_cli.video.stream import VideoStream
 
 TRACK_FORMAT_VERSION = 1
 
@@ -110,6 +114,7 @@ def track_video(
     probe: RollingProbe | None = None,
     mask: PendingMask | None = None,
     source: Callable[[Gate], VideoStream] | None = None,
+    lens: ImageFilter | None = None,
 ) -> TrackResult:
     """Estimate the pairwise homographies of a whole video, holding one or two frames at a time.
     ``info``: the video's probe, when the caller has it; ``on_pair(H, confidence)`` is told of
@@ -129,11 +134,12 @@ def track_video(
     ``source(gate)``: each attempt's frames (a stream as ``open_video(path, width, gray=True)``
     gives them) instead of a decode of ``path`` of the attempt's own: stabilize's one decode
     (:mod:`mosaic_cli.stabilize.shared_decode`), which looks at the attempt's ``gate`` while it
-    waits for a frame."""
+    waits for a frame.  ``lens``: ``path``'s frames through this filter as they are decoded
+    (``--lens``: :func:`~mosaic_cli.video.decode.open_video`'s ``lens``)."""
     mode = parse_rolling_shutter(rolling_shutter)
     pending = mask if mask is not None else PendingMask.settled(FrameMask(estimator.mask))
     with contextlib.ExitStack() as bar:
-        tracking = _TrackPass(path, estimator, max_frames, show_progress, info, on_pair, mode, probe, bar, source)
+        tracking = _TrackPass(path, estimator, max_frames, show_progress, info, on_pair, mode, probe, bar, source, lens)
         tracked, speculation = speculate(pending, tracking.attempt)
     info, probe = tracked.info, tracking.probe
     n = len(tracked.pairwise) + 1
@@ -177,10 +183,11 @@ class _TrackPass:
 
     def __init__(self, path: str | Path, estimator: Estimator, max_frames: int | None, show_progress: bool,
                  info: VideoInfo | None, on_pair: Callable[[np.ndarray, float], None] | None, mode: str | float,
-                 probe: RollingProbe | None, bar: contextlib.ExitStack, source: Callable[[Gate], VideoStream] | None = None):
+                 probe: RollingProbe | None, bar: contextlib.ExitStack, source: Callable[[Gate], VideoStream] | None = None,
+                 lens: ImageFilter | None = None):
         self.path, self.estimator, self.max_frames, self.show_progress = path, estimator, max_frames, show_progress
         self.info, self.on_pair, self.mode, self.probe, self.bar = info, on_pair, mode, probe, bar
-        self.source = source
+        self.source, self.lens = source, lens
         self._advance: Callable[..., None] | None = None
 
     def attempt(self, use: np.ndarray | None, gate: Gate) -> _Tracked:
@@ -190,7 +197,7 @@ class _TrackPass:
         confidence: list[float] = []
         paths: list[str | None] = []
         opened = (self.source(gate) if self.source is not None else
-                  open_video(self.path, width=self.estimator.input_width, gray=True, info=self.info))
+                  open_video(self.path, width=self.estimator.input_width, gray=True, info=self.info, lens=self.lens))
         with opened as stream:
             info = self.info = stream.info
             if self.mode == "auto" and self.probe is None:

@@ -137,14 +137,14 @@ def test_a_one_process_nccl_ddp_step_gives_the_plain_gradients():
 
 
 def test_the_gpu_benchmark_warms_the_device_up_and_times_chunks_of_1_16_and_64(flight):
-    from mosaic_cli.bench import _gpu_batch, _warm_up
+    from mosaic_cli.bench.timing import gpu_batch, warm_up
     from mosaic_cli.estimators import make_estimator
 
     frames, _ = flight
     est = make_estimator("lstm", device="cuda")
-    assert _warm_up(est, frames, (640, 360)) > 0
-    assert _warm_up(make_estimator("lstm", device="cpu"), frames, (640, 360)) is None  # a CPU starts cold, as a command does
-    batch = _gpu_batch("lstm", 320, None, frames[:33], (640, 360))
+    assert warm_up(est, frames, (640, 360)) > 0
+    assert warm_up(make_estimator("lstm", device="cpu"), frames, (640, 360)) is None  # a CPU starts cold, as a command does
+    batch = gpu_batch("lstm", 320, None, frames[:33], (640, 360))
     assert set(batch) == {"chunk_1", "chunk_16", "chunk_64"} and all(v["fps"] > 0 for v in batch.values())
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import FFMPEG
+from conftest import FFMPEG, simulated
 
 SIZE = (320, 180)
 FRAMES = 60
@@ -26,10 +26,8 @@ RUN_LIMIT = 300  # seconds any one command may take: far above what it needs, ev
 @pytest.fixture(scope="module")
 def shaky_flight(tmp_path_factory) -> tuple[Path, dict]:
     """5 s of a shaky simulated flight (long enough for the jitter's high-pass), exact truth."""
-    folder = tmp_path_factory.mktemp("shaky")
-    video = folder / "shaky.mp4"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky", "-n", "150",
-                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    video = simulated(tmp_path_factory.mktemp("shaky") / "shaky.mp4", "-p", "shaky", "-n", "150", "--size", f"{SIZE[0]}x{SIZE[1]}",
+                      "--preset", "veryfast")
     return video, json.loads(video.with_suffix(".gt.json").read_text())
 
 
@@ -330,12 +328,8 @@ def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, fligh
 # -- stitch --live ------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def survey(tmp_path_factory) -> Path:
-    folder = tmp_path_factory.mktemp("survey")
-    video = folder / "survey.mp4"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "survey", "-n", "120",
-                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
-    return video
+def survey(survey_320x180) -> Path:
+    return survey_320x180  # (conftest: test_live_preview streams the same flight)
 
 
 @pytest.mark.slow
@@ -566,13 +560,12 @@ def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_a
     """Every `tilt` solve takes longer than the whole budget (fault injected), its similarity
     part does not: past the start, the run switches once the frames keep leaving at their
     deadline, says so in one line, and the frames after the switch leave on a planned path again."""
-    from mosaic_cli.live.stabilize import KEEP_UP_AFTER, RECENT
+    from mosaic_cli.live.schedule import KEEP_UP_AFTER, RECENT
     from mosaic_cli.stabilize import StabilizeOptions
     from mosaic_cli.stabilize.online import OnlineL1Path
 
     video = tmp_path / "long.mp4"  # 10 s: the start, the window that decides, and the frames after
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky-tilt", "-n", "300",
-                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    simulated(video, "-p", "shaky-tilt", "-n", "300", "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast")
     solve = OnlineL1Path.solve
 
     def slow_tilt(self, window):

@@ -1,11 +1,11 @@
-"""The live stabiliser's schedule (mosaic_cli/live/stabilize.py): deadlines, late solves and the
+"""The live stabiliser's schedule (mosaic_cli/live/schedule.py): deadlines, late solves and the
 adaptive lookahead, driven step by step with a test clock (no threads, nothing timed)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from mosaic_cli.live.stabilize import ENCODE_RESERVE, LiveSchedule
+from mosaic_cli.live.schedule import ENCODE_RESERVE, LiveSchedule
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path
 from mosaic_cli.stabilize.path import motion_model

@@ -375,7 +375,7 @@ def test_bursts_spoil_the_listed_frames_and_keep_the_geometry_exact(small_map, t
     intervals (the product of the two steps of the same flight without bursts), and the pixel
     kinds take the band-passed detail far below the neighbours' (what the estimator calls
     spoilt) while the frames around them are untouched."""
-    from mosaic_cli.estimators.learned import detail_level
+    from mosaic_cli.estimators.correlation import detail_level
     from mosaic_cli.simulate import SimulateOptions, plan_simulated_flight
     from mosaic_cli.simulate.bursts import BurstSpec, burst_pairs, frames_to_plan, plan_bursts
 

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import concurrent.futures
-import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.markup import escape  # typer renders help as rich markup: '[plot]' would vanish
 
-from mosaic_cli.atomic import check_writable
 from mosaic_cli.commands.options import (
     INPUT_OUTPUT,
     Device,
@@ -26,18 +23,12 @@ from mosaic_cli.commands.options import (
     mask_options,
     overlay_detect_option,
     quiet_option,
-    use_threads,
 )
 from mosaic_cli.errors import BadInput, install_hint, warn
-from mosaic_cli.estimators import DEFAULT_ESTIMATOR, Estimator, plan_estimator
-from mosaic_cli.live.loading import built_beside, trained_width
-from mosaic_cli.live.source import DEFAULT_TIMEOUT, is_live_source
-from mosaic_cli.live.track import is_jsonl, track_stream
-from mosaic_cli.overlay import check_mask_file, frame_mask_pending, frame_mask_while
-from mosaic_cli.progress import console, progress_group
-from mosaic_cli.track import TrackOptions, save_track, track_video
-from mosaic_cli.video import probe
-from mosaic_cli.video.reader import reading_policy
+from mosaic_cli.estimators import DEFAULT_ESTIMATOR
+from mosaic_cli.live.source import DEFAULT_TIMEOUT
+from mosaic_cli.progress import console
+from mosaic_cli.track import TrackOptions
 
 OverlayDetect = overlay_detect_option("estimation")
 # Once track's own flags, now the estimator's settings (-e lstm:patches=5) on every command alike.
@@ -84,70 +75,16 @@ def track(
 
     pairwise[t] maps pixel (x, y) of frame t (OpenCV pixel centres, full resolution) to frame t+1.
     """
-    from mosaic_cli.estimators.lens import parse_lens_option, undistorting
-    from mosaic_cli.estimators.rolling import parse_rolling_shutter
     from mosaic_cli.plots import check_plot_request
+    from mosaic_cli.track_pipeline import track as run_track
 
     check_plot_request(plot)  # before any long work
     refuse_moved_settings(estimator, {"patches": patches, "reset-every": reset_every, "refine": refine, "chunk": chunk})
     options = TrackOptions(max_frames=max_frames, threads=threads, timeout=timeout, mask=mask_options(mask, overlay_detect),
                            rolling_shutter=rolling_shutter)
-    if parse_rolling_shutter(rolling_shutter) != "off" and (is_live_source(video) or is_jsonl(out) or not out.lower().endswith(".json")):
-        raise BadInput("--rolling-shutter writes its block to a .json track file: not with .npy, JSON Lines or a live input")
-    if not is_jsonl(out):
-        check_writable(out)
-        if Path(out).suffix.lower() not in (".json", ".npy"):
-            raise BadInput(f"output {out} must end in .json or .npy (or .jsonl, or be -, for JSON Lines)")
-    elif out != "-":
-        check_writable(out)
-    live = is_live_source(video)
-    if live and parse_lens_option(lens) == "auto":
-        raise BadInput("--lens auto reads frames spread over a whole video file: with a live input, pass a lens FILE (or none)")
-    info = None if live else probe(video)  # the input's one probe, passed down
-    check_mask_file(options.mask, info)
-    build = plan_estimator(estimator, work_width=work_width, weights=str(weights) if weights else None, device=device)
-    use_threads(options.threads)
-    masked = None
-    clock = time.perf_counter()
-    if live or is_jsonl(out):
-        tracker: Estimator | concurrent.futures.Future
-        width = None
-        # --lens: a live input's frames undistorted as they arrive (live/source.py), a file's as decoded
-        with undistorting(lens, video, info, live=live) as lens_choice:
-            if live:  # a live input's mask is made when its first frame gives the size (live_mask)
-                # A network loads beside the stream's opening (its width read from its weights' header):
-                # the socket listens at once.
-                width = trained_width(estimator, str(weights) if weights else None)
-                tracker = built_beside(build, after_start=True) if width is not None else build()
-            else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
-                masked, est = frame_mask_while(build, video, options.mask, info, show_progress=not quiet)
-                est.set_mask(masked.use)
-                tracker = est
-            overlay_seconds = time.perf_counter() - clock
-            result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=not quiet,
-                                  mask=options.mask if live else None, info=info, width=width)
-            if masked is not None:
-                result.meta["mask"] = masked.to_json()
-            result.meta["lens"] = lens_choice.to_meta()
-        if not is_jsonl(out):
-            save_track(result, out)
-    else:
-        # The tracking starts once the estimator is built, the overlays still being looked for
-        # beside it, and starts again if one is found (track_video's ``mask``).
-        with reading_policy(strict), undistorting(lens, video, info) as lens_choice, progress_group(disable=quiet):
-            pending, est = frame_mask_pending(build, video, options.mask, info, show_progress=not quiet)
-            with pending:
-                built = time.perf_counter() - clock
-                result = track_video(video, est, max_frames=options.max_frames, show_progress=not quiet, info=info,
-                                     rolling_shutter=options.rolling_shutter, mask=pending)
-        masked = pending.result()
-        # The "overlays" figure: the time before the tracking could start (the build, the
-        # detection beside it), and the time the tracking then lost to the detection (its end
-        # waiting for it, a pass discarded for an overlay found); "track" is the kept pass.
-        overlay_seconds = built + result.meta["overlay_wait_seconds"] + result.meta["overlay_lost_seconds"]
-        result.meta["mask"] = masked.to_json()
-        result.meta["lens"] = lens_choice.to_meta()  # the pairs are the undistorted frames' (its camera: docs/guide/track.md)
-        save_track(result, out)
+    run = run_track(video, out, options, estimator=estimator, work_width=work_width, weights=str(weights) if weights else None,
+                    device=device, lens=lens, strict=strict, show_progress=not quiet)
+    result, masked, overlay_seconds, lens_choice = run.result, run.masked, run.overlay_seconds, run.lens
     if plot is not None:
         from mosaic_cli.plots import write_track_plot
 

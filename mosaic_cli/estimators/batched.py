@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from mosaic_cli.estimators.refine import PolishConfig
+from mosaic_cli.geometry.tensor import four_point_homography, weighted_dlt
 
 W_BITS = 14  # OpenCV's fixed-point bilinear weights (lkpyramid.cpp)
 FLT_SCALE = 1.0 / (1 << 20)
@@ -247,50 +248,6 @@ def _subset_ok(src: Tensor, dst: Tensor) -> Tensor:
     return ok & ((negative == 0) | (negative == 4))
 
 
-def _four_point(src: Tensor, dst: Tensor) -> tuple[Tensor, Tensor]:
-    """The homographies (..., 3, 3) through 4 correspondences (..., 4, 2) (h33 = 1), and whether
-    the system was solvable."""
-    x, y, u, v = src[..., 0], src[..., 1], dst[..., 0], dst[..., 1]
-    one, zero = torch.ones_like(x), torch.zeros_like(x)
-    rows_u = torch.stack([x, y, one, zero, zero, zero, -u * x, -u * y], -1)
-    rows_v = torch.stack([zero, zero, zero, x, y, one, -v * x, -v * y], -1)
-    A = torch.cat([rows_u, rows_v], -2)
-    h, info = torch.linalg.solve_ex(A, torch.cat([u, v], -1))
-    H = torch.cat([h, torch.ones_like(h[..., :1])], -1).unflatten(-1, (3, 3))
-    return H, (info == 0) & torch.isfinite(h).all(-1)
-
-
-def _normalised_dlt(src: Tensor, dst: Tensor, weight: Tensor) -> Tensor:
-    """The DLT homography (B, 3, 3) of the weighted correspondences (B, N, 2), ``weight`` (B, N)
-    0 or 1, normalised as OpenCV's HomographyEstimatorCallback::runKernel (centred, scaled by the
-    mean absolute deviation), the smallest eigenvector of LtL; NaN where degenerate."""
-    count = weight.sum(-1, keepdim=True).clamp(min=1)[..., None]  # (B, 1, 1)
-    wt = weight[..., None]
-
-    def norm(p: Tensor) -> tuple[Tensor, Tensor]:
-        centre = (p * wt).sum(-2, keepdim=True) / count
-        spread = ((p - centre).abs() * wt).sum(-2, keepdim=True)
-        return centre, count / spread
-
-    cM, sM = norm(src)
-    cm, sm = norm(dst)
-    X, Y = ((src - cM) * sM).unbind(-1)
-    x, y = ((dst - cm) * sm).unbind(-1)
-    one, zero = torch.ones_like(X), torch.zeros_like(X)
-    Lx = torch.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x], -1) * wt
-    Ly = torch.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y], -1) * wt
-    LtL = Lx.transpose(-1, -2) @ Lx + Ly.transpose(-1, -2) @ Ly
-    LtL = torch.where(torch.isfinite(LtL), LtL, torch.zeros_like(LtL))
-    H0 = torch.linalg.eigh(LtL).eigenvectors[..., 0].unflatten(-1, (3, 3))
-    z = torch.zeros_like(cm[:, 0, 0])
-    o = torch.ones_like(z)
-    inv_dst = torch.stack([1 / sm[:, 0, 0], z, cm[:, 0, 0], z, 1 / sm[:, 0, 1], cm[:, 0, 1], z, z, o], -1).unflatten(-1, (3, 3))
-    src_norm = torch.stack([sM[:, 0, 0], z, -cM[:, 0, 0] * sM[:, 0, 0], z, sM[:, 0, 1], -cM[:, 0, 1] * sM[:, 0, 1], z, z, o],
-                           -1).unflatten(-1, (3, 3))
-    H = inv_dst @ H0 @ src_norm
-    return H / H[:, 2:3, 2:3]
-
-
 def _refine(H: Tensor, src: Tensor, dst: Tensor, weight: Tensor, iterations: int = 10) -> Tensor:
     """Levenberg-Marquardt on the reprojection error of the weighted correspondences, starting
     from ``H`` (B, 3, 3) with h33 = 1 (OpenCV's HomographyRefineCallback, 10 iterations); a step
@@ -345,7 +302,8 @@ def fit_homography(src: Tensor, dst: Tensor, ok: Tensor, threshold: float, hypot
     picks = order.gather(1, _distinct(u, n).flatten(1)).view(B, hypotheses, 4)
     s4 = src.gather(1, picks.flatten(1)[..., None].expand(-1, -1, 2)).view(B, hypotheses, 4, 2)
     d4 = dst.gather(1, picks.flatten(1)[..., None].expand(-1, -1, 2)).view(B, hypotheses, 4, 2)
-    Hk, solved = _four_point(s4, d4)
+    Hk = four_point_homography(s4, d4)
+    solved = torch.isfinite(Hk).flatten(-2).all(-1)
     usable = solved & _subset_ok(s4, d4) & (n >= 4)[:, None]
     err = ((_project(Hk, src[:, None]) - dst[:, None]) ** 2).sum(-1)  # (B, K, N)
     inlier = (err <= threshold * threshold) & ok[:, None] & usable[..., None]
@@ -354,7 +312,7 @@ def fit_homography(src: Tensor, dst: Tensor, ok: Tensor, threshold: float, hypot
     H0 = Hk[torch.arange(B, device=src.device), best]
     inliers = inlier[torch.arange(B, device=src.device), best]
     weight = inliers.double()
-    H1 = _normalised_dlt(src, dst, weight)
+    H1 = weighted_dlt(src, dst, weight)
     H1 = torch.where(torch.isfinite(H1).all(-1).all(-1)[:, None, None], H1, H0)
     return _refine(H1, src, dst, weight), inliers
 

@@ -242,26 +242,11 @@ class HomographyFit:
     sigma: float
 
 
-def _weighted_dlt(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Homography by the weighted DLT (points already centred and scaled)."""
-    n = len(src)
-    x, y = src[:, 0], src[:, 1]
-    u, v = dst[:, 0], dst[:, 1]
-    A = np.zeros((2 * n, 9))
-    A[0::2, 0:3] = np.stack([x, y, np.ones(n)], 1)
-    A[0::2, 6:9] = -np.stack([u * x, u * y, u], 1)
-    A[1::2, 3:6] = np.stack([x, y, np.ones(n)], 1)
-    A[1::2, 6:9] = -np.stack([v * x, v * y, v], 1)
-    A *= np.repeat(np.sqrt(weights), 2)[:, None]
-    H = np.linalg.svd(A)[2][-1].reshape(3, 3)
-    return H / H[2, 2]
-
-
 def refine_homography(src: np.ndarray, dst: np.ndarray, min_sigma: float = 0.05, iterations: int = 30) -> HomographyFit:
     """A robust homography ``src`` -> ``dst`` (N >= 8), started from the identity: meant for
     points already brought close by a similarity, so that only the perspective left over by
     the images' drift remains to be fitted.  Huber-weighted DLT, fixes beyond 3.5 robust sigmas out."""
-    from mosaic_cli.geometry import project
+    from mosaic_cli.geometry import project, weighted_dlt
 
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
@@ -272,7 +257,7 @@ def refine_homography(src: np.ndarray, dst: np.ndarray, min_sigma: float = 0.05,
     for _ in range(iterations):
         r = np.linalg.norm(project(H, s) - d, axis=1) * scale
         weights = robust_weights(r, robust_scatter(r, min_sigma))
-        new = _weighted_dlt(s, d, weights)
+        new = weighted_dlt(s, d, weights, conditioned=True)  # (normalised above)
         if np.allclose(new, H, atol=1e-12):
             break
         H = new

@@ -1,4 +1,4 @@
-"""Homography algebra: chaining, resolution changes, 4-corner parametrisation, errors, validity.
+"""Homography algebra: chaining, resolution changes, the DLT, 4-corner parametrisation, errors, validity.
 
 All functions are pure and accept numpy arrays; leading batch dimensions are allowed where noted.
 See :mod:`mosaic_cli.geometry` for the pixel and direction conventions.
@@ -19,6 +19,7 @@ __all__ = [
     "to_resolution",
     "rect_corners",
     "frame_corners",
+    "weighted_dlt",
     "four_point_to_homography",
     "homography_to_four_point",
     "corner_error",
@@ -92,25 +93,62 @@ def frame_corners(w: float, h: float) -> np.ndarray:
     return rect_corners(-0.5, -0.5, w, h)
 
 
-def four_point_to_homography(corners: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """DLT: the homography mapping ``corners`` (..., 4, 2) to ``corners + offsets``.
+def weighted_dlt(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, conditioned: bool = False) -> np.ndarray:
+    """The direct linear transform: the homography (..., 3, 3), H[2, 2] = 1, mapping ``src``
+    (..., N, 2) onto ``dst`` (..., N, 2), N >= 4, that minimises the algebraic error, each
+    correspondence's squared error weighted by ``weights`` (..., N) (None: all 1); through 4
+    points in general position, exact.  Batched over leading dimensions.
 
-    Solves the 8x8 linear system with h33 = 1, batched over leading dimensions.
-    """
-    src = np.asarray(corners, dtype=np.float64)
-    dst = src + np.asarray(offsets, dtype=np.float64)
+    Each point set is first conditioned as OpenCV's ``findHomography`` conditions it (moved to its
+    weighted centroid, each axis scaled by its weighted mean absolute deviation from it) and the
+    fit taken back; ``conditioned``: the points are already centred and of order one (the
+    caller's own normalisation) and are fitted as they are.  The fit is the right singular
+    vector of the weighted system's smallest singular value.  The torch twin, batched on a
+    device, is :func:`mosaic_cli.geometry.tensor.weighted_dlt`."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
     src, dst = np.broadcast_arrays(src, dst)
+    weights = np.ones(src.shape[:-1]) if weights is None else np.broadcast_to(np.asarray(weights, dtype=np.float64), src.shape[:-1])
+    if not conditioned:
+        (cs, ss), (cd, sd) = _conditioning(src, weights), _conditioning(dst, weights)
+        H = weighted_dlt((src - cs) * ss, (dst - cd) * sd, weights, conditioned=True)
+        to_src = np.zeros(H.shape)  # conditioned src <- src
+        to_src[..., 0, 0], to_src[..., 1, 1], to_src[..., 2, 2] = ss[..., 0, 0], ss[..., 0, 1], 1.0
+        to_src[..., :2, 2] = -cs[..., 0, :] * ss[..., 0, :]
+        from_dst = np.zeros(H.shape)  # dst <- conditioned dst
+        from_dst[..., 0, 0], from_dst[..., 1, 1], from_dst[..., 2, 2] = 1.0 / sd[..., 0, 0], 1.0 / sd[..., 0, 1], 1.0
+        from_dst[..., :2, 2] = cd[..., 0, :]
+        return normalize(from_dst @ H @ to_src)
+    n = src.shape[-2]
     batch = src.shape[:-2]
     x, y = src[..., 0], src[..., 1]
     u, v = dst[..., 0], dst[..., 1]
-    zeros, ones = np.zeros_like(x), np.ones_like(x)
-    rows_u = np.stack([x, y, ones, zeros, zeros, zeros, -u * x, -u * y], axis=-1)
-    rows_v = np.stack([zeros, zeros, zeros, x, y, ones, -v * x, -v * y], axis=-1)
-    A = np.concatenate([rows_u, rows_v], axis=-2)
-    b = np.concatenate([u, v], axis=-1)
-    h = np.linalg.solve(A, b[..., None])[..., 0]
-    H = np.concatenate([h, np.ones(batch + (1,))], axis=-1)
-    return H.reshape(batch + (3, 3))
+    ones = np.ones_like(x)
+    A = np.zeros(batch + (2 * n, 9))
+    A[..., 0::2, 0:3] = np.stack([x, y, ones], -1)
+    A[..., 0::2, 6:9] = -np.stack([u * x, u * y, u], -1)
+    A[..., 1::2, 3:6] = np.stack([x, y, ones], -1)
+    A[..., 1::2, 6:9] = -np.stack([v * x, v * y, v], -1)
+    A *= np.repeat(np.sqrt(weights), 2, axis=-1)[..., None]
+    H = np.linalg.svd(A)[2][..., -1, :].reshape(batch + (3, 3))
+    return H / H[..., 2:3, 2:3]
+
+
+def _conditioning(points: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted centroid (..., 1, 2) of ``points`` (..., N, 2) and the per-axis scale (..., 1, 2)
+    that makes their weighted mean absolute deviation from it 1 (OpenCV's conditioning)."""
+    w = weights[..., None]
+    total = w.sum(-2, keepdims=True)
+    centre = (points * w).sum(-2, keepdims=True) / total
+    return centre, total / (np.abs(points - centre) * w).sum(-2, keepdims=True)
+
+
+def four_point_to_homography(corners: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The homography mapping ``corners`` (..., 4, 2) to ``corners + offsets``, batched over
+    leading dimensions: the DLT (:func:`weighted_dlt`) through the 4 correspondences."""
+    src = np.asarray(corners, dtype=np.float64)
+    dst = src + np.asarray(offsets, dtype=np.float64)
+    return weighted_dlt(src, dst)
 
 
 def homography_to_four_point(H: np.ndarray, corners: np.ndarray) -> np.ndarray:

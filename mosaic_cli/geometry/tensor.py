@@ -53,26 +53,83 @@ def project(H: Tensor, points: Tensor) -> Tensor:
     return mapped / w
 
 
+def weighted_dlt(src: Tensor, dst: Tensor, weight: Tensor | None = None) -> Tensor:
+    """The direct linear transform: the homographies (..., 3, 3), H[2, 2] = 1, mapping ``src``
+    (..., N, 2) onto ``dst`` (..., N, 2), N >= 4, that minimise the algebraic error, each
+    correspondence's squared error weighted by ``weight`` (..., N) (None: all 1; a robust fit's
+    inliers: 0 or 1); through 4 points in general position, exact.  Batched over the leading
+    dimensions, in the points' dtype (float64 for pixel coordinates: float32 loses ~1e-3 px).
+
+    As :func:`mosaic_cli.geometry.weighted_dlt` (numpy) and OpenCV's
+    ``HomographyEstimatorCallback::runKernel``: each point set conditioned (moved to its weighted
+    centroid, each axis scaled by its weighted mean absolute deviation from it), the eigenvector
+    of the smallest eigenvalue of LtL, taken back; NaN where degenerate (no spread).  A value, not
+    a gradient, where eigenvalues repeat (symmetric points): :func:`four_point_homography` for those."""
+    _check_points(src, name="src")
+    _check_points(dst, name="dst")
+    if weight is None:
+        weight = torch.ones_like(src[..., 0])
+    count = weight.sum(-1, keepdim=True).clamp(min=1)[..., None]  # (..., 1, 1)
+    wt = weight[..., None]
+
+    def conditioning(p: Tensor) -> tuple[Tensor, Tensor]:
+        centre = (p * wt).sum(-2, keepdim=True) / count
+        spread = ((p - centre).abs() * wt).sum(-2, keepdim=True)
+        return centre, count / spread
+
+    cM, sM = conditioning(src)
+    cm, sm = conditioning(dst)
+    X, Y = ((src - cM) * sM).unbind(-1)
+    x, y = ((dst - cm) * sm).unbind(-1)
+    one, zero = torch.ones_like(X), torch.zeros_like(X)
+    rows = wt.sqrt()  # (0 or 1: the weight itself)
+    Lx = torch.stack([X, Y, one, zero, zero, zero, -x * X, -x * Y, -x], -1) * rows
+    Ly = torch.stack([zero, zero, zero, X, Y, one, -y * X, -y * Y, -y], -1) * rows
+    LtL = Lx.transpose(-1, -2) @ Lx + Ly.transpose(-1, -2) @ Ly
+    LtL = torch.where(torch.isfinite(LtL), LtL, torch.zeros_like(LtL))
+    H0 = torch.linalg.eigh(LtL).eigenvectors[..., 0].unflatten(-1, (3, 3))
+    z = torch.zeros_like(cm[..., 0, 0])
+    o = torch.ones_like(z)
+    inv_dst = torch.stack([1 / sm[..., 0, 0], z, cm[..., 0, 0], z, 1 / sm[..., 0, 1], cm[..., 0, 1], z, z, o], -1).unflatten(-1, (3, 3))
+    src_norm = torch.stack([sM[..., 0, 0], z, -cM[..., 0, 0] * sM[..., 0, 0], z, sM[..., 0, 1], -cM[..., 0, 1] * sM[..., 0, 1], z, z, o],
+                           -1).unflatten(-1, (3, 3))
+    H = inv_dst @ H0 @ src_norm
+    return H / H[..., 2:3, 2:3]
+
+
+def four_point_homography(src: Tensor, dst: Tensor) -> Tensor:
+    """The homography (..., 3, 3), H[2, 2] = 1, through the 4 correspondences ``src`` -> ``dst``
+    (..., 4, 2), in their dtype; the leading dimensions broadcast.  Kornia's closed form (two
+    unit-square decompositions, ``get_perspective_transform``): no solver and no host
+    synchronisation, a gradient wherever the quads are proper; inf or NaN where one is degenerate.
+
+    Not :func:`weighted_dlt`: through its eigenvectors the gradient is NaN where the points are
+    symmetric (a patch's square corners), and the network learns through this one."""
+    _check_points(src, 4, "src")
+    _check_points(dst, 4, "dst")
+    src, dst = torch.broadcast_tensors(src, dst)
+    # kornia is imported with the first pair, not at start-up (a quarter of a second).
+    from kornia.geometry.transform import get_perspective_transform
+
+    H = get_perspective_transform(src.reshape(-1, 4, 2), dst.reshape(-1, 4, 2))
+    return normalize(H).reshape(*src.shape[:-2], 3, 3)
+
+
 def four_point_to_homography(corners: Tensor, offsets: Tensor) -> Tensor:
     """4-point DLT: the homography (..., 3, 3) mapping ``corners`` (..., 4, 2) onto
     ``corners + offsets`` (..., 4, 2), normalised to H[2, 2] = 1; the leading dimensions broadcast.
 
-    Solved by kornia's ``get_perspective_transform`` in float64 (pixel coordinates of a few
-    hundred make float32 lose ~1e-3 px at the frame corners) and returned in ``offsets``' dtype
-    (float32 for half-precision offsets, which cannot even hold the corners exactly); autocast
-    never lowers its precision.
+    Solved by :func:`four_point_homography` in float64 (pixel coordinates of a few hundred make
+    float32 lose ~1e-3 px at the frame corners) and returned in ``offsets``' dtype (float32 for
+    half-precision offsets, which cannot even hold the corners exactly); autocast never lowers
+    its precision.
     """
     _check_points(corners, 4, "corners")
     _check_points(offsets, 4, "offsets")
     dtype = torch.float32 if offsets.dtype in (torch.float16, torch.bfloat16) else offsets.dtype
     src, offsets = torch.broadcast_tensors(corners.to(dtype), offsets.to(dtype))
-    batch = src.shape[:-2]
-    src64 = src.reshape(-1, 4, 2).double()
-    # kornia is imported with the first pair, not at start-up (a quarter of a second).
-    from kornia.geometry.transform import get_perspective_transform
-
-    H = get_perspective_transform(src64, src64 + offsets.reshape(-1, 4, 2).double())
-    return normalize(H).to(dtype).reshape(*batch, 3, 3)
+    src64 = src.double()
+    return four_point_homography(src64, src64 + offsets.double()).to(dtype)
 
 
 def homography_to_four_point(H: Tensor, corners: Tensor) -> Tensor:
@@ -120,6 +177,8 @@ __all__ = [
     "DIVISOR_EPS",
     "normalize",
     "project",
+    "weighted_dlt",
+    "four_point_homography",
     "four_point_to_homography",
     "homography_to_four_point",
     "cumulative",

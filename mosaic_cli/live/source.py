@@ -33,7 +33,8 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import DEFAULT_TIMEOUT
 from mosaic_cli.progress import note
-from mosaic_cli.video.decode import CONVERTED_HERE, TO_BT601, filter_frame, image_filter_for, rgb_from_yuv420p, yuv420p_bytes
+from mosaic_cli.video.lens_filter import ImageFilter, filter_frame, lens_of
+from mosaic_cli.video.pixels import CONVERTED_HERE, TO_BT601, rgb_from_yuv420p, yuv420p_bytes
 from mosaic_cli.video.reader import VideoInfo, ffmpeg_exe, read_into, scaled_size
 
 STDIN = "-"
@@ -120,11 +121,13 @@ class LiveStream:
 
     A live stream can be read only once, so nothing probes it: its size, rate and audio are
     read from the decoder's own log as it starts.  A file read this way (``live=False``) passes
-    its probe as ``info`` instead."""
+    its probe as ``info`` instead.  ``lens``: each frame through this filter (``--lens``; None:
+    the one set for ``source``, if any: :mod:`mosaic_cli.video.lens_filter`)."""
 
     def __init__(self, source: str, pixels: str = "gray", width: int | None = None,
                  timeout: float = DEFAULT_TIMEOUT, stop: StopRequest | None = None, quiet: bool = False,
-                 live: bool = True, info: VideoInfo | None = None, on_started: Callable[[], None] | None = None):
+                 live: bool = True, info: VideoInfo | None = None, on_started: Callable[[], None] | None = None,
+                 lens: ImageFilter | None = None):
         if pixels not in ("gray", "rgb", "yuv420p"):
             raise ValueError(f"pixels must be gray, rgb or yuv420p, got {pixels}")
         self.source = source
@@ -145,13 +148,13 @@ class LiveStream:
         self._audio: str | None = None
         self._queue: queue.Queue | None = None
         self._probed = info
-        # RGB comes as yuv420p and is converted here, as a file's is (video/decode.py): a live
+        # RGB comes as yuv420p and is converted here, as a file's is (video/pixels.py): a live
         # stitch then sees the frames an offline one does.  Only a probed file of another layout
         # (4:4:4) keeps ffmpeg's conversion, as offline.
         self._rgb_here = pixels == "rgb" and (info is None or info.pixel_format in CONVERTED_HERE)
         # --lens FILE: each frame undistorted at its full size as it arrives, on the reader thread
-        # (the filter the command set for this source: video.decode.seen_through)
-        self._filter = image_filter_for(source)
+        # (``lens``, else the filter the command set for this source: video.lens_filter.seen_through)
+        self._filter = lens_of(source, lens)
         try:
             self._proc = self._start()
         finally:
@@ -267,7 +270,7 @@ class LiveStream:
         self._source_size = source_size
         piped = yuv420p_bytes(source_size) if self._rgb_here else frame_bytes
         # yuv420p (RGB converted here included) is filtered plane by plane before any conversion,
-        # as a file's frames are (video.decode.filter_frame): the pixels an offline run sees
+        # as a file's frames are (video.lens_filter.filter_frame): the pixels an offline run sees
         self._filter_planes = self.pixels == "yuv420p" or self._rgb_here
         if self._filter is not None:  # the lens against the stream's size, once (its maps made here)
             try:

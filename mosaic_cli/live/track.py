@@ -25,11 +25,12 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, estimate_stream
 from mosaic_cli.live.loading import begin, waited_for
-from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import DEFAULT_TIMEOUT, LiveStream, is_live_source
 from mosaic_cli.overlay import MaskOptions, live_mask
+from mosaic_cli.progress import stream_progress
 from mosaic_cli.track import TrackResult
 from mosaic_cli.video import VideoInfo, open_video
+from mosaic_cli.video.lens_filter import ImageFilter
 
 STDOUT = "-"
 JSONL_SUFFIXES = (".jsonl", ".ndjson")
@@ -68,7 +69,7 @@ def _line_sink(out: str | Path, keep_on_failure: bool) -> Iterator[IO[str]]:
 
 def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.Future, out: str | Path, timeout: float = DEFAULT_TIMEOUT,
                  max_frames: int | None = None, show_progress: bool = True, mask: MaskOptions | None = None,
-                 info: VideoInfo | None = None, width: int | None = None) -> TrackResult:
+                 info: VideoInfo | None = None, width: int | None = None, lens: ImageFilter | None = None) -> TrackResult:
     """Track ``source`` (a live source, or a file when ``out`` takes JSON Lines), writing
     each pair as it is estimated when ``out`` takes JSON Lines; returns everything tracked.
     ``mask``: the ``--mask`` of a live input, applied once the stream gives the frame size
@@ -76,7 +77,8 @@ def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.F
     is set on the estimator beforehand; ``info``: a file's probe, when the caller has it.
     ``estimator`` may still be loading (a future of it, :func:`~mosaic_cli.live.loading.built_beside`:
     a live input's stream then opens first, its frames decoded ``width`` wide, and waits for it).
-    The estimator is closed when the stream ends (:meth:`~mosaic_cli.estimators.Estimator.close`)."""
+    The estimator is closed when the stream ends (:meth:`~mosaic_cli.estimators.Estimator.close`).
+    ``lens``: the frames through this filter as they are decoded (``--lens``)."""
     loading = estimator if isinstance(estimator, concurrent.futures.Future) else None
     live = is_live_source(source)
     pairwise: list[np.ndarray] = []
@@ -87,9 +89,9 @@ def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.F
     with waited_for(loading):
         if live:
             stream = LiveStream(str(source), "gray", width=width if loading is not None else estimator.input_width, timeout=timeout,
-                                quiet=not show_progress, on_started=lambda: begin(loading))
+                                quiet=not show_progress, on_started=lambda: begin(loading), lens=lens)
         else:
-            stream = open_video(source, width=estimator.input_width, gray=True, info=info)
+            stream = open_video(source, width=estimator.input_width, gray=True, info=info, lens=lens)
         if loading is not None:
             try:
                 estimator = loading.result()

@@ -51,7 +51,7 @@ from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_sm
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.info import VideoStream
+from mosaic_cli.video.stream import VideoStream
 from mosaic_cli.video.writer import OUTPUT_SUFFIXES, check_encoder, rewrite_container
 
 # The estimator's default working width.  Stabilising shows every tracking error as shake:

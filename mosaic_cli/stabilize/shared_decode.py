@@ -65,7 +65,8 @@ from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother
 from mosaic_cli.stabilize.stream import WAIT_SLICE, Cancelled
 from mosaic_cli.video import VideoInfo, open_video
 from mosaic_cli.video.decode import YuvFrame, gray_at, yuv420p_bytes
-from mosaic_cli.video.info import VideoStream, scaled_size
+from mosaic_cli.video.info import scaled_size
+from mosaic_cli.video.stream import VideoStream
 
 FAILED_RUN = 15  # failed pairs in a row the ring has room for (half a second at 30 fps)
 # The ring's frames together, at most; a path that needs more decodes twice from the start (the

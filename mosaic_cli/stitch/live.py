@@ -37,10 +37,10 @@ from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.geometry import frame_corners, normalize, project, resize_matrix
 from mosaic_cli.live.loading import begin, built_beside, waited_for
-from mosaic_cli.live.progress import stream_progress
 from mosaic_cli.live.source import LiveStream, is_live_source
 from mosaic_cli.live.timeline import Timeline
 from mosaic_cli.overlay import check_mask_file, frame_mask, live_mask
+from mosaic_cli.progress import stream_progress
 from mosaic_cli.stitch.canvas import MIN_SIZE, CanvasOptions, parse_reference, plan_canvas
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight

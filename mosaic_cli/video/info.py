@@ -1,16 +1,10 @@
-"""What the readers hand out: :class:`VideoInfo` (what a video holds, known before decoding it,
-with its other streams as :class:`StreamMeta`) and :class:`VideoStream` (its frames, one at a
-time, checked against the count the container announced once read to the end)."""
+"""What a video holds, known before decoding it: :class:`VideoInfo`, with its other streams as
+:class:`StreamMeta`; :func:`scaled_size`.  Its frames, read one at a time, are a
+:class:`~.stream.VideoStream`."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
-
-import numpy as np
-
-from mosaic_cli.errors import BadInput
-from mosaic_cli.video.policy import Shortfall, account_for_frames
 
 
 @dataclass(frozen=True)
@@ -67,36 +61,3 @@ def scaled_size(size: tuple[int, int], width: int | None) -> tuple[int, int]:
     if width is None or width >= w:
         return (w, h)
     return (int(width), max(1, int(round(h * width / w))))
-
-
-class VideoStream:
-    """An iterable, closeable stream of frames; use as a context manager."""
-
-    def __init__(self, info: VideoInfo, frames: Iterator[np.ndarray], closer=None):
-        self.info = info
-        self._frames = frames
-        self._closer = closer
-        self.frames_read = 0
-        self.frames_skipped = 0  # by ``start``: decoded, not yielded
-        self.decode_error: str | None = None  # set when the decoder stopped with an error
-        self.shortfall: Shortfall | None = None  # set when read to the end and short of the count
-
-    def __iter__(self) -> Iterator[np.ndarray]:
-        for frame in self._frames:
-            self.frames_read += 1
-            yield frame
-        if self.frames_read == 0:
-            why = f" ({self.decode_error})" if self.decode_error else ""
-            raise BadInput(f"{self.info.path}: no decodable frames{why}")
-        self.shortfall = account_for_frames(self.info, self.frames_skipped + self.frames_read, self.decode_error)
-
-    def close(self) -> None:
-        if self._closer is not None:
-            self._closer()
-            self._closer = None
-
-    def __enter__(self) -> VideoStream:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

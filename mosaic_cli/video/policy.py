@@ -8,12 +8,9 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from mosaic_cli.errors import BadInput
-
-if TYPE_CHECKING:
-    from mosaic_cli.video.info import VideoInfo
+from mosaic_cli.video.info import VideoInfo
 
 # --- Frames missing at the end: decoded fewer than the container announced -------------------
 # The run goes on with what decoded, after one warning line; under ``reading_policy(strict=True)``

@@ -3,28 +3,21 @@
 
 The names live in modules of one job each, re-exported here:
 
-* :mod:`.info`: :class:`VideoInfo`, :class:`StreamMeta`, :class:`VideoStream`, :func:`scaled_size`;
+* :mod:`.info`: :class:`VideoInfo`, :class:`StreamMeta`, :func:`scaled_size`;
+* :mod:`.stream`: :class:`VideoStream`;
 * :mod:`.probe`: probing with PyAV, in-process, once per command;
-* :mod:`.decode`: the bundled ffmpeg on a pipe, or PyAV where there is none (:func:`Decoder`,
-  :func:`open_video`, picked frames);
+* :mod:`.decode`: the bundled ffmpeg on a pipe (:mod:`.ffmpeg_decoder`), or PyAV where there is
+  none (:mod:`.pyav_decoder`): :func:`Decoder`, :func:`open_video`, picked frames; the pixel
+  formats (:mod:`.pixels`), ``--lens`` (:mod:`.lens_filter`);
 * :mod:`.folders`: folders of numbered images;
 * :mod:`.policy`: the reading policy for a video short of its announced frames (``--strict``).
 """
 
-from mosaic_cli.video.decode import (
-    PIXELS,
-    Decoder,
-    FfmpegDecoder,
-    PyAVDecoder,
-    ffmpeg_exe,
-    frame_at,
-    frame_shape,
-    frames_at,
-    open_video,
-    read_into,
-)
+from mosaic_cli.video.decode import Decoder, frame_at, frames_at, open_video
+from mosaic_cli.video.ffmpeg_decoder import FfmpegDecoder, ffmpeg_exe, read_into
 from mosaic_cli.video.folders import DEFAULT_FOLDER_FPS, IMAGE_SUFFIXES, folder_images, read_image_rgb
-from mosaic_cli.video.info import StreamMeta, VideoInfo, VideoStream, scaled_size
+from mosaic_cli.video.info import StreamMeta, VideoInfo, scaled_size
+from mosaic_cli.video.pixels import PIXELS, frame_shape
 from mosaic_cli.video.policy import (
     EXACT_COUNT_SUFFIXES,
     SHORTFALL_TOLERANCE,
@@ -35,6 +28,8 @@ from mosaic_cli.video.policy import (
     shortfalls,
 )
 from mosaic_cli.video.probe import DAMAGE_SIGNS, TAIL_SECONDS, audio_codec_of, probe
+from mosaic_cli.video.pyav_decoder import PyAVDecoder
+from mosaic_cli.video.stream import VideoStream
 
 __all__ = [
     "DAMAGE_SIGNS",
