@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import FFMPEG, simulated
+from conftest import FFMPEG
 
 SIZE = (320, 180)
 FRAMES = 60
@@ -26,8 +26,10 @@ RUN_LIMIT = 300  # seconds any one command may take: far above what it needs, ev
 @pytest.fixture(scope="module")
 def shaky_flight(tmp_path_factory) -> tuple[Path, dict]:
     """5 s of a shaky simulated flight (long enough for the jitter's high-pass), exact truth."""
-    video = simulated(tmp_path_factory.mktemp("shaky") / "shaky.mp4", "-p", "shaky", "-n", "150", "--size", f"{SIZE[0]}x{SIZE[1]}",
-                      "--preset", "veryfast")
+    folder = tmp_path_factory.mktemp("shaky")
+    video = folder / "shaky.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky", "-n", "150",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
     return video, json.loads(video.with_suffix(".gt.json").read_text())
 
 
@@ -328,8 +330,12 @@ def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, fligh
 # -- stitch --live ------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def survey(survey_320x180) -> Path:
-    return survey_320x180  # (conftest: test_live_preview streams the same flight)
+def survey(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("survey")
+    video = folder / "survey.mp4"
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "survey", "-n", "120",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    return video
 
 
 @pytest.mark.slow
@@ -565,7 +571,8 @@ def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_a
     from mosaic_cli.stabilize.online import OnlineL1Path
 
     video = tmp_path / "long.mp4"  # 10 s: the start, the window that decides, and the frames after
-    simulated(video, "-p", "shaky-tilt", "-n", "300", "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast")
+    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky-tilt", "-n", "300",
+                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
     solve = OnlineL1Path.solve
 
     def slow_tilt(self, window):
