@@ -125,7 +125,7 @@ def test_the_mask_follows_each_overlay_to_the_pixel(sharp):
     """Against the exact pixels of each overlay: none is missed, and the ground hidden around
     each is a thin rim (H.264's smear), not the regions' blocks and margins.  The detector
     before tracing (regions closed, filled and grown at 320 px) fails every bound below
-    (docs/measurements/stitch.md, "How tight the mask is")."""
+    (CHANGELOG.md, overlays, 2026-11-24)."""
     mask = frame_mask(sharp.burned)
     masked = mask.use == 0
     scores = per_overlay(masked, sharp.kinds)
