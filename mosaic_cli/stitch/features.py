@@ -154,9 +154,10 @@ class FeatureMatcher:
         tree = cKDTree(b.points.astype(np.float64))
         da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
         # A point with a single candidate near it is measured against its best rival anywhere:
-        # alone in a small circle, any point would pass.
-        rivals = {(m[0].queryIdx, m[0].trainIdx): m[1].distance for m in self._matcher.knnMatch(da, db, k=2) if len(m) == 2}
-        best = {m[0].queryIdx: m[0].distance for m in self._matcher.knnMatch(da, db, k=1) if m}
+        # alone in a small circle, any point would pass.  (query -> its nearest point of b, that
+        # distance, and the second nearest's, from one search of b.)
+        nearest = {m[0].queryIdx: (m[0].trainIdx, m[0].distance, m[1].distance if len(m) == 2 else m[0].distance)
+                   for m in self._matcher.knnMatch(da, db, k=2) if m}
 
         def near(H: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
             src, dst = [], []
@@ -168,7 +169,8 @@ class FeatureMatcher:
                 if len(candidates) > 1:
                     first, second = np.partition(d, 1)[:2]
                 else:
-                    first, second = d[0], rivals.get((i, chosen), best.get(i, np.inf))
+                    best, best_distance, second_distance = nearest.get(i, (-1, np.inf, np.inf))
+                    first, second = d[0], second_distance if best == chosen else best_distance
                 if first >= o.guided_ratio * second:
                     continue
                 src.append(i)

@@ -76,8 +76,10 @@ class GroundGuide:
     def scale(self, index: int) -> float:
         """Metres per pixel of photo ``index``: its height's, else the registrations' so far (NaN)."""
         s = self.scales[index] if 0 <= index < self.n else math.nan
-        if math.isfinite(s):
-            return float(s)
+        return float(s) if math.isfinite(s) else self._learned_scale()
+
+    def _learned_scale(self) -> float:
+        """Metres per pixel the registered pairs say (their median), NaN before any."""
         return float(np.median(self._learned)) if self._learned else math.nan
 
     def learn(self, a: int, b: int, H: np.ndarray) -> None:
@@ -106,7 +108,10 @@ class GroundGuide:
         if not with_fix:
             return []
         distance = np.linalg.norm(self.positions[with_fix] - self.positions[index], axis=1)
-        radii = np.array([self._half_diagonal * (self.scale(k) if math.isfinite(self.scale(k)) else scale) for k in with_fix])
+        # each photo's own scale, else the registrations', else this photo's (one median, not one a photo)
+        learned = self._learned_scale()
+        radii = self._half_diagonal * np.where(np.isfinite(self.scales[with_fix]), self.scales[with_fix],
+                                               learned if math.isfinite(learned) else scale)
         mine = self._half_diagonal * scale
         reach = mine + radii + 2.0 * self.options.gps_error - self.options.min_overlap * np.minimum(mine, radii)
         order = np.argsort(distance, kind="stable")
