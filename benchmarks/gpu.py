@@ -476,7 +476,8 @@ def throughput(s: Session) -> str:
                 profiles.append((f"{command}_{size}_{device}", args[3:]))  # (after python -m mosaic_cli)
     # Round 1 in order, round 2 (while time is left: its runs are repeats, skipped silently) in
     # reverse, so that a drifting machine weighs on every command alike; the medians are the figures.
-    for round_, order in ((1, plans), (2, [(size, runs[::-1]) for size, runs in plans[::-1]])):
+    rounds = [(1, plans)] + ([] if p.tiny else [(2, [(size, runs[::-1]) for size, runs in plans[::-1]])])  # a rehearsal times once
+    for round_, order in rounds:
         for size, runs in order:
             for command, device, threads, args, extra in runs:
                 if s.left() < (30 if round_ == 1 else 90):

@@ -5,8 +5,11 @@ tests need no data files."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import subprocess
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -148,6 +151,78 @@ def one_torch_thread():
     torch.set_num_threads(threads)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def procedural_maps_made_once(tmp_path_factory):
+    """The simulator's default map (4096x4096, about 4 s of CPU each) made once per seed for the
+    whole session: ``load_map(None, seed)``, as every simulated flight in this process asks for
+    it, reads the first one's bytes back from disk (a fresh array each time).  Only the name
+    ``load_map`` looks up is replaced: the tests of the map itself (test_simulate) call the
+    function as the package exports it."""
+    from mosaic_cli.simulate import maps
+
+    made = maps.procedural_map
+    folder = tmp_path_factory.mktemp("procedural_maps")
+
+    def once(size=(4096, 4096), seed=0):
+        path = folder / f"{int(size[0])}x{int(size[1])}-{int(seed)}.npy"
+        if not path.exists():
+            np.save(path, made(size, seed))
+        return np.load(path)
+
+    maps.procedural_map = once
+    yield
+    maps.procedural_map = made
+
+
+@pytest.fixture(scope="session", autouse=True)
+def cli_built_once():
+    """``mosaic`` run in this process (cli_exit, run_cli) builds its click command tree once, as
+    a process does once: typer otherwise rebuilds it from the app on every call (30 ms, a few
+    hundred calls).  Other typer apps are built as before."""
+    import typer.main
+
+    from mosaic_cli.cli import app
+
+    build = typer.main.get_command
+    built: dict = {}
+
+    def once(typer_app):
+        if typer_app is not app:
+            return build(typer_app)
+        if "app" not in built:
+            built["app"] = build(app)
+        return built["app"]
+
+    typer.main.get_command = once
+    yield
+    typer.main.get_command = build
+
+
+@pytest.fixture(scope="session")
+def fresh_interpreter_build() -> dict:
+    """What a fresh interpreter imports on the way to the shipped estimator, run once for the
+    tests that ask (test_estimator_options, test_quantize): ``plan_estimator("lstm")`` then its
+    build, then ``make_estimator(None)``; which of torch, torch._dynamo and torch._inductor were
+    loaded after each step, the built estimators' types and the default one's precision."""
+    import json
+    import sys
+
+    code = """if True:
+        import json, sys
+        seen = lambda: {name: name in sys.modules for name in ("torch", "torch._dynamo", "torch._inductor")}
+        from mosaic_cli.estimators import make_estimator, plan_estimator
+        build = plan_estimator("lstm")
+        planned = seen()
+        built = type(build()).__name__
+        after_build = seen()
+        default = make_estimator(None)
+        print(json.dumps({"planned": planned, "built": built, "after_build": after_build,
+                          "default": type(default).__name__, "precision": default.precision, "after_default": seen()}))
+    """
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 @pytest.fixture(scope="session")
 def texture() -> np.ndarray:
     """A 1600x1000 procedural RGB texture."""
@@ -171,6 +246,38 @@ def tiny_clip(tmp_path_factory, texture) -> Path:
     """Eight 96x64 frames of a panning texture, H.264 mp4 at 10 fps."""
     frames = [texture[100:164, 100 + 3 * k:196 + 3 * k] for k in range(8)]
     return write_clip(tmp_path_factory.mktemp("clips") / "tiny.mp4", frames, fps=10)
+
+
+def mosaic_run(*args, check: bool = True) -> SimpleNamespace:
+    """``mosaic ARGS`` run in this process, its exit status, stdout and stderr as
+    ``subprocess.run(..., text=True)`` gives them (for tests not about the process itself);
+    ``check``: assert it succeeded."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli_exit(args)
+    run = SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
+    if check:
+        assert run.returncode == 0, run.stderr
+    return run
+
+
+def simulated(path: Path, *args) -> Path:
+    """``mosaic simulate -o PATH ARGS -q`` run in this process (the session's maps made once)."""
+    assert cli_exit(["simulate", "-o", path, *args, "-q"]) == 0
+    return path
+
+
+@pytest.fixture(scope="session")
+def survey_320x180(tmp_path_factory) -> Path:
+    """A 120-frame survey flight at 320x180 (x264 veryfast), the one the live stitch tests stream."""
+    return simulated(tmp_path_factory.mktemp("survey") / "survey.mp4", "-p", "survey", "-n", "120", "--size", "320x180",
+                     "--preset", "veryfast")
+
+
+@pytest.fixture(scope="session")
+def plain_160x90(tmp_path_factory) -> Path:
+    """A 20-frame paper flight at 160x90 without telemetry (test_maps, test_georef)."""
+    return simulated(tmp_path_factory.mktemp("plain") / "plain.mp4", "-n", "20", "--size", "160x90", "--preset", "ultrafast")
 
 
 @pytest.fixture

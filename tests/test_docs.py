@@ -3,6 +3,7 @@ README.md, docs/ or models/README.md leads nowhere (files and, for Markdown file
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import subprocess
@@ -160,16 +161,35 @@ def test_every_extra_has_one_install_hint_everywhere():
     assert EXTRA_INSTALL.search("needs `pip install -e '.[plot]'` (matplotlib)").group(0) == "pip install -e '.[plot]'"
 
 
-def rendered_help(command: str) -> str:
-    """``mosaic COMMAND --help`` as a user's terminal shows it (wide enough not to wrap), one
-    space for every run of spaces and box borders."""
-    proc = subprocess.run([sys.executable, "-m", "mosaic_cli", command, "--help"], capture_output=True, text=True,
+HELPED = ("track", "stitch", "stabilize", "simulate", "train", "bench", "eval")
+HELP_MARK = "\n=== mosaic --help of: "
+
+
+@functools.cache
+def _helps() -> dict[str, str]:
+    """``mosaic COMMAND --help`` of each command, written to a pipe as a user's terminal would
+    show it (wide enough not to wrap), by one interpreter (one start-up for them all)."""
+    code = ("import sys\nfrom mosaic_cli.cli import main\n"
+            "for command in sys.argv[1:]:\n"
+            f"    print({HELP_MARK!r} + command, flush=True)\n"
+            "    try:\n        main([command, '--help'])\n    except SystemExit as exit_:\n"
+            "        assert exit_.code in (0, None), (command, exit_.code)\n"
+            "    sys.stdout.flush()\n")
+    proc = subprocess.run([sys.executable, "-c", code, *HELPED], capture_output=True, text=True,
                           env={**os.environ, "COLUMNS": "1000", "NO_COLOR": "1"}, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    return re.sub(r"[\s│╭╮╰╯─]+", " ", proc.stdout)
+    parts = [part.split("\n", 1) for part in proc.stdout.split(HELP_MARK)[1:]]
+    assert [name for name, _ in parts] == list(HELPED)
+    return dict(parts)
 
 
-@pytest.mark.parametrize("command", ["track", "stitch", "stabilize", "simulate", "train", "bench", "eval"])
+def rendered_help(command: str) -> str:
+    """``mosaic COMMAND --help`` as a user's terminal shows it, one space for every run of spaces
+    and box borders."""
+    return re.sub(r"[\s│╭╮╰╯─]+", " ", _helps()[command])
+
+
+@pytest.mark.parametrize("command", HELPED)
 def test_the_help_shows_every_bracket_its_source_wrote(command):
     """typer renders help as rich markup, where ``[plot]`` is a style tag and vanishes: every
     word of an option's help that holds a bracket is shown with it."""

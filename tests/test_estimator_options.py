@@ -129,16 +129,13 @@ def test_help_lists_every_user_option_with_its_choices_and_no_ablation_setting(m
         assert " ".join(text.split()) in " ".join(shown.split()), command
 
 
-def test_an_estimator_is_checked_without_torch_and_built_later():
+def test_an_estimator_is_checked_without_torch_and_built_later(fresh_interpreter_build):
     """plan_estimator finds every mistake before any work without importing torch; the build
-    (torch, the weights, the int8 network) is what the commands run beside overlay detection."""
-    import subprocess
-    import sys
-
-    code = ("import sys; from mosaic_cli.estimators import plan_estimator; build = plan_estimator('lstm'); "
-            "print('torch' in sys.modules); e = build(); print(type(e).__name__, 'torch' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["False", "LearnedEstimator", "True"]
+    (torch, the weights, the int8 network) is what the commands run beside overlay detection.
+    (A fresh interpreter's, conftest's.)"""
+    run = fresh_interpreter_build
+    assert not run["planned"]["torch"]
+    assert run["built"] == "LearnedEstimator" and run["after_build"]["torch"]
 
 
 def test_the_build_beside_overlay_detection_gives_both_or_the_error(tmp_path):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ from mosaic_cli.geo.fit import SimilarityPrior, fit_similarity
 from mosaic_cli.geo.score import score_files
 from mosaic_cli.geometry import project
 from mosaic_cli.simulate import load_ground_truth
-from tests.conftest import FFMPEG, assert_one_line_error, run_cli
+from tests.conftest import FFMPEG, assert_one_line_error, mosaic_run, run_cli
 
 
 def similarity(scale, angle, tx, ty):
@@ -67,11 +66,7 @@ def test_untilt_makes_a_tilted_view_of_the_ground_a_similarity():
     assert below[1] > (size[1] - 1) / 2
 
 
-def mosaic(*args, check=True):
-    run = subprocess.run([sys.executable, "-m", "mosaic_cli", *map(str, args)], capture_output=True, text=True)
-    if check:
-        assert run.returncode == 0, run.stderr
-    return run
+mosaic = mosaic_run  # in this process: none of these tests is about the process itself
 
 
 @pytest.fixture(scope="module")
@@ -250,11 +245,10 @@ def test_live_stream_georef_flags_need_a_telemetry_file(capsys, tmp_path, flag):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("flag", ["--footprints", "--level-ground"])
-def test_georef_flags_on_a_video_without_a_track_are_one_clear_line(capsys, tmp_path, flag):
+def test_georef_flags_on_a_video_without_a_track_are_one_clear_line(capsys, tmp_path, flag, plain_160x90):
     """A video with no telemetry inside and no --telemetry: a georeferencing flag is an error,
     not silently dropped."""
-    video = tmp_path / "plain.mp4"
-    mosaic("simulate", "-o", video, "-n", "20", "--size", "160x90", "--preset", "ultrafast", "-q")
+    video = plain_160x90
     extra = [flag, tmp_path / "f.geojson"] if flag == "--footprints" else [flag]
     code, err = run_cli(capsys, "stitch", video, "-o", tmp_path / "m.png", *extra, "-q", "--estimator", "orb")
     assert_one_line_error(code, err, f"{flag} needs telemetry")

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import simulated
+
 ROOT = Path(__file__).resolve().parents[1]
 MISSING_ON_THE_DEVICE = ("av", "imageio_ffmpeg", "rasterio", "pyproj", "rio_cogeo", "gpxpy", "klvdata")
 
@@ -154,8 +156,7 @@ def test_the_timed_transcode_writes_every_frame_of_a_300_frame_clip(tmp_path, mo
 
     source, target = tmp_path / "clip.mp4", tmp_path / "out.mp4"
     monkeypatch.setenv("MOSAIC_VIDEO_BACKEND", "pyav")  # the clip written as on the device machine
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-p", "shaky", "-n", "300", "--size", "160x96", "--seed", "3",
-                    "--preset", "veryfast", "-o", str(source), "-q"], cwd=ROOT, check=True, timeout=300)
+    simulated(source, "-p", "shaky", "-n", "300", "--size", "160x96", "--seed", "3", "--preset", "veryfast")  # in this process
     assert gpu_session.transcode(str(source), str(target)) == 300
     with av.open(str(target)) as out:
         assert sum(1 for _ in out.decode(video=0)) == 300

@@ -299,8 +299,8 @@ def test_auto_fits_two_coefficients_to_a_strong_lens_and_a_fisheye():
     rng = np.random.default_rng(5)
     for truth in (radial_lens(size, 525.0, -0.30, 0.0225), fisheye_lens(size, 320 / np.radians(60))):
         pairs = []
-        for _ in range(30):
-            a = random_pixels(400, size, int(rng.integers(1 << 30)))
+        for _ in range(8):  # 8 pairs of 200 matches fit within 1% (30 of 400: the same, 10x the time)
+            a = random_pixels(200, size, int(rng.integers(1 << 30)))
             shift = rng.uniform(-0.25, 0.25, 2) * size
             H = np.array([[1, 0.01, shift[0]], [-0.01, 1, shift[1]], [1e-5, 0, 1]])
             ua = undistort_points(truth, a, truth.K)

@@ -8,12 +8,13 @@ import json
 import socket
 import subprocess
 import sys
+import threading
 
 import cv2
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, run_cli
+from conftest import assert_one_line_error, cli_exit, run_cli
 from mosaic_cli.geometry.lens import radial_lens, undistorted_camera
 from mosaic_cli.geometry.lens_files import read_lens
 
@@ -75,30 +76,28 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_track_over_tcp_with_the_true_lens_file_matches_the_pinhole_truth(wide, tmp_path):
+def test_track_over_tcp_with_the_true_lens_file_matches_the_pinhole_truth(wide, tmp_path, capsys):
     """A live track (TCP on the loopback, served in real time) with the true lens file: its pairs
     are the undistorted frames' (read against the simulator's truth as test_lens reads a file's),
-    well under the error of the frames taken as they are."""
+    well under the error of the frames taken as they are.  (In this process: test_live runs the
+    live commands as processes.)"""
     from test_lens import pair_errors
     from test_live import send, wait_until_bound
 
     gt = wide.with_suffix(".gt.json")
     port = free_port()
     out = tmp_path / "live.json"
-    proc = subprocess.Popen([sys.executable, "-m", "mosaic_cli", "track", f"tcp://127.0.0.1:{port}?listen=1", "-o", str(out),
-                             "-e", "orb", "--lens", str(gt)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        wait_until_bound(port, udp=False)
-        assert send(wide, f"tcp://127.0.0.1:{port}").returncode == 0
-        _, err = proc.communicate(timeout=RUN_LIMIT)
-    finally:
-        proc.kill()
-    assert proc.returncode == 0, err.decode()
-    assert "lens: pinhole from the file" in err.decode()
+    sent = []
+    sender = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), sent.append(send(wide, f"tcp://127.0.0.1:{port}"))),
+                              daemon=True)
+    sender.start()
+    code, err = run_cli(capsys, "track", f"tcp://127.0.0.1:{port}?listen=1", "-o", out, "-e", "orb", "--lens", gt)
+    sender.join(RUN_LIMIT)
+    assert code == 0 and sent and sent[0].returncode == 0, err
+    assert "lens: pinhole from the file" in err
     doc = json.loads(out.read_text())
     assert doc["meta"]["lens"]["applied"] and len(doc["pairwise"]) == 29
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(wide), "-o", str(tmp_path / "none.json"), "-e", "orb", "-q",
-                    "--no-overlay-detect"], check=True, timeout=RUN_LIMIT)
+    assert cli_exit(["track", wide, "-o", tmp_path / "none.json", "-e", "orb", "-q", "--no-overlay-detect"]) == 0
     given, none = np.median(pair_errors(out, gt)), np.median(pair_errors(tmp_path / "none.json", gt))
     assert given < 0.7 * none, (given, none)
 
@@ -151,6 +150,7 @@ def test_live_lens_refusals_are_one_clear_line(wide, tmp_path, capsys):
     assert_one_line_error(done.returncode, done.stderr.decode(), "--lens", "aspect")
 
 
+@pytest.mark.slow
 def test_stitch_live_from_standard_input_with_a_lens_equals_the_offline_stitch(wide, tmp_path):
     """The frames a live stitch reads through ``--lens FILE`` are the offline stitch's: the same
     transforms and the same panorama."""
@@ -161,7 +161,7 @@ def test_stitch_live_from_standard_input_with_a_lens_equals_the_offline_stitch(w
                                "--transforms", str(tmp_path / "live.json"), *common], stdin=stdin, capture_output=True,
                               timeout=RUN_LIMIT)
     assert live.returncode == 0, live.stderr.decode()
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(wide), "-o", str(tmp_path / "off.png"),
-                    "--transforms", str(tmp_path / "off.json"), "--rolling-shutter", "off", *common], check=True, timeout=RUN_LIMIT)
+    assert cli_exit(["stitch", wide, "-o", tmp_path / "off.png", "--transforms", tmp_path / "off.json", "--rolling-shutter", "off",
+                     *common]) == 0
     assert json.loads((tmp_path / "live.json").read_text()) == json.loads((tmp_path / "off.json").read_text())
     np.testing.assert_array_equal(cv2.imread(str(tmp_path / "live.png"), -1), cv2.imread(str(tmp_path / "off.png"), -1))

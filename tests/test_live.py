@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import FFMPEG
+from conftest import FFMPEG, assert_one_line_error, cli_exit, run_cli, simulated
 
 SIZE = (320, 180)
 FRAMES = 60
@@ -26,10 +26,8 @@ RUN_LIMIT = 300  # seconds any one command may take: far above what it needs, ev
 @pytest.fixture(scope="module")
 def shaky_flight(tmp_path_factory) -> tuple[Path, dict]:
     """5 s of a shaky simulated flight (long enough for the jitter's high-pass), exact truth."""
-    folder = tmp_path_factory.mktemp("shaky")
-    video = folder / "shaky.mp4"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky", "-n", "150",
-                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    video = simulated(tmp_path_factory.mktemp("shaky") / "shaky.mp4", "-p", "shaky", "-n", "150", "--size", f"{SIZE[0]}x{SIZE[1]}",
+                      "--preset", "veryfast")
     return video, json.loads(video.with_suffix(".gt.json").read_text())
 
 
@@ -94,8 +92,7 @@ def stabilize_served(video: Path, out: Path, options):
 
 def offline_track(tmp_path: Path, video: Path) -> np.ndarray:
     out = tmp_path / "offline.json"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "track", str(video), "-o", str(out), "-e", "orb", "-q"],
-                   check=True, timeout=RUN_LIMIT)
+    assert cli_exit(["track", video, "-o", out, "-e", "orb", "-q"]) == 0  # in this process: the offline run's output alone
     return np.array(json.loads(out.read_text())["pairwise"])
 
 
@@ -243,9 +240,12 @@ def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offlin
     for name, source, extra in (("live", str(video), ["--latency", "1"]), ("piped", "-", ["--latency", "1"]),
                                 ("offline", str(video), [])):
         warps = tmp_path / f"{name}.json"
-        with open(video, "rb") as stdin:
-            subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", source, str(tmp_path / f"{name}.mp4"), "-e",
-                            "orb", "--warps", str(warps), "-q", *extra], stdin=stdin, check=True, timeout=RUN_LIMIT)
+        args = ["stabilize", source, str(tmp_path / f"{name}.mp4"), "-e", "orb", "--warps", str(warps), "-q", *extra]
+        if name == "offline":  # the reference: in this process
+            assert cli_exit(args) == 0
+        else:
+            with open(video, "rb") as stdin:
+                subprocess.run([sys.executable, "-m", "mosaic_cli", *args], stdin=stdin, check=True, timeout=RUN_LIMIT)
         jitter[name] = gt_jitter(truth, np.array(json.loads(warps.read_text())["warps"]))
     for name in ("live", "piped"):
         assert jitter[name] < 0.5 * gt_jitter(truth, None)
@@ -318,24 +318,19 @@ def test_online_path_waits_at_most_its_horizon_and_equals_the_offline_path_when_
 
 
 @pytest.mark.slow
-def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, flight):
+def test_latency_too_short_for_the_frame_rate_is_one_clear_error(tmp_path, flight, capsys):
     video, _ = flight
-    proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stabilize", str(video), str(tmp_path / "o.mp4"), "-e", "orb",
-                           "--latency", "0.1"], capture_output=True, timeout=RUN_LIMIT)
-    assert proc.returncode == 2
-    assert proc.stderr.decode().startswith("mosaic: error: --latency 0.1 s is too short at 30 fps")
+    code, err = run_cli(capsys, "stabilize", video, tmp_path / "o.mp4", "-e", "orb", "--latency", "0.1")
+    assert_one_line_error(code, err)
+    assert err.startswith("mosaic: error: --latency 0.1 s is too short at 30 fps")
     assert not (tmp_path / "o.mp4").exists()
 
 
 # -- stitch --live ------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def survey(tmp_path_factory) -> Path:
-    folder = tmp_path_factory.mktemp("survey")
-    video = folder / "survey.mp4"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "survey", "-n", "120",
-                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
-    return video
+def survey(survey_320x180) -> Path:
+    return survey_320x180  # (conftest: test_live_preview streams the same flight)
 
 
 @pytest.mark.slow
@@ -344,8 +339,7 @@ def test_stitch_live_from_stdin_equals_the_offline_stitch(tmp_path, survey):
         rc, _, err = finish(mosaic("stitch", "-", "-o", tmp_path / "live.png", "--transforms", tmp_path / "live.json",
                                    "-e", "orb", "-q", stdin=stdin))
     assert rc == 0, err
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(survey), "-o", str(tmp_path / "off.png"),
-                    "--transforms", str(tmp_path / "off.json"), "-e", "orb", "-q"], check=True, timeout=RUN_LIMIT)
+    assert cli_exit(["stitch", survey, "-o", tmp_path / "off.png", "--transforms", tmp_path / "off.json", "-e", "orb", "-q"]) == 0
     import cv2
 
     assert json.loads((tmp_path / "live.json").read_text()) == json.loads((tmp_path / "off.json").read_text())
@@ -487,7 +481,7 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
     assert sum(result.pairs_by.values()) == FRAMES - 1, result.pairs_by
 
 
-def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(shaky_flight):
+def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(tmp_path):
     """Frames tracked by ORB until the network has loaded, then by the network from the last
     frame ORB saw: one estimate per pair, in order, none lost or made twice, each close to the truth."""
     import concurrent.futures
@@ -496,9 +490,11 @@ def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(shaky_fl
     from mosaic_cli.live.stabilize import Bridged
     from mosaic_cli.video import open_video
 
-    video, truth = shaky_flight
+    video = simulated(tmp_path / "shaky.mp4", "-p", "shaky", "-n", "30", "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast",
+                      "--seed", "3")
+    truth = json.loads(video.with_suffix(".gt.json").read_text())
     with open_video(video, width=320, gray=True) as stream:
-        grays = [g for _, g in zip(range(30), stream)]
+        grays = list(stream)
     loading: concurrent.futures.Future = concurrent.futures.Future()
     bridged = Bridged(loading, 320, None, SIZE)
     estimates = []
@@ -571,8 +567,7 @@ def test_a_tilt_correction_that_cannot_keep_up_live_is_planned_as_a_similarity_a
     from mosaic_cli.stabilize.online import OnlineL1Path
 
     video = tmp_path / "long.mp4"  # 10 s: the start, the window that decides, and the frames after
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "shaky-tilt", "-n", "300",
-                    "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
+    simulated(video, "-p", "shaky-tilt", "-n", "300", "--size", f"{SIZE[0]}x{SIZE[1]}", "--preset", "veryfast")
     solve = OnlineL1Path.solve
 
     def slow_tilt(self, window):

@@ -3,8 +3,6 @@ snapshot of the keyframes, and written atomically; the scan goes on meanwhile.""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -69,11 +67,8 @@ def test_a_failed_preview_is_raised_in_the_scans_thread(tmp_path, monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def survey(tmp_path_factory) -> Path:
-    video = tmp_path_factory.mktemp("survey") / "survey.mp4"
-    subprocess.run([sys.executable, "-m", "mosaic_cli", "simulate", "-o", str(video), "-p", "survey", "-n", "120",
-                    "--size", "320x180", "--preset", "veryfast", "-q"], check=True, timeout=RUN_LIMIT)
-    return video
+def survey(survey_320x180) -> Path:
+    return survey_320x180  # (conftest: test_live streams the same flight)
 
 
 @pytest.mark.slow

@@ -10,7 +10,6 @@ import json
 import re
 import shutil
 import subprocess
-import sys
 import zipfile
 from pathlib import Path
 from xml.etree import ElementTree as ET
@@ -19,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import assert_one_line_error, run_cli
+from tests.conftest import assert_one_line_error, mosaic_run, run_cli
 
 KML = "{http://www.opengis.net/kml/2.2}"
 CRS = "EPSG:32632"
@@ -27,10 +26,7 @@ ORIGIN = (465_700.0, 5_249_500.0)  # UTM 32N, near Zurich
 RES = 0.1
 
 
-def mosaic(*args):
-    run = subprocess.run([sys.executable, "-m", "mosaic_cli", *map(str, args)], capture_output=True, text=True)
-    assert run.returncode == 0, run.stderr
-    return run
+mosaic = mosaic_run  # in this process: none of these tests is about the process itself
 
 
 @pytest.fixture(scope="module")
@@ -336,10 +332,8 @@ def test_map_outputs_without_telemetry_are_one_line_before_any_work(capsys, tmp_
 
 
 @pytest.fixture(scope="module")
-def plain_video(tmp_path_factory):
-    video = tmp_path_factory.mktemp("plain") / "plain.mp4"
-    mosaic("simulate", "-o", video, "-n", "20", "--size", "160x90", "--preset", "ultrafast", "-q")
-    return video
+def plain_video(plain_160x90):
+    return plain_160x90  # (conftest: test_georef's too)
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")

@@ -28,7 +28,7 @@ from mosaic_cli.stitch import StitchOptions, stitch
 from mosaic_cli.track import track_video
 
 SIZE = (320, 180)
-FRAMES = 40
+FRAMES = 30
 HELD = 8  # pairs the tracking has estimated (and held back) when the detection begins
 
 

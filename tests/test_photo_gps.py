@@ -64,8 +64,18 @@ def test_xmp_written_as_elements_and_partial_or_damaged_metadata_are_told_apart(
     assert read_photo_tags(plain) == PhotoTags(plain, 300, 200)  # nothing said, nothing wrong
 
 
-def test_dry_run_prints_what_each_photo_says_and_writes_nothing(tmp_path):
-    survey = write_survey(tmp_path / "photos", rows=1, per_row=3, size=(320, 240), gsd=0.25)
+@pytest.fixture(scope="module")
+def small_survey(tmp_path_factory):
+    """Three geotagged 320x240 photos on one line, written once for the module (a test that
+    changes them works on a copy), over the simulator's map of seed 3 (the session makes it once)."""
+    from mosaic_cli.simulate import load_map
+
+    return write_survey(tmp_path_factory.mktemp("small_survey") / "photos", rows=1, per_row=3, size=(320, 240), gsd=0.25,
+                        map_image=load_map(None, seed=3))
+
+
+def test_dry_run_prints_what_each_photo_says_and_writes_nothing(small_survey):
+    survey = small_survey
     proc = subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(survey.folder), "--dry-run"], capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
@@ -75,7 +85,8 @@ def test_dry_run_prints_what_each_photo_says_and_writes_nothing(tmp_path):
         tags = read_photo_tags(survey.folder / name)
         assert line.startswith(name) and f"{tags.lat:.7f}, {tags.lon:.7f}" in line and f"height {tags.height:.1f} m" in line
     assert lines[-1].startswith("3 photos (DJI FC3411): 3 with GPS, 3 with a yaw, 0 with damaged metadata, one every 2.0 s")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
+    assert sorted(p.name for p in survey.folder.parent.iterdir()) == ["photos"]
+    assert sorted(p.name for p in survey.folder.iterdir()) == sorted(survey.names)
 
 
 # -- a survey on the map ---------------------------------------------------------------------
@@ -148,16 +159,17 @@ def test_wrong_missing_and_damaged_metadata_and_another_camera_are_each_said_onc
     assert placed[3] < 3.0 and placed[7] < 3.0  # placed by their pixels, near the truth
 
 
-def test_a_folder_without_gps_stitches_as_before_and_a_map_needs_gps(tmp_path, capsys):
-    survey = write_survey(tmp_path / "photos", rows=1, per_row=3, size=(320, 240), gsd=0.25)
-    for name in survey.names:  # strip the metadata: pixels alone
+def test_a_folder_without_gps_stitches_as_before_and_a_map_needs_gps(tmp_path, capsys, small_survey):
+    survey = small_survey
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for name in survey.names:  # a copy stripped of the metadata: pixels alone
         path = survey.folder / name
-        Image.open(path).convert("RGB").save(path.with_suffix(".png"))
-        path.unlink()
-    code, err = run_cli(capsys, "stitch", str(survey.folder), "-o", str(tmp_path / "map.kmz"), "-q")
+        Image.open(path).convert("RGB").save((folder / name).with_suffix(".png"))
+    code, err = run_cli(capsys, "stitch", str(folder), "-o", str(tmp_path / "map.kmz"), "-q")
     assert code == 2 and err.strip().splitlines() == [
-        f"mosaic: error: -o {tmp_path / 'map.kmz'} (KMZ) needs GPS (no photo in {survey.folder} has EXIF GPS)"]
-    code, err = run_cli(capsys, "stitch", str(survey.folder), "-o", str(tmp_path / "pano.tif"), "-q")
+        f"mosaic: error: -o {tmp_path / 'map.kmz'} (KMZ) needs GPS (no photo in {folder} has EXIF GPS)"]
+    code, err = run_cli(capsys, "stitch", str(folder), "-o", str(tmp_path / "pano.tif"), "-q")
     assert code == 0 and err == "", err
 
 
@@ -185,6 +197,7 @@ def test_the_caliterra_folder_lands_where_its_exif_says(tmp_path, capsys):
 
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (SHARED.parent / "aerial_stills" / "deepforest_neon_orthophoto").is_dir(), reason="../shared/data is not here")
 def test_a_photo_whose_overlap_is_a_strip_beside_canopy_is_placed_by_its_gps_guided_matches(tmp_path, capsys):
     """Real forest imagery (a NEON orthophoto with a road): the second photo overlaps the first by

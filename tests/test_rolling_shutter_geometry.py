@@ -43,7 +43,7 @@ def _true_pair_motion(plan, bands, rng, points=1500, noise=0.05):
         x = project(M[t + 1], pm)
         for _ in range(3):  # the row it lands on in frame t+1 decides its homography there
             F1 = row_frame_to_ref(np.linalg.inv(B[t + 1]), x[:, 1], h)
-            x = np.array([project(np.linalg.inv(G), q[None])[0] for G, q in zip(F1, pm)])
+            x = project(np.linalg.inv(F1), pm[:, None])[:, 0]  # each point through its own row's inverse
         motion.append(band_motion(src, x + rng.normal(0, noise, x.shape), (w, h), bands))
     return np.array(motion)
 

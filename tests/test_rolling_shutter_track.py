@@ -17,12 +17,13 @@ from mosaic_cli.track import load_track, track_video
 from mosaic_cli.video import probe as probe_video
 
 SIZE = (640, 360)
+SEED = 3  # (the map of seed 3: made once for the session's other flights)
 
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
     clip = tmp_path_factory.mktemp("rstrack") / "rs.mp4"
-    simulate_flight(clip, None, SimulateOptions(profile="fast", frames=48, size=SIZE, seed=5, preset="ultrafast",
+    simulate_flight(clip, None, SimulateOptions(profile="fast", frames=48, size=SIZE, seed=SEED, preset="ultrafast",
                                                 rolling=RollingShutter(0.7, 15.0, 5.0)), show_progress=False)
     return clip
 
@@ -74,7 +75,7 @@ def test_auto_probe_rides_on_the_tracking_pass(flight, tmp_path, monkeypatch):
     real_open = rolling.open_video
     monkeypatch.setattr(rolling, "open_video", lambda *a, **k: opened.append(a[0]) or real_open(*a, **k))
     gs = tmp_path / "gs.mp4"
-    simulate_flight(gs, None, SimulateOptions(profile="fast", frames=30, size=SIZE, seed=5, preset="ultrafast",
+    simulate_flight(gs, None, SimulateOptions(profile="fast", frames=30, size=SIZE, seed=SEED, preset="ultrafast",
                                               rolling=RollingShutter(0.0, 15.0, 5.0)), show_progress=False)
     result = track_video(gs, make_estimator("orb"), show_progress=False, rolling_shutter="auto")
     assert result.rolling is not None and not result.rolling["applied"] and result.rolling["readout"] == 0.0
