@@ -13,6 +13,8 @@ SUITES = {
     "stitch": ("stitch", "stitch's placement accuracy, throughput, memory, revisits and photo folders; `drift-solver`"),
     "stabilize": ("stabilize", "stabilize against vid.stab; `perspective`: the motion models; `frames`: frames in = frames out"),
     "live": ("live", "live track, stitch and stabilize over loopback TCP: lag, latency, jitter, start-up, memory"),
+    "flights": ("flights", "several flights into one map: overlapping flights against the truth, flights apart placed by their logs"),
+    "maps": ("maps", "large canvases: the compose stage's peak memory and time per megapixel from 10 to 400 Mpx; whole photo-folder stitches"),
     "photos": ("photos", "geotagged photo folders into a map as the folder grows: time and pairs per photo, memory, accuracy"),
     "georef": ("georef", "georeferencing accuracy of stitch --telemetry on simulated flights with exact truth"),
     "memory": ("memory", "peak memory of track and stabilize as the clip grows"),

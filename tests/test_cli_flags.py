@@ -205,7 +205,8 @@ def test_stitch_help_groups_its_options(capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "200")
     panels = help_panels(capsys, "stitch")
     assert list(panels) == ["Arguments", "Options", "Input and output", "Estimator", "Drift control", "Output quality",
-                            "Overlays and mask", "Telemetry and maps", "Live input", "Progress and run"]
+                            "Overlays and mask", "Telemetry and maps", "Live input", "Progress and run", "Machine"]
+    assert panels["Machine"] == ["--workers", "--scheduler"]
     assert panels["Drift control"] == ["--drift-control", "--max-loop-pairs", "--overlap"]
     assert panels["Live input"] == ["--live", "--preview", "--every", "--timeout"]
     assert "--telemetry" in panels["Telemetry and maps"] and "--work-width" in panels["Estimator"]

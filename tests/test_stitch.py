@@ -20,7 +20,7 @@ from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.geometry import corner_error, frame_corners, normalize, project
 from mosaic_cli.simulate import MapPyramid, plan_flight, render_frames, render_view
 from mosaic_cli.stitch import RegistrationOptions, StitchOptions, stitch
-from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose, tile_count
 from mosaic_cli.stitch.features import PairMatch
 from mosaic_cli.stitch.keyframes import Keyframe, KeyframeStore
 from mosaic_cli.stitch.registration import Link, RegistrationReport, chain_sequence, link_from_match, refine_placements
@@ -160,7 +160,7 @@ def test_max_size_bounds_the_canvas_and_the_transforms_follow(survey, tmp_path):
     native = result.panoramas[0].shrunk_from
     assert native is not None and np.abs(np.subtract(native, full.canvas_size)).max() <= 1  # (the bounds' rounding)
     said = f"{pano}: scaled down from {native[0]}x{native[1]} to {canvas[0]}x{canvas[1]} by --max-size 200"
-    assert [line for line in _notices(flight.path, result, 200) if "scaled down" in line] == [f"{said} (--max-size 0 keeps every pixel)"]
+    assert [line for line in _notices(flight.path, result) if "scaled down" in line] == [said]
     image = read_rgba(pano)
     assert max(canvas) <= 200 and image.shape[:2] == (canvas[1], canvas[0]) and image.ndim == 3
     assert max(canvas) >= 195
@@ -575,9 +575,10 @@ def test_keyframe_store_shrinks_held_pixels_as_the_flown_area_grows():
     assert held < 40 * frame.size * 0.1
 
 
-def test_blending_in_strips_matches_blending_the_whole_canvas(ground):
-    """The blender runs on horizontal strips to bound its memory; the margins it borrows
-    from the neighbouring strips must make the seams between strips invisible."""
+def test_blending_in_tiles_matches_blending_the_whole_canvas(ground):
+    """The blender runs on square tiles to bound its memory; the margins it borrows from the
+    neighbouring tiles must make the seams between tiles invisible, also when the cache of
+    keyframe pixels is too small to hold one and every tile reads them again."""
     rng = np.random.default_rng(1)
     canvas = (700, 620)
     tiles = []
@@ -589,15 +590,15 @@ def test_blending_in_strips_matches_blending_the_whole_canvas(ground):
         tiles.append((np.clip(view * gain, 0, 255).astype(np.uint8), H))
     results = {}
     for blend in ("multiband", "feather"):
-        for strip in (100.0, 0.05):  # one strip; strips of ~70 rows
+        for tile, cache in ((10**6, 512.0), (64, 1e-6)):  # one tile; 64-px tiles, nothing cached
             placed = [PlacedImage(image.copy(), H) for image, H in tiles]
-            options = ComposeOptions(blend=blend, strip_megapix=strip)
-            results[blend, strip] = compose(placed, canvas, options)
+            options = ComposeOptions(blend=blend, tile=tile, cache_megabytes=cache)
+            results[blend, tile] = compose(placed, canvas, options)
             assert all(p.image is None for p in placed)  # pixels dropped once drawn
-        whole, strips = results[blend, 100.0].astype(int), results[blend, 0.05].astype(int)
-        assert np.array_equal(whole[..., 3], strips[..., 3])
-        assert np.abs(whole - strips).max() <= 2, blend
-    assert (results["multiband", 100.0][..., 3] == 255).mean() > 0.6
+        whole, parts = results[blend, 10**6].astype(int), results[blend, 64].astype(int)
+        assert np.array_equal(whole[..., 3], parts[..., 3])
+        assert np.abs(whole - parts).max() <= 2, blend
+    assert (results["multiband", 10**6][..., 3] == 255).mean() > 0.6
 
 
 def test_keyframe_pixels_spilled_to_files_are_the_pixels_held_in_memory(tmp_path):
@@ -629,24 +630,26 @@ def test_spilled_images_compose_exactly_as_in_memory_and_their_files_go(ground, 
     for k in range(6):
         H = np.array([[1.0, 0.01, 30 + 150 * (k % 3)], [-0.01, 1.0, 20 + 140 * (k // 3)], [0, 0, 1]])
         tiles.append((cv2.warpPerspective(ground, np.linalg.inv(H), (220, 180)), H))
-    in_memory = compose([PlacedImage(image.copy(), H) for image, H in tiles], (560, 380), ComposeOptions(strip_megapix=0.03))
+    in_memory = compose([PlacedImage(image.copy(), H) for image, H in tiles], (560, 380), ComposeOptions(tile=128))
     spilled = [PlacedImage(SpilledImage(image, tmp_path), H) for image, H in tiles]
     assert len(list(tmp_path.iterdir())) == 6
-    from_files = compose(spilled, (560, 380), ComposeOptions(strip_megapix=0.03))
+    from_files = compose(spilled, (560, 380), ComposeOptions(tile=128))
     assert np.array_equal(in_memory, from_files)
     assert list(tmp_path.iterdir()) == []
 
 
-def test_compose_reports_progress_in_canvas_rows_each_row_once(ground):
+def test_compose_reports_progress_in_tiles_each_tile_once(ground):
     tiles = []
     for k in range(4):
         H = np.array([[1.0, 0.0, 40 + 200 * (k % 2)], [0.0, 1.0, 30 + 150 * (k // 2)], [0, 0, 1]])
         tiles.append(PlacedImage(cv2.warpPerspective(ground, np.linalg.inv(H), (220, 180)), H))
     steps = []
-    compose(tiles, (500, 380), ComposeOptions(strip_megapix=0.02), lambda n=1, status=None: steps.append(n))
-    rows = [n for n in steps if n]
-    assert len(rows) > 1  # several strips, so the bar moves while the canvas is blended
-    assert sum(rows) == 380
+    options = ComposeOptions(tile=100)
+    total = tile_count(tiles, (500, 380), options)
+    compose(tiles, (500, 380), options, lambda n=1, status=None: steps.append(n))
+    done = [n for n in steps if n]
+    assert len(done) > 1  # several tiles, so the bar moves while the canvas is blended
+    assert sum(done) == total
 
 
 @pytest.mark.slow

@@ -5,7 +5,7 @@
 - the blenders against ``cv2.detail.MultiBandBlender``, ``FeatherBlender`` and ``Blender`` on
   the same textured images and masks (hard and soft edges, band counts 1-7, sharpnesses, canvas
   rectangles at the origin and offset), and the feather's L1 distance transform;
-- compose's device warp of a strip against ``warp_into``/``_strip_part`` (shrunk sources, a
+- compose's device warp of a tile against ``warp_into``/``_tile_part`` (shrunk sources, a
   use mask, a rolling shutter's row maps, exposure gains);
 - compose and a whole ``stitch`` of a simulated flight with ``ComposeOptions(torch_device="cpu")``
   against OpenCV's path;
@@ -32,8 +32,10 @@ from mosaic_cli.stitch import pipeline as stitch_pipeline
 from mosaic_cli.stitch.compose import (
     ComposeOptions,
     PlacedImage,
+    Roi,
     _device_part,
-    _strip_part,
+    _host_source,
+    _tile_part,
     _upload,
     bounding_roi,
     compose,
@@ -146,7 +148,7 @@ def _rows(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("scale", [1.0, 0.5])  # 0.5: the source is shrunk first (INTER_AREA)
 @pytest.mark.parametrize("use", [False, True])
 @pytest.mark.parametrize("rows", [None, _rows])
-def test_device_strip_part_is_opencv_s_warp(ground, scale, use, rows):
+def test_device_tile_part_is_opencv_s_warp(ground, scale, use, rows):
     image = ground[100:340, 200:520].copy()
     keep = None
     if use:  # an overlay's pixels are not drawn; the mask held smaller than the image, as scans hold it
@@ -161,8 +163,9 @@ def test_device_strip_part_is_opencv_s_warp(ground, scale, use, rows):
     for gain, tolerance in ((None, 1), (np.array([[1.1]]), 2), (0.8 + 0.4 * rng.random((5, 6)), 2)):
         placed = PlacedImage(image, H, keep, rows)
         source, S = _upload(placed, roi, gain, seam, "cpu")
-        for part in ((0, roi.h), (7, roi.h // 2)):
-            expected, expected_mask = _strip_part(image, H, roi, part, gain, seam, keep, rows)
+        _, full_seam, full_gain = _host_source(placed, roi, gain, seam)
+        for part in (roi, Roi(roi.x, roi.y + 7, roi.w, roi.h // 2 - 7), Roi(roi.x + 11, roi.y + 5, roi.w // 3, roi.h // 2)):
+            expected, expected_mask = _tile_part(image, H, roi, part, full_gain, full_seam, keep, rows)
             warped, mask = _device_part(source, S, placed, roi, part)
             warped = warped.permute(1, 2, 0).numpy()
             # A gain scales the warp's one level of difference before rounding.
@@ -185,13 +188,13 @@ def _tiles(ground: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 @pytest.mark.parametrize("blend", ["multiband", "feather", "none"])
-@pytest.mark.parametrize("strip", [100.0, 0.05])  # one strip; strips of ~70 rows
-def test_compose_on_torch_matches_opencv(ground, blend, strip):
+@pytest.mark.parametrize("tile", [10**6, 64])  # one tile; 64-px tiles
+def test_compose_on_torch_matches_opencv(ground, blend, tile):
     canvas = (700, 620)
     results = {}
     for device in (None, "cpu"):
         placed = [PlacedImage(image.copy(), H) for image, H in _tiles(ground)]
-        results[device] = compose(placed, canvas, ComposeOptions(blend=blend, strip_megapix=strip, torch_device=device))
+        results[device] = compose(placed, canvas, ComposeOptions(blend=blend, tile=tile, torch_device=device))
         assert all(p.image is None for p in placed)  # pixels dropped once drawn
     expected, result = results[None].astype(int), results["cpu"].astype(int)
     assert np.array_equal(result[..., 3], expected[..., 3])
@@ -242,7 +245,7 @@ def test_compose_on_the_gpu_is_the_cpu_torch_path(ground):
         results = {}
         for device in ("cpu", "cuda"):
             placed = [PlacedImage(image.copy(), H) for image, H in _tiles(ground)]
-            options = ComposeOptions(blend=blend, strip_megapix=0.05, torch_device=device)
+            options = ComposeOptions(blend=blend, tile=64, torch_device=device)
             results[device] = compose(placed, canvas, options).astype(int)
         assert np.array_equal(results["cuda"][..., 3], results["cpu"][..., 3])
         assert np.abs(results["cuda"] - results["cpu"]).max() <= 1

@@ -32,6 +32,7 @@ from mosaic_cli.simulate import SimulateOptions
 from mosaic_cli.simulate.telemetry import GpsErrors, TelemetryOptions
 from mosaic_cli.stabilize import StabilizeOptions
 from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
+from mosaic_cli.stitch.cluster import ClusterOptions
 from mosaic_cli.stitch.features import FeatureOptions
 from mosaic_cli.stitch.guide import GuideOptions
 from mosaic_cli.stitch.live import PreviewOptions
@@ -45,6 +46,7 @@ OPTIONS = {
     AlignOptions: {},
     BenchOptions: {},
     CanvasOptions: {},
+    ClusterOptions: {},
     GuideOptions: {},
     ComposeOptions: {},
     CornerConfig: {},
@@ -79,6 +81,9 @@ BAD = [
     (CanvasOptions, {"reference": "left"}, BadInput, "--reference"),
     (CanvasOptions, {"reference": "-2"}, BadInput, "--reference"),
     (CanvasOptions, {"max_size": 10}, BadInput, "--max-size"),
+    (CanvasOptions, {"gsd": -0.05}, BadInput, "--gsd"),
+    (ClusterOptions, {"workers": 0}, BadInput, "--workers"),
+    (ClusterOptions, {"scheduler": "localhost"}, BadInput, "--scheduler"),
     (ComposeOptions, {"blend": "average"}, BadInput, "--blend"),
     (ComposeOptions, {"seam": "x"}, BadInput, "--seam"),
     (ComposeOptions, {"exposure": "x"}, BadInput, "--exposure"),

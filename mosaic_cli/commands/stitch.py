@@ -13,6 +13,7 @@ from mosaic_cli.commands.options import (
     DRIFT_CONTROL,
     INPUT_OUTPUT,
     LIVE,
+    MACHINE,
     OUTPUT_QUALITY,
     TELEMETRY,
     Device,
@@ -41,7 +42,7 @@ Quiet = quiet_option("No progress bars.")
 
 
 def stitch(
-    video: Annotated[str, typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://).")],
+    videos: Annotated[list[str], typer.Argument(help="Video file, folder of numbered images, - (standard input) or a stream URL (udp://, tcp://, rtp://, rtsp://, srt://, http(s)://). Several flights (videos, photo folders, or a folder of them) make one map.", metavar="VIDEO...", show_default=False)],
     out: Annotated[str | None, typer.Option("-o", "--out", help="Panorama: .png, .tif/.tiff (with transparency) or .jpg/.jpeg; with telemetry a map: .tif (Cloud Optimized GeoTIFF), .kmz (Google Earth), DIR/ (web tiles, {z}/{x}/{y}.png), .pmtiles or .mbtiles.", rich_help_panel=INPUT_OUTPUT, show_default="required")] = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Read the input's metadata and print it, stitch nothing: each photo's GPS, height, attitude, field of view and camera (EXIF, DJI XMP); a video's size, rate and telemetry.", rich_help_panel=INPUT_OUTPUT)] = False,
     transforms: Annotated[Path | None, typer.Option("--transforms", help="Also write each used frame's homography (frame -> panorama pixels) as JSON.", rich_help_panel=INPUT_OUTPUT)] = None,
@@ -56,7 +57,8 @@ def stitch(
     max_loop_pairs: Annotated[int | None, typer.Option("--max-loop-pairs", help="At most this many loop registrations (bounds drift-control cost).", rich_help_panel=DRIFT_CONTROL, show_default="300; a photo folder: 3 a photo, at least 300")] = None,
     overlap: Annotated[float, typer.Option("--overlap", help="A new keyframe is due when its overlap with the last one drops below this.", rich_help_panel=DRIFT_CONTROL)] = 0.6,
     reference: Annotated[str, typer.Option("--reference", help="Frame the panorama is drawn in: first, middle or a frame number.", rich_help_panel=OUTPUT_QUALITY)] = "middle",
-    max_size: Annotated[int, typer.Option("--max-size", help="Longest side of the panorama in pixels (larger canvases are scaled down); 0: no limit.", rich_help_panel=OUTPUT_QUALITY)] = 8000,
+    max_size: Annotated[int, typer.Option("--max-size", help="Longest side of the panorama in pixels: a larger one is scaled down, said in one line. 0: every pixel (memory does not grow with the panorama).", rich_help_panel=OUTPUT_QUALITY)] = 0,
+    gsd: Annotated[str | None, typer.Option("--gsd", help="A map's ground resolution, as 5cm, 0.05m or 50mm (with telemetry): the map is drawn no finer than this.", rich_help_panel=OUTPUT_QUALITY, show_default="the footage's own")] = None,
     blend: Annotated[str, typer.Option("--blend", help="multiband, feather or none.", rich_help_panel=OUTPUT_QUALITY)] = "multiband",
     seam: Annotated[str, typer.Option("--seam", help="Seam finder: dp, graphcut, voronoi or none.", rich_help_panel=OUTPUT_QUALITY)] = "dp",
     exposure: Annotated[str, typer.Option("--exposure", help="Exposure compensation: gain-blocks, gain or none.", rich_help_panel=OUTPUT_QUALITY)] = "gain-blocks",
@@ -76,8 +78,16 @@ def stitch(
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
     lens: LensOption = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Spread the flights' scans and the panorama's tiles over this many local worker processes (Dask; the cluster extra).", rich_help_panel=MACHINE, show_default="none: all in this process")] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help="Use a running Dask cluster (tcp://HOST:PORT) whose workers share this machine's disk.", rich_help_panel=MACHINE)] = None,
 ) -> None:
-    """Stitch a drone flight into one panorama (PNG/JPEG/TIFF by extension)."""
+    """Stitch a drone flight, or several, into one panorama or map (PNG/JPEG/TIFF by extension)."""
+    from mosaic_cli.stitch.flights import expand_flights
+
+    flights = expand_flights(videos) if len(videos) > 1 or Path(videos[0]).is_dir() else list(videos)
+    video = flights[0]
+    if len(flights) > 1 and (dry_run or live or preview is not None or any(f == "-" or "://" in f for f in flights)):
+        raise BadInput("several flights are stitched from files: --dry-run, --live and live inputs take one flight")
     if dry_run:
         _dry_run(video)
         return
@@ -89,6 +99,8 @@ def stitch(
     from mosaic_cli.stabilize.rolling import bridged_bands, parse_rolling_shutter
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
     from mosaic_cli.stitch import stitch as run_stitch
+    from mosaic_cli.stitch.canvas import parse_distance
+    from mosaic_cli.stitch.cluster import ClusterOptions
     from mosaic_cli.stitch.live import PreviewOptions, stitch_live
 
     options = StitchOptions(
@@ -98,7 +110,7 @@ def stitch(
         device=device,
         keyframes=KeyframeOptions(new_ground=overlap),
         registration=RegistrationOptions(enabled=drift_control, max_loop_pairs=max_loop_pairs),
-        canvas=CanvasOptions(reference=reference, max_size=max_size or None),
+        canvas=CanvasOptions(reference=reference, max_size=max_size or None, gsd=parse_distance(gsd) if gsd is not None else None),
         compose=ComposeOptions(blend=blend, seam=seam, exposure=exposure, fill_holes=FILL_HOLES_SHARE if fill_holes else 0.0),
         mask=mask_options(mask, overlay_detect),
         start=start,
@@ -106,11 +118,14 @@ def stitch(
         georef=_georef_options(telemetry, hfov, telemetry_offset, footprints, level_ground, html),
         timeout=timeout,
         rolling_shutter="off" if rolling_shutter is None else rolling_shutter,
+        cluster=ClusterOptions(workers, scheduler),
     )
     live = live or is_live_source(video) or preview is not None
+    if live and (workers is not None or scheduler is not None):
+        raise BadInput("--workers and --scheduler stitch files: not with --live or a live input")
     if live and rolling_shutter is not None and parse_rolling_shutter(rolling_shutter) != "off":
         raise BadInput("--rolling-shutter needs the whole video: not with --live or a live input")
-    if rolling_shutter is None and not live and not Path(video).is_dir():  # the default: a video file's rows are checked
+    if rolling_shutter is None and not live and not Path(video).is_dir() and len(flights) == 1:  # the default: a video file's rows are checked
         options = dataclasses.replace(options, rolling_shutter="auto")
     lens_choice = None
     # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
@@ -119,6 +134,13 @@ def stitch(
         with undistorting(lens, video, live=is_live_source(video)) as lens_choice:
             result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
                                  show_progress=not quiet)
+    elif len(flights) > 1:
+        from mosaic_cli.stitch.flights import stitch_flights
+
+        if lens is not None and lens != "none":
+            raise BadInput("--lens applies to one flight at a time: stitch flights of one camera, each undistorted, or without --lens")
+        with reading_policy(strict):
+            result = stitch_flights(flights, out, options=options, transforms=transforms, show_progress=not quiet)
     else:
         with reading_policy(strict), undistorting(lens, video) as lens_choice:  # the panorama: a pinhole view of the ground
             result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet)
@@ -135,6 +157,8 @@ def stitch(
         for p in result.panoramas:
             joined = f" ({p.segments} segments joined)" if p.segments > 1 else ""
             console.print(f"  {p.canvas_size[0]}x{p.canvas_size[1]} panorama of {len(p.transforms)} keyframes{joined} -> {p.path}")
+        for line in _flight_lines(result):
+            console.print(line)
         on_ground = [(p.path, p.georef) for p in result.panoramas if p.georef is not None]
         if on_ground:
             console.print(on_ground[0][1].telemetry.summary())
@@ -150,18 +174,34 @@ def stitch(
         if fill_holes:  # the last line: what the panorama holds that no frame showed
             console.print(f"--fill-holes: {sum(p.filled for p in result.panoramas)} pixels of interior holes filled")
     # Said even with -q: nothing leaves the panorama silently.
-    for line in _notices(video, result, max_size):
+    for line in _notices(flights, result):
         print(f"mosaic: warning: {line}", file=sys.stderr)
 
 
-def _notices(video: Path, result, max_size: int) -> list[str]:
-    """A line for a flight in several panoramas (which file holds what), for a panorama that
-    ``--max-size`` scaled down, and for frames or photos placed nowhere."""
+def _flight_lines(result) -> list[str]:
+    """Several flights: one line each, its frames (photos) and the panoramas its keyframes went into."""
     lines = []
-    names = _photo_names(video) if result.photos else None
+    for f in result.flights:
+        into = [str(p.path) for p in result.panoramas if any(f.holds(i) for i, _ in p.transforms)]
+        unit = "photos" if result.photos else "frames"
+        lines.append(f"  flight {Path(f.name).name}: {f.frames} {unit} -> {', '.join(into) if into else 'no panorama'}")
+    return lines
+
+
+def _notices(videos: list[str] | str | Path, result) -> list[str]:
+    """A line for a flight in several panoramas (which file holds what), for a panorama that
+    ``--max-size``, ``--gsd`` or JPEG's limit scaled down, and for frames or photos placed nowhere."""
+    lines = []
+    flights = getattr(result, "flights", [])
+    video = videos[0] if isinstance(videos, list) else videos
+    names: dict[int, str] | list[str] | None = None
+    if result.photos and flights:  # each photo by its folder and name, in the one count of the flights
+        names = {f.start + i: f"{Path(f.name).name}/{name}" for f in flights for i, name in enumerate(_photo_names(Path(f.name)))}
+    elif result.photos:
+        names = _photo_names(Path(video))
     several = len(result.panoramas) > 1
     if several:
-        lines.append(_split_notice(result.panoramas, names))
+        lines.append(_split_notice(result.panoramas, names, flights))
     if several and any(p.georef is not None for p in result.panoramas):
         for p in result.panoramas:
             if p.georef is None:
@@ -172,14 +212,15 @@ def _notices(video: Path, result, max_size: int) -> list[str]:
     for p in result.panoramas:
         if p.shrunk_from is not None:
             (w, h), (W, H) = p.canvas_size, p.shrunk_from
-            lines.append(f"{p.path}: scaled down from {W}x{H} to {w}x{h} by --max-size {max_size} (--max-size 0 keeps every pixel)")
+            lines.append(f"{p.path}: scaled down from {W}x{H} to {w}x{h} by {p.shrunk_by}")
     lines += result.metadata_notes
     if result.dropped:
         if names is not None:
             for index, why in result.dropped:
                 lines.append(f"photo {names[index]} not used: {why}")
         else:
-            lines.append(f"{len(result.dropped)} frame(s) placed nowhere (the flight was lost there): frames {_ranges([i for i, _ in result.dropped])}")
+            dropped = _runs_of(sorted(i for i, _ in result.dropped))
+            lines.append(f"{len(result.dropped)} frame(s) placed nowhere (the flight was lost there): frames {_frame_runs(dropped, flights)}")
     return lines
 
 
@@ -190,7 +231,7 @@ def _photo_names(video: Path) -> list[str]:
     return [p.name for p in folder_images(Path(video))]
 
 
-def _split_notice(panoramas, photo_names: list[str] | None) -> str:
+def _split_notice(panoramas, photo_names: list[str] | dict[int, str] | None, flights=()) -> str:
     """``the photos make 2 panoramas that no registration joins: pano.png holds 17 photos
     (A.jpg, B.jpg, C.jpg, ..., Q.jpg); pano-2.png holds 1 photo (R.jpg)``: the files in the
     order written (largest first), each with the photos (names) or frames (indices) it holds."""
@@ -200,10 +241,30 @@ def _split_notice(panoramas, photo_names: list[str] | None) -> str:
             held = [photo_names[i] for a, b in p.spans for i in range(a, b + 1)]
             parts.append(f"{p.path} holds {_count(p.size, 'photo')} ({_abridged(held)})")
         else:
-            runs = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in p.spans)
-            parts.append(f"{p.path} holds {_count(p.size, 'frame')} ({runs})")
+            parts.append(f"{p.path} holds {_count(p.size, 'frame')} ({_frame_runs(p.spans, flights)})")
     what = "photos" if photo_names is not None else "flight"
     return f"the {what} make{'' if photo_names is not None else 's'} {len(panoramas)} panoramas that no registration joins: " + "; ".join(parts)
+
+
+def _frame_runs(runs: list[tuple[int, int]], flights=()) -> str:
+    """Inclusive runs of frame numbers as the user reads them: ``0-899, 950``; with several
+    flights, each run in its own flight's numbers: ``f1.mp4 0-899, f2.mp4 0-420``."""
+    said = []
+    for a, b in runs:
+        span = next((f for f in flights if f.holds(a)), None)
+        name, a, b = ("", a, b) if span is None else (f"{Path(span.name).name} ", a - span.start, b - span.start)
+        said.append(f"{name}{a}" if a == b else f"{name}{a}-{b}")
+    return ", ".join(said)
+
+
+def _runs_of(indices: list[int]) -> list[tuple[int, int]]:
+    runs: list[list[int]] = []
+    for i in indices:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return [(a, b) for a, b in runs]
 
 
 def _count(n: int, noun: str) -> str:
@@ -213,16 +274,6 @@ def _count(n: int, noun: str) -> str:
 def _abridged(names: list[str], most: int = 5) -> str:
     """A few names in full, a long list as its first three, ... and its last."""
     return ", ".join(names) if len(names) <= most else ", ".join([*names[:3], "...", names[-1]])
-
-
-def _ranges(indices: list[int]) -> str:
-    runs = []
-    for i in sorted(indices):
-        if runs and i == runs[-1][1] + 1:
-            runs[-1][1] = i
-        else:
-            runs.append([i, i])
-    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _georef_options(telemetry: str | None, hfov: float | None, offset: float, footprints: Path | None, level_ground: bool = False,

@@ -4,19 +4,16 @@ homographies for the transforms JSON."""
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, signals_held, temporary_beside, write_json
+from mosaic_cli.atomic import atomic_path, write_json
 from mosaic_cli.errors import ProcessingError, require_geo
 from mosaic_cli.geo.georef import Georeference
 from mosaic_cli.geometry import frame_corners, normalize, project
 
 BLOCK = 512
-ROWS_PER_WRITE = 1024  # strips keep the extra memory of the write to a few rows
 
 
 def canvas_to_ground(georef: Georeference, to_canvas: np.ndarray) -> np.ndarray:
@@ -33,78 +30,27 @@ def geotransform(georef: Georeference, to_canvas: np.ndarray):
     return Affine(G[0, 0], G[0, 1], G[0, 2], G[1, 0], G[1, 1], G[1, 2])
 
 
-def _write_geotiff(path: Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray, overviews: bool = False) -> None:
-    """A plain tiled RGBA GeoTIFF (alpha band), written in strips; with ``overviews``, averaged
-    ones down to a tile (what a reader warping the whole map at a coarser scale wants)."""
-    import rasterio
-    from rasterio.enums import ColorInterp, Resampling
-    from rasterio.windows import Window
-
-    height, width = rgba.shape[:2]
-    profile = dict(driver="GTiff", width=width, height=height, count=4, dtype="uint8", crs=georef.projection.crs.to_wkt(),
-                   transform=geotransform(georef, to_canvas), tiled=True, blockxsize=BLOCK, blockysize=BLOCK, compress="deflate",
-                   photometric="RGB", ALPHA="YES", BIGTIFF="IF_SAFER")
-    with rasterio.open(path, "w", **profile) as dst:
-        dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-        for r0 in range(0, height, ROWS_PER_WRITE):
-            r1 = min(height, r0 + ROWS_PER_WRITE)
-            dst.write(np.ascontiguousarray(rgba[r0:r1].transpose(2, 0, 1)), window=Window(0, r0, width, r1 - r0))
-        if overviews:
-            factors = [2**k for k in range(1, 32) if max(width, height) / 2 ** (k - 1) > BLOCK]
-            if factors:
-                dst.build_overviews(factors, Resampling.average)
-
-
-@contextlib.contextmanager
-def staged_geotiff(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray) -> Iterator[Path]:
-    """The panorama as a temporary GeoTIFF beside ``out`` (with overviews), for the writers that
-    read a georeferenced raster (KMZ, web tiles, the quick-look page); removed on leaving."""
-    import rasterio
-
-    staging = None
-    try:
-        with signals_held():
-            staging = temporary_beside(Path(out), ".staging.tif")
-        try:
-            _write_geotiff(staging, rgba, georef, to_canvas, overviews=True)
-        except rasterio.errors.RasterioError as exc:
-            raise ProcessingError(f"{out}: could not write the map's staging GeoTIFF ({exc})") from None
-        yield staging
-    finally:
-        if staging is not None:
-            with contextlib.suppress(FileNotFoundError):
-                staging.unlink()
-
-
-def write_cog(out: str | Path, rgba: np.ndarray, georef: Georeference, to_canvas: np.ndarray) -> None:
-    """RGBA panorama -> Cloud Optimized GeoTIFF: 512-px internal tiles, deflate, overviews
-    (averaged), transparency as an alpha band."""
+def write_cog(out: str | Path, raster: Path, size: tuple[int, int]) -> None:
+    """A georeferenced RGBA GeoTIFF (``raster``, of ``size`` (W, H)) -> the Cloud Optimized
+    GeoTIFF ``out``: 512-px internal tiles, deflate, overviews (averaged), transparency as an
+    alpha band; BigTIFF where the map needs it.  rio-cogeo reads and writes block by block."""
     require_geo("rasterio", "rio_cogeo")
     import rasterio
     from rio_cogeo.cogeo import cog_translate
     from rio_cogeo.profiles import cog_profiles
     from rio_cogeo.utils import get_maximum_overview_level
 
-    out = Path(out)
-    height, width = rgba.shape[:2]
-    staging = None
+    width, height = size
+    cog = cog_profiles.get("deflate")
+    cog.update(blockxsize=BLOCK, blockysize=BLOCK, BIGTIFF="IF_SAFER")
     try:
-        with signals_held():
-            staging = temporary_beside(out, ".staging.tif")
-        _write_geotiff(staging, rgba, georef, to_canvas)
-        cog = cog_profiles.get("deflate")
-        cog.update(blockxsize=BLOCK, blockysize=BLOCK, BIGTIFF="IF_SAFER")
         with atomic_path(out) as tmp:
             # at least one overview level, also for a panorama smaller than a tile
             levels = max(1, get_maximum_overview_level(width, height, minsize=BLOCK))
-            cog_translate(str(staging), str(tmp), cog, overview_level=levels, overview_resampling="average", quiet=True,
+            cog_translate(str(raster), str(tmp), cog, overview_level=levels, overview_resampling="average", quiet=True,
                           in_memory=False, use_cog_driver=False)
     except rasterio.errors.RasterioError as exc:
         raise ProcessingError(f"{out}: could not write the GeoTIFF ({exc})") from None
-    finally:
-        if staging is not None:
-            with contextlib.suppress(FileNotFoundError):
-                staging.unlink()
 
 
 def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> None:

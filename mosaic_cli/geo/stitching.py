@@ -107,45 +107,48 @@ def map_homographies(georef: Georeference, to_canvas: np.ndarray, frame_to_canva
     return [normalize(G @ H) for H in frame_to_canvas]
 
 
-def write_outputs(out, panorama, georef: Georeference, options: GeorefOptions, to_canvas, frame_to_canvas, frame_size, fps) -> bool:
+def write_outputs(out, staged, georef: Georeference, options: GeorefOptions, to_canvas, frame_to_canvas, frame_size, fps) -> bool:
     """The map ``out`` when it is one (GeoTIFF, KMZ, MBTiles, web tiles), the footprints and the
-    quick-look page; False when ``out`` is left to the plain writer (PNG/JPEG: the north-up
-    mosaic without a geotransform)."""
-    import contextlib
-
+    quick-look page, all read from ``staged`` (the panorama as a georeferenced GeoTIFF on disk,
+    stitch/raster.py: ``path``, ``size``, ``add_overviews()``); False when ``out`` is left to the
+    plain writer (PNG/JPEG: the north-up mosaic without a geotransform)."""
     from mosaic_cli.atomic import write_json
-    from mosaic_cli.geo.output import footprint_collection, staged_geotiff, write_cog
+    from mosaic_cli.geo.output import footprint_collection, write_cog
     from mosaic_cli.inputs import MAP_FORMATS, output_format
 
     fmt = output_format(out)
     features = footprint_collection(georef, map_homographies(georef, to_canvas, frame_to_canvas), frame_size, fps)
     if options.footprints is not None:
         write_json(options.footprints, features)
+    staged.close()
     if fmt == "tiff":
-        write_cog(out, panorama, georef, to_canvas)
+        write_cog(out, staged.path, staged.size)
     if fmt not in MAP_FORMATS and options.html is None:
         return fmt == "tiff"
-    with contextlib.ExitStack() as stack:
-        # the writers below read a georeferenced raster: the COG just written, else a staging one
-        raster = Path(out) if fmt == "tiff" else stack.enter_context(staged_geotiff(out, panorama, georef, to_canvas))
-        if fmt == "kmz":
-            from mosaic_cli.geo.kmz import write_kmz
+    # the writers below read a georeferenced raster: the COG just written, else the staged one
+    if fmt == "tiff":
+        raster = Path(out)
+    else:
+        staged.add_overviews()
+        raster = staged.path
+    if fmt == "kmz":
+        from mosaic_cli.geo.kmz import write_kmz
 
-            write_kmz(out, raster, features)
-        elif fmt == "mbtiles":
-            from mosaic_cli.geo.tiles import write_mbtiles
+        write_kmz(out, raster, features)
+    elif fmt == "mbtiles":
+        from mosaic_cli.geo.tiles import write_mbtiles
 
-            write_mbtiles(out, raster)
-        elif fmt == "pmtiles":
-            from mosaic_cli.geo.tiles import write_pmtiles
+        write_mbtiles(out, raster)
+    elif fmt == "pmtiles":
+        from mosaic_cli.geo.tiles import write_pmtiles
 
-            write_pmtiles(out, raster)
-        elif fmt == "tiles":
-            from mosaic_cli.geo.tiles import write_tiles
+        write_pmtiles(out, raster)
+    elif fmt == "tiles":
+        from mosaic_cli.geo.tiles import write_tiles
 
-            write_tiles(out, raster)
-        if options.html is not None:
-            from mosaic_cli.geo.quicklook import write_quicklook
+        write_tiles(out, raster)
+    if options.html is not None:
+        from mosaic_cli.geo.quicklook import write_quicklook
 
-            write_quicklook(options.html, raster, features, title=Path(out).stem or Path(out).name)
+        write_quicklook(options.html, raster, features, title=Path(out).stem or Path(out).name)
     return fmt == "tiff" or fmt in MAP_FORMATS

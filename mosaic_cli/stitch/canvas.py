@@ -16,7 +16,11 @@ MIN_SIZE = 64  # --max-size: a smaller panorama shows nothing
 @dataclass
 class CanvasOptions:
     reference: str = "middle"  # first | middle | a frame number
-    max_size: int | None = 8000  # longest side of the panorama, pixels; None: no limit
+    # Longest side of the panorama, pixels; None: every pixel the keyframes hold (the canvas is
+    # composed tile by tile on disk, so its size costs no memory).
+    max_size: int | None = None
+    # A map's ground resolution, metres per pixel (--gsd, with telemetry); None: the footage's own.
+    gsd: float | None = None
     # A keyframe drawn larger/smaller than this (area ratio) against the reference is a sign
     # of a degenerate chain, not of a real change of altitude.
     max_area_ratio: float = 25.0
@@ -28,6 +32,8 @@ class CanvasOptions:
         parse_reference(self.reference)
         if self.max_size is not None and self.max_size < MIN_SIZE:
             raise BadInput(f"--max-size must be at least {MIN_SIZE} pixels, got {self.max_size}")
+        if self.gsd is not None and not (np.isfinite(self.gsd) and self.gsd > 0):
+            raise BadInput(f"--gsd must be a ground distance above 0 (5cm, 0.05m), got {self.gsd}")
 
 
 @dataclass
@@ -36,6 +42,7 @@ class Canvas:
     to_canvas: np.ndarray  # reference frame source pixels -> panorama pixels
     scale: float  # panorama pixels per reference-frame pixel
     native_size: tuple[int, int] | None = None  # (W, H) at one panorama pixel per reference-frame pixel (scale 1)
+    shrunk_by: str | None = None  # what scaled it down (an option, as the user reads it), if anything did
 
     def frame_to_canvas(self, placement: np.ndarray) -> np.ndarray:
         return normalize(self.to_canvas @ placement)
@@ -75,9 +82,13 @@ def plan_canvas(
     size: tuple[int, int],
     options: CanvasOptions,
     drawn: list[bool] | None = None,
+    gsd: float | None = None,
+    limit: str | None = None,
 ) -> Canvas:
-    """Bounding box of the ``drawn`` frames (default all), scaled down to ``max_size``; refuses
-    degenerate placements of any frame (folded, behind the camera or blown up) with advice."""
+    """Bounding box of the ``drawn`` frames (default all), scaled down to ``options.gsd`` when
+    the placements are ground pixels of ``gsd`` metres, and to ``options.max_size`` (``limit``:
+    how to name that bound, when not --max-size); refuses degenerate placements of any frame
+    (folded, behind the camera or blown up) with advice."""
     for H, index in zip(placements, frame_indices):
         if not is_valid(H, size, max_area_ratio=options.max_area_ratio):
             raise ProcessingError(
@@ -90,12 +101,36 @@ def plan_canvas(
     corners = np.concatenate([project(H, frame_corners(*size)) for H, d in zip(placements, drawn) if d])
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     extent = hi - lo
-    scale = 1.0
-    if options.max_size and extent.max() > options.max_size:
-        scale = options.max_size / float(extent.max())
+    scale, shrunk_by = 1.0, None
+    if gsd is not None and options.gsd is not None and options.gsd > gsd:
+        scale, shrunk_by = gsd / options.gsd, f"--gsd {format_distance(options.gsd)}"
+    if options.max_size and extent.max() * scale > options.max_size:
+        scale, shrunk_by = options.max_size / float(extent.max()), limit or f"--max-size {options.max_size}"
     width = max(1, int(np.ceil(extent[0] * scale - 1e-6)))
     height = max(1, int(np.ceil(extent[1] * scale - 1e-6)))
     # Outer frame edges sit at pixel -0.5; the canvas' first pixel centre at its edge + 0.5.
     to_canvas = np.array([[scale, 0, -scale * lo[0] - 0.5], [0, scale, -scale * lo[1] - 0.5], [0, 0, 1.0]])
     native = (max(1, int(np.ceil(extent[0] - 1e-6))), max(1, int(np.ceil(extent[1] - 1e-6))))
-    return Canvas((width, height), to_canvas, scale, native)
+    return Canvas((width, height), to_canvas, scale, native, shrunk_by)
+
+
+def parse_distance(text: str) -> float:
+    """A ground distance in metres from ``5cm``, ``0.05m``, ``50mm`` or ``0.05`` (metres)."""
+    value = str(text).strip().lower().replace(" ", "")
+    for unit, factor in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
+        if value.endswith(unit):
+            value, scale = value[: -len(unit)], factor
+            break
+    else:
+        scale = 1.0
+    try:
+        metres = float(value) * scale
+    except ValueError:
+        raise BadInput(f"--gsd must be a ground distance such as 5cm, 0.05m or 50mm, got {text!r}") from None
+    if not (np.isfinite(metres) and metres > 0):
+        raise BadInput(f"--gsd must be a ground distance above 0, got {text!r}")
+    return metres
+
+
+def format_distance(metres: float) -> str:
+    return f"{metres * 100:g}cm" if metres < 1 else f"{metres:g}m"

@@ -4,9 +4,11 @@ default) at full size.  Uncovered canvas stays transparent (alpha 0)."""
 
 from __future__ import annotations
 
+import functools
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -44,7 +46,8 @@ class ComposeOptions:
     seam_megapix: float = 0.05
     # ... and all of them together no larger than this (bounds the memory for long flights).
     seam_canvas_megapix: float = 2.0
-    strip_megapix: float = 4.0  # the blender works on horizontal strips of about this size
+    tile: int = 2048  # the blender works on square tiles of this side (canvas px), each with its margin
+    cache_megabytes: float = 256.0  # keyframe pixels held between the tiles that reach them
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
     # --fill-holes: interior transparent holes (ground under a masked overlay that no keyframe
     # saw) up to this share of the covered area are inpainted; 0 leaves them transparent.
@@ -171,104 +174,256 @@ def _local_scale(H: np.ndarray, w: int, h: int) -> float:
     return float(np.sqrt(abs(ax * by - ay * bx)))
 
 
+class MemoryCanvas:
+    """The panorama held in memory, RGBA uint8 (H, W, 4): compose's sink when it is given none
+    (tests, small previews, ``--fill-holes``)."""
+
+    def __init__(self, canvas_size: tuple[int, int]):
+        self.rgba = np.zeros((canvas_size[1], canvas_size[0], 4), np.uint8)
+
+    def write(self, x: int, y: int, rgba: np.ndarray) -> None:
+        self.rgba[y:y + rgba.shape[0], x:x + rgba.shape[1]] = rgba
+
+
+class TileSink(Protocol):
+    """Where compose puts each finished tile, RGBA uint8 (h, w, 4) at canvas pixel (x, y); a
+    tile nothing covers is not written (the sink's pixels start transparent)."""
+
+    def write(self, x: int, y: int, rgba: np.ndarray) -> None: ...
+
+
+@dataclass
+class ComposePlan:
+    """What every tile of a canvas is blended from, decided once: the images on the canvas
+    (``placed``, each with its box ``rois[k]``), their seam masks and exposure gains (found on
+    small copies), the blender's settings and the tiles' side.  :func:`compose_tile` blends one
+    tile from it, here or in another process (stitch/cluster.py)."""
+
+    placed: list[PlacedImage]
+    rois: list[Roi]
+    seam_masks: list[np.ndarray]
+    gains: list[np.ndarray] | None
+    blend: _BlendPlan
+    side: int
+    canvas_size: tuple[int, int]
+    torch_device: str | None = None
+    cache_megabytes: float = 256.0
+
+    @property
+    def tiles(self) -> list[tuple[int, int]]:
+        """Each tile's top-left canvas pixel, row by row."""
+        W, H = self.canvas_size
+        return [(x0, y0) for y0 in range(0, H, self.side) for x0 in range(0, W, self.side)]
+
+    def last_tiles(self) -> dict[int, int]:
+        """Each image's last tile (its number in :attr:`tiles`): after it, its pixels can go."""
+        W = self.canvas_size[0]
+        return {k: _tile_number(*_reach(r, self.side, self.blend.margin, self.canvas_size)[1], W, self.side) for k, r in enumerate(self.rois)}
+
+
+def plan_compose(placed: list[PlacedImage], canvas_size: tuple[int, int], options: ComposeOptions) -> ComposePlan:
+    """The :class:`ComposePlan` of these images: those entirely off the canvas dropped (their
+    pixels too), seams and exposure found on small copies (bounded by ``seam_megapix``)."""
+    W, H = canvas_size
+    # compose() is given every image with its pixels (it drops them itself): image is not None here.
+    found = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size, p.reach) for p in placed]  # type: ignore[union-attr]
+    for k, r in enumerate(found):
+        if r is None:  # entirely off the canvas
+            drop_pixels(placed[k].image)
+            placed[k].image = None
+    placed = [p for p, r in zip(placed, found) if r is not None]
+    rois = [r for r in found if r is not None]
+    seam_scale = _seam_scale([r.w * r.h for r in rois], W * H, options)
+    compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
+    blend = _blend_plan(options, _frame_side(rois))
+    return ComposePlan(placed, rois, seam_masks, compensator.getMatGains() or None, blend, _tile_side(blend, options), canvas_size,
+                       options.torch_device, options.cache_megabytes)
+
+
+def compose_tile(plan: ComposePlan, x0: int, y0: int, held: _Held, device=None) -> np.ndarray | None:
+    """The tile at canvas pixel (x0, y0): RGBA uint8 (h, w, 4), transparent where nothing is
+    drawn; None when no image reaches it.  ``held``: the images' sources kept between tiles."""
+    W, H = plan.canvas_size
+    blend, side = plan.blend, plan.side
+    x1, y1 = min(W, x0 + side), min(H, y0 + side)
+    left, top = max(0, x0 - blend.margin), max(0, y0 - blend.margin)
+    window = Roi(left, top, min(W, x1 + blend.margin) - left, min(H, y1 + blend.margin) - top)
+    blender = blend.make((window.x, window.y, window.w, window.h), device)
+    fed = False
+    for k, roi in enumerate(plan.rois):
+        part = _overlap(roi, window)
+        if part is None:
+            continue
+        p, gain = plan.placed[k], plan.gains[k] if plan.gains else None
+        if device is not None:
+            source, S = held.get(k, functools.partial(_upload, p, roi, gain, plan.seam_masks[k], device))
+            image, mask = _device_part(source, S, p, roi, part)
+        else:
+            pixels, seam, small_gain = held.get(k, functools.partial(_host_source, p, roi, gain, plan.seam_masks[k]))
+            image, mask = _tile_part(pixels, p.to_canvas, roi, part, small_gain, seam, p.use, p.rows)
+        blender.feed(image, mask, part.corner)
+        fed = True
+    if not fed:
+        return None
+    result, result_mask = blender.blend(None, None)
+    core = (slice(y0 - window.y, y1 - window.y), slice(x0 - window.x, x1 - window.x))
+    np.clip(result, 0, 255, out=result)
+    rgba = np.empty((y1 - y0, x1 - x0, 4), np.uint8)
+    rgba[..., :3] = result[core]
+    rgba[..., 3] = result_mask[core]
+    rgba[rgba[..., 3] == 0] = 0
+    return rgba
+
+
+TileRunner = Callable[[ComposePlan, "TileSink", Callable[..., None]], None]
+
+
 def compose(
     placed: list[PlacedImage],
     canvas_size: tuple[int, int],
     options: ComposeOptions,
     advance: Callable[..., None] = lambda *a, **k: None,
-) -> np.ndarray:
-    """The panorama as RGBA uint8 (H, W, 4).
+    sink: TileSink | None = None,
+    runner: TileRunner | None = None,
+) -> np.ndarray | None:
+    """The panorama as RGBA uint8 (H, W, 4), or None when each tile went to ``sink``.
 
-    The blender runs on horizontal strips of the canvas (``strip_megapix``), each with a
-    margin wide enough for its pyramid or feather, so its memory does not grow with the
-    canvas; ``placed`` is consumed: an image's pixels are dropped after its last strip.
-    ``advance(n)`` is called with the canvas rows finished, strip by strip."""
-    W, H = canvas_size
-    # compose() is given every image with its pixels (it drops them itself): image is not None here.
-    found = [bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size, p.reach) for p in placed]  # type: ignore[union-attr]
-    keep = [k for k, r in enumerate(found) if r is not None]
-    for k, r in enumerate(found):
-        if r is None:  # entirely off the canvas
-            drop_pixels(placed[k].image)
-            placed[k].image = None
-    placed = [placed[k] for k in keep]
-    rois = [r for r in found if r is not None]
-    seam_scale = _seam_scale([r.w * r.h for r in rois], W * H, options)
-    compensator, seam_masks = _seams_and_exposure(placed, rois, seam_scale, options)
+    The blender runs on square tiles of the canvas (``options.tile``), each with a margin wide
+    enough for its pyramid or feather, so its memory does not grow with the canvas; the pixels
+    of the images a tile reaches are held in a cache of at most ``options.cache_megabytes``
+    (least recently used go first).  ``placed`` is consumed: an image's pixels are dropped
+    after its last tile.  ``advance(n)`` is called with the tiles finished.  ``runner``: blends
+    the plan's tiles elsewhere (stitch/cluster.py: on a Dask cluster) into ``sink``, the same
+    pixels; None: here, one tile after the other."""
+    plan = plan_compose(placed, canvas_size, options)
     advance(0, status="blending")
-    blend = _blend_plan(options, float(np.sqrt(np.median([r.w * r.h for r in rois]))) if rois else 1.0)
+    canvas = MemoryCanvas(canvas_size) if sink is None else None
+    out: TileSink = canvas if canvas is not None else sink  # type: ignore[assignment]
+    if runner is not None:
+        runner(plan, out, advance)
+        for p in plan.placed:
+            drop_pixels(p.image)
+            p.image = None
+        return None if canvas is None else canvas.rgba
     device = None if options.torch_device is None else resolve_device(options.torch_device)
-    rgba = np.zeros((H, W, 4), np.uint8)
-    # Strips start on the pyramid's grid, so that each strip decimates like the whole canvas.
-    # At least twice the margin tall, or the margins would cost more than the strips.
-    strip = max(64, 2 * blend.margin, int(options.strip_megapix * 1e6 / W))
-    strip = -(-strip // blend.unit) * blend.unit
-    # Each strip warps just the rows of each image it needs: no image is ever held warped in
-    # full, so the memory stays bounded however the flight lies on the canvas.
-    gains = compensator.getMatGains()
-    finished: set[int] = set()
-    # The pixels of the images the current strip reaches: arrays, or (torch_device) each image
-    # on the device as it is sampled, uploaded once for all its strips, with its shrink ``S``.
-    loaded: dict[int, Any] = {}
-    for y0 in range(0, H, strip):
-        y1 = min(H, y0 + strip)
-        top, bottom = max(0, y0 - blend.margin), min(H, y1 + blend.margin)
-        blender = blend.make((0, top, W, bottom - top), device)
-        fed = False
-        for k, roi in enumerate(rois):
-            if k in finished or roi.y >= bottom or roi.y + roi.h <= top:
-                continue
-            rows = (max(top, roi.y) - roi.y, min(bottom, roi.y + roi.h) - roi.y)
-            gain = gains[k] if gains else None
-            if device is not None:
-                if k not in loaded:
-                    loaded[k] = _upload(placed[k], roi, gain, seam_masks[k], device)
-                source, S = loaded[k]
-                image, mask = _device_part(source, S, placed[k], roi, rows)
-            else:
-                if k not in loaded:
-                    loaded[k] = load_pixels(placed[k].image)  # type: ignore[arg-type]  # dropped only once finished
-                image, mask = _strip_part(loaded[k], placed[k].to_canvas, roi, rows, gain, seam_masks[k], placed[k].use, placed[k].rows)
-            blender.feed(image, mask, (roi.x, roi.y + rows[0]))
-            fed = True
-        if fed:
-            result, result_mask = blender.blend(None, None)
-            band = slice(y0 - top, y1 - top)
-            np.clip(result, 0, 255, out=result)
-            out = rgba[y0:y1]
-            out[..., :3] = result[band, :W]
-            out[..., 3] = result_mask[band, :W]
-            out[out[..., 3] == 0] = 0
-            del result, result_mask
-        del blender
-        advance(y1 - y0)
-        # An image that the next strip (its margin included) does not reach is done.
-        next_top = y1 - blend.margin
-        for k, roi in enumerate(rois):
-            if k not in finished and (y1 >= H or roi.y + roi.h <= next_top):
-                finished.add(k)
-                loaded.pop(k, None)
-                drop_pixels(placed[k].image)
-                placed[k].image = None
-    return rgba
+    last = plan.last_tiles()
+    held = _Held(options.cache_megabytes)
+    for number, (x0, y0) in enumerate(plan.tiles):
+        rgba = compose_tile(plan, x0, y0, held, device)
+        if rgba is not None:
+            out.write(x0, y0, rgba)
+        advance(1)
+        for k in [k for k, t in last.items() if t == number]:  # its last tile: its pixels and its file go
+            held.drop(k)
+            drop_pixels(plan.placed[k].image)
+            plan.placed[k].image = None
+            del last[k]
+    return None if canvas is None else canvas.rgba
 
 
-def _strip_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, rows: tuple[int, int], gain: np.ndarray | None,
-                seam_mask: np.ndarray, use: np.ndarray | None = None, row_map: RowMap | None = None):
-    """Rows ``rows`` (of its bounding box ``roi``) of an image: warped, exposure-compensated
-    (``gain``: a scalar or a block map over the whole box, from ``getMatGains``) as int16 for
-    the blender, and its blend mask (the seam mask within the image's coverage)."""
-    r0, r1 = rows
-    part = Roi(roi.x, roi.y + r0, roi.w, r1 - r0)
+def tile_count(placed: list[PlacedImage], canvas_size: tuple[int, int], options: ComposeOptions) -> int:
+    """How many tiles :func:`compose` blends these images in (its progress counts them)."""
+    rois = [r for p in placed if (r := bounding_roi(p.to_canvas, (p.image.shape[1], p.image.shape[0]), canvas_size, p.reach))]  # type: ignore[union-attr]
+    side = _tile_side(_blend_plan(options, _frame_side(rois)), options)
+    return (-(-canvas_size[0] // side)) * (-(-canvas_size[1] // side))
+
+
+def _frame_side(rois: list[Roi]) -> float:
+    """A keyframe's typical side on the canvas: what the blend width is a share of."""
+    return float(np.sqrt(np.median([r.w * r.h for r in rois]))) if rois else 1.0
+
+
+def _tile_side(blend: _BlendPlan, options: ComposeOptions) -> int:
+    """Tiles start on the pyramid's grid, so that each tile decimates like the whole canvas; at
+    least twice the margin wide, or the margins would cost more than the tiles."""
+    side = max(64, 2 * blend.margin, options.tile)
+    return -(-side // blend.unit) * blend.unit
+
+
+def _overlap(a: Roi, b: Roi) -> Roi | None:
+    x0, y0 = max(a.x, b.x), max(a.y, b.y)
+    x1, y1 = min(a.x + a.w, b.x + b.w), min(a.y + a.h, b.y + b.h)
+    return Roi(x0, y0, x1 - x0, y1 - y0) if x1 > x0 and y1 > y0 else None
+
+
+def _reach(roi: Roi, side: int, margin: int, canvas_size: tuple[int, int]) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The tiles (column, row) whose windows (the tile and its margin) an image's box touches:
+    the first and the last."""
+    cols, rows = -(-canvas_size[0] // side), -(-canvas_size[1] // side)
+
+    def span(lo: int, size: int, count: int) -> tuple[int, int]:
+        # tile i's window is [i * side - margin, (i + 1) * side + margin)
+        return max(0, (lo - margin) // side), min(count - 1, (lo + size - 1 + margin) // side)
+
+    (c0, c1), (r0, r1) = span(roi.x, roi.w, cols), span(roi.y, roi.h, rows)
+    return (c0, r0), (c1, r1)
+
+
+def _tile_number(column: int, row: int, width: int, side: int) -> int:
+    return row * (-(-width // side)) + column
+
+
+class _Held:
+    """The sources of the images the recent tiles reached, at most ``megabytes`` together (the
+    least recently used go first; one is always kept, however large)."""
+
+    def __init__(self, megabytes: float):
+        self.budget = megabytes * 1e6
+        self.items: OrderedDict[int, tuple[Any, int]] = OrderedDict()
+
+    def get(self, key: int, make: Callable[[], Any]) -> Any:
+        if key in self.items:
+            self.items.move_to_end(key)
+            return self.items[key][0]
+        value = make()
+        size = _nbytes(value)
+        while self.items and sum(s for _, s in self.items.values()) + size > self.budget:
+            self.items.popitem(last=False)
+        self.items[key] = (value, size)
+        return value
+
+    def drop(self, key: int) -> None:
+        self.items.pop(key, None)
+
+
+def _nbytes(value: Any) -> int:
+    if isinstance(value, tuple):
+        return sum(_nbytes(v) for v in value)
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    return int(getattr(value, "nbytes", 0))
+
+
+def _host_source(p: PlacedImage, roi: Roi, gain: np.ndarray | None, seam_mask: np.ndarray):
+    """An image as its tiles read it on the CPU: its pixels, its blend mask over its whole box
+    and its exposure gain (None, a scalar or the small block map: each tile resizes its part)."""
+    return load_pixels(p.image), _seam_for(seam_mask, roi), gain  # type: ignore[arg-type]  # dropped only once finished
+
+
+def _gain_part(gain: np.ndarray, roi: Roi, part: Roi) -> np.ndarray:
+    """The ``part`` of the block gains resized over the whole box ``roi`` (bilinear at the
+    resized pixel centres, edges replicated, as ``cv2.resize``), without the whole."""
+    sx, sy = gain.shape[1] / roi.w, gain.shape[0] / roi.h
+    x0, y0 = part.x - roi.x, part.y - roi.y
+    M = np.array([[sx, 0.0, (x0 + 0.5) * sx - 0.5], [0.0, sy, (y0 + 0.5) * sy - 0.5]])
+    return cv2.warpAffine(gain.astype(np.float32), M, (part.w, part.h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def _tile_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, part: Roi, gain: np.ndarray | None,
+               seam: np.ndarray, use: np.ndarray | None = None, row_map: RowMap | None = None):
+    """The part ``part`` (canvas pixels, within its box ``roi``) of an image: warped,
+    exposure-compensated (``gain``: a scalar or a block map over the whole box, from
+    ``getMatGains``) as int16 for the blender, and its blend mask (``seam``, over the whole box,
+    within the image's coverage)."""
     warped, mask = warp_into(pixels, to_canvas, part, use, row_map)
     if gain is not None and gain.size == 1:
         warped = np.multiply(warped, float(gain.ravel()[0]), dtype=np.float32)
     elif gain is not None:
-        full = cv2.resize(gain.astype(np.float32), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR)
-        warped = np.multiply(warped, full[r0:r1, :, None], dtype=np.float32)
+        warped = np.multiply(warped, _gain_part(gain, roi, part)[..., None], dtype=np.float32)
     image = np.clip(np.rint(warped), 0, 255).astype(np.int16)
-    seam = _seam_for(seam_mask, roi)[r0:r1]
-    return image, cv2.bitwise_and(seam, mask)
+    rows, cols = slice(part.y - roi.y, part.y - roi.y + part.h), slice(part.x - roi.x, part.x - roi.x + part.w)
+    return image, cv2.bitwise_and(np.ascontiguousarray(seam[rows, cols]), mask)
 
 
 def _seam_for(seam_mask: np.ndarray, roi: Roi) -> np.ndarray:
@@ -285,12 +440,12 @@ def _upload(p: PlacedImage, roi: Roi, gain: np.ndarray | None, seam_mask: np.nda
     return DeviceSource(image, coverage, _seam_for(seam_mask, roi), gain, device), S
 
 
-def _device_part(source, S: np.ndarray, p: PlacedImage, roi: Roi, rows: tuple[int, int]):
-    """:func:`_strip_part` on the device: (3, h, w) float image and (h, w) uint8 mask tensors."""
-    part = Roi(roi.x, roi.y + rows[0], roi.w, rows[1] - rows[0])
+def _device_part(source, S: np.ndarray, p: PlacedImage, roi: Roi, part: Roi):
+    """:func:`_tile_part` on the device: (3, h, w) float image and (h, w) uint8 mask tensors."""
+    box = (part.x - roi.x, part.y - roi.y, part.x - roi.x + part.w, part.y - roi.y + part.h)
     if p.rows is None:
-        return source.part(rows, T=_shift(part) @ p.to_canvas @ np.linalg.inv(S))
-    return source.part(rows, maps=_row_maps(p.to_canvas, S, part, p.rows))
+        return source.part(box, T=_shift(part) @ p.to_canvas @ np.linalg.inv(S))
+    return source.part(box, maps=_row_maps(p.to_canvas, S, part, p.rows))
 
 
 def _seam_scale(areas: list[int], canvas_area: int, options: ComposeOptions) -> float:
@@ -334,11 +489,11 @@ class _BlendPlan:
     kind: str
     bands: int
     width: float  # blend width, pixels
-    margin: int  # rows a strip borrows from its neighbours
-    unit: int = 1  # strips start at multiples of this
+    margin: int  # pixels a tile borrows from its neighbours on each side
+    unit: int = 1  # tiles start at multiples of this
 
     def make(self, roi: tuple[int, int, int, int], device=None):
-        """The blender of a strip ``roi``: OpenCV's, or with a torch ``device`` its counterpart in
+        """The blender of a tile's window ``roi``: OpenCV's, or with a torch ``device`` its counterpart in
         device_blend.py."""
         if device is not None:
             from mosaic_cli.stitch import device_blend
@@ -363,12 +518,12 @@ class _BlendPlan:
 
 
 def _blend_plan(options: ComposeOptions, frame_side: float) -> _BlendPlan:
-    """The blender's settings, and the margin each strip needs: the multi-band pyramid's
+    """The blender's settings, and the margin each tile needs: the multi-band pyramid's
     reach, or the feather's width."""
     width = frame_side * options.blend_strength / 100.0
     if options.blend == "multiband" and width >= 2:
         bands = max(1, int(np.log2(width)) - 1)
-        # A 5-tap Gaussian at each of the levels reaches about 2 * (1 + 2 + ... + 2^bands) rows.
+        # A 5-tap Gaussian at each of the levels reaches about 2 * (1 + 2 + ... + 2^bands) pixels.
         return _BlendPlan("multiband", bands, width, 4 * 2**bands, 2**bands)
     if options.blend == "feather" and width >= 1:
         return _BlendPlan("feather", 0, width, int(np.ceil(width)) + 8)

@@ -316,22 +316,27 @@ class DeviceSource:
         elif gain is not None:
             self.gain = torch.as_tensor(np.asarray(gain, np.float32), device=self.device)
 
-    def part(self, rows: tuple[int, int], T: np.ndarray | None = None,
+    @property
+    def nbytes(self) -> int:
+        """Device memory held (compose's cache counts it)."""
+        held = [self.image, self.seam] + [t for t in (self.gain,) if isinstance(t, Tensor)]
+        return sum(t.numel() * t.element_size() for t in held)
+
+    def part(self, box: tuple[int, int, int, int], T: np.ndarray | None = None,
              maps: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Tensor, Tensor]:
-        """Rows ``rows`` = (r0, r1) of its canvas box, as compose's ``_strip_part`` makes them:
-        the (3, r1 - r0, W) image (integer-valued float, 0..255), warped, rounded as a uint8
-        warp is, times the exposure gain and rounded again, and its (r1 - r0, W) blend mask
-        (uint8: the seam mask where the warp covers).  The warp is ``T`` (3, 3: pixels ->
-        the part's pixels) or, for a rolling shutter, the sampling maps (two (r1 - r0, W) arrays
-        of pixel coordinates, as ``cv2.remap`` takes)."""
-        r0, r1 = rows
-        W = self.seam.shape[1]
+        """The part ``box`` = (c0, r0, c1, r1) of its canvas box, as compose's ``_tile_part``
+        makes it: the (3, r1 - r0, c1 - c0) image (integer-valued float, 0..255), warped,
+        rounded as a uint8 warp is, times the exposure gain and rounded again, and its blend
+        mask (uint8: the seam mask where the warp covers).  The warp is ``T`` (3, 3: pixels ->
+        the part's pixels) or, for a rolling shutter, the sampling maps (two arrays of the
+        part's shape of pixel coordinates, as ``cv2.remap`` takes)."""
+        c0, r0, c1, r1 = box
         if maps is not None:
             x, y = (torch.from_numpy(np.ascontiguousarray(m)).to(self.device)[None] for m in maps)
         elif T is not None:
             # float64 maps: a canvas is tens of thousands of pixels wide, where float32 maps
             # would move the mask's nearest samples (OpenCV's differ from both on a few pixels)
-            x, y = perspective_maps(self._matrix(T), (W, r1 - r0), torch.float64)
+            x, y = perspective_maps(self._matrix(T), (c1 - c0, r1 - r0), torch.float64)
         else:
             raise ValueError("part() needs a homography or sampling maps")
         warped = remap(self.image[None], x, y, "replicate")[0].float()  # a uint8 warp, as OpenCV's
@@ -339,13 +344,13 @@ class DeviceSource:
         if isinstance(self.gain, float):
             warped = torch.round(warped * float(np.float32(self.gain))).clamp_(0, 255)
         elif self.gain is not None:
-            # the rows of cv2.resize(gain, (W, H), INTER_LINEAR): bilinear at the resized pixel
+            # the part of cv2.resize(gain, (W, H), INTER_LINEAR): bilinear at the resized pixel
             # centres, the edges replicated
-            box = (W, self.seam.shape[0])
-            to_rows = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]]) @ resize_matrix((self.gain.shape[1], self.gain.shape[0]), box)
-            full = warp_perspective(self.gain[None, None], self._matrix(to_rows), (W, r1 - r0), "replicate")[0]
+            whole = (self.seam.shape[1], self.seam.shape[0])
+            to_part = np.array([[1.0, 0.0, -c0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]]) @ resize_matrix((self.gain.shape[1], self.gain.shape[0]), whole)
+            full = warp_perspective(self.gain[None, None], self._matrix(to_part), (c1 - c0, r1 - r0), "replicate")[0]
             warped = torch.round(warped * full).clamp_(0, 255)
-        return warped, torch.bitwise_and(self.seam[r0:r1], covered)
+        return warped, torch.bitwise_and(self.seam[r0:r1, c0:c1], covered)
 
     def _matrix(self, M: np.ndarray) -> Tensor:
         """A (3, 3) matrix as warp.py takes it: (1, 3, 3) float64 on the device."""

@@ -118,6 +118,19 @@ class Keyframe:
     composited: bool = False  # drawn in the panorama (else used for registration only)
     segment: int = 0  # the stretch of flight followed without a break; placements are in its world
     link_to: int | None = None  # position of the keyframe ``link`` registers this one to
+    use: np.ndarray | None = None  # its flight's overlay mask where that is not the scan's (several flights)
+
+
+@dataclass(frozen=True)
+class FlightSpan:
+    """One of several flights in the one count of frames: ``start`` .. ``start + frames - 1``."""
+
+    name: str
+    start: int
+    frames: int
+
+    def holds(self, index: int) -> bool:
+        return self.start <= index < self.start + self.frames
 
 
 @dataclass
@@ -136,6 +149,7 @@ class FlightScan:
     photos: bool = False
     use: np.ndarray | None = None  # burned-in overlays and --mask (255 = ground): never drawn
     pairs_tried: int = 0  # photos: the pairs the scan matched (the GPS guide keeps them few per photo)
+    flights: list[FlightSpan] = field(default_factory=list)  # several flights laid end to end (stitch/flights.py)
 
     @property
     def composited(self) -> list[Keyframe]:

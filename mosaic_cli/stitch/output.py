@@ -7,11 +7,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, check_writable, write_json
-from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.atomic import check_writable, write_json
+from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import FORMATS, MAP_FORMATS, output_format  # noqa: F401  (what a panorama's extension makes it; geo/ asks too)
 
 JPEG_MAX_SIDE = 65500
@@ -29,8 +28,8 @@ def check_outputs(out: str | Path, transforms: str | Path | None, max_size: int 
         check_tiles_folder(out)
     else:
         check_writable(out)
-    if fmt == "jpeg" and (max_size is None or max_size > JPEG_MAX_SIDE):
-        raise BadInput(f"JPEG images are at most {JPEG_MAX_SIDE} pixels wide: give --max-size {JPEG_MAX_SIDE} or less")
+    if fmt == "jpeg" and max_size is not None and max_size > JPEG_MAX_SIDE:
+        raise BadInput(f"JPEG images are at most {JPEG_MAX_SIDE} pixels wide: give --max-size {JPEG_MAX_SIDE} or less, or write a .png or .tif")
     if transforms is not None:
         transforms = Path(transforms)
         if transforms.suffix.lower() != ".json":
@@ -51,23 +50,6 @@ def numbered(path: str | Path, number: int) -> str | Path:
     if folder:
         return f"{path}-{number + 1}{os.sep}"
     return path.with_name(f"{path.stem}-{number + 1}{path.suffix}")
-
-
-def write_panorama(out: str | Path, rgba: np.ndarray, jpeg_quality: int = 92) -> None:
-    """PNG and TIFF keep the alpha channel (transparent where nothing was seen); JPEG has
-    none, so uncovered areas are black.  ``rgba`` is turned into BGRA in place: a panorama
-    may be gigabytes, so no second copy is made."""
-    fmt = output_format(out)
-    if fmt in MAP_FORMATS:
-        raise ProcessingError(f"{out}: a {MAP_FORMATS[fmt]} output needs the panorama's place on the ground, which the telemetry does not give it")
-    image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA, dst=rgba)
-    if fmt == "jpeg":  # OpenCV drops the alpha channel row by row
-        params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]
-    else:
-        params = [cv2.IMWRITE_PNG_COMPRESSION, 3] if fmt == "png" else []
-    with atomic_path(out) as tmp:
-        if not cv2.imwrite(str(tmp), image, params):
-            raise ProcessingError(f"{out}: OpenCV could not write the {(fmt or 'image').upper()} image")
 
 
 def write_transforms(

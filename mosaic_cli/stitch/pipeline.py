@@ -43,7 +43,7 @@ from mosaic_cli.device import check_device, resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, plan_estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
-from mosaic_cli.geo.output import transforms_extra
+from mosaic_cli.geo.output import geotransform, transforms_extra
 from mosaic_cli.geo.stitching import georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
@@ -52,11 +52,13 @@ from mosaic_cli.overlay import FrameMask, Gate, MaskChanged, MaskOptions, Pendin
 from mosaic_cli.progress import progress_group, progress_task
 from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
-from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, compose, fill_holes
+from mosaic_cli.stitch.cluster import ClusterOptions, connect, tile_runner
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, TileRunner, TileSink, compose, fill_holes, tile_count
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.guide import GroundGuide
-from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, KeyframeOptions, scan_flight, scan_photos
-from mosaic_cli.stitch.output import check_outputs, numbered, write_panorama, write_transforms
+from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, FlightSpan, KeyframeOptions, scan_flight, scan_photos
+from mosaic_cli.stitch.output import JPEG_MAX_SIDE, check_outputs, numbered, output_format, write_transforms
+from mosaic_cli.stitch.raster import MemoryPanorama, StagedPanorama, staged_panorama, write_image
 from mosaic_cli.stitch.registration import (
     RegistrationOptions,
     RegistrationReport,
@@ -94,6 +96,12 @@ class StitchOptions:
     georef: GeorefOptions | None = None
     timeout: float = DEFAULT_TIMEOUT  # a live input (stitch/live.py) ends when it sends nothing for this long
     rolling_shutter: str | float = "off"  # auto, off or a readout in [0, 1]: each keyframe drawn row band by row band
+    # Several flights with telemetry (stitch/flights.py): parts that join nothing by registration
+    # are still drawn on one map, each where its log places it.
+    one_map: bool = False
+    # --workers / --scheduler: the flights' scans and the compose stage's tiles on a Dask cluster
+    # (stitch/cluster.py); none asked: all here.
+    cluster: ClusterOptions = field(default_factory=ClusterOptions)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -123,7 +131,8 @@ class Panorama:
     # centre rows (the band's correction, then the keyframe's transform), in the order of transforms.
     bands: list[np.ndarray] | None = None
     filled: int = 0  # --fill-holes: pixels of interior holes inpainted
-    shrunk_from: tuple[int, int] | None = None  # the (W, H) --max-size scaled it down from, if it did
+    shrunk_from: tuple[int, int] | None = None  # the (W, H) it was scaled down from, if it was
+    shrunk_by: str | None = None  # what scaled it down: --max-size N, --gsd D, JPEG's limit
 
     @property
     def size(self) -> int:
@@ -157,6 +166,7 @@ class StitchResult:
     # and those without GPS among geotagged ones, placed by their pixels (said as warnings).
     metadata_notes: list[str] = field(default_factory=list)
     pairs_tried: int = 0  # photos: pairs matched by the scan and as loop candidates (not counting segment joins)
+    flights: list[FlightSpan] = field(default_factory=list)  # several flights: each one's frames in the one count
 
     @property
     def frames_per_second(self) -> float:
@@ -179,6 +189,45 @@ def stitch(
     name (:func:`make_stitch_estimator`) once the input is checked.  ``info``: the video's
     probe, when the caller has it."""
     options = options or StitchOptions()
+    flight, reference = prepare_flight(video, out, transforms, options, info)
+    build: Callable[[], Estimator] = plan_stitch_estimator(flight.options) if estimator is None else (lambda: estimator)
+    # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
+    # folder goes however the stitch ends.
+    with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill, connect(options.cluster, spill) as client:
+        seconds: dict[str, float] = {}
+        scanned = scan_prepared(flight, build, show_progress, spill, seconds)
+        result = finish_stitch(scanned.scan, reference, out, flight.options, transforms, show_progress, seconds, scanned.mask,
+                               flight.track, scanned.rolling, tile_runner(client) if client is not None else None)
+        result.overlay_restart = scanned.restarted
+        if flight.track is not None and flight.track.photos is not None:
+            result.metadata_notes = photo_metadata_notes(flight.track.photos)
+        return result
+
+
+@dataclass
+class PreparedFlight:
+    """One input, checked, with the options it is stitched with (a photo folder's own) and its
+    telemetry (None: none)."""
+
+    video: str | Path
+    info: VideoInfo
+    options: StitchOptions
+    track: Track | None
+
+
+@dataclass
+class ScannedFlight:
+    scan: FlightScan
+    mask: FrameMask | None
+    rolling: RollingCorrection | None
+    estimator: Estimator  # built for the first flight, reused by the next
+    restarted: bool  # an overlay was found after the scan had started without it
+
+
+def prepare_flight(video: str | Path, out: str | Path, transforms: str | Path | None, options: StitchOptions,
+                   info: VideoInfo | None = None) -> tuple[PreparedFlight, str | int]:
+    """Every check of one input that can fail fast (before any work), its telemetry read, and the
+    reference keyframe asked for.  ``info``: the caller's probe."""
     info, reference = _check_inputs(video, out, transforms, options, info)
     if info.is_image_folder:
         # Photos are registered by features alone: describe them finer than video frames.
@@ -198,54 +247,54 @@ def stitch(
             options = dataclasses.replace(options, georef=georef)
     else:
         track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
-    given = estimator
-    build: Callable[[], Estimator] = plan_stitch_estimator(options) if given is None else (lambda: given)
+    if options.canvas.gsd is not None and track is None:
+        raise BadInput(f"--gsd needs telemetry (a GPS log, or photos with EXIF GPS): without it {video} has no ground distance; "
+                       f"--max-size bounds a plain panorama")
+    return PreparedFlight(video, info, options, track), reference
 
-    # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
-    # folder goes however the stitch ends.
-    with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
-        seconds: dict[str, float] = {}
-        clock = time.perf_counter()
-        # `auto`'s probe rides on the scan's first frames: a global shutter costs no pass of its own.
-        mode = parse_rolling_shutter(options.rolling_shutter)
-        probe = RollingProbe(info) if mode == "auto" else None
-        with progress_group(disable=not show_progress):
-            # The estimator is built (a network: torch, the weights) while the overlays are looked
-            # for, and the scan starts once it is, the overlays still being looked for; it starts
-            # again if one is found (_scan).
-            pending, scanner = frame_mask_pending(build, video, options.mask, info, show_progress)
-            with pending:
-                built = time.perf_counter() - clock
-                clock = time.perf_counter()
-                guide = GroundGuide(track, info.source_size) if info.is_image_folder and track is not None else None
-                scan, speculation = _scan(video, info, scanner, options, show_progress, spill if options.spill else None,
-                                          pending, probe, guide)
-                scanned = time.perf_counter() - clock
-        mask = pending.result()
-        # The overlays' share: the build (the detection beside it), the scan's end waiting for
-        # the detection, and a scan discarded for an overlay found (left out of "scan").
-        seconds["overlays"] = built + speculation.seconds
-        seconds["scan"] = scanned - speculation.seconds
 
-        rolling = None
-        if mode != "off":
+def scan_prepared(flight: PreparedFlight, build: Callable[[], Estimator], show_progress: bool, spill: str,
+                  seconds: dict[str, float]) -> ScannedFlight:
+    """Stage 0 and 1 (and the rolling shutter's pass) of one prepared input: the estimator built
+    (``build``) beside the overlay detection, the scan; ``seconds`` gains their times."""
+    video, info, options, track = flight.video, flight.info, flight.options, flight.track
+    clock = time.perf_counter()
+    # `auto`'s probe rides on the scan's first frames: a global shutter costs no pass of its own.
+    mode = parse_rolling_shutter(options.rolling_shutter)
+    probe = RollingProbe(info) if mode == "auto" else None
+    with progress_group(disable=not show_progress):
+        # The estimator is built (a network: torch, the weights) while the overlays are looked
+        # for, and the scan starts once it is, the overlays still being looked for; it starts
+        # again if one is found (_scan).
+        pending, scanner = frame_mask_pending(build, video, options.mask, info, show_progress)
+        with pending:
+            built = time.perf_counter() - clock
             clock = time.perf_counter()
-            rolling = plan_rolling(video, info, mode, show_progress, "stitch: rolling shutter", probe)
-            seconds["rolling"] = time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
+            guide = GroundGuide(track, info.source_size) if info.is_image_folder and track is not None else None
+            scan, speculation = _scan(video, info, scanner, options, show_progress, spill if options.spill else None,
+                                      pending, probe, guide)
+            scanned = time.perf_counter() - clock
+    mask = pending.result()
+    # The overlays' share: the build (the detection beside it), the scan's end waiting for
+    # the detection, and a scan discarded for an overlay found (left out of "scan").
+    seconds["overlays"] = seconds.get("overlays", 0.0) + built + speculation.seconds
+    seconds["scan"] = seconds.get("scan", 0.0) + scanned - speculation.seconds
 
-        if not scan.keyframes:
-            raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
-        result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, mask, track, rolling)
-        result.overlay_restart = speculation.restarted
-        if track is not None and track.photos is not None:
-            result.metadata_notes = photo_metadata_notes(track.photos)
-        return result
+    rolling = None
+    if mode != "off":
+        clock = time.perf_counter()
+        rolling = plan_rolling(video, info, mode, show_progress, "stitch: rolling shutter", probe)
+        seconds["rolling"] = seconds.get("rolling", 0.0) + time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
+
+    if not scan.keyframes:
+        raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
+    return ScannedFlight(scan, mask, rolling, scanner, speculation.restarted)
 
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
                   transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
                   mask: FrameMask | None = None, track: Track | None = None,
-                  rolling: RollingCorrection | None = None) -> StitchResult:
+                  rolling: RollingCorrection | None = None, runner: TileRunner | None = None) -> StitchResult:
     """The stages after the scan, shared by the offline and the live stitch: register the
     keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
     write each panorama; the overlays of ``scan.use`` are drawn in none (``mask``: what the
@@ -253,12 +302,15 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     see geo/stitching.py) drift control starts from GPS-straightened placements and each
     panorama whose keyframes the log covers is laid north-up on the ground (GeoTIFF, footprints,
     map homographies in the transforms).  ``rolling`` (applied): each keyframe is drawn row band
-    by row band (its bands' correction, then its placement)."""
+    by row band (its bands' correction, then its placement).  ``runner``: the compose stage's
+    tiles blended elsewhere (stitch/cluster.py)."""
     clock = time.perf_counter()
     planned, rolling = rolling, rolling if rolling is not None and rolling.applied else None  # `auto` may read a global shutter
     if rolling is not None:
         _to_mid_time(scan, rolling)
     groups, report = _register(scan, reference, options, show_progress, track)
+    if options.one_map and track is not None and len(groups) > 1:
+        groups = _on_one_map(groups, scan, track, options)
     seconds["register"] = time.perf_counter() - clock
     # The user's name goes to the largest part, the others numbered in decreasing size (ties:
     # in flight order), whichever part the flight began with.
@@ -282,30 +334,38 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
 
         clock = time.perf_counter()
         drawn = [k.composited for k in keyframes]
-        canvas = plan_canvas(placements, indices, scan.source_size, options.canvas, drawn)
-        frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        panorama = _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, _compose_options(options), show_progress,
-                            scan.use, rolling)
-        filled = fill_holes(panorama, options.compose.fill_holes)
-        seconds["compose"] += time.perf_counter() - clock
-
-        clock = time.perf_counter()
         path, json_path = numbered(out, number), Path(numbered(transforms, number)) if transforms is not None else None
-        extra, written = None, False
-        if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
-            assert options.georef is not None
-            footprints, html = options.georef.footprints, options.georef.html
-            own = dataclasses.replace(options.georef, footprints=Path(numbered(footprints, number)) if footprints is not None else None,
-                                      html=Path(numbered(html, number)) if html is not None else None)
-            written = write_outputs(path, panorama, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps)
-            extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
-        if not written:
-            write_panorama(path, panorama)
-        del panorama
+        fmt = output_format(path) or ""  # (check_outputs knew it)
+        canvas_options, limit = options.canvas, None
+        if fmt == "jpeg" and canvas_options.max_size is None:
+            canvas_options = dataclasses.replace(canvas_options, max_size=JPEG_MAX_SIDE)
+            limit = f"JPEG's limit of {JPEG_MAX_SIDE} pixels a side (a .png or .tif keeps every pixel)"
+        canvas = plan_canvas(placements, indices, scan.source_size, canvas_options, drawn, georef.gsd if georef is not None else None, limit)
+        frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
+        crs, transform = (None, None) if georef is None else (georef.projection.crs.to_wkt(), geotransform(georef, canvas.to_canvas))
+        # The panorama goes tile by tile into a file beside the output (stitch/raster.py), from
+        # which every format is written: no canvas is ever held in memory.
+        with staged_panorama(path, canvas.size, crs, transform, keep=fmt == "tiff" and georef is None) as staged:
+            _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, _compose_options(options), show_progress,
+                     scan.use, rolling, staged, runner)
+            filled = _fill_holes(staged, options.compose.fill_holes)
+            seconds["compose"] += time.perf_counter() - clock
+
+            clock = time.perf_counter()
+            extra, written = None, False
+            if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
+                assert options.georef is not None
+                footprints, html = options.georef.footprints, options.georef.html
+                own = dataclasses.replace(options.georef, footprints=Path(numbered(footprints, number)) if footprints is not None else None,
+                                          html=Path(numbered(html, number)) if html is not None else None)
+                written = write_outputs(path, staged, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps)
+                extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
+            if not written:
+                write_image(path, staged, fmt)
         # Every keyframe is reported, also those over ground already drawn (used for registration).
         frames = list(zip(indices, frame_to_canvas))
         if json_path is not None:
-            write_transforms(json_path, canvas.size, frames, extra)
+            write_transforms(json_path, canvas.size, frames, _with_flights(extra, frames, scan.flights))
         seconds["write"] += time.perf_counter() - clock
         bands = None
         if rolling is not None:
@@ -313,13 +373,45 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
             bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
         shrunk_from = canvas.native_size if canvas.scale < 1.0 else None
         panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands, filled,
-                                  shrunk_from))
+                                  shrunk_from, canvas.shrunk_by))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
         seconds, panoramas, scan.dropped, scan.photos, mask, first.georef, planned,
-        pairs_tried=scan.pairs_tried + report.loop_candidates,
+        pairs_tried=scan.pairs_tried + report.loop_candidates, flights=scan.flights,
     )
+
+
+def _on_one_map(groups, scan: FlightScan, track: Track, options: StitchOptions):
+    """Several flights with telemetry: the parts that registration did not join, each laid where
+    its own fit to the log places it (its mosaic -> ground similarity, in the first part's
+    mosaic frame), drawn as one part; parts the log does not cover stay apart."""
+    fitted = []
+    for members, placements, ref, _ in groups:
+        fitted.append(_georeference(placements, ref, [scan.keyframes[k].index for k in members], scan, track, options.georef, first=False))
+    on_ground = [(group, georef) for group, georef in zip(groups, fitted) if georef is not None]
+    if len(on_ground) < 2:
+        return groups
+    (first_members, _, first_ref, _), first = on_ground[0]
+    back = np.linalg.inv(first.mosaic_to_ground)
+    entries = sorted((member, normalize(back @ georef.mosaic_to_ground @ H))
+                     for (members, placements, _, _), georef in on_ground for member, H in zip(members, placements))
+    members = [m for m, _ in entries]
+    merged = (members, [H for _, H in entries], members.index(first_members[first_ref]), sum(g[3] for g, _ in on_ground))
+    return [merged] + [group for group, georef in zip(groups, fitted) if georef is None]
+
+
+def _with_flights(extra: tuple[dict, list[dict]] | None, frames: list[tuple[int, np.ndarray]], flights: list[FlightSpan]):
+    """The transforms JSON's per-frame keys, with each keyframe's flight and its own frame number
+    when several flights were stitched."""
+    if not flights:
+        return extra
+    top, per_frame = extra if extra is not None else ({}, [{} for _ in frames])
+    named = []
+    for (index, _), more in zip(frames, per_frame):
+        span = next(f for f in flights if f.holds(index))
+        named.append({**more, "flight": span.name, "frame": index - span.start})
+    return top, named
 
 
 def _frames_held(scan: FlightScan) -> list[list[int]]:
@@ -330,6 +422,10 @@ def _frames_held(scan: FlightScan) -> list[list[int]]:
     dropped = {i for i, _ in scan.dropped}
     starts = [k.index for k in scan.keyframes]
     ends = [*starts[1:], scan.first_index + scan.frames]
+    for n, a in enumerate(starts):  # several flights: a flight's last keyframe stands for its frames only
+        span = next((f for f in scan.flights if f.holds(a)), None)
+        if span is not None:
+            ends[n] = min(ends[n], span.start + span.frames)
     return [[i for i in range(a, b) if i not in dropped] for a, b in zip(starts, ends)]
 
 
@@ -524,7 +620,7 @@ def _compose_options(options: StitchOptions) -> ComposeOptions:
 
 
 def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: ComposeOptions, show_progress: bool,
-             use: np.ndarray | None = None, rolling: RollingCorrection | None = None):
+             use: np.ndarray | None, rolling: RollingCorrection | None, sink: TileSink, runner: TileRunner | None = None) -> None:
     placed = []
     for keyframe, H in zip(keyframes, frame_to_canvas):
         if not keyframe.composited:
@@ -532,10 +628,23 @@ def _compose(keyframes, source_size, frame_to_canvas, canvas_size, options: Comp
         image, keyframe.image = keyframe.image, None  # compose() frees each image once drawn
         to_source = np.linalg.inv(resize_matrix(source_size, (image.shape[1], image.shape[0])))
         rows, reach = (None, 0.0) if rolling is None else _row_map(rolling, keyframe.index, source_size, to_source)
-        placed.append(PlacedImage(image, normalize(H @ to_source), use, rows, reach))
+        placed.append(PlacedImage(image, normalize(H @ to_source), keyframe.use if keyframe.use is not None else use, rows, reach))
         del image
-    with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", canvas_size[1], unit="rows/s", disable=not show_progress) as advance:
-        return compose(placed, canvas_size, options, advance)
+    tiles = tile_count(placed, canvas_size, options)
+    with progress_task(f"compose {canvas_size[0]}x{canvas_size[1]}", tiles, unit="tiles/s", disable=not show_progress) as advance:
+        compose(placed, canvas_size, options, advance, sink, runner)
+
+
+def _fill_holes(staged: StagedPanorama | MemoryPanorama, max_share: float) -> int:
+    """--fill-holes: the small interior holes inpainted, on the whole canvas read back into
+    memory (the one step whose memory follows the canvas; off by default)."""
+    if max_share <= 0:
+        return 0
+    rgba = staged.read()
+    filled = fill_holes(rgba, max_share)
+    if filled:
+        staged.write(0, 0, rgba)
+    return filled
 
 
 def _row_map(rolling: RollingCorrection, index: int, source_size: tuple[int, int], to_source: np.ndarray) -> tuple[RowMap, float]:

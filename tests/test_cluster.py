@@ -1,0 +1,123 @@
+"""The stitch on a Dask cluster (issue 52, mosaic_cli/stitch/cluster.py), on 127.0.0.1 inside the
+test: the compose stage's tiles and the flights' scans spread over local worker processes give
+the one-process result to the bit; a worker killed mid-run is retried; a scheduler that does not
+answer, a cluster that cannot see the stitch's disk and bad options are one line each."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from benchmarks.flights import cut_flight
+from mosaic_cli.errors import BadInput
+from mosaic_cli.stitch import StitchOptions
+from mosaic_cli.stitch.cluster import ClusterOptions, _check_shared, connect, tile_runner
+from mosaic_cli.stitch.compose import ComposeOptions, MemoryCanvas, PlacedImage, compose
+from mosaic_cli.stitch.flights import stitch_flights
+from tests.conftest import assert_one_line_error, mosaic_run, run_cli, textured_image
+
+pytest.importorskip("distributed")
+
+
+def _views(count: int = 12, seed: int = 3):
+    ground = textured_image(1200, 700, seed=5)
+    rng = np.random.default_rng(seed)
+    views = []
+    for k in range(count):
+        H = np.array([[1.0, 0.02, 20 + 180 * (k % 6) + rng.uniform(-6, 6)], [-0.02, 1.0, 20 + 230 * (k // 6)], [1e-5, 0, 1]])
+        view = cv2.warpPerspective(ground, np.linalg.inv(H), (300, 260))
+        views.append((np.clip(view * (0.85 + 0.3 * rng.random()), 0, 255).astype(np.uint8), H))
+    return views
+
+
+CANVAS = (1140, 530)
+
+
+def test_compose_on_a_local_cluster_is_the_one_process_panorama_to_the_bit(tmp_path):
+    options = ComposeOptions(tile=128)
+    alone = compose([PlacedImage(v.copy(), H) for v, H in _views()], CANVAS, options)
+    with connect(ClusterOptions(workers=2), tmp_path) as client:
+        sink = MemoryCanvas(CANVAS)
+        placed = [PlacedImage(v.copy(), H) for v, H in _views()]
+        assert compose(placed, CANVAS, options, sink=sink, runner=tile_runner(client)) is None
+        assert all(p.image is None for p in placed)  # pixels dropped once drawn
+    assert np.array_equal(sink.rgba, alone) and (alone[..., 3] == 255).mean() > 0.5
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_compose_is_retried_and_the_panorama_is_the_same(tmp_path):
+    options = ComposeOptions(tile=64)
+    alone = compose([PlacedImage(v.copy(), H) for v, H in _views()], CANVAS, options)
+    with connect(ClusterOptions(workers=2), tmp_path) as client:
+        pids = client.run(os.getpid)
+        killed = []
+
+        class KillingSink(MemoryCanvas):
+            def write(self, x, y, rgba):
+                if not killed:  # the first tile back: one worker dies with its queued rows
+                    victim = sorted(pids.values())[0]
+                    os.kill(victim, signal.SIGKILL)
+                    killed.append(victim)
+                super().write(x, y, rgba)
+
+        sink = KillingSink(CANVAS)
+        compose([PlacedImage(v.copy(), H) for v, H in _views()], CANVAS, options, sink=sink, runner=tile_runner(client))
+    assert killed and np.array_equal(sink.rgba, alone)
+
+
+@pytest.mark.slow
+def test_two_flights_on_workers_give_the_one_process_map(tmp_path):
+    """The flights scanned in worker processes (each its own estimator) and the tiles blended
+    there: the transforms and the panorama of the stitch in one process."""
+    full = tmp_path / "full.mp4"
+    mosaic_run("simulate", "-p", "survey", "-n", "240", "--size", "320x180", "-o", full, "-q", "--seed", "3", "--preset", "ultrafast")
+    flights = [cut_flight(full, 0, 140, tmp_path / "a.mp4"), cut_flight(full, 100, 240, tmp_path / "b.mp4")]
+    results = {}
+    for name, cluster in (("alone", ClusterOptions()), ("workers", ClusterOptions(workers=2))):
+        options = StitchOptions(estimator="orb", compose=ComposeOptions(tile=128), cluster=cluster)
+        out, js = tmp_path / f"{name}.png", tmp_path / f"{name}.json"
+        stitch_flights(flights, out, options=options, transforms=js, show_progress=False)
+        results[name] = (cv2.imread(str(out), cv2.IMREAD_UNCHANGED), json.loads(js.read_text()))
+    (alone, alone_js), (spread, spread_js) = results["alone"], results["workers"]
+    assert spread_js == alone_js and len({f["flight"] for f in alone_js["frames"]}) == 2
+    assert np.array_equal(spread, alone)
+
+
+def test_a_scheduler_that_does_not_answer_is_one_line_within_10_s(capsys, tmp_path, plain_160x90):
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    start = time.monotonic()
+    code, err = run_cli(capsys, "stitch", plain_160x90, "-o", tmp_path / "p.png", "-q", "--estimator", "orb",
+                        "--scheduler", f"tcp://127.0.0.1:{port}")
+    assert time.monotonic() - start < 10.0
+    assert_one_line_error(code, err, f"--scheduler tcp://127.0.0.1:{port}", "no Dask scheduler answered")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_cluster_whose_workers_cannot_see_the_disk_is_refused(tmp_path):
+    class Blind:
+        def run(self, function, *args):
+            return {"tcp://10.0.0.7:4000": False, "tcp://10.0.0.8:4000": function(*args)}
+
+    with pytest.raises(BadInput, match="1 of the cluster's workers cannot see"):
+        _check_shared(Blind(), tmp_path)
+    assert list(tmp_path.iterdir()) == []  # the probe file is gone
+
+
+@pytest.mark.parametrize("workers,scheduler,said", [
+    (0, None, "--workers must be 1 or more"),
+    (2, "tcp://127.0.0.1:8786", "give one of them"),
+    (None, "127.0.0.1:8786", "an address such as tcp://HOST:PORT"),
+])
+def test_bad_cluster_options_are_one_line(capsys, tmp_path, plain_160x90, workers, scheduler, said):
+    args = (["--workers", str(workers)] if workers is not None else []) + (["--scheduler", scheduler] if scheduler else [])
+    code, err = run_cli(capsys, "stitch", plain_160x90, "-o", tmp_path / "p.png", "-q", "--estimator", "orb", *args)
+    assert_one_line_error(code, err, said)

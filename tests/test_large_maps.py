@@ -1,0 +1,134 @@
+"""Maps as large as the flight (issue 52): the panorama composed tile by tile into a staged
+GeoTIFF on disk and every format written from it (stitch/raster.py), checked by independent
+readers: OpenCV for PNG, JPEG and TIFF, GDAL (rasterio) for the TIFF's bands and alpha; the
+canvas at the footage's own resolution by default, and any shrink said in one line."""
+
+from __future__ import annotations
+
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from mosaic_cli.errors import BadInput
+from mosaic_cli.stitch.canvas import CanvasOptions, parse_distance, plan_canvas
+from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
+from mosaic_cli.stitch.raster import staged_panorama, write_image
+from tests.conftest import assert_one_line_error, run_cli, textured_image
+
+
+@pytest.fixture(scope="module")
+def ground() -> np.ndarray:
+    return textured_image(900, 600, seed=5)
+
+
+def _panorama(width: int, height: int) -> np.ndarray:
+    """An RGBA panorama with texture, a transparent corner and colour everywhere else."""
+    rng = np.random.default_rng(4)
+    rgba = np.zeros((height, width, 4), np.uint8)
+    rgba[..., :3] = cv2.resize(rng.integers(0, 256, (height // 8 + 1, width // 8 + 1, 3), dtype=np.uint8), (width, height),
+                               interpolation=cv2.INTER_NEAREST)
+    rgba[..., 3] = 255
+    rgba[: height // 3, : width // 4] = 0  # ground nobody saw: transparent, black underneath
+    return rgba
+
+
+def test_every_format_holds_the_pixels_written_tile_by_tile(tmp_path):
+    import rasterio
+    from rasterio.enums import ColorInterp
+
+    truth = _panorama(1300, 700)
+    outputs = {"png": tmp_path / "p.png", "jpeg": tmp_path / "p.jpg", "tiff": tmp_path / "p.tif"}
+    for fmt in ("png", "jpeg", "tiff"):  # the TIFF last: it is the staged file itself, renamed
+        with staged_panorama(outputs[fmt], (1300, 700), keep=fmt == "tiff") as staged:
+            for y in range(0, 700, 256):  # tiles, in no special order of rows
+                for x in range(0, 1300, 384)[::-1]:
+                    staged.write(x, y, truth[y:y + 256, x:x + 384])
+            write_image(outputs[fmt], staged, fmt)
+    bgra = cv2.imread(str(outputs["png"]), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA), truth)
+    bgra = cv2.imread(str(outputs["tiff"]), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA), truth)
+    with rasterio.open(outputs["tiff"]) as ds:  # alpha declared as alpha, tiled, compressed
+        assert ds.count == 4 and ds.colorinterp[3] == ColorInterp.alpha and ds.profile["tiled"] and ds.compression is not None
+    rgb = cv2.cvtColor(cv2.imread(str(outputs["jpeg"]), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB).astype(int)
+    # lossy, but no worse than OpenCV's JPEG of the same quality, and black where nothing was seen
+    _, encoded = cv2.imencode(".jpg", cv2.cvtColor(truth[..., :3], cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92])
+    opencv = cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB).astype(int)
+    assert np.abs(rgb - truth[..., :3]).mean() < np.abs(opencv - truth[..., :3]).mean() + 1
+    assert rgb[: 700 // 3 - 8, : 1300 // 4 - 8].max() < 12
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.jpg", "p.png", "p.tif"]  # no staging file left
+
+
+def test_compose_into_the_staged_file_gives_the_in_memory_panorama(ground, tmp_path):
+    """Small tiles, a cache too small to hold one keyframe (every tile reads the spilled pixels
+    again), written through GDAL: the panorama of one tile over the whole canvas, in memory."""
+    rng = np.random.default_rng(2)
+    views = []
+    for k in range(8):
+        H = np.array([[1.0, 0.03, 30 + 170 * (k % 4) + rng.uniform(-8, 8)], [-0.03, 1.0, 25 + 190 * (k // 4)], [2e-5, 0, 1]])
+        view = cv2.warpPerspective(ground, np.linalg.inv(H), (260, 220))
+        views.append((np.clip(view * (0.85 + 0.3 * rng.random()), 0, 255).astype(np.uint8), H))
+    canvas = (780, 460)
+    whole = compose([PlacedImage(v.copy(), H) for v, H in views], canvas, ComposeOptions(tile=10**6))
+    out = tmp_path / "pano.png"
+    with staged_panorama(out, canvas) as staged:
+        assert compose([PlacedImage(v.copy(), H) for v, H in views], canvas, ComposeOptions(tile=64, cache_megabytes=1e-6), sink=staged) is None
+        write_image(out, staged, "png")
+    tiled = cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA).astype(int)
+    assert np.array_equal(tiled[..., 3], whole[..., 3]) and (whole[..., 3] == 255).mean() > 0.6
+    diff = np.abs(tiled[..., :3] - whole[..., :3].astype(int))
+    assert diff.mean() < 0.05 and diff.max() <= 2
+
+
+def test_a_panorama_too_large_for_jpeg_is_one_line_and_leaves_nothing(tmp_path):
+    out = tmp_path / "big.jpg"
+    with staged_panorama(out, (65_501, 16)) as staged, pytest.raises(BadInput, match="JPEG holds at most 65500 pixels a side"):
+        write_image(out, staged, "jpeg")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_canvas_keeps_every_pixel_unless_asked_and_says_what_shrank_it():
+    frame = (400, 300)
+    placements = [np.array([[1.0, 0, 350.0 * k], [0, 1, 0], [0, 0, 1]]) for k in range(30)]  # 10,550 px wide
+    native = plan_canvas(placements, list(range(30)), frame, CanvasOptions())
+    assert native.scale == 1.0 and native.size == native.native_size and native.size[0] >= 10_550 and native.shrunk_by is None
+    capped = plan_canvas(placements, list(range(30)), frame, CanvasOptions(max_size=5000))
+    assert max(capped.size) == 5000 and capped.shrunk_by == "--max-size 5000"
+    # Placements in ground pixels of 2 cm: --gsd 5cm draws 2/5 of the pixels a side; 1cm cannot add any.
+    coarser = plan_canvas(placements, list(range(30)), frame, CanvasOptions(gsd=0.05), gsd=0.02)
+    assert coarser.scale == pytest.approx(0.4) and coarser.shrunk_by == "--gsd 5cm"
+    assert plan_canvas(placements, list(range(30)), frame, CanvasOptions(gsd=0.01), gsd=0.02).scale == 1.0
+    jpeg = plan_canvas(placements, list(range(30)), frame, CanvasOptions(max_size=6000), limit="JPEG's limit")
+    assert jpeg.shrunk_by == "JPEG's limit"
+
+
+@pytest.mark.parametrize("text,metres", [("5cm", 0.05), ("0.05m", 0.05), ("50mm", 0.05), ("0.3", 0.3), ("2 cm", 0.02)])
+def test_gsd_reads_a_ground_distance(text, metres):
+    assert parse_distance(text) == pytest.approx(metres)
+
+
+@pytest.mark.parametrize("text", ["fast", "-5cm", "0", "nan m"])
+def test_a_gsd_that_is_no_distance_is_refused(text):
+    with pytest.raises(BadInput, match="--gsd"):
+        parse_distance(text)
+
+
+def test_gsd_without_telemetry_is_one_line_before_any_work(capsys, tmp_path, plain_160x90):
+    code, err = run_cli(capsys, "stitch", plain_160x90, "-o", tmp_path / "p.png", "--gsd", "5cm", "-q", "--estimator", "orb")
+    assert_one_line_error(code, err, "--gsd needs telemetry")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_without_gdal_the_panorama_is_held_in_memory_and_written_by_opencv(tmp_path, monkeypatch):
+    """The lent GPU machine has no rasterio: a plain panorama is still written, the same pixels."""
+    monkeypatch.setitem(sys.modules, "rasterio", None)
+    truth = _panorama(300, 200)
+    out = tmp_path / "p.png"
+    with staged_panorama(out, (300, 200)) as staged:
+        assert staged.path is None  # nothing staged on disk
+        staged.write(0, 0, truth[:, :128])
+        staged.write(128, 0, truth[:, 128:])
+        write_image(out, staged, "png")
+    assert np.array_equal(cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA), truth)
