@@ -156,3 +156,13 @@ def test_the_build_beside_overlay_detection_gives_both_or_the_error(tmp_path):
 
     with pytest.raises(BadInput, match="no such weights file"):
         frame_mask_while(failing, clip, MaskOptions())
+
+
+def test_the_polish_start_s_old_name_is_refused_naming_the_new_one():
+    """``seed`` named what the polish starts from, beside every command's random ``--seed``: the
+    old spelling is one line that names the new one, and the new one is taken."""
+    from mosaic_cli.estimators import plan_estimator
+
+    with pytest.raises(BadInput, match="-e lstm:seed is now -e lstm:polish-start"):
+        plan_estimator("lstm:seed=velocity")
+    plan_estimator("lstm:polish-start=velocity")  # checked, not built

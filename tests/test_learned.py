@@ -290,12 +290,12 @@ class ExplodingNet(PhaseNet):
         raise AssertionError("the network must not run when the seed replaces it")
 
 
-@pytest.mark.parametrize("seed", ["identity", "velocity"])
-def test_ablation_seeds_replace_the_network_and_nothing_else(panning, seed):
-    """seed=identity / seed=velocity: the same polish, confirmation and counts, without the
+@pytest.mark.parametrize("start", ["identity", "velocity"])
+def test_ablation_starts_replace_the_network_and_nothing_else(panning, start):
+    """polish-start=identity / polish-start=velocity: the same polish, confirmation and counts, without the
     network: on a slow pan both find the motion (from the identity, the polish's own reach)."""
     est = LearnedEstimator(ExplodingNet(), {"variant": "phase", "work_size": WORK}, "cpu",
-                           LearnedConfig(seed=seed, fallback="none"))
+                           LearnedConfig(polish_start=start, fallback="none"))
     H, conf = run(est, panning)
     assert errors_against(H, translation(*STEP_FULL)).max() < 0.3 and conf.min() > 0.5
     assert est.path_counts["learned"] == len(H)
@@ -304,13 +304,13 @@ def test_ablation_seeds_replace_the_network_and_nothing_else(panning, seed):
 def test_velocity_seed_starts_each_pair_from_the_last_motion(fast_panning):
     """From the identity the polish cannot reach an 18 px motion; once the fallback has found
     it, the velocity seed carries it to every later pair without the fallback."""
-    est = LearnedEstimator(ExplodingNet(), {"variant": "phase", "work_size": WORK}, "cpu", LearnedConfig(seed="velocity"))
+    est = LearnedEstimator(ExplodingNet(), {"variant": "phase", "work_size": WORK}, "cpu", LearnedConfig(polish_start="velocity"))
     H, _ = run(est, fast_panning)
     assert errors_against(H, translation(*FAST_FULL)).max() < 0.5
     assert est.path_counts["fallback"] == 1 and est.path_counts["learned"] == 8
 
 
-@pytest.mark.parametrize("option,value,message", [("seed", "zero", "seed must be one of"), ("prior", "kalman", "prior must be one of"),
+@pytest.mark.parametrize("option,value,message", [("polish_start", "zero", "polish-start must be one of"), ("prior", "kalman", "prior must be one of"),
                                                    ("fallback", "sift", "fallback must be one of"), ("retry", "narrow", "retry must be one of")])
 def test_bad_ablation_options_are_refused(option, value, message):
     with pytest.raises(BadInput, match=message):

@@ -146,7 +146,7 @@ def test_the_mixed_flight_runs_every_path(one_thread):
     assert "ccf" in paths, paths  # two carried, then the limit: failed
 
 
-@pytest.mark.parametrize("config, threads", [({}, 2), ({}, 4), ({"chunk": 16}, 4), ({"chunk": 1}, 4), ({"seed": "velocity"}, 4),
+@pytest.mark.parametrize("config, threads", [({}, 2), ({}, 4), ({"chunk": 16}, 4), ({"chunk": 1}, 4), ({"polish_start": "velocity"}, 4),
                                              ({"refine": "ecc"}, 4), ({"carry": "network"}, 4)],
                          ids=["default-2", "default-4", "chunk16-4", "chunk1-4", "velocity-seed-4", "ecc-4", "carry-network-4"])
 def test_threads_give_the_one_thread_estimates_to_the_bit(mixed, reference, threads, config):

@@ -66,8 +66,8 @@ def test_streams_one_estimate_per_new_frame_and_describes_each_frame_once(ground
     frames = [render(ground, np.array([[1, 0, 300.0], [0, 1, 200.0], [0, 0, 1]]) @ np.linalg.inv(np.linalg.matrix_power(H, k)), (640, 360)) for k in range(5)]
     est = OrbEstimator(320)
     calls = []
-    original = est._describe
-    monkeypatch.setattr(est, "_describe", lambda gray: calls.append(gray.shape) or original(gray))
+    original = est.features_of
+    monkeypatch.setattr(est, "features_of", lambda gray: calls.append(gray.shape) or original(gray))
     estimates = list(estimate_stream(est, frames, (640, 360)))
     assert len(estimates) == 4 and len(calls) == 5
     assert all(shape == (180, 320) for shape in calls)

@@ -275,7 +275,7 @@ def test_orb_and_the_lk_polish_keep_off_masked_pixels():
     orb = OrbEstimator(320, OrbConfig())
     orb.set_mask(use)
     orb.reset((640, 360))
-    points, _ = orb._describe(gray)
+    points, _ = orb.features_of(gray)
     assert len(points) > 50 and points[:, 0].min() >= 160 + orb._orb.getPatchSize() // 2
     corners = points_to_track(gray, CornerConfig(), orb.work_mask)
     assert len(corners) > 50 and corners[:, 0].min() >= 160
@@ -489,7 +489,7 @@ def test_the_learned_estimators_orb_fallback_takes_the_mask():
         est.set_mask(mask)
         est.reset((640, 360))
         assert est.work_size == (320, 180)
-        points, _ = est._fallback._describe(prev)
+        points, _ = est._fallback.features_of(prev)
         H, _ = est._fallback.register(prev, cur)
         assert H is not None
         if moves:

@@ -189,7 +189,7 @@ def test_band_passed_agreement_ranks_registrations_of_a_degraded_pair(ground):
     estimator.reset(FULL)
     prev, cur = (WorkFrame(estimator.prepared(f)) for f in frames)
     for f in (prev, cur):
-        estimator._describe(f)
+        estimator._read_frame(f)
     H_true = to_resolution(H_full, FULL, WORK)
     scores = [estimator._agreement(prev, cur, perturbed(H_true, px)) for px in (0.0, 1.5, 4.0)]
     assert scores[0] > scores[1] > scores[2], scores

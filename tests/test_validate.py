@@ -115,7 +115,7 @@ BAD = [
     (LearnedConfig, {"reset_every": 0}, BadInput, "reset-every"),
     (LearnedConfig, {"refine": "sift"}, BadInput, "refine"),
     (LearnedConfig, {"precision": "fp8"}, BadInput, "precision"),
-    (LearnedConfig, {"seed": "zero"}, BadInput, "seed"),
+    (LearnedConfig, {"polish_start": "zero"}, BadInput, "polish-start"),
     (LearnedConfig, {"prior": "gps"}, BadInput, "prior"),
     (LearnedConfig, {"fallback": "sift"}, BadInput, "fallback"),
     (OrbConfig, {"refine": "sift"}, BadInput, "refine"),

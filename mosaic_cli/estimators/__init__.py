@@ -73,6 +73,9 @@ def parse_spec(spec: str) -> tuple[str, dict[str, str]]:
     return name.lower(), options
 
 
+RENAMED = {"seed": "polish_start"}  # an option's old name -> its new one (refused, naming the new one)
+
+
 def typed_options(name: str, options: dict) -> dict:
     """The options given to the estimator ``name`` (from its spec and flags, None: not given),
     read as its config takes them, by field name; ``BadInput`` for one it does not take (listing
@@ -83,6 +86,10 @@ def typed_options(name: str, options: dict) -> dict:
         if value is None:
             continue
         key = key.replace("-", "_")
+        if key in RENAMED and key not in allowed:
+            new = RENAMED[key]
+            raise BadInput(f"-e {name}:{key.replace('_', '-')} is now -e {name}:{new.replace('_', '-')} "
+                           f"({key.replace('_', '-')} named a random seed elsewhere)")
         if key not in allowed:
             offer = ", ".join(opt.usage() for opt in allowed.values()) or "none"
             raise BadInput(f"estimator {name!r} has no option {key.replace('_', '-')!r} (its options: {offer})")

@@ -109,7 +109,7 @@ class LearnedEstimator(PairSchedule):
                            "(mosaic train writes them; mosaic train CLIPS --calibrate WEIGHTS adds them to existing weights)")
         self.patch = model.config.patch
         self.name = meta.get("variant", model.config.head)
-        self._prior_warp = self.config.prior == "velocity" and self.config.seed == "network"
+        self._prior_warp = self.config.prior == "velocity" and self.config.polish_start == "network"
         # The chunk's LK polish and check batched on the device (polish-with; see _finish_batched).
         on = self.config.polish_with
         self._batched = self.config.refine == "lk" and (on == "torch" or (on == "auto" and self.device.type == "cuda"))
@@ -144,7 +144,7 @@ class LearnedEstimator(PairSchedule):
         self._state = None
         self._pairs_done = 0
         self._motion = np.eye(3)  # the last confirmed pair's motion (working px): the prior
-        self._detail_levels = []  # band-passed detail of the recent unspoilt frames (see _describe)
+        self._detail_levels = []  # band-passed detail of the recent unspoilt frames (see _judge_spoilt)
         self._confirmed_once = False  # a pair was placed by the frames: there is a motion to carry
         self._carried_run = 0  # pairs carried in a row
         self.path_counts = dict.fromkeys(PATHS, 0)

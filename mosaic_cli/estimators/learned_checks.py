@@ -1,6 +1,6 @@
 """The learned estimator's per-pair checks: whether a pair's estimate is trusted, and by which path.
 
-Each frame is described once (:meth:`PairChecks._describe`: texture, the corners and band-passed
+Each frame is described once (:meth:`PairChecks._read_frame`: texture, the corners and band-passed
 image the polish reads, whether it is spoilt: glare, a gust's blur, near black, featureless).
 Each pair is then checked on its own frames (:meth:`PairChecks._check`: the network's estimate
 plausible, the polish and its wide retry, the correlation of the registered detail, ORB's
@@ -122,7 +122,7 @@ class PairChecks(Estimator):
         assert self._fallback is not None
         with frame.lock:
             if frame.features is None:
-                frame.features = self._fallback._describe(frame.gray)
+                frame.features = self._fallback.features_of(frame.gray)
             return frame.features
 
     def _carried(self, seed: np.ndarray, plausible: bool) -> PairEstimate:
@@ -148,16 +148,16 @@ class PairChecks(Estimator):
         estimate = self._to_full(H_work, confidence)
         return replace(estimate, path=path if estimate.confidence > 0 or path == "failed" else "failed")
 
-    def _describe(self, frame: WorkFrame) -> None:
+    def _read_frame(self, frame: WorkFrame) -> None:
         """Whether the frame has texture to register (black, blown-out, flat or badly blurred
         frames do not) and, for the polish, its band-passed image and corners; whether it is spoilt."""
         if frame.textured is not None:
             return
         self._texture(frame)
-        self._spoil(frame)
+        self._judge_spoilt(frame)
 
     def _texture(self, frame: WorkFrame) -> None:
-        """The part of :meth:`_describe` that reads the frame alone (run on the pool's threads):
+        """The part of :meth:`_read_frame` that reads the frame alone (run on the pool's threads):
         its texture, corners and band-passed image, and its detail level if it is textured."""
         c = self.config
         if c.refine == "lk":
@@ -170,7 +170,7 @@ class PairChecks(Estimator):
         if c.carry != "none" and frame.textured:  # only the carried motion asks whether a frame is spoilt
             frame.level = detail_level(frame.gray)
 
-    def _spoil(self, frame: WorkFrame) -> None:
+    def _judge_spoilt(self, frame: WorkFrame) -> None:
         """Whether the frame is spoilt, against the frames before it: frames are told in order."""
         if self.config.carry != "none":  # a frame without texture has no level, and is spoilt
             frame.spoilt = frame.level is None or self._spoilt(frame.level)
@@ -201,7 +201,7 @@ class PairChecks(Estimator):
         return (fine, True) if fine.refined else (wide, False)
 
     def _polish_once(self, prev: WorkFrame, cur: WorkFrame, H: np.ndarray, config: PolishConfig) -> Polish:
-        # Only textured frames are polished, and _describe gave those their aligned image (and corners, lk).
+        # Only textured frames are polished, and _read_frame gave those their aligned image (and corners, lk).
         assert prev.aligned is not None and cur.aligned is not None
         if self.config.refine == "lk":
             assert prev.points is not None

@@ -16,7 +16,7 @@ from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, Polisher
 PatchLayout = Literal[1, 5, 9]
 Precision = Literal["auto", "int8", "fp32"]
 Retry = Literal["wide", "none"]
-Seed = Literal["network", "identity", "velocity"]
+PolishStart = Literal["network", "identity", "velocity"]
 Prior = Literal["velocity", "none"]
 Fallback = Literal["orb", "none"]
 Carry = Literal["network", "velocity", "none"]
@@ -54,7 +54,7 @@ class LearnedConfig:
     # refit and the correlation check: mosaic_cli.estimators.batched), the pairs it does not
     # settle (no refit, too few inliers, a divergence, detail that does not correlate) then
     # finished by OpenCV as with "opencv"; "auto": torch on a GPU, OpenCV on a CPU.  Only the
-    # LK polish (refine=lk) is batched, and not with seed=velocity (each pair seeds the next).
+    # LK polish (refine=lk) is batched, and not with polish-start=velocity (each pair starts the next).
     polish_with: PolishWith = option("auto", ablation=True)
     retry: Retry = option("wide", ablation=True)  # "none": no wide polish where the cheap one fails (what the seed alone reaches)
     # The polish aligns band-passed frames (difference of Gaussians of these sigmas, working px):
@@ -72,9 +72,10 @@ class LearnedConfig:
     # stitch and stabilize treat it as one.  Registered noisy frames score far above it, a cut
     # to unrelated ground far below.
     min_zncc: float | None = 0.1  # None: never
-    # What seeds the polish: "network" (the product), or for the ablations the identity or the
-    # previous pair's motion (constant velocity), with everything else unchanged.
-    seed: Seed = option("network", ablation=True)
+    # What the polish starts from: "network" (the product), or for the ablations the identity or
+    # the previous pair's motion (constant velocity), with everything else unchanged.  (Named
+    # ``seed`` until issue 50: every command's --seed is a random seed.)
+    polish_start: PolishStart = option("network", ablation=True)
     # A motion prior: "velocity" pre-aligns frame t+1 by the last confirmed motion (as the chunk
     # starts) before the network reads it, so that the network regresses only what changed;
     # "none" reads the raw pair, as the paper does.  A network trained on fast flights needs no
@@ -104,7 +105,7 @@ class LearnedConfig:
         """The options a user sets (``--patches``, ``-e lstm:reset-every=K`` ...), named as written."""
         if self.chunk < 1:
             raise BadInput(f"chunk must be at least 1 frame pair, got {self.chunk}")
-        check_choices(self)  # patches, refine, precision, retry, seed, prior, fallback, carry
+        check_choices(self)  # patches, refine, precision, retry, polish-start, prior, fallback, carry
         if self.reset_every is not None and self.reset_every < 1:
             raise BadInput(f"reset-every must be at least 1 frame pair, got {self.reset_every}")
         if self.carry_limit < 1:

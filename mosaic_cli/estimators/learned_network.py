@@ -87,7 +87,7 @@ class NetworkRun(Estimator):
         how much its patches agreed: the network's (after the motion prior), or the identity."""
         n = len(frames) - 1
         firsts, seconds = [f.gray for f in frames[:-1]], [f.gray for f in frames[1:]]
-        if self.config.seed == "identity":
+        if self.config.polish_start == "identity":
             return np.repeat(np.eye(3)[None], n, 0), np.ones(n, bool), np.ones(n)
         if self._prior_warp:
             # The motion prior P (the last confirmed motion when the chunk starts): the network reads

@@ -43,9 +43,9 @@ class PairSchedule(NetworkRun, BatchedPairChecks):
         if pool is not None and self._looks_ahead(pool):
             return self._run_ahead(frames, pool)
         assert self._ahead is None, "a chunk looked ahead and the next did not"  # (the settings are a video's)
-        described = self._describe_all(frames, pool)  # on the pool: while the network runs
+        described = self._read_frames(frames, pool)  # on the pool: while the network runs
         pairs = list(zip(frames[:-1], frames[1:]))
-        if self.config.seed == "velocity":  # each pair starts from the one before: no batch, in turn
+        if self.config.polish_start == "velocity":  # each pair starts from the one before: no batch, in turn
             described()
             return [self._finish_pair(prev, cur, self._motion, True, 1.0) for prev, cur in pairs]
         seeds, offsets_ok, agreement = self._seeds(frames)
@@ -70,7 +70,7 @@ class PairSchedule(NetworkRun, BatchedPairChecks):
         """Whether a chunk's network reads nothing the decisions of the chunk before leave (no
         motion prior, no velocity seed), and its checks run on the pool (the batched polish waits
         on the device's one copy back anyway)."""
-        return self.config.seed == "network" and not self._prior_warp and not self._batched
+        return self.config.polish_start == "network" and not self._prior_warp and not self._batched
 
     def _looks_ahead(self, pool: ThreadPoolExecutor | None) -> bool:
         """Whether this chunk's network runs while the chunk before is checked (``lookahead``)."""
@@ -81,7 +81,7 @@ class PairSchedule(NetworkRun, BatchedPairChecks):
         pool checks the chunk before, whose pairs are then decided and returned; this chunk's
         checks start on the pool (decided at the next chunk, or at :meth:`finish`).  The same
         estimates, in the same order, as without the lookahead."""
-        described = self._describe_all(frames, pool)
+        described = self._read_frames(frames, pool)
         pairs = list(zip(frames[:-1], frames[1:]))
         seeds, offsets_ok, agreement = self._seeds(frames)
         described()
@@ -141,20 +141,20 @@ class PairSchedule(NetworkRun, BatchedPairChecks):
             self._pool_size = self._workers
         return self._pool
 
-    def _describe_all(self, frames: list[WorkFrame], pool: ThreadPoolExecutor | None) -> Callable[[], None]:
-        """Describe the frames not yet described (:meth:`_describe`): now, in turn, without a pool;
+    def _read_frames(self, frames: list[WorkFrame], pool: ThreadPoolExecutor | None) -> Callable[[], None]:
+        """Read the frames not yet read (:meth:`_read_frame`): now, in turn, without a pool;
         with one, their own part on the pool (:meth:`_texture`), and the call returned waits for it
-        and tells the spoilt frames in the flight's order (:meth:`_spoil`)."""
+        and tells the spoilt frames in the flight's order (:meth:`_judge_spoilt`)."""
         todo = [f for f in frames if f.textured is None]
         if pool is None:
             for f in todo:
-                self._describe(f)
+                self._read_frame(f)
             return lambda: None
         futures: list[Future] = [pool.submit(self._texture, f) for f in todo]
 
         def described() -> None:
             for f, future in zip(todo, futures):
                 future.result()
-                self._spoil(f)
+                self._judge_spoilt(f)
 
         return described

@@ -67,7 +67,7 @@ class OrbEstimator(Estimator):
     def __init__(self, work_width: int = 320, config: OrbConfig | None = None):
         super().__init__(work_width)
         self.config = config or OrbConfig()
-        # The learned estimator calls ``_describe`` and ``register`` from the threads of its pool:
+        # The learned estimator calls ``features_of`` and ``register`` from the threads of its pool:
         # each thread has a detector and a matcher of its own (same settings, same results), so
         # no OpenCV object is shared between threads.  Nothing else here changes after ``reset``.
         self._per_thread = threading.local()
@@ -94,23 +94,23 @@ class OrbEstimator(Estimator):
         # Keypoints whose descriptor patch would reach a masked pixel are not detected.
         self._detect_mask = None if self.work_mask is None else erode_mask(self.work_mask, self._orb.getPatchSize() // 2 + 1)
 
-    def _describe(self, gray: np.ndarray):
+    def features_of(self, gray: np.ndarray):
         keypoints, descriptors = self._orb.detectAndCompute(gray, self._detect_mask)
         points = np.array([k.pt for k in keypoints], np.float32) if keypoints else np.zeros((0, 2), np.float32)
         return points, descriptors
 
     def _estimate(self, prev: np.ndarray, cur: np.ndarray):
         if self._prev_features is None:
-            self._prev_features = self._describe(prev)
-        cur_features = self._describe(cur)
+            self._prev_features = self.features_of(prev)
+        cur_features = self.features_of(cur)
         prev_features, self._prev_features = self._prev_features, cur_features
         return self.register(prev, cur, prev_features, cur_features)
 
     def register(self, prev: np.ndarray, cur: np.ndarray, prev_features=None, cur_features=None):
         """Homography prev -> cur of two working-size gray frames, not necessarily consecutive
         (the learned estimator's fallback), from their features (described here when not given)."""
-        prev_pts, prev_desc = prev_features if prev_features is not None else self._describe(prev)
-        cur_pts, cur_desc = cur_features if cur_features is not None else self._describe(cur)
+        prev_pts, prev_desc = prev_features if prev_features is not None else self.features_of(prev)
+        cur_pts, cur_desc = cur_features if cur_features is not None else self.features_of(cur)
         H, confidence, src = fit_homography(prev_pts, prev_desc, cur_pts, cur_desc, self._tools()[1], self.config, self.work_size)
         if H is not None and self.config.refine == "ecc":
             H = align_pixels(prev, cur, H, self.config.polish, self.work_mask).H
