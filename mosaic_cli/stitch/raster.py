@@ -22,6 +22,7 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path, give_default_permissions, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.inputs import MAP_FORMATS
+from mosaic_cli.stitch.compose import MemoryCanvas
 from mosaic_cli.stitch.output import JPEG_MAX_SIDE
 
 BLOCK = 512  # the staged file's internal tiles, pixels
@@ -76,17 +77,14 @@ class StagedPanorama:
                 dst.build_overviews(factors, Resampling.average)
 
 
-class MemoryPanorama:
+class MemoryPanorama(MemoryCanvas):
     """The panorama in memory, RGBA (H, W, 4), where GDAL is missing: a plain image only."""
 
     path = None
 
     def __init__(self, size: tuple[int, int]):
+        super().__init__(size)
         self.size = size
-        self.rgba = np.zeros((size[1], size[0], 4), np.uint8)
-
-    def write(self, x: int, y: int, rgba: np.ndarray) -> None:
-        self.rgba[y:y + rgba.shape[0], x:x + rgba.shape[1]] = rgba
 
     def read(self) -> np.ndarray:
         return self.rgba
