@@ -2,7 +2,7 @@
 
 A survey keeps a keyframe's pixels for every bit of new ground, and neighbouring survey lines
 overlap, so the held pixels add up to several times the canvas: about 900 MB for a 1080p
-flight whose canvas reaches the 8000-px ``--max-size`` (``python -m benchmarks stitch memory``
+flight whose canvas reaches 8000 px (``python -m benchmarks stitch memory``
 --speed 32).  Holding them in temporary ``.npy`` files instead (lossless, a few ms to write
 or read one) keeps the process's memory to what compositing one strip needs; the files live
 in a temporary folder (``$TMPDIR``) that the stitch removes however it ends.
