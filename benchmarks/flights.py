@@ -156,5 +156,37 @@ def apart(argv: list[str]) -> int:
     return 0
 
 
+def workers(argv: list[str]) -> int:
+    """Two flights of one simulated survey (as ``two`` cuts them) stitched into one map in one
+    process and with --workers N (each flight scanned by a worker, the tiles blended by them),
+    alternated --rounds times: wall seconds of the whole command."""
+    import time
+
+    parser = make_parser(SUITE, "workers", workers.__doc__)
+    parser.add_argument("--frames", type=int, default=600)
+    parser.add_argument("--size", default="640x360")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=2)
+    args = parser.parse_args(argv)
+    print_start()
+    with tempfile.TemporaryDirectory(prefix="mosaic-flights-") as tmp:
+        root = Path(tmp)
+        full = root / "full.mp4"
+        subprocess.run(["mosaic", "simulate", "-p", "survey", "-n", str(args.frames), "--size", args.size, "-o", str(full), "-q",
+                        "--telemetry", "srt", "--seed", "3", "--preset", "ultrafast"], check=True)
+        length = round(args.frames / 1.8)
+        flights = [cut_flight(full, 0, length, root / "a.mp4"), cut_flight(full, args.frames - length, args.frames, root / "b.mp4")]
+        walls: dict[str, list[float]] = {"one process": [], f"--workers {args.workers}": []}
+        for _ in range(args.rounds):
+            for name, extra in (("one process", []), (f"--workers {args.workers}", ["--workers", str(args.workers)])):
+                start = time.perf_counter()
+                subprocess.run(["mosaic", "stitch", *map(str, flights), "-o", str(root / "map.tif"), "-q", *extra], check=True)
+                walls[name].append(time.perf_counter() - start)
+        base = float(np.median(walls["one process"]))
+        for name, values in walls.items():
+            print(f"{name:>12}: {np.median(values):.1f} s (runs {', '.join(f'{v:.1f}' for v in values)}; {base / np.median(values):.2f}x)")
+    return 0
+
+
 def main(argv: list[str]) -> int:
-    return run_commands(SUITE, __doc__, {"two": two, "apart": apart}, argv, default=two)
+    return run_commands(SUITE, __doc__, {"two": two, "apart": apart, "workers": workers}, argv, default=two)
