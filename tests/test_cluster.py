@@ -43,12 +43,18 @@ CANVAS = (1140, 530)
 def test_compose_on_a_local_cluster_is_the_one_process_panorama_to_the_bit(tmp_path):
     options = ComposeOptions(tile=128)
     alone = compose([PlacedImage(v.copy(), H) for v, H in _views()], CANVAS, options)
+    other = compose([PlacedImage(v.copy(), H) for v, H in _views(seed=4)], CANVAS, options)
     with connect(ClusterOptions(workers=2), tmp_path) as client:
         sink = MemoryCanvas(CANVAS)
         placed = [PlacedImage(v.copy(), H) for v, H in _views()]
         assert compose(placed, CANVAS, options, sink=sink, runner=tile_runner(client)) is None
         assert all(p.image is None for p in placed)  # pixels dropped once drawn
+        # A second panorama on the same workers (a flight in two parts): none of the first's
+        # keyframes, which the workers kept, is drawn in it.
+        second = MemoryCanvas(CANVAS)
+        compose([PlacedImage(v.copy(), H) for v, H in _views(seed=4)], CANVAS, options, sink=second, runner=tile_runner(client))
     assert np.array_equal(sink.rgba, alone) and (alone[..., 3] == 255).mean() > 0.5
+    assert np.array_equal(second.rgba, other) and not np.array_equal(other, alone)
 
 
 @pytest.mark.slow

@@ -123,7 +123,7 @@ def tile_runner(client) -> Callable[[ComposePlan, TileSink, Callable[..., None]]
     return run
 
 
-_WORKER_HELD: dict[int, _Held] = {}  # (on a worker) the keyframes it read, kept from one tile to the next of a plan
+_WORKER_HELD: dict[str, _Held] = {}  # (on a worker) the keyframes it read, kept from one tile to the next of a plan
 
 
 def blend_tile(plan: ComposePlan, x0: int, y0: int) -> tuple[int, int, np.ndarray | None]:
@@ -132,7 +132,7 @@ def blend_tile(plan: ComposePlan, x0: int, y0: int) -> tuple[int, int, np.ndarra
     import cv2
 
     cv2.setNumThreads(1)
-    key = id(plan)
+    key = plan.token
     if key not in _WORKER_HELD:
         _WORKER_HELD.clear()  # another plan's keyframes
         _WORKER_HELD[key] = _Held(plan.cache_megabytes)

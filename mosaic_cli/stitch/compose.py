@@ -5,9 +5,10 @@ default) at full size.  Uncovered canvas stays transparent (alpha 0)."""
 from __future__ import annotations
 
 import functools
+import uuid
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import cv2
@@ -208,6 +209,8 @@ class ComposePlan:
     canvas_size: tuple[int, int]
     torch_device: str | None = None
     cache_megabytes: float = 256.0
+    # Names this plan among others (a worker keeps a plan's keyframes under it: ids are reused)
+    token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
     @property
     def tiles(self) -> list[tuple[int, int]]:
