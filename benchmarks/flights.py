@@ -74,6 +74,18 @@ def placement_spread(transforms: dict, truth: dict, offsets: dict[str, int]) -> 
     return float(np.max(np.linalg.norm(spread - np.median(spread, axis=0), axis=1))), seen_by
 
 
+def survey_in_two(root: Path, frames: int, size: str, overlap: float = 0.2, seed: int = 3) -> tuple[Path, list[Path], int]:
+    """A simulated survey of ``frames`` (with its DJI log) in ``root``, cut into two flights of
+    equal length of which ``overlap`` of each is flown by both: the survey, the two flights, and
+    the frame of the survey the second starts at."""
+    full = root / "full.mp4"
+    subprocess.run(["mosaic", "simulate", "-p", "survey", "-n", str(frames), "--size", size, "-o", str(full), "-q",
+                    "--telemetry", "srt", "--seed", str(seed), "--preset", "ultrafast"], check=True)
+    length = round(frames / (2.0 - overlap))  # two flights of this many frames ...
+    start = length - round(overlap * length)  # ... the second from here
+    return full, [cut_flight(full, 0, length, root / "a.mp4"), cut_flight(full, start, frames, root / "b.mp4")], start
+
+
 def two(argv: list[str]) -> int:
     """A simulated survey cut into two flights overlapping by --overlap of their frames; both
     stitched into one map: how far the keyframes of both flights put one map point apart."""
@@ -86,12 +98,9 @@ def two(argv: list[str]) -> int:
     print_start()
     with tempfile.TemporaryDirectory(prefix="mosaic-flights-") as tmp:
         root = Path(tmp)
-        full = root / "full.mp4"
-        subprocess.run(["mosaic", "simulate", "-p", "survey", "-n", str(args.frames), "--size", args.size, "-o", str(full), "-q",
-                        "--telemetry", "srt", "--seed", str(args.seed), "--preset", "ultrafast"], check=True)
-        length = round(args.frames / (2.0 - args.overlap))  # two flights of this many frames ...
-        shared = round(args.overlap * length)  # ... of which this many are flown by both
-        a, b = cut_flight(full, 0, length, root / "a.mp4"), cut_flight(full, length - shared, args.frames, root / "b.mp4")
+        full, (a, b), b_start = survey_in_two(root, args.frames, args.size, args.overlap, args.seed)
+        length = round(args.frames / (2.0 - args.overlap))
+        shared = length - b_start
         js = root / "map.json"
         proc = subprocess.run(["mosaic", "stitch", str(a), str(b), "-o", str(root / "map.tif"), "--transforms", str(js)],
                               capture_output=True, text=True)
@@ -99,7 +108,7 @@ def two(argv: list[str]) -> int:
         if proc.returncode:
             return proc.returncode
         spread, seen_by = placement_spread(json.loads(js.read_text()), json.loads(full.with_suffix(".gt.json").read_text()),
-                                           {"a.mp4": 0, "b.mp4": length - shared})
+                                           {"a.mp4": 0, "b.mp4": b_start})
         print(f"two flights of {length} and {args.frames - length + shared} frames, {shared} flown by both: the keyframes of "
               f"{len(seen_by)} flights place one map point within {spread:.2f} px")
     return 0
@@ -170,12 +179,8 @@ def workers(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     print_start()
     with tempfile.TemporaryDirectory(prefix="mosaic-flights-") as tmp:
+        _, flights, _ = survey_in_two(Path(tmp), args.frames, args.size)
         root = Path(tmp)
-        full = root / "full.mp4"
-        subprocess.run(["mosaic", "simulate", "-p", "survey", "-n", str(args.frames), "--size", args.size, "-o", str(full), "-q",
-                        "--telemetry", "srt", "--seed", "3", "--preset", "ultrafast"], check=True)
-        length = round(args.frames / 1.8)
-        flights = [cut_flight(full, 0, length, root / "a.mp4"), cut_flight(full, args.frames - length, args.frames, root / "b.mp4")]
         walls: dict[str, list[float]] = {"one process": [], f"--workers {args.workers}": []}
         for _ in range(args.rounds):
             for name, extra in (("one process", []), (f"--workers {args.workers}", ["--workers", str(args.workers)])):
