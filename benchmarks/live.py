@@ -263,7 +263,7 @@ def bench_stabilize(args) -> list[dict]:
                "jitter input": shaky, "jitter live": j_live, "jitter offline": j_off, "ratio": j_live / j_off,
                "load during": f"{loads[0]:.1f} -> {loads[1]:.1f}", "hogs": args.hog, "breakdown": breakdown(live, out_times),
                "notes": live.notes, "late frames": np.flatnonzero(live.lateness).tolist(),
-               "load": load_note()}
+               "later than the bound": np.flatnonzero(leave > args.latency + 1.0 / gt.fps).tolist(), "load": load_note()}
         rows.append(row)
         print(f"stabilize --latency {args.latency:g} --model {model} ({args.estimator}) {video.name}: {live.frames_in} frames in, {live.frames_out} out, "
               f"{count} received over UDP; latency arrival -> encoded output received {row['latency to encoded output']} "

@@ -5,6 +5,7 @@ command runs against it.  Every run is bounded in time (subprocess timeouts)."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -183,6 +184,49 @@ def test_sigterm_ends_a_live_track_with_what_was_received(tmp_path, flight):
     doc = json.loads(out.read_text())
     assert 2 <= doc["frames"] < FRAMES
     assert doc["meta"]["ended_by"] == "SIGTERM"
+
+
+def processes_in_session(session: int) -> list[int]:
+    """The live processes whose session is ``session`` (Linux's /proc)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        if int(fields[3]) == session and fields[0] != "Z":
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_sigterm_to_the_process_group_ends_a_live_stabilize_with_its_network_process(tmp_path, flight):
+    """`timeout` and a terminal signal the whole process group, the network's process included
+    (:mod:`mosaic_cli.live.network_process`): the run still ends as its stream's end would, its
+    video written, and leaves no process behind."""
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    out = tmp_path / "steady.mp4"
+    proc = mosaic("stabilize", f"tcp://127.0.0.1:{port}?listen=1", out, "--latency", "1", start_new_session=True)
+    wait_until_bound(port, udp=False)
+    sender = subprocess.Popen([FFMPEG, "-v", "quiet", "-re", "-stream_loop", "-1", "-i", str(video), "-c", "copy", "-f", "mpegts",
+                               f"tcp://127.0.0.1:{port}"])
+    try:
+        deadline = time.monotonic() + RUN_LIMIT
+        while len(processes_in_session(proc.pid)) < 2 and time.monotonic() < deadline:  # mosaic and its network
+            time.sleep(0.1)
+        time.sleep(3.0)  # frames are coming in
+        os.killpg(proc.pid, signal.SIGTERM)
+        rc, _, err = finish(proc)
+    finally:
+        sender.kill()
+        sender.wait(timeout=RUN_LIMIT)
+    assert rc == 0, err
+    assert "SIGTERM: ending with the" in err and "error" not in err, err
+    assert count_frames(out) >= 30
+    time.sleep(0.5)
+    assert processes_in_session(proc.pid) == [], "a process of the run outlived it"
 
 
 @pytest.mark.slow
@@ -449,15 +493,15 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
     import mosaic_cli.live.stabilize as live_stabilize
     from mosaic_cli.stabilize import StabilizeOptions
 
-    build = live_stabilize._estimator
+    network = live_stabilize.NetworkProcess
     connected = threading.Event()
 
-    def held_back(options):
+    def held_back(build):
         assert connected.wait(45), "the load waited for a sender that never connected"
         time.sleep(1.0)  # a second of frames comes before the network is there
-        return build(options)
+        return network(build)
 
-    monkeypatch.setattr(live_stabilize, "_estimator", held_back)
+    monkeypatch.setattr(live_stabilize, "NetworkProcess", held_back)
     video, _ = flight
     port = free_port(socket.SOCK_STREAM)
 

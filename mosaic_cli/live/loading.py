@@ -21,7 +21,7 @@ T = TypeVar("T")
 LOADING_SWITCH_INTERVAL = 0.0005
 
 
-def built_beside(build: Callable[[], T], after_start: bool = False) -> concurrent.futures.Future:
+def built_beside(build: Callable[[], T], after_start: bool = False, in_this_process: bool = True) -> concurrent.futures.Future:
     """``build()`` on a thread of its own: its result (or its error) when the future is asked.
 
     ``after_start``: the build waits for :func:`begin` (which :func:`waited_for` also calls on
@@ -34,7 +34,8 @@ def built_beside(build: Callable[[], T], after_start: bool = False) -> concurren
     while it ran stopped every thread of a live run for up to 0.1 s, a few hundred times, as
     the first frames came in (``python -m benchmarks live stabilize``, cold runs).  Meanwhile the interpreter
     hands its lock on every :data:`LOADING_SWITCH_INTERVAL`: at Python's 5 ms, 3 of 4 cold runs
-    left 5-11 of their first frames at their deadline, at 0.5 ms none of 8."""
+    left 5-11 of their first frames at their deadline, at 0.5 ms none of 8.  None of this where
+    ``in_this_process`` is False: the build only waits for another process to load (:mod:`.network_process`)."""
     future: concurrent.futures.Future = concurrent.futures.Future()
     go = threading.Event()
     future.begin = go.set  # type: ignore[attr-defined]
@@ -43,10 +44,12 @@ def built_beside(build: Callable[[], T], after_start: bool = False) -> concurren
 
     def run() -> None:
         go.wait()
-        collecting = gc.isenabled()
-        gc.disable()
+        collecting = gc.isenabled() and in_this_process
+        if collecting:
+            gc.disable()
         interval = sys.getswitchinterval()
-        sys.setswitchinterval(min(interval, LOADING_SWITCH_INTERVAL))
+        if in_this_process:
+            sys.setswitchinterval(min(interval, LOADING_SWITCH_INTERVAL))
         result: T | None = None
         error: BaseException | None = None
         try:
@@ -68,15 +71,18 @@ def built_beside(build: Callable[[], T], after_start: bool = False) -> concurren
 
 
 @contextlib.contextmanager
-def waited_for(future: concurrent.futures.Future | None) -> Iterator[None]:
+def waited_for(future: concurrent.futures.Future | None, close: bool = False) -> Iterator[None]:
     """On the way out, wait for ``future``'s work to end, however the block ends: a network's
-    loading is never left half done (torch's import) as mosaic exits."""
+    loading is never left half done (torch's import) as mosaic exits.  ``close``: then close
+    what it built (a network's process), if it was built."""
     try:
         yield
     finally:
         if future is not None:
             begin(future)
             concurrent.futures.wait([future])
+            if close and future.exception() is None:
+                future.result().close()
 
 
 def begin(future: concurrent.futures.Future | None) -> None:

@@ -39,9 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput, warn
-from mosaic_cli.estimators import Estimator, make_estimator
+from mosaic_cli.estimators import Estimator, make_estimator, plan_estimator
 from mosaic_cli.live.bridge import Bridged
-from mosaic_cli.live.loading import begin, built_beside, trained_width, waited_for
+from mosaic_cli.live.loading import built_beside, trained_width, waited_for
+from mosaic_cli.live.network_process import NetworkProcess
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.schedule import LIVE_CHUNK, Abandoned, LiveSchedule
 from mosaic_cli.live.source import (
@@ -131,19 +132,19 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     live = file_info is None
     notes: list[str] = []
     # Loading a network takes seconds.  A file's: before its stream opens, so that no frame
-    # waits for it.  A live input's: beside the opening, so that the socket listens (and a
-    # sender may connect) at once; the frames that come meanwhile queue, and their deadlines
-    # start as they are taken.
+    # waits for it.  A live input's: in a process of its own (:mod:`.network_process`), beside
+    # the opening, so that the socket listens (and a sender may connect) at once and the
+    # stream's threads never wait on torch's import; ORB tracks the frames that come meanwhile.
     estimator = _estimator(options) if _learned(options) and not live else None
-    loading = built_beside(lambda: _estimator(options), after_start=True) if _learned(options) and live else None
+    loading = _network_beside(options) if _learned(options) and live else None
     masked = None
     horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
         horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
-    with waited_for(loading), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live,
-                                         info=file_info, on_started=lambda: begin(loading)) as stream:
+    with waited_for(loading, close=True), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live,
+                                         info=file_info) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
@@ -385,9 +386,21 @@ def _render(schedule: LiveSchedule, writer: StreamWriter | VideoWriter, size: tu
 
 def _estimator(options: StabilizeOptions) -> Estimator:
     """``--work-width`` as given (a classical estimator never works wider than the video)."""
-    return make_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device,
-                          default_width=WORK_WIDTH,
-                          **({"chunk": LIVE_CHUNK} if _learned(options) else {}))
+    return make_estimator(**_build(options))
+
+
+def _network_beside(options: StabilizeOptions) -> concurrent.futures.Future:
+    """The network of a live run, loading in a child process (checked here first: a mistake is
+    said before the stream opens)."""
+    build = _build(options)
+    plan_estimator(**build)
+    return built_beside(lambda: NetworkProcess(build), in_this_process=False)
+
+
+def _build(options: StabilizeOptions) -> dict:
+    """:func:`~mosaic_cli.estimators.make_estimator`'s arguments for ``options``."""
+    return {"name": options.estimator, "work_width": options.work_width, "weights": options.weights,
+            "device": options.device, "default_width": WORK_WIDTH, **({"chunk": LIVE_CHUNK} if _learned(options) else {})}
 
 
 # The pixel rate (px/s) up to which a live run encodes with the offline preset: x264's veryfast
