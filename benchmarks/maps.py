@@ -2,12 +2,15 @@
 drawing a grid of overlapping keyframes onto canvases of --mpx megapixels (tile by tile, into the
 staged GeoTIFF, then a PNG), one child process each: peak RSS and seconds per megapixel, which
 should both stay flat as the canvas grows.  ``stitch``: the whole ``mosaic stitch`` of simulated
-12 MP photo folders (benchmarks/survey.py) whose maps reach about --mpx megapixels."""
+12 MP photo folders (benchmarks/survey.py) whose maps reach about --mpx megapixels.  ``costs``:
+what moving one keyframe costs (its spill written, read back from the page cache and from the disk,
+and fetched by a Dask worker over loopback): the transfer term of docs/guide/costs.md."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -187,6 +190,63 @@ def stitch_scaling(argv: list[str]) -> int:
     return 0
 
 
+def costs(argv: list[str]) -> int:
+    """Milliseconds to move one keyframe of --size: its spill written (as a stitch holds it), read
+    back from the page cache and from the disk (the file's cached pages dropped first), and
+    fetched by a worker of a local Dask cluster over loopback; medians of --count keyframes."""
+    from mosaic_cli.stitch.spill import SpilledImage
+
+    parser = make_parser(SUITE, "costs", costs.__doc__)
+    parser.add_argument("--size", default="2048x1536", help="keyframe size WxH (RGB)")
+    parser.add_argument("--count", type=int, default=20)
+    args = parser.parse_args(argv)
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    print_start()
+    image = _texture(w, h).astype(np.uint8)
+    timings: dict[str, list[float]] = {"written": [], "read from the page cache": [], "read from the disk": []}
+    with tempfile.TemporaryDirectory(prefix="mosaic-maps-", dir=Path.cwd()) as tmp:
+        spilled = []
+        for _ in range(args.count):
+            started = time.perf_counter()
+            spilled.append(SpilledImage(image, tmp))
+            timings["written"].append(time.perf_counter() - started)
+        for item in spilled:
+            started = time.perf_counter()
+            item.load()
+            timings["read from the page cache"].append(time.perf_counter() - started)
+            with open(item.path, "rb") as file:
+                os.fsync(file.fileno())
+                os.posix_fadvise(file.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+            started = time.perf_counter()
+            item.load()
+            timings["read from the disk"].append(time.perf_counter() - started)
+        timings.update(_fetched_by_a_worker(spilled))
+    megabytes = image.nbytes / 1e6
+    print(f"one keyframe of {w}x{h} RGB: {megabytes:.1f} MB; milliseconds, median (min-max) of {args.count}")
+    for name, seconds in timings.items():
+        ms = 1000 * np.array(seconds)
+        print(f"{name:>32}: {np.median(ms):7.1f} ({ms.min():.1f}-{ms.max():.1f}) ms, {megabytes / np.median(seconds) / 1e3:.2f} GB/s")
+    return 0
+
+
+def _fetched_by_a_worker(spilled: list) -> dict[str, list[float]]:
+    """Each spilled keyframe loaded by a worker of a local cluster and its pixels sent back over loopback."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        print("(no cluster extra: the worker's fetch is not measured)")
+        return {}
+    seconds = []
+    with LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as cluster, Client(cluster) as client:
+        client.submit(np.zeros, 1).result()  # the worker is up
+        for item in spilled:
+            started = time.perf_counter()
+            client.submit(item.load, pure=False).result()
+            seconds.append(time.perf_counter() - started)
+    return {"loaded by a worker, sent back": seconds}
+
+
 def main(argv: list[str]) -> int:
-    return run_commands(SUITE, __doc__, {"compose": compose_scaling, "compose-child": compose_child, "stitch": stitch_scaling, "workers": workers}, argv,
+    return run_commands(SUITE, __doc__, {"compose": compose_scaling, "compose-child": compose_child, "stitch": stitch_scaling, "workers": workers,
+                                          "costs": costs}, argv,
                         default=compose_scaling)
