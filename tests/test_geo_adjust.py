@@ -158,7 +158,7 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     from mosaic_cli.geo.camera import hfov_degrees
     from mosaic_cli.geo.crs import Projection
     from mosaic_cli.geo.georef import GeorefOptions, georeference
-    from mosaic_cli.telemetry.track import Track
+    from mosaic_cli.telemetry.flight_log import FlightLog
 
     centres, pitch, roll, truth, _, _, times, rng = flight(3)
     ref = 30
@@ -171,7 +171,7 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     lonlat = projection.to_wgs84(origin[0] + gps[:, 0], origin[1] - gps[:, 1])  # y runs south
     n = len(times)
     headings = np.where((np.arange(n) // 15) % 2 == 0, 90.0, -90.0)
-    track = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
+    track = FlightLog("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
                   pitch, roll, np.full(n, hfov_degrees(SIZE[0], FOCAL)))
     frame_rate = 10.0
     g = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, track, GeorefOptions())
@@ -184,7 +184,7 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
                             GeorefOptions(attitude_accuracy=None))
     assert gps_only.model in ("similarity", "homography")
     # a gimbal whose angles are 20 degrees off: said, and not used
-    wild = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
+    wild = FlightLog("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
                  pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n), np.full(n, hfov_degrees(SIZE[0], FOCAL)))
     unused = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, wild, GeorefOptions())
     assert unused.model in ("similarity", "homography") and "gimbal's angles disagree with the images" in unused.summary()
@@ -272,16 +272,16 @@ def test_height_scale_averages_the_noise_not_the_offset_and_screens_a_misread_he
 
 
 def synthetic_track(centres, times, pitch, roll, gps, heights, hfov):
-    """A Track of the synthetic flight (y of ``gps`` runs south) at the Zurich test origin."""
+    """A FlightLog of the synthetic flight (y of ``gps`` runs south) at the Zurich test origin."""
     from mosaic_cli.geo.crs import Projection
-    from mosaic_cli.telemetry.track import Track
+    from mosaic_cli.telemetry.flight_log import FlightLog
 
     projection = Projection.utm_for(47.3977, 8.5456)
     origin = projection.to_map([47.3977], [8.5456])[0]
     lonlat = projection.to_wgs84(origin[0] + gps[:, 0], origin[1] - gps[:, 1])
     n = len(times)
     headings = np.where((np.arange(n) // 15) % 2 == 0, 90.0, -90.0)
-    track = Track("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), heights, headings, pitch, roll, np.full(n, hfov))
+    track = FlightLog("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), heights, headings, pitch, roll, np.full(n, hfov))
     return track, np.array([[1.0, 0, origin[0]], [0, -1.0, origin[1]], [0, 0, 1.0]])
 
 

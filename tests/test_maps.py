@@ -430,7 +430,7 @@ def spiky_collection() -> tuple[dict, np.ndarray, np.ndarray]:
     from mosaic_cli.geo.crs import Projection
     from mosaic_cli.geo.output import footprint_collection
     from mosaic_cli.telemetry import align_to_frames
-    from mosaic_cli.telemetry.track import Track
+    from mosaic_cli.telemetry.flight_log import FlightLog
 
     n = 40
     east = ORIGIN[0] + 5 + 1.5 * np.arange(n)
@@ -440,7 +440,7 @@ def spiky_collection() -> tuple[dict, np.ndarray, np.ndarray]:
     projection = Projection(CRS)
     lonlat = projection.to_wgs84(east, north)
     nan = np.full(n, np.nan)
-    track = Track("spiky.SRT", np.arange(n) / 10.0, lonlat[:, 1], lonlat[:, 0], nan, nan, nan, nan, nan, nan)
+    track = FlightLog("spiky.SRT", np.arange(n) / 10.0, lonlat[:, 1], lonlat[:, 0], nan, nan, nan, nan, nan, nan)
     aligned = align_to_frames(track, np.arange(n) / 10.0)
     assert aligned.outliers == len(SPIKES)
     georef = SimpleNamespace(projection=projection, frame_indices=[], used=np.zeros(0, bool), telemetry=aligned, track=track)

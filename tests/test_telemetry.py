@@ -184,10 +184,10 @@ def test_alignment_reports_outliers_and_gaps():
     lon = np.full(n, 8.0)
     lat[50] += 40 / 111_000  # a bad fix 40 m off
     lat[100:150] = np.nan  # 5 s without a fix
-    from mosaic_cli.telemetry.track import Track
+    from mosaic_cli.telemetry.flight_log import FlightLog
 
     nan = np.full(n, np.nan)
-    track = Track("t", times, lat, lon, nan, nan, nan, nan, nan, nan)
+    track = FlightLog("t", times, lat, lon, nan, nan, nan, nan, nan, nan)
     a = align_to_frames(track, np.arange(0, 19.9, 1 / 30))
     assert a.outliers == 1 and a.without_fix == 50
     assert a.dropped.shape == (n,) and np.flatnonzero(a.dropped).tolist() == [50]  # which sample, for the maps

@@ -2,7 +2,7 @@
 
 Frame pixels follow the OpenCV pixel-centre convention; the principal point is the frame
 centre and the focal length (pixels) comes from the horizontal field of view.  Angles are in
-the convention of :class:`mosaic_cli.telemetry.Track`: ``pitch`` -90 looks straight down and
+the convention of :class:`mosaic_cli.telemetry.FlightLog`: ``pitch`` -90 looks straight down and
 above -90 tilts toward the frame's top; ``roll`` positive tilts toward the frame's right;
 ``yaw`` is the compass bearing of the frame's top edge.  With
 

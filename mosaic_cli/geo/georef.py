@@ -39,7 +39,7 @@ from mosaic_cli.geo.fit import SimilarityFit, SimilarityPrior, axis_sigma, fit_s
 from mosaic_cli.geo.prior import height_scale, sigmas_apart
 from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.telemetry.align import AlignedTelemetry, AlignOptions, align_to_frames
-from mosaic_cli.telemetry.track import Track
+from mosaic_cli.telemetry.flight_log import FlightLog
 
 FLIP = np.diag([1.0, -1.0, 1.0])  # (east, -north) <-> (east, north)
 # The fixes' robust scatter (metres) is never taken as less than GPS_FLOOR: no GPS is better than
@@ -131,7 +131,7 @@ class Georeference:
     nadirs: np.ndarray  # (N, 2) each keyframe's nadir point on the ground before its correction
     model: str  # "similarity", "homography" (from the GPS) or "homography levelled by the gimbal"
     hfov: float | None
-    track: Track
+    track: FlightLog
     prior: SimilarityPrior | None
     notes: list[str] = field(default_factory=list)  # what the summary should say besides
     warnings: list[str] = field(default_factory=list)  # said even with -q (mosaic: warning: ...)
@@ -174,7 +174,7 @@ def georeference(
     frame_indices: list[int],
     frame_size: tuple[int, int],
     fps: float,
-    track: Track,
+    track: FlightLog,
     options: GeorefOptions,
 ) -> Georeference:
     """Tie keyframe ``placements`` (frame pixels -> pixels of keyframe ``ref``) to ``track``."""
@@ -405,7 +405,7 @@ def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
     return np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]], [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / den
 
 
-def _name_rejected_fixes(track: Track, frame_indices, fixes: np.ndarray, used: np.ndarray, nadir_ground: np.ndarray,
+def _name_rejected_fixes(track: FlightLog, frame_indices, fixes: np.ndarray, used: np.ndarray, nadir_ground: np.ndarray,
                          all_fixes: np.ndarray, warnings: list[str]) -> None:
     """A photo folder's fixes the fit set aside, by photo, in one warning: each photo is placed
     by its pixels, and a wrong fix is worth knowing of (a GPS glitch, a photo from another flight)."""

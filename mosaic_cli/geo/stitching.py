@@ -11,12 +11,12 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.errors import BadInput, require_geo
 from mosaic_cli.geo.georef import Georeference, GeorefOptions
 from mosaic_cli.geometry import normalize
-from mosaic_cli.telemetry import Track, find_telemetry, read_telemetry
+from mosaic_cli.telemetry import FlightLog, find_telemetry, read_telemetry
 from mosaic_cli.video import VideoInfo
 
 
 def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions | None, span: tuple[float, float] | None = None,
-                     info: VideoInfo | None = None) -> Track | None:
+                     info: VideoInfo | None = None) -> FlightLog | None:
     """The telemetry to georeference with: the file given, else a track inside the video
     (None when there is none, or when it holds no GPS, e.g. captions), with the outputs that
     need it checked before any work.  (Not ``mosaic_cli.track.load_track``, which reads a
@@ -77,7 +77,7 @@ def check_plain_output(out: str | Path, why: str) -> None:
         raise BadInput(f"{wanted[0]} needs telemetry ({why})")
 
 
-def gps_straightener(track: Track, ref: int, indices: list[int], frame_size, fps: float, options: GeorefOptions):
+def gps_straightener(track: FlightLog, ref: int, indices: list[int], frame_size, fps: float, options: GeorefOptions):
     """Drift control's GPS prior: before loops are looked for, the scan's placements are moved
     toward the GPS track (loosely: see drift.py), so that neighbouring survey lines that drift
     had pulled apart are predicted to overlap again and get registered."""

@@ -36,9 +36,9 @@ from mosaic_cli.stitch.pipeline import (
     prepare_flight,
     scan_prepared,
 )
-from mosaic_cli.telemetry import Track
+from mosaic_cli.telemetry import FlightLog
+from mosaic_cli.telemetry.flight_log import FIELDS
 from mosaic_cli.telemetry.photos import photo_metadata_notes
-from mosaic_cli.telemetry.track import FIELDS
 from mosaic_cli.video.folders import folder_images
 
 GAP_SECONDS = 60.0  # between one flight's last frame and the next one's first, in the one count
@@ -115,7 +115,7 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
             restarted = restarted or scanned.restarted
         scan, spans = merge_scans(scans, [str(f.video) for f in prepared])
         tracks = [f.track for f in prepared]
-        track = merge_tracks(tracks, spans, scan.fps, [s.fps for s in scans]) if any(t is not None for t in tracks) else None
+        track = merge_logs(tracks, spans, scan.fps, [s.fps for s in scans]) if any(t is not None for t in tracks) else None
         first = prepared[0].options
         if track is not None and first.georef is None:  # a later flight has a log, the first none
             first = next(f.options for f in prepared if f.track is not None)
@@ -202,7 +202,7 @@ def merge_scans(scans: list[FlightScan], names: list[str]) -> tuple[FlightScan, 
     return merged, spans
 
 
-def merge_tracks(tracks: list[Track | None], spans: list[FlightSpan], fps: float, rates: list[float]) -> Track:
+def merge_logs(tracks: list[FlightLog | None], spans: list[FlightSpan], fps: float, rates: list[float]) -> FlightLog:
     """The flights' logs as one, each in the one count's time: flight k's sample at its own t
     seconds lands at ``start_k / fps + t * rate_k / fps`` (its frames at ``rate_k`` a second
     are numbered from ``start_k`` in a count at ``fps``), so that every keyframe finds its own
@@ -212,5 +212,5 @@ def merge_tracks(tracks: list[Track | None], spans: list[FlightSpan], fps: float
     columns = {name: np.concatenate([getattr(t, name) for t, _, _ in parts]) for name in FIELDS}
     photos = [p for t, _, _ in parts for p in (t.photos or [])] if all(t.photos is not None for t, _, _ in parts) else None
     notes = [note for t, _, _ in parts for note in t.notes]
-    return Track(" + ".join(t.source for t, _, _ in parts), time, **columns, clock_time=any(t.clock_time for t, _, _ in parts),
+    return FlightLog(" + ".join(t.source for t, _, _ in parts), time, **columns, clock_time=any(t.clock_time for t, _, _ in parts),
                  notes=notes, photos=photos)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mosaic_cli.geo.crs import Projection
-from mosaic_cli.telemetry.track import Track
+from mosaic_cli.telemetry.flight_log import FlightLog
 
 
 @dataclass
@@ -48,7 +48,7 @@ class GroundGuide:
     """The photos' predicted footprints, indexed by frame index (photo ``i`` of the folder is
     frame ``first_index + i``... as the scan numbers them: ``index`` below)."""
 
-    def __init__(self, track: Track, source_size: tuple[int, int], options: GuideOptions | None = None):
+    def __init__(self, track: FlightLog, source_size: tuple[int, int], options: GuideOptions | None = None):
         self.options = options or GuideOptions()
         self.size = source_size
         self.n = len(track)

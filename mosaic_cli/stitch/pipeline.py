@@ -66,8 +66,8 @@ from mosaic_cli.stitch.registration import (
     register_keyframes,
 )
 from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
-from mosaic_cli.telemetry import Track
-from mosaic_cli.telemetry.photos import photo_metadata_notes, photo_track_rate
+from mosaic_cli.telemetry import FlightLog
+from mosaic_cli.telemetry.photos import photo_log_rate, photo_metadata_notes
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.reader import refuse_damaged, scaled_size
 
@@ -212,7 +212,7 @@ class PreparedFlight:
     video: str | Path
     info: VideoInfo
     options: StitchOptions
-    track: Track | None
+    track: FlightLog | None
 
 
 @dataclass
@@ -241,7 +241,7 @@ def prepare_flight(video: str | Path, out: str | Path, transforms: str | Path | 
         track = georef_telemetry(video, out, options.georef, None, info)
         if track is not None:
             assert options.georef is not None
-            info = dataclasses.replace(info, fps=photo_track_rate(track))
+            info = dataclasses.replace(info, fps=photo_log_rate(track))
             georef = dataclasses.replace(options.georef, align=dataclasses.replace(options.georef.align, per_photo=True),
                                          bend_to_gps=False)
             options = dataclasses.replace(options, georef=georef)
@@ -293,7 +293,7 @@ def scan_prepared(flight: PreparedFlight, build: Callable[[], Estimator], show_p
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
                   transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
-                  mask: FrameMask | None = None, track: Track | None = None,
+                  mask: FrameMask | None = None, track: FlightLog | None = None,
                   rolling: RollingCorrection | None = None, runner: TileRunner | None = None) -> StitchResult:
     """The stages after the scan, shared by the offline and the live stitch: register the
     keyframes (loop closure, relocalisation of segments, drift control), then plan, compose and
@@ -382,7 +382,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     )
 
 
-def _on_one_map(groups, scan: FlightScan, track: Track, options: StitchOptions):
+def _on_one_map(groups, scan: FlightScan, track: FlightLog, options: StitchOptions):
     """Several flights with telemetry: the parts that registration did not join, each laid where
     its own fit to the log places it (its mosaic -> ground similarity, in the first part's
     mosaic frame), drawn as one part; parts the log does not cover stay apart."""
@@ -440,7 +440,7 @@ def _runs(indices: list[int]) -> list[tuple[int, int]]:
     return runs
 
 
-def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, track: Track, options: GeorefOptions | None,
+def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, track: FlightLog, options: GeorefOptions | None,
                   first: bool) -> Georeference | None:
     """One panorama laid on the ground.  The panorama of the flight's first keyframe must be
     (the log was checked to cover the video: what is wrong is said); a panorama of a later
@@ -535,7 +535,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
         return speculate(mask, attempt)
 
 
-def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: Track | None = None):
+def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: FlightLog | None = None):
     """The panoramas: for each, its keyframes (positions in ``scan.keyframes``), their
     keyframe -> reference placements (jointly refined, or chained from the scan's
     registrations when drift control is off), the reference (a position in the group) and

@@ -1,8 +1,8 @@
-"""Drone telemetry: DJI SRT, GPX, CSV and MISB ST 0601 KLV, read into one ``Track`` and
+"""Drone telemetry: DJI SRT, GPX, CSV and MISB ST 0601 KLV, read into one ``FlightLog`` and
 aligned to the video's frames.
 
-    track = read_telemetry("flight.SRT")          # or find_telemetry("flight.mp4") for an embedded track
-    aligned = align_to_frames(track, frame_times)  # per-frame interpolated fixes + a report
+    log = read_telemetry("flight.SRT")            # or find_telemetry("flight.mp4") for a log inside the video
+    aligned = align_to_frames(log, frame_times)    # per-frame interpolated fixes + a report
 """
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from pathlib import Path
 from mosaic_cli.errors import BadInput
 from mosaic_cli.inputs import VIDEO_SUFFIXES
 from mosaic_cli.telemetry.align import AlignedTelemetry, align_to_frames
-from mosaic_cli.telemetry.track import Track
+from mosaic_cli.telemetry.flight_log import FlightLog
 
-__all__ = ["Track", "AlignedTelemetry", "align_to_frames", "read_telemetry", "find_telemetry", "read_photo_folder"]
+__all__ = ["FlightLog", "AlignedTelemetry", "align_to_frames", "read_telemetry", "find_telemetry", "read_photo_folder"]
 
 
-def read_telemetry(path: str | Path) -> Track:
+def read_telemetry(path: str | Path) -> FlightLog:
     """Read a telemetry file, its format from the extension (or its content)."""
     from mosaic_cli.telemetry.klv import UAS_LS_KEY, read_klv
     from mosaic_cli.telemetry.logs import read_csv, read_gpx
@@ -50,7 +50,7 @@ def read_telemetry(path: str | Path) -> Track:
     raise BadInput(f"--telemetry {p}: not a telemetry format mosaic reads (DJI .SRT, .gpx, .csv or MISB .klv)")
 
 
-def find_telemetry(video: str | Path, info=None) -> Track | None:
+def find_telemetry(video: str | Path, info=None) -> FlightLog | None:
     """The first telemetry stream inside ``video`` that holds any, else None; for a folder of
     photos, their EXIF GPS (None when no photo has any).  ``info``: the video's probe
     (:func:`mosaic_cli.video.probe`), when the caller has it."""
@@ -67,14 +67,14 @@ def find_telemetry(video: str | Path, info=None) -> Track | None:
     return None
 
 
-def read_photo_folder(folder: str | Path) -> Track | None:
-    """The EXIF GPS of a folder's photos as a track, None when no photo has a fix: photo i at
+def read_photo_folder(folder: str | Path) -> FlightLog | None:
+    """The EXIF GPS of a folder's photos as a flight log, None when no photo has a fix: photo i at
     i / rate seconds, the rate the camera took them at (``photo_rate``; the stitch reads the
-    folder at it), each photo's tags in ``Track.photos``."""
-    from mosaic_cli.telemetry.photos import photo_rate, photo_track, read_photo_tags
+    folder at it), each photo's tags in ``FlightLog.photos``."""
+    from mosaic_cli.telemetry.photos import photo_log, photo_rate, read_photo_tags
     from mosaic_cli.video.folders import folder_images
 
     tags = [read_photo_tags(p) for p in folder_images(Path(folder))]
     if not any(t.has_fix for t in tags):
         return None
-    return photo_track(tags, photo_rate(tags), str(folder))
+    return photo_log(tags, photo_rate(tags), str(folder))

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mosaic_cli.telemetry.track import Track
+from mosaic_cli.telemetry.flight_log import FlightLog
 
 EARTH_RADIUS = 6_371_000.0
 
@@ -108,7 +108,7 @@ def _interp(t: np.ndarray, times: np.ndarray, values: np.ndarray, angle: bool = 
     return out
 
 
-def align_to_frames(track: Track, frame_times: np.ndarray, options: AlignOptions | None = None) -> AlignedTelemetry:
+def align_to_frames(track: FlightLog, frame_times: np.ndarray, options: AlignOptions | None = None) -> AlignedTelemetry:
     options = options or AlignOptions()
     t = np.asarray(frame_times, dtype=np.float64)
     fixed = track.has_fix

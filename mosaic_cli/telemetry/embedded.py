@@ -13,9 +13,9 @@ from pathlib import Path
 import av
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.telemetry.klv import decode_stream, track_from_packets
+from mosaic_cli.telemetry.flight_log import FlightLog
+from mosaic_cli.telemetry.klv import decode_stream, log_from_packets
 from mosaic_cli.telemetry.srt import parse_srt_text
-from mosaic_cli.telemetry.track import Track
 from mosaic_cli.video.reader import VideoInfo, probe
 
 # Text subtitle codecs (libav's names) ffmpeg converts to SRT; a DJI track is one of these.
@@ -45,7 +45,7 @@ def find_streams(video: str | Path, info: VideoInfo | None = None) -> list[Embed
     return found
 
 
-def read_embedded(video: str | Path, stream: EmbeddedStream) -> Track:
+def read_embedded(video: str | Path, stream: EmbeddedStream) -> FlightLog:
     source = f"{video} stream {stream.index}"
     if stream.kind == "srt":
         import imageio_ffmpeg
@@ -59,7 +59,7 @@ def read_embedded(video: str | Path, stream: EmbeddedStream) -> Track:
     packets, dropped = decode_stream(b"".join(payloads))
     # The container's timestamps when there is one per KLV packet; else the packets' own clocks.
     times = stamps if not dropped and len(stamps) == len(packets) and len(set(stamps)) == len(stamps) else None
-    track = track_from_packets(packets, source, times)
+    track = log_from_packets(packets, source, times)
     if dropped:
         track.notes.append(f"{dropped} KLV packets failed their checksum and were dropped")
     return track

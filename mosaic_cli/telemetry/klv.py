@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.telemetry.track import Track, TrackBuilder
+from mosaic_cli.telemetry.flight_log import FlightLog, FlightLogBuilder
 
 UAS_LS_KEY = bytes.fromhex("060E2B34020B01010E01030101000000")
 VERSION = 17
@@ -176,12 +176,12 @@ def _decode_body(body: bytes) -> KlvPacket:
     return KlvPacket(time_us, values)
 
 
-def track_from_packets(packets: list[KlvPacket], source: str, times: list[float] | None = None) -> Track:
-    """A ``Track`` from decoded packets; ``times`` (seconds, e.g. the container's timestamps)
+def log_from_packets(packets: list[KlvPacket], source: str, times: list[float] | None = None) -> FlightLog:
+    """A ``FlightLog`` from decoded packets; ``times`` (seconds, e.g. the container's timestamps)
     take precedence over the packets' own Precision Time Stamps."""
     if not packets:
         raise BadInput(f"{source}: no MISB ST 0601 packet (UAS Datalink Local Set) in it")
-    builder = TrackBuilder()
+    builder = FlightLogBuilder()
     stamps = [p.time_us for p in packets]
     if times is None and any(s is None for s in stamps):
         raise BadInput(f"{source}: KLV packets without a Precision Time Stamp (tag 2)")
@@ -202,14 +202,14 @@ def track_from_packets(packets: list[KlvPacket], source: str, times: list[float]
     return builder.build(f"{source} (MISB ST 0601 KLV)", clock_time=times is None)
 
 
-def read_klv(path: str | Path) -> Track:
+def read_klv(path: str | Path) -> FlightLog:
     p = Path(path)
     try:
         data = p.read_bytes()
     except OSError as exc:
         raise BadInput(f"{p}: cannot read ({exc.strerror})") from None
     packets, dropped = decode_stream(data)
-    track = track_from_packets(packets, str(p))
+    track = log_from_packets(packets, str(p))
     if dropped:
         track.notes.append(f"{dropped} KLV packets failed their checksum and were dropped")
     return track

@@ -14,7 +14,7 @@ from datetime import datetime
 from pathlib import Path
 
 from mosaic_cli.errors import BadInput, require_geo
-from mosaic_cli.telemetry.track import Track, TrackBuilder
+from mosaic_cli.telemetry.flight_log import FlightLog, FlightLogBuilder
 
 _CSV_COLUMNS = {
     "time": "time", "t": "time", "timestamp": "time", "seconds": "time",
@@ -42,7 +42,7 @@ def _time_value(text: str) -> tuple[float, bool]:
     return stamp.timestamp(), True
 
 
-def read_csv(path: str | Path) -> Track:
+def read_csv(path: str | Path) -> FlightLog:
     p = Path(path)
     try:
         handle = p.open(newline="", encoding="utf-8-sig", errors="replace")
@@ -58,7 +58,7 @@ def read_csv(path: str | Path) -> Track:
         missing = [c for c in ("time", "lat", "lon") if c not in found]
         if missing:
             raise BadInput(f"{p}: the CSV header must name time, lat and lon columns (missing: {', '.join(missing)}; header: {','.join(header)})")
-        builder = TrackBuilder()
+        builder = FlightLogBuilder()
         clock = None
         for line, row in enumerate(reader, start=2):
             if not any(cell.strip() for cell in row):
@@ -91,7 +91,7 @@ def read_csv(path: str | Path) -> Track:
     return track
 
 
-def read_gpx(path: str | Path) -> Track:
+def read_gpx(path: str | Path) -> FlightLog:
     require_geo("gpxpy")
     import gpxpy
     import gpxpy.gpx
@@ -104,7 +104,7 @@ def read_gpx(path: str | Path) -> Track:
         raise BadInput(f"{p}: cannot read ({exc.strerror})") from None
     except gpxpy.gpx.GPXException as exc:
         raise BadInput(f"{p}: not a GPX file ({str(exc).splitlines()[0] if str(exc) else 'parse error'})") from None
-    builder = TrackBuilder()
+    builder = FlightLogBuilder()
     untimed = 0
     points = [pt for track in gpx.tracks for seg in track.segments for pt in seg.points]
     points = points or [pt for route in gpx.routes for pt in route.points]

@@ -1,11 +1,11 @@
 """Where each photo of a folder was taken: EXIF GPS, camera and time, and a DJI drone's XMP
 attitude, read with Pillow (EXIF) and the standard library's XML parser (XMP), into the same
-``Track`` a video's telemetry becomes.
+``FlightLog`` a video's telemetry becomes.
 
     tags = [read_photo_tags(p) for p in folder_images(folder)]
-    track = photo_track(tags, fps)   # photo i at i / fps seconds, as the folder's frames are
+    track = photo_log(tags, fps)   # photo i at i / fps seconds, as the folder's frames are
 
-Angles follow the ``Track`` convention (:mod:`mosaic_cli.telemetry.track`), which is DJI's:
+Angles follow the ``FlightLog`` convention (:mod:`mosaic_cli.telemetry.flight_log`), which is DJI's:
 ``GimbalYawDegree`` is the compass direction of the frame's top edge, ``GimbalPitchDegree``
 -90 looks straight down.  A photo without GPS has NaN latitude and longitude; a photo whose
 EXIF or XMP cannot be read is used by its pixels, the problem kept in ``PhotoTags.problems``.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.telemetry.track import Track
+from mosaic_cli.telemetry.flight_log import FlightLog
 
 DJI = "http://www.dji.com/drone-dji/1.0/"
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # what a 35 mm-equivalent focal length is relative to
@@ -142,7 +142,7 @@ def photo_rate(tags: list[PhotoTags]) -> float:
     return 1.0 / min(max(interval, 0.05), 60.0)
 
 
-def photo_track(tags: list[PhotoTags], fps: float, source: str) -> Track:
+def photo_log(tags: list[PhotoTags], fps: float, source: str) -> FlightLog:
     """The photos as telemetry samples: photo i at ``i / fps`` seconds, the time the folder's
     reader gives its i-th frame, so that the video path aligns fixes to keyframes unchanged."""
     n = len(tags)
@@ -152,14 +152,14 @@ def photo_track(tags: list[PhotoTags], fps: float, source: str) -> Track:
 
     hfov = np.array([t.hfov for t in tags], dtype=np.float64) if n else np.zeros(0)
     fixed = sum(t.has_fix for t in tags)
-    track = Track(f"{source} (EXIF GPS of {fixed} of {n} photos)", np.arange(n, dtype=np.float64) / fps,
+    track = FlightLog(f"{source} (EXIF GPS of {fixed} of {n} photos)", np.arange(n, dtype=np.float64) / fps,
                   column("lat"), column("lon"), column("alt"), column("height"), column("yaw"), column("pitch"),
                   column("roll"), hfov, photos=list(tags))
     return track
 
 
-def photo_track_rate(track: Track) -> float:
-    """The rate (photos per second) a photo folder's ``track`` was made at (:func:`photo_track`)."""
+def photo_log_rate(track: FlightLog) -> float:
+    """The rate (photos per second) a photo folder's ``track`` was made at (:func:`photo_log`)."""
     return 1.0 / float(np.median(np.diff(track.time))) if len(track) > 1 else 1.0 / DEFAULT_PHOTO_INTERVAL
 
 

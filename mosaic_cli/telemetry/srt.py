@@ -32,7 +32,7 @@ import re
 from pathlib import Path
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.telemetry.track import Track, TrackBuilder
+from mosaic_cli.telemetry.flight_log import FlightLog, FlightLogBuilder
 
 _TIMING = re.compile(r"(\d+):(\d+):(\d+)[,.](\d+)\s*-->\s*(\d+):(\d+):(\d+)[,.](\d+)")
 _TAG = re.compile(r"<[^>]*>")
@@ -41,7 +41,7 @@ _FIELD = re.compile(r"([A-Za-z][A-Za-z_]*)\s*:\s*(" + _NUMBER + r")")
 _GPS = re.compile(r"\bGPS\s*\(\s*(" + _NUMBER + r")\s*,\s*(" + _NUMBER + r")\s*(?:,\s*(" + _NUMBER + r")\s*)?\)")
 _HEIGHT = re.compile(r"(?:^|[\s,])H\s+(" + _NUMBER + r")\s*m\b")
 
-# field name (lower case, spaces removed) -> Track column
+# field name (lower case, spaces removed) -> FlightLog column
 _NAMES = {
     "latitude": "lat", "lat": "lat",
     "longitude": "lon", "longtitude": "lon", "lon": "lon", "lng": "lon",
@@ -93,9 +93,9 @@ def parse_cue(text: str) -> dict[str, float]:
     return values
 
 
-def parse_srt_text(text: str, source: str) -> Track:
-    """Every cue of an SRT document with at least one telemetry field, as a ``Track``."""
-    builder = TrackBuilder()
+def parse_srt_text(text: str, source: str) -> FlightLog:
+    """Every cue of an SRT document with at least one telemetry field, as a ``FlightLog``."""
+    builder = FlightLogBuilder()
     cues = 0
     for block in re.split(r"\r?\n\s*\r?\n", text.replace("\ufeff", "")):
         m = _TIMING.search(block)
@@ -118,7 +118,7 @@ def parse_srt_text(text: str, source: str) -> Track:
     return track
 
 
-def read_srt(path: str | Path) -> Track:
+def read_srt(path: str | Path) -> FlightLog:
     p = Path(path)
     try:
         text = p.read_bytes().decode("utf-8", errors="replace")

@@ -1,4 +1,4 @@
-"""The flight track every telemetry reader produces: one row per sample, times in seconds.
+"""The flight log every telemetry reader produces (:class:`FlightLog`): one row per sample, times in seconds.
 
 Angles follow one convention whatever the source (see :mod:`mosaic_cli.geo.camera`):
 ``yaw`` is the compass direction of the frame's top edge (degrees clockwise from north),
@@ -22,7 +22,7 @@ FIELDS = ("lat", "lon", "alt", "height", "yaw", "pitch", "roll", "hfov")
 
 
 @dataclass
-class Track:
+class FlightLog:
     source: str  # what was read, for messages: "flight.SRT (DJI SRT, per-frame)"
     time: np.ndarray  # (N,) seconds; from the video's start once aligned
     lat: np.ndarray
@@ -48,18 +48,18 @@ class Track:
     def known(self, name: str) -> bool:
         return bool(np.isfinite(getattr(self, name)).any())
 
-    def select(self, keep: np.ndarray) -> Track:
+    def select(self, keep: np.ndarray) -> FlightLog:
         photos = None if self.photos is None else [p for p, k in zip(self.photos, keep) if k]
-        return Track(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes), photos)
+        return FlightLog(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes), photos)
 
-    def shifted(self, seconds: float) -> Track:
+    def shifted(self, seconds: float) -> FlightLog:
         out = self.select(np.ones(len(self), bool))
         out.time = out.time + float(seconds)
         return out
 
 
-class TrackBuilder:
-    """Collects samples as dicts (missing keys: unknown) and makes a time-sorted ``Track``."""
+class FlightLogBuilder:
+    """Collects samples as dicts (missing keys: unknown) and makes a time-sorted ``FlightLog``."""
 
     def __init__(self) -> None:
         self.rows: list[tuple[float, dict[str, float]]] = []
@@ -67,7 +67,7 @@ class TrackBuilder:
     def add(self, time: float, **values: float | None) -> None:
         self.rows.append((float(time), {k: float(v) for k, v in values.items() if v is not None}))
 
-    def build(self, source: str, clock_time: bool = False) -> Track:
+    def build(self, source: str, clock_time: bool = False) -> FlightLog:
         self.rows.sort(key=lambda r: r[0])
         n = len(self.rows)
         cols = {f: np.full(n, np.nan) for f in FIELDS}
@@ -79,4 +79,4 @@ class TrackBuilder:
         cols["lat"][no_fix] = np.nan
         cols["lon"][no_fix] = np.nan
         time = np.array([r[0] for r in self.rows], dtype=np.float64)
-        return Track(source, time, **cols, clock_time=clock_time)
+        return FlightLog(source, time, **cols, clock_time=clock_time)
