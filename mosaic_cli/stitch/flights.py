@@ -213,4 +213,4 @@ def merge_logs(tracks: list[FlightLog | None], spans: list[FlightSpan], fps: flo
     photos = [p for t, _, _ in parts for p in (t.photos or [])] if all(t.photos is not None for t, _, _ in parts) else None
     notes = [note for t, _, _ in parts for note in t.notes]
     return FlightLog(" + ".join(t.source for t, _, _ in parts), time, **columns, clock_time=any(t.clock_time for t, _, _ in parts),
-                 notes=notes, photos=photos)
+                     notes=notes, photos=photos)
