@@ -172,7 +172,7 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     n = len(times)
     headings = np.where((np.arange(n) // 15) % 2 == 0, 90.0, -90.0)
     track = FlightLog("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
-                  pitch, roll, np.full(n, hfov_degrees(SIZE[0], FOCAL)))
+                      pitch, roll, np.full(n, hfov_degrees(SIZE[0], FOCAL)))
     frame_rate = 10.0
     g = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, track, GeorefOptions())
     assert g.model == "homography levelled by the gimbal"
@@ -185,7 +185,7 @@ def test_georeference_levels_a_bent_mosaic_by_the_gimbal():
     assert gps_only.model in ("similarity", "homography")
     # a gimbal whose angles are 20 degrees off: said, and not used
     wild = FlightLog("synthetic", times, lonlat[:, 1], lonlat[:, 0], np.full(n, 500.0), np.full(n, HEIGHT), headings,
-                 pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n), np.full(n, hfov_degrees(SIZE[0], FOCAL)))
+                     pitch + rng.normal(0, 20, n), roll + rng.normal(0, 20, n), np.full(n, hfov_degrees(SIZE[0], FOCAL)))
     unused = georeference(placements, ref, [int(round(t * frame_rate)) for t in times], SIZE, frame_rate, wild, GeorefOptions())
     assert unused.model in ("similarity", "homography") and "gimbal's angles disagree with the images" in unused.summary()
     # the reference's tilt alone, then a similarity to the GPS: the drift shows at the ends

@@ -153,8 +153,8 @@ def photo_log(tags: list[PhotoTags], fps: float, source: str) -> FlightLog:
     hfov = np.array([t.hfov for t in tags], dtype=np.float64) if n else np.zeros(0)
     fixed = sum(t.has_fix for t in tags)
     track = FlightLog(f"{source} (EXIF GPS of {fixed} of {n} photos)", np.arange(n, dtype=np.float64) / fps,
-                  column("lat"), column("lon"), column("alt"), column("height"), column("yaw"), column("pitch"),
-                  column("roll"), hfov, photos=list(tags))
+                      column("lat"), column("lon"), column("alt"), column("height"), column("yaw"), column("pitch"),
+                      column("roll"), hfov, photos=list(tags))
     return track
 
 
