@@ -72,6 +72,7 @@ def test_the_pyramid_and_the_derivatives_are_opencvs():
     assert batched.pyramid_levels(WORK, 31, 4) == 2  # OpenCV stops before a level under the window: 40x23
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("window, levels", [(11, 1), (31, 4)])
 def test_the_tracks_are_opencvs(window, levels):
     prevs, curs, shifts = shifted_pairs(4, seed=window)

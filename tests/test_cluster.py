@@ -40,6 +40,7 @@ def _views(count: int = 12, seed: int = 3):
 CANVAS = (1140, 530)
 
 
+@pytest.mark.slow
 def test_compose_on_a_local_cluster_is_the_one_process_panorama_to_the_bit(tmp_path):
     options = ComposeOptions(tile=128)
     alone = compose([PlacedImage(v.copy(), H) for v, H in _views()], CANVAS, options)
@@ -96,6 +97,7 @@ def test_two_flights_on_workers_give_the_one_process_map(tmp_path):
     assert np.array_equal(spread, alone)
 
 
+@pytest.mark.slow
 def test_a_scheduler_that_does_not_answer_is_one_line_within_10_s(capsys, tmp_path, plain_160x90):
     with socket.socket() as probe:  # a port nobody listens on
         probe.bind(("127.0.0.1", 0))

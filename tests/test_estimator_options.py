@@ -129,6 +129,7 @@ def test_help_lists_every_user_option_with_its_choices_and_no_ablation_setting(m
         assert " ".join(text.split()) in " ".join(shown.split()), command
 
 
+@pytest.mark.slow
 def test_an_estimator_is_checked_without_torch_and_built_later(fresh_interpreter_build):
     """plan_estimator finds every mistake before any work without importing torch; the build
     (torch, the weights, the int8 network) is what the commands run beside overlay detection.

@@ -146,6 +146,7 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     assert build["build_s"] > 0 and build["first_chunk_s"] > 0 and build["second_chunk_s"] > 0, build
 
 
+@pytest.mark.slow
 def test_the_timed_transcode_writes_every_frame_of_a_300_frame_clip(tmp_path, monkeypatch):
     """The throughput stage's plain transcode (PyAV, in-process) of a clip as that stage makes it:
     every frame comes out.  (The device run of 2026-11-28 lost both transcodes to a muxer error

@@ -112,6 +112,7 @@ def test_kept_lens_maps_compose_the_warp_with_the_lens(wide_shaky, rolling):
     assert np.abs(np.stack([cx[cij[:, 1], cij[:, 0]], cy[cij[:, 1], cij[:, 0]]], 1) - chroma_truth).max() < 0.01
 
 
+@pytest.mark.slow
 def test_keep_lens_writes_the_undistorted_output_through_the_lens(wide_shaky, tmp_path, capsys):
     """With the true lens, the kept-lens output is the default (undistorted) output carried back
     through the lens (cv2.remap by the lens's distorted grid: two resamplings where --keep-lens
@@ -149,6 +150,7 @@ def test_keep_lens_writes_the_undistorted_output_through_the_lens(wide_shaky, tm
     assert max(off) < 0.001, max(off)
 
 
+@pytest.mark.slow
 def test_keep_lens_without_a_lens_changes_nothing(wide_shaky, tmp_path, capsys):
     common = ["-e", "orb", "--no-overlay-detect", "--crf", "0", "--rolling-shutter", "off"]
     assert cli_exit(["stabilize", wide_shaky, tmp_path / "plain.mp4", "-q", *common]) == 0

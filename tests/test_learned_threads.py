@@ -149,6 +149,7 @@ def test_the_mixed_flight_runs_every_path(one_thread):
 @pytest.mark.parametrize("config, threads", [({}, 2), ({}, 4), ({"chunk": 16}, 4), ({"chunk": 1}, 4), ({"polish_start": "velocity"}, 4),
                                              ({"refine": "ecc"}, 4), ({"carry": "network"}, 4)],
                          ids=["default-2", "default-4", "chunk16-4", "chunk1-4", "velocity-seed-4", "ecc-4", "carry-network-4"])
+@pytest.mark.slow
 def test_threads_give_the_one_thread_estimates_to_the_bit(mixed, reference, threads, config):
     """2 and 4 threads on the default config; each other config on 4 (the more threads, the more
     orders the pairs' checks can end in; the lookahead test below runs them on 2)."""
@@ -162,6 +163,7 @@ def test_threads_give_the_one_thread_estimates_to_the_bit(mixed, reference, thre
 
 @pytest.mark.parametrize("config", [{"prior": "none"}, {"prior": "none", "chunk": 1}, {"prior": "none", "carry": "network"}, {}],
                          ids=["no-prior", "chunk1", "carry-network", "velocity-prior"])
+@pytest.mark.slow
 def test_a_files_lookahead_gives_the_same_estimates_a_chunk_late(mixed, reference, config):
     """``lookahead`` (a file's pass, estimate_stream's): the next chunk's network runs while the
     pool checks the chunk before, whose pairs come back a chunk late: the same estimates, to the

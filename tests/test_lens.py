@@ -287,6 +287,7 @@ def test_division_model_round_trips_with_one_or_two_coefficients(coefficients):
     assert np.all(np.isfinite(mx)) and mx.min() >= -0.5 and mx.max() <= 639.5 and my.min() >= -0.5 and my.max() <= 359.5
 
 
+@pytest.mark.slow
 def test_auto_fits_two_coefficients_to_a_strong_lens_and_a_fisheye():
     """The fit itself, on exact synthetic matches (no video): pairs of views of random ground
     points related by homographies, seen through a strong polynomial lens (k1 -0.30 at 71 degrees)

@@ -102,6 +102,7 @@ def test_track_over_tcp_with_the_true_lens_file_matches_the_pinhole_truth(wide, 
     assert given < 0.7 * none, (given, none)
 
 
+@pytest.mark.slow
 def test_stabilize_from_standard_input_writes_the_undistorted_view(wide, tmp_path):
     """``stabilize - OUT --lens FILE`` (one pass): each output frame is its warp (--warps) applied
     to the input frame undistorted by OpenCV, not to the frame as the lens saw it."""

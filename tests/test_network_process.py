@@ -37,6 +37,7 @@ def run(estimator, grays: list[np.ndarray]) -> list:
     return estimates + estimator.finish()
 
 
+@pytest.mark.slow
 def test_the_network_in_its_own_process_gives_the_estimates_it_gives_in_this_one():
     grays, truth = panned_grays(10, 8.0)
     child = NetworkProcess(BUILD)
@@ -56,6 +57,7 @@ def test_the_network_in_its_own_process_gives_the_estimates_it_gives_in_this_one
         assert np.abs(moved[:2] / moved[2] - true[:2]).max() < 1.0
 
 
+@pytest.mark.slow
 def test_a_network_that_cannot_load_says_why_in_one_line(tmp_path):
     bad = tmp_path / "weights.safetensors"
     bad.write_bytes(b"not weights")
@@ -66,6 +68,7 @@ def test_a_network_that_cannot_load_says_why_in_one_line(tmp_path):
     assert time.monotonic() - started < 30
 
 
+@pytest.mark.slow
 def test_a_child_that_dies_is_an_error_not_a_hang_and_close_leaves_none():
     grays, _ = panned_grays(3, 4.0)
     child = NetworkProcess(BUILD)

@@ -533,6 +533,7 @@ def test_keyframes_are_read_from_the_packets(tmp_path):
     assert keyframe_indices(probe(clip)) == list(range(0, 95, 10))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("turn", [0, 90])
 def test_a_clip_with_dense_keyframes_is_sampled_at_them(tmp_path, monkeypatch, turn):
     """Keyframes as close together as the samples: each sample is the keyframe nearest its

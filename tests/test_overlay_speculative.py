@@ -135,6 +135,7 @@ def test_an_overlay_found_restarts_the_track_with_the_mask(clips, held_detection
     assert not np.array_equal(unmasked.pairwise, expected.pairwise[:HELD - 1])
 
 
+@pytest.mark.slow
 def test_the_track_command_restarts_and_writes_the_sequential_track(clips, held_detection, tmp_path, capsys):
     _, expected = sequential(clips["burned"])
     out = tmp_path / "track.json"
@@ -153,6 +154,7 @@ def test_the_track_command_restarts_and_writes_the_sequential_track(clips, held_
 # -- stabilize -------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,restart", [("plain", False), ("burned", True)])
 def test_stabilize_warps_are_those_of_the_mask_given_first(clips, held_detection, tmp_path, name, restart):
     video = clips[name]
@@ -175,6 +177,7 @@ def test_stabilize_warps_are_those_of_the_mask_given_first(clips, held_detection
 # -- stitch ----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,restart", [("plain", False), ("burned", True)])
 def test_stitch_panorama_is_that_of_the_mask_given_first(clips, held_detection, tmp_path, monkeypatch, name, restart):
     import mosaic_cli.stitch.pipeline as pipeline

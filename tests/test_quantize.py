@@ -135,6 +135,7 @@ def test_the_shipped_int8_estimator_loads_without_the_compiler_stack(fresh_inter
     assert not run["after_default"]["torch._dynamo"] and not run["after_default"]["torch._inductor"]
 
 
+@pytest.mark.slow
 def test_a_head_error_stored_with_the_ranges_decides_only_when_clearly_on_one_side(monkeypatch):
     """with_head_error stores the int8 LSTM's probe error; quantized_head then skips the probe
     when the stored error is a factor STORED_VERDICT_MARGIN away from the tolerance, and probes

@@ -28,6 +28,7 @@ def flight(tmp_path_factory):
     return clip
 
 
+@pytest.mark.slow
 def test_the_bands_corrections_match_the_truth(flight, tmp_path):
     out = tmp_path / "track.json"
     assert cli_exit(["track", flight, "-o", out, "-e", "orb", "--rolling-shutter", "auto", "-q"]) == 0
@@ -66,6 +67,7 @@ def test_off_writes_no_block_and_other_outputs_are_refused(flight, tmp_path):
     assert cli_exit(["track", flight, "-o", tmp_path / "t.npy", "-e", "orb", "--rolling-shutter", "auto", "-q"]) == 2
 
 
+@pytest.mark.slow
 def test_auto_probe_rides_on_the_tracking_pass(flight, tmp_path, monkeypatch):
     """`auto`'s probe takes the tracking pass's frames: a global shutter is told apart (readout 0,
     left alone) without a decoder of its own; a rolling shutter is then measured by one pass."""

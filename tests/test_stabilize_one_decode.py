@@ -162,6 +162,7 @@ def test_the_reduced_frame_is_ffmpegs_gray_at_full_size_and_within_a_level_scale
 # -- the output: that of the two decodes, from one -----------------------------------------------
 
 
+@pytest.mark.slow
 def test_stabilize_decodes_once_and_writes_what_two_decodes_wrote(shaky_clip, tmp_path, decoders, rings):
     """At the estimator's full width the tracking's frames are those of old, bit for bit: so are
     the warps and the encoded frames; the audio is kept and cut as before."""
@@ -225,6 +226,7 @@ def long_two_decodes(long_clip, tmp_path_factory) -> tuple[np.ndarray, list[np.n
     return warps, frames_of(out)
 
 
+@pytest.mark.slow
 def test_the_ring_at_its_minimum_never_falls_short_on_a_long_clip(long_clip, long_two_decodes, tmp_path, small_window, rings,
                                                                   decoders):
     """Six windows at the ring's minimum (the window itself): the render never waits for a frame
@@ -242,6 +244,7 @@ def test_the_ring_at_its_minimum_never_falls_short_on_a_long_clip(long_clip, lon
     assert all(np.array_equal(a, b) for a, b in zip(frames_of(tmp_path / "min.mp4"), frames))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("short_by", [1, 8])
 def test_a_ring_below_the_minimum_hands_the_render_a_second_decode(long_clip, long_two_decodes, tmp_path, small_window, rings,
                                                                    decoders, monkeypatch, short_by):
@@ -321,6 +324,7 @@ def detection_after_a_full_ring(monkeypatch, rings) -> dict:
     return state
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("smoothing", ["l1", "gaussian"])
 def test_an_overlay_found_midway_gives_the_output_of_the_mask_given_first(burned_clip, tmp_path, small_window, rings, decoders,
                                                                           detection_after_a_full_ring, smoothing):

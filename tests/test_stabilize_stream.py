@@ -71,6 +71,7 @@ def shaky_motion():
     return np.concatenate([camera_motion(H[None], SIZE, model) for H in pairwise_of(shaken)]), model
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("crop", [None, 0.9])
 def test_the_path_planned_as_pairs_arrive_is_the_whole_clips(shaky_motion, crop):
     motion, model = shaky_motion

@@ -96,6 +96,7 @@ def test_support_tells_pitch_and_roll_shake_from_noise():
     assert perspective_support(motion[:10]) == 0.0  # too few motions to tell
 
 
+@pytest.mark.slow
 def test_tilt_takes_out_pitch_and_roll_shake_that_a_similarity_leaves():
     shaken, smooth = tilt_shaky_path(120, seed=1)  # 4 s: three windows of the L1 path, the ratios of 6 s
     pairwise = estimated(pairwise_of(shaken), seed=1)
