@@ -50,13 +50,26 @@ def test_two_overlapping_flights_make_one_map_placed_as_the_truth(survey):
 def test_flights_over_ground_apart_are_laid_on_one_map_by_their_logs(tmp_path):
     """Two flights over two different maps 150 m apart (nothing to register between them): one
     map, each keyframe where the truth has it within the logs' accuracy (3 m RMS of GPS error)."""
+    from mosaic_cli.telemetry.align import local_metres
+
     west, east = fly_apart(tmp_path, 150.0)
-    out, js = tmp_path / "map.tif", tmp_path / "map.json"
-    mosaic_run("stitch", west, east, "-o", out, "--transforms", js, "-q")
+    out, js, fp = tmp_path / "map.tif", tmp_path / "map.json", tmp_path / "fp.geojson"
+    run = mosaic_run("stitch", west, east, "-o", out, "--transforms", js, "--footprints", fp)
     assert sorted(p.name for p in tmp_path.glob("map*.tif")) == ["map.tif"]
     errors = ground_errors(json.loads(js.read_text()), tmp_path)
     assert set(errors) == {"east", "west"}
     assert all(np.median(e) < 3.0 for e in errors.values()), errors
+    # The logs' summary counts the flights, not the pause between them as a gap or as time flown
+    # (each log has a sample a frame, at 30 fps).
+    (summary,) = [line for line in run.stderr.splitlines() if "west.SRT" in line and "samples" in line]
+    assert "samples (30.0 Hz) over 2 flights" in summary and "gap" not in summary, summary
+    # and the GPS track is drawn a line a flight, none joining the two 150 m apart
+    lines = [f["geometry"]["coordinates"] for f in json.loads(fp.read_text())["features"] if f["properties"]["kind"] == "gps track"]
+    assert len(lines) == 2
+    lon0, lat0 = lines[0][0]
+    metres = [local_metres(np.array(c)[:, 1], np.array(c)[:, 0], lat0, lon0) for c in lines]
+    assert all(np.ptp(m, axis=0).max() < 100.0 for m in metres)  # each flight's line stays over its own ground
+    assert np.linalg.norm(metres[0].mean(axis=0) - metres[1].mean(axis=0)) > 100.0
 
 
 def test_a_folder_of_videos_or_of_photo_folders_is_its_flights(tmp_path):

@@ -59,12 +59,14 @@ def add_layers(doc_kml: bytes, features: dict, name: str) -> bytes:
     if track:
         folder = _el(doc, "Folder")
         _el(folder, "name", "Flight track")
-        place = _el(folder, "Placemark")
-        _el(place, "name", f"GPS track ({track[0]['properties'].get('source', '')})")
-        _el(place, "styleUrl", "#track")
-        line = _el(place, "LineString")
-        _el(line, "tessellate", "1")
-        _el(line, "coordinates", _coordinates(track[0]["geometry"]["coordinates"]))
+        for part in track:  # one line a flight
+            place = _el(folder, "Placemark")
+            flight = f"flight {part['properties'].get('flight', 0) + 1}, " if len(track) > 1 else ""
+            _el(place, "name", f"GPS track ({flight}{part['properties'].get('source', '')})")
+            _el(place, "styleUrl", "#track")
+            line = _el(place, "LineString")
+            _el(line, "tessellate", "1")
+            _el(line, "coordinates", _coordinates(part["geometry"]["coordinates"]))
     dropped = [f for f in features["features"] if f["properties"].get("kind") == "dropped gps fix"]
     if dropped:
         style = _el(doc, "Style", id="dropped")  # magenta dots

@@ -85,10 +85,14 @@ def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_si
     track = georef.track
     dropped = georef.telemetry.dropped if len(georef.telemetry.dropped) == len(track) else np.zeros(len(track), bool)
     kept = track.has_fix & ~dropped
-    if kept.sum() >= 2:
-        coords = [[round(float(lon), 9), round(float(lat), 9)] for lat, lon in zip(track.lat[kept], track.lon[kept])]
+    flight = np.searchsorted(np.asarray(track.breaks, float), track.time, side="right")  # several flights: a line each
+    for k in np.unique(flight[kept]):
+        line = kept & (flight == k)
+        if line.sum() < 2:
+            continue
+        coords = [[round(float(lon), 9), round(float(lat), 9)] for lat, lon in zip(track.lat[line], track.lon[line])]
         features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
-                         "properties": {"kind": "gps track", "source": track.source}})
+                         "properties": {"kind": "gps track", "source": track.source, "flight": int(k)}})
     for i in np.nonzero(dropped)[0]:  # never joined into the track: each on its own
         features.append({"type": "Feature",
                          "geometry": {"type": "Point", "coordinates": [round(float(track.lon[i]), 9), round(float(track.lat[i]), 9)]},

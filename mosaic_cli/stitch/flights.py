@@ -212,5 +212,6 @@ def merge_logs(tracks: list[FlightLog | None], spans: list[FlightSpan], fps: flo
     columns = {name: np.concatenate([getattr(t, name) for t, _, _ in parts]) for name in FIELDS}
     photos = [p for t, _, _ in parts for p in (t.photos or [])] if all(t.photos is not None for t, _, _ in parts) else None
     notes = [note for t, _, _ in parts for note in t.notes]
+    breaks = [span.start / fps + float(t.time[0]) * rate / fps for t, span, rate in parts[1:] if len(t)]
     return FlightLog(" + ".join(t.source for t, _, _ in parts), time, **columns, clock_time=any(t.clock_time for t, _, _ in parts),
-                     notes=notes, photos=photos)
+                     notes=notes, photos=photos, breaks=breaks)

@@ -55,10 +55,15 @@ class AlignedTelemetry:
     # over the track's samples: the fixes dropped as outliers (``outliers`` of them), which no
     # frame's position comes from and no drawn track should join
     dropped: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    flights: int = 1  # logs merged (several flights): their pauses are neither gaps nor time flown
+    paused: float = 0.0  # seconds between the merged flights' logs
 
     def summary(self) -> str:
-        rate = (self.samples - 1) / max(self.span[1] - self.span[0], 1e-9) if self.samples > 1 else 0.0
-        parts = [f"{self.samples} samples ({rate:.1f} Hz) over {self.span[0]:.1f}-{self.span[1]:.1f} s"]
+        flown = self.span[1] - self.span[0] - self.paused
+        rate = (self.samples - self.flights) / max(flown, 1e-9) if self.samples > self.flights else 0.0
+        over = (f"{self.flights} flights ({flown:.1f} s of log)" if self.flights > 1
+                else f"{self.span[0]:.1f}-{self.span[1]:.1f} s")
+        parts = [f"{self.samples} samples ({rate:.1f} Hz) over {over}"]
         if self.without_fix:
             parts.append(f"{self.without_fix} without a GPS fix")
         if self.outliers:
@@ -126,7 +131,7 @@ def align_to_frames(track: FlightLog, frame_times: np.ndarray, options: AlignOpt
     frame_lon = np.full(n, np.nan)
     fix = np.zeros(n, bool)
     gaps: list[tuple[float, float]] = []
-    span = (0.0, 0.0)
+    span, paused = (0.0, 0.0), 0.0
     if len(good_t):
         span = (float(good_t[0]), float(good_t[-1]))
         step = float(np.median(np.diff(good_t))) if len(good_t) > 1 else 1.0
@@ -134,7 +139,9 @@ def align_to_frames(track: FlightLog, frame_times: np.ndarray, options: AlignOpt
         # just past either end get one only within half a sample interval.
         reach = max(options.max_gap, 2.5 * step)
         dt = np.diff(good_t)
-        for k in np.nonzero(dt > max(1.0, 2.5 * step))[0]:
+        between = np.array([any(good_t[k] < b <= good_t[k + 1] for b in track.breaks) for k in range(len(dt))], bool)
+        paused = float(dt[between].sum())
+        for k in np.nonzero((dt > max(1.0, 2.5 * step)) & ~between)[0]:
             gaps.append((float(good_t[k]), float(dt[k])))
         right = np.clip(np.searchsorted(good_t, t, "left"), 0, len(good_t) - 1)
         left = np.clip(right - 1, 0, len(good_t) - 1)
@@ -152,4 +159,5 @@ def align_to_frames(track: FlightLog, frame_times: np.ndarray, options: AlignOpt
         _interp(t, all_t, track.height), _interp(t, all_t, track.yaw, angle=True),
         _interp(t, all_t, track.pitch), _interp(t, all_t, track.roll), _interp(t, all_t, track.hfov),
         fix, len(track), int((~fixed).sum()), int(outliers.sum()), gaps, span, track.source, list(track.notes), dropped,
+        1 + len(track.breaks), paused,
     )

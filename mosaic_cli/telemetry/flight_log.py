@@ -35,8 +35,11 @@ class FlightLog:
     hfov: np.ndarray
     clock_time: bool = False  # times were wall-clock times (GPX, CSV, KLV) made relative to the first sample
     notes: list[str] = field(default_factory=list)
-    # A photo folder's track: each sample's photo (its name, camera and what its metadata lacked).
+    # A photo folder's log: each sample's photo (its name, camera and what its metadata lacked).
     photos: list[PhotoTags] | None = None
+    # Several flights' logs merged (stitch/flights.py): when each flight after the first begins
+    # (seconds); the pause before each is no gap in any one log.
+    breaks: list[float] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.time)
@@ -50,11 +53,13 @@ class FlightLog:
 
     def select(self, keep: np.ndarray) -> FlightLog:
         photos = None if self.photos is None else [p for p, k in zip(self.photos, keep) if k]
-        return FlightLog(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes), photos)
+        return FlightLog(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes), photos,
+                         list(self.breaks))
 
     def shifted(self, seconds: float) -> FlightLog:
         out = self.select(np.ones(len(self), bool))
         out.time = out.time + float(seconds)
+        out.breaks = [b + float(seconds) for b in self.breaks]
         return out
 
 
