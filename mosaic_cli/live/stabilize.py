@@ -143,8 +143,8 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
-    with waited_for(loading, close=True), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress, live=live,
-                                         info=file_info) as stream:
+    with waited_for(loading, close=True), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress,
+                                                     live=live, info=file_info) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
