@@ -85,7 +85,7 @@ def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_si
     track = georef.track
     dropped = georef.telemetry.dropped if len(georef.telemetry.dropped) == len(track) else np.zeros(len(track), bool)
     kept = track.has_fix & ~dropped
-    flight = np.searchsorted(np.asarray(track.breaks, float), track.time, side="right")  # several flights: a line each
+    flight = track.flight_at(track.time)  # several flights: a line each
     for k in np.unique(flight[kept]):
         line = kept & (flight == k)
         if line.sum() < 2:

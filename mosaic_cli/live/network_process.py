@@ -75,7 +75,7 @@ class NetworkProcess:
         # as its end would) and closes the child's input, which ends it.
         self._child = subprocess.Popen([sys.executable, "-m", "mosaic_cli.live.network_process", json.dumps(build)],
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-        ready = self._ask({"op": "ready"})[0]
+        ready = self._reply()[0]
         self.name: str = ready["name"]
         self.input_width: int = ready["input_width"]
         self.config = SimpleNamespace(chunk=ready["chunk"])
@@ -106,10 +106,16 @@ class NetworkProcess:
             self._child.wait()
 
     def _ask(self, header: dict, payload: bytes = b"") -> tuple[dict, bytes]:
-        assert self._child.stdin is not None and self._child.stdout is not None
+        assert self._child.stdin is not None
         try:
-            if header["op"] != "ready":
-                _send(self._child.stdin, header, payload)
+            _send(self._child.stdin, header, payload)
+        except OSError:
+            pass  # the child has ended: its reply says so
+        return self._reply()
+
+    def _reply(self) -> tuple[dict, bytes]:
+        assert self._child.stdout is not None
+        try:
             reply = _receive(self._child.stdout)
         except (EOFError, OSError):
             self.close()

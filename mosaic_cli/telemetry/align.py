@@ -139,7 +139,7 @@ def align_to_frames(track: FlightLog, frame_times: np.ndarray, options: AlignOpt
         # just past either end get one only within half a sample interval.
         reach = max(options.max_gap, 2.5 * step)
         dt = np.diff(good_t)
-        between = np.array([any(good_t[k] < b <= good_t[k + 1] for b in track.breaks) for k in range(len(dt))], bool)
+        between = np.diff(track.flight_at(good_t)) != 0  # the pause from one merged flight to the next
         paused = float(dt[between].sum())
         for k in np.nonzero((dt > max(1.0, 2.5 * step)) & ~between)[0]:
             gaps.append((float(good_t[k]), float(dt[k])))

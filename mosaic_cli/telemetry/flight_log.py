@@ -56,6 +56,10 @@ class FlightLog:
         return FlightLog(self.source, self.time[keep], *(getattr(self, f)[keep] for f in FIELDS), self.clock_time, list(self.notes), photos,
                          list(self.breaks))
 
+    def flight_at(self, times: np.ndarray) -> np.ndarray:
+        """Which of the merged flights (0, 1, ...; see ``breaks``) each of ``times`` falls in."""
+        return np.searchsorted(np.asarray(self.breaks, float), times, side="right")
+
     def shifted(self, seconds: float) -> FlightLog:
         out = self.select(np.ones(len(self), bool))
         out.time = out.time + float(seconds)
