@@ -148,11 +148,21 @@ def test_folder_of_numbered_images_in_natural_order(tmp_path):
     assert info.fps == 12.5 and small[0].shape == (24, 32)
 
 
-def test_folder_with_mixed_shapes_is_bad_input(tmp_path):
-    cv2.imwrite(str(tmp_path / "a_1.png"), np.zeros((10, 12, 3), np.uint8))
-    cv2.imwrite(str(tmp_path / "a_2.png"), np.zeros((11, 12, 3), np.uint8))
-    with pytest.raises(BadInput, match="is not the shape of the first image's 12x10"):
-        read_all(tmp_path)
+def test_folder_with_an_image_of_another_shape_fits_it_whole_into_the_first_frame(tmp_path):
+    """A portrait image among landscape ones: scaled to the frame's height, centred, the rest black;
+    the info lists it before any image is decoded, with where it lies."""
+    rng = np.random.default_rng(1)
+    first, portrait = rng.integers(1, 255, (60, 80, 3), dtype=np.uint8), rng.integers(1, 255, (120, 90, 3), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "a_1.png"), first)
+    cv2.imwrite(str(tmp_path / "a_2.png"), portrait)
+    info, frames = read_all(tmp_path)
+    (fit,) = info.photo_fits
+    assert (fit.index, fit.name, fit.photo_size, fit.scale, fit.box) == (1, "a_2.png", (90, 120), 0.5, (17, 0, 45, 60))
+    expected = cv2.cvtColor(cv2.resize(portrait, (45, 60), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2RGB)
+    assert np.array_equal(frames[1][:, 17:62], expected)
+    assert not frames[1][:, :17].any() and not frames[1][:, 62:].any()
+    info, small = read_all(tmp_path, width=40)  # downscaled: the same place, halved
+    assert small[1].shape == (30, 40, 3) and not small[1][:, :8].any() and small[1][:, 9:30].all(axis=-1).mean() > 0.95
 
 
 def test_folder_with_a_larger_image_of_the_same_shape_reads_it_at_the_first_size(tmp_path):

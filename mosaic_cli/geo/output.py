@@ -11,7 +11,7 @@ import numpy as np
 from mosaic_cli.atomic import atomic_path, write_json
 from mosaic_cli.errors import ProcessingError, require_geo
 from mosaic_cli.geo.georef import Georeference
-from mosaic_cli.geometry import frame_corners, normalize, project
+from mosaic_cli.geometry import frame_corners, normalize, project, rect_corners
 
 BLOCK = 512
 
@@ -58,12 +58,15 @@ def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndar
     write_json(path, footprint_collection(georef, map_h, frame_size, fps))
 
 
-def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> dict:
+def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float,
+                         boxes: dict[int, tuple[int, int, int, int]] | None = None) -> dict:
     """GeoJSON (RFC 7946, WGS84 lon/lat): a Polygon per keyframe's ground footprint (``gps``:
     whether its fix agreed with the images, was an outlier, or was missing; ``centre``: where
     the frame's centre lies, lon/lat), the GPS track as read (a LineString of every fix but those
     dropped as outliers), each dropped fix apart (a Point, ``kind`` "dropped gps fix", with its
-    ``sample`` number and ``time`` in the log), and the camera path as placed."""
+    ``sample`` number and ``time`` in the log), and the camera path as placed.  ``boxes``: where
+    a frame's pixels lie in it (x, y, w, h) where they do not fill it (a photo of another shape),
+    by frame index."""
     corners = frame_corners(*frame_size)
     proj = georef.projection
 
@@ -74,7 +77,8 @@ def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_si
     centre = np.array([[(w - 1) / 2.0, (h - 1) / 2.0]])
     features = []
     for k, (index, M) in enumerate(zip(georef.frame_indices, map_h)):
-        ring = project(M, corners)
+        box = (boxes or {}).get(int(index))
+        ring = project(M, corners if box is None else rect_corners(box[0] - 0.5, box[1] - 0.5, box[2], box[3]))
         gps = "agrees" if georef.used[k] else ("outlier" if georef.telemetry.fix[k] else "none")
         features.append({
             "type": "Feature",

@@ -107,17 +107,19 @@ def map_homographies(georef: Georeference, to_canvas: np.ndarray, frame_to_canva
     return [normalize(G @ H) for H in frame_to_canvas]
 
 
-def write_outputs(out, staged, georef: Georeference, options: GeorefOptions, to_canvas, frame_to_canvas, frame_size, fps) -> bool:
+def write_outputs(out, staged, georef: Georeference, options: GeorefOptions, to_canvas, frame_to_canvas, frame_size, fps,
+                  boxes: dict[int, tuple[int, int, int, int]] | None = None) -> bool:
     """The map ``out`` when it is one (GeoTIFF, KMZ, MBTiles, web tiles), the footprints and the
     quick-look page, all read from ``staged`` (the panorama as a georeferenced GeoTIFF on disk,
     stitch/raster.py: ``path``, ``size``, ``add_overviews()``); False when ``out`` is left to the
-    plain writer (PNG/JPEG: the north-up mosaic without a geotransform)."""
+    plain writer (PNG/JPEG: the north-up mosaic without a geotransform).  ``boxes``: where the
+    photos of another shape lie in their frames (their footprints), by frame index."""
     from mosaic_cli.atomic import write_json
     from mosaic_cli.geo.output import footprint_collection, write_cog
     from mosaic_cli.inputs import MAP_FORMATS, output_format
 
     fmt = output_format(out)
-    features = footprint_collection(georef, map_homographies(georef, to_canvas, frame_to_canvas), frame_size, fps)
+    features = footprint_collection(georef, map_homographies(georef, to_canvas, frame_to_canvas), frame_size, fps, boxes)
     if options.footprints is not None:
         write_json(options.footprints, features)
     staged.close()

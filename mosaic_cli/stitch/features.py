@@ -99,8 +99,11 @@ class FeatureExtractor:
         self.threshold = self.options.reproj_threshold * source_size[0] / width
         self._mask = work_mask(use, self.size, margin=MASK_MARGIN)
 
-    def __call__(self, frame: np.ndarray) -> Features:
-        keypoints, descriptors = self._sift.detectAndCompute(gray_at(frame, self.size), self._mask)
+    def __call__(self, frame: np.ndarray, use: np.ndarray | None = None) -> Features:
+        """The frame's features; ``use``: this frame's own mask in place of the extractor's (a
+        photo fitted into a folder's frame: its part of it; ``use`` includes the overlays')."""
+        mask = self._mask if use is None else work_mask(use, self.size, margin=MASK_MARGIN)
+        keypoints, descriptors = self._sift.detectAndCompute(gray_at(frame, self.size), mask)
         if not keypoints or descriptors is None:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, 128), np.uint8))
         points = project(self._to_source, np.array([k.pt for k in keypoints], np.float64)).astype(np.float32)

@@ -39,7 +39,7 @@ from mosaic_cli.stitch.pipeline import (
 from mosaic_cli.telemetry import FlightLog
 from mosaic_cli.telemetry.flight_log import FIELDS
 from mosaic_cli.telemetry.photos import photo_metadata_notes
-from mosaic_cli.video.folders import folder_images
+from mosaic_cli.video.folders import folder_images, other_cameras_note
 
 GAP_SECONDS = 60.0  # between one flight's last frame and the next one's first, in the one count
 VIDEO_SUFFIXES = {".mp4", ".mov", ".mkv", ".avi", ".ts", ".m4v", ".mts", ".webm", ".mpg", ".mpeg"}
@@ -123,7 +123,8 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
         result = finish_stitch(scan, reference if reference is not None else "middle", out, final, transforms, show_progress,
                                seconds, masks[0], track, None, tile_runner(client) if client is not None else None)
         result.overlay_restart = restarted
-        result.metadata_notes = [note for t in tracks if t is not None and t.photos is not None for note in photo_metadata_notes(t.photos)]
+        result.metadata_notes = [note for f in prepared for note in other_cameras_note(f.info)]
+        result.metadata_notes += [note for t in tracks if t is not None and t.photos is not None for note in photo_metadata_notes(t.photos)]
         return result
 
 
@@ -187,7 +188,7 @@ def merge_scans(scans: list[FlightScan], names: list[str]) -> tuple[FlightScan, 
             key.segment += segment
             if key.link_to is not None:
                 key.link_to += base
-            if scan.use is not scans[0].use:
+            if scan.use is not scans[0].use and key.use is None:  # (a fitted photo's own includes its flight's)
                 key.use = scan.use
             keyframes.append(key)
         dropped += [(i + shift, why) for i, why in scan.dropped]

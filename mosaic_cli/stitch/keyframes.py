@@ -27,6 +27,7 @@ recovered from the full registrations by the joint refinement (:mod:`.registrati
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -39,11 +40,14 @@ import numpy as np
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.estimators import Estimator, PairEstimate
 from mosaic_cli.geometry import frame_corners, is_valid, project
-from mosaic_cli.mask import fill_masked
+from mosaic_cli.mask import fill_masked, work_mask
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions, Features, PairMatch, corner_distance
 from mosaic_cli.stitch.guide import GroundGuide
 from mosaic_cli.stitch.spill import Pixels, SpilledImage, drop_pixels, load_pixels
 from mosaic_cli.video.decode import gray_at
+from mosaic_cli.video.info import PhotoFit
+
+FIT_MASK_WIDTH = 1024  # px: a fitted photo's mask of its own pixels (blurred edges are not drawn: see work_mask)
 
 
 @dataclass
@@ -118,7 +122,10 @@ class Keyframe:
     composited: bool = False  # drawn in the panorama (else used for registration only)
     segment: int = 0  # the stretch of flight followed without a break; placements are in its world
     link_to: int | None = None  # position of the keyframe ``link`` registers this one to
-    use: np.ndarray | None = None  # its flight's overlay mask where that is not the scan's (several flights)
+    # Its pixels to draw where not the scan's ``use``: its flight's overlay mask (several
+    # flights), or its part of the frame (a photo of another shape, fitted into the folder's frame)
+    use: np.ndarray | None = None
+    fit: PhotoFit | None = None  # a photo of another camera: where in the frame its pixels lie
 
 
 @dataclass(frozen=True)
@@ -250,10 +257,12 @@ class FlightScanner:
         spill: str | Path | None = None,
         use: np.ndarray | None = None,
         guide: GroundGuide | None = None,
+        photo_fits: Iterable[PhotoFit] = (),
     ):
         self.o = options
         self.guide = guide  # a photo folder's GPS: which keyframes to match a photo with, and how
         self.use = use  # burned-in overlays (255 = ground): no features there, never drawn
+        self.fits = {f.index: f for f in photo_fits}  # photos of another camera, by frame index
         self.size = source_size
         self.fps = fps
         self.index = first_index - 1
@@ -297,11 +306,14 @@ class FlightScanner:
         failing that, with the last few; every photo becomes a keyframe or is named dropped."""
         self.photos = True
         self.index += 1
-        quality = self._quality(frame)
+        fit = self.fits.get(self.index)
+        part = fit.box if fit is not None and not fit.fills(self.size) else None  # a photo of another shape
+        use = self._fitted_use(part) if part is not None else None
+        quality = self._quality(frame if part is None else _inside(frame, part, self.size))
         if not quality.well_exposed(self.o):
             self.dropped.append((self.index, _exposure_problem(quality, self.o)))
             return
-        features = self.extract(frame)
+        features = self.extract(frame, use)
         if len(features) < self.matcher.options.min_inliers:
             self.dropped.append((self.index, f"featureless: {len(features)} SIFT features"))
             return
@@ -316,11 +328,21 @@ class FlightScanner:
                 if self.guide is not None:
                     self.guide.learn(self.index, key.index, match.H)
                 self.segment, self.previous = key.segment, position
-                self._add(self.index, frame, quality, key.placement @ self._affine(match.H), features, (position, match))
+                self._add(self.index, frame, quality, key.placement @ self._affine(match.H), features, (position, match), use, fit)
                 return
         if self.keyframes:
             self._new_segment()
-        self._add(self.index, frame, quality, np.eye(3), features)
+        self._add(self.index, frame, quality, np.eye(3), features, use=use, fit=fit)
+
+    def _fitted_use(self, box: tuple[int, int, int, int]) -> np.ndarray:
+        """The pixels of a fitted photo's frame in its ``box`` (and not an overlay's), at a
+        width of at most :data:`FIT_MASK_WIDTH`; a pixel partly outside the photo is not used."""
+        size = (min(self.size[0], FIT_MASK_WIDTH), max(1, round(self.size[1] * min(self.size[0], FIT_MASK_WIDTH) / self.size[0])))
+        s = size[0] / self.size[0]
+        x, y, w, h = box
+        use = np.zeros((size[1], size[0]), np.uint8)
+        use[math.ceil(y * s):math.floor((y + h) * s), math.ceil(x * s):math.floor((x + w) * s)] = 255
+        return use if self.use is None else cv2.bitwise_and(use, work_mask(self.use, size))
 
     def _photo_candidates(self) -> list[int]:
         """The keyframes (positions) a new photo is matched against, in order: the previous
@@ -459,11 +481,15 @@ class FlightScanner:
     def _affine(self, H: np.ndarray) -> np.ndarray:
         return closest_affine(H, self.size)
 
-    def _add(self, index, frame, quality, placement, features: Features | None = None, link: tuple | None = None) -> None:
+    def _add(self, index, frame, quality, placement, features: Features | None = None, link: tuple | None = None,
+             use: np.ndarray | None = None, fit: PhotoFit | None = None) -> None:
         """A new keyframe in the current segment: ``link`` (position, match) when it was
-        registered already (photos), else it is anchored to the previous keyframe."""
+        registered already (photos), else it is anchored to the previous keyframe.  ``use``:
+        its own pixels to draw where not the scan's (a fitted photo's)."""
         self._candidate = self._last = None
-        keyframe = Keyframe(index, placement, features if features is not None else self.extract(frame), quality, segment=self.segment)
+        keyframe = Keyframe(index, placement, features if features is not None else self.extract(frame), quality,
+                            segment=self.segment, use=use, fit=fit)
+        use = use if use is not None else self.use
         if link is not None:
             keyframe.link_to, keyframe.link = link
         elif self.previous is not None:
@@ -478,10 +504,17 @@ class FlightScanner:
             # reaches a few pixels past the mask's edge.  (A video's frame becomes RGB only here:
             # see video.YuvFrame.)
             pixels = np.asarray(frame)
-            self.store.keep(keyframe, pixels if self.use is None else fill_masked(pixels, self.use), world)
+            self.store.keep(keyframe, pixels if use is None else fill_masked(pixels, use), world)
             self.store.shrink(self.keyframes)
         self.keyframes.append(keyframe)
         self.previous = len(self.keyframes) - 1
+
+
+def _inside(frame: np.ndarray, box: tuple[int, int, int, int], size: tuple[int, int]) -> np.ndarray:
+    """The part of ``frame`` (``size`` at the source, maybe decoded smaller) that ``box`` names."""
+    s = frame.shape[1] / size[0]
+    x, y, w, h = box
+    return frame[round(y * s):max(round(y * s) + 1, round((y + h) * s)), round(x * s):max(round(x * s) + 1, round((x + w) * s))]
 
 
 def closest_affine(H: np.ndarray, size: tuple[int, int]) -> np.ndarray:

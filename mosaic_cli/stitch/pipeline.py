@@ -69,6 +69,7 @@ from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
 from mosaic_cli.telemetry import FlightLog
 from mosaic_cli.telemetry.photos import photo_log_rate, photo_metadata_notes
 from mosaic_cli.video import VideoInfo, open_video, probe
+from mosaic_cli.video.folders import other_cameras_note
 from mosaic_cli.video.reader import refuse_damaged, scaled_size
 
 
@@ -199,8 +200,9 @@ def stitch(
         result = finish_stitch(scanned.scan, reference, out, flight.options, transforms, show_progress, seconds, scanned.mask,
                                flight.track, scanned.rolling, tile_runner(client) if client is not None else None)
         result.overlay_restart = scanned.restarted
+        result.metadata_notes = other_cameras_note(flight.info)
         if flight.track is not None and flight.track.photos is not None:
-            result.metadata_notes = photo_metadata_notes(flight.track.photos)
+            result.metadata_notes += photo_metadata_notes(flight.track.photos)
         return result
 
 
@@ -358,14 +360,15 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
                 footprints, html = options.georef.footprints, options.georef.html
                 own = dataclasses.replace(options.georef, footprints=Path(numbered(footprints, number)) if footprints is not None else None,
                                           html=Path(numbered(html, number)) if html is not None else None)
-                written = write_outputs(path, staged, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps)
+                written = write_outputs(path, staged, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps,
+                                        _photo_boxes(scan))
                 extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
             if not written:
                 write_image(path, staged, fmt)
         # Every keyframe is reported, also those over ground already drawn (used for registration).
         frames = list(zip(indices, frame_to_canvas))
         if json_path is not None:
-            write_transforms(json_path, canvas.size, frames, _with_flights(extra, frames, scan.flights))
+            write_transforms(json_path, canvas.size, frames, _per_frame_keys(extra, frames, scan))
         seconds["write"] += time.perf_counter() - clock
         bands = None
         if rolling is not None:
@@ -401,17 +404,31 @@ def _on_one_map(groups, scan: FlightScan, track: FlightLog, options: StitchOptio
     return [merged] + [group for group, georef in zip(groups, fitted) if georef is None]
 
 
-def _with_flights(extra: tuple[dict, list[dict]] | None, frames: list[tuple[int, np.ndarray]], flights: list[FlightSpan]):
+def _per_frame_keys(extra: tuple[dict, list[dict]] | None, frames: list[tuple[int, np.ndarray]], scan: FlightScan):
     """The transforms JSON's per-frame keys, with each keyframe's flight and its own frame number
-    when several flights were stitched."""
-    if not flights:
+    when several flights were stitched, and a photo of another camera's place in the frame its
+    ``H`` maps (``photo``: its name, size and ``to_frame``, photo pixels -> frame pixels)."""
+    fits = {k.index: k.fit for k in scan.keyframes if k.fit is not None}
+    if not scan.flights and not fits:
         return extra
     top, per_frame = extra if extra is not None else ({}, [{} for _ in frames])
     named = []
     for (index, _), more in zip(frames, per_frame):
-        span = next(f for f in flights if f.holds(index))
-        named.append({**more, "flight": span.name, "frame": index - span.start})
+        more = dict(more)
+        if scan.flights:
+            span = next(f for f in scan.flights if f.holds(index))
+            more.update(flight=span.name, frame=index - span.start)
+        if (fit := fits.get(index)) is not None:
+            x, y, w, h = fit.box
+            to_frame = [[w / fit.photo_size[0], 0.0, float(x)], [0.0, h / fit.photo_size[1], float(y)], [0.0, 0.0, 1.0]]
+            more["photo"] = {"name": fit.name, "size": list(fit.photo_size), "to_frame": to_frame}
+        named.append(more)
     return top, named
+
+
+def _photo_boxes(scan: FlightScan) -> dict[int, tuple[int, int, int, int]]:
+    """Where the photos of another shape lie in the frame (x, y, w, h), by frame index."""
+    return {k.index: k.fit.box for k in scan.keyframes if k.fit is not None and not k.fit.fills(scan.source_size)}
 
 
 def _frames_held(scan: FlightScan) -> list[list[int]]:
@@ -514,7 +531,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
             probe.restart()
         estimator.set_mask(use)
         scanner = FlightScanner(info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features,
-                                max_size, spill, use, guide)
+                                max_size, spill, use, guide, info.photo_fits)
         try:
             # Only frames whose pixels the scan keeps (the keyframes) are converted to RGB; the
             # others serve only their gray copies.

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.telemetry.flight_log import FlightLog
+from mosaic_cli.video.info import PhotoFit
 
 DJI = "http://www.dji.com/drone-dji/1.0/"
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # what a 35 mm-equivalent focal length is relative to
@@ -150,12 +151,22 @@ def photo_log(tags: list[PhotoTags], fps: float, source: str) -> FlightLog:
     def column(name: str) -> np.ndarray:
         return np.array([getattr(t, name) for t in tags], dtype=np.float64) if n else np.zeros(0)
 
-    hfov = np.array([t.hfov for t in tags], dtype=np.float64) if n else np.zeros(0)
+    hfov = np.array([_hfov_across_frame(t, tags[0]) for t in tags], dtype=np.float64) if n else np.zeros(0)
     fixed = sum(t.has_fix for t in tags)
     track = FlightLog(f"{source} (EXIF GPS of {fixed} of {n} photos)", np.arange(n, dtype=np.float64) / fps,
                       column("lat"), column("lon"), column("alt"), column("height"), column("yaw"), column("pitch"),
                       column("roll"), hfov, photos=list(tags))
     return track
+
+
+def _hfov_across_frame(tags: PhotoTags, first: PhotoTags) -> float:
+    """The field of view across the folder's frame (the first photo's) that ``tags``'s photo
+    spans once read into it (video/folders.py: another camera's photo is fitted whole into that
+    frame, and may not fill its width): degrees, NaN where unknown."""
+    if first.width <= 0 or tags.width <= 0 or not math.isfinite(tags.hfov):
+        return tags.hfov
+    spans = PhotoFit.into((first.width, first.height_px), (tags.width, tags.height_px)).box[2]  # frame px
+    return math.degrees(2.0 * math.atan(math.tan(math.radians(tags.hfov) / 2.0) * first.width / spans))
 
 
 def photo_log_rate(track: FlightLog) -> float:
@@ -165,14 +176,9 @@ def photo_log_rate(track: FlightLog) -> float:
 
 def photo_metadata_notes(tags: list[PhotoTags]) -> list[str]:
     """What a geotagged folder's metadata could not give, one line per damaged photo and one
-    for the photos without GPS: they are placed by their pixels alone."""
+    for the photos without GPS: they are placed by their pixels alone.  (Photos of another
+    camera: video/folders.py's ``other_cameras_note``, GPS or not.)"""
     lines = [f"photo {t.path.name}: {'; '.join(t.problems)}: placed by its pixels" for t in tags if t.problems]
-    sizes = {(t.width, t.height_px) for t in tags if t.width > 0}
-    if tags and len(sizes) > 1:
-        first = (tags[0].width, tags[0].height_px)
-        other = [t.path.name for t in tags if t.width > 0 and (t.width, t.height_px) != first]
-        lines.append(f"{len(other)} of {len(tags)} photos are not {first[0]}x{first[1]} (another camera): read at that size, "
-                     f"placed by their own pixels and GPS: {', '.join(other[:5])}" + (f" and {len(other) - 5} more" if len(other) > 5 else ""))
     missing = [t.path.name for t in tags if not t.has_fix and not t.problems]
     if missing:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")

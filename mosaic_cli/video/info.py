@@ -17,6 +17,35 @@ class StreamMeta:
     tag: str = ""  # the container's codec tag (fourcc), e.g. "KLVA"
 
 
+SAME_SHAPE = 0.01  # images whose aspect ratios differ by less than this are of one shape
+
+
+@dataclass(frozen=True)
+class PhotoFit:
+    """A photo of another size than its folder's first (another camera), read into the first's
+    frame: scaled by ``scale`` (aspect kept) to fit it whole, centred; a photo of another shape
+    (4:3 among 16:9, portrait among landscape) leaves the rest of the frame empty.  Its
+    homographies are those of that frame; ``box`` (x, y, w, h, frame pixels at the source size)
+    is where its pixels lie."""
+
+    index: int  # position in the folder
+    name: str
+    photo_size: tuple[int, int]  # (w, h) as the photo is displayed (EXIF orientation applied)
+    scale: float
+    box: tuple[int, int, int, int]
+
+    @staticmethod
+    def into(frame: tuple[int, int], photo: tuple[int, int], index: int = 0, name: str = "") -> PhotoFit:
+        scale = min(frame[0] / photo[0], frame[1] / photo[1])
+        w, h = min(frame[0], max(1, round(photo[0] * scale))), min(frame[1], max(1, round(photo[1] * scale)))
+        if abs(photo[0] * frame[1] / (photo[1] * frame[0]) - 1.0) <= SAME_SHAPE:
+            w, h = frame  # the frame's shape at another size: resized to fill it
+        return PhotoFit(index, name, photo, scale, ((frame[0] - w) // 2, (frame[1] - h) // 2, w, h))
+
+    def fills(self, frame: tuple[int, int]) -> bool:
+        return self.box == (0, 0, frame[0], frame[1])
+
+
 @dataclass(frozen=True)
 class VideoInfo:
     """What is known about a video before decoding it.
@@ -47,6 +76,9 @@ class VideoInfo:
     pixel_format: str | None = None
     color_matrix: int | None = None
     color_range: int | None = None
+    # An image folder's photos of another size than its first (another camera), each read into
+    # the first's frame: see :class:`PhotoFit`.
+    photo_fits: tuple[PhotoFit, ...] = ()
 
     @property
     def has_audio(self) -> bool:
