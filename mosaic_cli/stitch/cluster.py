@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from mosaic_cli.errors import BadInput, ProcessingError, install_hint
-from mosaic_cli.stitch.compose import ComposePlan, TileSink, _Held, compose_tile
+from mosaic_cli.stitch.compose import ComposePlan, TileSink, HeldKeyframes, compose_tile
 
 CONNECT_SECONDS = 5  # a scheduler that does not answer within this is one line, not a hang
 IN_FLIGHT = 2  # tiles queued per worker: enough to keep each busy, few enough to bound the results held
@@ -123,7 +123,7 @@ def tile_runner(client) -> Callable[[ComposePlan, TileSink, Callable[..., None]]
     return run
 
 
-_WORKER_HELD: dict[str, _Held] = {}  # (on a worker) the keyframes it read, kept from one tile to the next of a plan
+_WORKER_HELD: dict[str, HeldKeyframes] = {}  # (on a worker) the keyframes it read, kept from one tile to the next of a plan
 
 
 def blend_tile(plan: ComposePlan, x0: int, y0: int) -> tuple[int, int, np.ndarray | None]:
@@ -135,5 +135,5 @@ def blend_tile(plan: ComposePlan, x0: int, y0: int) -> tuple[int, int, np.ndarra
     key = plan.token
     if key not in _WORKER_HELD:
         _WORKER_HELD.clear()  # another plan's keyframes
-        _WORKER_HELD[key] = _Held(plan.cache_megabytes)
+        _WORKER_HELD[key] = HeldKeyframes(plan.cache_megabytes)
     return x0, y0, compose_tile(plan, x0, y0, _WORKER_HELD[key])

@@ -243,7 +243,7 @@ def plan_compose(placed: list[PlacedImage], canvas_size: tuple[int, int], option
                        options.torch_device, options.cache_megabytes)
 
 
-def compose_tile(plan: ComposePlan, x0: int, y0: int, held: _Held, device=None) -> np.ndarray | None:
+def compose_tile(plan: ComposePlan, x0: int, y0: int, held: HeldKeyframes, device=None) -> np.ndarray | None:
     """The tile at canvas pixel (x0, y0): RGBA uint8 (h, w, 4), transparent where nothing is
     drawn; None when no image reaches it.  ``held``: the images' sources kept between tiles."""
     W, H = plan.canvas_size
@@ -310,7 +310,7 @@ def compose(
         return None if canvas is None else canvas.rgba
     device = None if options.torch_device is None else resolve_device(options.torch_device)
     last = plan.last_tiles()
-    held = _Held(options.cache_megabytes)
+    held = HeldKeyframes(options.cache_megabytes)
     for number, (x0, y0) in enumerate(plan.tiles):
         rgba = compose_tile(plan, x0, y0, held, device)
         if rgba is not None:
@@ -366,7 +366,7 @@ def _tile_number(column: int, row: int, width: int, side: int) -> int:
     return row * (-(-width // side)) + column
 
 
-class _Held:
+class HeldKeyframes:
     """The sources of the images the recent tiles reached, at most ``megabytes`` together (the
     least recently used go first; one is always kept, however large)."""
 
