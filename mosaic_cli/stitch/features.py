@@ -23,7 +23,7 @@ MASK_MARGIN = 4  # px at the feature width: keypoints this close to an overlay a
 @dataclass
 class FeatureOptions:
     width: int = 640  # keyframes are described at this width (the source's if narrower)
-    photo_width: int = 1600  # ... and photos (an image folder), which only features place,
+    photo_width: int = 2000  # ... and photos (an image folder), which only features place (12 MP: 2 px needs 2000; CHANGELOG)
     photo_features: int = 4000  # ... with more points: 1500 leave a wide photo's pairs with ~40 inliers
     n_features: int = 1500
     # Lower than OpenCV's 0.04: aerial ground is often low in contrast (grass, fields, water);
