@@ -23,6 +23,8 @@ from mosaic_cli.stitch.compose import ComposeOptions, MemoryCanvas, PlacedImage,
 from mosaic_cli.stitch.flights import stitch_flights
 from tests.conftest import assert_one_line_error, mosaic_run, run_cli, textured_image
 
+pytestmark = pytest.mark.alone  # wall-clock bounds: run with no other test beside it (conftest.py)
+
 pytest.importorskip("distributed")
 
 

@@ -95,7 +95,7 @@ def test_readme_starts_with_exactly_two_setup_commands():
     assert re.search(r"\s(-p|--profile)[ =]survey\b", simulate), simulate
     flight = re.search(r"\s(-o|--out)[ =](\S+)", simulate)
     assert flight and f"mosaic stitch {flight.group(2)} -o " in commands[0], commands[0]
-    assert "pip install -e '.[test]'" in commands[1] and commands[1].endswith("python -m pytest -q")
+    assert "pip install -e '.[test]'" in commands[1] and commands[1].endswith("python -m pytest -q -n auto")
     # No other fenced block comes before the set-up section.
     assert "```" not in sections[0]
     # CI runs that same test command (after lint and types).

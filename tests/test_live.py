@@ -19,6 +19,8 @@ import pytest
 
 from conftest import FFMPEG, assert_one_line_error, cli_exit, run_cli, simulated
 
+pytestmark = pytest.mark.alone  # wall-clock bounds: run with no other test beside it (conftest.py)
+
 SIZE = (320, 180)
 FRAMES = 60
 RUN_LIMIT = 300  # seconds any one command may take: far above what it needs, even on a loaded machine

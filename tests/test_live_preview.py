@@ -15,6 +15,8 @@ from mosaic_cli.errors import ProcessingError
 from mosaic_cli.stitch.keyframes import Keyframe
 from mosaic_cli.stitch.live import LivePreview, PreviewOptions
 
+pytestmark = pytest.mark.alone  # wall-clock bounds: run with no other test beside it (conftest.py)
+
 RUN_LIMIT = 300
 
 

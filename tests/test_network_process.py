@@ -15,6 +15,8 @@ from mosaic_cli.estimators import make_estimator
 from mosaic_cli.live.network_process import NetworkProcess
 from tests.conftest import textured_image
 
+pytestmark = pytest.mark.alone  # wall-clock bounds: run with no other test beside it (conftest.py)
+
 FULL = (640, 360)
 BUILD = {"name": "lstm", "work_width": None, "weights": None, "device": "cpu", "default_width": 320, "chunk": 4}
 
