@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import re
 
 import cv2
 import numpy as np
@@ -283,46 +282,3 @@ def test_orb_paper_matches_the_baseline_script(flights_dir):
     errors = corner_errors(ours, np.asarray(gt.pairwise), size)
     identity = corner_errors(np.broadcast_to(np.eye(3), ours.shape), np.asarray(gt.pairwise), size)
     assert np.median(errors) < 0.35 * np.median(identity)  # (a reversed direction would double it)
-
-
-# --- python -m benchmarks speed floors -----------------------------------------------------
-
-
-@pytest.mark.slow
-def test_speed_floors_script_runs_and_adds_up_its_pieces(tmp_path, flights_dir):
-    """The script that sets each speed goal against its floor (docs/measurements/speed.md) runs
-    on a small clip, counts its frames as OpenCV does, and each floor is the sum of the pieces
-    it names over the cores; the default estimator costs more than its network alone."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    clip = flights_dir / "a_paper.mp4"
-    out = tmp_path / "floors.json"
-    done = subprocess.run([sys.executable, "-m", "benchmarks", "speed", "floors", "--clip", str(clip), "--rounds", "1", "--no-vidstab",
-                           "--work", str(tmp_path / "work"), "--json", str(out)], capture_output=True, text=True, timeout=300,
-                          cwd=Path(__file__).resolve().parents[1])
-    assert done.returncode == 0, done.stderr[-2000:]
-    result = json.loads(out.read_text())["clips"][clip.name]
-    cap = cv2.VideoCapture(str(clip))
-    assert result["frames"] == int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 64
-    cpu, wall, cores = result["cpu"], result["wall"], os.cpu_count()
-    assert all(v > 0 for v in cpu.values()) and all(v > 0 for v in wall.values())
-    assert cpu["network alone"] < cpu["estimator"]
-    rows = {row["goal"]: row for row in result["floors"]}
-    assert set(rows) == {"track within 2.5x of decoding alone", "track, the network alone (no checks)",
-                         "stitch within 5x of decoding alone", "stabilize within 1.5x of the transcode",
-                         "overlays at most 5% of track", "overlays at most 5% of stitch", "overlays at most 5% of stabilize"}
-    pairs = 63
-    track = (cpu["torch"] + cpu["track read"] + pairs * cpu["estimator"] / 1000) / cores
-    assert rows["track within 2.5x of decoding alone"]["floor_s"] == pytest.approx(track)
-    assert rows["track within 2.5x of decoding alone"]["line_s"] == pytest.approx(2.5 * wall["decode"])
-    stabilize = (cpu["torch"] + cpu["transcode"] + 64 * cpu["warp"] / 1000 + pairs * cpu["estimator"] / 1000) / cores
-    assert rows["stabilize within 1.5x of the transcode"]["floor_s"] == pytest.approx(stabilize)
-    for name in ("track", "stitch", "stabilize"):
-        row = rows[f"overlays at most 5% of {name}"]
-        assert row["idle_cpu_s"] == pytest.approx(max(0.0, cores * wall[name] - cpu[name]))
-        assert row["added_s"] == pytest.approx(max(0.0, cpu["overlays"] - row["idle_cpu_s"]) / cores)
-    for goal, row in rows.items():  # the printed table: each goal with its verdict
-        assert re.search(rf"^{re.escape(goal)} .* {'reachable' if row['reachable'] else 'out of reach'}$", done.stdout, re.M)

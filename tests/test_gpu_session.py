@@ -108,7 +108,7 @@ def test_the_cli_and_the_int8_network_work_without_what_the_gpu_machine_lacked(m
 def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     """The throughput call as the device machine runs it: no ffmpeg binary (imageio-ffmpeg made
     unimportable), so every clip is written and read through mosaic's PyAV backend; every command
-    is timed at both sizes and the JSON the issue asks for comes back."""
+    is timed (at one tiny size: the device times two) and the JSON the issue asks for comes back."""
     blocker = tmp_path / "site"
     blocker.mkdir()
     (blocker / "sitecustomize.py").write_text("import sys\nsys.modules['imageio_ffmpeg'] = None\n")
@@ -123,16 +123,17 @@ def test_the_throughput_stage_times_every_command_with_pyav_alone(tmp_path):
     cases = ET.parse(out / "tests.xml").getroot().findall(".//testcase")  # the device's warps and blend against the CPU's
     assert {c.get("classname").rsplit(".", 1)[-1] for c in cases} >= {"test_device_warp", "test_stitch_device"}
     assert all(c.find("skipped") is not None for c in cases)
-    with tarfile.open(out / "logs.tar.gz") as tar:  # each thread's time in the default track and stabilize, at both sizes
+    with tarfile.open(out / "logs.tar.gz") as tar:  # each thread's time in the default track and stabilize
         profiles = {m.name: tar.extractfile(m).read().decode() for m in tar.getmembers() if m.name.startswith("profile_")}
-    assert sorted(profiles) == [f"profile_{c}_{s}_cpu.txt" for c in ("stabilize", "track") for s in ("160x96", "320x192")]
+    assert sorted(profiles) == [f"profile_{c}_160x96_cpu.txt" for c in ("stabilize", "track")]
     assert all("exit status 0" in text and "threads" in text for text in profiles.values())
     report = json.loads((out / "gpu_throughput.json").read_text())
     assert report["commit"] == "abc123" and "cores" in report["machine"]
     assert "every run gave the one-thread estimates to the bit: True" in report["threads"]  # python -m benchmarks estimators threads
     assert all(set(r) >= {"command", "device", "size", "threads", "frames", "wall_s"} for r in report["runs"])
     assert {r["command"] for r in report["runs"] if r["wall_s"] is None} == {"vidstab"}  # with its reason
-    for size in ("160x96", "320x192"):
+    assert {r["size"] for r in report["runs"]} == {"160x96"}
+    for size in ("160x96",):
         first = [(r["command"], r["threads"], r.get("options")) for r in report["runs"] if r["size"] == size and r.get("round") == 1 and r["wall_s"] > 0]
         assert sorted(first, key=str) == sorted([("transcode", None, None), ("track", None, None), ("track", None, "--no-overlay-detect"), ("track", 1, None),
                                                  ("track", None, "-e lstm:chunk=64"), ("track", None, "-e lstm:polish-with=opencv"),
