@@ -248,6 +248,7 @@ def test_a_photo_whose_overlap_is_a_strip_beside_canopy_is_placed_by_its_gps_gui
     assert error < 2.0, f"{error:.2f} px"
 
 
+@pytest.mark.slow
 def test_photos_of_other_cameras_are_fitted_into_the_frame_placed_and_drawn_without_the_empty_rest(tmp_path, capsys):
     """A 16:9 camera at twice the size and a portrait photo among a 4:3 survey's photos: each is
     fitted whole into the first's frame, centred (both crops of the survey's own photos, so that
