@@ -370,7 +370,12 @@ def _gap_summary(gaps) -> str:
 def photos(args) -> dict:
     """Every ODM folder at full resolution: every photo used or named; used photos against a
     direct full-resolution registration (``DirectReference``): consecutive ones, and the other
-    pairs the panorama makes overlap."""
+    pairs the panorama makes overlap.  Stitched as ``mosaic stitch FOLDER`` does (``gps``: the
+    photos' EXIF GPS guiding the pairs and the matching, and the map's fit, where they have it),
+    then by their pixels alone (``--telemetry none``) with and without drift control."""
+    from mosaic_cli.geo.georef import GeorefOptions
+    from mosaic_cli.telemetry import read_photo_folder
+
     rows = []
     folders = sorted(p for p in ODM.iterdir() if p.is_dir() and (not args.folders or p.name in args.folders))
     for folder in folders:
@@ -379,8 +384,10 @@ def photos(args) -> dict:
         size = cv2.imread(str(files[0]), cv2.IMREAD_REDUCED_GRAYSCALE_8).shape[1::-1]
         size = (size[0] * 8, size[1] * 8)
         row = {"folder": folder.name, "photos": len(files)}
-        for label, enabled in (("dc", True), ("no-dc", False)):
-            options = StitchOptions(registration=RegistrationOptions(enabled=enabled, max_loop_pairs=args.max_loop_pairs))
+        runs = [("gps", True, GeorefOptions())] if read_photo_folder(folder) is not None else []
+        runs += [("dc", True, None), ("no-dc", False, None)]
+        for label, enabled, georef in runs:
+            options = StitchOptions(registration=RegistrationOptions(enabled=enabled, max_loop_pairs=args.max_loop_pairs), georef=georef)
             start = time.perf_counter()
             result = stitch(folder, args.workdir / f"{folder.name}_{label}.png", make_estimator(args.estimator), options, show_progress=False)
             seconds = time.perf_counter() - start
@@ -398,7 +405,7 @@ def photos(args) -> dict:
             }
         rows.append(row)
         print(f"{folder.name}: {len(files)} photos", flush=True)
-        for label in ("dc", "no-dc"):
+        for label, _, _ in runs:
             r = row[label]
             print(
                 f"  {label:6s} panoramas {r['panoramas']}, dropped {r['dropped']}, every photo accounted for: {r['all accounted']}, "
