@@ -57,6 +57,63 @@ def scaling(argv: list[str]) -> int:
     return 0
 
 
+def stages(argv: list[str]) -> int:
+    """One folder of --count photos stitched in this process, its RSS sampled every 0.1 s: the
+    peak of each stage (scan, register, georeference, compose, write), the process's own."""
+    import functools
+    import threading
+
+    import mosaic_cli.stitch.pipeline as pipeline
+    from mosaic_cli.geo.georef import GeorefOptions
+
+    parser = make_parser(SUITE, "stages", stages.__doc__)
+    parser.add_argument("--count", type=int, default=500, help="photos in the folder")
+    parser.add_argument("--size", default="4000x3000", help="photo size WxH")
+    parser.add_argument("--gsd", type=float, default=0.04, help="metres per photo pixel")
+    parser.add_argument("--map-gsd", type=float, default=0.1, help="metres per pixel of the map flown over")
+    args = parser.parse_args(argv)
+    w, h = (int(v) for v in args.size.lower().split("x"))
+
+    def rss() -> float:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024.0
+
+    peak = [0.0]
+
+    def sample() -> None:
+        while True:
+            peak[0] = max(peak[0], rss())
+            time.sleep(0.1)
+
+    def timed(name, f):
+        @functools.wraps(f)
+        def stage(*a, **k):
+            peak[0], start = rss(), time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                print(f"{name:>14} {time.perf_counter() - start:8.1f} s, peak {max(peak[0], rss()):6.0f} MiB", flush=True)
+        return stage
+
+    print_start()
+    per_row = math.ceil(math.sqrt(args.count * 1.5))
+    rows = math.ceil(args.count / per_row)
+    with tempfile.TemporaryDirectory(prefix="mosaic-photos-") as tmp:
+        root = Path(tmp)
+        survey = write_survey(root / "photos", rows=rows, per_row=per_row, size=(w, h), gsd=args.gsd, along=0.42 * h * args.gsd,
+                              across=0.56 * w * args.gsd, map_gsd=args.map_gsd, seed=args.count)
+        threading.Thread(target=sample, daemon=True).start()
+        for name in ("_scan", "_register", "_georeference", "compose", "write_outputs"):
+            setattr(pipeline, name, timed(name.strip("_"), getattr(pipeline, name)))
+        start = time.perf_counter()
+        result = pipeline.stitch(survey.folder, root / "map.tif", options=pipeline.StitchOptions(georef=GeorefOptions()),
+                                 transforms=root / "t.json", show_progress=False)
+        *_, pair_px = score_survey(survey, json.loads((root / "t.json").read_text()))
+        print(f"{len(survey.names)} photos of {w}x{h} into {result.canvas_size[0]}x{result.canvas_size[1]} in "
+              f"{time.perf_counter() - start:.0f} s, worst pair {max(pair_px):.2f} px")
+    return 0
+
+
 def run_child_with_stderr(cmd: list[str]) -> tuple[float, float, str]:
     """(peak RSS in MiB, wall seconds, stderr) of one child process."""
     return run_child(cmd, keep_stderr=True)
@@ -71,4 +128,4 @@ def _pairs(stderr: str) -> int:
 
 
 def main(argv: list[str]) -> int:
-    return run_commands(SUITE, __doc__, {"scaling": scaling}, argv, default=scaling)
+    return run_commands(SUITE, __doc__, {"scaling": scaling, "stages": stages}, argv, default=scaling)
