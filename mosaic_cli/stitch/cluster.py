@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from mosaic_cli.errors import BadInput, ProcessingError, install_hint
-from mosaic_cli.stitch.compose import ComposePlan, TileSink, HeldKeyframes, compose_tile
+from mosaic_cli.stitch.compose import ComposePlan, HeldKeyframes, TileSink, compose_tile
 
 CONNECT_SECONDS = 5  # a scheduler that does not answer within this is one line, not a hang
 IN_FLIGHT = 2  # tiles queued per worker: enough to keep each busy, few enough to bound the results held
