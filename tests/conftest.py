@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import subprocess
 from pathlib import Path
 from types import SimpleNamespace
@@ -20,24 +21,48 @@ from mosaic_cli.cli import main
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
+try:
+    import imageio_ffmpeg
+
+    FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
+except ImportError:  # the lent GPU machine has no video tools; the tests it runs (-m cuda) need none
+    FFMPEG = "ffmpeg"
+
 
 # -- tests that time themselves run alone ------------------------------------------------------
 # The suite runs on every core (pytest-xdist, ``-n auto``).  A test marked ``alone`` asserts
 # wall-clock bounds (a live stream's latency, an exit within 2 s, a worker's retry) that hold on
 # an idle machine, not beside another test: it waits for the other workers' tests to end, and
-# none starts until it has.  A readers-writer lock on a file the run's workers share: every
-# other test holds it shared; the turnstile keeps a waiting ``alone`` test from starving.
+# none starts until it has.  A readers-writer lock on a file the run's workers share (in a folder
+# the controlling process makes and removes): every other test holds it shared; the turnstile
+# keeps a waiting ``alone`` test from starving.
+LOCKS = "MOSAIC_TEST_LOCKS"
+_locks_made = pytest.StashKey[str]()
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput") and config.getoption("numprocesses", None):  # xdist's controller
+        import tempfile
+
+        config.stash[_locks_made] = os.environ[LOCKS] = tempfile.mkdtemp(prefix="mosaic-test-locks-")  # the workers inherit it
+
+
+def pytest_unconfigure(config):
+    if _locks_made in config.stash:
+        import shutil
+
+        shutil.rmtree(config.stash[_locks_made], ignore_errors=True)
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    run = getattr(item.config, "workerinput", {}).get("testrunuid")
-    if run is None:  # one process: nothing runs beside it
+    folder = os.environ.get(LOCKS) if hasattr(item.config, "workerinput") else None
+    if folder is None:  # one process: nothing runs beside it
         yield
         return
     import fcntl
-    import tempfile
 
-    folder = Path(tempfile.gettempdir())
-    with open(folder / f"mosaic-tests-{run}.turnstile", "a") as turnstile, open(folder / f"mosaic-tests-{run}.lock", "a") as lock:
+    with open(Path(folder) / "turnstile", "a") as turnstile, open(Path(folder) / "lock", "a") as lock:
         fcntl.flock(turnstile, fcntl.LOCK_EX)
         fcntl.flock(lock, fcntl.LOCK_EX if item.get_closest_marker("alone") else fcntl.LOCK_SH)
         fcntl.flock(turnstile, fcntl.LOCK_UN)
@@ -45,12 +70,6 @@ def pytest_runtest_protocol(item, nextitem):
             yield
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
-try:
-    import imageio_ffmpeg
-
-    FFMPEG = imageio_ffmpeg.get_ffmpeg_exe()
-except ImportError:  # the lent GPU machine has no video tools; the tests it runs (-m cuda) need none
-    FFMPEG = "ffmpeg"
 
 
 def textured_image(width: int, height: int, seed: int = 0) -> np.ndarray:
