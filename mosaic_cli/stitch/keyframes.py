@@ -307,9 +307,9 @@ class FlightScanner:
         self.photos = True
         self.index += 1
         fit = self.fits.get(self.index)
-        part = fit.box if fit is not None and not fit.fills(self.size) else None  # a photo of another shape
-        use = self._fitted_use(part) if part is not None else None
-        quality = self._quality(frame if part is None else _inside(frame, part, self.size))
+        part = fit if fit is not None and not fit.fills(self.size) else None  # a photo of another shape
+        use = self._fitted_use(part.box) if part is not None else None
+        quality = self._quality(frame if part is None else frame[part.region((frame.shape[1], frame.shape[0]), self.size)])
         if not quality.well_exposed(self.o):
             self.dropped.append((self.index, _exposure_problem(quality, self.o)))
             return
@@ -508,13 +508,6 @@ class FlightScanner:
             self.store.shrink(self.keyframes)
         self.keyframes.append(keyframe)
         self.previous = len(self.keyframes) - 1
-
-
-def _inside(frame: np.ndarray, box: tuple[int, int, int, int], size: tuple[int, int]) -> np.ndarray:
-    """The part of ``frame`` (``size`` at the source, maybe decoded smaller) that ``box`` names."""
-    s = frame.shape[1] / size[0]
-    x, y, w, h = box
-    return frame[round(y * s):max(round(y * s) + 1, round((y + h) * s)), round(x * s):max(round(x * s) + 1, round((x + w) * s))]
 
 
 def closest_affine(H: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -119,10 +119,7 @@ def open_folder(folder: Path, width: int | None, fps: float | None, gray: bool) 
 def fitted(img: np.ndarray, fit: PhotoFit, source_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
     """``img`` placed in a frame of ``size`` (``source_size`` downscaled) where ``fit`` says, the
     rest black."""
-    s = size[0] / source_size[0]
-    x, y, w, h = fit.box
-    x0, y0 = round(x * s), round(y * s)
-    x1, y1 = min(size[0], round((x + w) * s)), min(size[1], round((y + h) * s))
+    rows, columns = fit.region(size, source_size)
     frame = np.zeros((size[1], size[0], 3), np.uint8)
-    frame[y0:y1, x0:x1] = cv2.resize(img, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+    frame[rows, columns] = cv2.resize(img, (columns.stop - columns.start, rows.stop - rows.start), interpolation=cv2.INTER_AREA)
     return frame

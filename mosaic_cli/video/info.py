@@ -45,6 +45,15 @@ class PhotoFit:
     def fills(self, frame: tuple[int, int]) -> bool:
         return self.box == (0, 0, frame[0], frame[1])
 
+    def region(self, size: tuple[int, int], source_size: tuple[int, int]) -> tuple[slice, slice]:
+        """(rows, columns) of a frame read at ``size`` (``source_size`` scaled) that hold the
+        photo: the one rounding that places its pixels (video/folders.py) and finds them again."""
+        s = size[0] / source_size[0]
+        x, y, w, h = self.box
+        x0, y0 = round(x * s), round(y * s)
+        x1, y1 = min(size[0], max(x0 + 1, round((x + w) * s))), min(size[1], max(y0 + 1, round((y + h) * s)))
+        return slice(y0, y1), slice(x0, x1)
+
 
 @dataclass(frozen=True)
 class VideoInfo:
