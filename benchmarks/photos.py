@@ -35,13 +35,9 @@ def scaling(argv: list[str]) -> int:
     print(f"{'photos':>6} {'MP':>5} {'s/photo':>8} {'pairs/photo':>11} {'peak MiB':>9} {'placed':>7} {'pair px max':>11} "
           f"{'map m median':>12} {'fix m median':>12} {'scale':>6} {'north deg':>9}")
     for count in (int(c) for c in args.counts.split(",")):
-        per_row = math.ceil(math.sqrt(count * 1.5))
-        rows = math.ceil(count / per_row)
         with tempfile.TemporaryDirectory(prefix="mosaic-photos-", dir=args.keep) as tmp:
             root = Path(tmp)
-            footprint_along, footprint_across = h * args.gsd, w * args.gsd  # the top edge points along the line
-            survey = write_survey(root / "photos", rows=rows, per_row=per_row, size=(w, h), gsd=args.gsd,
-                                  along=0.42 * footprint_along, across=0.56 * footprint_across, map_gsd=args.map_gsd, seed=count)
+            survey = _survey(root / "photos", count, (w, h), args.gsd, args.map_gsd)
             n = len(survey.names)
             js = root / "t.json"
             start = time.perf_counter()
@@ -96,12 +92,9 @@ def stages(argv: list[str]) -> int:
         return stage
 
     print_start()
-    per_row = math.ceil(math.sqrt(args.count * 1.5))
-    rows = math.ceil(args.count / per_row)
     with tempfile.TemporaryDirectory(prefix="mosaic-photos-") as tmp:
         root = Path(tmp)
-        survey = write_survey(root / "photos", rows=rows, per_row=per_row, size=(w, h), gsd=args.gsd, along=0.42 * h * args.gsd,
-                              across=0.56 * w * args.gsd, map_gsd=args.map_gsd, seed=args.count)
+        survey = _survey(root / "photos", args.count, (w, h), args.gsd, args.map_gsd)
         threading.Thread(target=sample, daemon=True).start()
         for name in ("_scan", "_register", "_georeference", "compose", "write_outputs"):
             setattr(pipeline, name, timed(name.strip("_"), getattr(pipeline, name)))
@@ -112,6 +105,16 @@ def stages(argv: list[str]) -> int:
         print(f"{len(survey.names)} photos of {w}x{h} into {result.canvas_size[0]}x{result.canvas_size[1]} in "
               f"{time.perf_counter() - start:.0f} s, worst pair {max(pair_px):.2f} px")
     return 0
+
+
+def _survey(folder: Path, count: int, size: tuple[int, int], gsd: float, map_gsd: float):
+    """The folder of about ``count`` photos both commands stitch: lines about 1.5x as long as they
+    are apart, photos 42% of a footprint apart along a line (its top edge points along it) and 56%
+    across, seeded by the count."""
+    w, h = size
+    per_row = math.ceil(math.sqrt(count * 1.5))
+    return write_survey(folder, rows=math.ceil(count / per_row), per_row=per_row, size=size, gsd=gsd, along=0.42 * h * gsd,
+                        across=0.56 * w * gsd, map_gsd=map_gsd, seed=count)
 
 
 def run_child_with_stderr(cmd: list[str]) -> tuple[float, float, str]:
