@@ -294,8 +294,8 @@ def test_stabilize_with_a_latency_of_one_second_steadies_about_as_well_as_offlin
                 subprocess.run([sys.executable, "-m", "mosaic_cli", *args], stdin=stdin, check=True, timeout=RUN_LIMIT)
         jitter[name] = gt_jitter(truth, np.array(json.loads(warps.read_text())["warps"]))
     for name in ("live", "piped"):
-        assert jitter[name] < 0.5 * gt_jitter(truth, None)
-        assert jitter[name] <= 1.5 * jitter["offline"]
+        assert jitter[name] < 0.5 * gt_jitter(truth, None), jitter
+        assert jitter[name] <= 1.5 * jitter["offline"], jitter
 
 
 @pytest.mark.slow

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mosaic_cli.live.schedule import ENCODE_RESERVE, LiveSchedule
+from mosaic_cli.live.schedule import BURST_PACE, ENCODE_RESERVE, LiveSchedule
 from mosaic_cli.stabilize.crop import output_warps
 from mosaic_cli.stabilize.online import MIN_LOOKAHEAD, Horizon, OnlineL1Path
 from mosaic_cli.stabilize.path import motion_model
@@ -30,9 +30,11 @@ def shaky_pan(n: int, seed: int = 3) -> np.ndarray:
     return pairwise
 
 
-def schedule(clock: Clock, realtime: bool = True, horizon: Horizon = Horizon(step=4, lookahead=10)) -> LiveSchedule:
+def schedule(clock: Clock, realtime: bool = True, horizon: Horizon = Horizon(step=4, lookahead=10),
+             render_guess: float = 0.0) -> LiveSchedule:
     path = OnlineL1Path(motion_model("similarity"), SIZE, None, horizon)
-    return LiveSchedule(path, SIZE, FPS, latency=1.0, realtime=realtime, capacity=10_000, clock=clock)
+    return LiveSchedule(path, SIZE, FPS, latency=1.0, realtime=realtime, capacity=10_000, clock=clock,
+                        render_guess=render_guess)
 
 
 def arrive(s: LiveSchedule, clock: Clock, pairwise: np.ndarray, frames: range) -> None:
@@ -53,7 +55,7 @@ def solve(s: LiveSchedule, job) -> np.ndarray:
 def take_ready(s: LiveSchedule) -> list:
     """The frames the renderer may take now (settled, or due by the clock), without waiting."""
     taken = []
-    while s._frames and (s._frames[0].warp is not None or (s.realtime and s.clock() >= s.deadline(s._frames[0]))):
+    while s._frames and (s._frames[0].warp is not None or (s.realtime and s.clock() >= min(s._start_by()))):
         taken.append(s.next_frame())
     return taken
 
@@ -184,3 +186,78 @@ def test_a_frame_settled_past_the_plans_known_motion_returns_to_the_last_planned
             assert path.adopt(window, plan)
     views = path.commit(n + 6)
     np.testing.assert_allclose(views[n:], np.repeat(model.matrices(plan[n - 1 - window.first])[None], 6, axis=0), atol=1e-9)
+
+
+def test_a_burst_of_frames_is_begun_early_enough_for_its_last_frame():
+    """20 frames arrive at once (what a decoder held while it probed the stream) and none can be
+    planned (the solver is still busy).  The renderer takes a frame at a time: it must begin
+    early enough that the last of them is handed over within its budget, not only the first."""
+    clock, render = Clock(), 0.03
+    s = schedule(clock, render_guess=render)
+    for k in range(20):
+        s.add_frame(np.zeros((SIZE[1] * 3 // 2, SIZE[0]), np.uint8), 0.0)
+        s.add_motion(None if k == 0 else np.eye(3))
+    budget_ends = [f.start + s.latency - ENCODE_RESERVE for f in s._frames]
+    handed = []
+    while len(handed) < 20:  # the renderer on the test clock: 1 ms ticks, `render` a frame
+        for _ in take_ready(s):
+            clock.now += render
+            handed.append(clock.now)
+        clock.now += 0.001
+    tick = 0.001  # (the renderer is woken at the first tick at or after a frame is due)
+    assert all(h <= end + tick for h, end in zip(handed, budget_ends))
+    # Not begun needlessly early: the last frame leaves within a tick of its budget's end.
+    assert abs(budget_ends[-1] - handed[-1]) <= tick
+    # (Begun at the first frame's own deadline, the last would have left too late.)
+    assert budget_ends[0] - render + 20 * render > budget_ends[-1]
+
+
+def test_a_frames_budget_counts_from_its_arrival_up_to_twice_the_frame_rate():
+    clock = Clock()
+    s = schedule(clock)
+    frame = np.zeros((SIZE[1] * 3 // 2, SIZE[0]), np.uint8)
+    # Real time: each from its arrival, however late mosaic takes it.
+    starts = []
+    for k in range(5):
+        clock.now = k / FPS + 0.2  # taken 0.2 s after it arrived
+        starts.append(s.add_frame(frame, k / FPS))
+    np.testing.assert_allclose(starts, np.arange(5) / FPS)
+    # Faster than twice the rate (a file piped in, all there at once): at that pace.
+    piped = schedule(Clock())
+    starts = [piped.add_frame(frame, 0.0) for _ in range(5)]
+    np.testing.assert_allclose(starts, np.arange(5) / (BURST_PACE * FPS))
+    # A file read in one pass: when taken.
+    file = schedule(clock, realtime=False)
+    clock.now = 3.0
+    assert file.add_frame(frame, 1.0) == 3.0
+
+
+def test_a_due_frame_is_never_held_back_by_a_tracker_that_fell_behind():
+    """The decode stage waits for the tracker's queue only with frames whose budget has not
+    started (a file piped in): a live frame that is due goes on to the renderer's deadlines."""
+    import queue
+    import threading
+
+    from mosaic_cli.live.stabilize import TRACK_QUEUE, _put
+
+    clock = Clock()
+    s = schedule(clock)
+    inbox: queue.Queue = queue.Queue()
+    for _ in range(TRACK_QUEUE):
+        inbox.put("behind")
+    clock.now = 5.0
+    _put(s, inbox, "due", start=4.0)
+    assert inbox.qsize() == TRACK_QUEUE + 1
+
+    inbox = queue.Queue()
+    for _ in range(TRACK_QUEUE):
+        inbox.put("behind")
+    drained = threading.Event()
+
+    def tracker() -> None:
+        inbox.get()
+        drained.set()
+
+    threading.Timer(0.05, tracker).start()
+    _put(s, inbox, "early", start=60.0)  # its budget starts in a minute: it waits for the tracker
+    assert drained.is_set() and inbox.qsize() == TRACK_QUEUE

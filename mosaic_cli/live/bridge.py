@@ -48,6 +48,11 @@ class Bridged:
         return self.current.finish()
 
     @property
+    def loaded(self) -> bool:
+        """Whether the network has taken over from ORB."""
+        return self.current is not self.orb
+
+    @property
     def orb_pairs(self) -> int:
         """The pairs ORB estimated: those between the frames it took (it holds none back; the
         pair from its last frame to the network's first is the network's)."""

@@ -28,6 +28,7 @@ from mosaic_cli.estimators.base import PairEstimate
 
 _FRAME = struct.Struct("<II")  # header bytes, payload bytes
 CLOSE_SECONDS = 2.0  # how long a closing child may take before it is killed
+NICENESS = 10  # the child's, added to the live process's
 
 
 def _send(stream: IO[bytes], header: dict, payload: bytes = b"") -> None:
@@ -172,6 +173,10 @@ def _serve(build: dict[str, Any], requests: IO[bytes], replies: IO[bytes]) -> No
 
 
 def main() -> None:
+    # Below the live process's stages in the CPU's queue: on a machine with no core to spare,
+    # the network's load (seconds of torch's import) waits rather than the frames in flight,
+    # which ORB tracks meanwhile.
+    os.nice(NICENESS)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # The replies go out on the standard output as it was; anything printed goes to stderr.

@@ -21,6 +21,12 @@ LIVE_CHUNK = 4  # a learned estimator's frame pairs per batch: its answer comes 
 # Kept at the end of every frame's budget for x264 (zerolatency: it holds no frame back) and the
 # muxer, beyond the warping and hand-over that are measured.
 ENCODE_RESERVE = 0.05
+# A live stream may come faster than its frame rate for a while and still be live: the decoder
+# hands over what it held while it probed the stream (half a second), a network bursts.  Up to
+# this many times its rate, a frame's budget counts from its arrival; faster, the stream is a file
+# piped in, and its frames' budgets start at this pace (the decode stage then holds them back at
+# the tracker's pace: :func:`mosaic_cli.live.stabilize._decode`).
+BURST_PACE = 2.0
 RECENT = 60  # the adaptive figures are the 90th percentile of this many recent samples
 # A gated correction (tilt) that leaves more than this share of RECENT frames at their deadline,
 # counted after the first KEEP_UP_AFTER frames, is planned as a similarity from then on.
@@ -38,6 +44,10 @@ class Recent:
     def add(self, value: float) -> None:
         self._values.append(value)
 
+    @property
+    def count(self) -> int:
+        return len(self._values)
+
     def percentile(self, q: float = 90) -> float:
         return float(np.percentile(self._values, q)) if self._values else 0.0
 
@@ -46,7 +56,8 @@ class Recent:
 class _Frame:
     pixels: np.ndarray
     arrived: float  # off the decoder
-    taken: float  # by the stabiliser: its deadline counts from here
+    taken: float  # by the stabiliser
+    start: float  # its deadline counts from here (:meth:`LiveSchedule.add_frame`)
     warp: np.ndarray | None = None
     late: bool = False  # settled at its deadline
 
@@ -64,7 +75,8 @@ class LiveSchedule:
     ``clock`` is ``time.monotonic``, or a test's."""
 
     def __init__(self, path: OnlineL1Path, size: tuple[int, int], fps: float, latency: float, realtime: bool,
-                 capacity: int, clock: Callable[[], float] = time.monotonic, timeline: Timeline | None = None):
+                 capacity: int, clock: Callable[[], float] = time.monotonic, timeline: Timeline | None = None,
+                 render_guess: float = 0.0):
         self.path = path
         self.size = size
         self.fps = fps
@@ -77,6 +89,7 @@ class LiveSchedule:
         self._frames: deque[_Frame] = deque()  # the frames in flight, in order: the first is frame ``rendered``
         self._untracked: deque[float] = deque()  # when the frames with no motion yet were taken
         self.rendered = 0  # frames taken by the renderer
+        self._last_start: float | None = None  # the last frame's (add_frame)
         self.tracked_all = False
         self.planned_all = False
         self.failed: BaseException | None = None
@@ -90,16 +103,25 @@ class LiveSchedule:
         self.simplified_at: int | None = None  # the frame from which a gated model (tilt) was planned as a similarity
         self.track_lag = Recent()  # taken -> motion known
         self.render_seconds = Recent()  # taken by the renderer -> handed to the encoder
+        self.render_guess = render_guess  # what a render takes until one has been timed
 
     # -- decode (the main thread) ---------------------------------------------------------
-    def add_frame(self, pixels: np.ndarray, arrived: float) -> None:
+    def add_frame(self, pixels: np.ndarray, arrived: float) -> float:
+        """A frame off the decoder at ``arrived``; returns when its budget starts: when it
+        arrived, or where it came sooner than :data:`BURST_PACE` times the frame rate after the
+        one before (a file piped in), at that pace.  (A file read in one pass: when taken.)"""
         with self.cond:
             while len(self._frames) >= self.capacity:
                 self._wait()
             taken = self.clock()
-            self._frames.append(_Frame(pixels, arrived, taken))
+            start = taken
+            if self.realtime:
+                start = arrived if self._last_start is None else max(arrived, self._last_start + 1.0 / (BURST_PACE * self.fps))
+                self._last_start = start
+            self._frames.append(_Frame(pixels, arrived, taken, start))
             self._untracked.append(taken)
             self.cond.notify_all()
+            return start
 
     # -- track ----------------------------------------------------------------------------
     def add_motion(self, pairwise: np.ndarray | None = None, confidence: float = 1.0) -> None:
@@ -174,10 +196,23 @@ class LiveSchedule:
     # -- render ---------------------------------------------------------------------------
     def reserve(self) -> float:
         """Seconds kept at the end of a frame's budget: warping and hand-over, then encoding."""
-        return self.render_seconds.percentile() + ENCODE_RESERVE
+        return self.render_time() + ENCODE_RESERVE
+
+    def render_time(self) -> float:
+        """What warping a frame and handing it over takes: lately (90th percentile), or the
+        guess until a frame has been rendered."""
+        return self.render_seconds.percentile() if self.render_seconds.count else self.render_guess
 
     def deadline(self, frame: _Frame) -> float:
-        return frame.taken + self.latency - self.reserve()
+        return frame.start + self.latency - self.reserve()
+
+    def _start_by(self) -> list[float]:
+        """When the renderer must begin each frame in flight (0: the next to render) for it to
+        leave on time: it renders them one at a time, so frame k starts k renders before its own
+        deadline.  A burst of frames due together (a sender's first seconds, a stall upstream)
+        is then begun early enough that its last frame is on time, not only its first."""
+        render = self.render_time()
+        return [self.deadline(frame) - k * render for k, frame in enumerate(self._frames)]
 
     def next_frame(self) -> _Frame | None:
         """The next frame to render, with its warp; None when every frame has been.  A live
@@ -192,21 +227,18 @@ class LiveSchedule:
                 if not self._frames and self.planned_all:
                     return None
                 if self._frames and self.realtime:
-                    now = self.clock()
-                    due = self.deadline(self._frames[0])
-                    if now >= due:
-                        self._settle_late(now)
+                    now, start_by = self.clock(), self._start_by()
+                    if due := [k for k, start in enumerate(start_by) if start <= now]:
+                        self._settle_late(due[-1] + 1)  # (and those before it, whose turn comes first)
                         continue
-                    self._wait(due - now)
+                    self._wait(min(start_by) - now)
                 else:
                     self._wait()
 
-    def _settle_late(self, now: float) -> None:
-        """Settle the frames whose deadline has come from the plan (the next frame to render
-        is the first unsettled one).  A solve under way is joined to them when it ends."""
-        count = 1
-        while count < len(self._frames) and self.deadline(self._frames[count]) <= now:
-            count += 1
+    def _settle_late(self, count: int) -> None:
+        """Settle the next ``count`` frames, whose turn has come (:meth:`_start_by`), from the plan
+        (the next frame to render is the first unsettled one).  A solve under way is joined to
+        them when it ends."""
         for k in range(count):
             self._frames[k].late = True
         self.late += count

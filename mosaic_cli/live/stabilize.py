@@ -10,17 +10,24 @@ Stages, each in a thread of its own, with the shared state in a :class:`~.schedu
 4. render   warp each settled frame and hand it to the encoder: a file (atomic, at the end),
             standard output or a URL (MPEG-TS, :mod:`.output`).
 
-**Deadlines** (live sources).  A frame is due at the encoder ``latency`` seconds after it was
-taken off the decoder's queue (when it arrived, unless mosaic is behind the stream), less a
-reserve for warping and encoding (what they took lately).  A frame that is not settled by then,
-because a solve ran late or the tracker stalled, leaves with the best path known: the last
-plan's view of it, predicted frames included, or past that plan's end the last settled
-transform held.  Warping and encoding therefore never wait for the solver, and no frame is
-dropped.  The lookahead adapts: it shrinks (down to ``MIN_LOOKAHEAD``) while tracking and
-solving take longer, so that frames normally settle before their deadline, and grows back to
-the horizon's when they are quick again.  Frames are taken at the tracker's pace (a short
-queue): a stream faster than real time, such as a file piped in, is held back as before rather
-than sent on unsteadied.  A file read in one pass has no deadlines.
+**Deadlines** (live sources).  A frame is due at the encoder ``latency`` seconds after it
+arrived off the decoder, less a reserve for warping and encoding (what they took lately); the
+renderer takes one frame at a time, so a burst of frames due together (the decoder hands over
+what it held while probing the stream) is begun early enough for its last frame.  A frame that
+is not settled by then, because a solve ran late or the tracker fell behind, leaves with the
+best path known: the last plan's view of it, predicted frames included, or past that plan's end
+the last settled transform held.  Warping and encoding therefore never wait for the solver or
+the tracker, and no frame is dropped.  The lookahead adapts: it shrinks (down to
+``MIN_LOOKAHEAD``) while tracking and solving take longer, so that frames normally settle
+before their deadline, and grows back to the horizon's when they are quick again.  A stream
+faster than twice its frame rate, such as a file piped in, has its frames' budgets start at that
+pace and is taken at the tracker's pace (a short queue), rather than sent on unsteadied.  A file
+read in one pass has no deadlines.
+
+**The busiest seconds** are the first: the network loads in a process of its own (below the
+stages in the CPU's queue) while ORB tracks, and a `tilt` correction is planned as a similarity
+until the network has taken over.  The solver is imported as the stream opens, and the
+interpreter hands its lock over every half millisecond while the stages run.
 
 Latency is measured per frame from its arrival off the decoder to its hand-over to the encoder;
 :attr:`LiveStabilizeResult.timeline` has every stage's time stamps (``python -m benchmarks live``).
@@ -30,6 +37,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -61,12 +69,18 @@ from mosaic_cli.stabilize.online import Horizon, OnlineL1Path
 from mosaic_cli.stabilize.path import motion_model
 from mosaic_cli.stabilize.pipeline import PRESET, WORK_WIDTH, StabilizeOptions, write_warps
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
+from mosaic_cli.stabilize.smoothing import load_solver
 from mosaic_cli.video import VideoInfo, VideoWriter, probe
 from mosaic_cli.video.reader import scaled_size
 from mosaic_cli.video.writer import OUTPUT_SUFFIXES
 
 DEFAULT_LATENCY = 1.0
+# The interpreter's switch interval while the stages run (Python's default: 5 ms).  A solve holds
+# the interpreter for tens of milliseconds; at 5 ms every other stage waited that long each time
+# it came back from OpenCV or a pipe, and the tracker fell behind the stream for seconds.
+STAGE_SWITCH_INTERVAL = 0.0005
 TRACK_QUEUE = 2 * LIVE_CHUNK  # gray images waiting for the tracker: two of a learned estimator's batches
+HOLD_POLL = 0.01  # seconds between looks at the tracker's queue while the decode stage waits for it
 
 
 @dataclass
@@ -143,8 +157,11 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
         horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
         masked = frame_mask(source, options.mask, file_info, show_progress)
+    # The solver is imported once the decoder listens, while it waits for the sender and the
+    # stream's header: not before (the socket would open later), nor at the first window, in the
+    # middle of the first frames (see load_solver).
     with waited_for(loading, close=True), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress,
-                                                     live=live, info=file_info) as stream:
+                                                     live=live, info=file_info, on_started=_solver_beside) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
@@ -156,7 +173,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
             _say(notes, f"{source_name(source)}: the audio ({info.audio_codec}) is not carried by a --latency run", show_progress)
         frame_bytes = size[0] * size[1] * 3 // 2
         schedule = LiveSchedule(OnlineL1Path(model, size, crop, horizon), size, fps, latency, live,
-                                capacity=QUEUE_BYTES // frame_bytes)
+                                capacity=QUEUE_BYTES // frame_bytes, render_guess=_render_guess(size, border))
         writer = _encoder(out, size, fps, options, notes, show_progress)
         start = time.monotonic()
         latencies = _run_stages(stream, schedule, tracker, writer, size, scaled_size(size, width), border, show_progress)
@@ -217,13 +234,15 @@ def _run_stages(stream: LiveStream, schedule: LiveSchedule, tracker: Estimator |
     # Gray images the tracker has yet to take: a short queue, so that frames are taken (and
     # their deadlines start) at the tracker's pace.  A stream faster than real time (a file
     # piped in) is then held back, as by a slow consumer, rather than leaving unsteadied.
-    inbox: queue.Queue = queue.Queue(maxsize=TRACK_QUEUE)
+    inbox: queue.Queue = queue.Queue()  # (its length bounded by _put)
     latencies: list[float] = []
     stages = [threading.Thread(target=_stage, args=(schedule, job), daemon=True, name=f"stabilize-{name}")
               for name, job in (("track", lambda: _track(schedule, tracker, inbox)),
                                 ("plan", lambda: _plan(schedule)),
                                 ("render", lambda: _render(schedule, writer, size, border, latencies)))]
     timeline.watch_gc()
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(STAGE_SWITCH_INTERVAL)
     try:
         with stream_progress("stabilize (live)", disable=not show_progress) as advance:
             shown = 0
@@ -254,6 +273,7 @@ def _run_stages(stream: LiveStream, schedule: LiveSchedule, tracker: Estimator |
         raise
     finally:
         timeline.unwatch_gc()
+        sys.setswitchinterval(interval)
     writer.close()
     return latencies
 
@@ -274,7 +294,9 @@ def _closing_notes(notes: list[str], schedule: LiveSchedule, tracker: Estimator 
     that left at their deadline."""
     pairs = max(0, frames_in - 1)
     if isinstance(tracker, Bridged) and tracker.orb_pairs:
-        _say(notes, f"{tracker.orb_pairs} of {pairs} frame pairs were tracked by ORB while the network loaded", show_progress)
+        meanwhile = f" (--model {model} planned as a similarity meanwhile)" if schedule.path.model.gated else ""
+        _say(notes, f"{tracker.orb_pairs} of {pairs} frame pairs were tracked by ORB while the network loaded{meanwhile}",
+             show_progress)
     if schedule.simplified_at is not None:
         _say(notes, f"--model {model} could not keep up live from frame {schedule.simplified_at} on "
                     f"(frames left at their deadline): its similarity part alone was planned from there", show_progress)
@@ -306,15 +328,16 @@ def _stage(schedule: LiveSchedule, job: Callable[[], None]) -> None:
         schedule.fail(exc)
 
 
-def _put(schedule: LiveSchedule, inbox: queue.Queue, item: object) -> None:
-    while True:
+def _put(schedule: LiveSchedule, inbox: queue.Queue, item: object, start: float | None = None) -> None:
+    """Queue ``item`` for the tracker.  While :data:`TRACK_QUEUE` images wait already, the decode
+    stage waits with it (a stream faster than the tracker is taken at the tracker's pace), but a
+    live frame only until its budget starts (``start``): a frame that is due is never kept from
+    the renderer's deadlines by a tracker that fell behind (the network loading beside it)."""
+    while inbox.qsize() >= TRACK_QUEUE and (start is None or (now := schedule.clock()) < start):
         if schedule.failed is not None:
             raise schedule.failed
-        try:
-            inbox.put(item, timeout=0.1)
-            return
-        except queue.Full:
-            continue
+        time.sleep(HOLD_POLL if start is None else min(HOLD_POLL, start - now))
+    inbox.put(item)
 
 
 def _decode(stream: LiveStream, schedule: LiveSchedule, inbox: queue.Queue, size: tuple[int, int], gray_size: tuple[int, int],
@@ -328,14 +351,19 @@ def _decode(stream: LiveStream, schedule: LiveSchedule, inbox: queue.Queue, size
         cpu = time.thread_time()
         gray = gray_of_yuv(arrival.frame, size, gray_size)
         timeline.add_cpu("gray", time.thread_time() - cpu)
-        schedule.add_frame(arrival.frame, arrival.time)
-        _put(schedule, inbox, gray)
+        start = schedule.add_frame(arrival.frame, arrival.time)
+        _put(schedule, inbox, gray, start if schedule.realtime else None)
         show()
-    _put(schedule, inbox, _END)
+    _put(schedule, inbox, _END, -float("inf"))
 
 
 def _track(schedule: LiveSchedule, estimator: Estimator | Bridged, inbox: queue.Queue) -> None:
     first = True
+    # While the network loads beside the stream, the machine is at its busiest: a gated model
+    # (tilt) is planned as a similarity meanwhile, a third of the solver's work.
+    bridging = isinstance(estimator, Bridged) and schedule.path.model.gated
+    if bridging:
+        schedule.path.similar_only = True
     while True:
         try:
             gray = inbox.get(timeout=0.1)
@@ -351,6 +379,9 @@ def _track(schedule: LiveSchedule, estimator: Estimator | Bridged, inbox: queue.
         cpu = time.thread_time()
         estimates = estimator.feed(gray)
         schedule.timeline.add_cpu("estimator", time.thread_time() - cpu)
+        if bridging and estimator.loaded:
+            bridging = False
+            schedule.path.similar_only = schedule.simplified_at is not None
         for estimate in estimates:
             schedule.add_motion(estimate.H, estimate.confidence)
     for estimate in estimator.finish():
@@ -382,6 +413,21 @@ def _render(schedule: LiveSchedule, writer: StreamWriter | VideoWriter, size: tu
         timeline.stamp("handed", handed)
         schedule.rendered_one(handed - clock)
         latencies.append(handed - frame.arrived)
+
+
+def _solver_beside() -> None:
+    threading.Thread(target=load_solver, name="mosaic-solver", daemon=True).start()
+
+
+def _render_guess(size: tuple[int, int], border: str) -> float:
+    """What rendering a frame will take, until the first is timed: twice a blank frame's warp
+    (the hand-over to the encoder copies it again), so that a first burst of frames is begun
+    early enough."""
+    blank = np.zeros((size[1] * 3 // 2, size[0]), np.uint8)
+    warp_yuv(blank, np.eye(3), size, border)  # (the first call sets OpenCV up)
+    clock = time.perf_counter()
+    warp_yuv(blank, np.eye(3), size, border)
+    return 2 * (time.perf_counter() - clock)
 
 
 def _estimator(options: StabilizeOptions) -> Estimator:

@@ -383,3 +383,10 @@ def make_smoother(name: str, radius: int = 30) -> L1Smoother | GaussianSmoother:
     if name == "gaussian":
         return GaussianSmoother(radius=radius)  # --radius: checked by StabilizeOptions
     raise BadInput(f"--smoothing must be one of {', '.join(SMOOTHERS)}, got {name!r}")
+
+
+def load_solver() -> None:
+    """Import the LP solver now rather than at the first solve: scipy.optimize's import is half
+    a second of Python on a 2-core machine, holding the interpreter lock, and a live run that met
+    it at its first window stalled every stage in its busiest seconds."""
+    import scipy.optimize  # noqa: F401
