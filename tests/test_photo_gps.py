@@ -40,6 +40,43 @@ def test_a_drones_exif_and_xmp_are_read_back_as_written(tmp_path):
     assert abs(tags.hfov - 70.0) < 1.0
 
 
+def turned_copy(source: Path, target: Path, orientation: int) -> None:
+    """``source`` as a camera held turned takes it: its pixels stored turned, with the EXIF
+    Orientation that turns them back to be shown, and the gimbal's yaw that of the sensor's top
+    edge (the shown top's heading plus the turn, clockwise); its other metadata as it was."""
+    import re
+
+    storing = {3: Image.Transpose.ROTATE_180, 6: Image.Transpose.ROTATE_90, 8: Image.Transpose.ROTATE_270}[orientation]
+    turn = {3: 180.0, 6: 90.0, 8: 270.0}[orientation]
+    with Image.open(source) as image:
+        exif = image.getexif()
+        exif[0x0112] = orientation
+        xmp = re.sub(rb'(YawDegree=")([-+0-9.]+)"', lambda m: m[1] + b"%+.2f\"" % ((float(m[2]) + turn + 180.0) % 360.0 - 180.0),
+                     image.info["xmp"])
+        image.transpose(storing).save(target, "JPEG", quality=95, exif=exif, xmp=xmp)
+
+
+def test_a_photo_stored_turned_says_what_the_photo_it_shows_says(tmp_path):
+    """A photo stored a quarter or half turn with its EXIF Orientation is the photo it shows: the
+    same size, field of view across it and heading of its top edge (OpenCV reads it turned back)."""
+    import cv2
+
+    rgb = np.random.default_rng(0).integers(0, 255, (300, 400, 3), np.uint8)
+    plain = tmp_path / "plain.jpg"
+    write_photo(plain, rgb, 46.5, 6.6, 500.0, 40.0, 30.0, 70.0, "2026:05:01 10:11:12")
+    want = read_photo_tags(plain)
+    for orientation in (3, 6, 8):
+        turned = tmp_path / f"turned_{orientation}.jpg"
+        turned_copy(plain, turned, orientation)
+        assert cv2.imread(str(turned)).shape == (300, 400, 3)  # shown as the plain one
+        tags = read_photo_tags(turned)
+        assert tags.orientation == orientation and tags.shown_size == (400, 300)
+        assert tags.hfov == pytest.approx(want.hfov, abs=1e-9)
+        off = (tags.shown_yaw - want.shown_yaw) % 360.0
+        assert min(off, 360.0 - off) < 1e-9
+        assert f"400x300 (EXIF orientation {orientation})" in tags.describe()
+
+
 def test_xmp_written_as_elements_and_partial_or_damaged_metadata_are_told_apart(tmp_path):
     rgb = np.full((200, 300, 3), 120, np.uint8)
     elements = tmp_path / "elements.jpg"
@@ -299,3 +336,28 @@ def test_photos_of_other_cameras_are_fitted_into_the_frame_placed_and_drawn_with
     drawn = rgba[3] > 0
     # the survey's ground is never black; the fitted photos' empty sides would be, where drawn
     assert np.count_nonzero(drawn & (rgba[:3].max(axis=0) < 8)) < 1e-4 * np.count_nonzero(drawn)
+
+
+@pytest.mark.slow
+def test_a_survey_whose_first_photo_is_stored_turned_lands_as_the_plain_one(tmp_path, capsys):
+    """The first photo of a geotagged survey stored a quarter turn (EXIF Orientation 6): its
+    pixels are read as shown, so the folder lands on the map as the plain folder does, against
+    the survey's truth.  (Registration places it whatever its metadata says; that its field of
+    view and heading are read as shown is the test above's.)"""
+    import shutil
+
+    survey = write_survey(tmp_path / "plain", rows=2, per_row=4, size=(640, 480), gsd=0.125, along=22.0, across=34.0, seed=5)
+    turned = tmp_path / "turned"
+    shutil.copytree(survey.folder, turned)
+    turned_copy(survey.folder / survey.names[0], turned / survey.names[0], 6)
+    scores = {}
+    for name, folder in (("plain", survey.folder), ("turned", turned)):
+        js = tmp_path / f"{name}.json"
+        code, err = run_cli(capsys, "stitch", str(folder), "-o", str(tmp_path / f"{name}.tif"), "--transforms", str(js), "-q")
+        assert code == 0 and err == "", err
+        placed, _, scale, north, pairs = score_survey(survey, json.loads(js.read_text()))
+        assert max(pairs) < 2.0, name
+        scores[name] = np.median(placed), np.median(scale), np.median(north)
+    (placed_plain, scale_plain, north_plain), (placed_turned, scale_turned, north_turned) = scores["plain"], scores["turned"]
+    assert placed_turned <= 1.1 * placed_plain + 0.05, scores
+    assert abs(scale_turned - scale_plain) < 0.002 and abs(north_turned - north_plain) < 0.1, scores

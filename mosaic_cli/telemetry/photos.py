@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.telemetry.flight_log import FlightLog
-from mosaic_cli.video.info import PhotoFit
+from mosaic_cli.video.info import EXIF_ORIENTATION, QUARTER_TURNS, TURN_DEGREES, PhotoFit
 
 DJI = "http://www.dji.com/drone-dji/1.0/"
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # what a 35 mm-equivalent focal length is relative to
@@ -58,6 +58,7 @@ class PhotoTags:
     focal_35mm: float = math.nan
     sensor_width_mm: float = math.nan  # from the focal plane resolution, when given
     problems: list[str] = field(default_factory=list)  # damaged or partial metadata, said once per photo
+    orientation: int = 1  # EXIF Orientation: how the stored pixels are turned to be shown (1: as stored)
 
     @property
     def has_fix(self) -> bool:
@@ -69,21 +70,37 @@ class PhotoTags:
         return name or None
 
     @property
+    def shown_size(self) -> tuple[int, int]:
+        """(w, h) of the photo as shown, its EXIF orientation applied (as OpenCV reads it)."""
+        return (self.height_px, self.width) if self.orientation in QUARTER_TURNS else (self.width, self.height_px)
+
+    @property
+    def shown_yaw(self) -> float:
+        """The heading of the shown photo's top edge, degrees: the camera's ``yaw`` turned as the
+        photo is to be shown; NaN for a mirrored one (no turn of the ground gives its footprint)."""
+        # Turned clockwise to be shown, its top edge is what was its left: the heading less the turn.
+        return self.yaw - TURN_DEGREES[self.orientation] if self.orientation in TURN_DEGREES else math.nan
+
+    @property
     def hfov(self) -> float:
-        """The horizontal field of view, degrees, from the 35 mm-equivalent focal length (defined
-        on the diagonal) or from the focal length and the sensor's width; NaN when neither is given."""
+        """The field of view across the photo as shown, degrees, from the 35 mm-equivalent focal
+        length (defined on the diagonal) or from the focal length and the sensor's width; NaN when
+        neither is given."""
         if self.width <= 0 or self.height_px <= 0:
             return math.nan
+        shown_width = self.shown_size[0]
         if self.focal_35mm > 0:
-            across = FULL_FRAME_DIAGONAL_MM * self.width / math.hypot(self.width, self.height_px)
+            across = FULL_FRAME_DIAGONAL_MM * shown_width / math.hypot(self.width, self.height_px)
             return math.degrees(2.0 * math.atan(across / (2.0 * self.focal_35mm)))
         if self.focal_mm > 0 and self.sensor_width_mm > 0:
-            return math.degrees(2.0 * math.atan(self.sensor_width_mm / (2.0 * self.focal_mm)))
+            across = self.sensor_width_mm * shown_width / self.width  # (square pixels)
+            return math.degrees(2.0 * math.atan(across / (2.0 * self.focal_mm)))
         return math.nan
 
     def describe(self) -> str:
         """One line for ``stitch --dry-run``."""
-        parts = [self.path.name, f"{self.width}x{self.height_px}"]
+        turned = f" (EXIF orientation {self.orientation})" if self.orientation != 1 else ""
+        parts = [self.path.name, f"{self.shown_size[0]}x{self.shown_size[1]}{turned}"]
         parts.append(f"{self.lat:.7f}, {self.lon:.7f}" if self.has_fix else "no GPS")
         if math.isfinite(self.alt):
             parts.append(f"alt {self.alt:.1f} m")
@@ -154,7 +171,7 @@ def photo_log(tags: list[PhotoTags], fps: float, source: str) -> FlightLog:
     hfov = np.array([_hfov_across_frame(t, tags[0]) for t in tags], dtype=np.float64) if n else np.zeros(0)
     fixed = sum(t.has_fix for t in tags)
     track = FlightLog(f"{source} (EXIF GPS of {fixed} of {n} photos)", np.arange(n, dtype=np.float64) / fps,
-                      column("lat"), column("lon"), column("alt"), column("height"), column("yaw"), column("pitch"),
+                      column("lat"), column("lon"), column("alt"), column("height"), column("shown_yaw"), column("pitch"),
                       column("roll"), hfov, photos=list(tags))
     return track
 
@@ -165,8 +182,9 @@ def _hfov_across_frame(tags: PhotoTags, first: PhotoTags) -> float:
     frame, and may not fill its width): degrees, NaN where unknown."""
     if first.width <= 0 or tags.width <= 0 or not math.isfinite(tags.hfov):
         return tags.hfov
-    spans = PhotoFit.into((first.width, first.height_px), (tags.width, tags.height_px)).box[2]  # frame px
-    return math.degrees(2.0 * math.atan(math.tan(math.radians(tags.hfov) / 2.0) * first.width / spans))
+    frame = first.shown_size
+    spans = PhotoFit.into(frame, tags.shown_size).box[2]  # frame px
+    return math.degrees(2.0 * math.atan(math.tan(math.radians(tags.hfov) / 2.0) * frame[0] / spans))
 
 
 def photo_log_rate(track: FlightLog) -> float:
@@ -191,6 +209,8 @@ def _read_exif(image, tags: PhotoTags) -> None:
     from PIL import ExifTags
 
     exif = image.getexif()
+    orientation = exif.get(EXIF_ORIENTATION, 1)
+    tags.orientation = orientation if orientation in range(1, 9) else 1
     tags.make = _text(exif.get(_MAKE))
     tags.model = _text(exif.get(_MODEL))
     detail = exif.get_ifd(ExifTags.IFD.Exif)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.info import PhotoFit, VideoInfo, scaled_size
+from mosaic_cli.video.info import EXIF_ORIENTATION, QUARTER_TURNS, PhotoFit, VideoInfo, scaled_size
 from mosaic_cli.video.stream import VideoStream
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -47,7 +47,7 @@ def image_size(path: Path) -> tuple[int, int] | None:
     try:
         with Image.open(path) as image:
             w, h = image.size
-            turned = image.getexif().get(0x0112, 1) in (5, 6, 7, 8)  # Orientation: a quarter turn
+            turned = image.getexif().get(EXIF_ORIENTATION, 1) in QUARTER_TURNS
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
     return (h, w) if turned else (w, h)

@@ -20,6 +20,14 @@ class StreamMeta:
 SAME_SHAPE = 0.01  # images whose aspect ratios differ by less than this are of one shape
 
 
+# EXIF Orientation (tag 274): how a photo's stored pixels are turned to be shown, as OpenCV reads
+# them.  Those that swap its width and height; and the plain turns, in degrees clockwise (the
+# others, 2, 4, 5 and 7, also mirror it).
+EXIF_ORIENTATION = 0x0112
+QUARTER_TURNS = (5, 6, 7, 8)
+TURN_DEGREES = {1: 0.0, 3: 180.0, 6: 90.0, 8: 270.0}
+
+
 @dataclass(frozen=True)
 class PhotoFit:
     """A photo of another size than its folder's first (another camera), read into the first's
