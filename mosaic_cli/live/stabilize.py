@@ -231,10 +231,10 @@ def _run_stages(stream: LiveStream, schedule: LiveSchedule, tracker: Estimator |
     and render each on a thread of its own; the encoder closed at the end (aborted on a failure,
     whose error is raised here).  Each frame's latency, in order."""
     timeline = schedule.timeline
-    # Gray images the tracker has yet to take: a short queue, so that frames are taken (and
-    # their deadlines start) at the tracker's pace.  A stream faster than real time (a file
-    # piped in) is then held back, as by a slow consumer, rather than leaving unsteadied.
-    inbox: queue.Queue = queue.Queue()  # (its length bounded by _put)
+    # Gray images the tracker has yet to take: a short queue while the frames come early (a file
+    # piped in, held back as by a slow consumer rather than leaving unsteadied), any length for
+    # frames that are due (_put).
+    inbox: queue.Queue = queue.Queue()
     latencies: list[float] = []
     stages = [threading.Thread(target=_stage, args=(schedule, job), daemon=True, name=f"stabilize-{name}")
               for name, job in (("track", lambda: _track(schedule, tracker, inbox)),
@@ -354,7 +354,7 @@ def _decode(stream: LiveStream, schedule: LiveSchedule, inbox: queue.Queue, size
         start = schedule.add_frame(arrival.frame, arrival.time)
         _put(schedule, inbox, gray, start if schedule.realtime else None)
         show()
-    _put(schedule, inbox, _END, -float("inf"))
+    _put(schedule, inbox, _END, -float("inf"))  # (the end is due at once)
 
 
 def _track(schedule: LiveSchedule, estimator: Estimator | Bridged, inbox: queue.Queue) -> None:
