@@ -495,15 +495,15 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
     import mosaic_cli.live.stabilize as live_stabilize
     from mosaic_cli.stabilize import StabilizeOptions
 
-    network = live_stabilize.NetworkProcess
+    wait_loaded = live_stabilize.NetworkProcess.wait_loaded
     connected = threading.Event()
 
-    def held_back(build):
+    def held_back(self):
         assert connected.wait(45), "the load waited for a sender that never connected"
         time.sleep(1.0)  # a second of frames comes before the network is there
-        return network(build)
+        return wait_loaded(self)
 
-    monkeypatch.setattr(live_stabilize, "NetworkProcess", held_back)
+    monkeypatch.setattr(live_stabilize.NetworkProcess, "wait_loaded", held_back)
     video, _ = flight
     port = free_port(socket.SOCK_STREAM)
 
@@ -525,6 +525,36 @@ def test_a_live_stabilize_listens_while_its_network_is_still_loading(tmp_path, f
     # 2 s clip, maybe all), the network any after; every pair counted once.
     assert result.pairs_by["orb"] >= 1 and set(result.pairs_by) <= {"orb", "lstm-reg-t"}, result.pairs_by
     assert sum(result.pairs_by.values()) == FRAMES - 1, result.pairs_by
+
+
+def test_a_stream_that_ends_while_its_network_still_loads_does_not_wait_for_it(tmp_path, flight, monkeypatch):
+    """A load that would take a minute more (held back here until its process is ended): the
+    run ends with the stream, every frame out by ORB, and the network's process is ended."""
+    import mosaic_cli.live.stabilize as live_stabilize
+    from mosaic_cli.stabilize import StabilizeOptions
+
+    wait_loaded = live_stabilize.NetworkProcess.wait_loaded
+    children = []
+
+    def slow(self):
+        children.append(self._child)
+        limit = time.monotonic() + 60
+        while self._child.poll() is None and time.monotonic() < limit:
+            time.sleep(0.05)
+        return wait_loaded(self)
+
+    monkeypatch.setattr(live_stabilize.NetworkProcess, "wait_loaded", slow)
+    video, _ = flight
+    port = free_port(socket.SOCK_STREAM)
+    thread = threading.Thread(target=lambda: (wait_until_bound(port, udp=False), send(video, f"tcp://127.0.0.1:{port}")),
+                              daemon=True)
+    thread.start()
+    started = time.monotonic()
+    result = live_stabilize.stabilize_live(f"tcp://127.0.0.1:{port}?listen=1", str(tmp_path / "steady.mp4"),
+                                           StabilizeOptions(latency=1.0), show_progress=False)
+    assert time.monotonic() - started < 30, "the run waited for the network's load"
+    assert result.frames_out == FRAMES and result.pairs_by == {"orb": FRAMES - 1}, result.pairs_by
+    assert children and children[0].poll() is not None
 
 
 def test_the_bridge_hands_every_pair_over_once_when_the_network_arrives(tmp_path):

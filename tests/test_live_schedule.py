@@ -261,3 +261,14 @@ def test_a_due_frame_is_never_held_back_by_a_tracker_that_fell_behind():
     threading.Timer(0.05, tracker).start()
     _put(s, inbox, "early", start=60.0)  # its budget starts in a minute: it waits for the tracker
     assert drained.is_set() and inbox.qsize() == TRACK_QUEUE
+
+    # A tracker as many frames behind as may be in flight holds even a due frame (bounded memory).
+    small = LiveSchedule(OnlineL1Path(motion_model("similarity"), SIZE, None, Horizon(step=4, lookahead=10)), SIZE, FPS,
+                         latency=1.0, realtime=True, capacity=0, clock=clock)
+    inbox = queue.Queue()
+    for _ in range(small.capacity):
+        inbox.put("behind")
+    drained.clear()
+    threading.Timer(0.05, tracker).start()
+    _put(small, inbox, "due", start=4.0)
+    assert drained.is_set() and inbox.qsize() == small.capacity

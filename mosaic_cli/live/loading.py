@@ -71,18 +71,15 @@ def built_beside(build: Callable[[], T], after_start: bool = False, in_this_proc
 
 
 @contextlib.contextmanager
-def waited_for(future: concurrent.futures.Future | None, close: bool = False) -> Iterator[None]:
+def waited_for(future: concurrent.futures.Future | None) -> Iterator[None]:
     """On the way out, wait for ``future``'s work to end, however the block ends: a network's
-    loading is never left half done (torch's import) as mosaic exits.  ``close``: then close
-    what it built (a network's process), if it was built."""
+    loading in this process is never left half done (torch's import) as mosaic exits."""
     try:
         yield
     finally:
         if future is not None:
             begin(future)
             concurrent.futures.wait([future])
-            if close and future.exception() is None:
-                future.result().close()
 
 
 def begin(future: concurrent.futures.Future | None) -> None:

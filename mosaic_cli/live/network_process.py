@@ -70,16 +70,24 @@ class NetworkProcess:
     it waits until the network has loaded there: call it on a thread of its own
     (:func:`~.loading.built_beside`).  Its error, if it cannot load, is raised here, in one line."""
 
-    def __init__(self, build: dict[str, Any]):
+    def __init__(self, build: dict[str, Any], wait: bool = True):
         # The child ignores Ctrl-C and SIGTERM (sent to its process group by a terminal or by
         # `timeout`): the live command decides what a signal means (the first ends the stream
         # as its end would) and closes the child's input, which ends it.
         self._child = subprocess.Popen([sys.executable, "-m", "mosaic_cli.live.network_process", json.dumps(build)],
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self.loaded = False
+        if wait:
+            self.wait_loaded()
+
+    def wait_loaded(self) -> NetworkProcess:
+        """Wait until the network has loaded in the child (``wait=False``: on a thread of its own)."""
         ready = self._reply()[0]
         self.name: str = ready["name"]
         self.input_width: int = ready["input_width"]
         self.config = SimpleNamespace(chunk=ready["chunk"])
+        self.loaded = True
+        return self
 
     def set_mask(self, use: np.ndarray | None) -> None:
         self._ask(*_image_message("mask", use))
@@ -94,7 +102,11 @@ class NetworkProcess:
         return _estimates(self._ask({"op": "finish"})[0]["estimates"])
 
     def close(self) -> None:
-        """End the child: its input closed, then killed if it has not ended within :data:`CLOSE_SECONDS`."""
+        """End the child: its input closed, then killed if it has not ended within
+        :data:`CLOSE_SECONDS`; killed at once while it still loads (a stream that ended first
+        does not wait for torch's import)."""
+        if not self.loaded:
+            self._child.kill()
         try:
             assert self._child.stdin is not None
             self._child.stdin.close()

@@ -36,11 +36,12 @@ Latency is measured per frame from its arrival off the decoder to its hand-over 
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import queue
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,7 +50,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput, warn
 from mosaic_cli.estimators import Estimator, make_estimator, plan_estimator
 from mosaic_cli.live.bridge import Bridged
-from mosaic_cli.live.loading import built_beside, trained_width, waited_for
+from mosaic_cli.live.loading import built_beside, trained_width
 from mosaic_cli.live.network_process import NetworkProcess
 from mosaic_cli.live.output import StreamWriter, is_stream_output
 from mosaic_cli.live.schedule import LIVE_CHUNK, Abandoned, LiveSchedule
@@ -150,7 +151,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     # the opening, so that the socket listens (and a sender may connect) at once and the
     # stream's threads never wait on torch's import; ORB tracks the frames that come meanwhile.
     estimator = _estimator(options) if _learned(options) and not live else None
-    loading = _network_beside(options) if _learned(options) and live else None
+    network, loading = _network_beside(options) if _learned(options) and live else (None, None)
     masked = None
     horizon: Horizon | None = None  # a file's rate is known now (a classical estimator, made later, answers at once)
     if file_info is not None:
@@ -160,7 +161,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     # The solver is imported once the decoder listens, while it waits for the sender and the
     # stream's header: not before (the socket would open later), nor at the first window, in the
     # middle of the first frames (see load_solver).
-    with waited_for(loading, close=True), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress,
+    with _ended(network, loading), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress,
                                                      live=live, info=file_info, on_started=_solver_beside) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
@@ -331,12 +332,17 @@ def _stage(schedule: LiveSchedule, job: Callable[[], None]) -> None:
 def _put(schedule: LiveSchedule, inbox: queue.Queue, item: object, start: float | None = None) -> None:
     """Queue ``item`` for the tracker.  While :data:`TRACK_QUEUE` images wait already, the decode
     stage waits with it (a stream faster than the tracker is taken at the tracker's pace), but a
-    live frame only until its budget starts (``start``): a frame that is due is never kept from
-    the renderer's deadlines by a tracker that fell behind (the network loading beside it)."""
-    while inbox.qsize() >= TRACK_QUEUE and (start is None or (now := schedule.clock()) < start):
+    live frame only until its budget starts (``start``): a frame that is due is not kept from the
+    renderer's deadlines by a tracker that fell behind (the network loading beside it), unless
+    the tracker is as many frames behind as may be in flight (memory stays bounded)."""
+    while True:
+        now = schedule.clock()
+        due = start is not None and now >= start
+        if inbox.qsize() < (schedule.capacity if due else TRACK_QUEUE):
+            break
         if schedule.failed is not None:
             raise schedule.failed
-        time.sleep(HOLD_POLL if start is None else min(HOLD_POLL, start - now))
+        time.sleep(HOLD_POLL if start is None or due else min(HOLD_POLL, start - now))
     inbox.put(item)
 
 
@@ -435,12 +441,25 @@ def _estimator(options: StabilizeOptions) -> Estimator:
     return make_estimator(**_build(options))
 
 
-def _network_beside(options: StabilizeOptions) -> concurrent.futures.Future:
-    """The network of a live run, loading in a child process (checked here first: a mistake is
-    said before the stream opens)."""
+def _network_beside(options: StabilizeOptions) -> tuple[NetworkProcess, concurrent.futures.Future]:
+    """The network of a live run, started in a child process (checked here first: a mistake is
+    said before the stream opens), and the wait until it has loaded."""
     build = _build(options)
     plan_estimator(**build)
-    return built_beside(lambda: NetworkProcess(build), in_this_process=False)
+    network = NetworkProcess(build, wait=False)
+    return network, built_beside(network.wait_loaded, in_this_process=False)
+
+
+@contextlib.contextmanager
+def _ended(network: NetworkProcess | None, loading: concurrent.futures.Future | None) -> Iterator[None]:
+    """On the way out, the network's process ended (killed while it still loads: the end of a
+    short stream does not wait for torch's import in another process) and its wait joined."""
+    try:
+        yield
+    finally:
+        if network is not None and loading is not None:
+            network.close()
+            concurrent.futures.wait([loading])
 
 
 def _build(options: StabilizeOptions) -> dict:
