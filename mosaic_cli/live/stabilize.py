@@ -162,7 +162,7 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     # stream's header: not before (the socket would open later), nor at the first window, in the
     # middle of the first frames (see load_solver).
     with _ended(network, loading), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress,
-                                                     live=live, info=file_info, on_started=_solver_beside) as stream:
+                                              live=live, info=file_info, on_started=_solver_beside) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
