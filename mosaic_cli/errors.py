@@ -34,9 +34,15 @@ class ProcessingError(MosaicError):
 
 
 class Interrupted(MosaicError):
-    """The user stopped the run (Ctrl-C, SIGTERM) at a point where it could say what was kept."""
+    """The user stopped the run (Ctrl-C, SIGTERM) at a point where it could say what was kept;
+    its exit status the shell's for that signal (130, 143)."""
 
     exit_code = EXIT_INTERRUPTED
+
+    def __init__(self, message: str, signum: int | None = None):
+        super().__init__(message)
+        if signum is not None:
+            self.exit_code = 128 + signum
 
 
 def install_hint(extra: str) -> str:

@@ -232,6 +232,29 @@ def test_sigterm_to_the_process_group_ends_a_live_stabilize_with_its_network_pro
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.parametrize("command", ["track", "stitch", "stabilize"])
+def test_a_signal_before_any_video_is_one_line_its_status_and_leaves_nothing(tmp_path, command):
+    """SIGTERM to the process group while a live command listens and no sender has come: one
+    line, the shell's status for the signal (143), no output, and no process of the run left
+    (its decoder listening, the network's process)."""
+    port = free_port(socket.SOCK_STREAM)
+    out = tmp_path / {"track": "t.json", "stitch": "pano.png", "stabilize": "steady.mp4"}[command]
+    proc = mosaic(command, f"tcp://127.0.0.1:{port}?listen=1", *([out] if command == "stabilize" else ["-o", out]),
+                  start_new_session=True)
+    wait_until_bound(port, udp=False)
+    os.killpg(proc.pid, signal.SIGTERM)
+    rc, _, err = finish(proc)
+    assert rc == 128 + signal.SIGTERM, err
+    assert err.strip() == f"mosaic: error: tcp://127.0.0.1:{port}?listen=1: stopped (SIGTERM) before any video arrived", err
+    assert list(tmp_path.iterdir()) == []
+    deadline = time.monotonic() + 5.0
+    while processes_in_session(proc.pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert processes_in_session(proc.pid) == [], "a process of the run outlived it"
+
+
+@pytest.mark.slow
 def test_no_sender_is_one_clear_error(tmp_path):
     port = free_port(socket.SOCK_DGRAM)
     rc, _, err = finish(mosaic("track", f"udp://127.0.0.1:{port}", "-o", tmp_path / "t.json", "-e", "orb", "--timeout", "0.5"))

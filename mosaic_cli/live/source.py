@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from mosaic_cli.errors import BadInput
+from mosaic_cli.errors import BadInput, Interrupted
 from mosaic_cli.inputs import DEFAULT_TIMEOUT
 from mosaic_cli.progress import note
 from mosaic_cli.video.lens_filter import ImageFilter, filter_frame, lens_of
@@ -80,6 +80,7 @@ class StopRequest:
 
     def __init__(self) -> None:
         self.reason: str | None = None
+        self.signum: int | None = None
         self._previous: dict = {}
 
     def install(self) -> None:
@@ -91,6 +92,7 @@ class StopRequest:
     def _on_signal(self, signum, frame) -> None:
         if self.reason is None:
             self.reason = self.NAMES.get(signum, f"signal {signum}")
+            self.signum = signum
         self.restore()
 
     def restore(self) -> None:
@@ -248,7 +250,8 @@ class LiveStream:
             self.stop.install()
         while not self._header.wait(0.05):
             if self.stop.requested:
-                raise BadInput(f"{source_name(self.source)}: stopped ({self.stop.reason}) before any video arrived")
+                raise Interrupted(f"{source_name(self.source)}: stopped ({self.stop.reason}) before any video arrived",
+                                  self.stop.signum)
             if time.monotonic() > deadline:
                 raise BadInput(f"{source_name(self.source)}: no video arrived within {self.timeout:g} s (--timeout)")
         if self._out_size is None:
