@@ -56,7 +56,6 @@ class Recent:
 class _Frame:
     pixels: np.ndarray
     arrived: float  # off the decoder
-    taken: float  # by the stabiliser
     start: float  # its deadline counts from here (:meth:`LiveSchedule.add_frame`)
     warp: np.ndarray | None = None
     late: bool = False  # settled at its deadline
@@ -118,7 +117,7 @@ class LiveSchedule:
             if self.realtime:
                 start = arrived if self._last_start is None else max(arrived, self._last_start + 1.0 / (BURST_PACE * self.fps))
                 self._last_start = start
-            self._frames.append(_Frame(pixels, arrived, taken, start))
+            self._frames.append(_Frame(pixels, arrived, start))
             self._untracked.append(taken)
             self.cond.notify_all()
             return start
