@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.telemetry.flight_log import FlightLog
-from mosaic_cli.video.info import EXIF_ORIENTATION, QUARTER_TURNS, TURN_DEGREES, PhotoFit
+from mosaic_cli.video.info import EXIF_ORIENTATION, TURN_DEGREES, PhotoFit, shown_size
 
 DJI = "http://www.dji.com/drone-dji/1.0/"
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)  # what a 35 mm-equivalent focal length is relative to
@@ -72,7 +72,7 @@ class PhotoTags:
     @property
     def shown_size(self) -> tuple[int, int]:
         """(w, h) of the photo as shown, its EXIF orientation applied (as OpenCV reads it)."""
-        return (self.height_px, self.width) if self.orientation in QUARTER_TURNS else (self.width, self.height_px)
+        return shown_size((self.width, self.height_px), self.orientation)
 
     @property
     def shown_yaw(self) -> float:

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
-from mosaic_cli.video.info import EXIF_ORIENTATION, QUARTER_TURNS, PhotoFit, VideoInfo, scaled_size
+from mosaic_cli.video.info import EXIF_ORIENTATION, PhotoFit, VideoInfo, scaled_size, shown_size
 from mosaic_cli.video.stream import VideoStream
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -46,11 +46,9 @@ def image_size(path: Path) -> tuple[int, int] | None:
 
     try:
         with Image.open(path) as image:
-            w, h = image.size
-            turned = image.getexif().get(EXIF_ORIENTATION, 1) in QUARTER_TURNS
+            return shown_size(image.size, image.getexif().get(EXIF_ORIENTATION, 1))
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
-    return (h, w) if turned else (w, h)
 
 
 def photo_fits(files: list[Path], frame: tuple[int, int]) -> tuple[PhotoFit, ...]:

@@ -28,6 +28,11 @@ QUARTER_TURNS = (5, 6, 7, 8)
 TURN_DEGREES = {1: 0.0, 3: 180.0, 6: 90.0, 8: 270.0}
 
 
+def shown_size(stored: tuple[int, int], orientation: int) -> tuple[int, int]:
+    """(w, h) of a photo stored ``stored`` (w, h) as shown, its EXIF ``orientation`` applied."""
+    return (stored[1], stored[0]) if orientation in QUARTER_TURNS else stored
+
+
 @dataclass(frozen=True)
 class PhotoFit:
     """A photo of another size than its folder's first (another camera), read into the first's
