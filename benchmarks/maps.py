@@ -4,7 +4,9 @@ staged GeoTIFF, then a PNG), one child process each: peak RSS and seconds per me
 should both stay flat as the canvas grows.  ``stitch``: the whole ``mosaic stitch`` of simulated
 12 MP photo folders (benchmarks/survey.py) whose maps reach about --mpx megapixels.  ``costs``:
 what moving one keyframe costs (its spill written, read back from the page cache and from the disk,
-and fetched by a Dask worker over loopback): the transfer term of docs/guide/costs.md."""
+and fetched by a Dask worker over loopback): the transfer term of docs/guide/costs.md.
+``writers``: a staged map of --mpx megapixels of noise written as a COG and as a PNG, and how
+long each run goes on after SIGTERM at half its write (it should stop at once)."""
 
 from __future__ import annotations
 
@@ -246,7 +248,88 @@ def _fetched_by_a_worker(spilled: list) -> dict[str, list[float]]:
     return {"loaded by a worker, sent back": seconds}
 
 
+# The writer of a map under the command line's handling of signals (cli.main's): a signal
+# unwinds the run, which says so in one line and exits 128 + the signal.  Arguments: the format
+# ("cog" or "png"), the staged map, the output, the map's side in pixels.
+WRITE_UNDER_SIGNALS = """
+import sys
+from pathlib import Path
+
+from mosaic_cli import cli
+
+fmt, staged, out, side = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
+with cli._stop_by_unwinding_on_signals():
+    try:
+        if fmt == "cog":
+            from mosaic_cli.geo.output import write_cog
+
+            write_cog(out, staged, (side, side))
+        else:
+            from mosaic_cli.stitch.raster import StagedPanorama, write_image
+
+            panorama = StagedPanorama.__new__(StagedPanorama)
+            panorama.path, panorama.size = staged, (side, side)
+            panorama.close = lambda: None
+            write_image(out, panorama, fmt)
+    except KeyboardInterrupt:
+        cli._fail_stopped()
+"""
+
+
+def write_noise_map(path: Path, side: int) -> None:
+    """A georeferenced RGBA GeoTIFF of ``side`` x ``side`` px of noise (which GDAL copies slowly),
+    staged as compose stages a panorama."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    from mosaic_cli.stitch.raster import StagedPanorama
+
+    tile = np.random.default_rng(0).integers(0, 256, (2000, 2000, 4), dtype=np.uint8)
+    tile[..., 3] = 255
+    with rasterio.Env(GDAL_PAM_ENABLED="NO"):
+        staged = StagedPanorama(path, (side, side), crs="EPSG:32633", transform=Affine(0.05, 0, 500000, 0, -0.05, 5000000))
+        for y in range(0, side, 2000):
+            for x in range(0, side, 2000):
+                staged.write(x, y, tile[:side - y, :side - x])
+        staged.close()
+
+
+def writers(argv: list[str]) -> int:
+    """Seconds to write a staged map of --mpx megapixels of noise as a COG and as a PNG (each in a
+    child process under the command line's handling of signals), and how long a run goes on
+    after SIGTERM at half that time; medians of --rounds."""
+    import signal
+    import subprocess
+
+    parser = make_parser(SUITE, "writers", writers.__doc__)
+    parser.add_argument("--mpx", type=float, default=144.0)
+    parser.add_argument("--rounds", type=int, default=3)
+    args = parser.parse_args(argv)
+    side = int(round(math.sqrt(args.mpx * 1e6)))
+    print_start()
+    with tempfile.TemporaryDirectory(prefix="mosaic-maps-", dir=Path.cwd()) as tmp:
+        staged = Path(tmp) / "staged.tif"
+        write_noise_map(staged, side)
+        print(f"a staged map of {side}x{side} px of noise ({side * side / 1e6:.0f} Mpx); seconds, median (min-max) of {args.rounds}")
+        for fmt, name in (("cog", "map.tif"), ("png", "map.png")):
+            command = [sys.executable, "-c", WRITE_UNDER_SIGNALS, fmt, str(staged), str(Path(tmp) / name), str(side)]
+            whole, after = [], []
+            for _ in range(args.rounds):
+                started = time.perf_counter()
+                subprocess.run(command, check=True)
+                whole.append(time.perf_counter() - started)
+                run = subprocess.Popen(command, stderr=subprocess.DEVNULL)
+                time.sleep(whole[-1] / 2)
+                run.send_signal(signal.SIGTERM)
+                signalled = time.perf_counter()
+                run.wait()
+                after.append(time.perf_counter() - signalled)
+            print(f"{fmt:>4}: written in {np.median(whole):6.2f} ({min(whole):.2f}-{max(whole):.2f}) s; "
+                  f"SIGTERM at half of it: ended {np.median(after):.2f} ({min(after):.2f}-{max(after):.2f}) s later")
+    return 0
+
+
 def main(argv: list[str]) -> int:
     return run_commands(SUITE, __doc__, {"compose": compose_scaling, "compose-child": compose_child, "stitch": stitch_scaling, "workers": workers,
-                                          "costs": costs}, argv,
+                                          "costs": costs, "writers": writers}, argv,
                         default=compose_scaling)

@@ -8,13 +8,17 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import tempfile
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from mosaic_cli.errors import BadInput
+
+T = TypeVar("T")
 
 
 def check_writable(path: str | os.PathLike) -> Path:
@@ -77,12 +81,21 @@ def temporary_beside(target: Path, suffix: str) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, *, alone: bool = False) -> Iterator[Path]:
     """Yield a temporary path with the target's suffix; rename it onto ``path`` on success.
 
     The suffix is kept so that tools choosing a format by extension (ffmpeg, cv2.imwrite) work.
+    ``alone``: the temporary file in a folder of its own (see :func:`private_folder`), for a
+    writer that makes files of its own beside its output (GDAL's COG driver its overviews).
     """
     target = check_writable(path)
+    if alone:
+        with private_folder(target) as folder:
+            tmp = folder / target.name
+            yield tmp
+            give_default_permissions(tmp)
+            os.replace(tmp, target)
+        return
     tmp = None
     try:
         with signals_held():
@@ -95,6 +108,52 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
         raise
+
+
+@contextlib.contextmanager
+def private_folder(target: Path) -> Iterator[Path]:
+    """A new folder ``.<stem>.XXXX.part`` beside ``target``, removed with all it holds on leaving.
+
+    Whatever a writer makes in it by name goes with it, also after an :func:`interruptible`
+    call was left running: once the folder is gone, nothing more can be made in it."""
+    folder = None
+    try:
+        with signals_held():
+            folder = Path(tempfile.mkdtemp(prefix=f".{target.stem}.", suffix=".part", dir=target.parent or "."))
+        yield folder
+    finally:
+        for _ in range(3):  # a writer still running may add a file while the folder is emptied
+            if folder is None or not folder.exists():
+                break
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def interruptible(call: Callable[[], T]) -> T:
+    """``call()`` on a thread of its own while this one waits for it, so that Ctrl-C or SIGTERM
+    unwind the run at once.
+
+    For long C calls that let go of the interpreter (GDAL's copies of a map take minutes):
+    Python runs a signal's handler only between the main thread's bytecodes, so a call made
+    there holds the signal until it returns.  On a signal the run unwinds and removes what was
+    being written; the thread, left writing into files already unlinked, ends with the process
+    (``cli.entry`` leaves by ``os._exit``).  So whatever the call makes by name beside its
+    output must be in a :func:`private_folder`.  GDAL's settings are the process's, so the
+    thread sees the caller's ``rasterio.Env``."""
+    outcome: list[tuple[bool, Any]] = []
+
+    def run() -> None:
+        try:
+            outcome.append((True, call()))
+        except BaseException as exc:  # handed to the waiting thread
+            outcome.append((False, exc))
+
+    worker = threading.Thread(target=run, name="mosaic-interruptible", daemon=True)
+    worker.start()
+    worker.join()  # a signal's handler runs here, at once
+    done, value = outcome[0]
+    if not done:
+        raise value
+    return value
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:

@@ -54,7 +54,7 @@ def install_hint(extra: str) -> str:
 
 # Maps (georeferencing, COG, footprints, GPX) need packages only the ``geo`` extra installs.
 GEO_EXTRA = f"maps need the geo extra: {install_hint('geo')}"
-GEO_PACKAGES = ("pyproj", "rasterio", "rio_cogeo", "gpxpy")
+GEO_PACKAGES = ("pyproj", "rasterio", "gpxpy")
 
 
 def require_geo(*packages: str) -> None:

@@ -5,12 +5,14 @@ canvas at the footage's own resolution by default, and any shrink said in one li
 
 from __future__ import annotations
 
+import os
 import sys
 
 import cv2
 import numpy as np
 import pytest
 
+from benchmarks.maps import WRITE_UNDER_SIGNALS, write_noise_map
 from mosaic_cli.errors import BadInput
 from mosaic_cli.stitch.canvas import CanvasOptions, parse_distance, plan_canvas
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, compose
@@ -132,3 +134,48 @@ def test_without_gdal_the_panorama_is_held_in_memory_and_written_by_opencv(tmp_p
         staged.write(128, 0, truth[:, 128:])
         write_image(out, staged, "png")
     assert np.array_equal(cv2.cvtColor(cv2.imread(str(out), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGRA2RGBA), truth)
+
+
+@pytest.fixture(scope="module")
+def large_staged_map(tmp_path_factory) -> tuple:
+    """A staged map of 8000 x 8000 px of noise: GDAL takes seconds to copy it on a 2-core machine."""
+    path, side = tmp_path_factory.mktemp("large") / "staged.tif", 8000
+    write_noise_map(path, side)
+    return path, side
+
+
+@pytest.mark.slow
+@pytest.mark.alone
+@pytest.mark.parametrize("fmt, name", [("cog", "map.tif"), ("png", "map.png")])
+def test_a_signal_while_a_large_map_is_written_stops_it_at_once_and_leaves_nothing(large_staged_map, tmp_path, fmt, name):
+    """GDAL copies a map in C calls of minutes at survey sizes, and Python runs a signal's
+    handler only between the main thread's bytecodes: SIGTERM at a third and at two thirds of
+    the write must still end the run within a second, in one line, with nothing under the
+    output's folder (neither the output, nor its temporary file, nor GDAL's own beside it)."""
+    import signal
+    import subprocess
+    import time
+
+    staged, side = large_staged_map
+    command = [sys.executable, "-c", WRITE_UNDER_SIGNALS, fmt, str(staged)]
+    started = time.monotonic()
+    whole = subprocess.run([*command, str(tmp_path / name), str(side)], capture_output=True, text=True, timeout=300)
+    write_time = time.monotonic() - started
+    assert whole.returncode == 0 and (tmp_path / name).stat().st_size > 1 << 20, whole.stderr
+    for k, share in enumerate((1 / 3, 2 / 3)):
+        out = tmp_path / f"out{k}"
+        out.mkdir()
+        run = subprocess.Popen([*command, str(out / name), str(side)], stderr=subprocess.PIPE, text=True, start_new_session=True)
+        try:
+            time.sleep(share * write_time)
+            assert run.poll() is None, "the write ended before the signal"
+            os.killpg(run.pid, signal.SIGTERM)
+            signalled = time.monotonic()
+            err = run.communicate(timeout=300)[1]
+            took = time.monotonic() - signalled
+        finally:
+            if run.poll() is None:
+                os.killpg(run.pid, signal.SIGKILL)
+        assert run.returncode == 143 and err.strip() == "mosaic: error: terminated", err
+        assert took < 1.0, f"the run went on {took:.1f} s after SIGTERM at {share:.0%} of a {write_time:.1f} s write"
+        assert list(out.iterdir()) == []

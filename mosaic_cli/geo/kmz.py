@@ -11,7 +11,7 @@ import zipfile
 from pathlib import Path
 from xml.etree import ElementTree as ET
 
-from mosaic_cli.atomic import atomic_path, signals_held, temporary_beside
+from mosaic_cli.atomic import atomic_path, interruptible, signals_held, temporary_beside
 from mosaic_cli.errors import ProcessingError
 
 KML_NS = "http://www.opengis.net/kml/2.2"
@@ -113,7 +113,7 @@ def write_kmz(out: str | Path, geotiff: str | Path, features: dict) -> None:
             staging = temporary_beside(out, ".staging.kmz")
         staging.unlink()  # GDAL makes the archive
         try:
-            copy(str(geotiff), str(staging), driver="KMLSUPEROVERLAY", FORMAT="AUTO")
+            interruptible(lambda: copy(str(geotiff), str(staging), driver="KMLSUPEROVERLAY", FORMAT="AUTO"))
         except rasterio.errors.RasterioError as exc:
             raise ProcessingError(f"{out}: GDAL could not write the KML super-overlay ({exc})") from None
         with atomic_path(out) as tmp, zipfile.ZipFile(staging) as src, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as dst:

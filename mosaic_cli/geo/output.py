@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, write_json
+from mosaic_cli.atomic import atomic_path, interruptible, write_json
 from mosaic_cli.errors import ProcessingError, require_geo
 from mosaic_cli.geo.georef import Georeference
 from mosaic_cli.geometry import frame_corners, normalize, project, rect_corners
@@ -32,23 +32,21 @@ def geotransform(georef: Georeference, to_canvas: np.ndarray):
 
 def write_cog(out: str | Path, raster: Path, size: tuple[int, int]) -> None:
     """A georeferenced RGBA GeoTIFF (``raster``, of ``size`` (W, H)) -> the Cloud Optimized
-    GeoTIFF ``out``: 512-px internal tiles, deflate, overviews (averaged), transparency as an
-    alpha band; BigTIFF where the map needs it.  rio-cogeo reads and writes block by block."""
-    require_geo("rasterio", "rio_cogeo")
+    GeoTIFF ``out``: 512-px internal tiles, deflate, overviews (averaged) down to a tile and at
+    least one, transparency as an alpha band; BigTIFF where the map needs it.  GDAL's COG driver
+    reads and writes block by block, in one call that a signal does not wait for
+    (:func:`interruptible`; its overviews are staged beside the output, in a private folder)."""
+    require_geo("rasterio")
     import rasterio
-    from rio_cogeo.cogeo import cog_translate
-    from rio_cogeo.profiles import cog_profiles
-    from rio_cogeo.utils import get_maximum_overview_level
+    from rasterio.shutil import copy
 
     width, height = size
-    cog = cog_profiles.get("deflate")
-    cog.update(blockxsize=BLOCK, blockysize=BLOCK, BIGTIFF="IF_SAFER")
+    levels = max(1, sum(1 for k in range(1, 32) if max(width, height) / 2 ** (k - 1) > BLOCK))
+    options = dict(COMPRESS="DEFLATE", BLOCKSIZE=str(BLOCK), OVERVIEW_RESAMPLING="AVERAGE", OVERVIEW_COUNT=str(levels),
+                   BIGTIFF="IF_SAFER")
     try:
-        with atomic_path(out) as tmp:
-            # at least one overview level, also for a panorama smaller than a tile
-            levels = max(1, get_maximum_overview_level(width, height, minsize=BLOCK))
-            cog_translate(str(raster), str(tmp), cog, overview_level=levels, overview_resampling="average", quiet=True,
-                          in_memory=False, use_cog_driver=False)
+        with atomic_path(out, alone=True) as tmp:
+            interruptible(lambda: copy(str(raster), str(tmp), driver="COG", **options))
     except rasterio.errors.RasterioError as exc:
         raise ProcessingError(f"{out}: could not write the GeoTIFF ({exc})") from None
 

@@ -3,11 +3,13 @@ registered keyframes on the ground, write the georeferenced outputs."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import check_writable
+from mosaic_cli.atomic import check_writable, private_folder
 from mosaic_cli.errors import BadInput, require_geo
 from mosaic_cli.geo.georef import Georeference, GeorefOptions
 from mosaic_cli.geometry import normalize
@@ -111,7 +113,7 @@ def write_outputs(out, staged, georef: Georeference, options: GeorefOptions, to_
                   boxes: dict[int, tuple[int, int, int, int]] | None = None) -> bool:
     """The map ``out`` when it is one (GeoTIFF, KMZ, MBTiles, web tiles), the footprints and the
     quick-look page, all read from ``staged`` (the panorama as a georeferenced GeoTIFF on disk,
-    stitch/raster.py: ``path``, ``size``, ``add_overviews()``); False when ``out`` is left to the
+    stitch/raster.py: ``path``, ``size``); False when ``out`` is left to the
     plain writer (PNG/JPEG: the north-up mosaic without a geotransform).  ``boxes``: where the
     photos of another shape lie in their frames (their footprints), by frame index."""
     from mosaic_cli.atomic import write_json
@@ -127,30 +129,41 @@ def write_outputs(out, staged, georef: Georeference, options: GeorefOptions, to_
         write_cog(out, staged.path, staged.size)
     if fmt not in MAP_FORMATS and options.html is None:
         return fmt == "tiff"
-    # the writers below read a georeferenced raster: the COG just written, else the staged one
-    if fmt == "tiff":
-        raster = Path(out)
-    else:
-        staged.add_overviews()
-        raster = staged.path
-    if fmt == "kmz":
-        from mosaic_cli.geo.kmz import write_kmz
+    with _with_overviews(out, fmt, staged) as raster:
+        if fmt == "kmz":
+            from mosaic_cli.geo.kmz import write_kmz
 
-        write_kmz(out, raster, features)
-    elif fmt == "mbtiles":
-        from mosaic_cli.geo.tiles import write_mbtiles
+            write_kmz(out, raster, features)
+        elif fmt == "mbtiles":
+            from mosaic_cli.geo.tiles import write_mbtiles
 
-        write_mbtiles(out, raster)
-    elif fmt == "pmtiles":
-        from mosaic_cli.geo.tiles import write_pmtiles
+            write_mbtiles(out, raster)
+        elif fmt == "pmtiles":
+            from mosaic_cli.geo.tiles import write_pmtiles
 
-        write_pmtiles(out, raster)
-    elif fmt == "tiles":
-        from mosaic_cli.geo.tiles import write_tiles
+            write_pmtiles(out, raster)
+        elif fmt == "tiles":
+            from mosaic_cli.geo.tiles import write_tiles
 
-        write_tiles(out, raster)
-    if options.html is not None:
-        from mosaic_cli.geo.quicklook import write_quicklook
+            write_tiles(out, raster)
+        if options.html is not None:
+            from mosaic_cli.geo.quicklook import write_quicklook
 
-        write_quicklook(options.html, raster, features, title=Path(out).stem or Path(out).name)
+            write_quicklook(options.html, raster, features, title=Path(out).stem or Path(out).name)
     return fmt == "tiff" or fmt in MAP_FORMATS
+
+
+@contextlib.contextmanager
+def _with_overviews(out, fmt: str, staged) -> Iterator[Path]:
+    """The map with overviews that the writers below read (warping it whole at coarser scales):
+    the COG just written as ``out``, else one made from ``staged`` in a private folder beside
+    ``out`` and removed after."""
+    from mosaic_cli.geo.output import write_cog
+
+    if fmt == "tiff":
+        yield Path(out)
+        return
+    with private_folder(Path(out)) as folder:
+        raster = folder / "map.tif"
+        write_cog(raster, staged.path, staged.size)
+        yield raster

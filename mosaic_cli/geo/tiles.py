@@ -1,6 +1,6 @@
 """Web map tiles of a georeferenced mosaic: XYZ tiles in Web Mercator (``DIR/{z}/{x}/{y}.png``,
 with a TileJSON ``metadata.json``), PMTiles (one file, the ``pmtiles`` package) and MBTiles
-(GDAL's driver), the zoom range chosen from the map's ground resolution.
+(SQLite), the zoom range chosen from the map's ground resolution.
 
 The tile grid is morecantile's WebMercatorQuad (the OSM/Google XYZ scheme); the pixels are
 warped by GDAL (a rasterio WarpedVRT per zoom level, aligned to that level's tile grid:
@@ -216,26 +216,22 @@ def write_pmtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
 
 
 def write_mbtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
-    """MBTiles (PNG tiles) by GDAL's driver at the deepest zoom, with averaged overviews down to
-    the shallowest (GDAL reprojects to Web Mercator itself)."""
-    import rasterio
-    from rasterio.enums import Resampling
-    from rasterio.shutil import copy
-
+    """The XYZ tiles as one MBTiles 1.3 file (SQLite; PNG tiles, rows numbered from the south as
+    the specification asks), written atomically (in a private folder: SQLite keeps its journal
+    beside the file)."""
     zooms = zoom_range(geotiff)
-    try:
-        with atomic_path(out) as tmp:
-            tmp.unlink()  # the driver makes a new SQLite file
-            copy(str(geotiff), str(tmp), driver="MBTiles", TILE_FORMAT="PNG", ZOOM_LEVEL_STRATEGY="UPPER", RESAMPLING="BILINEAR")
-            levels = zooms.maxzoom - zooms.minzoom
-            if levels:
-                with rasterio.open(tmp, "r+") as ds:
-                    ds.build_overviews([2**k for k in range(1, levels + 1)], Resampling.average)
-            # GDAL names the tileset after the file it wrote (the temporary one)
-            with contextlib.closing(sqlite3.connect(tmp)) as db, db:
-                for key in ("name", "description"):
-                    db.execute("UPDATE metadata SET value = ? WHERE name = ?", (Path(out).stem, key))
-    except rasterio.errors.RasterioError as exc:
-        raise ProcessingError(f"{out}: GDAL could not write the MBTiles ({exc})") from None
+    west, south, east, north = zooms.bounds
+    meta = tilejson(zooms, Path(out).stem)
+    metadata = {"name": meta["name"], "format": "png", "type": "overlay", "version": "1.3", "description": meta["name"],
+                "attribution": meta["attribution"], "minzoom": str(zooms.minzoom), "maxzoom": str(zooms.maxzoom),
+                "bounds": f"{west},{south},{east},{north}", "center": ",".join(str(v) for v in meta["center"])}
+    with atomic_path(out, alone=True) as tmp, contextlib.closing(sqlite3.connect(tmp)) as db:
+        db.execute("CREATE TABLE metadata (name TEXT, value TEXT)")
+        db.execute("CREATE TABLE tiles (zoom_level INTEGER, tile_column INTEGER, tile_row INTEGER, tile_data BLOB)")
+        db.executemany("INSERT INTO metadata VALUES (?, ?)", metadata.items())
+        for z, x, y, rgba in render_tiles(geotiff, zooms):
+            db.execute("INSERT INTO tiles VALUES (?, ?, ?, ?)", (z, x, (1 << z) - 1 - y, encode_png(rgba)))
+        db.execute("CREATE UNIQUE INDEX tile_index ON tiles (zoom_level, tile_column, tile_row)")
+        db.commit()
     return zooms
 

@@ -3,7 +3,8 @@
 compose writes each finished tile into a tiled RGBA GeoTIFF staged beside the output (GDAL
 through rasterio; the alpha band declared as alpha), and every format is made from that file:
 a plain TIFF is the staged file itself, renamed; PNG and JPEG are GDAL's drivers reading it
-block by block; the maps (COG, KMZ, tiles, PMTiles, MBTiles) are geo/'s writers reading it.
+block by block (on a thread of their own, so that a signal need not wait for a copy of minutes);
+the maps (COG, KMZ, tiles, PMTiles, MBTiles) are geo/'s writers reading it.
 GDAL's block cache is bounded (``CACHE_MB``), so a write holds a few tiles, not the canvas.
 Where GDAL cannot be imported (the lent GPU machine has no rasterio) the panorama is held in
 memory and written by OpenCV, as before tiles: the same pixels, memory that follows the canvas.
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, give_default_permissions, signals_held, temporary_beside
+from mosaic_cli.atomic import atomic_path, give_default_permissions, interruptible, signals_held, temporary_beside
 from mosaic_cli.errors import BadInput, ProcessingError
 from mosaic_cli.inputs import MAP_FORMATS
 from mosaic_cli.stitch.compose import MemoryCanvas
@@ -62,19 +63,6 @@ class StagedPanorama:
     def close(self) -> None:
         if not self.dataset.closed:
             self.dataset.close()
-
-    def add_overviews(self) -> None:
-        """Averaged overviews down to a tile (what a reader warping the whole map at a coarser
-        scale wants: the KMZ, the web tiles, the quick-look page)."""
-        import rasterio
-        from rasterio.enums import Resampling
-
-        self.close()
-        width, height = self.size
-        factors = [2**k for k in range(1, 32) if max(width, height) / 2 ** (k - 1) > BLOCK]
-        if factors:
-            with rasterio.open(self.path, "r+") as dst:
-                dst.build_overviews(factors, Resampling.average)
 
 
 class MemoryPanorama(MemoryCanvas):
@@ -149,7 +137,7 @@ def write_image(out: str | Path, staged: StagedPanorama | MemoryPanorama, fmt: s
     try:
         with atomic_path(out) as tmp, rasterio.Env(GDAL_CACHEMAX=CACHE_MB << 20, GDAL_PAM_ENABLED="NO"), _plain_is_fine():
             source = _rgb_only(staged.path) if fmt == "jpeg" else str(staged.path)
-            rasterio.shutil.copy(source, tmp, driver="JPEG" if fmt == "jpeg" else "PNG", **options)
+            interruptible(lambda: rasterio.shutil.copy(source, tmp, driver="JPEG" if fmt == "jpeg" else "PNG", **options))
     except rasterio.errors.RasterioError as exc:
         raise ProcessingError(f"{out}: GDAL could not write the {fmt.upper()} image ({exc})") from None
 
