@@ -224,6 +224,30 @@ def test_mbtiles_by_gdal_reads_back_in_web_mercator(geotiff, tmp_path):
         assert db.execute("SELECT COUNT(*) FROM tiles WHERE zoom_level = ?", (zooms.minzoom,)).fetchone()[0] >= 1
 
 
+def test_mbtiles_of_a_map_finer_than_zoom_22_opens_in_gdal_and_says_what_it_kept(geotiff, tmp_path, capsys):
+    """GDAL's MBTiles driver (QGIS's) opens zooms up to 22 only (about 3 cm a pixel): a 1-cm map
+    (a drone's at 40 m) is tiled to zoom 22, which GDAL opens, and one warning line says so."""
+    import shutil
+
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from mosaic_cli.geo.tiles import MBTILES_DEEPEST, write_mbtiles, zoom_range
+
+    fine = tmp_path / "fine.tif"
+    shutil.copy(geotiff, fine)
+    with rasterio.open(fine, "r+") as ds:
+        ds.transform = from_origin(ORIGIN[0], ORIGIN[1] + ds.height * 0.01, 0.01, 0.01)
+    assert zoom_range(fine).maxzoom > MBTILES_DEEPEST  # the map's own detail needs deeper zooms
+    out = tmp_path / "fine.mbtiles"
+    zooms = write_mbtiles(out, fine)
+    assert zooms.maxzoom == MBTILES_DEEPEST
+    with rasterio.open(out) as ds:
+        assert ds.crs.to_epsg() == 3857 and len(ds.overviews(1)) == zooms.maxzoom - zooms.minzoom
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"mosaic: warning: {out}: MBTiles kept to zoom 22") and ".pmtiles" in err and "\n" not in err, err
+
+
 def test_pmtiles_archive_holds_the_same_tiles(geotiff, tmp_path):
     from pmtiles.reader import MmapSource, Reader
     from pmtiles.tile import TileType

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import sqlite3
@@ -21,10 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, give_default_permissions, signals_held
-from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.errors import BadInput, ProcessingError, warn
 
 TILE = 256
 METADATA = "metadata.json"  # a TileJSON beside the tiles; also how a folder mosaic wrote is known again
+MBTILES_DEEPEST = 22  # the deepest zoom GDAL's MBTiles driver (QGIS's) opens: "zoom_level > 22 not supported"
 
 
 def web_mercator():
@@ -57,6 +59,20 @@ def zoom_range(geotiff: str | Path) -> ZoomRange:
     extent = max(width, height) * res
     minzoom = max((z for z in range(maxzoom + 1) if TILE * tms.matrix(z).cellSize >= extent), default=0)
     return ZoomRange(minzoom, maxzoom, (west, south, east, north))
+
+
+def _ground_cell(zooms: ZoomRange, z: int) -> float:
+    """Metres on the ground a tile pixel of zoom ``z`` spans at the middle of the map."""
+    middle = (zooms.bounds[1] + zooms.bounds[3]) / 2
+    return web_mercator().matrix(z).cellSize * math.cos(math.radians(middle))
+
+
+def _map_cell(geotiff: str | Path) -> float:
+    """Metres on the ground a pixel of ``geotiff`` spans (its CRS in metres: the UTM zone)."""
+    import rasterio
+
+    with rasterio.open(geotiff) as src:
+        return abs(src.transform.a)
 
 
 def check_tiles_folder(out: str | Path) -> None:
@@ -220,6 +236,11 @@ def write_mbtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
     the specification asks), written atomically (in a private folder: SQLite keeps its journal
     beside the file)."""
     zooms = zoom_range(geotiff)
+    if zooms.maxzoom > MBTILES_DEEPEST:
+        zooms = ZoomRange(min(zooms.minzoom, MBTILES_DEEPEST), MBTILES_DEEPEST, zooms.bounds)
+        warn(f"{out}: MBTiles kept to zoom {MBTILES_DEEPEST} ({100 * _ground_cell(zooms, MBTILES_DEEPEST):.1f} cm a pixel here), the "
+             f"deepest GDAL and QGIS open; the map's own detail ({100 * _map_cell(geotiff):.1f} cm) is kept by .pmtiles, a tiles "
+             "folder or .tif")
     west, south, east, north = zooms.bounds
     meta = tilejson(zooms, Path(out).stem)
     metadata = {"name": meta["name"], "format": "png", "type": "overlay", "version": "1.3", "description": meta["name"],
