@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, interruptible, write_json
+from mosaic_cli.atomic import atomic_path, interruptible
 from mosaic_cli.errors import ProcessingError, require_geo
 from mosaic_cli.geo.georef import Georeference
 from mosaic_cli.geometry import frame_corners, normalize, project, rect_corners
@@ -49,11 +49,6 @@ def write_cog(out: str | Path, raster: Path, size: tuple[int, int]) -> None:
             interruptible(lambda: copy(str(raster), str(tmp), driver="COG", **options))
     except rasterio.errors.RasterioError as exc:
         raise ProcessingError(f"{out}: could not write the GeoTIFF ({exc})") from None
-
-
-def write_footprints(path: str | Path, georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float) -> None:
-    """The footprints GeoJSON (see :func:`footprint_collection`), written atomically."""
-    write_json(path, footprint_collection(georef, map_h, frame_size, fps))
 
 
 def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float,

@@ -115,8 +115,3 @@ def opensfm_lens(doc: dict) -> Lens:
 def _size(value: list) -> tuple[int, int]:
     w, h = (int(v) for v in value)
     return w, h
-
-
-def write_lens(lens: Lens, path: str | Path) -> None:
-    """mosaic's own lens file."""
-    Path(path).write_text(json.dumps(lens.to_json(), indent=1) + "\n")

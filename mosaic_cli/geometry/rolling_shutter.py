@@ -60,15 +60,6 @@ def row_frame_to_ref(frame_to_ref: np.ndarray, rows: np.ndarray, height: int) ->
     return (1.0 - a)[:, None, None] * F[..., k, :, :] + a[:, None, None] * F[..., np.minimum(k + 1, F.shape[-3] - 1), :, :]
 
 
-def project_rows(frame_to_ref: np.ndarray, points: np.ndarray, height: int) -> np.ndarray:
-    """(P, 2) reference positions of frame points (P, 2), each through its own row's
-    homography (frame_to_ref: the bands' (K, 3, 3))."""
-    pts = np.asarray(points, dtype=np.float64)
-    Hr = row_frame_to_ref(frame_to_ref, pts[:, 1], height)  # (P, 3, 3)
-    v = Hr @ np.concatenate([pts, np.ones((len(pts), 1))], 1)[:, :, None]
-    return v[:, :2, 0] / v[:, 2:3, 0]
-
-
 # ---------------------------------------------------------------------------------------------
 # Estimating the row-dependent motion from point tracks
 #

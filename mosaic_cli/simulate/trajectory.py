@@ -576,12 +576,6 @@ def offset_matrix(size: tuple[int, int], jx: np.ndarray, jy: np.ndarray, angle: 
     return J
 
 
-def vibration_matrix(size: tuple[int, int], rolling: RollingShutter, seed: int, seconds: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the vibration's frame -> frame offset at each time (seconds): a translation of
-    the tones' and noise's shifts in x and y and a small rotation about the centre."""
-    return offset_matrix(size, *vibration_signal(size, rolling, seed)(seconds))
-
-
 def footprints(plan: FlightPlan) -> np.ndarray:
     """(N, 4, 2) map positions of the frame corners, for the shaken and the smooth path."""
     c = frame_corners(*plan.size)
