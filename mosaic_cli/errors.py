@@ -66,3 +66,37 @@ def require_geo(*packages: str) -> None:
     for name in packages or GEO_PACKAGES:
         if importlib.util.find_spec(name) is None:
             raise BadInput(GEO_EXTRA)
+
+
+# Below this much free space a failed write is put down to a full disk.
+FULL_DISK_BYTES = 64 << 20
+
+
+def disk_reason(folder, detail: str) -> str:
+    """Why a write into ``folder`` failed, for the user: "the disk holding FOLDER is full" where
+    it has (nearly) no space left, else ``detail`` (the library's words)."""
+    import os
+    import shutil
+
+    try:
+        free = shutil.disk_usage(os.fspath(folder) or ".").free
+    except OSError:
+        return detail
+    return f"the disk holding {folder} is full" if free < FULL_DISK_BYTES else detail
+
+
+def gdal_failed(out, what: str, exc: Exception) -> ProcessingError:
+    """One line for GDAL failing to write ``what`` for ``out`` (rasterio raises its own errors
+    and GDAL's ``CPLE_*``, which are not among them): the disk named where it is full."""
+    import os
+
+    folder = os.path.dirname(os.fspath(out)) or "."
+    return ProcessingError(f"{out}: could not write {what} ({disk_reason(folder, str(exc))})")
+
+
+def gdal_errors() -> tuple[type[Exception], ...]:
+    """The exceptions rasterio raises when GDAL fails: its own and GDAL's ``CPLE_*``."""
+    import rasterio.errors
+    from rasterio._err import CPLE_BaseError  # (not exported by rasterio.errors)
+
+    return rasterio.errors.RasterioError, CPLE_BaseError

@@ -179,3 +179,74 @@ def test_a_signal_while_a_large_map_is_written_stops_it_at_once_and_leaves_nothi
         assert run.returncode == 143 and err.strip() == "mosaic: error: terminated", err
         assert took < 1.0, f"the run went on {took:.1f} s after SIGTERM at {share:.0%} of a {write_time:.1f} s write"
         assert list(out.iterdir()) == []
+
+
+def _file_size_limit(limit: int):
+    """A child's files held to ``limit`` bytes, as a full disk would stop them (its writes fail
+    with EFBIG instead of the process being killed by SIGXFSZ)."""
+    import resource
+    import signal
+
+    def apply() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    return apply
+
+
+def test_a_stitch_that_cannot_keep_its_keyframes_on_disk_says_where_in_one_line(survey_320x180, tmp_path):
+    """The keyframes' pixels wait in TMPDIR between the scan and the compositing: a write there
+    that fails (a full disk) is one line naming the folder and TMPDIR, not numpy's byte count."""
+    import subprocess
+
+    out = tmp_path / "out"
+    out.mkdir()
+    run = subprocess.run([sys.executable, "-m", "mosaic_cli", "stitch", str(survey_320x180), "-o", str(out / "pano.png"), "-q"],
+                         capture_output=True, text=True, preexec_fn=_file_size_limit(100_000), timeout=300,
+                         env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert run.returncode == 1
+    assert_one_line_error(run.returncode, run.stderr, str(tmp_path), "could not keep a keyframe's pixels", "TMPDIR", status=1)
+    assert list(out.iterdir()) == [] and not list(tmp_path.glob("mosaic-stitch-*"))
+
+
+WRITE_REPORTING_ERRORS = """
+import sys
+from pathlib import Path
+
+from mosaic_cli.errors import MosaicError
+
+fmt, staged, out, side = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
+try:
+    if fmt == "cog":
+        from mosaic_cli.geo.output import write_cog
+
+        write_cog(out, staged, (side, side))
+    else:
+        from mosaic_cli.stitch.raster import StagedPanorama, write_image
+
+        panorama = StagedPanorama.__new__(StagedPanorama)
+        panorama.path, panorama.size = staged, (side, side)
+        panorama.close = lambda: None
+        write_image(out, panorama, fmt)
+except MosaicError as exc:
+    sys.exit(f"mosaic: error: {exc}")
+"""
+
+
+@pytest.mark.parametrize("fmt, name", [("cog", "map.tif"), ("png", "map.png")])
+def test_a_map_gdal_cannot_finish_writing_is_a_line_naming_it_and_leaves_nothing(tmp_path, fmt, name):
+    """GDAL failing in the middle of a map (its files held to 1 MB, as a full disk stops them):
+    a ProcessingError naming the user's output, not GDAL's own exception class; no file left
+    (GDAL's overviews staged beside the COG included).  (libtiff prints lines of its own to
+    stderr first, which mosaic cannot hold back.)"""
+    import subprocess
+
+    staged = tmp_path / "staged.tif"
+    write_noise_map(staged, 1500)  # 9 MB of noise
+    out = tmp_path / "out"
+    out.mkdir()
+    run = subprocess.run([sys.executable, "-c", WRITE_REPORTING_ERRORS, fmt, str(staged), str(out / name), "1500"],
+                         capture_output=True, text=True, preexec_fn=_file_size_limit(1_000_000), timeout=300)
+    assert run.returncode == 1, run.stderr
+    assert run.stderr.strip().splitlines()[-1].startswith(f"mosaic: error: {out / name}: could not write the "), run.stderr
+    assert list(out.iterdir()) == []

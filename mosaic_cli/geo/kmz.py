@@ -12,7 +12,7 @@ from pathlib import Path
 from xml.etree import ElementTree as ET
 
 from mosaic_cli.atomic import atomic_path, interruptible, signals_held, temporary_beside
-from mosaic_cli.errors import ProcessingError
+from mosaic_cli.errors import ProcessingError, gdal_errors, gdal_failed
 
 KML_NS = "http://www.opengis.net/kml/2.2"
 
@@ -103,7 +103,6 @@ def add_layers(doc_kml: bytes, features: dict, name: str) -> bytes:
 def write_kmz(out: str | Path, geotiff: str | Path, features: dict) -> None:
     """``geotiff`` as a tiled KMZ super-overlay (GDAL, tiles PNG where transparent else JPEG)
     with ``features`` (the footprints GeoJSON's) as layers; written atomically."""
-    import rasterio
     from rasterio.shutil import copy
 
     out = Path(out)
@@ -114,8 +113,8 @@ def write_kmz(out: str | Path, geotiff: str | Path, features: dict) -> None:
         staging.unlink()  # GDAL makes the archive
         try:
             interruptible(lambda: copy(str(geotiff), str(staging), driver="KMLSUPEROVERLAY", FORMAT="AUTO"))
-        except rasterio.errors.RasterioError as exc:
-            raise ProcessingError(f"{out}: GDAL could not write the KML super-overlay ({exc})") from None
+        except gdal_errors() as exc:
+            raise gdal_failed(out, "the KML super-overlay", exc) from None
         with atomic_path(out) as tmp, zipfile.ZipFile(staging) as src, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as dst:
             # doc.kml first: Google Earth opens the first .kml of the archive
             dst.writestr("doc.kml", add_layers(src.read("doc.kml"), features, out.stem))

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, interruptible
-from mosaic_cli.errors import ProcessingError, require_geo
+from mosaic_cli.errors import gdal_errors, gdal_failed, require_geo
 from mosaic_cli.geo.georef import Georeference
 from mosaic_cli.geometry import frame_corners, normalize, project, rect_corners
 
@@ -30,14 +30,14 @@ def geotransform(georef: Georeference, to_canvas: np.ndarray):
     return Affine(G[0, 0], G[0, 1], G[0, 2], G[1, 0], G[1, 1], G[1, 2])
 
 
-def write_cog(out: str | Path, raster: Path, size: tuple[int, int]) -> None:
+def write_cog(out: str | Path, raster: Path, size: tuple[int, int], for_output: str | Path | None = None) -> None:
     """A georeferenced RGBA GeoTIFF (``raster``, of ``size`` (W, H)) -> the Cloud Optimized
     GeoTIFF ``out``: 512-px internal tiles, deflate, overviews (averaged) down to a tile and at
     least one, transparency as an alpha band; BigTIFF where the map needs it.  GDAL's COG driver
     reads and writes block by block, in one call that a signal does not wait for
-    (:func:`interruptible`; its overviews are staged beside the output, in a private folder)."""
+    (:func:`interruptible`; its overviews are staged beside the output, in a private folder).
+    ``for_output``: the user's output this COG is made for, which an error names (else ``out``)."""
     require_geo("rasterio")
-    import rasterio
     from rasterio.shutil import copy
 
     width, height = size
@@ -47,8 +47,8 @@ def write_cog(out: str | Path, raster: Path, size: tuple[int, int]) -> None:
     try:
         with atomic_path(out, alone=True) as tmp:
             interruptible(lambda: copy(str(raster), str(tmp), driver="COG", **options))
-    except rasterio.errors.RasterioError as exc:
-        raise ProcessingError(f"{out}: could not write the GeoTIFF ({exc})") from None
+    except gdal_errors() as exc:
+        raise gdal_failed(for_output or out, "the GeoTIFF" if for_output is None else "the map's overviews", exc) from None
 
 
 def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float,

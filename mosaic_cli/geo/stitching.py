@@ -165,5 +165,5 @@ def _with_overviews(out, fmt: str, staged) -> Iterator[Path]:
         return
     with private_folder(Path(out)) as folder:
         raster = folder / "map.tif"
-        write_cog(raster, staged.path, staged.size)
+        write_cog(raster, staged.path, staged.size, for_output=out)
         yield raster

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, give_default_permissions, signals_held
-from mosaic_cli.errors import BadInput, ProcessingError, warn
+from mosaic_cli.errors import BadInput, ProcessingError, disk_reason, warn
 
 TILE = 256
 METADATA = "metadata.json"  # a TileJSON beside the tiles; also how a folder mosaic wrote is known again
@@ -246,13 +246,16 @@ def write_mbtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
     metadata = {"name": meta["name"], "format": "png", "type": "overlay", "version": "1.3", "description": meta["name"],
                 "attribution": meta["attribution"], "minzoom": str(zooms.minzoom), "maxzoom": str(zooms.maxzoom),
                 "bounds": f"{west},{south},{east},{north}", "center": ",".join(str(v) for v in meta["center"])}
-    with atomic_path(out, alone=True) as tmp, contextlib.closing(sqlite3.connect(tmp)) as db:
-        db.execute("CREATE TABLE metadata (name TEXT, value TEXT)")
-        db.execute("CREATE TABLE tiles (zoom_level INTEGER, tile_column INTEGER, tile_row INTEGER, tile_data BLOB)")
-        db.executemany("INSERT INTO metadata VALUES (?, ?)", metadata.items())
-        for z, x, y, rgba in render_tiles(geotiff, zooms):
-            db.execute("INSERT INTO tiles VALUES (?, ?, ?, ?)", (z, x, (1 << z) - 1 - y, encode_png(rgba)))
-        db.execute("CREATE UNIQUE INDEX tile_index ON tiles (zoom_level, tile_column, tile_row)")
-        db.commit()
+    try:
+        with atomic_path(out, alone=True) as tmp, contextlib.closing(sqlite3.connect(tmp)) as db:
+            db.execute("CREATE TABLE metadata (name TEXT, value TEXT)")
+            db.execute("CREATE TABLE tiles (zoom_level INTEGER, tile_column INTEGER, tile_row INTEGER, tile_data BLOB)")
+            db.executemany("INSERT INTO metadata VALUES (?, ?)", metadata.items())
+            for z, x, y, rgba in render_tiles(geotiff, zooms):
+                db.execute("INSERT INTO tiles VALUES (?, ?, ?, ?)", (z, x, (1 << z) - 1 - y, encode_png(rgba)))
+            db.execute("CREATE UNIQUE INDEX tile_index ON tiles (zoom_level, tile_column, tile_row)")
+            db.commit()
+    except sqlite3.Error as exc:  # SQLite's own words: "database or disk is full"
+        raise ProcessingError(f"{out}: could not write the MBTiles ({disk_reason(Path(out).parent, str(exc))})") from None
     return zooms
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, give_default_permissions, interruptible, signals_held, temporary_beside
-from mosaic_cli.errors import BadInput, ProcessingError
+from mosaic_cli.errors import BadInput, ProcessingError, gdal_errors, gdal_failed
 from mosaic_cli.inputs import MAP_FORMATS
 from mosaic_cli.stitch.compose import MemoryCanvas
 from mosaic_cli.stitch.output import JPEG_MAX_SIDE
@@ -35,11 +35,13 @@ class StagedPanorama:
     ``crs`` and ``transform`` (rasterio's Affine, pixel corners -> CRS) make it a map.  ``keep``:
     it becomes the user's ``.tif`` (compressed as a deliverable; otherwise fast to write)."""
 
-    def __init__(self, path: Path, size: tuple[int, int], crs: str | None = None, transform=None, keep: bool = False):
+    def __init__(self, path: Path, size: tuple[int, int], crs: str | None = None, transform=None, keep: bool = False,
+                 out: str | Path | None = None):
         import rasterio
         from rasterio.enums import ColorInterp
 
         self.path, self.size = path, size
+        self.out = path if out is None else out  # the user's output, which errors name
         compression = {"compress": "deflate", "predictor": 2} if keep else {"compress": "deflate", "zlevel": 1}
         profile = dict(driver="GTiff", width=size[0], height=size[1], count=4, dtype="uint8", tiled=True, blockxsize=BLOCK,
                        blockysize=BLOCK, photometric="RGB", ALPHA="YES", BIGTIFF="IF_SAFER", **compression)
@@ -48,13 +50,16 @@ class StagedPanorama:
         try:
             self.dataset = rasterio.open(path, "w+", **profile)  # readable too: --fill-holes reads it back
             self.dataset.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-        except rasterio.errors.RasterioError as exc:
-            raise ProcessingError(f"{path.parent}: could not start the panorama's file ({exc})") from None
+        except gdal_errors() as exc:
+            raise gdal_failed(self.out, "the panorama", exc) from None
 
     def write(self, x: int, y: int, rgba: np.ndarray) -> None:
         from rasterio.windows import Window
 
-        self.dataset.write(np.ascontiguousarray(rgba.transpose(2, 0, 1)), window=Window(x, y, rgba.shape[1], rgba.shape[0]))
+        try:
+            self.dataset.write(np.ascontiguousarray(rgba.transpose(2, 0, 1)), window=Window(x, y, rgba.shape[1], rgba.shape[0]))
+        except gdal_errors() as exc:
+            raise gdal_failed(self.out, "the panorama", exc) from None
 
     def read(self) -> np.ndarray:
         """The whole panorama, RGBA (H, W, 4) (``--fill-holes`` only: it needs the canvas at once)."""
@@ -62,7 +67,10 @@ class StagedPanorama:
 
     def close(self) -> None:
         if not self.dataset.closed:
-            self.dataset.close()
+            try:
+                self.dataset.close()  # (the last blocks written here)
+            except gdal_errors() as exc:
+                raise gdal_failed(self.out, "the panorama", exc) from None
 
 
 class MemoryPanorama(MemoryCanvas):
@@ -100,7 +108,7 @@ def staged_panorama(out: str | Path, size: tuple[int, int], crs: str | None = No
         with signals_held():
             path = temporary_beside(Path(out), ".staging.tif")
         with rasterio.Env(GDAL_CACHEMAX=CACHE_MB << 20, GDAL_PAM_ENABLED="NO"), _plain_is_fine():
-            staged = StagedPanorama(path, size, crs, transform, keep)
+            staged = StagedPanorama(path, size, crs, transform, keep, out=out)
             try:
                 yield staged
             finally:
@@ -138,8 +146,8 @@ def write_image(out: str | Path, staged: StagedPanorama | MemoryPanorama, fmt: s
         with atomic_path(out) as tmp, rasterio.Env(GDAL_CACHEMAX=CACHE_MB << 20, GDAL_PAM_ENABLED="NO"), _plain_is_fine():
             source = _rgb_only(staged.path) if fmt == "jpeg" else str(staged.path)
             interruptible(lambda: rasterio.shutil.copy(source, tmp, driver="JPEG" if fmt == "jpeg" else "PNG", **options))
-    except rasterio.errors.RasterioError as exc:
-        raise ProcessingError(f"{out}: GDAL could not write the {fmt.upper()} image ({exc})") from None
+    except gdal_errors() as exc:
+        raise gdal_failed(out, f"the {fmt.upper()} image", exc) from None
 
 
 def _write_with_opencv(out: str | Path, rgba: np.ndarray, fmt: str, jpeg_quality: int) -> None:

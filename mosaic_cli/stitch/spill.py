@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mosaic_cli.errors import ProcessingError, disk_reason
+
 
 class SpilledImage:
     """An image held in a file until needed: ``shape``, ``size`` and ``dtype`` as the array's,
@@ -23,9 +25,14 @@ class SpilledImage:
 
     def __init__(self, image: np.ndarray, folder: str | Path):
         handle, name = tempfile.mkstemp(suffix=".npy", dir=folder)
-        with os.fdopen(handle, "wb") as file:
-            np.save(file, np.ascontiguousarray(image), allow_pickle=False)
         self.path = Path(name)
+        try:
+            with os.fdopen(handle, "wb") as file:
+                np.save(file, np.ascontiguousarray(image), allow_pickle=False)
+        except OSError as exc:  # numpy's short write says only how many bytes it wrote
+            self.path.unlink(missing_ok=True)
+            raise ProcessingError(f"{folder}: could not keep a keyframe's pixels there ({disk_reason(folder, str(exc))}); "
+                                  "TMPDIR names another folder") from None
         self.shape: tuple[int, ...] = image.shape
         self.size: int = image.size
         self.dtype = image.dtype
