@@ -135,7 +135,8 @@ def track_video(
     gives them) instead of a decode of ``path`` of the attempt's own: stabilize's one decode
     (:mod:`mosaic_cli.stabilize.shared_decode`), which looks at the attempt's ``gate`` while it
     waits for a frame.  ``lens``: ``path``'s frames through this filter as they are decoded
-    (``--lens``: :func:`~mosaic_cli.video.decode.open_video`'s ``lens``)."""
+    (``--lens``: :func:`~mosaic_cli.video.decode.open_video`'s ``lens``), the rolling shutter's
+    pass's too."""
     mode = parse_rolling_shutter(rolling_shutter)
     pending = mask if mask is not None else PendingMask.settled(FrameMask(estimator.mask))
     with contextlib.ExitStack() as bar:
@@ -153,7 +154,7 @@ def track_video(
     rolling = None
     if mode != "off":
         clock = time.perf_counter()
-        plan = plan_bands(path, info, mode, show_progress, "track: rolling shutter", max_frames=n, probe=probe)
+        plan = plan_bands(path, info, mode, show_progress, "track: rolling shutter", max_frames=n, probe=probe, lens=lens)
         meta["rolling_seconds"] = time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
         if plan is not None:
             rolling = rolling_block(plan, info.source_size)

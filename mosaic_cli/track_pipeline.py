@@ -24,9 +24,8 @@ from mosaic_cli.atomic import check_writable
 from mosaic_cli.device import ask_cpu_threads
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, plan_estimator
-from mosaic_cli.estimators.lens import LensChoice, parse_lens_option, undistorting
+from mosaic_cli.estimators.lens import LensChoice, choose_lens, parse_lens_option
 from mosaic_cli.estimators.rolling import parse_rolling_shutter
-from mosaic_cli.geometry.lens import Undistortion
 from mosaic_cli.live.loading import built_beside, trained_width
 from mosaic_cli.live.source import is_live_source
 from mosaic_cli.live.track import is_jsonl, track_stream
@@ -34,7 +33,6 @@ from mosaic_cli.overlay import FrameMask, check_mask_file, frame_mask_pending, f
 from mosaic_cli.progress import progress_group
 from mosaic_cli.track import TrackOptions, TrackResult, save_track, track_video
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import reading_policy
 
 
@@ -87,11 +85,6 @@ def track(video: str, out: str, options: TrackOptions, *, estimator: str | None 
     return _track_file(video, out, options, build, lens, strict, info, clock, show_progress)
 
 
-def _lens_filter(choice: LensChoice) -> ImageFilter | None:
-    """The filter the frames are decoded through for ``choice`` (None: as they are)."""
-    return None if choice.lens is None else Undistortion(choice.lens)
-
-
 def _track_stream(video: str, out: str, options: TrackOptions, build: Callable[[], Estimator], estimator: str | None, weights: str | None,
                   lens: str | None, info: VideoInfo | None, clock: float, show_progress: bool) -> TrackRun:
     """A live input, or a file to JSON Lines: the pairs out as they are estimated."""
@@ -100,22 +93,22 @@ def _track_stream(video: str, out: str, options: TrackOptions, build: Callable[[
     tracker: Estimator | concurrent.futures.Future
     width = None
     # --lens: a live input's frames undistorted as they arrive (live/source.py), a file's as decoded
-    with undistorting(lens, video, info, live=live) as lens_choice:
-        if live:  # a live input's mask is made when its first frame gives the size (live_mask)
-            # A network loads beside the stream's opening (its width read from its weights' header):
-            # the socket listens at once.
-            width = trained_width(estimator, weights)
-            tracker = built_beside(build, after_start=True) if width is not None else build()
-        else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
-            masked, est = frame_mask_while(build, video, options.mask, info, show_progress=show_progress)
-            est.set_mask(masked.use)
-            tracker = est
-        overlay_seconds = time.perf_counter() - clock
-        result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=show_progress,
-                              mask=options.mask if live else None, info=info, width=width, lens=_lens_filter(lens_choice))
-        if masked is not None:
-            result.meta["mask"] = masked.to_json()
-        result.meta["lens"] = lens_choice.to_meta()
+    lens_choice = choose_lens(lens, video, info, live=live)
+    if live:  # a live input's mask is made when its first frame gives the size (live_mask)
+        # A network loads beside the stream's opening (its width read from its weights' header):
+        # the socket listens at once.
+        width = trained_width(estimator, weights)
+        tracker = built_beside(build, after_start=True) if width is not None else build()
+    else:  # JSON Lines go out as the pairs are estimated: the mask is waited for first
+        masked, est = frame_mask_while(build, video, options.mask, info, show_progress=show_progress, lens=lens_choice.image_filter)
+        est.set_mask(masked.use)
+        tracker = est
+    overlay_seconds = time.perf_counter() - clock
+    result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=show_progress,
+                          mask=options.mask if live else None, info=info, width=width, lens=lens_choice.image_filter)
+    if masked is not None:
+        result.meta["mask"] = masked.to_json()
+    result.meta["lens"] = lens_choice.to_meta()
     if not is_jsonl(out):
         save_track(result, out)
     return TrackRun(result, masked, overlay_seconds, lens_choice)
@@ -125,12 +118,13 @@ def _track_file(video: str, out: str, options: TrackOptions, build: Callable[[],
                 clock: float, show_progress: bool) -> TrackRun:
     """A file to a track file: the tracking starts once the estimator is built, the overlays still
     being looked for beside it, and starts again if one is found (track_video's ``mask``)."""
-    with reading_policy(strict), undistorting(lens, video, info) as lens_choice, progress_group(disable=not show_progress):
-        pending, est = frame_mask_pending(build, video, options.mask, info, show_progress=show_progress)
+    with reading_policy(strict), progress_group(disable=not show_progress):
+        lens_choice = choose_lens(lens, video, info)
+        pending, est = frame_mask_pending(build, video, options.mask, info, show_progress=show_progress, lens=lens_choice.image_filter)
         with pending:
             built = time.perf_counter() - clock
             result = track_video(video, est, max_frames=options.max_frames, show_progress=show_progress, info=info,
-                                 rolling_shutter=options.rolling_shutter, mask=pending, lens=_lens_filter(lens_choice))
+                                 rolling_shutter=options.rolling_shutter, mask=pending, lens=lens_choice.image_filter)
     masked = pending.result()
     # The "overlays" figure: the time before the tracking could start (the build, the
     # detection beside it), and the time the tracking then lost to the detection (its end

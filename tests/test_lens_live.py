@@ -47,19 +47,18 @@ def test_live_frames_are_undistorted_as_a_file_s(wide, pixels):
     """A live reader's frames through ``--lens FILE`` are the file reader's (the same pixels an
     offline run sees: RGB and yuv420p plane by plane before any conversion), and the gray ones
     are OpenCV's undistortion of the raw frames."""
-    from mosaic_cli.estimators.lens import undistorting
+    from mosaic_cli.estimators.lens import choose_lens
     from mosaic_cli.live.source import LiveStream
     from mosaic_cli.video import open_video
 
     gt = wide.with_suffix(".gt.json")
     kind = {"gray": {"gray": True}, "rgb": {"lazy_rgb": True}, "yuv420p": {"yuv420p": True}}[pixels]
-    with undistorting(str(gt), wide, live=True) as choice:
-        assert choice.source == "file"
-        with LiveStream(str(wide), pixels, live=False, quiet=True) as live:
-            received = [np.asarray(f) for f in live]
-    with undistorting(str(gt), wide):
-        with open_video(wide, **kind) as stream:
-            decoded = [np.asarray(f) for f in stream]
+    choice = choose_lens(str(gt), wide, live=True)
+    assert choice.source == "file"
+    with LiveStream(str(wide), pixels, live=False, quiet=True, lens=choice.image_filter) as live:
+        received = [np.asarray(f) for f in live]
+    with open_video(wide, **kind, lens=choose_lens(str(gt), wide).image_filter) as stream:
+        decoded = [np.asarray(f) for f in stream]
     with open_video(wide, **kind) as stream:
         raw = [np.asarray(f) for f in stream]
     assert len(received) == len(decoded) == 30

@@ -69,20 +69,20 @@ def test_undistort_mask_keeps_every_masked_pixel_masked():
 
 
 def test_a_mask_drawn_over_a_burned_in_logo_covers_it_in_the_undistorted_frames(burned_in):
-    from mosaic_cli.estimators.lens import undistorting
+    from mosaic_cli.estimators.lens import choose_lens
     from mosaic_cli.overlay import MaskOptions, frame_mask, live_mask
     from mosaic_cli.video import open_video, probe
 
     clip, lens_file, mask_file = burned_in
     options = MaskOptions(file=mask_file, detect=False)
     info = probe(clip)
-    with undistorting(str(lens_file), clip) as choice:
-        assert choice.lens is not None
-        use = frame_mask(clip, options, info).use
-        with open_video(clip) as stream:
-            frames = [np.asarray(f) for f in stream]
-    with undistorting(str(lens_file), clip, live=True):
-        assert np.array_equal(live_mask(options, SIZE, show_progress=False, source=str(clip)).use, use)
+    choice = choose_lens(str(lens_file), clip)
+    assert choice.lens is not None and choice.image_filter is not None
+    use = frame_mask(clip, options, info, lens=choice.image_filter).use
+    with open_video(clip, lens=choice.image_filter) as stream:
+        frames = [np.asarray(f) for f in stream]
+    live = choose_lens(str(lens_file), clip, live=True)
+    assert np.array_equal(live_mask(options, SIZE, show_progress=False, lens=live.image_filter).use, use)
     shown = np.any([logo_pixels(f) for f in frames], axis=0)
     assert shown.sum() > 1000  # the logo is there, undistorted: moved off its raw rectangle
     assert np.all(use[shown] == 0), int(np.count_nonzero(use[shown]))

@@ -76,7 +76,7 @@ def stabilize(
     """Stabilise a video: L1-optimal smooth camera path, no black borders by default, audio kept.
 
     The output has the input's size, frame count and frame rate."""
-    from mosaic_cli.estimators.lens import undistorting
+    from mosaic_cli.estimators.lens import choose_lens
     from mosaic_cli.live.source import is_live_source
     from mosaic_cli.live.stabilize import is_live_request, stabilize_live
     from mosaic_cli.plots import check_plot_request
@@ -100,9 +100,9 @@ def stabilize(
         if plot is not None:
             raise BadInput("--plot needs the whole camera path: not with --latency or a live input or output")
         # --lens: a live input's frames undistorted as they arrive (live/source.py); auto only on a file
-        with undistorting(lens, video, live=is_live_source(video)) as lens_choice:
-            live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
-                                  compare=str(compare) if compare else None, show_progress=not quiet)
+        lens_choice = choose_lens(lens, video, live=is_live_source(video))
+        live = stabilize_live(video, out, options, warps_out=str(warps) if warps else None,
+                              compare=str(compare) if compare else None, show_progress=not quiet, lens=lens_choice.image_filter)
         if not quiet:
             console.print(
                 f"{live.frames_in} frames in, {live.frames_out} out -> {'standard output' if out == '-' else out}: "
@@ -116,10 +116,11 @@ def stabilize(
         return
     # The output is the undistorted (pinhole) view: the path and warps are planned on it
     # (--keep-lens: the render composes them with the lens).
-    with reading_policy(strict), undistorting(lens, video) as lens_choice:
+    with reading_policy(strict):
+        lens_choice = choose_lens(lens, video)
         if keep_lens and lens_choice.lens is not None:
             options = dataclasses.replace(options, keep_lens=lens_choice.lens)
-        result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet)
+        result = run(video, out, options, warps_out=warps, compare=compare, show_progress=not quiet, lens=lens_choice.image_filter)
     if plot is not None:
         _plot(plot, result)
     if not quiet:

@@ -94,7 +94,7 @@ def stitch(
     if out is None:
         raise BadInput("-o/--out is required (the panorama or map to write), unless --dry-run")
     # Imported here: scipy.optimize takes seconds to import, and every command pays for cli imports.
-    from mosaic_cli.estimators.lens import undistorting
+    from mosaic_cli.estimators.lens import choose_lens
     from mosaic_cli.live.source import is_live_source
     from mosaic_cli.stabilize.rolling import bridged_bands, parse_rolling_shutter
     from mosaic_cli.stitch import CanvasOptions, ComposeOptions, KeyframeOptions, RegistrationOptions, StitchOptions
@@ -131,9 +131,9 @@ def stitch(
     # The library checks the input and the outputs, then builds the estimator (a learned one loads weights).
     if live:
         # --lens: a live input's frames undistorted as they arrive (live/source.py); auto only on a file
-        with undistorting(lens, video, live=is_live_source(video)) as lens_choice:
-            result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
-                                 show_progress=not quiet)
+        lens_choice = choose_lens(lens, video, live=is_live_source(video))
+        result = stitch_live(video, out, options=options, transforms=transforms, preview=PreviewOptions(preview, every),
+                             show_progress=not quiet, lens=lens_choice.image_filter)
     elif len(flights) > 1:
         from mosaic_cli.stitch.flights import stitch_flights
 
@@ -142,8 +142,10 @@ def stitch(
         with reading_policy(strict):
             result = stitch_flights(flights, out, options=options, transforms=transforms, show_progress=not quiet)
     else:
-        with reading_policy(strict), undistorting(lens, video) as lens_choice:  # the panorama: a pinhole view of the ground
-            result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet)
+        with reading_policy(strict):
+            lens_choice = choose_lens(lens, video)  # the panorama: a pinhole view of the ground
+            result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet,
+                                lens=lens_choice.image_filter)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

@@ -25,9 +25,7 @@ search is not run).
 
 from __future__ import annotations
 
-import contextlib
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,7 +45,8 @@ from mosaic_cli.geometry.lens import (
 )
 from mosaic_cli.geometry.lens_files import read_lens
 from mosaic_cli.video import VideoInfo
-from mosaic_cli.video.decode import frames_at, seen_through
+from mosaic_cli.video.decode import frames_at
+from mosaic_cli.video.lens_filter import ImageFilter
 
 SAMPLES = 24  # frames decoded for `auto`
 # px: the matches' resolution (a video narrower than this: its own).  At 640 a k1 -0.30 lens at
@@ -108,6 +107,12 @@ class LensChoice:
         said = (f"lens: auto, {what} (corners moved {px:.0f} px), residual "
                 f"{self.residual_none:.2f} -> {self.residual_fit:.2f} px over {self.pairs} pairs")
         return said + (", frames undistorted" if self.lens is not None else ": a pinhole, left alone")
+
+    @property
+    def image_filter(self) -> ImageFilter | None:
+        """The filter the input's frames are decoded through: the lens's undistortion (each
+        image (h, w) or (h, w, C) -> one of the same size), None where no lens is applied."""
+        return None if self.lens is None else Undistortion(self.lens)
 
     def to_meta(self) -> dict:
         doc: dict = {"source": self.source, "applied": self.lens is not None}
@@ -419,26 +424,21 @@ def _covers(lens: Lens) -> bool:
     return True
 
 
-@contextlib.contextmanager
-def undistorting(value: str | None, video: str | Path, info: VideoInfo | None = None, live: bool = False) -> Iterator[LensChoice]:
+def choose_lens(value: str | None, video: str | Path, info: VideoInfo | None = None, live: bool = False) -> LensChoice:
     """``--lens value`` resolved for ``video`` (probed here if ``info`` is None and a lens is
-    asked for), and while inside, every read of ``video`` undistorted by it, once, where the
-    frames are decoded (:func:`mosaic_cli.video.decode.seen_through`): the estimator, the
-    stitcher and the renderer all see the pinhole view.  ``live``: ``video`` is a live source
-    (a stream, standard input), read once and never probed: a lens FILE undistorts each frame as
-    it arrives (its size checked against the stream's once it is known: LiveStream), ``auto``
-    is refused (it reads samples spread over a whole file)."""
+    asked for); its :attr:`~LensChoice.image_filter` is handed to every reader of ``video``, so
+    that the estimator, the stitcher and the renderer all see the pinhole view, undistorted once
+    where the frames are decoded.  ``live``: ``video`` is a live source (a stream, standard
+    input), read once and never probed: a lens FILE undistorts each frame as it arrives (its size
+    checked against the stream's once it is known: LiveStream), ``auto`` is refused (it reads
+    samples spread over a whole file)."""
     if live:
         spec = parse_lens_option(value)
         if spec == "auto":
             raise BadInput("--lens auto reads frames spread over a whole video file: with a live input, pass a lens FILE (or none)")
-        choice = LensChoice(None, "none") if spec == "none" else LensChoice(read_lens(spec), "file")
-    else:
-        if parse_lens_option(value) != "none" and info is None:
-            from mosaic_cli.video import probe
+        return LensChoice(None, "none") if spec == "none" else LensChoice(read_lens(spec), "file")
+    if parse_lens_option(value) != "none" and info is None:
+        from mosaic_cli.video import probe
 
-            info = probe(video)
-        choice = resolve_lens(value, video, info)
-    image_filter = None if choice.lens is None else Undistortion(choice.lens)
-    with seen_through(video, image_filter):
-        yield choice
+        info = probe(video)
+    return resolve_lens(value, video, info)

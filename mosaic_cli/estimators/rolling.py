@@ -29,7 +29,7 @@ from mosaic_cli.geometry import resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_corrections, estimate_readout, fit_bands
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, open_video
-from mosaic_cli.video.decode import gray_at
+from mosaic_cli.video.decode import ImageFilter, gray_at
 
 BANDS = 16
 TRACK_WIDTH = 640  # corners tracked at this width: finer than a band's wobble needs
@@ -88,11 +88,13 @@ def track_corners(a: np.ndarray, b: np.ndarray, corners: int = CORNERS) -> tuple
     return src[keep], dst[keep]
 
 
-def tracked_corners(video: str | Path, width: int = TRACK_WIDTH, info: VideoInfo | None = None) -> Generator[tuple[np.ndarray, np.ndarray], None, None]:
+def tracked_corners(video: str | Path, width: int = TRACK_WIDTH, info: VideoInfo | None = None,
+                    lens: ImageFilter | None = None) -> Generator[tuple[np.ndarray, np.ndarray], None, None]:
     """For each frame pair t -> t+1 of ``video``, the corners tracked between them
-    (:func:`track_corners`, frames decoded ``width`` wide and gray): (M, 2) where they are in
-    frame t and (M, 2) in frame t+1, in full-resolution pixels."""
-    with open_video(video, width=width, gray=True, info=info) as frames:
+    (:func:`track_corners`, frames decoded ``width`` wide and gray, through ``lens``: ``--lens``'s
+    filter, as the tracking sees them): (M, 2) where they are in frame t and (M, 2) in frame t+1,
+    in full-resolution pixels."""
+    with open_video(video, width=width, gray=True, info=info, lens=lens) as frames:
         full = frames.info.source_size
         prev = None
         for frame in frames:
@@ -133,14 +135,14 @@ class BandMotions:
 
 def measure_band_motion(video: str | Path, info: VideoInfo, bands: int = BANDS, width: int = TRACK_WIDTH,
                         show_progress: bool = True, max_frames: int | None = None,
-                        label: str = "rolling shutter") -> BandMotions:
+                        label: str = "rolling shutter", lens: ImageFilter | None = None) -> BandMotions:
     """Each row band's motion frame t -> t+1 in full-resolution pixels (:class:`BandMotions`), of
-    the first ``max_frames`` frames only, if given."""
+    the first ``max_frames`` frames only, if given; ``lens``: the frames' filter (``--lens``)."""
     full = info.source_size
     measured = BandMotions(bands)
     with progress_task(label, info.frame_count, disable=not show_progress) as advance:
         advance(1)  # the first frame makes no pair
-        pairs = tracked_corners(video, min(width, full[0]), info)
+        pairs = tracked_corners(video, min(width, full[0]), info, lens)
         for src, dst in pairs:
             measured.add(src, dst, full)
             advance(1)
@@ -237,11 +239,12 @@ class BandPlan:
 
 
 def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True, label: str = "rolling shutter",
-               max_frames: int | None = None, probe: RollingProbe | None = None) -> BandPlan | None:
+               max_frames: int | None = None, probe: RollingProbe | None = None, lens: ImageFilter | None = None) -> BandPlan | None:
     """The bands ``mode`` asks for (None: off, or too few frames to tell), of the first
     ``max_frames`` frames if given; under ``GLOBAL_READOUT`` `auto` returns them all 0, not applied.
     ``probe``: `auto`'s probe fed by a pass that decodes the frames anyway (waited for here);
-    None: a pass of its own over the first ``AUTO_PROBE_FRAMES`` frames."""
+    None: a pass of its own over the first ``AUTO_PROBE_FRAMES`` frames.  ``lens``: the frames'
+    filter (``--lens``: the bands measured on the undistorted frames the tracking sees)."""
     if mode == "off":
         return None
     h = info.source_size[1]
@@ -250,7 +253,7 @@ def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progr
             probed = probe.measured()
         else:
             probe_frames = AUTO_PROBE_FRAMES if max_frames is None else min(AUTO_PROBE_FRAMES, max_frames)
-            probed = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label)
+            probed = measure_band_motion(video, info, show_progress=show_progress, max_frames=probe_frames, label=label, lens=lens)
         motion, weights = probed.arrays()
         if len(motion) < 2 or weights.sum() < 2:
             return None
@@ -258,7 +261,7 @@ def plan_bands(video: str | Path, info: VideoInfo, mode: str | float, show_progr
         if readout < GLOBAL_READOUT:
             frames = max_frames or info.frame_count or len(motion) + 1
             return BandPlan(readout, np.zeros((frames, motion.shape[1], 4)), motion, weights, True, applied=False)
-    measured = measure_band_motion(video, info, show_progress=show_progress, max_frames=max_frames, label=label)
+    measured = measure_band_motion(video, info, show_progress=show_progress, max_frames=max_frames, label=label, lens=lens)
     motion, weights = measured.arrays()
     if len(motion) < 2 or weights.sum() < 2:
         return None

@@ -346,7 +346,8 @@ def undistort_mask(use: np.ndarray, lens: Lens) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Undistortion:
-    """What ``--lens`` sets on an input's frames (``video.decode.seen_through``): each image
+    """What ``--lens`` sets on an input's frames (``estimators.lens.LensChoice.image_filter``,
+    handed to each reader of the input as its ``lens``): each image
     undistorted by ``lens`` (:func:`remap_frame`), and a ``--mask`` drawn in the distorted frame's
     pixels carried into the undistorted frame's (:meth:`mask`)."""
 

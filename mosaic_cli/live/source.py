@@ -33,7 +33,7 @@ import numpy as np
 from mosaic_cli.errors import BadInput, Interrupted
 from mosaic_cli.inputs import DEFAULT_TIMEOUT
 from mosaic_cli.progress import note
-from mosaic_cli.video.lens_filter import ImageFilter, filter_frame, lens_of
+from mosaic_cli.video.lens_filter import ImageFilter, filter_frame
 from mosaic_cli.video.pixels import CONVERTED_HERE, TO_BT601, rgb_from_yuv420p, yuv420p_bytes
 from mosaic_cli.video.reader import VideoInfo, ffmpeg_exe, read_into, scaled_size
 
@@ -123,8 +123,8 @@ class LiveStream:
 
     A live stream can be read only once, so nothing probes it: its size, rate and audio are
     read from the decoder's own log as it starts.  A file read this way (``live=False``) passes
-    its probe as ``info`` instead.  ``lens``: each frame through this filter (``--lens``; None:
-    the one set for ``source``, if any: :mod:`mosaic_cli.video.lens_filter`)."""
+    its probe as ``info`` instead.  ``lens``: each frame through this filter (``--lens``:
+    :mod:`mosaic_cli.video.lens_filter`); None: the frames as decoded."""
 
     def __init__(self, source: str, pixels: str = "gray", width: int | None = None,
                  timeout: float = DEFAULT_TIMEOUT, stop: StopRequest | None = None, quiet: bool = False,
@@ -155,8 +155,7 @@ class LiveStream:
         # (4:4:4) keeps ffmpeg's conversion, as offline.
         self._rgb_here = pixels == "rgb" and (info is None or info.pixel_format in CONVERTED_HERE)
         # --lens FILE: each frame undistorted at its full size as it arrives, on the reader thread
-        # (``lens``, else the filter the command set for this source: video.lens_filter.seen_through)
-        self._filter = lens_of(source, lens)
+        self._filter = lens
         try:
             self._proc = self._start()
         finally:

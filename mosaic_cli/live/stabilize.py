@@ -72,6 +72,7 @@ from mosaic_cli.stabilize.pipeline import PRESET, WORK_WIDTH, StabilizeOptions, 
 from mosaic_cli.stabilize.render import parse_border, warp_yuv
 from mosaic_cli.stabilize.smoothing import load_solver
 from mosaic_cli.video import VideoInfo, VideoWriter, probe
+from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import scaled_size
 from mosaic_cli.video.writer import OUTPUT_SUFFIXES
 
@@ -136,9 +137,11 @@ def check_live_request(source: str, out: str, options: StabilizeOptions, warps_o
 
 
 def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: str | None = None,
-                   compare: str | None = None, show_progress: bool = True) -> LiveStabilizeResult:
+                   compare: str | None = None, show_progress: bool = True, *, lens: ImageFilter | None = None) -> LiveStabilizeResult:
     """Stabilise ``source`` (live, or a file read in one pass) into ``out`` within
-    ``options.latency`` seconds (:data:`DEFAULT_LATENCY` when None)."""
+    ``options.latency`` seconds (:data:`DEFAULT_LATENCY` when None).  ``lens``: each frame
+    through this filter as it arrives (``--lens``: the undistorted view is written), the mask
+    carried into the undistorted frame."""
     file_info = check_live_request(source, out, options, warps_out, compare)  # a file's probe; None for a live input
     latency = options.latency if options.latency is not None else DEFAULT_LATENCY
     model = motion_model(options.model)
@@ -157,16 +160,16 @@ def stabilize_live(source: str, out: str, options: StabilizeOptions, warps_out: 
     if file_info is not None:
         horizon = Horizon.for_latency(latency, file_info.fps, _delay(estimator))  # too short a latency fails first
         # A file's overlays are found as offline (it is there whole); a live input has only --mask.
-        masked = frame_mask(source, options.mask, file_info, show_progress)
+        masked = frame_mask(source, options.mask, file_info, show_progress, lens)
     # The solver is imported once the decoder listens, while it waits for the sender and the
     # stream's header: not before (the socket would open later), nor at the first window, in the
     # middle of the first frames (see load_solver).
     with _ended(network, loading), LiveStream(source, "yuv420p", timeout=options.timeout, quiet=not show_progress,
-                                              live=live, info=file_info, on_started=_solver_beside) as stream:
+                                              live=live, info=file_info, on_started=_solver_beside, lens=lens) as stream:
         info = stream.info
         size, fps = info.source_size, info.fps
         if masked is None:
-            masked = live_mask(options.mask, size, show_progress, source=source)
+            masked = live_mask(options.mask, size, show_progress, lens)
         tracker, width, delay = _tracker(options, estimator, loading, masked.use, size)
         if horizon is None:
             horizon = Horizon.for_latency(latency, fps, estimator_delay=delay)

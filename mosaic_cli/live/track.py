@@ -104,7 +104,7 @@ def track_stream(source: str | Path, estimator: Estimator | concurrent.futures.F
         info = stream.info
         masked = None
         if mask is not None:
-            masked = live_mask(mask, info.source_size, show_progress, source=str(source))
+            masked = live_mask(mask, info.source_size, show_progress, lens)
             estimator.set_mask(masked.use)
 
         start = time.perf_counter()

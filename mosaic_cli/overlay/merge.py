@@ -26,7 +26,7 @@ from mosaic_cli.overlay.detect import Detection, OverlayOptions, detect_overlays
 from mosaic_cli.overlay.samples import VideoSamples, sample_width
 from mosaic_cli.progress import note
 from mosaic_cli.video import VideoInfo, probe
-from mosaic_cli.video.decode import image_filter_for
+from mosaic_cli.video.lens_filter import ImageFilter
 
 T = TypeVar("T")
 
@@ -113,24 +113,26 @@ def check_mask_file(mask: MaskOptions, info: VideoInfo | None) -> None:
 
 
 def frame_mask(video: str | Path, options: MaskOptions | None = None, info: VideoInfo | None = None,
-               show_progress: bool = False) -> FrameMask:
+               show_progress: bool = False, lens: ImageFilter | None = None) -> FrameMask:
     """The merged use mask of ``video``: the ``--mask`` file's, and the detector's unless off.
-    The video and the file are checked before any frame is decoded or progress shown."""
+    The video and the file are checked before any frame is decoded or progress shown.  ``lens``:
+    ``--lens``'s filter on ``video``'s frames, the mask then the undistorted frame's
+    (:func:`_file_mask`; the detector's samples read through it: :class:`VideoSamples`)."""
     options = options or MaskOptions()
     clock = time.perf_counter()
     info = info or probe(video)
-    return _detected(video, options, info, _file_mask(options, info.source_size, video), show_progress, clock)
+    return _detected(video, options, info, _file_mask(options, info.source_size, lens), show_progress, clock, lens=lens)
 
 
 def _detected(video: str | Path, options: MaskOptions, info: VideoInfo, use: np.ndarray | None, show_progress: bool,
-              clock: float, stop: threading.Event | None = None) -> FrameMask:
-    """``use`` (the file's mask, or None) merged with the overlays detected in ``video`` unless
-    detection is off; its ``seconds`` counted from ``clock``.  ``stop``, once set, ends the
-    detection at its next frame with :class:`DetectionStopped`."""
+              clock: float, stop: threading.Event | None = None, lens: ImageFilter | None = None) -> FrameMask:
+    """``use`` (the file's mask, or None) merged with the overlays detected in ``video`` (its
+    frames through ``lens``) unless detection is off; its ``seconds`` counted from ``clock``.
+    ``stop``, once set, ends the detection at its next frame with :class:`DetectionStopped`."""
     detection = None
     if options.detect:
         width = sample_width(info.source_size, options.overlay)
-        samples: Iterable[np.ndarray] = VideoSamples(video, options.overlay.samples, width, info)
+        samples: Iterable[np.ndarray] = VideoSamples(video, options.overlay.samples, width, info, lens)
         if stop is not None:
             samples = _Stoppable(samples, stop)
         if show_progress:
@@ -175,31 +177,30 @@ class _Stoppable:
 
 
 def live_mask(options: MaskOptions | None, full_size: tuple[int, int], show_progress: bool = True,
-              source: str | Path | None = None) -> FrameMask:
+              lens: ImageFilter | None = None) -> FrameMask:
     """The use mask of a live input: the ``--mask`` file's only (in the undistorted frame's
-    pixels where ``--lens`` undistorts ``source``'s frames).  Detection samples frames spread
-    over the whole clip before the first is estimated, which a stream does not have; when it was
-    asked for (the default), one line says it is skipped."""
+    pixels where ``lens``, ``--lens``'s filter, undistorts the input's frames).  Detection
+    samples frames spread over the whole clip before the first is estimated, which a stream does
+    not have; when it was asked for (the default), one line says it is skipped."""
     options = options or MaskOptions()
     clock = time.perf_counter()
     if options.detect and show_progress:
         note(LIVE_DETECTION_SKIPPED + ("; --mask applies" if options.file is not None else "; use --mask to exclude overlays"))
-    return FrameMask(_file_mask(options, full_size, source), None, options.file is not None, time.perf_counter() - clock)
+    return FrameMask(_file_mask(options, full_size, lens), None, options.file is not None, time.perf_counter() - clock)
 
 
-def _file_mask(options: MaskOptions, full_size: tuple[int, int], video: str | Path | None = None) -> np.ndarray | None:
+def _file_mask(options: MaskOptions, full_size: tuple[int, int], lens: ImageFilter | None = None) -> np.ndarray | None:
     """The ``--mask`` file's use mask at ``full_size``, its black areas grown by the margin; where
-    ``--lens`` undistorts ``video``'s frames, carried from the distorted frame's pixels, which it
-    is drawn in, into the undistorted frame's (the margin grown first: H.264's smear is the
-    distorted frame's)."""
+    ``lens`` (``--lens``'s filter) undistorts the frames, carried from the distorted frame's
+    pixels, which it is drawn in, into the undistorted frame's (the margin grown first: H.264's
+    smear is the distorted frame's)."""
     use = load_mask(options.file, full_size) if options.file is not None else None
     if use is not None and options.file_margin > 0:
         r = options.file_margin
         use = cv2.erode(use, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)),
                         borderType=cv2.BORDER_CONSTANT, borderValue=255)
-    seen = image_filter_for(video) if use is not None and video is not None else None
-    if isinstance(seen, Undistortion):
-        use = seen.mask(use)
+    if use is not None and isinstance(lens, Undistortion):
+        use = lens.mask(use)
     return use
 
 
@@ -264,7 +265,8 @@ class PendingMask:
 
 
 def frame_mask_pending(build: Callable[[], T], video: str | Path, options: MaskOptions | None = None,
-                       info: VideoInfo | None = None, show_progress: bool = False) -> tuple[PendingMask, T]:
+                       info: VideoInfo | None = None, show_progress: bool = False,
+                       lens: ImageFilter | None = None) -> tuple[PendingMask, T]:
     """:func:`frame_mask` as a :class:`PendingMask`, and ``build()``: the detection runs in a
     thread of its own (its frames decoded by ffmpeg in a process of its own) while ``build``
     (torch's import, the weights, the int8 network: a second or two) runs in the caller's; this
@@ -273,16 +275,16 @@ def frame_mask_pending(build: Callable[[], T], video: str | Path, options: MaskO
     fails before any other work.  An error of the build is raised once the detection has ended,
     and the detection's own error first, as :func:`frame_mask_while` always did.  With a
     progress bar, run inside :func:`mosaic_cli.progress.progress_group` when other bars will
-    show while the detection runs (rich shows one display at a time)."""
+    show while the detection runs (rich shows one display at a time).  ``lens``: as :func:`frame_mask`'s."""
     options = options or MaskOptions()
     clock = time.perf_counter()
     info = info or probe(video)
-    known = _file_mask(options, info.source_size, video)
+    known = _file_mask(options, info.source_size, lens)
     if not options.detect:
         pending = PendingMask.settled(FrameMask(known, None, options.file is not None, time.perf_counter() - clock))
     else:
         pending = PendingMask(known)
-        pending.start(lambda stop: _detected(video, options, info, known, show_progress, clock, stop))
+        pending.start(lambda stop: _detected(video, options, info, known, show_progress, clock, stop, lens))
     try:
         built = build()
     except Exception:
@@ -296,11 +298,12 @@ def frame_mask_pending(build: Callable[[], T], video: str | Path, options: MaskO
 
 
 def frame_mask_while(build: Callable[[], T], video: str | Path, options: MaskOptions | None = None,
-                     info: VideoInfo | None = None, show_progress: bool = False) -> tuple[FrameMask, T]:
+                     info: VideoInfo | None = None, show_progress: bool = False,
+                     lens: ImageFilter | None = None) -> tuple[FrameMask, T]:
     """:func:`frame_mask`, and ``build()`` at the same time (:func:`frame_mask_pending`), both
     waited for: for a caller that needs the mask before its first frame (JSON Lines written as
     the pairs are estimated).  An error of either is raised once both have ended."""
-    pending, built = frame_mask_pending(build, video, options, info, show_progress)
+    pending, built = frame_mask_pending(build, video, options, info, show_progress, lens)
     with pending:
         return pending.result(), built
 

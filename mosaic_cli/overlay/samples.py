@@ -13,6 +13,7 @@ import numpy as np
 from mosaic_cli.overlay.detect import OverlayOptions
 from mosaic_cli.video import VideoInfo, probe
 from mosaic_cli.video.decode import REFERENCE_SKIPPING_CODECS
+from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import Decoder, folder_images, frame_at, frames_at, read_image_rgb, scaled_size
 
 # What a picked frame costs, in frames decoded: a clip is sampled at its keyframes where they
@@ -37,11 +38,17 @@ class VideoSamples:
     Short clips are decoded once per iteration, piping only the picked frames (H.264 and HEVC:
     the first reference frame at or after each, the others not decoded); long ones are
     sampled by seeking, so the cost does not grow with the clip's length; a folder's images
-    are read only when picked, one at a time."""
+    are read only when picked, one at a time.
 
-    def __init__(self, video: str | Path, count: int, width: int, info: VideoInfo | None = None):
+    ``lens``: ``--lens``'s filter, which the frames picked in one decoder pass (:func:`frames_at`)
+    are read through.  The keyframes, the frames sampled by seeking and a folder's images are
+    read as decoded, as they were when the filter was looked up by the input's path (a gap: the
+    overlays found in them are placed in the distorted frame)."""
+
+    def __init__(self, video: str | Path, count: int, width: int, info: VideoInfo | None = None, lens: ImageFilter | None = None):
         self.video, self.count, self.width = video, count, width
         self.info = info or probe(video)
+        self.lens = lens
         self._picks: list[int] | None = None  # a clip of unknown length: its picked frames, once counted
 
     def __iter__(self) -> Iterator[np.ndarray]:
@@ -52,7 +59,7 @@ class VideoSamples:
         if total is None or info.duration <= 0:
             if self._picks is None:
                 self._picks = _picked_by_decoding(_count_frames(info), count)
-            return frames_at(info, self._picks, width, near=_far_apart(self._picks))
+            return frames_at(info, self._picks, width, near=_far_apart(self._picks), lens=self.lens)
         picks = _picked(total, count)
         keys = keyframe_indices(info)
         if keys is None:
@@ -65,14 +72,15 @@ class VideoSamples:
             seek = _seeking_cost(picks, keys, share) < share * float(picks[-1] + 1)  # against one pass up to the last pick
         if seek:
             return _sample_by_seeking(count, width, info)
-        return frames_at(info, picks, width, near=_far_apart(picks))  # one decoder pass, the picked frames piped
+        return frames_at(info, picks, width, near=_far_apart(picks), lens=self.lens)  # one decoder pass, the picked frames piped
 
 
-def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
+def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None,
+                  lens: ImageFilter | None = None) -> list[np.ndarray]:
     """The frames of :class:`VideoSamples`, all held (tests and benchmarks: :func:`frame_mask`
     reads them twice instead, one at a time).  A folder of photos of several sizes gives none
     (the reader refuses it anyway)."""
-    frames = list(VideoSamples(video, count, width, info))
+    frames = list(VideoSamples(video, count, width, info, lens))
     return frames if len({f.shape for f in frames}) <= 1 else []
 
 

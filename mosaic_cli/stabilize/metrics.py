@@ -23,6 +23,7 @@ import numpy as np
 
 from mosaic_cli.geometry import frame_corners, normalize, project
 from mosaic_cli.stabilize.path import gaussian_weights, neighbour_mean
+from mosaic_cli.video.lens_filter import ImageFilter
 
 HIGHPASS_SECONDS = 0.3  # sigma of the low-pass removed: half gain at 1 Hz, below the 3-8 Hz of shake
 
@@ -127,10 +128,12 @@ def track_pairwise(video: str | Path) -> tuple[np.ndarray, tuple[int, int], floa
     return result.pairwise, result.info.source_size, result.info.fps
 
 
-def matched_warps(input_video: str | Path, output_video: str | Path, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def matched_warps(input_video: str | Path, output_video: str | Path, step: int = 1,
+                  lens: ImageFilter | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Estimate the warp input frame t -> output frame t from the pixels, for every ``step``-th
     frame; returns (frame indices, warps in full-resolution pixels).  Frames that do not match
-    are left out.
+    are left out.  ``lens``: the input's frames through this filter (``--lens``: the input as
+    the stabiliser saw it, undistorted); the output is read as written.
 
     Two rounds: the first fit brings the output back onto the input, where a zoom or rotation no
     longer spoils the sub-pixel polish; the second measures what is left."""
@@ -148,7 +151,7 @@ def matched_warps(input_video: str | Path, output_video: str | Path, step: int =
         return estimate.H if estimate.confidence > 0 else None
 
     indices, warps = [], []
-    with open_video(input_video, width=RULER_WIDTH, gray=True) as src, \
+    with open_video(input_video, width=RULER_WIDTH, gray=True, lens=lens) as src, \
             open_video(output_video, width=RULER_WIDTH, gray=True) as dst:
         full = src.info.source_size
         if dst.info.source_size != full:

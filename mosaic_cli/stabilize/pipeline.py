@@ -51,6 +51,7 @@ from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother, make_sm
 from mosaic_cli.stabilize.stream import PathFeed
 from mosaic_cli.track import TrackResult, track_video
 from mosaic_cli.video import VideoInfo, probe
+from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.stream import VideoStream
 from mosaic_cli.video.writer import OUTPUT_SUFFIXES, check_encoder, rewrite_container
 
@@ -161,8 +162,11 @@ class StabilizeResult:
 
 def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | None = None,
               warps_out: str | Path | None = None, compare: str | Path | None = None,
-              show_progress: bool = True) -> StabilizeResult:
-    """Write a stabilised copy of ``video`` to ``out`` (see the module docstring)."""
+              show_progress: bool = True, *, lens: ImageFilter | None = None) -> StabilizeResult:
+    """Write a stabilised copy of ``video`` to ``out`` (see the module docstring).  ``lens``:
+    every reading of ``video`` through this filter (``--lens``: the tracking, the overlays, the
+    rolling shutter's pass and the render see the undistorted view; with ``options.keep_lens``
+    the render reads the frames as the lens saw them)."""
     options = options or StabilizeOptions()
     info, plan = check_request(video, out, options, warps_out, compare)
     clock = time.perf_counter()
@@ -173,7 +177,7 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
     # found (or a readout given) is measured by a pass of its own beside the tracking.
     mode = parse_rolling_shutter(options.rolling_shutter)
     probe = RollingProbe(info) if mode == "auto" else None
-    per_row = RowWarpLater(video, info, mode, BORDERS[plan.renderer.border], YUV_BLACK, show_progress, probe) if mode != "off" else None
+    per_row = RowWarpLater(video, info, mode, BORDERS[plan.renderer.border], YUV_BLACK, show_progress, probe, lens) if mode != "off" else None
 
     # The path is planned as the pairs come in, and the render follows the plan (stream.py); with
     # a rolling shutter, from the motion between the frames' mid-time poses, the frames the rows
@@ -184,17 +188,19 @@ def stabilize(video: str | Path, out: str | Path, options: StabilizeOptions | No
         # The tracking starts once the estimator is built, the overlays still being looked for
         # beside it; its pairs reach the feed (and so the render) only once the mask is settled,
         # and it starts again if an overlay was found (track_video's ``mask``).
-        pending, estimator = frame_mask_pending(plan.build, video, options.mask, info, show_progress)
+        pending, estimator = frame_mask_pending(plan.build, video, options.mask, info, show_progress, lens)
         with pending:
             built = time.perf_counter() - clock
             # One decode for both: the tracking reads each frame reduced, the render whole, through a
             # ring that covers the path's window (shared_decode.py).
             yuv = render_yuv(info, compare is not None)
             ring = ring_frames(plan.smoother, estimator, frame_bytes(info, yuv), rolling=per_row is not None)
-            lens = options.keep_lens
-            undistort = None if lens is None else functools.partial(remap_frame, lens=lens)
-            shared = SharedDecode(video, info, yuv, estimator.input_width, ring, feed.starved, undistort=undistort)
-            warp_rows = per_row if lens is None else KeptLens(lens, info.source_size, BORDERS[plan.renderer.border], YUV_BLACK, per_row)
+            # --keep-lens: decoded as the lens saw them, the tracking's frames undistorted by the shared decode
+            kept = options.keep_lens
+            undistort = None if kept is None else functools.partial(remap_frame, lens=kept)
+            shared = SharedDecode(video, info, yuv, estimator.input_width, ring, feed.starved, undistort=undistort,
+                                  lens=lens if kept is None else None)
+            warp_rows = per_row if kept is None else KeptLens(kept, info.source_size, BORDERS[plan.renderer.border], YUV_BLACK, per_row)
             tracking = TrackingPass(video, estimator, info, gate, show_progress, probe, pending, source=shared.tracking)
             render_clock = time.perf_counter()
             shared.start()

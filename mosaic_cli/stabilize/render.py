@@ -33,7 +33,7 @@ from mosaic_cli.geometry.lens import Lens, distort_by_table, distortion_table, u
 from mosaic_cli.geometry.rolling_shutter import undo_row_correction
 from mosaic_cli.progress import progress_task
 from mosaic_cli.video import VideoInfo, VideoWriter, open_video
-from mosaic_cli.video.decode import ReadAhead
+from mosaic_cli.video.decode import ImageFilter, ReadAhead
 
 BORDERS = {"black": cv2.BORDER_CONSTANT, "replicate": cv2.BORDER_REPLICATE, "reflect": cv2.BORDER_REFLECT}
 COMPARE_PANEL_WIDTH = 960  # wider inputs are shown at half size in --compare videos
@@ -186,14 +186,16 @@ class Renderer:
                compare: str | Path | None = None, show_progress: bool = True,
                metadata: dict[str, str] | None = None, frames: int | None = None,
                per_row: Callable[[np.ndarray, int, np.ndarray], np.ndarray | None] | None = None,
-               decoded: Iterable[np.ndarray] | None = None) -> int:
+               decoded: Iterable[np.ndarray] | None = None, lens: ImageFilter | None = None) -> int:
         """Write the stabilised video (and the side-by-side one); returns the frames written.
 
         ``warps``: (N, 3, 3), or a function giving frame t's warp (which may wait until it is
         known: :meth:`~.stream.PathFeed.warp`); then ``frames`` is the count expected, which
         cuts the audio (None: the audio is not cut).  Frames beyond ``len(warps)`` (a decoder
         that finds one more frame the second time) reuse the last warp.  ``per_row(frame, t,
-        warp)``: a warp of its own instead, row by row (``stabilize/rolling.py``), or None for the usual one."""
+        warp)``: a warp of its own instead, row by row (``stabilize/rolling.py``), or None for the usual one.
+        ``decoded``: the frames, decoded by the caller (None: a decode of ``video`` of its own, each
+        frame through ``lens``, ``--lens``'s filter)."""
         if isinstance(warps, np.ndarray):
             frames, known = len(warps), warps
             warps = lambda t: known[min(t, len(known) - 1)]  # noqa: E731
@@ -212,7 +214,7 @@ class Renderer:
         try:
             with contextlib.ExitStack() as inputs:
                 if decoded is None:  # the frames upright, each once; yuv420p planes when they can stay so
-                    stream = inputs.enter_context(open_video(video, yuv420p=yuv, info=info))
+                    stream = inputs.enter_context(open_video(video, yuv420p=yuv, info=info, lens=lens))
                     ahead = ReadAhead(iter(stream), 4)  # decoded on a thread of its own, 4 frames ahead of the warps
                     inputs.callback(ahead.stop)
                     decoded = ahead

@@ -36,6 +36,7 @@ from mosaic_cli.geometry import project
 from mosaic_cli.geometry.rolling_shutter import band_blend, band_centres, similarity_matrix, undo_row_correction
 from mosaic_cli.stabilize.stream import WAIT_SLICE, Cancelled, PathFeed
 from mosaic_cli.video import VideoInfo
+from mosaic_cli.video.lens_filter import ImageFilter
 
 __all__ = ["AUTO_PROBE_FRAMES", "BANDS", "GLOBAL_READOUT", "TRACK_WIDTH", "RollingCorrection", "MidTimeFeed", "RollingProbe", "RowWarpLater",
            "measure_band_motion", "parse_rolling_shutter", "bridged_bands", "plan_rolling", "track_corners"]
@@ -162,11 +163,12 @@ def bridged_bands(count: int) -> str:
 
 
 def plan_rolling(video: str | Path, info: VideoInfo, mode: str | float, show_progress: bool = True,
-                 label: str = "stabilize: rolling shutter", probe: RollingProbe | None = None) -> RollingCorrection | None:
+                 label: str = "stabilize: rolling shutter", probe: RollingProbe | None = None,
+                 lens: ImageFilter | None = None) -> RollingCorrection | None:
     """The corrections ``mode`` asks for (None: off, or too few frames to tell); under
     ``GLOBAL_READOUT`` `auto` returns them all 0, not applied (:func:`estimators.rolling.plan_bands`;
-    ``probe``: `auto`'s, fed by another pass)."""
-    plan = plan_bands(video, info, mode, show_progress, label, probe=probe)
+    ``probe``: `auto`'s, fed by another pass; ``lens``: the frames' filter, ``--lens``)."""
+    plan = plan_bands(video, info, mode, show_progress, label, probe=probe, lens=lens)
     if plan is None:
         return None
     return RollingCorrection(plan.readout, plan.corrections, info.source_size, plan.estimated, plan.applied,
@@ -181,9 +183,10 @@ class RowWarpLater:
     whole video beside the tracking.  Returns None for a frame rendered as without (a global shutter)."""
 
     def __init__(self, video: str | Path, info: VideoInfo, mode: str | float, border: int, black: tuple[int, int, int],
-                 show_progress: bool = True, probe: RollingProbe | None = None):
+                 show_progress: bool = True, probe: RollingProbe | None = None, lens: ImageFilter | None = None):
         self.video, self.info, self.mode, self.border, self.black = video, info, mode, border, black
         self.show_progress, self.probe = show_progress, probe
+        self.lens = lens  # --lens: the bands measured on the frames the tracking sees
         self.rolling: RollingCorrection | None = None
         self.seconds = 0.0  # planning in the render's thread, and the probe's share of the tracking's
         self.cpu_seconds = 0.0  # the same in CPU time
@@ -194,7 +197,7 @@ class RowWarpLater:
         if not self._planned:
             clock, cpu = time.perf_counter(), time.thread_time()
             self._planned = True
-            self.rolling = plan_rolling(self.video, self.info, self.mode, self.show_progress, probe=self.probe)
+            self.rolling = plan_rolling(self.video, self.info, self.mode, self.show_progress, probe=self.probe, lens=self.lens)
             if self.rolling is not None and self.rolling.applied:
                 self._warp = self.rolling.warper(self.border, self.black)
             self.seconds = time.perf_counter() - clock + (self.probe.seconds if self.probe is not None else 0.0)

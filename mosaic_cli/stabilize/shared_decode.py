@@ -64,7 +64,7 @@ from mosaic_cli.overlay.speculate import Gate
 from mosaic_cli.stabilize.smoothing import GaussianSmoother, L1Smoother
 from mosaic_cli.stabilize.stream import WAIT_SLICE, Cancelled
 from mosaic_cli.video import VideoInfo, open_video
-from mosaic_cli.video.decode import YuvFrame, gray_at, yuv420p_bytes
+from mosaic_cli.video.decode import ImageFilter, YuvFrame, gray_at, yuv420p_bytes
 from mosaic_cli.video.info import scaled_size
 from mosaic_cli.video.stream import VideoStream
 
@@ -115,16 +115,21 @@ class SharedDecode:
     given (:meth:`~.stream.PathFeed.starved`).  :meth:`start` starts the decoding thread,
     :meth:`stop` ends it (and wakes whoever waits on it: :class:`~.stream.Cancelled`).
 
-    ``peak``: the most frames the ring held at once; ``second_decode_from``: the frame from which
-    the render read a decode of its own (None: it read every frame from the ring)."""
+    ``lens``: the frames through this filter as they are decoded (``--lens``); ``undistort``
+    (``--keep-lens``, with no ``lens``): the tracking's frames alone, the render's left as the
+    lens saw them.  ``peak``: the most frames the ring held at once; ``second_decode_from``: the
+    frame from which the render read a decode of its own (None: it read every frame from the ring)."""
 
     def __init__(self, video: str | Path, info: VideoInfo, yuv: bool, width: int, capacity: int, starved: Callable[[], bool],
-                 undistort: Callable[[np.ndarray], np.ndarray] | None = None):
+                 undistort: Callable[[np.ndarray], np.ndarray] | None = None, lens: ImageFilter | None = None):
+        if undistort is not None and lens is not None:
+            raise ValueError("undistort reads the frames as the lens saw them: not with a lens filter on the decode")
         self.video, self.info, self.yuv, self.width, self.capacity = video, info, yuv, width, int(capacity)
         # stabilize --keep-lens: the frames decoded as the lens sees them (the render's), and the
         # tracking's luma plane (or RGB frame) undistorted at full size before it is reduced, as
         # the decode's own --lens filter would have (the same reduced frames, bit for bit)
         self.undistort = undistort
+        self.lens = lens  # --lens: the filter the frames are decoded through (None with ``undistort``)
         self._starved = starved
         self.tracking_size = scaled_size(info.source_size, width)
         self._frames: dict[int, np.ndarray] = {}  # by index: those the render or the tracking has still to read
@@ -162,7 +167,7 @@ class SharedDecode:
 
     def _run(self) -> None:
         try:
-            with open_video(self.video, yuv420p=self.yuv, info=self.info, raw=self.undistort is not None) as stream:
+            with open_video(self.video, yuv420p=self.yuv, info=self.info, lens=self.lens) as stream:
                 for frame in stream:
                     if not self._put(frame):
                         return
@@ -317,7 +322,7 @@ class SharedDecode:
             with self._changed:
                 t = self._rendered = t + 1
                 self._drop(t - 1)
-        with open_video(self.video, yuv420p=self.yuv, info=self.info, start=t, raw=self.undistort is not None) as stream:
+        with open_video(self.video, yuv420p=self.yuv, info=self.info, start=t, lens=self.lens) as stream:
             yield from stream
 
 

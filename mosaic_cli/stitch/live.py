@@ -56,6 +56,7 @@ from mosaic_cli.stitch.registration import (
     refine_placements,
 )
 from mosaic_cli.stitch.spill import load_pixels
+from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import VideoInfo, probe, scaled_size
 
 PREVIEW_SIDE = 1024
@@ -284,10 +285,12 @@ class LivePreview:
 
 def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None, options: StitchOptions | None = None,
                 transforms: str | Path | None = None, preview: PreviewOptions | None = None,
-                show_progress: bool = True, info: VideoInfo | None = None) -> StitchResult:
+                show_progress: bool = True, info: VideoInfo | None = None, *, lens: ImageFilter | None = None) -> StitchResult:
     """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
     preview on the way when ``preview.path`` is given.  ``estimator``: None builds the one
-    ``options`` name once the request is checked.  ``info``: a file's probe, when the caller has it."""
+    ``options`` name once the request is checked.  ``info``: a file's probe, when the caller has it.
+    ``lens``: each frame through this filter as it arrives (``--lens``), the mask carried into
+    the undistorted frame."""
     options = options or StitchOptions()
     preview = preview or PreviewOptions()
     reference = check_live_request(out, transforms, options, preview)
@@ -304,13 +307,13 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
     masked = None
     if not live:
         # A file read as a stream is there whole: its overlays are found before the scan starts.
-        masked = frame_mask(source, options.mask, info, show_progress)
+        masked = frame_mask(source, options.mask, info, show_progress, lens)
     track = _georef_telemetry(source, out, options, live, info)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill:
         seconds: dict[str, float] = {}
         clock = time.perf_counter()
         with waited_for(loading), LiveStream(str(source), "rgb", timeout=options.timeout, quiet=not show_progress, live=live,
-                                             info=info, on_started=lambda: begin(loading)) as stream:
+                                             info=info, on_started=lambda: begin(loading), lens=lens) as stream:
             info = stream.info
             if estimator is None:
                 assert loading is not None
@@ -322,7 +325,7 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
             decode_size = scaled_size(info.source_size, width)
             stream.info = replace(info, size=decode_size)
             if masked is None:  # a live input: only --mask, sized by the stream's first frame
-                masked = live_mask(options.mask, info.source_size, show_progress, source=str(source))
+                masked = live_mask(options.mask, info.source_size, show_progress, lens)
             estimator.set_mask(masked.use)
             scanner = FlightScanner(info.source_size, decode_size, info.fps, 0, options.keyframes, options.features,
                                     max_size, spill if options.spill else None, masked.use)

@@ -70,6 +70,7 @@ from mosaic_cli.telemetry import FlightLog
 from mosaic_cli.telemetry.photos import photo_log_rate, photo_metadata_notes
 from mosaic_cli.video import VideoInfo, open_video, probe
 from mosaic_cli.video.folders import other_cameras_note
+from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import refuse_damaged, scaled_size
 
 
@@ -182,15 +183,19 @@ def stitch(
     transforms: str | Path | None = None,
     show_progress: bool = True,
     info: VideoInfo | None = None,
+    *,
+    lens: ImageFilter | None = None,
 ) -> StitchResult:
     """Stitch ``video`` into the panorama ``out`` (format by extension), optionally writing
     every keyframe's frame -> panorama homography to ``transforms``.  Raises ``BadInput``
     before any work for unusable input, ``ProcessingError`` when the flight cannot be
     stitched; never leaves a partial file.  ``estimator``: None builds the one ``options``
     name (:func:`make_stitch_estimator`) once the input is checked.  ``info``: the video's
-    probe, when the caller has it."""
+    probe, when the caller has it.  ``lens``: each frame through this filter as it is decoded
+    (``--lens``: the panorama a pinhole view of the ground), the mask carried into the
+    undistorted frame."""
     options = options or StitchOptions()
-    flight, reference = prepare_flight(video, out, transforms, options, info)
+    flight, reference = prepare_flight(video, out, transforms, options, info, lens)
     build: Callable[[], Estimator] = plan_stitch_estimator(flight.options) if estimator is None else (lambda: estimator)
     # Keyframe pixels wait here between the scan and the compositing (see spill.py); the
     # folder goes however the stitch ends.
@@ -208,13 +213,15 @@ def stitch(
 
 @dataclass
 class PreparedFlight:
-    """One input, checked, with the options it is stitched with (a photo folder's own) and its
-    telemetry (None: none)."""
+    """One input, checked, with the options it is stitched with (a photo folder's own), its
+    telemetry (None: none) and the filter its frames are read through (``--lens``; None: as
+    decoded)."""
 
     video: str | Path
     info: VideoInfo
     options: StitchOptions
     track: FlightLog | None
+    lens: ImageFilter | None = None
 
 
 @dataclass
@@ -227,9 +234,9 @@ class ScannedFlight:
 
 
 def prepare_flight(video: str | Path, out: str | Path, transforms: str | Path | None, options: StitchOptions,
-                   info: VideoInfo | None = None) -> tuple[PreparedFlight, str | int]:
+                   info: VideoInfo | None = None, lens: ImageFilter | None = None) -> tuple[PreparedFlight, str | int]:
     """Every check of one input that can fail fast (before any work), its telemetry read, and the
-    reference keyframe asked for.  ``info``: the caller's probe."""
+    reference keyframe asked for.  ``info``: the caller's probe; ``lens``: the input's filter."""
     info, reference = _check_inputs(video, out, transforms, options, info)
     if info.is_image_folder:
         # Photos are registered by features alone: describe them finer than video frames.
@@ -252,14 +259,15 @@ def prepare_flight(video: str | Path, out: str | Path, transforms: str | Path | 
     if options.canvas.gsd is not None and track is None:
         raise BadInput(f"--gsd needs telemetry (a GPS log, or photos with EXIF GPS): without it {video} has no ground distance; "
                        f"--max-size bounds a plain panorama")
-    return PreparedFlight(video, info, options, track), reference
+    return PreparedFlight(video, info, options, track, lens), reference
 
 
 def scan_prepared(flight: PreparedFlight, build: Callable[[], Estimator], show_progress: bool, spill: str,
                   seconds: dict[str, float]) -> ScannedFlight:
     """Stage 0 and 1 (and the rolling shutter's pass) of one prepared input: the estimator built
-    (``build``) beside the overlay detection, the scan; ``seconds`` gains their times."""
-    video, info, options, track = flight.video, flight.info, flight.options, flight.track
+    (``build``) beside the overlay detection, the scan; ``seconds`` gains their times.  Each
+    reads the input through ``flight.lens``."""
+    video, info, options, track, lens = flight.video, flight.info, flight.options, flight.track, flight.lens
     clock = time.perf_counter()
     # `auto`'s probe rides on the scan's first frames: a global shutter costs no pass of its own.
     mode = parse_rolling_shutter(options.rolling_shutter)
@@ -268,13 +276,13 @@ def scan_prepared(flight: PreparedFlight, build: Callable[[], Estimator], show_p
         # The estimator is built (a network: torch, the weights) while the overlays are looked
         # for, and the scan starts once it is, the overlays still being looked for; it starts
         # again if one is found (_scan).
-        pending, scanner = frame_mask_pending(build, video, options.mask, info, show_progress)
+        pending, scanner = frame_mask_pending(build, video, options.mask, info, show_progress, lens)
         with pending:
             built = time.perf_counter() - clock
             clock = time.perf_counter()
             guide = GroundGuide(track, info.source_size) if info.is_image_folder and track is not None else None
             scan, speculation = _scan(video, info, scanner, options, show_progress, spill if options.spill else None,
-                                      pending, probe, guide)
+                                      pending, probe, guide, lens)
             scanned = time.perf_counter() - clock
     mask = pending.result()
     # The overlays' share: the build (the detection beside it), the scan's end waiting for
@@ -285,7 +293,7 @@ def scan_prepared(flight: PreparedFlight, build: Callable[[], Estimator], show_p
     rolling = None
     if mode != "off":
         clock = time.perf_counter()
-        rolling = plan_rolling(video, info, mode, show_progress, "stitch: rolling shutter", probe)
+        rolling = plan_rolling(video, info, mode, show_progress, "stitch: rolling shutter", probe, lens)
         seconds["rolling"] = seconds.get("rolling", 0.0) + time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
 
     if not scan.keyframes:
@@ -508,10 +516,12 @@ def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] |
 
 
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
-          mask: PendingMask, probe: RollingProbe | None = None, guide: GroundGuide | None = None) -> tuple[FlightScan, Speculation]:
+          mask: PendingMask, probe: RollingProbe | None = None, guide: GroundGuide | None = None,
+          lens: ImageFilter | None = None) -> tuple[FlightScan, Speculation]:
     """The scan (keyframes, their placements and pixels), started with the mask known so far
     and started again, its keyframes and their spilled pixels dropped, if the overlays found
-    change it (:func:`~mosaic_cli.overlay.speculate`); its progress is shown once the mask is settled."""
+    change it (:func:`~mosaic_cli.overlay.speculate`); its progress is shown once the mask is
+    settled.  ``lens``: the frames' filter (``--lens``)."""
     # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
     max_size = options.canvas.max_size
     width = None
@@ -535,7 +545,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
         try:
             # Only frames whose pixels the scan keeps (the keyframes) are converted to RGB; the
             # others serve only their gray copies.
-            with open_video(video, width=width, start=options.start, info=info, lazy_rgb=True) as stream:
+            with open_video(video, width=width, start=options.start, info=info, lazy_rgb=True, lens=lens) as stream:
                 frames = gate.frames(itertools.islice(stream, options.max_frames))
                 shown = functools.partial(gate.emit, advance)
                 if photos:

@@ -22,7 +22,7 @@ import numpy as np
 from mosaic_cli.video.ffmpeg_decoder import FfmpegDecoder
 from mosaic_cli.video.folders import open_folder
 from mosaic_cli.video.info import VideoInfo, scaled_size
-from mosaic_cli.video.lens_filter import ImageFilter, filter_frame, filtered, image_filter_for, lens_of, seen_through
+from mosaic_cli.video.lens_filter import ImageFilter, filter_frame, filtered
 from mosaic_cli.video.pixels import (
     CONVERTED_HERE,
     PIXELS,
@@ -55,10 +55,8 @@ __all__ = [
     "frame_at",
     "frames_at",
     "gray_at",
-    "image_filter_for",
     "open_video",
     "rgb_from_yuv420p",
-    "seen_through",
     "yuv420p_bytes",
 ]
 
@@ -84,7 +82,6 @@ def open_video(
     yuv420p: bool = False,
     info: VideoInfo | None = None,
     lazy_rgb: bool = False,
-    raw: bool = False,
     lens: ImageFilter | None = None,
 ) -> VideoStream:
     """Open ``path`` (a video file or a folder of numbered images) as a stream of frames.
@@ -95,9 +92,8 @@ def open_video(
     image folder; ``start`` skips frames.  ``info``: the file's :func:`probe`, when the caller
     has it (else it is probed here).  ``lazy_rgb``: full-size RGB frames that are converted here
     come as :class:`YuvFrame`, converted only when their pixels are asked for.  ``lens``: each
-    frame through this filter (``--lens``: :mod:`.lens_filter`); None: through the one
-    :func:`seen_through` set for ``path``, if any (transitional).  ``raw``: the frames as decoded,
-    through no filter (``stabilize --keep-lens`` renders the lens's own frames).
+    frame through this filter (``--lens``: :mod:`.lens_filter`); None: the frames as decoded
+    (``stabilize --keep-lens`` renders the lens's own frames).
     """
     p = Path(path)
     if p.is_dir():
@@ -106,8 +102,7 @@ def open_video(
         stream = open_folder(p, width, fps, gray)
         if start:
             stream._frames = (f for k, f in enumerate(stream._frames) if k >= start)
-        if not raw:
-            stream._frames = filtered(stream._frames, stream.info.size, False, lens_of(p, lens))
+        stream._frames = filtered(stream._frames, stream.info.size, False, lens)
         return stream
     if info is None:
         info = probe(p)
@@ -119,7 +114,7 @@ def open_video(
     decoder = Decoder(info, pixels, size, start=int(start) if start else None, lazy_rgb=lazy_rgb)
 
     def frames() -> Iterator[np.ndarray]:
-        yield from (iter(decoder) if raw else filtered(iter(decoder), size, yuv420p, lens_of(p, lens)))
+        yield from filtered(iter(decoder), size, yuv420p, lens)
         stream.decode_error = decoder.error
 
     stream = VideoStream(info, frames(), decoder.close)
@@ -145,7 +140,7 @@ def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None,
     else:
         request = {"picks": [int(k) for k in indices]}
     with Decoder(info, "rgb", scaled_size(info.source_size, width), **request) as decoder:
-        yield from filtered(iter(decoder), scaled_size(info.source_size, width), False, lens_of(info.path, lens))
+        yield from filtered(iter(decoder), scaled_size(info.source_size, width), False, lens)
 
 
 def frame_at(info: VideoInfo, seconds: float, width: int | None = None, near: bool = False) -> np.ndarray | None:
