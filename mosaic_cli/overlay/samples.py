@@ -40,10 +40,8 @@ class VideoSamples:
     sampled by seeking, so the cost does not grow with the clip's length; a folder's images
     are read only when picked, one at a time.
 
-    ``lens``: ``--lens``'s filter, which the frames picked in one decoder pass (:func:`frames_at`)
-    are read through.  The keyframes, the frames sampled by seeking and a folder's images are
-    read as decoded, as they were when the filter was looked up by the input's path (a gap: the
-    overlays found in them are placed in the distorted frame)."""
+    ``lens``: ``--lens``'s filter, each sample read through it however it is read (the overlays
+    are then found in the undistorted frame the tracking sees)."""
 
     def __init__(self, video: str | Path, count: int, width: int, info: VideoInfo | None = None, lens: ImageFilter | None = None):
         self.video, self.count, self.width = video, count, width
@@ -55,7 +53,7 @@ class VideoSamples:
         info, count, width = self.info, self.count, self.width
         total = info.frame_count
         if info.is_image_folder:
-            return _sample_folder(Path(self.video), count, width)
+            return _sample_folder(Path(self.video), count, width, self.lens)
         if total is None or info.duration <= 0:
             if self._picks is None:
                 self._picks = _picked_by_decoding(_count_frames(info), count)
@@ -67,11 +65,11 @@ class VideoSamples:
         else:
             at_keys = _nearest_keyframes(picks, keys, total / max(1, len(picks)))
             if at_keys is not None:
-                return _keyframes_at(info, at_keys, width)
+                return _keyframes_at(info, at_keys, width, self.lens)
             share = _decoding_share(picks, info)
             seek = _seeking_cost(picks, keys, share) < share * float(picks[-1] + 1)  # against one pass up to the last pick
         if seek:
-            return _sample_by_seeking(count, width, info)
+            return _sample_by_seeking(count, width, info, self.lens)
         return frames_at(info, picks, width, near=_far_apart(picks), lens=self.lens)  # one decoder pass, the picked frames piped
 
 
@@ -97,14 +95,17 @@ def _picked(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
 
 
-def _sample_folder(folder: Path, count: int, width: int) -> Iterator[np.ndarray]:
-    """The picked images, each read at its own size, scaled to ``width`` and yielded before the
-    next is read (a folder of 4000x2250 photos holds one of them at a time)."""
+def _sample_folder(folder: Path, count: int, width: int, lens: ImageFilter | None = None) -> Iterator[np.ndarray]:
+    """The picked images, each read at its own size, scaled to ``width``, through ``lens`` where
+    given, and yielded before the next is read (a folder of 4000x2250 photos holds one of them at
+    a time)."""
     files = folder_images(folder)
     for k in _picked(len(files), count):
         image = read_image_rgb(files[k])
         size = scaled_size((image.shape[1], image.shape[0]), width)
-        yield cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size[0] != image.shape[1] else image
+        if size[0] != image.shape[1]:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        yield image if lens is None else lens(image)
 
 
 def _count_frames(info: VideoInfo) -> int:
@@ -175,9 +176,9 @@ def _seeking_cost(picks: np.ndarray, keys: list[int], share: float = 1.0) -> flo
     return float(share * np.sum(picks - before + 1) + SEEK_START_FRAMES * len(picks))
 
 
-def _keyframes_at(info: VideoInfo, indices: list[int], width: int) -> Iterator[np.ndarray]:
-    """The keyframes at ``indices``, upright, ``width`` wide: a seek and one frame decoded each,
-    in this process."""
+def _keyframes_at(info: VideoInfo, indices: list[int], width: int, lens: ImageFilter | None = None) -> Iterator[np.ndarray]:
+    """The keyframes at ``indices``, upright, ``width`` wide, through ``lens`` where given: a seek
+    and one frame decoded each, in this process."""
     import av  # PyAV, loaded with the first video probed
 
     fps = info.fps if info.fps > 0 else 30.0
@@ -197,12 +198,15 @@ def _keyframes_at(info: VideoInfo, indices: list[int], width: int) -> Iterator[n
             rgb = frame.to_ndarray(format="rgb24")
             if turn is not None:
                 rgb = cv2.rotate(rgb, turn)
-            yield cv2.resize(rgb, size, interpolation=cv2.INTER_AREA) if size != (rgb.shape[1], rgb.shape[0]) else rgb
+            if size != (rgb.shape[1], rgb.shape[0]):
+                rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+            yield rgb if lens is None else lens(rgb)
 
 
-def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.ndarray]:
+def _sample_by_seeking(count: int, width: int, info: VideoInfo, lens: ImageFilter | None = None) -> Iterator[np.ndarray]:
     """One decoder start per picked frame, seeking to it: each decodes from the keyframe
-    before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
+    before it, so the cost is bounded by ``count`` keyframe intervals however long the clip;
+    each through ``lens`` where given."""
     fps = info.fps if info.fps > 0 else 30.0
     picks = _picked(info.frame_count, count)
     near = _far_apart(picks)
@@ -210,7 +214,7 @@ def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.n
         # A seek past the last decodable frame (the container's duration can run a little
         # long) steps back a frame or two.
         for back in (0, 1, 2):
-            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width, near=near)  # the first (reference) frame at or after
+            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width, near=near, lens=lens)  # the first (reference) frame at or after
             if frame is not None:
                 yield frame
                 break
