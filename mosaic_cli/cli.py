@@ -75,19 +75,11 @@ def _fail(message: str, code: int) -> None:
     raise SystemExit(code)
 
 
-def _quiet_libraries() -> None:
-    """OpenCV's warnings (a GeoTIFF's unknown tags, say) are not the user's business: errors only.
-    Nor are the records libraries log through Python's logging, which without a handler go to
-    stderr as bare lines (rasterio logs each GDAL error, libtiff's "File too large" twice, before
-    raising it): the error reaches the user as the run's one line."""
-    import logging
-
+def _quiet_opencv() -> None:
+    """OpenCV's warnings (a GeoTIFF's unknown tags, say) are not the user's business: errors only."""
     import cv2
 
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-    root = logging.getLogger()
-    if not any(isinstance(h, logging.NullHandler) for h in root.handlers):  # (main() runs in-process too)
-        root.addHandler(logging.NullHandler())
 
 
 # Signals end a run by unwinding it as Ctrl-C does, so that every temporary output is removed on
@@ -192,7 +184,7 @@ def main(argv: list[str] | None = None) -> None:
     if DEBUG["on"]:  # accepted anywhere on the line, not only before the command
         argv = ["--debug", *(a for a in argv if a != "--debug")]
     else:
-        _quiet_libraries()
+        _quiet_opencv()
     with _stop_by_unwinding_on_signals():
         _run(argv)
 
