@@ -367,9 +367,9 @@ def test_georeferencing_warnings_are_said_even_when_quiet():
     from mosaic_cli.commands.stitch import _notices
 
     said = "the height and field of view (60.0 deg) make the map +15.6% the size the GPS track does"
-    first = SimpleNamespace(path=Path("map.tif"), georef=SimpleNamespace(warnings=[said]), transforms=[(0, None)], spans=[(0, 89)], size=90, shrunk_from=None)
+    first = SimpleNamespace(path=Path("map.tif"), georef=SimpleNamespace(warnings=[said]), transforms=[(0, None)], spans=[(0, 89)], size=90, shrunk_from=None, off_map=None)
     result = SimpleNamespace(panoramas=[first], georef=first.georef, dropped=[], photos=False, metadata_notes=[])
     assert _notices(Path("v.mp4"), result) == [said]
-    second = SimpleNamespace(path=Path("map-2.tif"), georef=SimpleNamespace(warnings=[]), transforms=[(90, None)], spans=[(90, 120)], size=31, shrunk_from=None)
+    second = SimpleNamespace(path=Path("map-2.tif"), georef=SimpleNamespace(warnings=[]), transforms=[(90, None)], spans=[(90, 120)], size=31, shrunk_from=None, off_map=None)
     result = SimpleNamespace(panoramas=[first, second], georef=first.georef, dropped=[], photos=False, metadata_notes=[])
     assert f"map.tif: {said}" in _notices(Path("v.mp4"), result)

@@ -361,3 +361,25 @@ def test_a_survey_whose_first_photo_is_stored_turned_lands_as_the_plain_one(tmp_
     (placed_plain, scale_plain, north_plain), (placed_turned, scale_turned, north_turned) = scores["plain"], scores["turned"]
     assert placed_turned <= 1.1 * placed_plain + 0.05, scores
     assert abs(scale_turned - scale_plain) < 0.002 and abs(north_turned - north_plain) < 0.1, scores
+
+
+def test_geotagged_photos_that_join_nothing_are_plain_panoramas_each_said_in_one_line(tmp_path, capsys):
+    """Two geotagged photos 300 m apart (a real folder, OpenDroneMap's Lewis, shows the same):
+    each is a part of one photo, and one GPS fix cannot lay a part on the ground (scale and
+    heading need two).  The stitch writes both as plain panoramas, each named in one warning
+    line, where it failed ("the telemetry does not cover the video", exit 2)."""
+    from conftest import textured_image
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k, (seed, lat) in enumerate([(1, 46.5), (2, 46.5027)]):  # 300 m apart: no common ground
+        write_photo(folder / f"IMG_{k:04d}.jpg", textured_image(600, 400, seed=seed), lat, 6.6, 500.0, 40.0, 0.0, 70.0, f"2026:05:01 10:11:{12 + 5 * k}")
+    out = tmp_path / "pano.png"
+    code, err = run_cli(capsys, "stitch", folder, "-o", out, "-q")
+    assert code == 0, err
+    assert out.is_file() and (tmp_path / "pano-2.png").is_file()
+    lines = err.strip().splitlines()
+    for name in ("pano.png", "pano-2.png"):
+        said = [line for line in lines if f"{name}: its 1 photo gives 1 GPS fix" in line]
+        assert len(said) == 1 and said[0].endswith("a plain panorama, not georeferenced"), err
+    assert "does not cover" not in err

@@ -204,10 +204,9 @@ def _notices(videos: list[str] | str | Path, result) -> list[str]:
     several = len(result.panoramas) > 1
     if several:
         lines.append(_split_notice(result.panoramas, names, flights))
-    if several and any(p.georef is not None for p in result.panoramas):
-        for p in result.panoramas:
-            if p.georef is None:
-                lines.append(f"{p.path}: the telemetry gives its keyframes no position: a plain panorama, not georeferenced")
+    for p in result.panoramas:
+        if p.off_map is not None:
+            lines.append(f"{p.path}: {p.off_map}: a plain panorama, not georeferenced")
     for p in result.panoramas:
         if p.georef is not None:
             lines += [f"{p.path}: {w}" if several else w for w in p.georef.warnings]

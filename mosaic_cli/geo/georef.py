@@ -168,6 +168,14 @@ class Georeference:
         )
 
 
+class TooFewFixes(BadInput):
+    """The log places too few of the keyframes to lay them on the ground (``fixes`` of ``keyframes``)."""
+
+    def __init__(self, fixes: int, keyframes: int, message: str):
+        super().__init__(message)
+        self.fixes, self.keyframes = fixes, keyframes
+
+
 def georeference(
     placements: list[np.ndarray],
     ref: int,
@@ -184,7 +192,7 @@ def georeference(
     if not track.has_fix.any():
         raise BadInput(f"{track.source}: no GPS fix in {len(track)} samples (all without coordinates)")
     if fixes.sum() < max(2, options.min_coverage * len(times)):
-        raise BadInput(
+        raise TooFewFixes(int(fixes.sum()), len(times),
             f"{track.source}: the telemetry does not cover the video: fixes span {aligned.span[0]:.1f}-{aligned.span[1]:.1f} s, "
             f"the stitched frames {times[0]:.1f}-{times[-1]:.1f} s ({int(fixes.sum())} of {len(times)} keyframes have a position); "
             f"check --telemetry-offset"

@@ -42,7 +42,7 @@ import numpy as np
 from mosaic_cli.device import check_device, resolve_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator, plan_estimator
-from mosaic_cli.geo.georef import Georeference, GeorefOptions, georeference
+from mosaic_cli.geo.georef import Georeference, GeorefOptions, TooFewFixes, georeference
 from mosaic_cli.geo.output import geotransform, transforms_extra
 from mosaic_cli.geo.stitching import georef_telemetry, gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
@@ -135,6 +135,7 @@ class Panorama:
     filled: int = 0  # --fill-holes: pixels of interior holes inpainted
     shrunk_from: tuple[int, int] | None = None  # the (W, H) it was scaled down from, if it was
     shrunk_by: str | None = None  # what scaled it down: --max-size N, --gsd D, JPEG's limit
+    off_map: str | None = None  # with telemetry, why it is a plain panorama, not laid on the ground
 
     @property
     def size(self) -> int:
@@ -334,10 +335,11 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     for number, (members, placements, ref, segments) in enumerate(groups):
         keyframes = [scan.keyframes[k] for k in members]
         indices = [k.index for k in keyframes]
-        georef = None
+        georef, off_map = None, None
         if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
             clock = time.perf_counter()
-            georef = _georeference(placements, ref, indices, scan, track, options.georef, first=0 in members)
+            # a video's first part must be laid on the ground; a photo folder's may be one photo
+            georef, off_map = _georeference(placements, ref, indices, scan, track, options.georef, first=0 in members and not scan.photos)
             if georef is not None:
                 placements = georef.placements_in_pixels(placements)
             seconds["register"] += time.perf_counter() - clock
@@ -384,7 +386,7 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
             bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
         shrunk_from = canvas.native_size if canvas.scale < 1.0 else None
         panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands, filled,
-                                  shrunk_from, canvas.shrunk_by))
+                                  shrunk_from, canvas.shrunk_by, off_map))
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
@@ -399,7 +401,7 @@ def _on_one_map(groups, scan: FlightScan, track: FlightLog, options: StitchOptio
     mosaic frame), drawn as one part; parts the log does not cover stay apart."""
     fitted = []
     for members, placements, ref, _ in groups:
-        fitted.append(_georeference(placements, ref, [scan.keyframes[k].index for k in members], scan, track, options.georef, first=False))
+        fitted.append(_georeference(placements, ref, [scan.keyframes[k].index for k in members], scan, track, options.georef, first=False)[0])
     on_ground = [(group, georef) for group, georef in zip(groups, fitted) if georef is not None]
     if len(on_ground) < 2:
         return groups
@@ -466,17 +468,21 @@ def _runs(indices: list[int]) -> list[tuple[int, int]]:
 
 
 def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, track: FlightLog, options: GeorefOptions | None,
-                  first: bool) -> Georeference | None:
-    """One panorama laid on the ground.  The panorama of the flight's first keyframe must be
-    (the log was checked to cover the video: what is wrong is said); a panorama of a later
-    segment whose keyframes the log does not cover stays a plain one (None)."""
+                  first: bool) -> tuple[Georeference | None, str | None]:
+    """One panorama laid on the ground, or None and why not.  ``first``: it must be (a video's
+    first part: the log was checked to cover the video, what is wrong is said); else a part
+    whose keyframes the log does not place stays a plain panorama: a later segment of a video,
+    or photos that join no others with fewer than two GPS fixes among them."""
     assert options is not None
     try:
-        return georeference(placements, ref, indices, scan.source_size, scan.fps, track, options)
-    except BadInput:
+        return georeference(placements, ref, indices, scan.source_size, scan.fps, track, options), None
+    except BadInput as exc:
         if first:
             raise
-        return None
+        if scan.photos and isinstance(exc, TooFewFixes):
+            photos = f"{exc.keyframes} photo{'s' if exc.keyframes > 1 else ''}"
+            return None, f"its {photos} give{'s' if exc.keyframes == 1 else ''} {exc.fixes} GPS fix{'es' if exc.fixes != 1 else ''}, and laying photos on the ground takes two"
+        return None, "the telemetry gives its keyframes no position"
 
 
 def _check_inputs(video, out, transforms, options: StitchOptions, info: VideoInfo | None = None) -> tuple[VideoInfo, str | int]:
