@@ -103,7 +103,7 @@ def _track_stream(video: str, out: str, options: TrackOptions, build: Callable[[
         masked, est = frame_mask_while(build, video, options.mask, info, show_progress=show_progress, lens=lens_choice.image_filter)
         est.set_mask(masked.use)
         tracker = est
-    overlay_seconds = time.perf_counter() - clock
+    overlay_seconds = time.perf_counter() - clock - lens_choice.seconds  # (--lens auto's fit said apart)
     result = track_stream(video, tracker, out, timeout=options.timeout, max_frames=options.max_frames, show_progress=show_progress,
                           mask=options.mask if live else None, info=info, width=width, lens=lens_choice.image_filter)
     if masked is not None:
@@ -127,9 +127,10 @@ def _track_file(video: str, out: str, options: TrackOptions, build: Callable[[],
                                  rolling_shutter=options.rolling_shutter, mask=pending, lens=lens_choice.image_filter)
     masked = pending.result()
     # The "overlays" figure: the time before the tracking could start (the build, the
-    # detection beside it), and the time the tracking then lost to the detection (its end
-    # waiting for it, a pass discarded for an overlay found); "track" is the kept pass.
-    overlay_seconds = built + result.meta["overlay_wait_seconds"] + result.meta["overlay_lost_seconds"]
+    # detection beside it; not --lens auto's fit, said apart), and the time the tracking then
+    # lost to the detection (its end waiting for it, a pass discarded for an overlay found);
+    # "track" is the kept pass.
+    overlay_seconds = built - lens_choice.seconds + result.meta["overlay_wait_seconds"] + result.meta["overlay_lost_seconds"]
     result.meta["mask"] = masked.to_json()
     result.meta["lens"] = lens_choice.to_meta()  # the pairs are the undistorted frames' (its camera: docs/guide/track.md)
     save_track(result, out)

@@ -104,6 +104,7 @@ def track(
 
             console.print(f"{result.frames} frames, {result.meta['ms_per_frame']:.1f} ms/frame, "
                           f"median confidence {float(np.median(result.confidence)):.2f} -> {where} "
-                          f"(overlays {overlay_seconds:.1f} s, track {result.meta['seconds']:.1f} s)")
+                          f"({f'lens {lens_choice.seconds:.1f} s, ' if lens_choice.seconds else ''}"
+                          f"overlays {overlay_seconds:.1f} s, track {result.meta['seconds']:.1f} s)")
             if "lens" in result.meta and result.meta["lens"]["source"] != "none":
                 console.print(lens_choice.describe())
