@@ -93,33 +93,28 @@ def test_a_mask_drawn_over_a_burned_in_logo_covers_it_in_the_undistorted_frames(
     assert np.count_nonzero(use == 0) < 1.3 * np.count_nonzero(cv2.dilate(shown.astype(np.uint8), np.ones((5, 5), np.uint8)))
 
 
-@pytest.mark.parametrize("way", ["decoded", "sought", "keyframes", "folder"])
-def test_the_overlay_samples_are_undistorted_whichever_way_they_are_read(burned_in, tmp_path, monkeypatch, way):
-    """The overlay detector's samples are the undistorted frames the tracking sees (its mask is
-    the undistorted frame's), however overlay/samples.py reads them: one decoder pass, a seek
-    per sample, the keyframes, or a folder's images."""
-    import mosaic_cli.overlay.samples as samples
+def test_overlays_found_by_the_detector_are_masked_whole_in_the_undistorted_frames(tmp_path):
+    """The detector looks for overlays in the frames as decoded, where they were burned in, and
+    the mask it finds is carried into the undistorted frame (as a ``--mask`` file's): every
+    pixel of the logo is masked in the frames the tracking and the panorama see.  Looked for in
+    the undistorted frames, the logo near a corner (stretched and resampled) came out with part
+    of it unmasked, and a stitch drew it."""
     from mosaic_cli.geometry.lens import Undistortion
-    from mosaic_cli.overlay import sample_frames
+    from mosaic_cli.overlay import MaskOptions, frame_mask
     from mosaic_cli.video import open_video, probe
 
-    clip, _, _ = burned_in
-    source = clip
-    if way == "sought":  # as if the clip were long and its keyframes unknown
-        monkeypatch.setattr(samples, "DECODE_ALL_BELOW", 1)
-        monkeypatch.setattr(samples, "keyframe_indices", lambda info: None)
-    elif way == "keyframes":  # as if every frame were one
-        monkeypatch.setattr(samples, "keyframe_indices", lambda info: list(range(6)))
-    elif way == "folder":
-        source = tmp_path / "frames"
-        source.mkdir()
-        with open_video(clip) as stream:
-            for k, frame in enumerate(stream):
-                cv2.imwrite(str(source / f"{k:04d}.png"), cv2.cvtColor(np.asarray(frame), cv2.COLOR_RGB2BGR))
-    info = probe(source)
-    undistort = Undistortion(LENS)
-    raw = sample_frames(source, 4, 240, info)
-    seen = sample_frames(source, 4, 240, info, lens=undistort)
-    assert len(raw) == len(seen) == 4 and seen[0].shape == (135, 240, 3)
-    assert all(np.array_equal(s, undistort(r)) for r, s in zip(raw, seen))
-    assert not np.array_equal(seen[0], raw[0])
+    frames = []
+    for k in range(48):  # gray ground that changes under a logo that does not
+        frame = np.repeat(cv2.cvtColor(textured_image(*SIZE, seed=100 + k), cv2.COLOR_RGB2GRAY)[..., None], 3, axis=2)
+        cv2.rectangle(frame, LOGO[:2], LOGO[2:], MAGENTA, -1)
+        frames.append(frame)
+    clip = write_clip(tmp_path / "logo.mp4", frames)
+    info, undistort = probe(clip), Undistortion(LENS)
+    found = frame_mask(clip, MaskOptions(), info, lens=undistort)
+    assert found.detection is not None and found.use is not None
+    with open_video(clip, info=info, lens=undistort) as stream:
+        shown = np.any([logo_pixels(np.asarray(f)) for f in stream], axis=0)
+    assert shown.sum() > 3000  # the logo, undistorted
+    assert np.count_nonzero(found.use[shown]) == 0, int(np.count_nonzero(found.use[shown]))
+    # and the ground is kept: the mask is the logo and a rim about it
+    assert np.count_nonzero(found.use == 0) < 2.0 * np.count_nonzero(cv2.dilate(shown.astype(np.uint8), np.ones((5, 5), np.uint8)))

@@ -13,7 +13,6 @@ import numpy as np
 from mosaic_cli.overlay.detect import OverlayOptions
 from mosaic_cli.video import VideoInfo, probe
 from mosaic_cli.video.decode import REFERENCE_SKIPPING_CODECS
-from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import Decoder, folder_images, frame_at, frames_at, read_image_rgb, scaled_size
 
 # What a picked frame costs, in frames decoded: a clip is sampled at its keyframes where they
@@ -38,26 +37,22 @@ class VideoSamples:
     Short clips are decoded once per iteration, piping only the picked frames (H.264 and HEVC:
     the first reference frame at or after each, the others not decoded); long ones are
     sampled by seeking, so the cost does not grow with the clip's length; a folder's images
-    are read only when picked, one at a time.
+    are read only when picked, one at a time."""
 
-    ``lens``: ``--lens``'s filter, each sample read through it however it is read (the overlays
-    are then found in the undistorted frame the tracking sees)."""
-
-    def __init__(self, video: str | Path, count: int, width: int, info: VideoInfo | None = None, lens: ImageFilter | None = None):
+    def __init__(self, video: str | Path, count: int, width: int, info: VideoInfo | None = None):
         self.video, self.count, self.width = video, count, width
         self.info = info or probe(video)
-        self.lens = lens
         self._picks: list[int] | None = None  # a clip of unknown length: its picked frames, once counted
 
     def __iter__(self) -> Iterator[np.ndarray]:
         info, count, width = self.info, self.count, self.width
         total = info.frame_count
         if info.is_image_folder:
-            return _sample_folder(Path(self.video), count, width, self.lens)
+            return _sample_folder(Path(self.video), count, width)
         if total is None or info.duration <= 0:
             if self._picks is None:
                 self._picks = _picked_by_decoding(_count_frames(info), count)
-            return frames_at(info, self._picks, width, near=_far_apart(self._picks), lens=self.lens)
+            return frames_at(info, self._picks, width, near=_far_apart(self._picks))
         picks = _picked(total, count)
         keys = keyframe_indices(info)
         if keys is None:
@@ -65,20 +60,19 @@ class VideoSamples:
         else:
             at_keys = _nearest_keyframes(picks, keys, total / max(1, len(picks)))
             if at_keys is not None:
-                return _keyframes_at(info, at_keys, width, self.lens)
+                return _keyframes_at(info, at_keys, width)
             share = _decoding_share(picks, info)
             seek = _seeking_cost(picks, keys, share) < share * float(picks[-1] + 1)  # against one pass up to the last pick
         if seek:
-            return _sample_by_seeking(count, width, info, self.lens)
-        return frames_at(info, picks, width, near=_far_apart(picks), lens=self.lens)  # one decoder pass, the picked frames piped
+            return _sample_by_seeking(count, width, info)
+        return frames_at(info, picks, width, near=_far_apart(picks))  # one decoder pass, the picked frames piped
 
 
-def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None,
-                  lens: ImageFilter | None = None) -> list[np.ndarray]:
+def sample_frames(video: str | Path, count: int, width: int, info: VideoInfo | None = None) -> list[np.ndarray]:
     """The frames of :class:`VideoSamples`, all held (tests and benchmarks: :func:`frame_mask`
     reads them twice instead, one at a time).  A folder of photos of several sizes gives none
     (the reader refuses it anyway)."""
-    frames = list(VideoSamples(video, count, width, info, lens))
+    frames = list(VideoSamples(video, count, width, info))
     return frames if len({f.shape for f in frames}) <= 1 else []
 
 
@@ -95,17 +89,14 @@ def _picked(total: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, max(0, total - 1), min(count, total)).round().astype(int))
 
 
-def _sample_folder(folder: Path, count: int, width: int, lens: ImageFilter | None = None) -> Iterator[np.ndarray]:
-    """The picked images, each read at its own size, scaled to ``width``, through ``lens`` where
-    given, and yielded before the next is read (a folder of 4000x2250 photos holds one of them at
-    a time)."""
+def _sample_folder(folder: Path, count: int, width: int) -> Iterator[np.ndarray]:
+    """The picked images, each read at its own size, scaled to ``width`` and yielded before the
+    next is read (a folder of 4000x2250 photos holds one of them at a time)."""
     files = folder_images(folder)
     for k in _picked(len(files), count):
         image = read_image_rgb(files[k])
         size = scaled_size((image.shape[1], image.shape[0]), width)
-        if size[0] != image.shape[1]:
-            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        yield image if lens is None else lens(image)
+        yield cv2.resize(image, size, interpolation=cv2.INTER_AREA) if size[0] != image.shape[1] else image
 
 
 def _count_frames(info: VideoInfo) -> int:
@@ -176,9 +167,9 @@ def _seeking_cost(picks: np.ndarray, keys: list[int], share: float = 1.0) -> flo
     return float(share * np.sum(picks - before + 1) + SEEK_START_FRAMES * len(picks))
 
 
-def _keyframes_at(info: VideoInfo, indices: list[int], width: int, lens: ImageFilter | None = None) -> Iterator[np.ndarray]:
-    """The keyframes at ``indices``, upright, ``width`` wide, through ``lens`` where given: a seek
-    and one frame decoded each, in this process."""
+def _keyframes_at(info: VideoInfo, indices: list[int], width: int) -> Iterator[np.ndarray]:
+    """The keyframes at ``indices``, upright, ``width`` wide: a seek and one frame decoded each,
+    in this process."""
     import av  # PyAV, loaded with the first video probed
 
     fps = info.fps if info.fps > 0 else 30.0
@@ -198,15 +189,12 @@ def _keyframes_at(info: VideoInfo, indices: list[int], width: int, lens: ImageFi
             rgb = frame.to_ndarray(format="rgb24")
             if turn is not None:
                 rgb = cv2.rotate(rgb, turn)
-            if size != (rgb.shape[1], rgb.shape[0]):
-                rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-            yield rgb if lens is None else lens(rgb)
+            yield cv2.resize(rgb, size, interpolation=cv2.INTER_AREA) if size != (rgb.shape[1], rgb.shape[0]) else rgb
 
 
-def _sample_by_seeking(count: int, width: int, info: VideoInfo, lens: ImageFilter | None = None) -> Iterator[np.ndarray]:
+def _sample_by_seeking(count: int, width: int, info: VideoInfo) -> Iterator[np.ndarray]:
     """One decoder start per picked frame, seeking to it: each decodes from the keyframe
-    before it, so the cost is bounded by ``count`` keyframe intervals however long the clip;
-    each through ``lens`` where given."""
+    before it, so the cost is bounded by ``count`` keyframe intervals however long the clip."""
     fps = info.fps if info.fps > 0 else 30.0
     picks = _picked(info.frame_count, count)
     near = _far_apart(picks)
@@ -214,7 +202,7 @@ def _sample_by_seeking(count: int, width: int, info: VideoInfo, lens: ImageFilte
         # A seek past the last decodable frame (the container's duration can run a little
         # long) steps back a frame or two.
         for back in (0, 1, 2):
-            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width, near=near, lens=lens)  # the first (reference) frame at or after
+            frame = frame_at(info, max(0.0, (index - back - 0.25) / fps), width, near=near)  # the first (reference) frame at or after
             if frame is not None:
                 yield frame
                 break

@@ -143,12 +143,10 @@ def frames_at(info: VideoInfo, indices: Sequence[int], width: int | None = None,
         yield from filtered(iter(decoder), scaled_size(info.source_size, width), False, lens)
 
 
-def frame_at(info: VideoInfo, seconds: float, width: int | None = None, near: bool = False, *,
-             lens: ImageFilter | None = None) -> np.ndarray | None:
+def frame_at(info: VideoInfo, seconds: float, width: int | None = None, near: bool = False) -> np.ndarray | None:
     """The first RGB frame at or after ``seconds`` (ffmpeg seeks to the keyframe before it and
     decodes from there), None when there is none; ``near``: the first reference frame, the
-    others not decoded on the way (as :func:`frames_at`).  ``lens``: as :func:`open_video`'s."""
+    others not decoded on the way (as :func:`frames_at`)."""
     references_only = near and info.video_codec in REFERENCE_SKIPPING_CODECS
     with Decoder(info, "rgb", scaled_size(info.source_size, width), seek=seconds, frames=1, references_only=references_only) as decoder:
-        frame = next(iter(decoder), None)
-    return frame if frame is None or lens is None else filter_frame(frame, scaled_size(info.source_size, width), False, lens)
+        return next(iter(decoder), None)
