@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import inspect
 import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import typer
 
@@ -246,5 +248,17 @@ COMMANDS = {
     "track": track.track,
     "train": train.train,
 }
+
+
+def _help_of(command: Callable[..., Any]) -> str:
+    """A command's docstring as its ``--help`` shows it: each paragraph one flowing line, which
+    rich wraps to the terminal (the docstring's own line ends, kept, broke lines mid-sentence),
+    and brackets escaped (rich read ``pairwise[t]`` as markup and dropped the ``[t]``)."""
+    from rich.markup import escape
+
+    paragraphs = inspect.cleandoc(command.__doc__ or "").split("\n\n")
+    return "\n\n".join(escape(" ".join(paragraph.split())) for paragraph in paragraphs)
+
+
 for _name, _command in COMMANDS.items():
-    app.command(_name)(_command)
+    app.command(_name, help=_help_of(_command))(_command)

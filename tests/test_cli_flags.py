@@ -36,6 +36,23 @@ def test_quiet_is_a_flag_in_every_command(capsys, command):
     assert code == 2 and err.startswith("mosaic: error: ")
 
 
+@pytest.mark.parametrize("command", COMMANDS)
+def test_each_commands_description_reads_as_its_docstring_says_it(command):
+    """On a terminal wide enough (4000 columns), each paragraph of a command's docstring is one line of its
+    ``--help``, words and brackets kept (``pairwise[t]``): not the docstring's own line ends
+    (which broke its lines mid-sentence at 80 columns) nor rich's markup eating ``[t]``."""
+    import inspect
+
+    from mosaic_cli.cli import COMMANDS as FUNCTIONS
+
+    run = subprocess.run([sys.executable, "-m", "mosaic_cli", command, "--help"], capture_output=True, text=True,
+                         env={"COLUMNS": "4000", "PATH": "/usr/bin:/bin", "PYTHONPATH": ":".join(sys.path), "TERM": "dumb"})
+    assert run.returncode == 0, run.stderr
+    shown = [line.strip() for line in run.stdout.splitlines()]
+    for paragraph in inspect.cleandoc(FUNCTIONS[command].__doc__).split("\n\n"):
+        assert " ".join(paragraph.split()) in shown, paragraph
+
+
 @pytest.mark.parametrize("name", ["orb", "orb-ransac", "orb-paper", "identity"])
 def test_weights_with_a_classical_estimator_is_one_line_error(tmp_path, capsys, tiny_clip, name):
     weights = tmp_path / "w.safetensors"
