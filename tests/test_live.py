@@ -231,6 +231,45 @@ def test_sigterm_to_the_process_group_ends_a_live_stabilize_with_its_network_pro
     assert processes_in_session(proc.pid) == [], "a process of the run outlived it"
 
 
+class _Unwound(Exception):
+    """What the command line's own handler does to a run a signal reaches (it raises KeyboardInterrupt)."""
+
+
+def test_a_signal_while_the_decoder_starts_asks_the_stream_to_end():
+    """A signal that comes once the decoder listens, while ``on_started`` runs (stabilize
+    imports its solver there, holding the interpreter for half a second), asks the stream to
+    end as one a moment later would: the run's own handler is not the one that meets it (which
+    unwound the run with a bare "terminated", seen once in CI)."""
+    from mosaic_cli.errors import Interrupted
+    from mosaic_cli.live.source import LiveStream
+
+    def unwind(signum, frame):
+        raise _Unwound
+
+    port = free_port(socket.SOCK_STREAM)
+    previous = signal.signal(signal.SIGTERM, unwind)
+    try:
+        with pytest.raises(Interrupted, match=r"stopped \(SIGTERM\) before any video arrived"):
+            LiveStream(f"tcp://127.0.0.1:{port}?listen=1", "gray", timeout=10, on_started=lambda: os.kill(os.getpid(), signal.SIGTERM))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+    def fails():
+        raise RuntimeError("on_started failed")
+
+    port = free_port(socket.SOCK_STREAM)  # whatever ends the start, the listening decoder goes with it
+    with pytest.raises(RuntimeError, match="on_started failed"):
+        LiveStream(f"tcp://127.0.0.1:{port}?listen=1", "gray", timeout=10, on_started=fails)
+    assert not [p for p in Path("/proc").glob("[0-9]*") if f"127.0.0.1:{port}" in _cmdline(p)], "the decoder outlived the stream"
+
+
+def _cmdline(process: Path) -> str:
+    try:
+        return (process / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
 @pytest.mark.parametrize("command", ["track", "stitch", "stabilize"])

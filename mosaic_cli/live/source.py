@@ -156,15 +156,24 @@ class LiveStream:
         self._rgb_here = pixels == "rgb" and (info is None or info.pixel_format in CONVERTED_HERE)
         # --lens FILE: each frame undistorted at its full size as it arrives, on the reader thread
         self._filter = lens
+        if self._own_stop:
+            # Before the decoder starts: a signal from then on asks the stream to end, also one
+            # that comes while ``on_started`` runs (stabilize imports its solver there, 0.5 s).
+            self.stop.install()
         try:
             self._proc = self._start()
-        finally:
+        except BaseException:
+            if self._own_stop:
+                self.stop.restore()
+            if on_started is not None:  # what waited for the decoder's start may go: it will not come
+                on_started()
+            raise
+        try:
             if on_started is not None:  # the decoder is up (listening, for a server URL): what waited for it may go
                 on_started()
-        try:
             self.info = self._wait_for_header(width)
         except BaseException:
-            self.close()
+            self.close()  # the decoder with it, whatever ended the wait (it runs in a session of its own)
             raise
 
     # -- the decoder --------------------------------------------------------------------
@@ -245,8 +254,6 @@ class LiveStream:
         if self._probed is not None:
             return self._begin(self._probed.source_size, self._probed.fps, self._probed.audio_codec, width)
         deadline = time.monotonic() + (self.timeout if self.live else 3600.0)
-        if self._own_stop:
-            self.stop.install()
         while not self._header.wait(0.05):
             if self.stop.requested:
                 raise Interrupted(f"{source_name(self.source)}: stopped ({self.stop.reason}) before any video arrived",
