@@ -248,14 +248,16 @@ def _fetched_by_a_worker(spilled: list) -> dict[str, list[float]]:
     return {"loaded by a worker, sent back": seconds}
 
 
-# The writer of a map under the command line's handling of signals (cli.main's): a signal
-# unwinds the run, which says so in one line and exits 128 + the signal.  Arguments: the format
-# ("cog" or "png"), the staged map, the output, the map's side in pixels.
+# The writer of a map under the command line's handling of signals and errors (cli.main's): a
+# signal unwinds the run, which says so in one line and exits 128 + the signal; mosaic's own
+# errors are one line and exit 1.  Arguments: the format ("cog" or "png"), the staged map, the
+# output, the map's side in pixels.
 WRITE_UNDER_SIGNALS = """
 import sys
 from pathlib import Path
 
 from mosaic_cli import cli
+from mosaic_cli.errors import MosaicError
 
 fmt, staged, out, side = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
 with cli._stop_by_unwinding_on_signals():
@@ -273,6 +275,8 @@ with cli._stop_by_unwinding_on_signals():
             write_image(out, panorama, fmt)
     except KeyboardInterrupt:
         cli._fail_stopped()
+    except MosaicError as exc:
+        sys.exit(f"mosaic: error: {exc}")
 """
 
 

@@ -209,30 +209,6 @@ def test_a_stitch_that_cannot_keep_its_keyframes_on_disk_says_where_in_one_line(
     assert list(out.iterdir()) == [] and not list(tmp_path.glob("mosaic-stitch-*"))
 
 
-WRITE_REPORTING_ERRORS = """
-import sys
-from pathlib import Path
-
-from mosaic_cli.errors import MosaicError
-
-fmt, staged, out, side = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
-try:
-    if fmt == "cog":
-        from mosaic_cli.geo.output import write_cog
-
-        write_cog(out, staged, (side, side))
-    else:
-        from mosaic_cli.stitch.raster import StagedPanorama, write_image
-
-        panorama = StagedPanorama.__new__(StagedPanorama)
-        panorama.path, panorama.size = staged, (side, side)
-        panorama.close = lambda: None
-        write_image(out, panorama, fmt)
-except MosaicError as exc:
-    sys.exit(f"mosaic: error: {exc}")
-"""
-
-
 @pytest.mark.parametrize("fmt, name", [("cog", "map.tif"), ("png", "map.png")])
 def test_a_map_gdal_cannot_finish_writing_is_a_line_naming_it_and_leaves_nothing(tmp_path, fmt, name):
     """GDAL failing in the middle of a map (its files held to 1 MB, as a full disk stops them):
@@ -245,7 +221,7 @@ def test_a_map_gdal_cannot_finish_writing_is_a_line_naming_it_and_leaves_nothing
     write_noise_map(staged, 1500)  # 9 MB of noise
     out = tmp_path / "out"
     out.mkdir()
-    run = subprocess.run([sys.executable, "-c", WRITE_REPORTING_ERRORS, fmt, str(staged), str(out / name), "1500"],
+    run = subprocess.run([sys.executable, "-c", WRITE_UNDER_SIGNALS, fmt, str(staged), str(out / name), "1500"],
                          capture_output=True, text=True, preexec_fn=_file_size_limit(1_000_000), timeout=300)
     assert run.returncode == 1, run.stderr
     assert run.stderr.strip().splitlines()[-1].startswith(f"mosaic: error: {out / name}: could not write the "), run.stderr
