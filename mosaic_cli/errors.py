@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
 EXIT_INTERRUPTED = 130
@@ -85,18 +88,23 @@ def disk_reason(folder, detail: str) -> str:
     return f"the disk holding {folder} is full" if free < FULL_DISK_BYTES else detail
 
 
-def gdal_failed(out, what: str, exc: Exception) -> ProcessingError:
-    """One line for GDAL failing to write ``what`` for ``out`` (rasterio raises its own errors
-    and GDAL's ``CPLE_*``, which are not among them): the disk named where it is full."""
+def write_failed(out, what: str, detail: str) -> ProcessingError:
+    """One line for a failed write of ``what`` for ``out`` (``detail``: the library's words), the
+    disk named where it is full."""
     import os
 
     folder = os.path.dirname(os.fspath(out)) or "."
-    return ProcessingError(f"{out}: could not write {what} ({disk_reason(folder, str(exc))})")
+    return ProcessingError(f"{out}: could not write {what} ({disk_reason(folder, detail)})")
 
 
-def gdal_errors() -> tuple[type[Exception], ...]:
-    """The exceptions rasterio raises when GDAL fails: its own and GDAL's ``CPLE_*``."""
+@contextlib.contextmanager
+def gdal_writing(out, what: str) -> Iterator[None]:
+    """GDAL failing inside the block as one :func:`write_failed` line for ``out``: rasterio
+    raises its own errors and GDAL's ``CPLE_*``, which are not among them."""
     import rasterio.errors
     from rasterio._err import CPLE_BaseError  # (not exported by rasterio.errors)
 
-    return rasterio.errors.RasterioError, CPLE_BaseError
+    try:
+        yield
+    except (rasterio.errors.RasterioError, CPLE_BaseError) as exc:
+        raise write_failed(out, what, str(exc)) from None

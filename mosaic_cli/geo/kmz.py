@@ -12,7 +12,7 @@ from pathlib import Path
 from xml.etree import ElementTree as ET
 
 from mosaic_cli.atomic import atomic_path, interruptible, signals_held, temporary_beside
-from mosaic_cli.errors import ProcessingError, gdal_errors, gdal_failed
+from mosaic_cli.errors import ProcessingError, gdal_writing
 
 KML_NS = "http://www.opengis.net/kml/2.2"
 
@@ -111,10 +111,8 @@ def write_kmz(out: str | Path, geotiff: str | Path, features: dict) -> None:
         with signals_held():
             staging = temporary_beside(out, ".staging.kmz")
         staging.unlink()  # GDAL makes the archive
-        try:
+        with gdal_writing(out, "the KML super-overlay"):
             interruptible(lambda: copy(str(geotiff), str(staging), driver="KMLSUPEROVERLAY", FORMAT="AUTO"))
-        except gdal_errors() as exc:
-            raise gdal_failed(out, "the KML super-overlay", exc) from None
         with atomic_path(out) as tmp, zipfile.ZipFile(staging) as src, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as dst:
             # doc.kml first: Google Earth opens the first .kml of the archive
             dst.writestr("doc.kml", add_layers(src.read("doc.kml"), features, out.stem))

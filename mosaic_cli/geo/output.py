@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, interruptible
-from mosaic_cli.errors import gdal_errors, gdal_failed, require_geo
+from mosaic_cli.errors import gdal_writing, require_geo
 from mosaic_cli.geo.georef import Georeference
 from mosaic_cli.geometry import frame_corners, normalize, project, rect_corners
 
@@ -44,11 +44,9 @@ def write_cog(out: str | Path, raster: Path, size: tuple[int, int], for_output: 
     levels = max(1, sum(1 for k in range(1, 32) if max(width, height) / 2 ** (k - 1) > BLOCK))
     options = dict(COMPRESS="DEFLATE", BLOCKSIZE=str(BLOCK), OVERVIEW_RESAMPLING="AVERAGE", OVERVIEW_COUNT=str(levels),
                    BIGTIFF="IF_SAFER")
-    try:
-        with atomic_path(out, alone=True) as tmp:
-            interruptible(lambda: copy(str(raster), str(tmp), driver="COG", **options))
-    except gdal_errors() as exc:
-        raise gdal_failed(for_output or out, "the GeoTIFF" if for_output is None else "the map's overviews", exc) from None
+    with gdal_writing(for_output or out, "the GeoTIFF" if for_output is None else "the map's overviews"), \
+            atomic_path(out, alone=True) as tmp:
+        interruptible(lambda: copy(str(raster), str(tmp), driver="COG", **options))
 
 
 def footprint_collection(georef: Georeference, map_h: list[np.ndarray], frame_size: tuple[int, int], fps: float,

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, give_default_permissions, signals_held
-from mosaic_cli.errors import BadInput, ProcessingError, disk_reason, warn
+from mosaic_cli.errors import BadInput, ProcessingError, warn, write_failed
 
 TILE = 256
 METADATA = "metadata.json"  # a TileJSON beside the tiles; also how a folder mosaic wrote is known again
@@ -256,6 +256,6 @@ def write_mbtiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
             db.execute("CREATE UNIQUE INDEX tile_index ON tiles (zoom_level, tile_column, tile_row)")
             db.commit()
     except sqlite3.Error as exc:  # SQLite's own words: "database or disk is full"
-        raise ProcessingError(f"{out}: could not write the MBTiles ({disk_reason(Path(out).parent, str(exc))})") from None
+        raise write_failed(out, "the MBTiles", str(exc)) from None
     return zooms
 

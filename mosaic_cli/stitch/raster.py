@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mosaic_cli.atomic import atomic_path, give_default_permissions, interruptible, signals_held, temporary_beside
-from mosaic_cli.errors import BadInput, ProcessingError, gdal_errors, gdal_failed
+from mosaic_cli.errors import BadInput, ProcessingError, gdal_writing
 from mosaic_cli.inputs import MAP_FORMATS
 from mosaic_cli.stitch.compose import MemoryCanvas
 from mosaic_cli.stitch.output import JPEG_MAX_SIDE
@@ -47,19 +47,15 @@ class StagedPanorama:
                        blockysize=BLOCK, photometric="RGB", ALPHA="YES", BIGTIFF="IF_SAFER", **compression)
         if crs is not None:
             profile.update(crs=crs, transform=transform)
-        try:
+        with gdal_writing(self.out, "the panorama"):
             self.dataset = rasterio.open(path, "w+", **profile)  # readable too: --fill-holes reads it back
             self.dataset.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-        except gdal_errors() as exc:
-            raise gdal_failed(self.out, "the panorama", exc) from None
 
     def write(self, x: int, y: int, rgba: np.ndarray) -> None:
         from rasterio.windows import Window
 
-        try:
+        with gdal_writing(self.out, "the panorama"):
             self.dataset.write(np.ascontiguousarray(rgba.transpose(2, 0, 1)), window=Window(x, y, rgba.shape[1], rgba.shape[0]))
-        except gdal_errors() as exc:
-            raise gdal_failed(self.out, "the panorama", exc) from None
 
     def read(self) -> np.ndarray:
         """The whole panorama, RGBA (H, W, 4) (``--fill-holes`` only: it needs the canvas at once)."""
@@ -67,10 +63,8 @@ class StagedPanorama:
 
     def close(self) -> None:
         if not self.dataset.closed:
-            try:
+            with gdal_writing(self.out, "the panorama"):
                 self.dataset.close()  # (the last blocks written here)
-            except gdal_errors() as exc:
-                raise gdal_failed(self.out, "the panorama", exc) from None
 
 
 class MemoryPanorama(MemoryCanvas):
@@ -142,12 +136,10 @@ def write_image(out: str | Path, staged: StagedPanorama | MemoryPanorama, fmt: s
             os.replace(staged.path, target)
         return
     options = {"QUALITY": str(jpeg_quality)} if fmt == "jpeg" else {"ZLEVEL": "3"}
-    try:
-        with atomic_path(out) as tmp, rasterio.Env(GDAL_CACHEMAX=CACHE_MB << 20, GDAL_PAM_ENABLED="NO"), _plain_is_fine():
-            source = _rgb_only(staged.path) if fmt == "jpeg" else str(staged.path)
-            interruptible(lambda: rasterio.shutil.copy(source, tmp, driver="JPEG" if fmt == "jpeg" else "PNG", **options))
-    except gdal_errors() as exc:
-        raise gdal_failed(out, f"the {fmt.upper()} image", exc) from None
+    with gdal_writing(out, f"the {fmt.upper()} image"), atomic_path(out) as tmp, \
+            rasterio.Env(GDAL_CACHEMAX=CACHE_MB << 20, GDAL_PAM_ENABLED="NO"), _plain_is_fine():
+        source = _rgb_only(staged.path) if fmt == "jpeg" else str(staged.path)
+        interruptible(lambda: rasterio.shutil.copy(source, tmp, driver="JPEG" if fmt == "jpeg" else "PNG", **options))
 
 
 def _write_with_opencv(out: str | Path, rgba: np.ndarray, fmt: str, jpeg_quality: int) -> None:
