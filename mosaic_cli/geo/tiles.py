@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosaic_cli.atomic import atomic_path, give_default_permissions, signals_held
+from mosaic_cli.atomic import atomic_path, give_default_permissions, private_folder
 from mosaic_cli.errors import BadInput, ProcessingError, warn, write_failed
 
 TILE = 256
@@ -157,10 +157,7 @@ def write_tiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
     out = Path(out)
     check_tiles_folder(out)
     zooms = zoom_range(geotiff)
-    staging = None
-    try:
-        with signals_held():
-            staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent if str(out.parent) else "."))
+    with private_folder(out) as staging:  # renamed onto out once whole, else removed
         for z, x, y, rgba in render_tiles(geotiff, zooms):
             folder = staging / str(z) / str(x)
             folder.mkdir(parents=True, exist_ok=True)
@@ -175,10 +172,6 @@ def write_tiles(out: str | Path, geotiff: str | Path) -> ZoomRange:
                 give_default_permissions(Path(root) / f)
         os.chmod(staging, 0o777 & ~umask)
         _swap_in(staging, out)
-        staging = None
-    finally:
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
     return zooms
 
 
