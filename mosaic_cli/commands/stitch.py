@@ -145,7 +145,7 @@ def stitch(
         with reading_policy(strict):
             lens_choice = choose_lens(lens, video)  # the panorama: a pinhole view of the ground
             result = run_stitch(video, out, options=options, transforms=transforms, show_progress=not quiet,
-                                lens=lens_choice.image_filter)
+                                info=lens_choice.info, lens=lens_choice.image_filter)
     if not quiet:
         r = result.registration
         loops = f", {r.loops - r.loops_dropped} loop closures" if drift_control else ""

@@ -25,6 +25,7 @@ search is not run).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +86,7 @@ class LensChoice:
     residual_fit: float = 0.0
     pairs: int = 0
     seconds: float = 0.0
+    info: VideoInfo | None = None  # the video's probe where choosing needed one: the run reuses it
 
     def describe(self) -> str:
         """The final line's part: what was estimated and whether it was applied."""
@@ -441,4 +443,4 @@ def choose_lens(value: str | None, video: str | Path, info: VideoInfo | None = N
         from mosaic_cli.video import probe
 
         info = probe(video)
-    return resolve_lens(value, video, info)
+    return dataclasses.replace(resolve_lens(value, video, info), info=info)
