@@ -193,5 +193,47 @@ def workers(argv: list[str]) -> int:
     return 0
 
 
+def segments(argv: list[str]) -> int:
+    """One long simulated survey stitched in one process and with --workers N (the video cut into
+    N segments scanned at once, joined by registration), alternated --rounds times: wall seconds
+    of the whole command, and each run's keyframes against the exact homographies (the corner
+    error of every pair of keyframes, median and 95th percentile)."""
+    import time
+
+    from benchmarks.common import placement_errors
+
+    parser = make_parser(SUITE, "segments", segments.__doc__)
+    parser.add_argument("--frames", type=int, default=2400)
+    parser.add_argument("--size", default="640x360")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=2)
+    args = parser.parse_args(argv)
+    print_start()
+    with tempfile.TemporaryDirectory(prefix="mosaic-segments-") as tmp:
+        root = Path(tmp)
+        video = root / "flight.mp4"
+        subprocess.run(["mosaic", "simulate", "-p", "survey", "-n", str(args.frames), "--size", args.size, "-o", str(video), "-q",
+                        "--seed", "3", "--preset", "ultrafast"], check=True)
+        truth = np.array(json.loads(video.with_suffix(".gt.json").read_text())["map_to_frame"])
+        size = tuple(int(v) for v in args.size.split("x"))
+        runs = {"one process": [], f"--workers {args.workers}": []}
+        errors: dict[str, np.ndarray] = {}
+        for _ in range(args.rounds):
+            for name, extra in (("one process", []), (f"--workers {args.workers}", ["--workers", str(args.workers)])):
+                js = root / "pano.json"
+                start = time.perf_counter()
+                subprocess.run(["mosaic", "stitch", str(video), "-o", str(root / "pano.png"), "--transforms", str(js), "-q", *extra],
+                               check=True)
+                runs[name].append(time.perf_counter() - start)
+                frames = json.loads(js.read_text())["frames"]
+                errors[name] = placement_errors([f["index"] for f in frames], [np.array(f["H"]) for f in frames], truth, size, 1)
+        base = float(np.median(runs["one process"]))
+        for name, values in runs.items():
+            e = errors[name]
+            print(f"{name:>12}: {np.median(values):.1f} s (runs {', '.join(f'{v:.1f}' for v in values)}; {base / np.median(values):.2f}x); "
+                  f"keyframe pairs {np.median(e):.2f} px median, {np.percentile(e, 95):.2f} px at the 95th percentile")
+    return 0
+
+
 def main(argv: list[str]) -> int:
-    return run_commands(SUITE, __doc__, {"two": two, "apart": apart, "workers": workers}, argv, default=two)
+    return run_commands(SUITE, __doc__, {"two": two, "apart": apart, "workers": workers, "segments": segments}, argv, default=two)

@@ -15,9 +15,11 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks.common import placement_errors
 from benchmarks.flights import cut_flight
 from mosaic_cli.errors import BadInput
-from mosaic_cli.stitch import StitchOptions
+from mosaic_cli.simulate.groundtruth import load_ground_truth
+from mosaic_cli.stitch import StitchOptions, stitch
 from mosaic_cli.stitch.cluster import ClusterOptions, _check_shared, connect, tile_runner
 from mosaic_cli.stitch.compose import ComposeOptions, MemoryCanvas, PlacedImage, compose
 from mosaic_cli.stitch.flights import stitch_flights
@@ -97,6 +99,30 @@ def test_two_flights_on_workers_give_the_one_process_map(tmp_path):
     (alone, alone_js), (spread, spread_js) = results["alone"], results["workers"]
     assert spread_js == alone_js and len({f["flight"] for f in alone_js["frames"]}) == 2
     assert np.array_equal(spread, alone)
+
+
+@pytest.mark.slow
+def test_a_long_video_is_scanned_in_segments_on_the_workers_and_lands_where_the_truth_does(tmp_path):
+    """One video cut into two segments, each scanned by a worker with its own estimator, joined
+    by registration: one panorama of both, every keyframe placed within 2 px of the exact
+    homographies (as the one-process stitch places them), and the rolling shutter's line said."""
+    video = tmp_path / "flight.mp4"
+    mosaic_run("simulate", "-p", "survey", "-n", "240", "--size", "320x180", "-o", video, "-q", "--seed", "3", "--preset", "ultrafast")
+    truth = load_ground_truth(video).map_to_frame
+    placed = {}
+    for name, cluster in (("alone", ClusterOptions()), ("workers", ClusterOptions(workers=2, segment_frames=100))):
+        options = StitchOptions(estimator="orb", compose=ComposeOptions(tile=128), cluster=cluster, rolling_shutter="auto")
+        js = tmp_path / f"{name}.json"
+        result = stitch(video, tmp_path / f"{name}.png", options=options, transforms=js, show_progress=False)
+        frames = json.loads(js.read_text())["frames"]
+        indices, H = [f["index"] for f in frames], [np.array(f["H"]) for f in frames]
+        placed[name] = (result, indices, placement_errors(indices, H, truth, (320, 180), gap=1))
+    (alone, _, alone_err), (spread, spread_at, spread_err) = placed["alone"], placed["workers"]
+    assert len(spread.panoramas) == 1 and spread.panoramas[0].segments == 2 and alone.panoramas[0].segments == 1
+    assert min(spread_at) < 120 <= max(spread_at)  # keyframes of both segments
+    assert spread.frames == alone.frames == 240
+    assert spread.rolling is not None  # measured over the whole video once the segments are back
+    assert np.median(alone_err) < 2.0 and np.median(spread_err) < 2.0 and np.percentile(spread_err, 90) < 2 * max(np.percentile(alone_err, 90), 2.0)
 
 
 @pytest.mark.slow

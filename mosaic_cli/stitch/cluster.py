@@ -1,14 +1,15 @@
 """The stitch's work on a Dask cluster (``dask.distributed``, the ``cluster`` extra).
 
 ``--workers N`` starts N local worker processes; ``--scheduler tcp://HOST:PORT`` uses a running
-cluster.  Two stages are spread over its workers: the flights' scans (stitch/flights.py: one
-task a flight) and the compose stage's tiles (one task a tile; each worker keeps the keyframes
-it read for the next tiles).  Seams and exposure are still decided
-once, here, on small copies; each tile is blended by the same code as in one process
-(compose.compose_tile), so the panorama is the same to the bit.  Tasks lost with a worker are
-run again by Dask on another.  The workers read the inputs and the keyframe pixels from the
-disk the stitch works on: a cluster on other machines needs that folder shared (checked before
-any work).
+cluster.  Two stages are spread over its workers: the scans (stitch/flights.py: one task a
+flight, and a video at least two segments long cut into segments, one task a segment; the
+register stage joins the segments as it joins the parts of a flight after a cut) and the compose
+stage's tiles (one task a tile; each worker keeps the keyframes it read for the next tiles).
+Seams and exposure are still decided once, here, on small copies; each tile is blended by the
+same code as in one process (compose.compose_tile), so the composed panorama is the same to the
+bit for the same placements.  Tasks lost with a worker are run again by Dask on another.  The
+workers read the inputs and the keyframe pixels from the disk the stitch works on: a cluster on
+other machines needs that folder shared (checked before any work).
 """
 
 from __future__ import annotations
@@ -34,11 +35,17 @@ IN_FLIGHT = 2  # tiles queued per worker: enough to keep each busy, few enough t
 class ClusterOptions:
     workers: int | None = None  # local worker processes; None: no cluster of our own
     scheduler: str | None = None  # tcp://HOST:PORT of a running cluster
+    # A video is cut into segments scanned at once, one a worker, each at least this many frames
+    # (stitch/flights.py, segment_ranges): 40 s at 30 fps, so that a worker's own estimator and
+    # overlay search (a few seconds) stay a small share of its segment's scan.
+    segment_frames: int = 1200
 
     def __post_init__(self) -> None:
         self.validate()
 
     def validate(self) -> None:
+        if self.segment_frames < 1:
+            raise ValueError(f"segment_frames must be 1 or more, got {self.segment_frames}")
         if self.workers is not None and self.workers < 1:
             raise BadInput(f"--workers must be 1 or more, got {self.workers}")
         if self.workers is not None and self.scheduler is not None:

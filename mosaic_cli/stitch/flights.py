@@ -25,10 +25,12 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.progress import progress_task
+from mosaic_cli.stabilize.rolling import parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.cluster import connect, tile_runner
 from mosaic_cli.stitch.keyframes import FlightScan, FlightSpan, Keyframe
 from mosaic_cli.stitch.pipeline import (
     PreparedFlight,
+    ScannedFlight,
     StitchOptions,
     StitchResult,
     finish_stitch,
@@ -109,6 +111,7 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
             seconds["scan"] = time.perf_counter() - clock
         for flight in prepared if client is None else []:
             scanned = scan_prepared(flight, build, show_progress, spill, seconds)
+            assert scanned.estimator is not None  # built here
             build = functools.partial(_same, scanned.estimator)  # the next flights reuse the network built for the first
             scans.append(scanned.scan)
             masks.append(scanned.mask)
@@ -126,6 +129,59 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
         result.metadata_notes = [note for f in prepared for note in other_cameras_note(f.info)]
         result.metadata_notes += [note for t in tracks if t is not None and t.photos is not None for note in photo_metadata_notes(t.photos)]
         return result
+
+
+def segment_ranges(frames: int, start: int, workers: int, least: int) -> list[tuple[int, int]]:
+    """``(first frame, frames)`` of each segment a flight of ``frames`` frames from ``start`` is
+    cut into: one a worker, each at least ``least`` frames long (each worker builds an estimator
+    and looks for overlays of its own: a short segment would cost more than it saves); the
+    whole flight as one where fewer than two such segments fit."""
+    count = min(workers, frames // max(least, 1))
+    if count < 2:
+        return [(start, frames)]
+    bounds = np.linspace(0, frames, count + 1).round().astype(int)
+    return [(start + int(a), int(b - a)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def scan_segments(flight: PreparedFlight, client, spill: str, seconds: dict[str, float], show_progress: bool,
+                  least: int) -> ScannedFlight | None:
+    """One video cut into segments scanned at once on the cluster's workers (segment_ranges), as
+    one scan: each keyframe keeps its frame number, each segment starts a segment of the scan
+    (the register stage joins them by registration, as it joins the parts of a flight after a
+    cut: consecutive segments see the same ground at their boundary).  Each worker finds the
+    overlays of its own segment; the rolling shutter is measured here, over the whole video,
+    once the segments are back.  None when the video is too short to cut (or its length unknown)."""
+    info, options = flight.info, flight.options
+    if info.is_image_folder or not info.frame_count:
+        return None
+    frames = max(0, info.frame_count - options.start)
+    if options.max_frames is not None:
+        frames = min(frames, options.max_frames)
+    workers = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values())
+    ranges = segment_ranges(frames, options.start, workers, least)
+    if len(ranges) < 2:
+        return None
+    parts = [dataclasses.replace(flight, options=dataclasses.replace(options, start=first, max_frames=count, rolling_shutter="off"))
+             for first, count in ranges]
+    clock = time.perf_counter()
+    futures = [client.submit(scan_remote, part, spill, pure=False) for part in parts]
+    scans, masks, restarted = [], [], False
+    with progress_task(f"scan {len(futures)} segments (cluster)", len(futures), unit="segments/s", disable=not show_progress) as advance:
+        for future in futures:
+            scan_k, mask_k, restarted_k = future.result()
+            scans.append(scan_k)
+            masks.append(mask_k)
+            restarted = restarted or restarted_k
+            advance(1)
+    seconds["scan"] = time.perf_counter() - clock
+    scan, _ = merge_scans(scans, [f"frames {a}-{a + n - 1}" for a, n in ranges], one_flight=True)
+    rolling = None
+    mode = parse_rolling_shutter(options.rolling_shutter)
+    if mode != "off":
+        clock = time.perf_counter()
+        rolling = plan_rolling(flight.video, info, mode, show_progress, "stitch: rolling shutter", None, flight.lens)
+        seconds["rolling"] = time.perf_counter() - clock
+    return ScannedFlight(scan, masks[0], rolling, None, restarted)
 
 
 def scan_remote(flight: PreparedFlight, spill: str):
@@ -168,20 +224,21 @@ def _check_alike(flights: list[PreparedFlight]) -> None:
         raise BadInput(f"the flights' frames differ in size ({said}): stitch flights of one camera setting together")
 
 
-def merge_scans(scans: list[FlightScan], names: list[str]) -> tuple[FlightScan, list[FlightSpan]]:
+def merge_scans(scans: list[FlightScan], names: list[str], one_flight: bool = False) -> tuple[FlightScan, list[FlightSpan]]:
     """The scans laid end to end as one (see the module doc): frame numbers shifted into one
     count with a gap of ``GAP_SECONDS`` between flights, segments numbered apart, each
     keyframe's link to its predecessor kept; the first flight's overlay mask is the scan's, a
-    later flight's own is carried by each of its keyframes (``Keyframe.use``)."""
+    later flight's own is carried by each of its keyframes (``Keyframe.use``).  ``one_flight``:
+    the scans are segments of one video, each already numbered in its count (no gap, no shift)."""
     fps = scans[0].fps
-    gap = int(round(GAP_SECONDS * fps))
+    gap = 0 if one_flight else int(round(GAP_SECONDS * fps))
     keyframes: list[Keyframe] = []
     dropped, relocalised, spans = [], [], []
     start = scans[0].first_index
     segment = 0
     pairs = failed = 0
     for scan, name in zip(scans, names):
-        shift = start - scan.first_index
+        shift = 0 if one_flight else start - scan.first_index
         base = len(keyframes)
         for key in scan.keyframes:
             key.index += shift
@@ -199,7 +256,7 @@ def merge_scans(scans: list[FlightScan], names: list[str]) -> tuple[FlightScan, 
         failed += scan.failed_pairs
         start += scan.frames + gap
     merged = FlightScan(keyframes, scans[0].source_size, fps, sum(s.frames for s in scans), scans[0].first_index, failed, relocalised,
-                        sum(s.seconds for s in scans), dropped, scans[0].photos, scans[0].use, pairs, spans)
+                        sum(s.seconds for s in scans), dropped, scans[0].photos, scans[0].use, pairs, [] if one_flight else spans)
     return merged, spans
 
 

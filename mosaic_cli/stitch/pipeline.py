@@ -202,7 +202,13 @@ def stitch(
     # folder goes however the stitch ends.
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill, connect(options.cluster, spill) as client:
         seconds: dict[str, float] = {}
-        scanned = scan_prepared(flight, build, show_progress, spill, seconds)
+        scanned = None
+        if client is not None and estimator is None:
+            from mosaic_cli.stitch.flights import scan_segments  # (flights.py builds on this module)
+
+            scanned = scan_segments(flight, client, spill, seconds, show_progress, options.cluster.segment_frames)
+        if scanned is None:
+            scanned = scan_prepared(flight, build, show_progress, spill, seconds)
         result = finish_stitch(scanned.scan, reference, out, flight.options, transforms, show_progress, seconds, scanned.mask,
                                flight.track, scanned.rolling, tile_runner(client) if client is not None else None)
         result.overlay_restart = scanned.restarted
@@ -230,7 +236,7 @@ class ScannedFlight:
     scan: FlightScan
     mask: FrameMask | None
     rolling: RollingCorrection | None
-    estimator: Estimator  # built for the first flight, reused by the next
+    estimator: Estimator | None  # built for the first flight, reused by the next (None: built on a cluster's workers)
     restarted: bool  # an overlay was found after the scan had started without it
 
 
