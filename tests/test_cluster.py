@@ -1,5 +1,5 @@
 """The stitch on a Dask cluster (issue 52, mosaic_cli/stitch/cluster.py), on 127.0.0.1 inside the
-test: the compose stage's tiles and the flights' scans spread over local worker processes give
+test: the compose stage's tiles, the flights' scans and a video's segments spread over local worker processes give
 the one-process result to the bit; a worker killed mid-run is retried; a scheduler that does not
 answer, a cluster that cannot see the stitch's disk and bad options are one line each."""
 
@@ -123,6 +123,54 @@ def test_a_long_video_is_scanned_in_segments_on_the_workers_and_lands_where_the_
     assert spread.frames == alone.frames == 240
     assert spread.rolling is not None  # measured over the whole video once the segments are back
     assert np.median(alone_err) < 2.0 and np.median(spread_err) < 2.0 and np.percentile(spread_err, 90) < 2 * max(np.percentile(alone_err, 90), 2.0)
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_scan_is_retried_and_the_panorama_is_the_same(tmp_path):
+    """A running cluster (``--scheduler``) whose worker is killed while it scans a segment: Dask
+    runs the segment again on a fresh worker, and the transforms and panorama are those of the
+    same run undisturbed."""
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    video = tmp_path / "flight.mp4"
+    mosaic_run("simulate", "-p", "survey", "-n", "240", "--size", "320x180", "-o", video, "-q", "--seed", "3", "--preset", "ultrafast")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+                      silence_logs=40) as cluster, Client(cluster) as client:
+        options = StitchOptions(estimator="orb", compose=ComposeOptions(tile=128),
+                                cluster=ClusterOptions(scheduler=cluster.scheduler_address, segment_frames=100))
+        outputs = {}
+        for name in ("calm", "killed"):
+            killed: list[int] = []
+            done = threading.Event()
+
+            def kill_a_scanning_worker(done=done, killed=killed):
+                while not done.is_set() and not killed:
+                    busy = [(w, k) for w, keys in client.processing().items() for k in keys if "scan_remote" in str(k)]
+                    if busy:
+                        worker, key = busy[0]
+                        os.kill(client.run(os.getpid, workers=[worker])[worker], signal.SIGKILL)
+                        killed.append(key)
+                    time.sleep(0.02)
+
+            killer = threading.Thread(target=kill_a_scanning_worker) if name == "killed" else None
+            if killer is not None:
+                killer.start()
+            js = tmp_path / f"{name}.json"
+            try:
+                stitch(video, tmp_path / f"{name}.png", options=options, transforms=js, show_progress=False)
+            finally:
+                done.set()
+                if killer is not None:
+                    killer.join()
+            outputs[name] = (json.loads(js.read_text()), cv2.imread(str(tmp_path / f"{name}.png"), cv2.IMREAD_UNCHANGED))
+            if name == "killed":  # the segment's task was being run when its worker died, and was run again
+                assert killed, "no worker was killed during the scan"
+                story = client.run_on_scheduler(lambda dask_scheduler, key=killed[0]: [t[2] for t in dask_scheduler.story(key)])
+                assert story.count("processing") >= 2, story
+    (calm_js, calm), (killed_js, killed_pano) = outputs["calm"], outputs["killed"]
+    assert killed_js == calm_js and np.array_equal(killed_pano, calm)
 
 
 @pytest.mark.slow
