@@ -1,7 +1,8 @@
 """The stitch on a Dask cluster (issue 52, mosaic_cli/stitch/cluster.py), on 127.0.0.1 inside the
-test: the compose stage's tiles, the flights' scans and a video's segments spread over local worker processes give
-the one-process result to the bit; a worker killed mid-run is retried; a scheduler that does not
-answer, a cluster that cannot see the stitch's disk and bad options are one line each."""
+test: the compose stage's tiles and the flights' scans spread over local worker processes give
+the one-process result to the bit, a video's segments scanned at once land where the truth does;
+a worker killed mid-run is retried; a scheduler that does not answer, a cluster that cannot see
+the stitch's disk and bad options are one line each."""
 
 from __future__ import annotations
 
