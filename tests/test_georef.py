@@ -373,3 +373,33 @@ def test_georeferencing_warnings_are_said_even_when_quiet():
     second = SimpleNamespace(path=Path("map-2.tif"), georef=SimpleNamespace(warnings=[]), transforms=[(90, None)], spans=[(90, 120)], size=31, shrunk_from=None, off_map=None)
     result = SimpleNamespace(panoramas=[first, second], georef=first.georef, dropped=[], photos=False, metadata_notes=[])
     assert f"map.tif: {said}" in _notices(Path("v.mp4"), result)
+
+
+@pytest.mark.parametrize("offset, warned", [(2.0, False), (14.0, True)])
+def test_fixes_that_scatter_beyond_a_receivers_error_are_said_to_bound_the_maps_placement(offset, warned):
+    """A survey's keyframes whose GPS fixes lie ``offset`` metres off where the images place them,
+    alternately east and west along each line (as a camera looking ahead of the drone puts its
+    view on lines flown both ways): at a receiver's error, no word; at several times it, one
+    warning that names the scatter (the map cannot be placed closer with one plane)."""
+    from mosaic_cli.geo.crs import Projection
+    from mosaic_cli.geo.georef import GeorefOptions, georeference
+    from mosaic_cli.telemetry.flight_log import FlightLog
+
+    size, gsd = (640, 360), 0.1  # metres a pixel
+    centres = np.array([(x, y) for y in (0.0, 300.0, 600.0) for x in np.arange(0.0, 1200.0, 150.0)])  # 3 lines, reference pixels
+    placements = [np.array([[1.0, 0, x - 319.5], [0, 1.0, y - 179.5], [0, 0, 1]]) for x, y in centres]
+    line = np.repeat([1.0, -1.0, 1.0], len(centres) // 3)
+    rng = np.random.default_rng(1)
+    east = 500_000 + centres[:, 0] * gsd + line * offset * np.tile([1.0, -1.0], len(centres) // 2) + rng.normal(0, 0.5, len(centres))
+    north = 5_250_000 - centres[:, 1] * gsd + rng.normal(0, 0.5, len(centres))
+    projection = Projection.utm_for(47.4, 8.5)
+    lon, lat = projection.to_wgs84(east, north).T
+    n = len(centres)
+    nan = np.full(n, np.nan)
+    times = np.arange(n, dtype=float) * 4.0
+    track = FlightLog("test log", times, lat, lon, nan, nan, nan, nan, nan, nan)
+    georef = georeference(placements, n // 2, list(range(n)), size, 0.25, track, GeorefOptions())
+    said = [w for w in georef.warnings if "scatter" in w]
+    assert bool(said) == warned, georef.warnings
+    if warned:
+        assert georef.fit.sigma > 3 * 3.5 and f"scatter {georef.fit.sigma:.0f} m" in said[0]

@@ -61,6 +61,9 @@ class GeorefOptions:
     align: AlignOptions = field(default_factory=AlignOptions)
     min_coverage: float = 0.5  # at least this fraction of keyframes must have a fix
     max_scatter: float = 30.0  # metres: robust GPS scatter about the fit beyond this is no GPS error
+    # ... and beyond this the map is made but said to be placed no better: the images' one plane
+    # and the GPS disagree by more than a receiver errs (relief, trees, an oblique camera)
+    loose_scatter: float = 3 * GPS_TYPICAL
     min_agreeing: float = 0.6  # fraction of fixes that must agree with the images
     # A long flight's mosaic bends a little (perspective drift): a homography replaces the
     # similarity when it explains the fixes this much better (robust scatter ratio) ...
@@ -313,6 +316,12 @@ def georeference(
     gsd = footprint_m / max(w, h)
     anchor = project(mosaic_to_ground, centre[None])[0]
     ground_to_pixels = np.array([[1 / gsd, 0, -anchor[0] / gsd], [0, -1 / gsd, anchor[1] / gsd], [0, 0, 1.0]])
+    if sigma > options.loose_scatter:
+        warnings.append(
+            f"the GPS fixes scatter {sigma:.0f} m about where the images place them, more than a receiver errs (about "
+            f"{GPS_TYPICAL:.1f} m): ground far from one plane (relief, tall trees) or an oblique camera, which one flat map "
+            f"cannot hold; the map is placed to about {sigma:.0f} m (a surface model, as OpenDroneMap builds, places such ground)"
+        )
     fit.sigma = sigma
     fit.inliers = inliers
     return Georeference(projection, mosaic_to_ground, ground_to_pixels, gsd, fit, aligned, list(frame_indices), used, drift.shifts,
