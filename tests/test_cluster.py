@@ -127,6 +127,32 @@ def test_a_long_video_is_scanned_in_segments_on_the_workers_and_lands_where_the_
 
 
 @pytest.mark.slow
+def test_a_segment_with_no_usable_frame_is_scanned_as_one_process_scans_it(tmp_path):
+    """A video whose second half is black: its second segment holds no usable frame, so the
+    video is scanned here whole, as one process scans it (which names the frames it drops): the
+    same transforms, and the same frames reported dropped."""
+    full = tmp_path / "full.mp4"
+    mosaic_run("simulate", "-p", "survey", "-n", "240", "--size", "320x180", "-o", full, "-q", "--seed", "3", "--preset", "ultrafast")
+    video = tmp_path / "half_black.mp4"
+    reader = cv2.VideoCapture(str(full))
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, (320, 180))
+    for k in range(240):
+        ok, frame = reader.read()
+        assert ok
+        writer.write(frame if k < 120 else np.zeros_like(frame))  # the second segment (frames 120-239) all black
+    writer.release()
+    reader.release()
+    results = {}
+    for name, cluster in (("alone", ClusterOptions()), ("workers", ClusterOptions(workers=2, segment_frames=100))):
+        options = StitchOptions(estimator="orb", compose=ComposeOptions(tile=128), cluster=cluster)
+        js = tmp_path / f"{name}.json"
+        result = stitch(video, tmp_path / f"{name}.png", options=options, transforms=js, show_progress=False)
+        results[name] = (json.loads(js.read_text()), result.dropped, result.frames)
+    assert results["workers"] == results["alone"]
+    assert results["alone"][1] and max(i for i, _ in results["alone"][1]) >= 120  # the black frames are named
+
+
+@pytest.mark.slow
 def test_a_worker_killed_mid_scan_is_retried_and_the_panorama_is_the_same(tmp_path):
     """A running cluster (``--scheduler``) whose worker is killed while it scans a segment: Dask
     runs the segment again on a fresh worker, and the transforms and panorama are those of the

@@ -168,7 +168,11 @@ def scan_segments(flight: PreparedFlight, client, spill: str, seconds: dict[str,
     scans, masks, restarted = [], [], False
     with progress_task(f"scan {len(futures)} segments (cluster)", len(futures), unit="segments/s", disable=not show_progress) as advance:
         for future in futures:
-            scan_k, mask_k, restarted_k = future.result()
+            try:
+                scan_k, mask_k, restarted_k = future.result()
+            except BadInput:  # a segment with no usable frame (a black stretch): the whole video is scanned here instead,
+                client.cancel(futures)  # which says what it drops and why
+                return None
             scans.append(scan_k)
             masks.append(mask_k)
             restarted = restarted or restarted_k
