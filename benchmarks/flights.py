@@ -169,27 +169,11 @@ def workers(argv: list[str]) -> int:
     """Two flights of one simulated survey (as ``two`` cuts them) stitched into one map in one
     process and with --workers N (each flight scanned by a worker, the tiles blended by them),
     alternated --rounds times: wall seconds of the whole command."""
-    import time
-
-    parser = make_parser(SUITE, "workers", workers.__doc__)
-    parser.add_argument("--frames", type=int, default=600)
-    parser.add_argument("--size", default="640x360")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--rounds", type=int, default=2)
-    args = parser.parse_args(argv)
+    args = _workers_parser("workers", workers.__doc__, frames=600).parse_args(argv)
     print_start()
     with tempfile.TemporaryDirectory(prefix="mosaic-flights-") as tmp:
         _, flights, _ = survey_in_two(Path(tmp), args.frames, args.size)
-        root = Path(tmp)
-        walls: dict[str, list[float]] = {"one process": [], f"--workers {args.workers}": []}
-        for _ in range(args.rounds):
-            for name, extra in (("one process", []), (f"--workers {args.workers}", ["--workers", str(args.workers)])):
-                start = time.perf_counter()
-                subprocess.run(["mosaic", "stitch", *map(str, flights), "-o", str(root / "map.tif"), "-q", *extra], check=True)
-                walls[name].append(time.perf_counter() - start)
-        base = float(np.median(walls["one process"]))
-        for name, values in walls.items():
-            print(f"{name:>12}: {np.median(values):.1f} s (runs {', '.join(f'{v:.1f}' for v in values)}; {base / np.median(values):.2f}x)")
+        _alternate(["mosaic", "stitch", *map(str, flights), "-o", str(Path(tmp) / "map.tif"), "-q"], args)
     return 0
 
 
@@ -198,41 +182,53 @@ def segments(argv: list[str]) -> int:
     N segments scanned at once, joined by registration), alternated --rounds times: wall seconds
     of the whole command, and each run's keyframes against the exact homographies (the corner
     error of every pair of keyframes, median and 95th percentile)."""
-    import time
-
     from benchmarks.common import placement_errors
 
-    parser = make_parser(SUITE, "segments", segments.__doc__)
-    parser.add_argument("--frames", type=int, default=2400)
-    parser.add_argument("--size", default="640x360")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--rounds", type=int, default=2)
-    args = parser.parse_args(argv)
+    args = _workers_parser("segments", segments.__doc__, frames=2400).parse_args(argv)
     print_start()
     with tempfile.TemporaryDirectory(prefix="mosaic-segments-") as tmp:
-        root = Path(tmp)
-        video = root / "flight.mp4"
+        video, js = Path(tmp) / "flight.mp4", Path(tmp) / "pano.json"
         subprocess.run(["mosaic", "simulate", "-p", "survey", "-n", str(args.frames), "--size", args.size, "-o", str(video), "-q",
                         "--seed", "3", "--preset", "ultrafast"], check=True)
         truth = np.array(json.loads(video.with_suffix(".gt.json").read_text())["map_to_frame"])
         size = tuple(int(v) for v in args.size.split("x"))
-        runs = {"one process": [], f"--workers {args.workers}": []}
-        errors: dict[str, np.ndarray] = {}
-        for _ in range(args.rounds):
-            for name, extra in (("one process", []), (f"--workers {args.workers}", ["--workers", str(args.workers)])):
-                js = root / "pano.json"
-                start = time.perf_counter()
-                subprocess.run(["mosaic", "stitch", str(video), "-o", str(root / "pano.png"), "--transforms", str(js), "-q", *extra],
-                               check=True)
-                runs[name].append(time.perf_counter() - start)
-                frames = json.loads(js.read_text())["frames"]
-                errors[name] = placement_errors([f["index"] for f in frames], [np.array(f["H"]) for f in frames], truth, size, 1)
-        base = float(np.median(runs["one process"]))
-        for name, values in runs.items():
-            e = errors[name]
-            print(f"{name:>12}: {np.median(values):.1f} s (runs {', '.join(f'{v:.1f}' for v in values)}; {base / np.median(values):.2f}x); "
-                  f"keyframe pairs {np.median(e):.2f} px median, {np.percentile(e, 95):.2f} px at the 95th percentile")
+
+        def accuracy() -> str:
+            frames = json.loads(js.read_text())["frames"]
+            e = placement_errors([f["index"] for f in frames], [np.array(f["H"]) for f in frames], truth, size, 1)
+            return f"keyframe pairs {np.median(e):.2f} px median, {np.percentile(e, 95):.2f} px at the 95th percentile"
+
+        _alternate(["mosaic", "stitch", str(video), "-o", str(Path(tmp) / "pano.png"), "--transforms", str(js), "-q"], args, accuracy)
     return 0
+
+
+def _workers_parser(name: str, doc: str | None, frames: int):
+    parser = make_parser(SUITE, name, doc)
+    parser.add_argument("--frames", type=int, default=frames)
+    parser.add_argument("--size", default="640x360")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=2)
+    return parser
+
+
+def _alternate(command: list[str], args, after=None) -> None:
+    """``command`` in one process and with --workers, alternated ``args.rounds`` times: each one's
+    median wall seconds, its runs and its speed against one process, and what ``after()`` says of
+    its last run."""
+    import time
+
+    said: dict[str, str] = {}
+    walls: dict[str, list[float]] = {"one process": [], f"--workers {args.workers}": []}
+    for _ in range(args.rounds):
+        for name, extra in (("one process", []), (f"--workers {args.workers}", ["--workers", str(args.workers)])):
+            start = time.perf_counter()
+            subprocess.run([*command, *extra], check=True)
+            walls[name].append(time.perf_counter() - start)
+            said[name] = f"; {after()}" if after is not None else ""
+    base = float(np.median(walls["one process"]))
+    for name, values in walls.items():
+        print(f"{name:>12}: {np.median(values):.1f} s (runs {', '.join(f'{v:.1f}' for v in values)}; "
+              f"{base / np.median(values):.2f}x){said[name]}")
 
 
 def main(argv: list[str]) -> int:
