@@ -126,6 +126,24 @@ def test_stitch_with_exact_telemetry_lands_where_the_truth_is(flights, tmp_path)
 
 
 @pytest.mark.slow
+def test_the_dji_log_beside_a_video_is_its_telemetry(flights, tmp_path):
+    """DJI_0001.MP4 with DJI_0001.srt beside it (either case): the same map as with --telemetry
+    naming it; --telemetry none keeps the panorama plain."""
+    import shutil
+
+    video, log = tmp_path / "DJI_0001.MP4", tmp_path / "DJI_0001.srt"
+    shutil.copy(flights["exact"], video)
+    shutil.copy(flights["exact"].with_suffix(".SRT"), log)
+    found, given, plain = tmp_path / "found.json", tmp_path / "given.json", tmp_path / "plain.json"
+    mosaic("stitch", video, "-o", tmp_path / "found.tif", "--transforms", found, "-q", "--estimator", "orb")
+    mosaic("stitch", video, "--telemetry", log, "-o", tmp_path / "given.tif", "--transforms", given, "-q", "--estimator", "orb")
+    mosaic("stitch", video, "--telemetry", "none", "-o", tmp_path / "plain.png", "--transforms", plain, "-q", "--estimator", "orb")
+    found_js, given_js = json.loads(found.read_text()), json.loads(given.read_text())
+    assert "crs" in found_js and found_js["frames"] == given_js["frames"] and found_js["crs"] == given_js["crs"]
+    assert "crs" not in json.loads(plain.read_text())
+
+
+@pytest.mark.slow
 def test_stitch_with_noisy_gps_keeps_shape_and_place(flights, tmp_path):
     video = flights["noisy"]
     tr = tmp_path / "t.json"

@@ -66,7 +66,7 @@ def stitch(
     fill_holes: Annotated[bool, typer.Option("--fill-holes", help="Fill small interior transparent holes (ground under a masked overlay that no frame saw) from their surroundings, for a closed picture; holes at the panorama's border stay transparent.", rich_help_panel=OUTPUT_QUALITY)] = False,
     mask: Mask = None,
     overlay_detect: OverlayDetect = True,
-    telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video. Default: a subtitle (SRT) or KLV track inside the video, if any.", rich_help_panel=TELEMETRY)] = None,
+    telemetry: Annotated[str | None, typer.Option("--telemetry", help="GPS log to lay the mosaic on the map: DJI .SRT, .gpx, .csv, MISB .klv (or a video holding one); 'none' ignores a track inside the video or beside it. Default: a subtitle (SRT) or KLV track inside the video, else the DJI log beside it (FLIGHT.SRT), if any.", rich_help_panel=TELEMETRY)] = None,
     hfov: Annotated[float | None, typer.Option("--hfov", help="Camera's horizontal field of view, degrees (when the telemetry lacks focal_len / HFOV).", rich_help_panel=TELEMETRY)] = None,
     telemetry_offset: Annotated[float, typer.Option("--telemetry-offset", help="Seconds added to the telemetry's times to match the video's.", rich_help_panel=TELEMETRY)] = 0.0,
     footprints: Annotated[Path | None, typer.Option("--footprints", help="With telemetry: write every keyframe's ground footprint and the flight track (GeoJSON, WGS84).", rich_help_panel=TELEMETRY)] = None,
@@ -296,7 +296,8 @@ def _georef_options(telemetry: str | None, hfov: float | None, offset: float, fo
 def _dry_run(video: str) -> None:
     """``--dry-run``: what the input says of itself, one line per photo (or the video's probe and
     telemetry), and what a stitch of it can make."""
-    from mosaic_cli.telemetry import find_telemetry
+    from mosaic_cli.geo.stitching import sidecar_log
+    from mosaic_cli.telemetry import find_telemetry, read_telemetry
     from mosaic_cli.telemetry.photos import photo_rate, read_photo_tags
     from mosaic_cli.video import probe
     from mosaic_cli.video.folders import folder_images
@@ -317,5 +318,7 @@ def _dry_run(video: str) -> None:
     print(f"{video}: {info.source_size[0]}x{info.source_size[1]}, {info.fps:.2f} fps, "
                   f"{info.frame_count if info.frame_count is not None else 'unknown'} frames")
     track = find_telemetry(video, info)
+    if track is None and (beside := sidecar_log(video)) is not None:
+        track = read_telemetry(beside)
     print(f"telemetry: {track.source}, {len(track)} samples, {int(track.has_fix.sum())} with a GPS fix" if track is not None
-                  else "telemetry: none inside the video (--telemetry FILE gives one)")
+                  else "telemetry: none inside the video or beside it (--telemetry FILE gives one)")

@@ -4,6 +4,7 @@ registered keyframes on the ground, write the georeferenced outputs."""
 from __future__ import annotations
 
 import contextlib
+import glob
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,8 +20,9 @@ from mosaic_cli.video import VideoInfo
 
 def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions | None, span: tuple[float, float] | None = None,
                      info: VideoInfo | None = None) -> FlightLog | None:
-    """The telemetry to georeference with: the file given, else a track inside the video
-    (None when there is none, or when it holds no GPS, e.g. captions), with the outputs that
+    """The telemetry to georeference with: the file given, else a track inside the video, else
+    the DJI log beside it (``sidecar_log``; None when there is none, or when the track inside
+    holds no GPS, e.g. captions), with the outputs that
     need it checked before any work.  (Not ``mosaic_cli.track.load_track``, which reads a
     track JSON back.)  ``span``: the seconds of video to stitch, when known, to refuse a log
     that misses them before any work; ``info``: the video's probe (its streams are where an
@@ -43,11 +45,14 @@ def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions 
         track = read_telemetry(options.telemetry)
     else:
         track = find_telemetry(video, info)
+        if track is None and (beside := sidecar_log(video)) is not None:
+            track = read_telemetry(beside)
     wanted = map_output_flag(out) + options.without_telemetry()
     if track is None and wanted:
         if photos:
             raise BadInput(f"{wanted[0]} needs GPS (no photo in {video} has EXIF GPS)")
-        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video})")
+        raise BadInput(f"{wanted[0]} needs telemetry: give --telemetry (no SRT or KLV track inside {video}, "
+                       f"and no {Path(video).stem}.SRT beside it)")
     if track is not None and not track.has_fix.any():
         if options.telemetry is None and not wanted:
             return None  # an embedded track without positions: a plain panorama, as without one
@@ -63,6 +68,15 @@ def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions 
                 f"the video {span[0]:.1f}-{span[1]:.1f} s; check --telemetry-offset"
             )
     return track
+
+
+def sidecar_log(video: str | Path) -> Path | None:
+    """The DJI log a drone writes beside its video (``DJI_0001.SRT`` for ``DJI_0001.MP4``, any
+    case), None when there is none (or ``video`` is a stream or a folder)."""
+    path = Path(video)
+    if not path.is_file():
+        return None
+    return next((p for p in sorted(path.parent.glob(f"{glob.escape(path.stem)}.*")) if p.suffix.lower() == ".srt" and p.is_file()), None)
 
 
 def map_output_flag(out: str | Path) -> list[str]:

@@ -89,8 +89,7 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
         raise BadInput("--rolling-shutter applies to one flight at a time: stitch each flight alone, or give --rolling-shutter off")
     prepared, reference = [], None
     for video in flights:
-        own = _with_sidecar_log(video, options)
-        flight, spec = prepare_flight(video, out, transforms, own)
+        flight, spec = prepare_flight(video, out, transforms, options)  # each with its own log (geo/stitching.py)
         prepared.append(flight)
         reference = spec if reference is None else reference
     _check_alike(prepared)
@@ -198,22 +197,6 @@ def scan_remote(flight: PreparedFlight, spill: str):
 
 def _same(estimator: Estimator) -> Estimator:
     return estimator
-
-
-def _with_sidecar_log(video: str | Path, options: StitchOptions) -> StitchOptions:
-    """A flight's own options: its DJI log beside it (FLIGHT.SRT, any case) when it has no track
-    inside; ``--telemetry none`` keeps every flight plain."""
-    if options.georef is None or Path(video).is_dir():
-        return options
-    from mosaic_cli.telemetry import find_telemetry
-
-    if find_telemetry(video) is not None:
-        return options
-    path = Path(video)
-    for sidecar in sorted(path.parent.glob(f"{path.stem}.*")):
-        if sidecar.suffix.lower() == ".srt":
-            return dataclasses.replace(options, georef=dataclasses.replace(options.georef, telemetry=sidecar))
-    return options
 
 
 def _check_alike(flights: list[PreparedFlight]) -> None:
