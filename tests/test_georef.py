@@ -144,6 +144,22 @@ def test_the_dji_log_beside_a_video_is_its_telemetry(flights, tmp_path):
 
 
 @pytest.mark.slow
+def test_subtitles_beside_a_video_that_are_no_flight_log(capsys, tmp_path, plain_160x90):
+    """Captions beside a video (an .srt with no GPS): a panorama is made as without them; a map
+    asked for is refused in one line that names them."""
+    import shutil
+
+    video = tmp_path / "clip.mp4"
+    shutil.copy(plain_160x90, video)
+    video.with_suffix(".srt").write_text("1\n00:00:00,000 --> 00:00:01,000\nHello from the beach\n\n")
+    code, err = run_cli(capsys, "stitch", video, "-o", tmp_path / "p.png", "-q", "--estimator", "orb")
+    assert code == 0 and (tmp_path / "p.png").exists(), err
+    code, err = run_cli(capsys, "stitch", video, "-o", tmp_path / "m.tif", "--footprints", tmp_path / "f.geojson", "-q", "--estimator", "orb")
+    assert_one_line_error(code, err, "clip.srt", "no GPS telemetry")
+    assert not (tmp_path / "m.tif").exists()
+
+
+@pytest.mark.slow
 def test_stitch_with_noisy_gps_keeps_shape_and_place(flights, tmp_path):
     video = flights["noisy"]
     tr = tmp_path / "t.json"

@@ -45,9 +45,14 @@ def georef_telemetry(video: str | Path, out: str | Path, options: GeorefOptions 
         track = read_telemetry(options.telemetry)
     else:
         track = find_telemetry(video, info)
-        if track is None and (beside := sidecar_log(video)) is not None:
-            track = read_telemetry(beside)
     wanted = map_output_flag(out) + options.without_telemetry()
+    if track is None and options.telemetry is None and (beside := sidecar_log(video)) is not None:
+        try:
+            track = read_telemetry(beside)
+        except BadInput:
+            if wanted:  # a map was asked for: what is wrong with the log beside is the answer
+                raise
+            # else subtitles that are no flight log (captions), or a damaged one: a plain panorama, as without it
     if track is None and wanted:
         if photos:
             raise BadInput(f"{wanted[0]} needs GPS (no photo in {video} has EXIF GPS)")
