@@ -78,7 +78,7 @@ def stitch(
     timeout: Timeout = DEFAULT_TIMEOUT,
     quiet: Quiet = False,
     lens: LensOption = None,
-    workers: Annotated[int | None, typer.Option("--workers", help="Spread the flights' scans and the panorama's tiles over this many local worker processes (Dask; the cluster extra).", rich_help_panel=MACHINE, show_default="none: all in this process")] = None,
+    workers: Annotated[int | None, typer.Option("--workers", help="Spread the flights' scans (a video of 2,400 frames or more: its segments) and the panorama's tiles over this many local worker processes (Dask; the cluster extra).", rich_help_panel=MACHINE, show_default="none: all in this process")] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help="Use a running Dask cluster (tcp://HOST:PORT) whose workers share this machine's disk.", rich_help_panel=MACHINE)] = None,
 ) -> None:
     """Stitch a drone flight, or several, into one panorama or map (PNG/JPEG/TIFF by extension)."""
