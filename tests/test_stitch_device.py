@@ -35,6 +35,7 @@ from mosaic_cli.stitch.compose import (
     Roi,
     _device_part,
     _host_source,
+    _seam_at,
     _tile_part,
     _upload,
     bounding_roi,
@@ -163,7 +164,8 @@ def test_device_tile_part_is_opencv_s_warp(ground, scale, use, rows):
     for gain, tolerance in ((None, 1), (np.array([[1.1]]), 2), (0.8 + 0.4 * rng.random((5, 6)), 2)):
         placed = PlacedImage(image, H, keep, rows)
         source, S = _upload(placed, roi, gain, seam, "cpu")
-        _, full_seam, full_gain = _host_source(placed, roi, gain, seam)
+        _, small_seam, full_gain = _host_source(placed, roi, gain, seam)
+        full_seam = _seam_at(small_seam, roi)
         for part in (roi, Roi(roi.x, roi.y + 7, roi.w, roi.h // 2 - 7), Roi(roi.x + 11, roi.y + 5, roi.w // 3, roi.h // 2)):
             expected, expected_mask = _tile_part(image, H, roi, part, full_gain, full_seam, keep, rows)
             warped, mask = _device_part(source, S, placed, roi, part)

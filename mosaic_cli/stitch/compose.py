@@ -48,7 +48,7 @@ class ComposeOptions:
     # ... and all of them together no larger than this (bounds the memory for long flights).
     seam_canvas_megapix: float = 2.0
     tile: int = 2048  # the blender works on square tiles of this side (canvas px), each with its margin
-    cache_megabytes: float = 256.0  # keyframe pixels held between the tiles that reach them
+    cache_megabytes: float = 128.0  # keyframe pixels held between the tiles that reach them
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
     # --fill-holes: interior transparent holes (ground under a masked overlay that no keyframe
     # saw) up to this share of the covered area are inpainted; 0 leaves them transparent.
@@ -208,7 +208,7 @@ class ComposePlan:
     side: int
     canvas_size: tuple[int, int]
     torch_device: str | None = None
-    cache_megabytes: float = 256.0
+    cache_megabytes: float = 128.0
     # Names this plan among others (a worker keeps a plan's keyframes under it: ids are reused)
     token: str = field(default_factory=lambda: uuid.uuid4().hex)
 
@@ -262,8 +262,8 @@ def compose_tile(plan: ComposePlan, x0: int, y0: int, held: HeldKeyframes, devic
             source, S = held.get(k, functools.partial(_upload, p, roi, gain, plan.seam_masks[k], device))
             image, mask = _device_part(source, S, p, roi, part)
         else:
-            pixels, seam, small_gain = held.get(k, functools.partial(_host_source, p, roi, gain, plan.seam_masks[k]))
-            image, mask = _tile_part(pixels, p.to_canvas, roi, part, small_gain, seam, p.use, p.rows)
+            pixels, small_seam, small_gain = held.get(k, functools.partial(_host_source, p, roi, gain, plan.seam_masks[k]))
+            image, mask = _tile_part(pixels, p.to_canvas, roi, part, small_gain, _seam_at(small_seam, roi), p.use, p.rows)
         blender.feed(image, mask, part.corner)
         fed = True
     if not fed:
@@ -398,9 +398,11 @@ def _nbytes(value: Any) -> int:
 
 
 def _host_source(p: PlacedImage, roi: Roi, gain: np.ndarray | None, seam_mask: np.ndarray):
-    """An image as its tiles read it on the CPU: its pixels, its blend mask over its whole box
-    and its exposure gain (None, a scalar or the small block map: each tile resizes its part)."""
-    return load_pixels(p.image), _seam_for(seam_mask, roi), gain  # type: ignore[arg-type]  # dropped only once finished
+    """An image as its tiles read it on the CPU: its pixels, its blend mask as found on the small
+    copies (dilated; each tile resizes it over the box, _seam_at: held whole, it was a third of
+    what the cache held) and its exposure gain (None, a scalar or the small block map: each tile
+    resizes its part)."""
+    return load_pixels(p.image), cv2.dilate(seam_mask, None), gain  # type: ignore[arg-type]  # dropped only once finished
 
 
 def _gain_part(gain: np.ndarray, roi: Roi, part: Roi) -> np.ndarray:
@@ -431,7 +433,13 @@ def _tile_part(pixels: np.ndarray, to_canvas: np.ndarray, roi: Roi, part: Roi, g
 
 def _seam_for(seam_mask: np.ndarray, roi: Roi) -> np.ndarray:
     """An image's blend mask at its box's full size, from its seam mask on the small copies."""
-    return cv2.resize(cv2.dilate(seam_mask, None), (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
+    return _seam_at(cv2.dilate(seam_mask, None), roi)
+
+
+def _seam_at(dilated: np.ndarray, roi: Roi) -> np.ndarray:
+    """The dilated small seam mask over the box's full size (exact fixed-point bilinear: the same
+    pixels however often it is made)."""
+    return cv2.resize(dilated, (roi.w, roi.h), interpolation=cv2.INTER_LINEAR_EXACT)
 
 
 def _upload(p: PlacedImage, roi: Roi, gain: np.ndarray | None, seam_mask: np.ndarray, device):
