@@ -319,6 +319,10 @@ def _dry_run(video: str) -> None:
                   f"{info.frame_count if info.frame_count is not None else 'unknown'} frames")
     track = find_telemetry(video, info)
     if track is None and (beside := sidecar_log(video)) is not None:
-        track = read_telemetry(beside)
+        try:
+            track = read_telemetry(beside)
+        except BadInput as exc:  # captions, or a damaged log: a stitch makes a plain panorama beside it
+            print(f"telemetry: none inside the video; beside it, {exc}")
+            return
     print(f"telemetry: {track.source}, {len(track)} samples, {int(track.has_fix.sum())} with a GPS fix" if track is not None
                   else "telemetry: none inside the video or beside it (--telemetry FILE gives one)")
