@@ -24,6 +24,7 @@ import numpy as np
 
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
+from mosaic_cli.overlay import FrameMask
 from mosaic_cli.progress import progress_task
 from mosaic_cli.stabilize.rolling import parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.cluster import connect, tile_runner
@@ -34,6 +35,7 @@ from mosaic_cli.stitch.pipeline import (
     StitchOptions,
     StitchResult,
     finish_stitch,
+    frames_to_scan,
     plan_stitch_estimator,
     prepare_flight,
     scan_prepared,
@@ -96,18 +98,11 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
     build: Callable[[], Estimator] = plan_stitch_estimator(options) if estimator is None else (lambda: estimator)
     with tempfile.TemporaryDirectory(prefix="mosaic-stitch-") as spill, connect(options.cluster, spill) as client:
         seconds: dict[str, float] = {}
-        scans, masks, restarted = [], [], False
+        scans: list[FlightScan] = []
+        masks: list[FrameMask | None] = []
+        restarted = False
         if client is not None:  # one task a flight, each worker with its own estimator
-            clock = time.perf_counter()
-            futures = [client.submit(scan_remote, flight, spill, pure=False) for flight in prepared]
-            with progress_task(f"scan {len(futures)} flights (cluster)", len(futures), unit="flights/s", disable=not show_progress) as advance:
-                for future in futures:
-                    scan_k, mask_k, restarted_k = future.result()
-                    scans.append(scan_k)
-                    masks.append(mask_k)
-                    restarted = restarted or restarted_k
-                    advance(1)
-            seconds["scan"] = time.perf_counter() - clock
+            scans, masks, restarted = scan_on_workers(client, prepared, "flights", spill, seconds, show_progress)
         for flight in prepared if client is None else []:
             scanned = scan_prepared(flight, build, show_progress, spill, seconds)
             assert scanned.estimator is not None  # built here
@@ -151,32 +146,19 @@ def scan_segments(flight: PreparedFlight, client, spill: str, seconds: dict[str,
     overlays of its own segment; the rolling shutter is measured here, over the whole video,
     once the segments are back.  None when the video is too short to cut (or its length unknown)."""
     info, options = flight.info, flight.options
-    if info.is_image_folder or not info.frame_count:
+    frames = frames_to_scan(info, options)
+    if info.is_image_folder or not frames:
         return None
-    frames = max(0, info.frame_count - options.start)
-    if options.max_frames is not None:
-        frames = min(frames, options.max_frames)
     workers = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values())
     ranges = segment_ranges(frames, options.start, workers, least)
     if len(ranges) < 2:
         return None
     parts = [dataclasses.replace(flight, options=dataclasses.replace(options, start=first, max_frames=count, rolling_shutter="off"))
              for first, count in ranges]
-    clock = time.perf_counter()
-    futures = [client.submit(scan_remote, part, spill, pure=False) for part in parts]
-    scans, masks, restarted = [], [], False
-    with progress_task(f"scan {len(futures)} segments (cluster)", len(futures), unit="segments/s", disable=not show_progress) as advance:
-        for future in futures:
-            try:
-                scan_k, mask_k, restarted_k = future.result()
-            except BadInput:  # a segment with no usable frame (a black stretch): the whole video is scanned here instead,
-                client.cancel(futures)  # which says what it drops and why
-                return None
-            scans.append(scan_k)
-            masks.append(mask_k)
-            restarted = restarted or restarted_k
-            advance(1)
-    seconds["scan"] = time.perf_counter() - clock
+    try:
+        scans, masks, restarted = scan_on_workers(client, parts, "segments", spill, seconds, show_progress)
+    except BadInput:  # a segment with no usable frame (a black stretch): the whole video is scanned here instead,
+        return None  # which says what it drops and why
     scan, _ = merge_scans(scans, [f"frames {a}-{a + n - 1}" for a, n in ranges], one_flight=True)
     rolling = None
     mode = parse_rolling_shutter(options.rolling_shutter)
@@ -185,6 +167,30 @@ def scan_segments(flight: PreparedFlight, client, spill: str, seconds: dict[str,
         rolling = plan_rolling(flight.video, info, mode, show_progress, "stitch: rolling shutter", None, flight.lens)
         seconds["rolling"] = time.perf_counter() - clock
     return ScannedFlight(scan, masks[0], rolling, None, restarted)
+
+
+def scan_on_workers(client, flights: list[PreparedFlight], what: str, spill: str, seconds: dict[str, float],
+                    show_progress: bool) -> tuple[list[FlightScan], list[FrameMask | None], bool]:
+    """Each of ``flights`` (flights, or a video's segments: ``what``) scanned by a worker of the
+    cluster (scan_remote), in their order: the scans, their overlay masks, and whether an
+    overlay found late restarted any; ``seconds["scan"]`` the wall time.  A scan that fails
+    raises its error here, the others' tasks cancelled."""
+    clock = time.perf_counter()
+    futures = [client.submit(scan_remote, flight, spill, pure=False) for flight in flights]
+    scans, masks, restarted = [], [], False
+    try:
+        with progress_task(f"scan {len(futures)} {what} (cluster)", len(futures), unit=f"{what}/s", disable=not show_progress) as advance:
+            for future in futures:
+                scan, mask, again = future.result()
+                scans.append(scan)
+                masks.append(mask)
+                restarted = restarted or again
+                advance(1)
+    except BaseException:
+        client.cancel(futures)
+        raise
+    seconds["scan"] = time.perf_counter() - clock
+    return scans, masks, restarted
 
 
 def scan_remote(flight: PreparedFlight, spill: str):

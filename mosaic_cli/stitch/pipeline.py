@@ -527,6 +527,15 @@ def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] |
     return options.start / info.fps, (end - 1) / info.fps
 
 
+def frames_to_scan(info: VideoInfo, options: StitchOptions) -> int | None:
+    """How many frames the scan reads (from ``--start``, at most ``--max-frames``), by the
+    reader's own count (it rescales, it does not recount); None where that count is unknown."""
+    if info.frame_count is None:
+        return None
+    total = max(0, info.frame_count - options.start)
+    return total if options.max_frames is None else min(total, options.max_frames)
+
+
 def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
           mask: PendingMask, probe: RollingProbe | None = None, guide: GroundGuide | None = None,
           lens: ImageFilter | None = None) -> tuple[FlightScan, Speculation]:
@@ -540,11 +549,7 @@ def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, 
     if max_size and max(info.source_size) > max_size:
         width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
     decode_size = scaled_size(info.source_size, width)
-    total = info.frame_count  # (the reader's own count: it rescales, it does not recount)
-    if total is not None:
-        total = max(0, total - options.start)
-        if options.max_frames is not None:
-            total = min(total, options.max_frames)
+    total = frames_to_scan(info, options)
     photos = info.is_image_folder
     label, unit = ("scan (photos, features)", "photos/s") if photos else (f"scan ({estimator.name})", "fr/s")
 
