@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -349,9 +351,94 @@ def placement_gaps(pairs, reference: DirectReference) -> list[tuple[int, int, fl
         if ref is None:
             out.append((i, j, None, None))
             continue
-        gap = float(np.median(np.linalg.norm(project(placed, ref.points) - project(ref.H, ref.points), axis=1)))
-        out.append((i, j, gap, ref.ambiguity))
+        out.append((i, j, photo_pairs_gap(placed, ref), ref.ambiguity))
     return out
+
+
+def photo_pairs_gap(placed: np.ndarray, ref: Reference) -> float:
+    """The median distance (px) over the ruler's inliers between where ``placed`` (photo i -> j)
+    and the ruler put them."""
+    return float(np.median(np.linalg.norm(project(placed, ref.points) - project(ref.H, ref.points), axis=1)))
+
+
+def ruler_floor(pairs: list[tuple[int, int]], reference: DirectReference) -> tuple[float, float]:
+    """The best any panorama of one homography per photo can do against these rulers: placements
+    fitted to the rulers themselves (each pair's RMS gap over its inliers, least squares, the pairs alike), then the
+    largest of those gaps pressed down by a growing p-norm (p = 4 .. 32).  Returns the largest
+    median gap of the least-squares fit and of the best of the others.  Where the ground is not
+    one plane the rulers disagree with each other, and no placement meets them all."""
+    known = {(i, j): reference(i, j) for i, j in pairs}
+    known = {pair: ref for pair, ref in known.items() if ref is not None}
+    if not known:
+        return math.nan, math.nan
+    photos = sorted({k for pair in known for k in pair})
+    points = {pair: ref.points[:: max(1, len(ref.points) // 300)] for pair, ref in known.items()}
+    scale = np.diag([1e-3, 1e-3, 1.0])  # unknowns of one size: better conditioned
+    placed: dict[int, np.ndarray] = {}
+    while len(placed) < len(photos):  # a spanning tree of rulers, most inliers first; a new part from identity
+        placed.setdefault(next(p for p in photos if p not in placed), np.eye(3))
+        for _ in photos:
+            for (i, j), ref in sorted(known.items(), key=lambda item: -len(item[1].points)):
+                if i in placed and j not in placed:
+                    placed[j] = placed[i] @ np.linalg.inv(ref.H)
+                elif j in placed and i not in placed:
+                    placed[i] = placed[j] @ ref.H
+    free = photos[1:]
+
+    def unpack(x: np.ndarray) -> dict[int, np.ndarray]:
+        out = {photos[0]: placed[photos[0]]}
+        for k, p in enumerate(free):
+            out[p] = np.linalg.inv(scale) @ np.append(x[8 * k:8 * k + 8], 1.0).reshape(3, 3) @ scale
+        return out
+
+    def gaps(x: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+        P = unpack(x)
+        return {(i, j): np.linalg.norm(project(np.linalg.inv(P[j]) @ P[i], pts) - project(known[i, j].H, pts), axis=1)
+                for (i, j), pts in points.items()}
+
+    def rms(x: np.ndarray) -> np.ndarray:
+        return np.array([np.sqrt(np.mean(g**2)) for g in gaps(x).values()])
+
+    def worst_median(x: np.ndarray) -> float:
+        P = unpack(x)
+        return max(photo_pairs_gap(np.linalg.inv(P[j]) @ P[i], ref) for (i, j), ref in known.items())
+
+    x = np.concatenate([(m := scale @ placed[p] @ np.linalg.inv(scale)).ravel()[:8] / m[2, 2] for p in free])
+    x = least_squares(lambda x: np.concatenate([g / np.sqrt(len(g)) for g in gaps(x).values()]), x, method="trf", max_nfev=2000).x
+    fitted = best = worst_median(x)
+    for power in (4, 8, 16, 32):
+        x = least_squares(lambda x, power=power: rms(x) ** (power / 2), x, method="trf", max_nfev=2000).x
+        best = min(best, worst_median(x))
+    return fitted, best
+
+
+def ruler_loops(photos: int, size: tuple[int, int], reference: DirectReference) -> list[tuple[int, int, int, int, float, float]]:
+    """Where three photos i < j < k have rulers for all three pairs: at the inliers of i-k that
+    also lie in photo j, how far apart the two ways round the loop put them (i -> j -> k against
+    i -> k; median, px), and so how far, at the least, one of the three placements of any panorama
+    is off its ruler there (the miss over 2 + the scale of j -> k: each placement's error enters
+    the loop once, j -> k's scaled).  Rows (i, j, k, points, miss, least)."""
+    def H(a: int, b: int) -> np.ndarray:
+        ref = reference(min(a, b), max(a, b))
+        assert ref is not None
+        return ref.H if a < b else np.linalg.inv(ref.H)
+
+    rows = []
+    for i, j, k in itertools.combinations(range(photos), 3):
+        rulers = [reference(*pair) for pair in ((i, j), (j, k), (i, k))]
+        if any(r is None for r in rulers):
+            continue
+        points = rulers[2].points
+        inside = np.all((project(H(i, j), points) >= 0) & (project(H(i, j), points) < size), axis=1)
+        points = points[inside]
+        if len(points) < 20:
+            continue
+        miss = np.linalg.norm(project(H(j, k) @ H(i, j), points) - project(H(i, k), points), axis=1)
+        G, at = H(j, k), project(H(i, j), points).mean(axis=0)  # j -> k's Jacobian where the points lie
+        jacobian = (G[:2, :2] - np.outer(project(G, at[None])[0], G[2, :2])) / (G[2] @ [*at, 1.0])
+        scale = np.linalg.svd(jacobian, compute_uv=False)[0]
+        rows.append((i, j, k, len(points), float(np.median(miss)), float(np.median(miss)) / (2 + scale)))
+    return rows
 
 
 def _gap_summary(gaps) -> str:
@@ -403,8 +490,14 @@ def photos(args) -> dict:
                 "all accounted": sorted(used + [i for i, _ in result.dropped]) == list(range(len(files))),
                 "consecutive": consecutive, "other": other, "seconds": seconds, "loops": result.registration.loops,
             }
+        first = row[runs[0][0]]
+        row["floor"] = ruler_floor([(i, j) for i, j, _, _ in first["consecutive"] + first["other"]], reference)
         rows.append(row)
-        print(f"{folder.name}: {len(files)} photos", flush=True)
+        row["loops"] = ruler_loops(len(files), size, reference)
+        print(f"{folder.name}: {len(files)} photos; the best one homography per photo can do against these rulers "
+              f"(ruler_floor): {row['floor'][1]:.2f} px at the worst pair (least squares: {row['floor'][0]:.2f} px)", flush=True)
+        for i, j, k, n, miss, least in row["loops"]:
+            print(f"  rulers {i}-{j}-{k}: round the loop {miss:.2f} px apart at {n} shared points: any panorama is {least:.2f} px off one of them there")
         for label, _, _ in runs:
             r = row[label]
             print(
