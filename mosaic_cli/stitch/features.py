@@ -35,6 +35,11 @@ class FeatureOptions:
     guided_ratio: float = 0.9
     guided_min_inliers: int = 12
     reproj_threshold: float = 1.5  # pixels at the feature width
+    # ... and at most this many pixels of the source itself (None: no cap; photos: photo_threshold).
+    # A 12 MP still described at 2000 px would get 3 px: where its ground is not one plane (trees,
+    # relief) a band that wide mixes planes (docs/measurements/stitch.md, photo folders).
+    max_source_threshold: float | None = None
+    photo_threshold: float = 2.0
     min_inliers: int = 20
     min_inlier_ratio: float = 0.15
     # A registered pair may change a frame's area by at most this factor (keyframes of one flight).
@@ -56,8 +61,10 @@ class FeatureOptions:
             raise ValueError(f"feature widths must be at least 32 px and counts at least 4: {self}")
         if not 0 < self.ratio <= 1 or not 0 <= self.min_inlier_ratio <= 1 or not 0 <= self.min_homography_spread <= 1:
             raise ValueError(f"ratio, min_inlier_ratio and min_homography_spread must be fractions: {self}")
-        if self.min_inliers < 4 or self.reproj_threshold <= 0 or self.max_area_ratio < 1:
-            raise ValueError(f"min_inliers >= 4, reproj_threshold > 0, max_area_ratio >= 1 expected: {self}")
+        cap = self.max_source_threshold
+        thresholds = [self.reproj_threshold, self.photo_threshold] + ([] if cap is None else [cap])
+        if self.min_inliers < 4 or min(thresholds) <= 0 or self.max_area_ratio < 1:
+            raise ValueError(f"min_inliers >= 4, thresholds > 0, max_area_ratio >= 1 expected: {self}")
 
 
 @dataclass
@@ -97,6 +104,8 @@ class FeatureExtractor:
         self._to_source = np.linalg.inv(resize_matrix(source_size, self.size))
         # The matching threshold, re-expressed in source pixels.
         self.threshold = self.options.reproj_threshold * source_size[0] / width
+        if self.options.max_source_threshold is not None:
+            self.threshold = min(self.threshold, self.options.max_source_threshold)
         self._mask = work_mask(use, self.size, margin=MASK_MARGIN)
 
     def __call__(self, frame: np.ndarray, use: np.ndarray | None = None) -> Features:

@@ -248,7 +248,8 @@ def prepare_flight(video: str | Path, out: str | Path, transforms: str | Path | 
     if info.is_image_folder:
         # Photos are registered by features alone: describe them finer than video frames.
         f = options.features
-        photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features))
+        photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features),
+                                    max_source_threshold=f.photo_threshold)
         options = dataclasses.replace(options, features=photo)
         if parse_rolling_shutter(options.rolling_shutter) != "off":
             raise BadInput(f"{video}: --rolling-shutter applies to videos, not to photo folders")
