@@ -362,11 +362,11 @@ def photo_pairs_gap(placed: np.ndarray, ref: Reference) -> float:
 
 
 def ruler_floor(pairs: list[tuple[int, int]], reference: DirectReference) -> tuple[float, float]:
-    """The best any panorama of one homography per photo can do against these rulers: placements
-    fitted to the rulers themselves (each pair's RMS gap over its inliers, least squares, the pairs alike), then the
-    largest of those gaps pressed down by a growing p-norm (p = 4 .. 32).  Returns the largest
-    median gap of the least-squares fit and of the best of the others.  Where the ground is not
-    one plane the rulers disagree with each other, and no placement meets them all."""
+    """How close a panorama of one homography per photo can come to these rulers: placements fitted
+    to the rulers themselves (each pair's RMS gap over its inliers, least squares, the pairs alike),
+    then the largest of those gaps pressed down by a growing p-norm (p = 4 .. 32).  Returns the
+    largest median gap of the least-squares fit and of the best fit found: a placement that
+    exists, not a proof that none does better (``ruler_loops`` gives such proofs)."""
     known = {(i, j): reference(i, j) for i, j in pairs}
     known = {pair: ref for pair, ref in known.items() if ref is not None}
     if not known:
@@ -416,8 +416,9 @@ def ruler_loops(photos: int, size: tuple[int, int], reference: DirectReference) 
     """Where three photos i < j < k have rulers for all three pairs: at the inliers of i-k that
     also lie in photo j, how far apart the two ways round the loop put them (i -> j -> k against
     i -> k; median, px), and so how far, at the least, one of the three placements of any panorama
-    is off its ruler there (the miss over 2 + the scale of j -> k: each placement's error enters
-    the loop once, j -> k's scaled).  Rows (i, j, k, points, miss, least)."""
+    is off its ruler at half of those points (the miss over 2 + the scale of j -> k: around the
+    loop the placements compose to nothing, so the three errors, j -> k's scaled, add up to at least
+    the miss).  Rows (i, j, k, points, miss, least)."""
     def H(a: int, b: int) -> np.ndarray:
         ref = reference(min(a, b), max(a, b))
         assert ref is not None
@@ -493,11 +494,12 @@ def photos(args) -> dict:
         first = row[runs[0][0]]
         row["floor"] = ruler_floor([(i, j) for i, j, _, _ in first["consecutive"] + first["other"]], reference)
         rows.append(row)
-        row["loops"] = ruler_loops(len(files), size, reference)
-        print(f"{folder.name}: {len(files)} photos; the best one homography per photo can do against these rulers "
-              f"(ruler_floor): {row['floor'][1]:.2f} px at the worst pair (least squares: {row['floor'][0]:.2f} px)", flush=True)
-        for i, j, k, n, miss, least in row["loops"]:
-            print(f"  rulers {i}-{j}-{k}: round the loop {miss:.2f} px apart at {n} shared points: any panorama is {least:.2f} px off one of them there")
+        row["ruler loops"] = ruler_loops(len(files), size, reference)
+        print(f"{folder.name}: {len(files)} photos; one homography per photo fitted to these rulers (ruler_floor): "
+              f"{row['floor'][1]:.2f} px at the worst pair (least squares: {row['floor'][0]:.2f} px)", flush=True)
+        for i, j, k, n, miss, least in row["ruler loops"]:
+            print(f"  rulers {i}-{j}-{k}: round the loop {miss:.2f} px apart at {n} shared points: "
+                  f"any panorama is {least:.2f} px off one of them at half of those points")
         for label, _, _ in runs:
             r = row[label]
             print(
