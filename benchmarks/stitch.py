@@ -374,11 +374,12 @@ def ruler_floor(pairs: list[tuple[int, int]], reference: DirectReference) -> tup
     photos = sorted({k for pair in known for k in pair})
     points = {pair: ref.points[:: max(1, len(ref.points) // 300)] for pair, ref in known.items()}
     scale = np.diag([1e-3, 1e-3, 1.0])  # unknowns of one size: better conditioned
+    strongest_first = sorted(known.items(), key=lambda item: -len(item[1].points))
     placed: dict[int, np.ndarray] = {}
     while len(placed) < len(photos):  # a spanning tree of rulers, most inliers first; a new part from identity
         placed.setdefault(next(p for p in photos if p not in placed), np.eye(3))
         for _ in photos:
-            for (i, j), ref in sorted(known.items(), key=lambda item: -len(item[1].points)):
+            for (i, j), ref in strongest_first:
                 if i in placed and j not in placed:
                     placed[j] = placed[i] @ np.linalg.inv(ref.H)
                 elif j in placed and i not in placed:
@@ -429,14 +430,15 @@ def ruler_loops(photos: int, size: tuple[int, int], reference: DirectReference) 
         rulers = [reference(*pair) for pair in ((i, j), (j, k), (i, k))]
         if any(r is None for r in rulers):
             continue
-        points = rulers[2].points
-        inside = np.all((project(H(i, j), points) >= 0) & (project(H(i, j), points) < size), axis=1)
-        points = points[inside]
-        if len(points) < 20:
+        ij, jk = H(i, j), H(j, k)
+        in_j = project(ij, rulers[2].points)
+        inside = np.all((in_j >= 0) & (in_j < size), axis=1)
+        if inside.sum() < 20:
             continue
-        miss = np.linalg.norm(project(H(j, k) @ H(i, j), points) - project(H(i, k), points), axis=1)
-        G, at = H(j, k), project(H(i, j), points).mean(axis=0)  # j -> k's Jacobian where the points lie
-        jacobian = (G[:2, :2] - np.outer(project(G, at[None])[0], G[2, :2])) / (G[2] @ [*at, 1.0])
+        points, in_j = rulers[2].points[inside], in_j[inside]
+        miss = np.linalg.norm(project(jk, in_j) - project(H(i, k), points), axis=1)
+        at = in_j.mean(axis=0)  # j -> k's Jacobian where the points lie
+        jacobian = (jk[:2, :2] - np.outer(project(jk, at[None])[0], jk[2, :2])) / (jk[2] @ [*at, 1.0])
         scale = np.linalg.svd(jacobian, compute_uv=False)[0]
         rows.append((i, j, k, len(points), float(np.median(miss)), float(np.median(miss)) / (2 + scale)))
     return rows
@@ -493,8 +495,8 @@ def photos(args) -> dict:
             }
         first = row[runs[0][0]]
         row["floor"] = ruler_floor([(i, j) for i, j, _, _ in first["consecutive"] + first["other"]], reference)
-        rows.append(row)
         row["ruler loops"] = ruler_loops(len(files), size, reference)
+        rows.append(row)
         print(f"{folder.name}: {len(files)} photos; one homography per photo fitted to these rulers (ruler_floor): "
               f"{row['floor'][1]:.2f} px at the worst pair (least squares: {row['floor'][0]:.2f} px)", flush=True)
         for i, j, k, n, miss, least in row["ruler loops"]:
