@@ -60,7 +60,9 @@ def stages(argv: list[str]) -> int:
     import threading
 
     import mosaic_cli.stitch.pipeline as pipeline
+    import mosaic_cli.stitch.scan as stitch_scan
     from mosaic_cli.geo.georef import GeorefOptions
+    from mosaic_cli.stitch import StitchOptions
 
     parser = make_parser(SUITE, "stages", stages.__doc__)
     parser.add_argument("--count", type=int, default=500, help="photos in the folder")
@@ -96,10 +98,11 @@ def stages(argv: list[str]) -> int:
         root = Path(tmp)
         survey = _survey(root / "photos", args.count, (w, h), args.gsd, args.map_gsd)
         threading.Thread(target=sample, daemon=True).start()
-        for name in ("_scan", "_register", "_georeference", "compose", "write_outputs"):
-            setattr(pipeline, name, timed(name.strip("_"), getattr(pipeline, name)))
+        for module, name in ((stitch_scan, "_scan"), (pipeline, "_register"), (pipeline, "_georeference"), (pipeline, "compose"),
+                             (pipeline, "write_outputs")):
+            setattr(module, name, timed(name.strip("_"), getattr(module, name)))
         start = time.perf_counter()
-        result = pipeline.stitch(survey.folder, root / "map.tif", options=pipeline.StitchOptions(georef=GeorefOptions()),
+        result = pipeline.stitch(survey.folder, root / "map.tif", options=StitchOptions(georef=GeorefOptions()),
                                  transforms=root / "t.json", show_progress=False)
         *_, pair_px = score_survey(survey, json.loads((root / "t.json").read_text()))
         print(f"{len(survey.names)} photos of {w}x{h} into {result.canvas_size[0]}x{result.canvas_size[1]} in "

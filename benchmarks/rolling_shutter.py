@@ -11,7 +11,7 @@ from pathlib import Path
 import imageio_ffmpeg
 import numpy as np
 
-import mosaic_cli.stitch.pipeline as stitch_pipeline
+import mosaic_cli.stitch.scan as stitch_scan
 from benchmarks.common import cpu_seconds, make_parser, run_commands
 from mosaic_cli.estimators import make_estimator
 from mosaic_cli.estimators.rolling import AUTO_PROBE_FRAMES, PROBE_CORNERS, PROBE_READOUTS, RollingProbe
@@ -319,14 +319,14 @@ def stitch_command(argv: list[str] | None = None) -> int | None:
             scores[mode] = dict(**score, seconds=seconds, keys=len(pano.transforms), readout=rs.readout if rs is not None else float("nan"))
         truth = ""
         if args.truth and gt.readout > 0:
-            plan = stitch_pipeline.plan_rolling
+            plan = stitch_scan.plan_rolling
             exact = truth_corrections(gt)
-            stitch_pipeline.plan_rolling = lambda *a, exact=exact, **k: exact  # the stitch's one call of it
+            stitch_scan.plan_rolling = lambda *a, exact=exact, **k: exact  # the stitch's one call of it
             try:
                 result = stitch(clip, clip.with_suffix(".truth.png"), make_estimator(args.estimator),
                                 StitchOptions(rolling_shutter=gt.readout), show_progress=False)
             finally:
-                stitch_pipeline.plan_rolling = plan
+                stitch_scan.plan_rolling = plan
             pano = result.panoramas[0]
             truth = f" | {ground_truth_band_placement(gt.row_bands, gt.map_to_frame, gt.size, pano.transforms, pano.bands)['rms']:>9.3f}"
         off, auto = scores["off"], scores["auto"]

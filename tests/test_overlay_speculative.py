@@ -180,16 +180,16 @@ def test_stabilize_warps_are_those_of_the_mask_given_first(clips, held_detection
 @pytest.mark.slow
 @pytest.mark.parametrize("name,restart", [("plain", False), ("burned", True)])
 def test_stitch_panorama_is_that_of_the_mask_given_first(clips, held_detection, tmp_path, monkeypatch, name, restart):
-    import mosaic_cli.stitch.pipeline as pipeline
+    import mosaic_cli.stitch.scan as stitch_scan
 
     probes = []  # each stitch's `auto` probe, fed by the scan (the discarded one's too)
 
-    class Recorded(pipeline.RollingProbe):
+    class Recorded(stitch_scan.RollingProbe):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             probes.append(self)
 
-    monkeypatch.setattr(pipeline, "RollingProbe", Recorded)
+    monkeypatch.setattr(stitch_scan, "RollingProbe", Recorded)
     video = clips[name]
     spec = stitch(video, tmp_path / "spec.png", options=StitchOptions(estimator="orb", rolling_shutter="auto"),
                   show_progress=False)

@@ -297,16 +297,17 @@ def test_bad_input_is_one_line_exit_2_and_no_file(short_clip, tmp_path, capsys, 
 
 def test_the_library_builds_the_estimator_its_options_name_once_the_input_is_checked(short_clip, tmp_path, monkeypatch):
     from mosaic_cli.errors import BadInput
-    from mosaic_cli.stitch import CanvasOptions, pipeline
+    from mosaic_cli.stitch import CanvasOptions
+    from mosaic_cli.stitch import scan as stitch_scan
 
     built = []
-    real = pipeline.plan_estimator
+    real = stitch_scan.plan_estimator
 
     def spy(name=None, **kwargs):
         built.append((name, kwargs))
         return real(name, **kwargs)
 
-    monkeypatch.setattr(pipeline, "plan_estimator", spy)
+    monkeypatch.setattr(stitch_scan, "plan_estimator", spy)
     late = StitchOptions(estimator="orb", canvas=CanvasOptions(reference="5000"))
     with pytest.raises(BadInput, match="past the end"):
         stitch(short_clip, tmp_path / "p.png", options=late, show_progress=False)

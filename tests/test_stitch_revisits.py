@@ -274,6 +274,7 @@ def test_every_progress_stage_has_a_total_and_keeps_within_it(tmp_path, forward,
     import contextlib
 
     import mosaic_cli.stitch.pipeline as pipeline
+    import mosaic_cli.stitch.scan as stitch_scan
 
     frames, _ = forward
     video = write(tmp_path / "loop.mp4", frames + frames)  # relocalisation and loops: every stage
@@ -289,7 +290,8 @@ def test_every_progress_stage_has_a_total_and_keeps_within_it(tmp_path, forward,
 
         yield advance
 
-    monkeypatch.setattr(pipeline, "progress_task", recording)
+    monkeypatch.setattr(pipeline, "progress_task", recording)  # the stages after the scan
+    monkeypatch.setattr(stitch_scan, "progress_task", recording)  # the scan
     stitch(video, tmp_path / "p.png", orb(), show_progress=True)
     names = [s["description"].split(" ")[0] for s in stages]
     assert {"scan", "relocalise", "register", "compose"} <= set(names)

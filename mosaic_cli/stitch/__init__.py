@@ -9,5 +9,6 @@ from mosaic_cli.stitch.canvas import CanvasOptions  # noqa: F401
 from mosaic_cli.stitch.compose import ComposeOptions  # noqa: F401
 from mosaic_cli.stitch.features import FeatureOptions  # noqa: F401
 from mosaic_cli.stitch.keyframes import KeyframeOptions  # noqa: F401
-from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, stitch  # noqa: F401
+from mosaic_cli.stitch.options import StitchOptions  # noqa: F401
+from mosaic_cli.stitch.pipeline import StitchResult, stitch  # noqa: F401
 from mosaic_cli.stitch.registration import RegistrationOptions  # noqa: F401

@@ -36,7 +36,7 @@ class ClusterOptions:
     workers: int | None = None  # local worker processes; None: no cluster of our own
     scheduler: str | None = None  # tcp://HOST:PORT of a running cluster
     # A video is cut into segments scanned at once, one a worker, each at least this many frames
-    # (stitch/flights.py, segment_ranges): 40 s at 30 fps, so that a worker's own estimator and
+    # (stitch/workers.py, segment_ranges): 40 s at 30 fps, so that a worker's own estimator and
     # overlay search (a few seconds) stay a small share of its segment's scan.
     segment_frames: int = 1200
 

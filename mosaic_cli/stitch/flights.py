@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import tempfile
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -25,27 +24,17 @@ import numpy as np
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators import Estimator
 from mosaic_cli.overlay import FrameMask
-from mosaic_cli.progress import progress_task
-from mosaic_cli.stabilize.rolling import parse_rolling_shutter, plan_rolling
 from mosaic_cli.stitch.cluster import connect, tile_runner
-from mosaic_cli.stitch.keyframes import FlightScan, FlightSpan, Keyframe
-from mosaic_cli.stitch.pipeline import (
-    PreparedFlight,
-    ScannedFlight,
-    StitchOptions,
-    StitchResult,
-    finish_stitch,
-    frames_to_scan,
-    plan_stitch_estimator,
-    prepare_flight,
-    scan_prepared,
-)
+from mosaic_cli.stitch.keyframes import FlightScan, FlightSpan
+from mosaic_cli.stitch.options import StitchOptions
+from mosaic_cli.stitch.pipeline import StitchResult, finish_stitch
+from mosaic_cli.stitch.scan import PreparedFlight, merge_scans, plan_stitch_estimator, prepare_flight, scan_prepared
+from mosaic_cli.stitch.workers import scan_on_workers
 from mosaic_cli.telemetry import FlightLog
 from mosaic_cli.telemetry.flight_log import FIELDS
 from mosaic_cli.telemetry.photos import photo_metadata_notes
 from mosaic_cli.video.folders import folder_images, other_cameras_note
 
-GAP_SECONDS = 60.0  # between one flight's last frame and the next one's first, in the one count
 VIDEO_SUFFIXES = {".mp4", ".mov", ".mkv", ".avi", ".ts", ".m4v", ".mts", ".webm", ".mpg", ".mpeg"}
 
 
@@ -125,82 +114,6 @@ def stitch_flights(flights: Sequence[str | Path], out: str | Path, estimator: Es
         return result
 
 
-def segment_ranges(frames: int, start: int, workers: int, least: int) -> list[tuple[int, int]]:
-    """``(first frame, frames)`` of each segment a flight of ``frames`` frames from ``start`` is
-    cut into: one a worker, each at least ``least`` frames long (each worker builds an estimator
-    and looks for overlays of its own: a short segment would cost more than it saves); the
-    whole flight as one where fewer than two such segments fit."""
-    count = min(workers, frames // max(least, 1))
-    if count < 2:
-        return [(start, frames)]
-    bounds = np.linspace(0, frames, count + 1).round().astype(int)
-    return [(start + int(a), int(b - a)) for a, b in zip(bounds[:-1], bounds[1:])]
-
-
-def scan_segments(flight: PreparedFlight, client, spill: str, seconds: dict[str, float], show_progress: bool,
-                  least: int) -> ScannedFlight | None:
-    """One video cut into segments scanned at once on the cluster's workers (segment_ranges), as
-    one scan: each keyframe keeps its frame number, each segment starts a segment of the scan
-    (the register stage joins them by registration, as it joins the parts of a flight after a
-    cut: consecutive segments see the same ground at their boundary).  Each worker finds the
-    overlays of its own segment; the rolling shutter is measured here, over the whole video,
-    once the segments are back.  None when the video is too short to cut (or its length unknown)."""
-    info, options = flight.info, flight.options
-    frames = frames_to_scan(info, options)
-    if info.is_image_folder or not frames:
-        return None
-    workers = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values())
-    ranges = segment_ranges(frames, options.start, workers, least)
-    if len(ranges) < 2:
-        return None
-    parts = [dataclasses.replace(flight, options=dataclasses.replace(options, start=first, max_frames=count, rolling_shutter="off"))
-             for first, count in ranges]
-    try:
-        scans, masks, restarted = scan_on_workers(client, parts, "segments", spill, seconds, show_progress)
-    except BadInput:  # a segment with no usable frame (a black stretch): the whole video is scanned here instead,
-        return None  # which says what it drops and why
-    scan, _ = merge_scans(scans, [f"frames {a}-{a + n - 1}" for a, n in ranges], one_flight=True)
-    rolling = None
-    mode = parse_rolling_shutter(options.rolling_shutter)
-    if mode != "off":
-        clock = time.perf_counter()
-        rolling = plan_rolling(flight.video, info, mode, show_progress, "stitch: rolling shutter", None, flight.lens)
-        seconds["rolling"] = time.perf_counter() - clock
-    return ScannedFlight(scan, masks[0], rolling, None, restarted)
-
-
-def scan_on_workers(client, flights: list[PreparedFlight], what: str, spill: str, seconds: dict[str, float],
-                    show_progress: bool) -> tuple[list[FlightScan], list[FrameMask | None], bool]:
-    """Each of ``flights`` (flights, or a video's segments: ``what``) scanned by a worker of the
-    cluster (scan_remote), in their order: the scans, their overlay masks, and whether an
-    overlay found late restarted any; ``seconds["scan"]`` the wall time.  A scan that fails
-    raises its error here, the others' tasks cancelled."""
-    clock = time.perf_counter()
-    futures = [client.submit(scan_remote, flight, spill, pure=False) for flight in flights]
-    scans, masks, restarted = [], [], False
-    try:
-        with progress_task(f"scan {len(futures)} {what} (cluster)", len(futures), unit=f"{what}/s", disable=not show_progress) as advance:
-            for future in futures:
-                scan, mask, again = future.result()
-                scans.append(scan)
-                masks.append(mask)
-                restarted = restarted or again
-                advance(1)
-    except BaseException:
-        client.cancel(futures)
-        raise
-    seconds["scan"] = time.perf_counter() - clock
-    return scans, masks, restarted
-
-
-def scan_remote(flight: PreparedFlight, spill: str):
-    """(Run on a worker.)  One flight's scan with an estimator of its own: the scan (its
-    keyframe pixels spilled to ``spill``, a folder the stitch's machine sees), its overlay
-    mask, and whether an overlay found late restarted it."""
-    scanned = scan_prepared(flight, plan_stitch_estimator(flight.options), False, spill, {})
-    return scanned.scan, scanned.mask, scanned.restarted
-
-
 def _same(estimator: Estimator) -> Estimator:
     return estimator
 
@@ -215,42 +128,6 @@ def _check_alike(flights: list[PreparedFlight]) -> None:
     if len(sizes) > 1:
         said = ", ".join(f"{Path(f.video).name} {f.info.source_size[0]}x{f.info.source_size[1]}" for f in flights)
         raise BadInput(f"the flights' frames differ in size ({said}): stitch flights of one camera setting together")
-
-
-def merge_scans(scans: list[FlightScan], names: list[str], one_flight: bool = False) -> tuple[FlightScan, list[FlightSpan]]:
-    """The scans laid end to end as one (see the module doc): frame numbers shifted into one
-    count with a gap of ``GAP_SECONDS`` between flights, segments numbered apart, each
-    keyframe's link to its predecessor kept; the first flight's overlay mask is the scan's, a
-    later flight's own is carried by each of its keyframes (``Keyframe.use``).  ``one_flight``:
-    the scans are segments of one video, each already numbered in its count (no gap, no shift)."""
-    fps = scans[0].fps
-    gap = 0 if one_flight else int(round(GAP_SECONDS * fps))
-    keyframes: list[Keyframe] = []
-    dropped, relocalised, spans = [], [], []
-    start = scans[0].first_index
-    segment = 0
-    pairs = failed = 0
-    for scan, name in zip(scans, names):
-        shift = 0 if one_flight else start - scan.first_index
-        base = len(keyframes)
-        for key in scan.keyframes:
-            key.index += shift
-            key.segment += segment
-            if key.link_to is not None:
-                key.link_to += base
-            if scan.use is not scans[0].use and key.use is None:  # (a fitted photo's own includes its flight's)
-                key.use = scan.use
-            keyframes.append(key)
-        dropped += [(i + shift, why) for i, why in scan.dropped]
-        relocalised += [i + shift for i in scan.relocalised]
-        spans.append(FlightSpan(name, start, scan.frames))
-        segment = max(k.segment for k in keyframes) + 1
-        pairs += scan.pairs_tried
-        failed += scan.failed_pairs
-        start += scan.frames + gap
-    merged = FlightScan(keyframes, scans[0].source_size, fps, sum(s.frames for s in scans), scans[0].first_index, failed, relocalised,
-                        sum(s.seconds for s in scans), dropped, scans[0].photos, scans[0].use, pairs, [] if one_flight else spans)
-    return merged, spans
 
 
 def merge_logs(tracks: list[FlightLog | None], spans: list[FlightSpan], fps: float, rates: list[float]) -> FlightLog:

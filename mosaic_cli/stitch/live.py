@@ -44,8 +44,9 @@ from mosaic_cli.progress import stream_progress
 from mosaic_cli.stitch.canvas import MIN_SIZE, CanvasOptions, parse_reference, plan_canvas
 from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
 from mosaic_cli.stitch.keyframes import FlightScanner, Keyframe, scan_flight
+from mosaic_cli.stitch.options import StitchOptions
 from mosaic_cli.stitch.output import check_outputs
-from mosaic_cli.stitch.pipeline import StitchOptions, StitchResult, finish_stitch, make_stitch_estimator
+from mosaic_cli.stitch.pipeline import StitchResult, finish_stitch
 from mosaic_cli.stitch.registration import (
     Link,
     RegistrationOptions,
@@ -55,6 +56,7 @@ from mosaic_cli.stitch.registration import (
     loop_candidates,
     refine_placements,
 )
+from mosaic_cli.stitch.scan import make_stitch_estimator
 from mosaic_cli.stitch.spill import load_pixels
 from mosaic_cli.video.lens_filter import ImageFilter
 from mosaic_cli.video.reader import VideoInfo, probe, scaled_size
@@ -388,7 +390,7 @@ def _georef_telemetry(source: str, out: str | Path, options: StitchOptions, live
 
 
 def check_live_request(out, transforms, options: StitchOptions, preview: PreviewOptions) -> str | int:
-    """The checks of pipeline._check_inputs that need no probe of the input, and the preview's;
+    """The checks of scan._check_inputs that need no probe of the input, and the preview's;
     the reference (see canvas.parse_reference)."""
     check_outputs(out, transforms, options.canvas.max_size)
     if preview.path is not None:

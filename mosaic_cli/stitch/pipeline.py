@@ -6,7 +6,8 @@
              dropped) if an overlay is found (mosaic_cli/overlay/speculate.py)
 1. scan      decode once, chain the estimator's pairwise homographies, keep keyframes, each
              placed by direct registration with the previous one (photos: registered
-             directly, no estimator); a cut starts a new segment
+             directly, no estimator); a cut starts a new segment.  Stages 0 and 1 are
+             scan.py's (on a cluster's workers: workers.py)
    rolling   --rolling-shutter auto|R only: each row band's correction to its frame's mid-time
              pose, from a tracking pass of its own (stabilize/rolling.py; `auto` first probes
              the scan's first frames, and a global shutter stops there); compose then draws
@@ -29,8 +30,6 @@ map homographies in the transforms).
 from __future__ import annotations
 
 import dataclasses
-import functools
-import itertools
 import tempfile
 import time
 from collections.abc import Callable
@@ -41,80 +40,36 @@ import numpy as np
 
 from mosaic_cli.device import check_device, resolve_device
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import Estimator, plan_estimator
+from mosaic_cli.estimators import Estimator
 from mosaic_cli.geo.georef import Georeference, GeorefOptions, TooFewFixes, georeference
 from mosaic_cli.geo.output import geotransform, transforms_extra
-from mosaic_cli.geo.stitching import georef_telemetry, gps_straightener, map_homographies, write_outputs
+from mosaic_cli.geo.stitching import gps_straightener, map_homographies, write_outputs
 from mosaic_cli.geometry import is_valid, normalize, resize_matrix
 from mosaic_cli.geometry.rolling_shutter import band_centres, similarity_matrix, undo_row_correction
-from mosaic_cli.inputs import DEFAULT_TIMEOUT, check_max_frames, check_timeout
-from mosaic_cli.overlay import FrameMask, Gate, MaskChanged, MaskOptions, PendingMask, Speculation, check_mask_file, frame_mask_pending, speculate
-from mosaic_cli.progress import progress_group, progress_task
-from mosaic_cli.stabilize.rolling import RollingCorrection, RollingProbe, parse_rolling_shutter, plan_rolling
-from mosaic_cli.stitch.canvas import CanvasOptions, choose_reference, parse_reference, plan_canvas
-from mosaic_cli.stitch.cluster import ClusterOptions, connect, tile_runner
+from mosaic_cli.overlay import FrameMask
+from mosaic_cli.progress import progress_task
+from mosaic_cli.stabilize.rolling import RollingCorrection
+from mosaic_cli.stitch.canvas import choose_reference, plan_canvas
+from mosaic_cli.stitch.cluster import connect, tile_runner
 from mosaic_cli.stitch.compose import ComposeOptions, PlacedImage, RowMap, TileRunner, TileSink, compose, fill_holes, tile_count
-from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher, FeatureOptions
-from mosaic_cli.stitch.guide import GroundGuide
-from mosaic_cli.stitch.keyframes import FlightScan, FlightScanner, FlightSpan, KeyframeOptions, scan_flight, scan_photos
-from mosaic_cli.stitch.output import JPEG_MAX_SIDE, check_outputs, numbered, output_format, write_transforms
+from mosaic_cli.stitch.features import FeatureExtractor, FeatureMatcher
+from mosaic_cli.stitch.keyframes import FlightScan, FlightSpan, KeyframeOptions
+from mosaic_cli.stitch.options import StitchOptions
+from mosaic_cli.stitch.output import JPEG_MAX_SIDE, numbered, output_format, write_transforms
 from mosaic_cli.stitch.raster import MemoryPanorama, StagedPanorama, staged_panorama, write_image
 from mosaic_cli.stitch.registration import (
-    RegistrationOptions,
     RegistrationReport,
     chain_sequence,
     register_keyframes,
 )
-from mosaic_cli.stitch.segments import Joined, JoinOptions, join_segments
+from mosaic_cli.stitch.scan import plan_stitch_estimator, prepare_flight, scan_prepared
+from mosaic_cli.stitch.segments import Joined, join_segments
+from mosaic_cli.stitch.workers import scan_segments
 from mosaic_cli.telemetry import FlightLog
-from mosaic_cli.telemetry.photos import photo_log_rate, photo_metadata_notes
-from mosaic_cli.video import VideoInfo, open_video, probe
+from mosaic_cli.telemetry.photos import photo_metadata_notes
+from mosaic_cli.video import VideoInfo
 from mosaic_cli.video.folders import other_cameras_note
 from mosaic_cli.video.lens_filter import ImageFilter
-from mosaic_cli.video.reader import refuse_damaged, scaled_size
-
-
-@dataclass
-class StitchOptions:
-    # The estimator of the scan, as stabilize's (``make_estimator``), built once the input and
-    # the outputs are checked: a learned one loads weights.
-    estimator: str | None = None  # None: DEFAULT_ESTIMATOR, or the network --weights hold
-    work_width: int | None = None  # --work-width; None: DEFAULT_WORK_WIDTH
-    weights: str | None = None
-    device: str = "auto"
-    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
-    features: FeatureOptions = field(default_factory=FeatureOptions)
-    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
-    joining: JoinOptions = field(default_factory=JoinOptions)
-    canvas: CanvasOptions = field(default_factory=CanvasOptions)
-    compose: ComposeOptions = field(default_factory=ComposeOptions)
-    mask: MaskOptions = field(default_factory=MaskOptions)  # burned-in overlays, --mask
-    start: int = 0
-    max_frames: int | None = None
-    # Hold keyframe pixels in a temporary folder ($TMPDIR) rather than in memory: a survey's
-    # held pixels add up to several canvases (see spill.py).
-    spill: bool = True
-    # Telemetry to lay the mosaic on the ground with (see mosaic_cli/geo); None: a plain panorama.
-    georef: GeorefOptions | None = None
-    timeout: float = DEFAULT_TIMEOUT  # a live input (stitch/live.py) ends when it sends nothing for this long
-    rolling_shutter: str | float = "off"  # auto, off or a readout in [0, 1]: each keyframe drawn row band by row band
-    # Several flights with telemetry (stitch/flights.py): parts that join nothing by registration
-    # are still drawn on one map, each where its log places it.
-    one_map: bool = False
-    # --workers / --scheduler: the flights' scans and the compose stage's tiles on a Dask cluster
-    # (stitch/cluster.py); none asked: all here.
-    cluster: ClusterOptions = field(default_factory=ClusterOptions)
-
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self) -> None:
-        """Its own fields; the stages' options checked themselves when they were made."""
-        if self.start < 0:
-            raise BadInput(f"--start must be 0 or more, got {self.start}")
-        check_max_frames(self.max_frames)
-        check_timeout(self.timeout)
-        parse_rolling_shutter(self.rolling_shutter)
 
 
 @dataclass
@@ -204,8 +159,6 @@ def stitch(
         seconds: dict[str, float] = {}
         scanned = None
         if client is not None and estimator is None:
-            from mosaic_cli.stitch.flights import scan_segments  # (flights.py builds on this module)
-
             scanned = scan_segments(flight, client, spill, seconds, show_progress, options.cluster.segment_frames)
         if scanned is None:
             scanned = scan_prepared(flight, build, show_progress, spill, seconds)
@@ -216,97 +169,6 @@ def stitch(
         if flight.track is not None and flight.track.photos is not None:
             result.metadata_notes += photo_metadata_notes(flight.track.photos)
         return result
-
-
-@dataclass
-class PreparedFlight:
-    """One input, checked, with the options it is stitched with (a photo folder's own), its
-    telemetry (None: none) and the filter its frames are read through (``--lens``; None: as
-    decoded)."""
-
-    video: str | Path
-    info: VideoInfo
-    options: StitchOptions
-    track: FlightLog | None
-    lens: ImageFilter | None = None
-
-
-@dataclass
-class ScannedFlight:
-    scan: FlightScan
-    mask: FrameMask | None
-    rolling: RollingCorrection | None
-    estimator: Estimator | None  # built for the first flight, reused by the next (None: built on a cluster's workers)
-    restarted: bool  # an overlay was found after the scan had started without it
-
-
-def prepare_flight(video: str | Path, out: str | Path, transforms: str | Path | None, options: StitchOptions,
-                   info: VideoInfo | None = None, lens: ImageFilter | None = None) -> tuple[PreparedFlight, str | int]:
-    """Every check of one input that can fail fast (before any work), its telemetry read, and the
-    reference keyframe asked for.  ``info``: the caller's probe; ``lens``: the input's filter."""
-    info, reference = _check_inputs(video, out, transforms, options, info)
-    if info.is_image_folder:
-        # Photos are registered by features alone: describe them finer than video frames.
-        f = options.features
-        photo = dataclasses.replace(f, width=max(f.width, f.photo_width), n_features=max(f.n_features, f.photo_features),
-                                    max_source_threshold=f.photo_threshold)
-        options = dataclasses.replace(options, features=photo)
-        if parse_rolling_shutter(options.rolling_shutter) != "off":
-            raise BadInput(f"{video}: --rolling-shutter applies to videos, not to photo folders")
-        # The photos' EXIF GPS is their telemetry (geo hook: before any work): the folder is
-        # read at the rate the camera took them, so that the track's times are the flight's.
-        track = georef_telemetry(video, out, options.georef, None, info)
-        if track is not None:
-            assert options.georef is not None
-            info = dataclasses.replace(info, fps=photo_log_rate(track))
-            georef = dataclasses.replace(options.georef, align=dataclasses.replace(options.georef.align, per_photo=True),
-                                         bend_to_gps=False)
-            options = dataclasses.replace(options, georef=georef)
-    else:
-        track = georef_telemetry(video, out, options.georef, _time_span(info, options), info)  # geo hook: before any work
-    if options.canvas.gsd is not None and track is None:
-        raise BadInput(f"--gsd needs telemetry (a GPS log, or photos with EXIF GPS): without it {video} has no ground distance; "
-                       f"--max-size bounds a plain panorama")
-    return PreparedFlight(video, info, options, track, lens), reference
-
-
-def scan_prepared(flight: PreparedFlight, build: Callable[[], Estimator], show_progress: bool, spill: str,
-                  seconds: dict[str, float]) -> ScannedFlight:
-    """Stage 0 and 1 (and the rolling shutter's pass) of one prepared input: the estimator built
-    (``build``) beside the overlay detection, the scan; ``seconds`` gains their times.  Each
-    reads the input through ``flight.lens``."""
-    video, info, options, track, lens = flight.video, flight.info, flight.options, flight.track, flight.lens
-    clock = time.perf_counter()
-    # `auto`'s probe rides on the scan's first frames: a global shutter costs no pass of its own.
-    mode = parse_rolling_shutter(options.rolling_shutter)
-    probe = RollingProbe(info) if mode == "auto" else None
-    with progress_group(disable=not show_progress):
-        # The estimator is built (a network: torch, the weights) while the overlays are looked
-        # for, and the scan starts once it is, the overlays still being looked for; it starts
-        # again if one is found (_scan).
-        pending, scanner = frame_mask_pending(build, video, options.mask, info, show_progress, lens)
-        with pending:
-            built = time.perf_counter() - clock
-            clock = time.perf_counter()
-            guide = GroundGuide(track, info.source_size) if info.is_image_folder and track is not None else None
-            scan, speculation = _scan(video, info, scanner, options, show_progress, spill if options.spill else None,
-                                      pending, probe, guide, lens)
-            scanned = time.perf_counter() - clock
-    mask = pending.result()
-    # The overlays' share: the build (the detection beside it), the scan's end waiting for
-    # the detection, and a scan discarded for an overlay found (left out of "scan").
-    seconds["overlays"] = seconds.get("overlays", 0.0) + built + speculation.seconds
-    seconds["scan"] = seconds.get("scan", 0.0) + scanned - speculation.seconds
-
-    rolling = None
-    if mode != "off":
-        clock = time.perf_counter()
-        rolling = plan_rolling(video, info, mode, show_progress, "stitch: rolling shutter", probe, lens)
-        seconds["rolling"] = seconds.get("rolling", 0.0) + time.perf_counter() - clock + (probe.seconds if probe is not None else 0.0)
-
-    if not scan.keyframes:
-        raise BadInput(f"{video}: no frame is usable (all black, blank or over-exposed)")
-    return ScannedFlight(scan, mask, rolling, scanner, speculation.restarted)
 
 
 def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, options: StitchOptions,
@@ -492,94 +354,6 @@ def _georeference(placements, ref: int, indices: list[int], scan: FlightScan, tr
         return None, "the telemetry gives its keyframes no position"
 
 
-def _check_inputs(video, out, transforms, options: StitchOptions, info: VideoInfo | None = None) -> tuple[VideoInfo, str | int]:
-    """Every check of the input and the outputs that can fail fast, before decoding a single
-    frame (the options checked themselves when they were made).  ``info``: the caller's probe."""
-    check_outputs(out, transforms, options.canvas.max_size)
-    reference = parse_reference(options.canvas.reference)
-    if info is None:
-        info = probe(video)
-    else:
-        refuse_damaged(info)
-    if info.frame_count is not None and options.start >= info.frame_count > 0:
-        raise BadInput(f"--start {options.start} is past the end of {video} ({info.frame_count} frames)")
-    if isinstance(reference, int) and info.frame_count and reference >= options.start + info.frame_count:
-        raise BadInput(f"--reference {reference} is past the end of {video} ({info.frame_count} frames)")
-    check_mask_file(options.mask, info)
-    return info, reference
-
-
-def plan_stitch_estimator(options: StitchOptions) -> Callable[[], Estimator]:
-    """The scan's estimator as ``options`` name it (``--estimator``, ``--work-width``,
-    ``--weights``, ``--device``), checked now and built when the returned function is called."""
-    return plan_estimator(options.estimator, work_width=options.work_width, weights=options.weights, device=options.device)
-
-
-def make_stitch_estimator(options: StitchOptions) -> Estimator:
-    """The scan's estimator as ``options`` name it, built."""
-    return plan_stitch_estimator(options)()
-
-
-def _time_span(info: VideoInfo, options: StitchOptions) -> tuple[float, float] | None:
-    """Seconds of video the stitch covers, when the frame count is known."""
-    if not info.frame_count or info.fps <= 0:
-        return None
-    end = info.frame_count if options.max_frames is None else min(info.frame_count, options.start + options.max_frames)
-    return options.start / info.fps, (end - 1) / info.fps
-
-
-def frames_to_scan(info: VideoInfo, options: StitchOptions) -> int | None:
-    """How many frames the scan reads (from ``--start``, at most ``--max-frames``), by the
-    reader's own count (it rescales, it does not recount); None where that count is unknown."""
-    if info.frame_count is None:
-        return None
-    total = max(0, info.frame_count - options.start)
-    return total if options.max_frames is None else min(total, options.max_frames)
-
-
-def _scan(video, info: VideoInfo, estimator: Estimator, options: StitchOptions, show_progress: bool, spill: str | None,
-          mask: PendingMask, probe: RollingProbe | None = None, guide: GroundGuide | None = None,
-          lens: ImageFilter | None = None) -> tuple[FlightScan, Speculation]:
-    """The scan (keyframes, their placements and pixels), started with the mask known so far
-    and started again, its keyframes and their spilled pixels dropped, if the overlays found
-    change it (:func:`~mosaic_cli.overlay.speculate`); its progress is shown once the mask is
-    settled.  ``lens``: the frames' filter (``--lens``)."""
-    # Decode no larger than the canvas could use: frames are kept for compositing at most at max_size.
-    max_size = options.canvas.max_size
-    width = None
-    if max_size and max(info.source_size) > max_size:
-        width = max(2, int(info.source_size[0] * max_size / max(info.source_size)))
-    decode_size = scaled_size(info.source_size, width)
-    total = frames_to_scan(info, options)
-    photos = info.is_image_folder
-    label, unit = ("scan (photos, features)", "photos/s") if photos else (f"scan ({estimator.name})", "fr/s")
-
-    def attempt(use: np.ndarray | None, gate: Gate) -> FlightScan:
-        if gate.restarted and probe is not None:
-            probe.restart()
-        estimator.set_mask(use)
-        scanner = FlightScanner(info.source_size, decode_size, info.fps, options.start, options.keyframes, options.features,
-                                max_size, spill, use, guide, info.photo_fits)
-        try:
-            # Only frames whose pixels the scan keeps (the keyframes) are converted to RGB; the
-            # others serve only their gray copies.
-            with open_video(video, width=width, start=options.start, info=info, lazy_rgb=True, lens=lens) as stream:
-                frames = gate.frames(itertools.islice(stream, options.max_frames))
-                shown = functools.partial(gate.emit, advance)
-                if photos:
-                    scan = scan_photos(frames, scanner, shown)
-                else:
-                    scan = scan_flight(frames if probe is None else probe.tap(frames), estimator, scanner, shown)
-            gate.wait()
-        except MaskChanged:
-            scanner.discard()  # its spilled pixels go now, not with the stitch's folder
-            raise
-        return scan
-
-    with progress_task(label, total, unit=unit, disable=not show_progress) as advance:
-        return speculate(mask, attempt)
-
-
 def _register(scan: FlightScan, reference: str | int, options: StitchOptions, show_progress: bool, track: FlightLog | None = None):
     """The panoramas: for each, its keyframes (positions in ``scan.keyframes``), their
     keyframe -> reference placements (jointly refined, or chained from the scan's
@@ -710,7 +484,6 @@ def _row_map(rolling: RollingCorrection, index: int, source_size: tuple[int, int
     u, v = sx * u + bx, sy * v + by
     reach = float(max(np.max(np.abs(u - edge_x)), np.max(np.abs(v - edge_y)))) / min(sx, sy) + 1.0
     return rows, reach
-
 
 
 def _to_mid_time(scan: FlightScan, rolling: RollingCorrection) -> None:
