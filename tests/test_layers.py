@@ -112,23 +112,9 @@ def test_the_layers_hold():
     assert run.returncode == 0, run.stdout + run.stderr
 
 
-def top_level_cycle(graph) -> list[str] | None:
-    """One circle of imports between mosaic_cli's top-level modules and subpackages (each import of
-    a module inside one counted as the package's), as the list of modules round it; None if none."""
-    edges: dict[str, set[str]] = {}
-
-    def top(module: str) -> str | None:
-        parts = module.split(".")
-        return ".".join(parts[:2]) if len(parts) > 1 else None
-
-    for module in graph.modules:
-        source = top(module)
-        if source is None:
-            continue
-        for imported in graph.find_modules_directly_imported_by(module):
-            target = top(imported)
-            if target is not None and target != source:
-                edges.setdefault(source, set()).add(target)
+def cycle_in(edges: dict[str, set[str]]) -> list[str] | None:
+    """One circle of ``edges`` (node -> the nodes it imports), as the list of nodes round it (the
+    first repeated last); None if none."""
     state: dict[str, int] = {}  # 1: on the current path, 2: done
     path: list[str] = []
 
@@ -150,6 +136,32 @@ def top_level_cycle(graph) -> list[str] | None:
     return None
 
 
+def top_level_cycle(graph) -> list[str] | None:
+    """One circle of imports between mosaic_cli's top-level modules and subpackages (each import of
+    a module inside one counted as the package's); None if none."""
+    edges: dict[str, set[str]] = {}
+
+    def top(module: str) -> str | None:
+        parts = module.split(".")
+        return ".".join(parts[:2]) if len(parts) > 1 else None
+
+    for module in graph.modules:
+        source = top(module)
+        if source is None:
+            continue
+        for imported in graph.find_modules_directly_imported_by(module):
+            target = top(imported)
+            if target is not None and target != source:
+                edges.setdefault(source, set()).add(target)
+    return cycle_in(edges)
+
+
+def module_cycle(graph) -> list[str] | None:
+    """One circle of imports between any two modules (a package's ``__init__`` is one), inside a
+    package too; None if none."""
+    return cycle_in({m: set(graph.find_modules_directly_imported_by(m)) - {m} for m in graph.modules})
+
+
 def test_the_cycle_finder_finds_a_circle():
     class Graph:
         modules = {"mosaic_cli", "mosaic_cli.inputs", "mosaic_cli.overlay.merge", "mosaic_cli.video.writer"}
@@ -162,8 +174,27 @@ def test_the_cycle_finder_finds_a_circle():
     found = top_level_cycle(Graph())
     assert found is not None and found[0] == found[-1]
     assert set(found) == {"mosaic_cli.inputs", "mosaic_cli.overlay", "mosaic_cli.video"}
+    assert module_cycle(Graph()) == ["mosaic_cli.inputs", "mosaic_cli.overlay.merge", "mosaic_cli.video.writer", "mosaic_cli.inputs"]
     del Graph.imports["mosaic_cli.video.writer"]
+    assert top_level_cycle(Graph()) is None and module_cycle(Graph()) is None
+
+
+def test_the_module_cycle_finder_sees_a_circle_inside_one_package():
+    """What top_level_cycle cannot see: two modules of one package that import each other (as
+    stitch/pipeline.py and stitch/flights.py did, the first inside a function)."""
+
+    class Graph:
+        modules = {"mosaic_cli.stitch", "mosaic_cli.stitch.pipeline", "mosaic_cli.stitch.flights", "mosaic_cli.stitch.canvas"}
+        imports = {"mosaic_cli.stitch.pipeline": {"mosaic_cli.stitch.flights", "mosaic_cli.stitch.canvas"},
+                   "mosaic_cli.stitch.flights": {"mosaic_cli.stitch.pipeline"}}
+
+        def find_modules_directly_imported_by(self, module):
+            return self.imports.get(module, set())
+
     assert top_level_cycle(Graph()) is None
+    assert module_cycle(Graph()) == ["mosaic_cli.stitch.flights", "mosaic_cli.stitch.pipeline", "mosaic_cli.stitch.flights"]
+    Graph.imports["mosaic_cli.stitch.flights"] = {"mosaic_cli.stitch.canvas"}
+    assert module_cycle(Graph()) is None
 
 
 def test_no_import_circle_between_the_packages_type_checking_imports_included():
@@ -178,3 +209,13 @@ def test_no_import_circle_between_the_packages_type_checking_imports_included():
     assert config.get("exclude_type_checking_imports") is False
     graph = grimp.build_graph("mosaic_cli", exclude_type_checking_imports=False, cache_dir=None)
     assert top_level_cycle(graph) is None
+
+
+def test_no_import_circle_between_any_two_modules():
+    """No two modules import each other, directly or round a longer loop, inside one package too,
+    an import in a function or for the type checker included: each module can be read knowing
+    only those below it (stitch/pipeline.py and stitch/flights.py, telemetry/photos.py and
+    telemetry/flight_log.py, estimators/__init__.py and estimators/learned.py once did)."""
+    grimp = pytest.importorskip("grimp")
+    graph = grimp.build_graph("mosaic_cli", exclude_type_checking_imports=False, cache_dir=None)
+    assert module_cycle(graph) is None

@@ -12,7 +12,7 @@ from pathlib import Path
 from mosaic_cli.device import check_device
 from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.base import Estimator, IdentityEstimator, PairEstimate, estimate_stream  # noqa: F401
-from mosaic_cli.estimators.learned_config import LearnedConfig
+from mosaic_cli.estimators.learned_config import LEARNED, LearnedConfig
 from mosaic_cli.estimators.options import Option, options_of
 from mosaic_cli.estimators.orb import OrbConfig, OrbEstimator
 from mosaic_cli.estimators.paper_orb import PaperOrbEstimator
@@ -20,7 +20,6 @@ from mosaic_cli.estimators.weights import default_weights
 from mosaic_cli.inputs import check_weights_file
 
 CLASSICAL = ("orb", "orb-ransac", "orb-paper", "identity")
-LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
 NAMES = (*CLASSICAL, *LEARNED)
 MIN_WORK_WIDTH, MAX_WORK_WIDTH = 32, 4096  # estimators work on frames this wide (px)
 # The classical estimators' width unless --work-width says otherwise: track and stitch (stitch

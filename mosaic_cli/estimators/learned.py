@@ -51,10 +51,9 @@ import torch
 
 from mosaic_cli.device import pair_threads, resolve_device, use_cpu_threads
 from mosaic_cli.errors import BadInput
-from mosaic_cli.estimators import LEARNED
 from mosaic_cli.estimators.base import PairEstimate
 from mosaic_cli.estimators.learned_checks import PATHS, WorkFrame
-from mosaic_cli.estimators.learned_config import PRECISIONS, LearnedConfig
+from mosaic_cli.estimators.learned_config import LEARNED, PRECISIONS, LearnedConfig
 from mosaic_cli.estimators.learned_network import patch_positions
 from mosaic_cli.estimators.learned_schedule import PairSchedule
 from mosaic_cli.estimators.orb import OrbEstimator

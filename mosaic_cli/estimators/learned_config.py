@@ -11,6 +11,8 @@ from mosaic_cli.errors import BadInput
 from mosaic_cli.estimators.options import check_choices, option
 from mosaic_cli.estimators.refine import CornerConfig, PolishConfig, Polisher
 
+LEARNED = ("lstm", "cnn")  # the learned estimators: the network heads (model.network.HEADS) by name
+
 # The values of the options that take one of a few: the annotations of LearnedConfig's fields,
 # which the command line reads its choices from (mosaic_cli.estimators.options).
 PatchLayout = Literal[1, 5, 9]

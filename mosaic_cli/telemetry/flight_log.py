@@ -11,12 +11,10 @@ Unknown values are NaN; a sample without a GPS fix has NaN latitude and longitud
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from mosaic_cli.telemetry.photos import PhotoTags
+from mosaic_cli.telemetry.photo_tags import PhotoTags
 
 FIELDS = ("lat", "lon", "alt", "height", "yaw", "pitch", "roll", "hfov")
 
