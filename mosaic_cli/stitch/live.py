@@ -285,9 +285,19 @@ class LivePreview:
         out[y0:y1, x0:x1] = region
 
 
+@dataclass
+class LiveStitchResult(StitchResult):
+    """A live stitch's result: the stitch's, and what the scan of the arriving frames did."""
+
+    previews: int = 0  # previews written
+    preview_seconds: float = 0.0  # drawing them, in all
+    ended_by: str | None = None  # a live source: what ended it ("end of stream", "timeout", "Ctrl-C", "SIGTERM")
+    timeline: Timeline | None = None  # each frame's time stamps by stage (live/timeline.py)
+
+
 def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None, options: StitchOptions | None = None,
                 transforms: str | Path | None = None, preview: PreviewOptions | None = None,
-                show_progress: bool = True, info: VideoInfo | None = None, *, lens: ImageFilter | None = None) -> StitchResult:
+                show_progress: bool = True, info: VideoInfo | None = None, *, lens: ImageFilter | None = None) -> LiveStitchResult:
     """Stitch ``source`` (a live source, or a file read as one) into ``out``, writing a growing
     preview on the way when ``preview.path`` is given.  ``estimator``: None builds the one
     ``options`` name once the request is checked.  ``info``: a file's probe, when the caller has it.
@@ -365,12 +375,8 @@ def stitch_live(source: str, out: str | Path, estimator: Estimator | None = None
             raise BadInput(f"{source}: no frame is usable (all black, blank or over-exposed)")
         # The stages after the scan as in pipeline.stitch, on the same keyframes.
         result = finish_stitch(scan, reference, out, options, transforms, show_progress, seconds, masked, track)
-        result.previews = drawer.written  # type: ignore[attr-defined]
-        result.preview_loops = registration.loops_closed if registration else 0  # type: ignore[attr-defined]
-        result.preview_seconds = drawer.seconds  # type: ignore[attr-defined]
-        result.ended_by = stream.ended_by if live else None  # type: ignore[attr-defined]
-        result.timeline = timeline  # type: ignore[attr-defined]
-        return result
+        return LiveStitchResult(**vars(result), previews=drawer.written, preview_seconds=drawer.seconds,
+                                ended_by=stream.ended_by if live else None, timeline=timeline)
 
 
 def _georef_telemetry(source: str, out: str | Path, options: StitchOptions, live: bool, info: VideoInfo | None = None):
