@@ -78,10 +78,11 @@ def _fail(message: str, code: int) -> None:
 
 
 def _quiet_opencv() -> None:
-    """OpenCV's warnings (a GeoTIFF's unknown tags, say) are not the user's business: errors only."""
+    """OpenCV's log (a GeoTIFF's unknown tags, libtiff's complaint about a damaged TIFF) is not the
+    user's business: what fails reaches them as mosaic's own one line."""
     import cv2
 
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
 
 
 # Signals end a run by unwinding it as Ctrl-C does, so that every temporary output is removed on

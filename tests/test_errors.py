@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import assert_one_line_error, ffmpeg, run_cli, write_clip
+from conftest import assert_one_line_error, cli_exit, ffmpeg, run_cli, write_clip
 from mosaic_cli.cli import main
 
 
@@ -261,3 +261,30 @@ def test_work_width_has_one_rule_for_every_command(capsys, tiny_clip, tmp_path, 
     code, err = run_cli(capsys, command, tiny_clip, *out, "-e", "orb", "--work-width", width, "-q")
     assert_one_line_error(code, err, "--work-width must be in 32..4096")
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("suffix,fragments", [(".jpg", ("b.jpg", "damaged image", "truncated")), (".png", ("b.png", "damaged image")),
+                                              (".tif", ("b.tif", "not an image"))])
+def test_a_photo_cut_short_is_refused_in_one_line(capfd, tmp_path, suffix, fragments):
+    """A copy cut short (two thirds of its bytes): OpenCV decodes such a JPEG with its missing rows
+    grey and says so only through libjpeg's line on stderr, so the photo went into the panorama;
+    a PNG or TIFF left libpng's or libtiff's lines beside mosaic's.  Each is now one line naming
+    the photo, from the stream's bytes before any C library prints (captured at the file
+    descriptor, where those libraries write)."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    ground = cv2.GaussianBlur(rng.integers(0, 255, (480, 900, 3), dtype=np.uint8), (0, 0), 3)
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k, name in enumerate("abc"):
+        path = folder / f"{name}{suffix}"
+        cv2.imwrite(str(path), ground[:, 200 * k: 200 * k + 500])
+    damaged = folder / f"b{suffix}"
+    data = damaged.read_bytes()
+    damaged.write_bytes(data[: len(data) * 2 // 3])
+    assert cv2.imread(str(damaged)) is not None or suffix != ".jpg"  # what OpenCV alone makes of the JPEG
+    capfd.readouterr()
+    code = cli_exit(["stitch", folder, "-o", tmp_path / "pano.png", "-q"])
+    assert_one_line_error(code, capfd.readouterr().err, *fragments)
+    assert not (tmp_path / "pano.png").exists()

@@ -39,21 +39,26 @@ DEFAULT_PHOTO_INTERVAL = 2.0  # seconds between survey photos when their EXIF gi
 def read_photo_tags(path: str | Path) -> PhotoTags:
     """The metadata of one JPEG or TIFF photo.  Never raises for damaged metadata: what could
     not be read is named in ``problems`` (the photo's pixels are read elsewhere)."""
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     tags = PhotoTags(Path(path))
-    try:
-        with Image.open(path) as image:
-            tags.width, tags.height_px = image.size
-            try:
-                _read_exif(image, tags)
-            except Exception as exc:  # a damaged EXIF block must not cost the photo  # noqa: BLE001
-                tags.problems.append(f"EXIF unreadable: {type(exc).__name__}")
-            xmp = image.info.get("xmp") or _tiff_xmp(image)
-            if xmp:
-                _read_dji_xmp(xmp, tags)
-    except (OSError, UnidentifiedImageError, ValueError) as exc:
-        tags.problems.append(f"metadata unreadable: {type(exc).__name__}")
+    with warnings.catch_warnings(record=True) as said:  # Pillow's about damaged EXIF: named, not printed
+        warnings.simplefilter("always")
+        try:
+            with Image.open(path) as image:
+                tags.width, tags.height_px = image.size
+                try:
+                    _read_exif(image, tags)
+                except Exception as exc:  # a damaged EXIF block must not cost the photo  # noqa: BLE001
+                    tags.problems.append(f"EXIF unreadable: {type(exc).__name__}")
+                xmp = image.info.get("xmp") or _tiff_xmp(image)
+                if xmp:
+                    _read_dji_xmp(xmp, tags)
+        except (OSError, UnidentifiedImageError, ValueError) as exc:
+            tags.problems.append(f"metadata unreadable: {type(exc).__name__}")
+    tags.problems += [str(w.message).strip() for w in said if issubclass(w.category, UserWarning)][:1]
     return tags
 
 

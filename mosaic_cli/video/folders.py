@@ -33,20 +33,50 @@ def folder_images(folder: Path) -> list[Path]:
 
 
 def read_image_rgb(path: Path) -> np.ndarray:
+    check_intact(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise BadInput(f"{path}: not an image OpenCV can read")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def image_size(path: Path) -> tuple[int, int] | None:
-    """(w, h) of an image as it is displayed (its EXIF orientation applied, as OpenCV reads it),
-    from its header alone; None where Pillow cannot read the header."""
+def check_intact(path: Path) -> None:
+    """Refuse a damaged image before OpenCV decodes it: OpenCV decodes a truncated JPEG (a copy cut
+    short) with its missing part grey, libjpeg's warning on stderr the only sign, and leaves
+    libpng's complaint on stderr for a PNG.  Pillow reads a JPEG's whole coded data at 1/8 scale
+    (about half the time of OpenCV's decode) and a PNG's chunks with their checksums; other
+    formats are OpenCV's to refuse (``read_image_rgb``)."""
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as image:
-            return shown_size(image.size, image.getexif().get(EXIF_ORIENTATION, 1))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Pillow's (a large photo, odd EXIF): only what fails counts here
+            with Image.open(path) as image:
+                if image.format == "JPEG":
+                    image.draft("RGB", (max(1, image.size[0] // 8), max(1, image.size[1] // 8)))
+                    image.load()
+                elif image.format == "PNG":
+                    image.verify()
+    except (UnidentifiedImageError, Image.DecompressionBombError):
+        return  # a format Pillow does not read, or past its size limit: OpenCV decides
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise BadInput(f"{path}: damaged image ({exc}): copy it again, or take it out of the folder") from None
+
+
+def image_size(path: Path) -> tuple[int, int] | None:
+    """(w, h) of an image as it is displayed (its EXIF orientation applied, as OpenCV reads it),
+    from its header alone; None where Pillow cannot read the header."""
+    import warnings
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Pillow's about damaged EXIF: read_photo_tags names those
+            with Image.open(path) as image:
+                return shown_size(image.size, image.getexif().get(EXIF_ORIENTATION, 1))
     except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
         return None
 
