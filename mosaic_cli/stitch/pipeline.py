@@ -200,68 +200,77 @@ def finish_stitch(scan: FlightScan, reference: str | int, out: str | Path, optio
     groups, spans = [groups[g] for g in order], [spans[g] for g in order]
 
     seconds["compose"] = seconds["write"] = 0.0
-    panoramas = []
-    for number, (members, placements, ref, segments) in enumerate(groups):
-        keyframes = [scan.keyframes[k] for k in members]
-        indices = [k.index for k in keyframes]
-        georef, off_map = None, None
-        if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
-            clock = time.perf_counter()
-            # a video's first part must be laid on the ground; a photo folder's may be one photo
-            georef, off_map = _georeference(placements, ref, indices, scan, track, options.georef, first=0 in members and not scan.photos)
-            if georef is not None:
-                placements = georef.placements_in_pixels(placements)
-            seconds["register"] += time.perf_counter() - clock
-
-        clock = time.perf_counter()
-        drawn = [k.composited for k in keyframes]
-        path, json_path = numbered(out, number), Path(numbered(transforms, number)) if transforms is not None else None
-        fmt = output_format(path) or ""  # (check_outputs knew it)
-        canvas_options, limit = options.canvas, None
-        if fmt == "jpeg" and canvas_options.max_size is None:
-            canvas_options = dataclasses.replace(canvas_options, max_size=JPEG_MAX_SIDE)
-            limit = f"JPEG's limit of {JPEG_MAX_SIDE} pixels a side (a .png or .tif keeps every pixel)"
-        canvas = plan_canvas(placements, indices, scan.source_size, canvas_options, drawn, georef.gsd if georef is not None else None, limit)
-        frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
-        crs, transform = (None, None) if georef is None else (georef.projection.crs.to_wkt(), geotransform(georef, canvas.to_canvas))
-        # The panorama goes tile by tile into a file beside the output (stitch/raster.py), from
-        # which every format is written: no canvas is ever held in memory.
-        with staged_panorama(path, canvas.size, crs, transform, keep=fmt == "tiff" and georef is None) as staged:
-            _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, _compose_options(options), show_progress,
-                     scan.use, rolling, staged, runner)
-            filled = _fill_holes(staged, options.compose.fill_holes)
-            seconds["compose"] += time.perf_counter() - clock
-
-            clock = time.perf_counter()
-            extra, written = None, False
-            if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
-                assert options.georef is not None
-                footprints, html = options.georef.footprints, options.georef.html
-                own = dataclasses.replace(options.georef, footprints=Path(numbered(footprints, number)) if footprints is not None else None,
-                                          html=Path(numbered(html, number)) if html is not None else None)
-                written = write_outputs(path, staged, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps,
-                                        _photo_boxes(scan))
-                extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
-            if not written:
-                write_image(path, staged, fmt)
-        # Every keyframe is reported, also those over ground already drawn (used for registration).
-        frames = list(zip(indices, frame_to_canvas))
-        if json_path is not None:
-            write_transforms(json_path, canvas.size, frames, _per_frame_keys(extra, frames, scan))
-        seconds["write"] += time.perf_counter() - clock
-        bands = None
-        if rolling is not None:
-            centres = band_centres(scan.source_size[1], rolling.corrections.shape[1])
-            bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
-        shrunk_from = canvas.native_size if canvas.scale < 1.0 else None
-        panoramas.append(Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, spans[number], bands, filled,
-                                  shrunk_from, canvas.shrunk_by, off_map))
+    panoramas = [_panorama(number, group, spans[number], scan, track, options, out, transforms, show_progress, seconds, rolling, runner)
+                 for number, group in enumerate(groups)]
     first = panoramas[0]
     return StitchResult(
         first.canvas_size, first.transforms, first.reference_frame, scan.frames, len(scan.keyframes), report,
         seconds, panoramas, scan.dropped, scan.photos, mask, first.georef, planned,
         pairs_tried=scan.pairs_tried + report.loop_candidates, flights=scan.flights,
     )
+
+
+def _panorama(number: int, group, span: list[tuple[int, int]], scan: FlightScan, track: FlightLog | None, options: StitchOptions,
+              out: str | Path, transforms: str | Path | None, show_progress: bool, seconds: dict[str, float],
+              rolling: RollingCorrection | None, runner: TileRunner | None) -> Panorama:
+    """One part of the flight (``group``: its keyframes, their placements, its reference, its
+    segments) laid on the ground (with telemetry), planned, composed and written under its name
+    (``number`` 0: the name given; then pano-2, ...); ``seconds`` gains the stages' times."""
+    members, placements, ref, segments = group
+    keyframes = [scan.keyframes[k] for k in members]
+    indices = [k.index for k in keyframes]
+    georef, off_map = None, None
+    if track is not None:  # geo hook: the mosaic laid north-up on the ground, in ground pixels
+        clock = time.perf_counter()
+        # a video's first part must be laid on the ground; a photo folder's may be one photo
+        georef, off_map = _georeference(placements, ref, indices, scan, track, options.georef, first=0 in members and not scan.photos)
+        if georef is not None:
+            placements = georef.placements_in_pixels(placements)
+        seconds["register"] += time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    drawn = [k.composited for k in keyframes]
+    path, json_path = numbered(out, number), Path(numbered(transforms, number)) if transforms is not None else None
+    fmt = output_format(path) or ""  # (check_outputs knew it)
+    canvas_options, limit = options.canvas, None
+    if fmt == "jpeg" and canvas_options.max_size is None:
+        canvas_options = dataclasses.replace(canvas_options, max_size=JPEG_MAX_SIDE)
+        limit = f"JPEG's limit of {JPEG_MAX_SIDE} pixels a side (a .png or .tif keeps every pixel)"
+    canvas = plan_canvas(placements, indices, scan.source_size, canvas_options, drawn, georef.gsd if georef is not None else None, limit)
+    frame_to_canvas = [canvas.frame_to_canvas(H) for H in placements]
+    crs, transform = (None, None) if georef is None else (georef.projection.crs.to_wkt(), geotransform(georef, canvas.to_canvas))
+    # The panorama goes tile by tile into a file beside the output (stitch/raster.py), from
+    # which every format is written: no canvas is ever held in memory.
+    with staged_panorama(path, canvas.size, crs, transform, keep=fmt == "tiff" and georef is None) as staged:
+        _compose(keyframes, scan.source_size, frame_to_canvas, canvas.size, _compose_options(options), show_progress,
+                 scan.use, rolling, staged, runner)
+        filled = _fill_holes(staged, options.compose.fill_holes)
+        seconds["compose"] += time.perf_counter() - clock
+
+        clock = time.perf_counter()
+        extra, written = None, False
+        if georef is not None:  # geo hook: GeoTIFF, footprints, map homographies
+            assert options.georef is not None
+            footprints, html = options.georef.footprints, options.georef.html
+            own = dataclasses.replace(options.georef, footprints=Path(numbered(footprints, number)) if footprints is not None else None,
+                                      html=Path(numbered(html, number)) if html is not None else None)
+            written = write_outputs(path, staged, georef, own, canvas.to_canvas, frame_to_canvas, scan.source_size, scan.fps,
+                                    _photo_boxes(scan))
+            extra = transforms_extra(georef, map_homographies(georef, canvas.to_canvas, frame_to_canvas))
+        if not written:
+            write_image(path, staged, fmt)
+    # Every keyframe is reported, also those over ground already drawn (used for registration).
+    frames = list(zip(indices, frame_to_canvas))
+    if json_path is not None:
+        write_transforms(json_path, canvas.size, frames, _per_frame_keys(extra, frames, scan))
+    seconds["write"] += time.perf_counter() - clock
+    bands = None
+    if rolling is not None:
+        centres = band_centres(scan.source_size[1], rolling.corrections.shape[1])
+        bands = [normalize(H @ similarity_matrix(rolling.row_channels(i, centres), scan.source_size)) for i, H in frames]
+    shrunk_from = canvas.native_size if canvas.scale < 1.0 else None
+    return Panorama(Path(path), json_path, canvas.size, frames, indices[ref], segments, georef, span, bands, filled, shrunk_from,
+                    canvas.shrunk_by, off_map)
 
 
 def _on_one_map(groups, scan: FlightScan, track: FlightLog, options: StitchOptions):
