@@ -16,9 +16,7 @@ from mosaic_cli.stitch.cluster import ClusterOptions
 from mosaic_cli.stitch.compose import ComposeOptions
 from mosaic_cli.stitch.features import FeatureOptions
 from mosaic_cli.stitch.keyframes import KeyframeOptions
-from mosaic_cli.stitch.registration import (
-    RegistrationOptions,
-)
+from mosaic_cli.stitch.registration import RegistrationOptions
 from mosaic_cli.stitch.segments import JoinOptions
 
 

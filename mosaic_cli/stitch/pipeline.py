@@ -57,11 +57,7 @@ from mosaic_cli.stitch.keyframes import FlightScan, FlightSpan, KeyframeOptions
 from mosaic_cli.stitch.options import StitchOptions
 from mosaic_cli.stitch.output import JPEG_MAX_SIDE, numbered, output_format, write_transforms
 from mosaic_cli.stitch.raster import MemoryPanorama, StagedPanorama, staged_panorama, write_image
-from mosaic_cli.stitch.registration import (
-    RegistrationReport,
-    chain_sequence,
-    register_keyframes,
-)
+from mosaic_cli.stitch.registration import RegistrationReport, chain_sequence, register_keyframes
 from mosaic_cli.stitch.scan import plan_stitch_estimator, prepare_flight, scan_prepared
 from mosaic_cli.stitch.segments import Joined, join_segments
 from mosaic_cli.stitch.workers import scan_segments
