@@ -269,8 +269,8 @@ def test_a_photo_cut_short_is_refused_in_one_line(capfd, tmp_path, suffix, fragm
     """A copy cut short (two thirds of its bytes): OpenCV decodes such a JPEG with its missing rows
     grey and says so only through libjpeg's line on stderr, so the photo went into the panorama;
     a PNG or TIFF left libpng's or libtiff's lines beside mosaic's.  Each is now one line naming
-    the photo, from the stream's bytes before any C library prints (captured at the file
-    descriptor, where those libraries write)."""
+    the photo (Pillow reads its bytes before OpenCV decodes it); stderr is captured at the file
+    descriptor, where those C libraries write."""
     import cv2
 
     rng = np.random.default_rng(5)
