@@ -288,3 +288,17 @@ def test_a_photo_cut_short_is_refused_in_one_line(capfd, tmp_path, suffix, fragm
     code = cli_exit(["stitch", folder, "-o", tmp_path / "pano.png", "-q"])
     assert_one_line_error(code, capfd.readouterr().err, *fragments)
     assert not (tmp_path / "pano.png").exists()
+
+
+def test_a_map_image_cut_short_is_refused_in_one_line(capfd, tmp_path):
+    """``mosaic simulate MAP``: a map JPEG cut short was flown over with its missing rows grey."""
+    import cv2
+
+    rng = np.random.default_rng(6)
+    path = tmp_path / "map.jpg"
+    cv2.imwrite(str(path), cv2.GaussianBlur(rng.integers(0, 255, (900, 1200, 3), dtype=np.uint8), (0, 0), 3))
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    capfd.readouterr()
+    code = cli_exit(["simulate", path, "-n", "5", "-o", tmp_path / "flight.mp4"])
+    assert_one_line_error(code, capfd.readouterr().err, "map.jpg", "damaged image")
+    assert not (tmp_path / "flight.mp4").exists()

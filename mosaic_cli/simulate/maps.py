@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from mosaic_cli.errors import BadInput
+from mosaic_cli.video.folders import check_intact
 
 # Colours (RGB) of the land-cover classes of the procedural map.
 _FIELD_COLOURS = np.array(
@@ -257,6 +258,7 @@ def load_map(path: str | Path | None, seed: int = 0) -> np.ndarray:
         raise BadInput(f"{p}: no such file")
     if p.is_dir():
         raise BadInput(f"{p}: is a folder, not a map image")
+    check_intact(p, "copy it again")  # OpenCV would fly over a JPEG cut short, its missing rows grey
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
         raise BadInput(f"{p}: not an image OpenCV can read")

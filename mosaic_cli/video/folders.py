@@ -40,12 +40,12 @@ def read_image_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def check_intact(path: Path) -> None:
+def check_intact(path: Path, remedy: str = "copy it again, or take it out of the folder") -> None:
     """Refuse a damaged image before OpenCV decodes it: OpenCV decodes a truncated JPEG (a copy cut
     short) with its missing part grey, libjpeg's warning on stderr the only sign, and leaves
     libpng's complaint on stderr for a PNG.  Pillow reads a JPEG's whole coded data at 1/8 scale
     (about half the time of OpenCV's decode) and a PNG's chunks with their checksums; other
-    formats are OpenCV's to refuse (``read_image_rgb``)."""
+    formats are OpenCV's to refuse (``read_image_rgb``).  ``remedy``: what the user is told to do."""
     import warnings
 
     from PIL import Image, UnidentifiedImageError
@@ -62,7 +62,7 @@ def check_intact(path: Path) -> None:
     except (UnidentifiedImageError, Image.DecompressionBombError):
         return  # a format Pillow does not read, or past its size limit: OpenCV decides
     except (OSError, SyntaxError, ValueError) as exc:
-        raise BadInput(f"{path}: damaged image ({exc}): copy it again, or take it out of the folder") from None
+        raise BadInput(f"{path}: damaged image ({exc}): {remedy}") from None
 
 
 def image_size(path: Path) -> tuple[int, int] | None:
