@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import sys
-import time
 
 import cv2
 import numpy as np
@@ -64,22 +63,15 @@ def test_every_format_holds_the_pixels_written_tile_by_tile(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.jpg", "p.png", "p.tif"]  # no staging file left
 
 
-@pytest.fixture(scope="module")
-def views(ground) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Eight overlapping views of the ground, of uneven exposure, and their canvas homographies
-    (a 780x460 canvas)."""
+def test_compose_into_the_staged_file_gives_the_in_memory_panorama(ground, tmp_path):
+    """Small tiles, a cache too small to hold one keyframe (every tile reads the spilled pixels
+    again), written through GDAL: the panorama of one tile over the whole canvas, in memory."""
     rng = np.random.default_rng(2)
     views = []
     for k in range(8):
         H = np.array([[1.0, 0.03, 30 + 170 * (k % 4) + rng.uniform(-8, 8)], [-0.03, 1.0, 25 + 190 * (k // 4)], [2e-5, 0, 1]])
         view = cv2.warpPerspective(ground, np.linalg.inv(H), (260, 220))
         views.append((np.clip(view * (0.85 + 0.3 * rng.random()), 0, 255).astype(np.uint8), H))
-    return views
-
-
-def test_compose_into_the_staged_file_gives_the_in_memory_panorama(views, tmp_path):
-    """Small tiles, a cache too small to hold one keyframe (every tile reads the spilled pixels
-    again), written through GDAL: the panorama of one tile over the whole canvas, in memory."""
     canvas = (780, 460)
     whole = compose([PlacedImage(v.copy(), H) for v, H in views], canvas, ComposeOptions(tile=10**6))
     out = tmp_path / "pano.png"
@@ -90,50 +82,6 @@ def test_compose_into_the_staged_file_gives_the_in_memory_panorama(views, tmp_pa
     assert np.array_equal(tiled[..., 3], whole[..., 3]) and (whole[..., 3] == 255).mean() > 0.6
     diff = np.abs(tiled[..., :3] - whole[..., :3].astype(int))
     assert diff.mean() < 0.05 and diff.max() <= 2
-
-
-@pytest.mark.parametrize("cache_megabytes", [1e-6, 0.2, 128.0])
-def test_tiles_blended_on_several_threads_are_those_blended_on_one(views, cache_megabytes):
-    """compose's tiles on 1 and on 3 threads, written in the plan's order: the same pixels to
-    the bit, whether the cache holds no keyframe, about one (sources made, let go and made again
-    while other tiles wait for them) or all of them."""
-    canvas = (780, 460)
-    one, three = (compose([PlacedImage(v.copy(), H) for v, H in views], canvas,
-                          ComposeOptions(tile=64, cache_megabytes=cache_megabytes, threads=threads)) for threads in (1, 3))
-    assert one is not None and np.array_equal(one, three) and (one[..., 3] == 255).mean() > 0.6
-
-
-def test_held_keyframes_makes_a_source_once_for_the_tiles_that_want_it_at_once():
-    """Tiles on threads asking for one keyframe at once: one makes it, the others wait and get
-    that one; where the making fails, each waiting tile makes it itself."""
-    import threading
-    from concurrent.futures import ThreadPoolExecutor
-
-    from mosaic_cli.stitch.compose import HeldKeyframes
-
-    held, made, go = HeldKeyframes(1.0), [], threading.Event()
-
-    def make():
-        made.append(threading.get_ident())
-        go.wait(5)
-        if len(made) == 1 and failing:
-            raise OSError("the spilled file is gone")
-        return np.zeros(1000)
-
-    for failing in (False, True):
-        made.clear()
-        go.clear()
-        held.drop(7)
-        with ThreadPoolExecutor(4) as pool:
-            futures = [pool.submit(held.get, 7, make) for _ in range(4)]
-            time.sleep(0.2)
-            assert len(made) == 1  # the others wait for the first
-            go.set()
-            outcomes = [f.exception(timeout=5) or f.result() for f in futures]
-        errors = [o for o in outcomes if isinstance(o, OSError)]
-        values = [o for o in outcomes if isinstance(o, np.ndarray)]
-        assert len(errors) == int(failing) and len(values) == 4 - int(failing)
-        assert all(v is values[0] for v in values) and len(made) == 1 + int(failing)
 
 
 def test_a_panorama_too_large_for_jpeg_is_one_line_and_leaves_nothing(tmp_path):

@@ -5,12 +5,9 @@ default) at full size.  Uncovered canvas stays transparent (alpha 0)."""
 from __future__ import annotations
 
 import functools
-import os
-import threading
 import uuid
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -52,9 +49,6 @@ class ComposeOptions:
     seam_canvas_megapix: float = 2.0
     tile: int = 2048  # the blender works on square tiles of this side (canvas px), each with its margin
     cache_megabytes: float = 128.0  # keyframe pixels held between the tiles that reach them
-    # Tiles blended at once, each on a thread (OpenCV's blender leaves all but about one core
-    # idle); each adds one tile's buffers to the peak.  None: one a core, at most 4.
-    threads: int | None = None
     max_exposure_blocks: int = 1500  # gain-blocks solves a dense system over all blocks
     # --fill-holes: interior transparent holes (ground under a masked overlay that no keyframe
     # saw) up to this share of the covered area are inpainted; 0 leaves them transparent.
@@ -317,10 +311,8 @@ def compose(
     device = None if options.torch_device is None else resolve_device(options.torch_device)
     last = plan.last_tiles()
     held = HeldKeyframes(options.cache_megabytes)
-
-    def finished(number: int, x0: int, y0: int, rgba: np.ndarray | None) -> None:
-        """Tile ``number`` into the sink, in the plan's order (so a keyframe's last tile is
-        written after every tile before it)."""
+    for number, (x0, y0) in enumerate(plan.tiles):
+        rgba = compose_tile(plan, x0, y0, held, device)
         if rgba is not None:
             out.write(x0, y0, rgba)
         advance(1)
@@ -329,27 +321,6 @@ def compose(
             drop_pixels(plan.placed[k].image)
             plan.placed[k].image = None
             del last[k]
-
-    threads = 1 if device is not None else options.threads or min(os.cpu_count() or 1, 4)
-    if threads <= 1:
-        for number, (x0, y0) in enumerate(plan.tiles):
-            finished(number, x0, y0, compose_tile(plan, x0, y0, held, device))
-        return None if canvas is None else canvas.rgba
-    # The tiles are the same whichever thread blends them: each reads the plan and the held
-    # sources only.  At most ``threads`` are in flight, finished in order.
-    pool = ThreadPoolExecutor(threads, thread_name_prefix="mosaic-compose")
-    in_flight: deque[tuple[int, int, int, Future]] = deque()
-    try:
-        for number, (x0, y0) in enumerate(plan.tiles):
-            in_flight.append((number, x0, y0, pool.submit(compose_tile, plan, x0, y0, held, device)))
-            if len(in_flight) >= threads:
-                number, x0, y0, future = in_flight.popleft()
-                finished(number, x0, y0, future.result())
-        while in_flight:
-            number, x0, y0, future = in_flight.popleft()
-            finished(number, x0, y0, future.result())
-    finally:
-        pool.shutdown(wait=False, cancel_futures=True)  # (a tile that failed, or Ctrl-C: the rest are not wanted)
     return None if canvas is None else canvas.rgba
 
 
@@ -397,44 +368,25 @@ def _tile_number(column: int, row: int, width: int, side: int) -> int:
 
 class HeldKeyframes:
     """The sources of the images the recent tiles reached, at most ``megabytes`` together (the
-    least recently used go first; one is always kept, however large).  Tiles on several threads
-    share it: a source is made once, a second tile that wants it meanwhile waits for it."""
+    least recently used go first; one is always kept, however large)."""
 
     def __init__(self, megabytes: float):
         self.budget = megabytes * 1e6
         self.items: OrderedDict[int, tuple[Any, int]] = OrderedDict()
-        self.lock = threading.Lock()
-        self.making: dict[int, threading.Event] = {}
 
     def get(self, key: int, make: Callable[[], Any]) -> Any:
-        while True:
-            with self.lock:
-                if key in self.items:
-                    self.items.move_to_end(key)
-                    return self.items[key][0]
-                made = self.making.get(key)
-                if made is None:
-                    self.making[key] = threading.Event()
-            if made is None:
-                break
-            made.wait()  # another tile is making it: then it is held (or was let go, and is made again)
-        try:
-            value = make()
-        except BaseException:
-            with self.lock:
-                self.making.pop(key).set()  # a waiting tile makes it itself (and meets the error itself)
-            raise
+        if key in self.items:
+            self.items.move_to_end(key)
+            return self.items[key][0]
+        value = make()
         size = _nbytes(value)
-        with self.lock:
-            while self.items and sum(s for _, s in self.items.values()) + size > self.budget:
-                self.items.popitem(last=False)
-            self.items[key] = (value, size)
-            self.making.pop(key).set()
+        while self.items and sum(s for _, s in self.items.values()) + size > self.budget:
+            self.items.popitem(last=False)
+        self.items[key] = (value, size)
         return value
 
     def drop(self, key: int) -> None:
-        with self.lock:
-            self.items.pop(key, None)
+        self.items.pop(key, None)
 
 
 def _nbytes(value: Any) -> int:
